@@ -1,0 +1,104 @@
+"""Robot-agnostic helpers on a MultibodyPlant: joint indexing and name look-ups.
+
+Every package of hrp2_drake (robot, estimation, control, identification) addresses
+joints by name through these helpers, so nothing depends on Drake's internal ordering
+of positions and velocities (which, for a floating base, is not the URDF order).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from pydrake.multibody.plant import MultibodyPlant
+from pydrake.multibody.tree import Frame, JointIndex
+
+
+@dataclass(frozen=True)
+class JointIndexing:
+    """Where a list of one-dof joints lives in a plant's vectors.
+
+    Attributes:
+        names: the joint names, in the order of every joint vector of this project.
+        q: index of each joint in the plant's position vector q.
+        v: index of each joint in the plant's velocity vector v.
+        u: index of each joint's actuator in the plant's actuation vector, or -1.
+    """
+
+    names: tuple[str, ...]
+    q: np.ndarray
+    v: np.ndarray
+    u: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return len(self.names)
+
+    def positions(self, plant_q: np.ndarray) -> np.ndarray:
+        return plant_q[self.q]
+
+    def subset(self, names: Sequence[str]) -> "JointIndexing":
+        """The indexing of `names`, which must be among these joints."""
+        rows = [self.index_of(n) for n in names]
+        return JointIndexing(tuple(names), self.q[rows], self.v[rows], self.u[rows])
+
+    def index_of(self, name: str) -> int:
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise KeyError(
+                f"joint '{name}' is not among the {self.size} joints "
+                f"({', '.join(self.names[:4])}, ...)"
+            ) from None
+
+
+def joint_indexing(plant: MultibodyPlant, names: Sequence[str]) -> JointIndexing:
+    """Builds the JointIndexing of one-dof joints `names` in a finalized `plant`.
+
+    Raises:
+        KeyError: a name is not a joint of the plant.
+        ValueError: a joint has more or less than one degree of freedom.
+    """
+    actuator_of: dict[JointIndex, int] = {}
+    for index in plant.GetJointActuatorIndices():
+        actuator = plant.get_joint_actuator(index)
+        actuator_of[actuator.joint().index()] = actuator.input_start()
+    q, v, u = [], [], []
+    for name in names:
+        if not plant.HasJointNamed(name):
+            raise KeyError(f"the plant has no joint named '{name}'")
+        joint = plant.GetJointByName(name)
+        if joint.num_positions() != 1 or joint.num_velocities() != 1:
+            raise ValueError(
+                f"joint '{name}' has {joint.num_positions()} positions: "
+                "only one-dof joints are supported"
+            )
+        q.append(joint.position_start())
+        v.append(joint.velocity_start())
+        u.append(actuator_of.get(joint.index(), -1))
+    return JointIndexing(tuple(names), np.array(q), np.array(v), np.array(u))
+
+
+def get_frame(plant: MultibodyPlant, name: str, what: str = "frame") -> Frame:
+    """The frame `name` of `plant` (a body's frame or any named frame).
+
+    Raises:
+        KeyError: with the `what` role in the message (e.g. "IMU frame").
+    """
+    if plant.HasFrameNamed(name):
+        return plant.GetFrameByName(name)
+    if plant.HasBodyNamed(name):
+        return plant.GetBodyByName(name).body_frame()
+    raise KeyError(f"{what} '{name}' is not a frame or body of the plant")
+
+
+def check_vector(name: str, value: np.ndarray, size: int, where: str) -> np.ndarray:
+    """Raises ValueError if `value` is not a finite vector of `size` entries."""
+    value = np.asarray(value, dtype=float)
+    if value.shape != (size,):
+        raise ValueError(f"{where}: '{name}' has shape {value.shape}, expected ({size},)")
+    bad = np.flatnonzero(~np.isfinite(value))
+    if bad.size:
+        raise ValueError(f"{where}: '{name}' is not finite at entries {bad.tolist()}")
+    return value
