@@ -461,7 +461,9 @@ def write_servo_yaml(servo: dict[str, dict]) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
+    parser.add_argument("--out", type=Path, default=OUT, help="default: models/hrp2")
     args = parser.parse_args()
+    out = args.out
 
     links = rob_links(read_rob(args.data / "hrp2.rob"))
     joints = [l for l in links if l.joint]
@@ -472,14 +474,14 @@ def main() -> None:
         link.actuator = actuators[link.joint]
     servo = {l.joint: servo_parameters(l.actuator) for l in joints}
 
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "hrp2.urdf").write_text(write_urdf(links, servo))
-    (OUT / "servo.yaml").write_text(write_servo_yaml(servo))
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "hrp2.urdf").write_text(write_urdf(links, servo))
+    (out / "servo.yaml").write_text(write_servo_yaml(servo))
 
     traj = np.loadtxt(args.data / "hrp2_climbing32.pos")[:, :31]
-    with gzip.GzipFile(OUT / "climbing32.pos.gz", "wb", mtime=0) as stream:
+    with gzip.GzipFile(out / "climbing32.pos.gz", "wb", mtime=0) as stream:
         np.savetxt(stream, traj, fmt="%.7g")  # mtime=0: reproducible bytes
-    print(f"wrote {OUT}/hrp2.urdf, servo.yaml, climbing32.pos.gz "
+    print(f"wrote {out}/hrp2.urdf, servo.yaml, climbing32.pos.gz "
           f"({len(joints)} joints, {sum(l.mass for l in links):.3f} kg)")
 
 

@@ -1,0 +1,200 @@
+"""make_station: scenarios, sensors, configs, and the closed-loop behaviour the rest
+of the project stands on (standing still, hanging, the F/T and IMU readings)."""
+
+import numpy as np
+import pytest
+from pydrake.multibody.plant import MultibodyPlant
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import ConstantVectorSource
+
+from hrp2_drake.config import load_config
+from hrp2_drake.experiments.simulate import SimulateConfig, run_simulate
+from hrp2_drake.robot import model
+from hrp2_drake.robot.sensors import ForceTorqueReadout, NoiseConfig, SensorsConfig
+from hrp2_drake.robot.station import (
+    GRAVITY,
+    StationConfig,
+    initial_joint_positions,
+    make_station,
+)
+
+
+def _run(config: StationConfig, duration: float, q_offset=None):
+    builder = DiagramBuilder()
+    station = builder.AddSystem(make_station(config))
+    q_cmd = initial_joint_positions(config)
+    if q_offset is not None:
+        q_cmd = q_cmd + q_offset
+    source = builder.AddSystem(ConstantVectorSource(q_cmd))
+    builder.Connect(source.get_output_port(), station.GetInputPort("q_cmd"))
+    simulator = Simulator(builder.Build())
+    simulator.AdvanceTo(duration)
+    return station, station.GetMyContextFromRoot(simulator.get_context()), q_cmd
+
+
+@pytest.fixture(scope="module")
+def kinematic_plant():
+    plant = MultibodyPlant(0.0)
+    model.add_hrp2(plant)
+    plant.Finalize()
+    return plant
+
+
+def _mass_below(plant, body_name: str) -> float:
+    """Mass of `body_name` and every body outboard of it."""
+    body = plant.GetBodyByName(body_name)
+    context = plant.CreateDefaultContext()
+    total = body.get_mass(context)
+    frontier = [body.index()]
+    while frontier:
+        parent = frontier.pop()
+        for j in plant.GetJointIndices():
+            joint = plant.get_joint(j)
+            if joint.parent_body().index() == parent:
+                total += joint.child_body().get_mass(context)
+                frontier.append(joint.child_body().index())
+    return total
+
+
+def test_total_mass_is_hrp2s(kinematic_plant):
+    context = kinematic_plant.CreateDefaultContext()
+    assert kinematic_plant.CalcTotalMass(context) == pytest.approx(56.037, abs=1e-3)
+    assert kinematic_plant.num_actuators() == 30
+
+
+@pytest.fixture(scope="module")
+def standing_noiseless():
+    config = StationConfig(scenario="standing", sensors=SensorsConfig.noiseless())
+    return _run(config, 1.0)
+
+
+def test_ankle_ft_sum_to_weight_above(standing_noiseless, kinematic_plant):
+    station, context, _ = standing_noiseless
+    feet = sum(_mass_below(kinematic_plant, b) for b in ("RLEG_FOOT", "LLEG_FOOT"))
+    weight_above = (56.037 - feet) * GRAVITY
+    fz = [
+        station.GetOutputPort(f"wrench_{side}_foot").Eval(context)[5]
+        for side in ("right", "left")
+    ]
+    assert min(fz) > 0.3 * weight_above  # both feet loaded, read as +z
+    assert sum(fz) == pytest.approx(weight_above, rel=0.01)
+
+
+def test_wrist_ft_read_hand_weight(standing_noiseless, kinematic_plant):
+    station, context, _ = standing_noiseless
+    for sensor, body in (("right_hand", "RARM_HAND"), ("left_hand", "LARM_HAND")):
+        wrench = station.GetOutputPort(f"wrench_{sensor}").Eval(context)
+        weight = _mass_below(kinematic_plant, body) * GRAVITY
+        assert np.linalg.norm(wrench[3:]) == pytest.approx(weight, rel=0.01)
+
+
+def test_imu_reads_plus_g_standing_still():
+    """Default (noisy, biased) IMU: the mean over 0.5 s is +g along the torso's z
+    within bias + noise."""
+    config = SimulateConfig(station=StationConfig(scenario="standing"), duration=1.0)
+    signals = run_simulate(config).signals
+    accel = signals["imu_linear_acceleration"][500:]
+    gyro = signals["imu_angular_velocity"][500:]
+    mean = accel.mean(axis=0)
+    assert mean[2] == pytest.approx(GRAVITY, abs=0.1)
+    assert np.linalg.norm(mean[:2]) < 0.15
+    assert accel.std(axis=0) == pytest.approx([0.02] * 3, rel=0.2)  # configured noise
+    assert np.abs(gyro.mean(axis=0)).max() < 0.005
+
+
+@pytest.mark.slow
+def test_standing_holds_half_sitting_for_10_s():
+    config = SimulateConfig(station=StationConfig(scenario="standing"), duration=10.0)
+    signals = run_simulate(config).signals
+    base = signals["state_true"][:, :7]  # [quaternion wxyz, xyz]
+    drift = np.linalg.norm(base[-1, 4:7] - base[0, 4:7])
+    tilt = 2 * np.arccos(np.clip(np.abs(base[:, 0]), 0, 1)).max()
+    assert drift < 0.005  # m
+    assert tilt < 0.01  # rad
+    q_err = signals["q_cmd"] - signals["q_measured"]
+    assert np.abs(q_err[1000:]).max() < 0.01  # rad
+    v = signals["state_true"][-1, 37:]
+    assert np.abs(v).max() < 0.05
+
+
+@pytest.mark.slow
+def test_hanging_settles_and_the_base_moves():
+    config = SimulateConfig(station=StationConfig(scenario="hanging"), duration=8.0)
+    signals = run_simulate(config).signals
+    base_xyz = signals["state_true"][:, 4:7]
+    base_v = signals["state_true"][:, 37:43]
+    assert np.linalg.norm(base_v[-1]) < 0.01  # settled
+    assert np.abs(base_xyz - base_xyz[0]).max() > 0.002  # the strings let it move
+    assert np.isfinite(signals["q_measured"]).all()
+
+
+def test_fixed_base_step_response_is_stable():
+    """Every joint commanded 0.05 rad away: the explicit servo torques converge with
+    no oscillation growing, on the light distal joints too."""
+    config = StationConfig(scenario="fixed_base", sensors=SensorsConfig.noiseless())
+    offset = np.full(model.NUM_JOINTS, 0.05)
+    station, context, q_cmd = _run(config, 1.5, offset)
+    x = station.GetOutputPort("state_true").Eval(context)
+    q, v = x[:30], x[30:]
+    assert np.abs(v).max() < 0.01
+    assert np.abs(q_cmd - q).max() < 0.02  # Kτ τ + dead zone under gravity
+
+
+def test_standing_on_block_loads_the_right_foot_on_the_block():
+    config = StationConfig(
+        scenario="standing_on_block", block_height=0.05, sensors=SensorsConfig.noiseless()
+    )
+    station, context, _ = _run(config, 1.0)
+    plant = station.GetSubsystemByName("plant")
+    fz_right = station.GetOutputPort("wrench_right_foot").Eval(context)[5]
+    fz_left = station.GetOutputPort("wrench_left_foot").Eval(context)[5]
+    assert fz_right > 150 and fz_left > 150
+    poses = station.GetOutputPort("body_poses").Eval(context)
+    foot = plant.GetBodyByName("RLEG_FOOT").index()
+    sole_z = poses[int(foot)].translation()[2] - 0.02  # sensor 0.02 m above the sole
+    assert sole_z == pytest.approx(0.05, abs=0.003)
+
+
+def test_encoders_are_quantized():
+    station, context, _ = _run(StationConfig(scenario="fixed_base"), 0.05)
+    from hrp2_drake.robot.servo import load_servo_params
+
+    res = load_servo_params().vectors(model.JOINT_NAMES)["encoder_resolution"]
+    q = station.GetOutputPort("q_measured").Eval(context)
+    np.testing.assert_allclose(q / res, np.round(q / res), atol=1e-6)
+
+
+def test_noise_repeats_with_the_seed():
+    def accel(seed):
+        cfg = SimulateConfig(station=StationConfig(scenario="fixed_base"), duration=0.05)
+        cfg.station.sensors.seed = seed
+        return run_simulate(cfg).signals["imu_linear_acceleration"]
+
+    a, b, c = accel(1), accel(1), accel(2)
+    np.testing.assert_array_equal(a, b)
+    assert np.abs(a - c).max() > 1e-3
+
+
+def test_config_errors_say_what_and_where(tmp_path):
+    with pytest.raises(ValueError, match=r"sensors\.accelerometer\.stdd"):
+        load_config(StationConfig, data="sensors: {accelerometer: {stdd: [1]}}")
+    with pytest.raises(ValueError, match=r"foo"):
+        load_config(StationConfig, data="foo: 1")
+    with pytest.raises(ValueError, match="unknown scenario 'walking'"):
+        load_config(StationConfig, data="scenario: walking")
+    with pytest.raises(ValueError, match="initial_positions: 3 values"):
+        load_config(StationConfig, data="initial_positions: [0, 0, 0]")
+    path = tmp_path / "station.yaml"
+    path.write_text("scenario: standing\nsensors: {seed: 4}\n")
+    config = load_config(StationConfig, filename=path)
+    assert config.scenario == "standing" and config.sensors.seed == 4
+    bad_noise = StationConfig()
+    bad_noise.sensors.accelerometer = NoiseConfig(std=[0.1, 0.2])
+    with pytest.raises(ValueError, match=r"sensors\.imu_accelerometer\.std must hold 1 or 3"):
+        make_station(bad_noise)
+    with pytest.raises(KeyError, match="no joint 'RLEG_FT'"):
+        plant = MultibodyPlant(0.0)
+        model.add_hrp2(plant)
+        plant.Finalize()
+        ForceTorqueReadout(plant, ["RLEG_FT"])
