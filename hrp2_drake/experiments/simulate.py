@@ -1,0 +1,216 @@
+"""`hrp2-drake simulate`: run a scenario with the servo holding a pose or following a
+trajectory, log every station signal at 1 kHz, optionally record a Meshcat replay.
+
+Also the building blocks the other experiments reuse: a joint-reference source from
+sampled waypoints, loggers for named ports, and a simulation loop with progress.
+"""
+
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort
+from pydrake.systems.primitives import ConstantVectorSource, TrajectorySource, VectorLogSink
+from pydrake.trajectories import PiecewisePolynomial
+
+from hrp2_drake.robot import model
+from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
+
+
+@dataclass
+class SimulateConfig:
+    """Configuration of `hrp2-drake simulate`.
+
+    Args:
+        station: the simulated robot.
+        duration: simulated time (s).
+        trajectory: "" to hold the scenario's initial pose (half-sitting), "climbing"
+            for HRP-2's stair-climbing joint trajectory, or a path to a text file in
+            the same format (time, then the 30 joint angles in HRP-2 order, rad).
+        trajectory_start: time (s) at which the trajectory starts (held before).
+        log_period: period of the logged signals (s).
+    """
+
+    station: StationConfig = field(default_factory=lambda: StationConfig(scenario="standing"))
+    duration: float = 5.0
+    trajectory: str = ""
+    trajectory_start: float = 0.5
+    log_period: float = 0.001
+
+    def validate(self) -> None:
+        self.station.validate()
+        if not self.duration > 0:
+            raise ValueError(f"SimulateConfig.duration must be > 0, got {self.duration}")
+
+
+def joint_reference(
+    times: np.ndarray, positions: np.ndarray, start: float = 0.0
+) -> PiecewisePolynomial:
+    """A C2 cubic spline through (times + start, positions), held before and after.
+
+    Args:
+        times: (m,) sample times (s), increasing.
+        positions: (m, n) joint positions (rad).
+        start: time shift (s); the first sample is held on [0, start].
+    """
+    times = np.asarray(times, float) - times[0] + start
+    positions = np.asarray(positions, float)
+    if start > 0:
+        times = np.concatenate([[0.0], times])
+        positions = np.vstack([positions[:1], positions])
+    zero = np.zeros((positions.shape[1], 1))
+    return PiecewisePolynomial.CubicWithContinuousSecondDerivatives(
+        times, positions.T, zero, zero
+    )
+
+
+def load_joint_trajectory(spec: str) -> tuple[np.ndarray, np.ndarray]:
+    """(t, q) of a named ("climbing") or file trajectory; q has 30 columns."""
+    if spec == "climbing":
+        return model.load_trajectory()
+    path = Path(spec)
+    if not path.is_file():
+        raise FileNotFoundError(f"trajectory file '{spec}' not found")
+    data = np.loadtxt(path, ndmin=2)
+    if data.shape[1] < 1 + model.NUM_JOINTS:
+        raise ValueError(
+            f"{spec}: {data.shape[1]} columns, expected time + {model.NUM_JOINTS} joints"
+        )
+    return data[:, 0], data[:, 1 : 1 + model.NUM_JOINTS]
+
+
+def add_loggers(
+    builder: DiagramBuilder, ports: dict[str, OutputPort], period: float
+) -> dict[str, VectorLogSink]:
+    """A VectorLogSink per named port, publishing every `period` seconds."""
+    loggers = {}
+    for name, port in ports.items():
+        logger = builder.AddNamedSystem(f"log_{name}", VectorLogSink(port.size(), period))
+        builder.Connect(port, logger.get_input_port())
+        loggers[name] = logger
+    return loggers
+
+
+def logs_to_arrays(loggers: dict[str, VectorLogSink], root_context) -> dict[str, np.ndarray]:
+    """{"t": times, name: (samples, size) array} from the loggers' logs."""
+    out: dict[str, np.ndarray] = {}
+    for name, logger in loggers.items():
+        log = logger.FindLog(root_context)
+        out.setdefault("t", log.sample_times())
+        out[name] = log.data().T
+    return out
+
+
+def run_with_progress(
+    simulator: Simulator,
+    duration: float,
+    label: str,
+    stream=None,
+    steps: int = 10,
+    on_step: Callable[[float], None] | None = None,
+) -> float:
+    """Advances `simulator` by `duration`, printing progress (one updating line on a
+    terminal, a line per step otherwise); returns the real-time factor (simulated
+    seconds per wall-clock second)."""
+    stream = stream or sys.stderr
+    t0 = simulator.get_context().get_time()
+    wall0 = time.perf_counter()
+    simulator.Initialize()
+    tty = stream.isatty()
+    prefix = "\r" if tty else ""
+    for k in range(1, steps + 1):
+        simulator.AdvanceTo(t0 + duration * k / steps)
+        wall = time.perf_counter() - wall0
+        print(
+            f"{prefix}{label}: {duration * k / steps:6.2f}/{duration:.2f} s "
+            f"simulated, {duration * k / steps / max(wall, 1e-9):5.2f}x real time",
+            end="" if tty and k < steps else "\n",
+            file=stream,
+            flush=True,
+        )
+        if on_step is not None:
+            on_step(simulator.get_context().get_time())
+    return duration / max(time.perf_counter() - wall0, 1e-9)
+
+
+STATION_LOGGED_PORTS = (
+    "q_measured",
+    "imu_linear_acceleration",
+    "imu_angular_velocity",
+    *(f"wrench_{name}" for name in model.FT_SENSORS),
+    "joint_torque_true",
+    "state_true",
+)
+
+
+@dataclass
+class SimulationResult:
+    """Logged signals ({"t", port name, "q_cmd"} -> array) and run statistics."""
+
+    signals: dict[str, np.ndarray]
+    real_time_factor: float
+    html: str | None = None
+
+
+def build_simulation(
+    config: SimulateConfig, meshcat=None
+) -> tuple[Diagram, Diagram, dict[str, VectorLogSink]]:
+    """(diagram, station, loggers) for `config`: station + q_cmd source + loggers."""
+    config.validate()
+    builder = DiagramBuilder()
+    station = builder.AddNamedSystem("station", make_station(config.station, meshcat))
+    if config.trajectory:
+        t, q = load_joint_trajectory(config.trajectory)
+        source = TrajectorySource(joint_reference(t, q, config.trajectory_start))
+    else:
+        source = ConstantVectorSource(initial_joint_positions(config.station))
+    source = builder.AddNamedSystem("q_cmd_source", source)
+    builder.Connect(source.get_output_port(), station.GetInputPort("q_cmd"))
+    ports = {name: station.GetOutputPort(name) for name in STATION_LOGGED_PORTS}
+    ports["q_cmd"] = source.get_output_port()
+    loggers = add_loggers(builder, ports, config.log_period)
+    return builder.Build(), station, loggers
+
+
+def run_simulate(config: SimulateConfig, html: bool = False) -> SimulationResult:
+    """Runs `config`, returning the logged signals (and a Meshcat HTML replay)."""
+    meshcat = None
+    if html:
+        from pydrake.geometry import Meshcat
+
+        meshcat = Meshcat()
+    diagram, _, loggers = build_simulation(config, meshcat)
+    simulator = Simulator(diagram)
+    if meshcat is not None:
+        meshcat.StartRecording(frames_per_second=30.0)
+    rtf = run_with_progress(
+        simulator, config.duration, f"simulate {config.station.scenario}"
+    )
+    replay = None
+    if meshcat is not None:
+        meshcat.StopRecording()
+        meshcat.PublishRecording()
+        replay = meshcat.StaticHtml()
+    signals = logs_to_arrays(loggers, simulator.get_context())
+    return SimulationResult(signals, rtf, replay)
+
+
+def summarize(result: SimulationResult, config: SimulateConfig) -> dict[str, float]:
+    """Numbers a user checks first: tracking, base drift, torques."""
+    s = result.signals
+    q_err = s["q_cmd"] - s["q_measured"]
+    summary = {
+        "duration_s": float(s["t"][-1]),
+        "real_time_factor": result.real_time_factor,
+        "max_abs_tracking_error_rad": float(np.abs(q_err).max()),
+        "max_abs_joint_torque_Nm": float(np.abs(s["joint_torque_true"]).max()),
+    }
+    if config.station.scenario != "fixed_base":
+        base_xyz = s["state_true"][:, 4:7]
+        summary["base_drift_m"] = float(np.linalg.norm(base_xyz[-1] - base_xyz[0]))
+        summary["base_height_final_m"] = float(base_xyz[-1, 2])
+    return summary
