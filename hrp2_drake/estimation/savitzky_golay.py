@@ -1,0 +1,364 @@
+"""Savitzky-Golay estimation of signals and their derivatives (paper Sec. 2.1, 3.4.3).
+
+A Savitzky-Golay filter fits a polynomial of order p to the last N samples of a signal by
+least squares and evaluates the polynomial and its derivatives at one point of the window.
+With a constant sampling period the least-squares pseudo-inverse is a constant matrix, so
+each estimate is one weighted sum of the window's samples (paper Sec. 2.1).
+
+- `savgol_coefficients` gives those weights.
+- `SavitzkyGolayFilter` is the causal, 1 kHz LeafSystem used in the controller's diagram.
+- `savgol_filter_offline` applies the same weights to whole logged arrays, centred on
+  every sample (the non-causal estimation used for identification, paper Sec. 3.4.3).
+
+Evaluation point: "end" evaluates the fit at the newest sample (no delay, noisier);
+"centre" evaluates it at the middle of the window, (N - 1) / 2 samples in the past (the
+paper's choice: N = 80 at 1 kHz, i.e. 39.5 ms, which the paper rounds to 40 ms).
+"""
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import correlate1d
+
+from pydrake.systems.framework import LeafSystem
+
+EVALUATION_POINTS = ("centre", "end")
+ORDERS = (1, 2)
+
+
+def _check_parameters(window: int, order: int, evaluation: str, where: str) -> None:
+    """Raises ValueError naming `where`, the field and its value if a parameter is bad."""
+    if not _is_integer(order) or order not in ORDERS:
+        raise ValueError(f"{where}: order={order!r} must be one of {ORDERS}")
+    if not _is_integer(window) or window < order + 1:
+        raise ValueError(
+            f"{where}: window={window!r} must be an integer >= order + 1 = {order + 1} "
+            "(a polynomial of order p needs at least p + 1 samples)"
+        )
+    if evaluation not in EVALUATION_POINTS:
+        raise ValueError(
+            f"{where}: evaluation={evaluation!r} must be one of {EVALUATION_POINTS}"
+        )
+
+
+def _is_integer(value) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
+def _check_period(dt: float, name: str, where: str) -> None:
+    if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0.0):
+        raise ValueError(f"{where}: {name}={dt!r} must be a finite number > 0 (s)")
+
+
+def _fit_weights(window: int, order: int, positions: np.ndarray) -> np.ndarray:
+    """Least-squares weights in sample units.
+
+    Returns W of shape (order + 1, len(positions), window): W[d, j] @ y is the d-th
+    derivative (per sample^d) at fractional sample index positions[j] (0 = oldest) of the
+    polynomial of `order` fitted to the window's samples y (oldest..newest).
+    """
+    # Sample times centred on the window keep the Vandermonde matrix well conditioned.
+    centre = (window - 1) / 2
+    s = np.arange(window) - centre
+    powers = np.arange(order + 1)
+    fit = np.linalg.pinv(s[:, np.newaxis] ** powers)  # (order + 1, window): y -> c_i
+    p = np.asarray(positions, dtype=float) - centre
+    weights = np.zeros((order + 1, len(p), window))
+    for d in range(order + 1):
+        # d/ds^d of sum_i c_i s^i = sum_{i >= d} i! / (i - d)! c_i s^(i - d).
+        for i in range(d, order + 1):
+            factor = math.factorial(i) / math.factorial(i - d)
+            weights[d] += factor * np.outer(p ** (i - d), fit[i])
+    return weights
+
+
+def savgol_coefficients(
+    window: int, order: int, dt: float, evaluation: str = "centre"
+) -> np.ndarray:
+    """Savitzky-Golay weights for the value and derivatives at one point of the window.
+
+    Args:
+        window: number of samples N in the window.
+        order: polynomial order p, 1 or 2.
+        dt: sampling period (s).
+        evaluation: "centre" (fractional sample index (N - 1) / 2, a delay of
+            (N - 1) / 2 * dt) or "end" (the newest sample, no delay).
+
+    Returns:
+        Array of shape (order + 1, window). Row d applied (dot product) to the samples
+        ordered oldest..newest gives the d-th time derivative of the fitted polynomial
+        at the evaluation point (signal units / s^d). For order 1 there is no row 2: a
+        line's second derivative is not an estimate of the signal's.
+        Row d equals scipy.signal.savgol_coeffs(window, order, deriv=d, delta=dt,
+        pos=(window - 1) / 2 or window - 1, use="dot").
+
+    Raises:
+        ValueError: a bad window, order, dt or evaluation (named in the message).
+    """
+    _check_parameters(window, order, evaluation, "savgol_coefficients")
+    _check_period(dt, "dt", "savgol_coefficients")
+    position = (window - 1) / 2 if evaluation == "centre" else window - 1
+    weights = _fit_weights(window, order, [position])[:, 0, :]
+    return weights / dt ** np.arange(order + 1)[:, np.newaxis]
+
+
+@dataclass
+class SavitzkyGolayConfig:
+    """Parameters of one Savitzky-Golay filter (the paper, Sec. 5.1: N = 80, p = 2 for
+    the encoders, p = 1 for the IMU and F/T sensors, centred evaluation).
+
+    Args:
+        window: number of samples N fitted at each step (>= order + 1).
+        order: polynomial order p, 1 or 2.
+        evaluation: "centre" (delay (N - 1) / 2 samples, smoother) or "end" (no delay).
+    """
+
+    window: int = 80
+    order: int = 2
+    evaluation: str = "centre"
+
+    def __post_init__(self):
+        self.validate()
+
+    def validate(self) -> None:
+        """Raises ValueError naming the bad field. Call it after yaml_load_typed, which
+        sets fields after construction (SavitzkyGolayFilter.from_config does)."""
+        _check_parameters(
+            self.window, self.order, self.evaluation, "SavitzkyGolayConfig"
+        )
+
+
+class SavitzkyGolayFilter(LeafSystem):
+    """Causal Savitzky-Golay estimation of k signals and their derivatives.
+
+    ```
+                  ┌─────────────────────┐
+                  │                     ├──► value
+      signal ────►│ SavitzkyGolayFilter ├──► derivative
+                  │                     ├──► second_derivative (order 2 only)
+                  │                     ├──► evaluation_time
+                  └─────────────────────┘
+    ```
+
+    - signal (k): the sampled signals (any units).
+    - value, derivative, second_derivative (k each): the fitted polynomial and its first
+      and second time derivatives (units, units/s, units/s²) at the evaluation point.
+    - evaluation_time (1): the time (s) the three outputs refer to: the time of the
+      newest sample minus delay(). Align downstream signals with it.
+
+    Every `period` seconds (offset 0) a discrete update reads `signal`, stores it in a
+    ring buffer of the last N samples and computes the outputs with one precomputed
+    weight matrix (savgol_coefficients, kept rolled to the ring's position, so a step
+    neither refits nor shifts nor allocates the buffer). The outputs are discrete state:
+    no direct feedthrough, the one-sample delay of a real controller.
+
+    Start-up: at the first sample the whole window is filled with that sample, so value =
+    first sample and derivatives = 0. An initialization event does the same with the
+    input at initialization, so the outputs are meaningful from the simulator's first
+    step (a bare default context, never initialized, outputs zeros). Until N samples
+    have arrived the window holds copies of the first sample: estimates are finite and
+    continuous but biased towards that constant (derivatives ramp up from 0);
+    is_ready(context) is False. From the N-th sample on, the estimates are exact for
+    polynomials of degree <= order.
+
+    A NaN or infinite input raises ValueError naming the system and the indices.
+    """
+
+    def __init__(
+        self,
+        num_signals: int,
+        window: int = 80,
+        order: int = 2,
+        period: float = 1e-3,
+        evaluation: str = "centre",
+    ):
+        """
+        Args:
+            num_signals: k, the size of `signal`.
+            window: N, number of samples fitted (>= order + 1).
+            order: polynomial order p, 1 or 2.
+            period: sampling period (s) of the periodic update.
+            evaluation: "centre" or "end" (see savgol_coefficients).
+        """
+        super().__init__()
+        _check_parameters(window, order, evaluation, "SavitzkyGolayFilter")
+        _check_period(period, "period", "SavitzkyGolayFilter")
+        if not _is_integer(num_signals) or num_signals < 1:
+            raise ValueError(
+                f"SavitzkyGolayFilter: num_signals={num_signals!r} must be an "
+                "integer >= 1"
+            )
+        self._num_signals = k = int(num_signals)
+        self._window = N = int(window)
+        self._order = order
+        self._period = float(period)
+        self._evaluation = evaluation
+        self._delay = (N - 1) / 2 * self._period if evaluation == "centre" else 0.0
+
+        weights = savgol_coefficients(N, order, self._period, evaluation)
+        # The newest sample sits at ring row r, the oldest at r + 1 (mod N): window
+        # column j lives at row (r + 1 + j) % N, hence the roll by r + 1.
+        self._rolled_weights = np.stack(
+            [np.roll(weights, r + 1, axis=1) for r in range(N)]
+        )
+
+        self._signal = self.DeclareVectorInputPort("signal", k)
+        self._samples = self.DeclareDiscreteState(N * k)  # (N, k) ring, row-major
+        self._ring = self.DeclareDiscreteState(2)  # [newest row, number of samples]
+        self._estimates = [self.DeclareDiscreteState(k) for _ in range(order + 1)]
+        self._evaluation_time = self.DeclareDiscreteState(1)
+        names = ("value", "derivative", "second_derivative")
+        for name, group in zip(names, self._estimates):
+            self.DeclareStateOutputPort(name, group)
+        self.DeclareStateOutputPort("evaluation_time", self._evaluation_time)
+        self.DeclarePeriodicDiscreteUpdateEvent(self._period, 0.0, self._update)
+        self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
+
+    @classmethod
+    def from_config(
+        cls, num_signals: int, config: SavitzkyGolayConfig, period: float = 1e-3
+    ) -> "SavitzkyGolayFilter":
+        """Builds the filter from a (possibly YAML-loaded) config, validating it."""
+        config.validate()
+        return cls(num_signals, config.window, config.order, period, config.evaluation)
+
+    def num_signals(self) -> int:
+        return self._num_signals
+
+    def window(self) -> int:
+        return self._window
+
+    def order(self) -> int:
+        return self._order
+
+    def period(self) -> float:
+        """Sampling period (s)."""
+        return self._period
+
+    def evaluation(self) -> str:
+        return self._evaluation
+
+    def delay(self) -> float:
+        """Seconds the outputs lag the newest sample: (N - 1) / 2 * period for "centre",
+        0 for "end". (A consumer updating on the same clock reads them one period later.)
+        """
+        return self._delay
+
+    def is_ready(self, context) -> bool:
+        """True once the window holds N real samples (see the class docstring)."""
+        ring = context.get_discrete_state(self._ring).get_value()
+        return ring[1] >= self._window
+
+    def evaluation_time(self, context) -> float:
+        """The time (s) the outputs refer to (same as the evaluation_time port)."""
+        return context.get_discrete_state(self._evaluation_time).get_value()[0]
+
+    def _initialize(self, context, discrete_state):
+        # Fill the window with the input at initialization, then forget it was a sample:
+        # the first periodic update (usually at the same time) fills it again.
+        self._update(context, discrete_state)
+        discrete_state.get_mutable_vector(self._ring).SetZero()
+
+    def _update(self, context, discrete_state):
+        u = self._signal.Eval(context)
+        if not math.isfinite(u.sum()):
+            self._raise_not_finite(u, context.get_time())
+        N = self._window
+        ring = discrete_state.get_mutable_vector(self._ring).get_mutable_value()
+        samples = discrete_state.get_mutable_vector(self._samples).get_mutable_value()
+        samples = samples.reshape(N, self._num_signals)  # a view on the state
+        num_samples = int(ring[1])
+        row = (int(ring[0]) + 1) % N if num_samples > 0 else N - 1
+        ring[0] = row
+        ring[1] = min(num_samples + 1, N)
+        estimates = [
+            discrete_state.get_mutable_vector(group).get_mutable_value()
+            for group in self._estimates
+        ]
+        if num_samples == 0:
+            # Start-up: the window is the first sample N times, whose fit is a constant.
+            samples[:] = u
+            estimates[0][:] = u
+            for derivative in estimates[1:]:
+                derivative[:] = 0.0
+        else:
+            samples[row] = u
+            weights = self._rolled_weights[row]
+            for d, out in enumerate(estimates):
+                np.dot(weights[d], samples, out=out)
+        time = discrete_state.get_mutable_vector(self._evaluation_time)
+        time.SetAtIndex(0, context.get_time() - self._delay)
+
+    def _raise_not_finite(self, u: np.ndarray, time: float):
+        bad = np.flatnonzero(~np.isfinite(u))
+        raise ValueError(
+            f"SavitzkyGolayFilter {self.GetSystemPathname()}: input port 'signal' is "
+            f"not finite at t = {time:.6g} s, at indices {bad.tolist()} "
+            f"(values {u[bad].tolist()})"
+        )
+
+
+def savgol_filter_offline(
+    x: np.ndarray, dt: float, window: int, order: int, axis: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Non-causal Savitzky-Golay estimates over whole arrays (paper Sec. 3.4.3).
+
+    Each sample n gets the fit of the window centred on it (no delay), with the weights
+    of savgol_coefficients(window, order, dt, "centre"). Near the ends, where no centred
+    window fits, the first (last) N samples are fitted and the polynomial is evaluated
+    at the sample's own position, like scipy.signal.savgol_filter(mode="interp").
+
+    Args:
+        x: samples, uniformly spaced along `axis` (any other shape).
+        dt: sampling period (s).
+        window: N, odd (so that the centre is a sample) and <= x.shape[axis].
+        order: polynomial order p, 1 or 2.
+        axis: the time axis of x.
+
+    Returns:
+        (value, derivative, second_derivative), each shaped like x (units, units/s,
+        units/s²); second_derivative is None for order 1.
+
+    Raises:
+        ValueError: bad window/order/dt, an even window, too few samples, or a
+            non-finite x (with the first bad index).
+    """
+    where = "savgol_filter_offline"
+    _check_parameters(window, order, "centre", where)
+    _check_period(dt, "dt", where)
+    if window % 2 == 0:
+        raise ValueError(
+            f"{where}: window={window} must be odd so that its centre is a sample "
+            f"(use {window - 1} or {window + 1})"
+        )
+    x = np.asarray(x, dtype=float)
+    if x.ndim == 0:
+        raise ValueError(f"{where}: x must be an array of samples, got a scalar")
+    length = x.shape[axis]
+    if length < window:
+        raise ValueError(
+            f"{where}: x has {length} samples along axis {axis}, fewer than "
+            f"window={window}"
+        )
+    if not np.all(np.isfinite(x)):
+        bad = np.argwhere(~np.isfinite(x))[0].tolist()
+        raise ValueError(f"{where}: x is not finite at index {bad}")
+
+    half = (window - 1) // 2
+    x_time_first = np.moveaxis(x, axis, 0)
+    head = x_time_first[:window].reshape(window, -1)
+    tail = x_time_first[-window:].reshape(window, -1)
+    centre = savgol_coefficients(window, order, dt, "centre")
+    edges = _fit_weights(window, order, np.arange(window))
+    estimates = []
+    for d in range(order + 1):
+        # Interior: y[n] = sum_j w[j] x[n - half + j], the centred window of sample n.
+        y = correlate1d(x_time_first, centre[d], axis=0, mode="constant")
+        scale = dt**d
+        y[:half] = (edges[d, :half] @ head).reshape(y[:half].shape) / scale
+        y[-half:] = (edges[d, -half:] @ tail).reshape(y[-half:].shape) / scale
+        estimates.append(np.moveaxis(y, 0, axis))
+    if order < 2:
+        estimates.append(None)
+    return tuple(estimates)

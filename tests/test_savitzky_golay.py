@@ -1,0 +1,315 @@
+import math
+
+import numpy as np
+import pytest
+import scipy.signal
+
+from pydrake.common.yaml import yaml_load_typed
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem
+from pydrake.systems.primitives import ConstantVectorSource
+
+from hrp2_drake.estimation.savitzky_golay import (
+    SavitzkyGolayConfig,
+    SavitzkyGolayFilter,
+    savgol_coefficients,
+    savgol_filter_offline,
+)
+
+PERIOD = 1e-3  # s
+
+
+def _polynomial(degree: int, num_signals: int, seed: int = 0) -> np.ndarray:
+    """Coefficients (num_signals, degree + 1), highest power first (np.polyval)."""
+    return np.random.default_rng(seed).uniform(-2.0, 2.0, (num_signals, degree + 1))
+
+
+def _derivatives(coefficients: np.ndarray, t: float) -> list[np.ndarray]:
+    """[p(t), p'(t), p''(t)] for each row of coefficients."""
+    rows = [np.poly1d(c) for c in coefficients]
+    return [
+        np.array([row.deriv(d)(t) if d else row(t) for row in rows]) for d in range(3)
+    ]
+
+
+class _PolynomialSource(LeafSystem):
+    """Outputs p(t), one polynomial per signal."""
+
+    def __init__(self, coefficients: np.ndarray):
+        super().__init__()
+        self._coefficients = coefficients
+        self.DeclareVectorOutputPort("y", len(coefficients), self._calc)
+
+    def _calc(self, context, output: BasicVector):
+        t = context.get_time()
+        output.SetFromVector([np.polyval(c, t) for c in self._coefficients])
+
+
+def _step(system: SavitzkyGolayFilter, context, t: float, u) -> None:
+    """One periodic update at time t with input u, as the simulator does it."""
+    context.SetTime(t)
+    system.get_input_port().FixValue(context, u)
+    context.SetDiscreteState(system.EvalUniquePeriodicDiscreteUpdate(context))
+
+
+def _outputs(system: SavitzkyGolayFilter, context) -> list[np.ndarray]:
+    names = ["value", "derivative", "second_derivative"][: system.order() + 1]
+    return [system.GetOutputPort(name).Eval(context) for name in names]
+
+
+@pytest.mark.parametrize("dt", [1e-3, 0.02])
+@pytest.mark.parametrize(
+    "window, order, evaluation",
+    [
+        (80, 2, "centre"),
+        (80, 1, "centre"),
+        (80, 2, "end"),
+        (81, 1, "end"),
+        (7, 2, "centre"),
+        (4, 1, "centre"),
+        (3, 2, "end"),
+        (2, 1, "end"),
+    ],
+)
+def test_coefficients_match_scipy(window, order, evaluation, dt):
+    weights = savgol_coefficients(window, order, dt, evaluation)
+    assert weights.shape == (order + 1, window)
+    pos = (window - 1) / 2 if evaluation == "centre" else window - 1
+    for d in range(order + 1):
+        expected = scipy.signal.savgol_coeffs(
+            window, order, deriv=d, delta=dt, pos=pos, use="dot"
+        )
+        scale = np.max(np.abs(expected))
+        np.testing.assert_allclose(weights[d], expected, rtol=0, atol=1e-11 * scale)
+
+
+@pytest.mark.parametrize("order", [1, 2])
+@pytest.mark.parametrize("evaluation", ["centre", "end"])
+def test_coefficients_exact_on_polynomials(order, evaluation):
+    window, t_newest = 80, 0.3
+    times = t_newest - PERIOD * np.arange(window)[::-1]  # oldest..newest
+    t_eval = t_newest - ((window - 1) / 2 * PERIOD if evaluation == "centre" else 0.0)
+    weights = savgol_coefficients(window, order, PERIOD, evaluation)
+    for degree in range(order + 1):
+        coefficients = _polynomial(degree, 4, seed=degree)
+        samples = np.array([np.polyval(c, times) for c in coefficients]).T
+        expected = _derivatives(coefficients, t_eval)
+        for d in range(order + 1):
+            np.testing.assert_allclose(
+                weights[d] @ samples, expected[d], rtol=1e-7, atol=1e-7
+            )
+
+
+@pytest.mark.parametrize(
+    "window, order, evaluation, field",
+    [
+        (2, 2, "centre", "window=2"),
+        (1, 1, "end", "window=1"),
+        (80, 3, "centre", "order=3"),
+        (80, 0, "centre", "order=0"),
+        (80, 2, "middle", "evaluation='middle'"),
+        (80.5, 2, "centre", "window=80.5"),
+        ("80", 2, "centre", "window='80'"),
+        (80, 2.0, "centre", "order=2.0"),
+    ],
+)
+def test_bad_parameters_raise(window, order, evaluation, field):
+    with pytest.raises(ValueError, match=f"SavitzkyGolayConfig: {field}"):
+        SavitzkyGolayConfig(window=window, order=order, evaluation=evaluation)
+    with pytest.raises(ValueError, match=f"SavitzkyGolayFilter: {field}"):
+        SavitzkyGolayFilter(3, window, order, PERIOD, evaluation)
+    with pytest.raises(ValueError, match=f"savgol_coefficients: {field}"):
+        savgol_coefficients(window, order, PERIOD, evaluation)
+
+
+def test_bad_filter_arguments_raise():
+    with pytest.raises(ValueError, match="period=0.0"):
+        SavitzkyGolayFilter(3, 10, 2, period=0.0)
+    with pytest.raises(ValueError, match="num_signals=0"):
+        SavitzkyGolayFilter(0, 10, 2)
+    with pytest.raises(ValueError, match="dt=nan"):
+        savgol_coefficients(10, 2, math.nan)
+
+
+def test_config_from_yaml():
+    config = yaml_load_typed(
+        schema=SavitzkyGolayConfig, data="window: 21\norder: 1\nevaluation: end\n"
+    )
+    system = SavitzkyGolayFilter.from_config(5, config, period=2e-3)
+    assert (system.window(), system.order(), system.evaluation()) == (21, 1, "end")
+    assert system.period() == 2e-3 and system.delay() == 0.0
+    # yaml_load_typed sets fields after __post_init__: from_config validates.
+    bad = yaml_load_typed(schema=SavitzkyGolayConfig, data="window: 1\n")
+    with pytest.raises(ValueError, match="window=1"):
+        SavitzkyGolayFilter.from_config(5, bad)
+    with pytest.raises(RuntimeError, match="windw"):
+        yaml_load_typed(schema=SavitzkyGolayConfig, data="windw: 21\n")
+
+
+def test_ports_and_delay():
+    system = SavitzkyGolayFilter(4, window=80, order=2, period=PERIOD)
+    names = [system.get_output_port(i).get_name() for i in range(4)]
+    assert names == ["value", "derivative", "second_derivative", "evaluation_time"]
+    assert system.get_input_port().get_name() == "signal"
+    assert system.get_input_port().size() == 4
+    assert system.delay() == pytest.approx(0.0395)  # (80 - 1) / 2 ms
+    assert not system.HasAnyDirectFeedthrough()
+    first_order = SavitzkyGolayFilter(4, window=80, order=1, evaluation="end")
+    assert first_order.num_output_ports() == 3
+    assert not first_order.HasOutputPort("second_derivative")
+    assert first_order.delay() == 0.0
+
+
+@pytest.mark.parametrize(
+    "window, order, evaluation",
+    [(80, 2, "centre"), (80, 2, "end"), (21, 1, "centre"), (21, 1, "end")],
+)
+def test_filter_in_diagram_exact_on_polynomial(window, order, evaluation):
+    coefficients = _polynomial(order, 3, seed=window)
+    builder = DiagramBuilder()
+    source = builder.AddSystem(_PolynomialSource(coefficients))
+    system = builder.AddSystem(
+        SavitzkyGolayFilter(3, window, order, PERIOD, evaluation)
+    )
+    builder.Connect(source.get_output_port(), system.get_input_port())
+    simulator = Simulator(builder.Build())
+    # Events at the final time are not handled: the last update is at t = 0.150 s.
+    simulator.AdvanceTo(0.1505)
+    context = system.GetMyContextFromRoot(simulator.get_context())
+
+    assert system.is_ready(context)
+    t_eval = system.GetOutputPort("evaluation_time").Eval(context)[0]
+    assert t_eval == pytest.approx(0.150 - system.delay(), abs=1e-12)
+    assert system.evaluation_time(context) == t_eval
+    expected = _derivatives(coefficients, t_eval)
+    for d, output in enumerate(_outputs(system, context)):
+        np.testing.assert_allclose(output, expected[d], rtol=1e-7, atol=1e-7)
+
+
+def test_start_up_behaviour():
+    window = 10
+    system = SavitzkyGolayFilter(2, window, order=2, period=PERIOD)
+    context = system.CreateDefaultContext()
+    # A bare default context: zeros, not ready.
+    assert not system.is_ready(context)
+    for output in _outputs(system, context):
+        np.testing.assert_array_equal(output, [0.0, 0.0])
+
+    # Initialization fills the window with the input: the estimate of a constant.
+    def ramp(t):
+        return np.array([1.0 + 3.0 * t, -2.0 + 50.0 * t])
+
+    context.SetTime(0.0)
+    system.get_input_port().FixValue(context, ramp(0.0))
+    Simulator(system, context).Initialize()
+    value, derivative, second_derivative = _outputs(system, context)
+    np.testing.assert_array_equal(value, ramp(0.0))
+    np.testing.assert_array_equal(derivative, [0.0, 0.0])
+    np.testing.assert_array_equal(second_derivative, [0.0, 0.0])
+    assert system.evaluation_time(context) == pytest.approx(-system.delay())
+    assert not system.is_ready(context)
+
+    # Then each sample replaces one copy of the first: a fit of the padded window.
+    weights = savgol_coefficients(window, 2, PERIOD, "centre")
+    for m in range(1, window + 1):  # m samples received
+        _step(system, context, (m - 1) * PERIOD, ramp((m - 1) * PERIOD))
+        received = [ramp(i * PERIOD) for i in range(m)]
+        padded = np.array([received[0]] * (window - m) + received)
+        for d, output in enumerate(_outputs(system, context)):
+            np.testing.assert_allclose(output, weights[d] @ padded, atol=1e-9)
+        assert system.is_ready(context) == (m == window)
+        t_newest = (m - 1) * PERIOD
+        assert system.evaluation_time(context) == pytest.approx(
+            t_newest - system.delay()
+        )
+    # Ready: exact on the ramp, at the window's centre.
+    t_eval = system.evaluation_time(context)
+    value, derivative, second_derivative = _outputs(system, context)
+    np.testing.assert_allclose(value, ramp(t_eval), atol=1e-12)
+    np.testing.assert_allclose(derivative, [3.0, 50.0], rtol=1e-9)
+    np.testing.assert_allclose(second_derivative, [0.0, 0.0], atol=1e-6)
+
+
+def test_causal_centre_equals_offline_on_noise():
+    """The ring buffer and the offline function use the same weights: the centre
+    estimate after sample m is the offline estimate at sample m - (N - 1) / 2."""
+    window, num_samples = 21, 120
+    x = np.random.default_rng(1).normal(size=(num_samples, 3))
+    offline = savgol_filter_offline(x, PERIOD, window, 2)
+    system = SavitzkyGolayFilter(3, window, 2, PERIOD, "centre")
+    context = system.CreateDefaultContext()
+    half = (window - 1) // 2
+    for m in range(num_samples):
+        _step(system, context, m * PERIOD, x[m])
+        if m >= window - 1:
+            assert system.evaluation_time(context) == pytest.approx((m - half) * PERIOD)
+            for d, output in enumerate(_outputs(system, context)):
+                np.testing.assert_allclose(
+                    output, offline[d][m - half], rtol=1e-9, atol=1e-9
+                )
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf])
+def test_non_finite_input_raises(bad):
+    builder = DiagramBuilder()
+    source = builder.AddSystem(ConstantVectorSource([1.0, bad, 2.0, bad]))
+    system = builder.AddNamedSystem("q_filter", SavitzkyGolayFilter(4, 10, 2))
+    builder.Connect(source.get_output_port(), system.get_input_port())
+    simulator = Simulator(builder.Build())
+    with pytest.raises(ValueError, match=r"q_filter.*'signal'.*indices \[1, 3\]"):
+        simulator.AdvanceTo(0.01)
+
+
+def test_wrong_size_input_raises():
+    system = SavitzkyGolayFilter(4, 10, 2)
+    context = system.CreateDefaultContext()
+    with pytest.raises(RuntimeError, match="size=4 for input port 'signal'"):
+        system.get_input_port().FixValue(context, np.zeros(3))
+    builder = DiagramBuilder()
+    source = builder.AddSystem(ConstantVectorSource(np.zeros(3)))
+    builder.AddSystem(system)
+    with pytest.raises(RuntimeError, match="size"):
+        builder.Connect(source.get_output_port(), system.get_input_port())
+
+
+@pytest.mark.parametrize("window", [5, 81])
+@pytest.mark.parametrize("order", [1, 2])
+@pytest.mark.parametrize("axis", [0, 1])
+def test_offline_matches_scipy(window, order, axis):
+    x = np.random.default_rng(2).normal(size=(300, 4))
+    x = x if axis == 0 else x.T
+    dt = 2e-3
+    estimates = savgol_filter_offline(x, dt, window, order, axis=axis)
+    assert len(estimates) == 3
+    if order == 1:
+        assert estimates[2] is None
+    for d in range(order + 1):
+        expected = scipy.signal.savgol_filter(
+            x, window, order, deriv=d, delta=dt, axis=axis, mode="interp"
+        )
+        assert estimates[d].shape == x.shape
+        scale = np.max(np.abs(expected))
+        np.testing.assert_allclose(estimates[d], expected, rtol=0, atol=1e-10 * scale)
+
+
+def test_offline_exact_on_polynomial_including_edges():
+    t = np.arange(200) * PERIOD
+    coefficients = _polynomial(2, 3, seed=3)
+    x = np.array([np.polyval(c, t) for c in coefficients]).T
+    estimates = savgol_filter_offline(x, PERIOD, 81, 2)
+    for d in range(3):
+        expected = np.array([_derivatives(coefficients, ti)[d] for ti in t])
+        np.testing.assert_allclose(estimates[d], expected, rtol=1e-7, atol=1e-7)
+
+
+def test_offline_bad_inputs_raise():
+    x = np.zeros((100, 2))
+    with pytest.raises(ValueError, match="window=80 must be odd"):
+        savgol_filter_offline(x, PERIOD, 80, 2)
+    with pytest.raises(ValueError, match="100 samples along axis 0.*window=101"):
+        savgol_filter_offline(x, PERIOD, 101, 2)
+    with pytest.raises(ValueError, match="window=2 must be an integer >= order"):
+        savgol_filter_offline(x, PERIOD, 2, 2)
+    x[42, 1] = math.nan
+    with pytest.raises(ValueError, match=r"not finite at index \[42, 1\]"):
+        savgol_filter_offline(x, PERIOD, 21, 2)
