@@ -92,13 +92,13 @@ ENCODER_COUNTS = 4000  # motor-side counts per revolution (1000-line quadrature)
 
 def leg_actuators() -> list[Actuator]:
     return [
-        Actuator(g, LEG_ROTOR, 0.024, kt, kv, 4.0, 0.5, 40.0, 0.08)
+        Actuator(g, LEG_ROTOR, 0.024, kt, kv, 2.0, 0.3, 40.0, 0.08)
         for g, (kt, kv) in zip(LEG_GEAR, TABLE1.values())
     ]
 
 
 def other_actuators() -> dict[str, Actuator]:
-    chest = Actuator(160.0, LEG_ROTOR, 0.024, 0.10e-3, 8.0e-3, 4.0, 0.5, 40.0, 0.05)
+    chest = Actuator(160.0, LEG_ROTOR, 0.024, 0.10e-3, 8.0e-3, 2.0, 0.3, 40.0, 0.05)
     head = Actuator(120.0, SMALL_ROTOR, 0.012, 2.0e-3, 10.0e-3, 0.2, 0.2, 10.0, 0.05)
     shoulder = Actuator(160.0, ARM_ROTOR, 0.020, 0.5e-3, 8.0e-3, 2.0, 0.3, 20.0, 0.05)
     wrist = Actuator(120.0, SMALL_ROTOR, 0.012, 2.0e-3, 10.0e-3, 0.2, 0.2, 10.0, 0.05)

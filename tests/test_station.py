@@ -99,8 +99,17 @@ def test_imu_reads_plus_g_standing_still():
     mean = accel.mean(axis=0)
     assert mean[2] == pytest.approx(GRAVITY, abs=0.1)
     assert np.linalg.norm(mean[:2]) < 0.15
-    assert accel.std(axis=0) == pytest.approx([0.02] * 3, rel=0.2)  # configured noise
     assert np.abs(gyro.mean(axis=0)).max() < 0.005
+
+
+def test_imu_noise_has_the_configured_statistics():
+    """Waist welded (the torso barely moves): the accelerometer's spread is the
+    configured white noise and its mean is g plus the configured bias."""
+    config = SimulateConfig(station=StationConfig(scenario="fixed_base"), duration=1.0)
+    accel = run_simulate(config).signals["imu_linear_acceleration"][100:]
+    assert accel.std(axis=0) == pytest.approx([0.02] * 3, rel=0.2)
+    bias = np.array(config.station.sensors.accelerometer.bias)
+    np.testing.assert_allclose(accel.mean(axis=0) - [0, 0, GRAVITY], bias, atol=0.01)
 
 
 @pytest.mark.slow
