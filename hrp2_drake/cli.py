@@ -50,6 +50,30 @@ def _simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _identify(args: argparse.Namespace) -> int:
+    from hrp2_drake.experiments.identification import IdentifyConfig, run_identify
+
+    config = (
+        load_config(IdentifyConfig, filename=args.config) if args.config else IdentifyConfig()
+    )
+    if args.duration_scale is not None:
+        config.duration_scale = args.duration_scale
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    summary = run_identify(config, out, Path(args.log) if args.log else None)
+    print(f"report: {out / 'identification.md'}; model: {out / 'motor_model.yaml'}")
+    for joint, row in summary["joints"].items():
+        line = (
+            f"  {joint}: Kτ = {row['asymmetric']['k_tau'] * 1e3:.4f}e-3, "
+            f"Kv = {row['asymmetric']['k_v'] * 1e3:.3f}e-3"
+        )
+        if "relative_error_asymmetric" in row:
+            e = row["relative_error_asymmetric"]
+            line += f" (vs emulator {e['k_tau'] * 100:+.1f}%, {e['k_v'] * 100:+.1f}%)"
+        print(line)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="hrp2-drake",
@@ -74,6 +98,20 @@ def main(argv: list[str] | None = None) -> int:
     sim.add_argument("--out", default="out", help="output folder (default: out)")
     sim.add_argument("--html", action="store_true", help="write a Meshcat HTML replay")
     sim.set_defaults(run=_simulate)
+
+    ident = commands.add_parser(
+        "identify",
+        help="identify the right leg's motor model (paper Sec. 3): data collection on "
+        "the hanging robot (or --log), non-causal estimation, every fit, Table 1, "
+        "Figures 1 and 3",
+    )
+    ident.add_argument("--config", help="IdentifyConfig YAML file")
+    ident.add_argument(
+        "--log", help="an identification log (.npz, see README) instead of simulating"
+    )
+    ident.add_argument("--duration-scale", type=float, help="shorten the collection")
+    ident.add_argument("--out", default="out/identify", help="output folder")
+    ident.set_defaults(run=_identify)
 
     args = parser.parse_args(argv)
     try:
