@@ -1,0 +1,611 @@
+"""InverseDynamicsController: desired joint torques from a joint trajectory and an
+optional contact-force task (paper Sec. 4.1.3, eq. 12), and `make_fixed_base_plant`,
+which builds the fixed-base model the paper's controller uses (footnote 3).
+
+Eq. 12, for the n controlled joints j (e.g. the six joints of the right leg):
+
+    τ_d = M_j q̈_d + ĥ_j − J_jᵀ f* + K_s e_q + K_d ė_q,    f* = f_d + K_f e_f
+
+with e_q = q_d − q̂, ė_q = q̇_d − q̂̇, e_f = f_d − f̂. M_j is the controlled joints'
+block of the mass matrix (it includes the actuators' reflected rotor inertia ρ² I_r
+when the model's JointActuators carry it), ĥ_j their rows of the Coriolis,
+centrifugal and gravity generalized forces, J_j the controlled joints' columns of the
+force frame's spatial-velocity Jacobian. The gains are diagonal.
+
+Besides τ_d the controller outputs the terms it is made of, so that the torque
+controller can split its Δq into the six components of paper Sec. 5.5 (see
+`DeltaQTorqueController` in torque_controller.py):
+
+    τ_d = tau_feedforward + tau_position_feedback + tau_velocity_feedback
+          + tau_force_feedback
+
+    tau_feedforward       = M_j q̈_d + ĥ_j − J_jᵀ f_d     (the feedforward of eq. 13)
+    tau_position_feedback = K_s e_q
+    tau_velocity_feedback = K_d ė_q
+    tau_force_feedback    = −J_jᵀ K_f e_f
+    tau_force_error       = −J_jᵀ e_f                    (not part of τ_d: the torque
+                                                          of the force error, which
+                                                          K9 of Sec. 4.2 also weighs)
+"""
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable, NamedTuple
+
+import numpy as np
+from pydrake.common.eigen_geometry import Quaternion
+from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.multibody.plant import MultibodyPlant
+from pydrake.multibody.tree import (
+    BodyIndex,
+    JacobianWrtVariable,
+    MultibodyForces,
+    RigidBody,
+)
+from pydrake.systems.framework import Context, DiscreteValues, InputPort, LeafSystem
+
+from hrp2_drake.multibody import check_vector, get_frame, joint_indexing
+
+_WHERE = "InverseDynamicsController"
+
+#: The components of τ_d (and tau_force_error), in the order of the output ports
+#: after tau_desired; DeltaQTorqueController has input ports of the same names.
+TORQUE_COMPONENTS: tuple[str, ...] = (
+    "tau_feedforward",
+    "tau_position_feedback",
+    "tau_velocity_feedback",
+    "tau_force_feedback",
+    "tau_force_error",
+)
+
+
+def gain_vector(
+    name: str, value, size: int, where: str, allow_inf: bool = False
+) -> np.ndarray:
+    """A diagonal gain (or a per-joint bound) as a vector of `size` entries.
+
+    Args:
+        name: the gain's name, for the error message (e.g. "ks").
+        value: a number (the same gain for every entry) or a sequence of 1 or
+            `size` numbers.
+        size: the number of entries (joints, or 6 for a wrench).
+        where: who asks, for the error message.
+        allow_inf: accept +inf (a bound that never binds).
+
+    Raises:
+        ValueError: a wrong size, a NaN (or infinite, unless allowed) value, or a
+            negative value; the message names `where` and `name`.
+    """
+    array = np.atleast_1d(np.asarray(value, dtype=float))
+    if array.ndim != 1 or array.size not in (1, size):
+        raise ValueError(
+            f"{where}.{name}: expected one value or {size} values, got "
+            f"{np.shape(value)} ({value!r})"
+        )
+    if np.any(np.isnan(array)) or not (allow_inf or np.all(np.isfinite(array))):
+        raise ValueError(f"{where}.{name} is not finite: {value!r}")
+    if np.any(array < 0):
+        raise ValueError(f"{where}.{name} must be >= 0, got {value!r}")
+    return np.broadcast_to(array, (size,)).copy()
+
+
+# yaml_load_typed reads the field types at run time: this module must not use
+# `from __future__ import annotations`.
+@dataclass
+class InverseDynamicsConfig:
+    """Configuration of InverseDynamicsController (eq. 12).
+
+    Every gain is diagonal and given as a list of one value (the same for every joint
+    or axis) or of one value per joint (per wrench axis for kf); in Python a plain
+    number is accepted too. `inverse_dynamics_gains_for_k6` (torque_controller.py)
+    computes ks and kd from the paper's K6.
+
+    Args:
+        joints: names of the n controlled one-dof joints, in the order of every joint
+            vector of the controller (e.g. the six right-leg joints).
+        ks: stiffness K_s (N·m/rad), 1 or n values.
+        kd: damping K_d (N·m·s/rad), 1 or n values.
+        force_frame: name of the frame (or body) of the force task: f_ref and f are
+            wrenches about its origin, expressed in it (for HRP-2's right foot, the
+            F/T sensor frame "RLEG_FOOT"). Empty: no force task, pure motion control
+            (no f_ref / f ports).
+        kf: force gain K_f (dimensionless), 1 or 6 values, on [torque; force].
+        floating_base: False (default, the paper's footnote 3): the model has a fixed
+            base (see `make_fixed_base_plant`). True: the model has a floating base
+            whose orientation and angular velocity are inputs; the base's
+            acceleration is taken as zero (see the class docstring).
+        period: the update period (s).
+    """
+
+    joints: list[str] = field(default_factory=list)
+    ks: list[float] = field(default_factory=lambda: [100.0])
+    kd: list[float] = field(default_factory=lambda: [10.0])
+    force_frame: str = ""
+    kf: list[float] = field(default_factory=lambda: [0.0])
+    floating_base: bool = False
+    period: float = 0.001
+
+    def validate(self) -> None:
+        """Raises ValueError naming the bad field (yaml_load_typed does not call it)."""
+        where = "InverseDynamicsConfig"
+        if not self.joints:
+            raise ValueError(f"{where}.joints is empty")
+        duplicates = sorted({j for j in self.joints if list(self.joints).count(j) > 1})
+        if duplicates:
+            raise ValueError(f"{where}.joints: duplicated joints {duplicates}")
+        n = len(self.joints)
+        gain_vector("ks", self.ks, n, where)
+        gain_vector("kd", self.kd, n, where)
+        gain_vector("kf", self.kf, 6, where)
+        if not (math.isfinite(self.period) and self.period > 0):
+            raise ValueError(f"{where}.period={self.period} must be > 0 (s)")
+
+
+def make_fixed_base_plant(
+    add_model: Callable[[MultibodyPlant], object],
+    base_body: str,
+    X_WB: RigidTransform | None = None,
+) -> MultibodyPlant:
+    """A finalized continuous MultibodyPlant of a robot with its base welded to the
+    world: the fixed-base model of the paper's controller (footnote 3).
+
+    Args:
+        add_model: adds the robot to a plant (e.g. hrp2_drake.robot.model.add_hrp2;
+            control never imports the robot package, the caller passes it).
+        base_body: name of the body to weld (for HRP-2 "BODY", the waist).
+        X_WB: pose of the base in the world (default identity: upright, so that
+            gravity is −z of the base frame).
+
+    Raises:
+        KeyError: `base_body` is not a body of the model.
+    """
+    plant = MultibodyPlant(time_step=0.0)
+    add_model(plant)
+    if not plant.HasBodyNamed(base_body):
+        raise KeyError(f"make_fixed_base_plant: base body '{base_body}' is not a body")
+    plant.WeldFrames(
+        plant.world_frame(),
+        plant.GetBodyByName(base_body).body_frame(),
+        X_WB if X_WB is not None else RigidTransform(),
+    )
+    plant.Finalize()
+    return plant
+
+
+class InverseDynamicsTerms(NamedTuple):
+    """τ_d of eq. 12 and its terms (N·m, n each, config.joints order).
+
+    tau_desired = feedforward + position_feedback + velocity_feedback +
+    force_feedback; force_error = −J_jᵀ e_f is not part of it (see the module
+    docstring).
+    """
+
+    tau_desired: np.ndarray
+    feedforward: np.ndarray
+    position_feedback: np.ndarray
+    velocity_feedback: np.ndarray
+    force_feedback: np.ndarray
+    force_error: np.ndarray
+
+
+class JointSpaceModel(NamedTuple):
+    """The controlled joints' dynamics at one state.
+
+    Attributes:
+        mass_matrix: M_j (kg·m² for revolute joints), (n, n).
+        bias: ĥ_j, Coriolis, centrifugal and gravity generalized forces (N·m), (n,).
+        jacobian: J_j, (6, n): the spatial velocity [ω; v] of the force frame in the
+            world, expressed in the force frame, per unit q̇_j; None without a force
+            task.
+    """
+
+    mass_matrix: np.ndarray
+    bias: np.ndarray
+    jacobian: np.ndarray | None
+
+
+class InverseDynamicsController(LeafSystem):
+    """Desired joint torques by inverse dynamics with an optional force task (paper
+    eq. 12).
+
+    .. code-block:: text
+
+                                 ┌───────────────────────────┐
+        q_ref ──────────────────►│                           ├──► tau_desired
+        v_ref ──────────────────►│                           ├──► tau_feedforward
+        vdot_ref ───────────────►│                           ├──► tau_position_feedback
+        q ──────────────────────►│ InverseDynamicsController ├──► tau_velocity_feedback
+        v ──────────────────────►│                           ├──► tau_force_feedback
+        f_ref ──────────────────►│  (force task only)        ├──► tau_force_error
+        f ──────────────────────►│  (force task only)        │
+        base_orientation ───────►│  (floating base only)     │
+        base_angular_velocity ──►│  (floating base only)     │
+                                 └───────────────────────────┘
+
+    Inputs (n = len(config.joints), every joint vector in config.joints order):
+        q_ref, v_ref, vdot_ref (n each): the reference trajectory q_d (rad), q̇_d
+            (rad/s), q̈_d (rad/s²).
+        q, v (n each): the estimated joint positions q̂ (rad) and velocities q̂̇
+            (rad/s) (e.g. Savitzky-Golay estimates of the encoders).
+        f_ref, f (6 each, only with config.force_frame): the desired and the
+            estimated contact wrench [torque; force] (N·m, N) that the environment
+            exerts on the robot, about the origin of the force frame, expressed in
+            the force frame. This is the f of eq. 1 (M v̇ + h − Jᵀ f = Sᵀ τ), e.g.
+            FloatingBaseTorqueEstimator's external_wrench_<sensor>. An F/T sensor
+            reads the wrench that the bodies below it exert on the body above it,
+            which is this wrench plus the weight and inertia of the foot (same
+            sign): a raw reading can stand in for f when those are negligible.
+            Standing on the right foot, f is about +m g along the sole's normal.
+        base_orientation (4, only with config.floating_base): the quaternion
+            [w, x, y, z] of the base's orientation R_WB in the world (normalized
+            here; a norm off by more than 10 % raises). Unconnected: identity.
+        base_angular_velocity (3, only with config.floating_base): ω_WB of the base
+            (rad/s), expressed in the base frame B (as a gyro on the base reads it).
+            Unconnected: zero.
+
+    Outputs (discrete state, updated every config.period; zero before the first
+    update), N·m, n each:
+        tau_desired: τ_d of eq. 12.
+        tau_feedforward: M_j q̈_d + ĥ_j − J_jᵀ f_d (without a force task, M_j q̈_d
+            + ĥ_j).
+        tau_position_feedback: K_s e_q.
+        tau_velocity_feedback: K_d ė_q.
+        tau_force_feedback: −J_jᵀ K_f e_f (zero without a force task).
+        tau_force_error: −J_jᵀ e_f (zero without a force task); not part of τ_d.
+
+    The model. The controller keeps one private context of `plant`, in which only the
+    controlled joints move: their positions and velocities are the q, v inputs, every
+    other position is `nominal_positions` and every other velocity is zero, and the
+    accelerations of every other degree of freedom are zero. With a fixed base
+    (default, paper footnote 3) M_j, ĥ_j and J_j are then exactly those of the
+    fixed-base model; for a chain hanging from the base, such as a leg, they do not
+    depend on the other joints at all. With config.floating_base the base pose is
+    (base_orientation, zero position) and its spatial velocity is (ω_WB, zero
+    linear velocity); M_j, ĥ_j, J_j are the joint rows and columns of the floating-
+    base model, so gravity follows the base's tilt and ĥ_j includes the base's
+    angular velocity (neither the base position nor its linear velocity affects
+    joint torques, paper Sec. 2.3), but the base acceleration is taken as zero (the
+    controller does not know it): eq. 12 as the paper writes it, with the floating
+    model's joint block.
+
+    ĥ_j holds the rigid-body terms only (bias and gravity): the model's force
+    elements (joint damping, springs) are left out, because friction is the motor
+    model's business (eq. 10) and because the torque estimate τ̂ (eq. 2) is a
+    rigid-body torque too; Sec. 4.2 needs the same ĥ in both.
+
+    Errors: a NaN or infinite input raises ValueError naming the port; an unknown
+    joint or frame name raises KeyError; a floating-base plant without
+    config.floating_base (or the converse) raises ValueError.
+    """
+
+    def __init__(
+        self,
+        plant: MultibodyPlant,
+        config: InverseDynamicsConfig,
+        nominal_positions: np.ndarray | None = None,
+    ):
+        """
+        Args:
+            plant: a finalized MultibodyPlant of the robot alone: with a fixed base
+                (`make_fixed_base_plant`) by default, or with a floating base when
+                config.floating_base. It must outlive the controller; it is never
+                modified. Its default parameters (masses, inertias, rotor inertias,
+                gear ratios) are used.
+            config: joints, gains and options (validated here).
+            nominal_positions: the plant's position vector (plant.num_positions())
+                that sets every position other than the controlled joints' (and the
+                floating base's); default: the plant's default positions.
+        """
+        super().__init__()
+        config.validate()
+        if not plant.is_finalized():
+            raise ValueError(f"{_WHERE}: the plant must be finalized")
+        self._plant = plant
+        self._config = config
+        self._context = plant.CreateDefaultContext()
+        self._forces = MultibodyForces(plant)
+        self._world = plant.world_frame()
+        self._zero3 = np.zeros(3)
+
+        self._indexing = joint_indexing(plant, config.joints)
+        n = self._n = self._indexing.size
+        self._jq = self._indexing.q
+        self._jv = self._indexing.v
+        self._ks = gain_vector("ks", config.ks, n, "InverseDynamicsConfig")
+        self._kd = gain_vector("kd", config.kd, n, "InverseDynamicsConfig")
+        self._kf = gain_vector("kf", config.kf, 6, "InverseDynamicsConfig")
+        self._base = self._find_base(plant, config.floating_base)
+
+        if nominal_positions is None:
+            self._q_full = plant.GetPositions(self._context).copy()
+        else:
+            self._q_full = check_vector(
+                "nominal_positions", nominal_positions, plant.num_positions(), _WHERE
+            ).copy()
+        self._v_full = np.zeros(plant.num_velocities())
+        self._vdot_full = np.zeros(plant.num_velocities())
+        if self._base is not None:
+            self._base_v = np.arange(6) + self._base.floating_velocities_start_in_v()
+
+        self._force_frame = None
+        if config.force_frame:
+            self._force_frame = get_frame(plant, config.force_frame, "force frame")
+            if self._force_frame.body().index() == plant.world_body().index():
+                raise ValueError(
+                    f"{_WHERE}: force frame '{config.force_frame}' is on the world"
+                )
+
+        # Ports.
+        self._q_ref = self.DeclareVectorInputPort("q_ref", n)
+        self._v_ref = self.DeclareVectorInputPort("v_ref", n)
+        self._vdot_ref = self.DeclareVectorInputPort("vdot_ref", n)
+        self._q = self.DeclareVectorInputPort("q", n)
+        self._v = self.DeclareVectorInputPort("v", n)
+        self._f_ref = self._f = None
+        if self._force_frame is not None:
+            self._f_ref = self.DeclareVectorInputPort("f_ref", 6)
+            self._f = self.DeclareVectorInputPort("f", 6)
+        self._base_orientation = self._base_angular_velocity = None
+        if self._base is not None:
+            self._base_orientation = self.DeclareVectorInputPort("base_orientation", 4)
+            self._base_angular_velocity = self.DeclareVectorInputPort(
+                "base_angular_velocity", 3
+            )
+
+        self._tau_state = self.DeclareDiscreteState(n)
+        self._component_states = [
+            self.DeclareDiscreteState(n) for _ in TORQUE_COMPONENTS
+        ]
+        self.DeclareStateOutputPort("tau_desired", self._tau_state)
+        for name, state in zip(TORQUE_COMPONENTS, self._component_states):
+            self.DeclareStateOutputPort(name, state)
+        self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
+
+        self._zero_n = np.zeros(n)
+        self._zero6 = np.zeros(6)
+        self._identity_quaternion = np.array([1.0, 0.0, 0.0, 0.0])
+
+    # ----------------------------------------------------------------- construction
+
+    @staticmethod
+    def _find_base(plant: MultibodyPlant, floating_base: bool) -> RigidBody | None:
+        bases = sorted(int(b) for b in plant.GetFloatingBaseBodies())
+        names = [plant.get_body(BodyIndex(b)).name() for b in bases]
+        if not floating_base:
+            if bases:
+                raise ValueError(
+                    f"{_WHERE}: the plant has the floating base(s) {names}, but the "
+                    "controller uses a fixed-base model (paper footnote 3): build it "
+                    "with make_fixed_base_plant, or set config.floating_base"
+                )
+            return None
+        if len(bases) != 1:
+            raise ValueError(
+                f"{_WHERE}: config.floating_base needs a plant with exactly one "
+                f"floating base body, it has {names}"
+            )
+        return plant.get_body(BodyIndex(bases[0]))
+
+    # ----------------------------------------------------------------- accessors
+
+    def plant(self) -> MultibodyPlant:
+        return self._plant
+
+    def config(self) -> InverseDynamicsConfig:
+        return self._config
+
+    def joint_names(self) -> tuple[str, ...]:
+        return self._indexing.names
+
+    def has_force_task(self) -> bool:
+        return self._force_frame is not None
+
+    # ----------------------------------------------------------------- computation
+
+    def joint_space_model(
+        self,
+        q: np.ndarray,
+        v: np.ndarray | None = None,
+        base_orientation: np.ndarray | None = None,
+        base_angular_velocity: np.ndarray | None = None,
+    ) -> JointSpaceModel:
+        """M_j, ĥ_j and J_j of the controller's model at joint positions q (rad) and
+        velocities v (rad/s, default zero); the base arguments as the ports of the
+        same names (floating base only). For the gain mapping of Sec. 4.2 and for
+        `inverse_dynamics_gains_for_k6`'s joint inertia.
+        """
+        n = self._n
+        q = check_vector("q", q, n, _WHERE)
+        v = self._zero_n if v is None else check_vector("v", v, n, _WHERE)
+        self._set_state(q, v, base_orientation, base_angular_velocity)
+        plant, context = self._plant, self._context
+        mass_matrix = plant.CalcMassMatrix(context)[np.ix_(self._jv, self._jv)]
+        # h = C(q, v) v − τ_g(q): CalcBiasTerm leaves gravity out.
+        h = plant.CalcBiasTerm(context) - plant.CalcGravityGeneralizedForces(context)
+        return JointSpaceModel(mass_matrix, h[self._jv], self._jacobian())
+
+    def compute(
+        self,
+        q_ref: np.ndarray,
+        v_ref: np.ndarray,
+        vdot_ref: np.ndarray,
+        q: np.ndarray,
+        v: np.ndarray,
+        f_ref: np.ndarray | None = None,
+        f: np.ndarray | None = None,
+        base_orientation: np.ndarray | None = None,
+        base_angular_velocity: np.ndarray | None = None,
+    ) -> InverseDynamicsTerms:
+        """Eq. 12 for one sample, without a Context (same units and frames as the
+        ports; f_ref and f default to zero, the base arguments to the identity
+        orientation and zero angular velocity).
+
+        Raises:
+            ValueError: a wrong size or a non-finite value, naming the argument; f_ref
+                or f without a force task, base arguments without a floating base.
+        """
+        n = self._n
+        if self._force_frame is None and (f_ref is not None or f is not None):
+            raise ValueError(f"{_WHERE}: f_ref and f need config.force_frame")
+        if self._base is None and (
+            base_orientation is not None or base_angular_velocity is not None
+        ):
+            raise ValueError(f"{_WHERE}: base arguments need config.floating_base")
+        args = [
+            check_vector(name, value, n, _WHERE)
+            for name, value in (
+                ("q_ref", q_ref),
+                ("v_ref", v_ref),
+                ("vdot_ref", vdot_ref),
+                ("q", q),
+                ("v", v),
+            )
+        ]
+        f_ref = (
+            self._zero6 if f_ref is None else check_vector("f_ref", f_ref, 6, _WHERE)
+        )
+        f = self._zero6 if f is None else check_vector("f", f, 6, _WHERE)
+        if base_orientation is not None:
+            base_orientation = check_vector(
+                "base_orientation", base_orientation, 4, _WHERE
+            )
+        if base_angular_velocity is not None:
+            base_angular_velocity = check_vector(
+                "base_angular_velocity", base_angular_velocity, 3, _WHERE
+            )
+        terms = self._eq12(*args, f_ref, f, base_orientation, base_angular_velocity)
+        return InverseDynamicsTerms(*(term.copy() for term in terms))
+
+    def _set_state(self, q, v, base_orientation, base_angular_velocity) -> None:
+        """Sets the private context: controlled joints from q, v, the rest nominal."""
+        plant, context = self._plant, self._context
+        self._q_full[self._jq] = q
+        self._v_full[self._jv] = v
+        plant.SetPositions(context, self._q_full)
+        if self._base is not None:
+            wxyz = (
+                self._identity_quaternion
+                if base_orientation is None
+                else base_orientation
+            )
+            norm = float(np.linalg.norm(wxyz))
+            if not 0.9 <= norm <= 1.1:
+                raise ValueError(
+                    f"{_WHERE}: base_orientation {wxyz} is not a unit quaternion "
+                    f"(norm {norm:.3g})"
+                )
+            R_WB = RotationMatrix(Quaternion(wxyz / norm))
+            plant.SetFreeBodyPose(
+                context, self._base, RigidTransform(R_WB, self._zero3)
+            )
+            w_B = (
+                self._zero3 if base_angular_velocity is None else base_angular_velocity
+            )
+            self._v_full[self._base_v[:3]] = R_WB.multiply(w_B)  # ω_WB in W
+            self._v_full[self._base_v[3:]] = 0.0
+        plant.SetVelocities(context, self._v_full)
+
+    def _jacobian(self) -> np.ndarray | None:
+        """J_j: the force frame F's J_V_WF_F, controlled joints' columns (6, n)."""
+        if self._force_frame is None:
+            return None
+        J = self._plant.CalcJacobianSpatialVelocity(
+            self._context,
+            JacobianWrtVariable.kV,
+            self._force_frame,
+            self._zero3,
+            self._world,
+            self._force_frame,
+        )
+        return J[:, self._jv]
+
+    def _eq12(
+        self,
+        q_ref,
+        v_ref,
+        vdot_ref,
+        q,
+        v,
+        f_ref,
+        f,
+        base_orientation,
+        base_angular_velocity,
+    ) -> InverseDynamicsTerms:
+        """Eq. 12 and its terms (views on fresh arrays; inputs already checked)."""
+        plant, context, forces = self._plant, self._context, self._forces
+        self._set_state(q, v, base_orientation, base_angular_velocity)
+        # M_j q̈_d + ĥ_j: one inverse dynamics with the other accelerations at zero;
+        # gravity enters as an applied generalized force (CalcInverseDynamics
+        # returns M v̇ + C v − τ_applied), the body forces of `forces` stay zero.
+        self._vdot_full[self._jv] = vdot_ref
+        forces.mutable_generalized_forces()[:] = plant.CalcGravityGeneralizedForces(
+            context
+        )
+        tau_model = plant.CalcInverseDynamics(context, self._vdot_full, forces)[
+            self._jv
+        ]
+        position_feedback = self._ks * (q_ref - q)  # K_s e_q
+        velocity_feedback = self._kd * (v_ref - v)  # K_d ė_q
+        J = self._jacobian()
+        if J is None:
+            feedforward = tau_model
+            force_feedback = np.zeros(self._n)
+            force_error = np.zeros(self._n)
+        else:
+            e_f = f_ref - f
+            feedforward = tau_model - J.T @ f_ref  # M_j q̈_d + ĥ_j − J_jᵀ f_d
+            force_feedback = -J.T @ (self._kf * e_f)  # −J_jᵀ K_f e_f
+            force_error = -J.T @ e_f
+        # Eq. 12: τ_d = M_j q̈_d + ĥ_j − J_jᵀ (f_d + K_f e_f) + K_s e_q + K_d ė_q.
+        tau_desired = (
+            feedforward + position_feedback + velocity_feedback + force_feedback
+        )
+        return InverseDynamicsTerms(
+            tau_desired,
+            feedforward,
+            position_feedback,
+            velocity_feedback,
+            force_feedback,
+            force_error,
+        )
+
+    def _read(self, port: InputPort, context: Context) -> np.ndarray:
+        value = port.Eval(context)
+        if not math.isfinite(value.sum()):
+            bad = np.flatnonzero(~np.isfinite(value))
+            raise ValueError(
+                f"{_WHERE} {self.GetSystemPathname()}: input port '{port.get_name()}' is "
+                f"not finite at t = {context.get_time():.6g} s, at indices {bad.tolist()}"
+            )
+        return value
+
+    def _read_optional(self, port: InputPort | None, context: Context):
+        if port is None or not port.HasValue(context):
+            return None
+        return self._read(port, context)
+
+    def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
+        q_ref = self._read(self._q_ref, context)
+        v_ref = self._read(self._v_ref, context)
+        vdot_ref = self._read(self._vdot_ref, context)
+        q = self._read(self._q, context)
+        v = self._read(self._v, context)
+        if self._force_frame is not None:
+            f_ref = self._read(self._f_ref, context)
+            f = self._read(self._f, context)
+        else:
+            f_ref = f = self._zero6
+        terms = self._eq12(
+            q_ref,
+            v_ref,
+            vdot_ref,
+            q,
+            v,
+            f_ref,
+            f,
+            self._read_optional(self._base_orientation, context),
+            self._read_optional(self._base_angular_velocity, context),
+        )
+        discrete_state.get_mutable_vector(self._tau_state).set_value(terms.tau_desired)
+        for state, value in zip(self._component_states, terms[1:]):
+            discrete_state.get_mutable_vector(state).set_value(value)

@@ -1,0 +1,837 @@
+"""DeltaQTorqueController: joint-torque control through a position servo (paper Sec.
+4.1.1-4.1.2, eq. 10-11); the gain mapping of Sec. 4.2 between the user's gains
+{K_p, K_s, K_d, K_f} and the position-servo-like gains {K6, K7, K8, K9}; and the
+wiring helpers that put a torque-controlled joint subset into a whole-robot command.
+
+The control law (per joint, all gains diagonal):
+
+    τ* = τ_d + K_p e_τ + K_i ∫ e_τ dt,   e_τ = τ_d − τ̂                 (eq. 11)
+    Δq = K_τ τ* + K_v q̂̇                                               (eq. 10)
+    q_cmd = q_measured + Δq                                           (eq. 6: Δq is the
+                                                                       servo's input error)
+
+K_τ and K_v come from the identified MotorModel (eq. 6); the paper's controller has
+no Coulomb term, an option adds K_c tanh(q̂̇ / v_s).
+
+Sec. 4.2: with τ_d from eq. 12 and τ̂ = M_j q̂̈ + ĥ_j − J_jᵀ f̂, Δq is
+
+    Δq = K_τ (M_j q̈_d + ĥ_j − J_jᵀ f_d) + K_v q̂̇                        (eq. 13)
+         + K6 e_q + K7 ė_q + K8 ë_q + K9 e_f                          (eq. 14)
+
+    K6 = K_τ (I + K_p) K_s        K7 = K_τ (I + K_p) K_d
+    K8 = K_τ K_p M_j              K9 = −K_τ (K_p J_jᵀ (I + K_f) + J_jᵀ K_f)
+
+`gains_from_user` and `user_from_gains` map one set to the other.
+"""
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import NamedTuple, Sequence
+
+import numpy as np
+from pydrake.systems.framework import (
+    BasicVector,
+    Context,
+    DiagramBuilder,
+    DiscreteValues,
+    InputPort,
+    LeafSystem,
+)
+from pydrake.systems.primitives import MatrixGain
+
+from hrp2_drake.control.inverse_dynamics import (
+    TORQUE_COMPONENTS,
+    InverseDynamicsController,
+    gain_vector,
+)
+from hrp2_drake.identification.motor_model import MotorModel
+
+_WHERE = "DeltaQTorqueController"
+_logger = logging.getLogger(__name__)
+
+#: The components of Δq (paper Sec. 5.5, plus the integral term, zero when K_i = 0),
+#: in the order of their output ports.
+DELTA_Q_COMPONENTS: tuple[str, ...] = (
+    "feedforward_torque",
+    "feedforward_friction",
+    "feedback_position",
+    "feedback_velocity",
+    "feedback_acceleration",
+    "feedback_force",
+    "feedback_torque_integral",
+)
+
+#: Why the controller fell back to position control (`fallback_reason`), by code.
+FALLBACK_REASONS: dict[int, str] = {
+    0: "",
+    1: "tau_estimated is not finite",
+    2: "|tau_estimated| exceeds tau_limit",
+    3: "tau_desired, v or a torque component of the inverse dynamics is not finite",
+    4: "|delta_q| before saturation exceeds delta_q_fallback_limit",
+}
+
+
+# yaml_load_typed reads the field types at run time: this module must not use
+# `from __future__ import annotations`.
+@dataclass
+class TorqueControllerConfig:
+    """Configuration of DeltaQTorqueController (eq. 10-11 and its safety layer).
+
+    Every per-joint value is a list of one value (the same for every joint) or of
+    one value per joint (config.joints order); in Python a plain number is accepted
+    too.
+
+    Args:
+        joints: names of the n controlled joints, in the order of every joint vector
+            of the controller; the motor model must have them all.
+        kp: torque-feedback proportional gain K_p (dimensionless), eq. 11; the paper
+            uses 2 on every joint (Sec. 5.1).
+        ki: torque-feedback integral gain K_i (1/s), eq. 11; 0 in the paper.
+        integral_limit: bound on |∫ e_τ dt| (N·m·s), the anti-windup of the K_i term.
+        delta_q_limit: saturation of Δq (rad): the command sent is
+            q_measured + clip(Δq, ±delta_q_limit).
+        delta_q_fallback_limit: a |Δq| before saturation above this (rad) latches
+            the fallback (must be >= delta_q_limit).
+        tau_limit: a |τ̂| above this (N·m) latches the fallback.
+        coulomb_compensation: add the motor model's K_c tanh(q̂̇ / coulomb_velocity)
+            to the friction feedforward (not in the paper's eq. 10).
+        coulomb_velocity: velocity scale of that smooth sign (rad/s).
+        start_time: torque control starts at this time (s); before, the controller
+            holds the position (see the class docstring), e.g. while the estimator's
+            filters fill their window.
+        period: the update period (s).
+    """
+
+    joints: list[str] = field(default_factory=list)
+    kp: list[float] = field(default_factory=lambda: [2.0])
+    ki: list[float] = field(default_factory=lambda: [0.0])
+    integral_limit: list[float] = field(default_factory=lambda: [math.inf])
+    delta_q_limit: list[float] = field(default_factory=lambda: [0.1])
+    delta_q_fallback_limit: list[float] = field(default_factory=lambda: [0.2])
+    tau_limit: list[float] = field(default_factory=lambda: [500.0])
+    coulomb_compensation: bool = False
+    coulomb_velocity: float = 0.05
+    start_time: float = 0.0
+    period: float = 0.001
+
+    def validate(self) -> None:
+        """Raises ValueError naming the bad field (yaml_load_typed does not call it)."""
+        where = "TorqueControllerConfig"
+        if not self.joints:
+            raise ValueError(f"{where}.joints is empty")
+        duplicates = sorted({j for j in self.joints if list(self.joints).count(j) > 1})
+        if duplicates:
+            raise ValueError(f"{where}.joints: duplicated joints {duplicates}")
+        gains = self.vectors()  # checks sizes, finiteness and signs
+        for name in ("integral_limit", "delta_q_limit", "tau_limit"):
+            if not np.all(gains[name] > 0):
+                raise ValueError(
+                    f"{where}.{name} must be > 0, got {getattr(self, name)}"
+                )
+        if np.any(gains["delta_q_fallback_limit"] < gains["delta_q_limit"]):
+            raise ValueError(
+                f"{where}.delta_q_fallback_limit={self.delta_q_fallback_limit} must be "
+                f">= delta_q_limit={self.delta_q_limit}"
+            )
+        if not (math.isfinite(self.coulomb_velocity) and self.coulomb_velocity > 0):
+            raise ValueError(
+                f"{where}.coulomb_velocity={self.coulomb_velocity} must be > 0 (rad/s)"
+            )
+        if not math.isfinite(self.start_time):
+            raise ValueError(f"{where}.start_time={self.start_time} must be finite (s)")
+        if not (math.isfinite(self.period) and self.period > 0):
+            raise ValueError(f"{where}.period={self.period} must be > 0 (s)")
+
+    def vectors(self) -> dict[str, np.ndarray]:
+        """Every per-joint field as an array of n values (raises like validate)."""
+        where, n = "TorqueControllerConfig", len(self.joints)
+        out = {}
+        for name in ("kp", "ki"):
+            out[name] = gain_vector(name, getattr(self, name), n, where)
+        # Bounds may be +inf (never binds).
+        for name in (
+            "integral_limit",
+            "delta_q_limit",
+            "delta_q_fallback_limit",
+            "tau_limit",
+        ):
+            out[name] = gain_vector(name, getattr(self, name), n, where, allow_inf=True)
+        return out
+
+
+class DeltaQTorqueController(LeafSystem):
+    """Joint-torque control by position-servo corrections Δq (paper eq. 10-11), with
+    Δq split into the components of Sec. 5.5, saturation and a latching fallback to
+    position control.
+
+    .. code-block:: text
+
+                                 ┌────────────────────────┐
+        tau_desired ────────────►│                        ├──► q_cmd
+        tau_estimated ──────────►│                        ├──► delta_q
+        v ──────────────────────►│                        ├──► delta_q_unsaturated
+        q_measured ─────────────►│                        ├──► tau_commanded
+        q_ref (optional) ───────►│ DeltaQTorqueController ├──► feedforward_torque
+        tau_feedforward ────────►│                        ├──► feedforward_friction
+        tau_position_feedback ──►│  (the five tau_* are   ├──► feedback_position
+        tau_velocity_feedback ──►│   optional, all or     ├──► feedback_velocity
+        tau_force_feedback ─────►│   none, from an        ├──► feedback_acceleration
+        tau_force_error ────────►│   InverseDynamics-     ├──► feedback_force
+                                 │   Controller)          ├──► feedback_torque_integral
+                                 │                        ├──► fallback_active
+                                 └────────────────────────┘
+
+    Inputs (n = len(config.joints), every joint vector in config.joints order):
+        tau_desired (n): τ_d (N·m), e.g. InverseDynamicsController's.
+        tau_estimated (n): τ̂ (N·m), e.g. FloatingBaseTorqueEstimator's tau.
+        v (n): the estimated joint velocities q̂̇ (rad/s).
+        q_measured (n): the encoders (rad), from which q_cmd = q_measured + Δq.
+        q_ref (n, optional): the position reference of the fallback (rad).
+        tau_feedforward, tau_position_feedback, tau_velocity_feedback,
+        tau_force_feedback, tau_force_error (n each, optional: connect all or none,
+            e.g. with `connect_inverse_dynamics`): the terms of τ_d of the
+            InverseDynamicsController (see its docstring), used only to split Δq into
+            its components.
+
+    Outputs (discrete state, updated every config.period):
+        q_cmd (n): the position command for the servo (rad).
+        delta_q (n): q_cmd − q_measured, what the servo receives (rad): the
+            saturated Δq in torque control, the servo error of the position command
+            in fallback.
+        delta_q_unsaturated (n): Δq of eq. 10 before saturation (rad); zero outside
+            torque control.
+        tau_commanded (n): τ* of eq. 11 (N·m); zero outside torque control.
+        feedforward_torque, feedforward_friction, feedback_position,
+        feedback_velocity, feedback_acceleration, feedback_force,
+        feedback_torque_integral (n each, rad): the components of Δq (below);
+            zero outside torque control.
+        fallback_active (1): 1 once the fallback latched, else 0.
+
+    The components. With the inverse-dynamics terms τ_ff = M_j q̈_d + ĥ_j − J_jᵀ f_d,
+    τ_Ks = K_s e_q, τ_Kd = K_d ė_q, τ_Kf = −J_jᵀ K_f e_f (τ_d = τ_ff + τ_Ks + τ_Kd +
+    τ_Kf) and τ_ef = −J_jᵀ e_f:
+
+        feedforward_torque       = K_τ τ_ff                        (eq. 13, 1st term)
+        feedforward_friction     = K_v q̂̇ [+ K_c tanh(q̂̇ / v_s)]    (eq. 13, 2nd term)
+        feedback_position        = K_τ (1 + K_p) τ_Ks              = K6 e_q
+        feedback_velocity        = K_τ (1 + K_p) τ_Kd              = K7 ė_q
+        feedback_force           = K_τ ((1 + K_p) τ_Kf + K_p τ_ef) = K9 e_f
+        feedback_acceleration    = K_τ K_p (τ_ff − τ_ef − τ̂)
+                                 = K_τ K_p (M_j q̈_d + ĥ_j − J_jᵀ f̂ − τ̂)
+        feedback_torque_integral = K_τ K_i ∫ e_τ dt
+
+    Identity: they sum to Δq of eq. 10 (delta_q_unsaturated) for any τ̂, because
+    K_τ τ* = K_τ ((1 + K_p) τ_d − K_p τ̂ + K_i ∫ e_τ) expands into exactly these
+    terms (up to floating-point rounding). When τ̂ = M_j q̂̈ + ĥ_j − J_jᵀ f̂ with the
+    controller's own ĥ_j (the assumption of Sec. 4.2), feedback_acceleration is
+    K_τ K_p M_j (q̈_d − q̂̈) = K8 ë_q, so the components are eqs. 13-14 term by term;
+    with a real estimator it also carries the mismatch between the estimator's and
+    the controller's models (and the one-period lag of τ_d behind τ̂), which is part
+    of the torque feedback. Without the tau_* inputs, τ_ff = τ_d and the other terms
+    are zero: feedforward_torque = K_τ τ_d and feedback_acceleration =
+    K_τ K_p (τ_d − τ̂), the whole proportional torque feedback.
+
+    Safety (what a deployment needs):
+      - Saturation: Δq is clipped to ±config.delta_q_limit (0.1 rad) per joint.
+      - Fallback to position control, latched (it stays until `reset_fallback`):
+        when τ̂ is NaN or infinite, |τ̂| > config.tau_limit, τ_d, q̂̇ or a tau_* input
+        is not finite, or |Δq| before saturation > config.delta_q_fallback_limit,
+        the controller commands q_cmd = q_ref if q_ref is connected, else holds the
+        last q_cmd it sent (the last safe one), with Δq = q_cmd − q_measured, and
+        sets fallback_active; a warning is logged with the reason
+        (`fallback_reason`). The integral stops.
+      - Before config.start_time it commands the same position (q_ref, else the
+        q_cmd held since initialization) without latching anything.
+      - A NaN or infinite q_measured (or q_ref when connected) raises ValueError:
+        without encoders no command is safe.
+      - An initialization event sets q_cmd = q_ref if connected, else q_measured
+        (Δq = 0), so the servo holds the robot from the first step.
+
+    Stability of the torque loop (a property of eq. 10-11, not of this code): the
+    servo turns Δq into torque within one period, so if τ̂ followed the applied
+    torque immediately (an ideal joint-torque sensor, or the simulator's ground
+    truth) the loop τ_{k+d} = (1 + K_p) τ_d − K_p τ_k would have its poles at
+    |z| = K_p^(1/d): unstable for K_p > 1 whatever the delay d. With τ̂ estimated
+    from the motion through Savitzky-Golay filters (Sec. 2, 5.1) the loop gain at
+    high frequency is much lower, and K_p = 2 (the paper's) runs stably on the
+    simulated HRP-2.
+    """
+
+    def __init__(self, motor_model: MotorModel, config: TorqueControllerConfig):
+        """
+        Args:
+            motor_model: the identified K_τ (rad/(N·m)), K_v (s), K_c (rad) (eq. 6);
+                it must have every joint of config.joints, with K_τ > 0.
+            config: joints, gains, limits (validated here).
+        """
+        super().__init__()
+        config.validate()
+        self._config = config
+        self._motor = motor_model.subset(list(config.joints))  # KeyError if missing
+        if not np.all(self._motor.k_tau > 0):
+            bad = [j for j, k in zip(config.joints, self._motor.k_tau) if not k > 0]
+            raise ValueError(f"{_WHERE}: the motor model's k_tau is <= 0 for {bad}")
+        n = self._n = len(config.joints)
+        vectors = config.vectors()
+        self._kp = vectors["kp"]
+        self._ki = vectors["ki"]
+        self._integral_limit = vectors["integral_limit"]
+        self._delta_q_limit = vectors["delta_q_limit"]
+        self._fallback_limit = vectors["delta_q_fallback_limit"]
+        self._tau_limit = vectors["tau_limit"]
+        self._k_tau = self._motor.k_tau
+        self._k_v = self._motor.k_v
+        self._k_c = self._motor.k_c if config.coulomb_compensation else np.zeros(n)
+        self._coulomb_velocity = config.coulomb_velocity
+        self._period = config.period
+        self._start_time = config.start_time
+
+        # Ports.
+        self._tau_desired = self.DeclareVectorInputPort("tau_desired", n)
+        self._tau_estimated = self.DeclareVectorInputPort("tau_estimated", n)
+        self._v = self.DeclareVectorInputPort("v", n)
+        self._q_measured = self.DeclareVectorInputPort("q_measured", n)
+        self._q_ref = self.DeclareVectorInputPort("q_ref", n)
+        self._tau_terms = [
+            self.DeclareVectorInputPort(name, n) for name in TORQUE_COMPONENTS
+        ]
+
+        self._q_cmd_state = self.DeclareDiscreteState(n)
+        self._delta_q_state = self.DeclareDiscreteState(n)
+        self._unsaturated_state = self.DeclareDiscreteState(n)
+        self._tau_commanded_state = self.DeclareDiscreteState(n)
+        self._component_states = [
+            self.DeclareDiscreteState(n) for _ in DELTA_Q_COMPONENTS
+        ]
+        self._fallback_state = self.DeclareDiscreteState(1)
+        self._reason_state = self.DeclareDiscreteState(1)
+        self._integral_state = self.DeclareDiscreteState(n)
+        self.DeclareStateOutputPort("q_cmd", self._q_cmd_state)
+        self.DeclareStateOutputPort("delta_q", self._delta_q_state)
+        self.DeclareStateOutputPort("delta_q_unsaturated", self._unsaturated_state)
+        self.DeclareStateOutputPort("tau_commanded", self._tau_commanded_state)
+        for name, state in zip(DELTA_Q_COMPONENTS, self._component_states):
+            self.DeclareStateOutputPort(name, state)
+        self.DeclareStateOutputPort("fallback_active", self._fallback_state)
+        self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
+        self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
+
+        self._zero_n = np.zeros(n)
+
+    # ----------------------------------------------------------------- accessors
+
+    def config(self) -> TorqueControllerConfig:
+        return self._config
+
+    def motor_model(self) -> MotorModel:
+        """The motor model of the controlled joints (config.joints order)."""
+        return self._motor
+
+    def joint_names(self) -> tuple[str, ...]:
+        return tuple(self._config.joints)
+
+    def fallback_active(self, context: Context) -> bool:
+        return bool(context.get_discrete_state(self._fallback_state).get_value()[0])
+
+    def fallback_reason(self, context: Context) -> str:
+        """Why the fallback latched ("" when it did not), see FALLBACK_REASONS."""
+        code = int(context.get_discrete_state(self._reason_state).get_value()[0])
+        return FALLBACK_REASONS[code]
+
+    def tau_error_integral(self, context: Context) -> np.ndarray:
+        """∫ e_τ dt (N·m·s) of eq. 11."""
+        return context.get_discrete_state(self._integral_state).get_value().copy()
+
+    def reset_fallback(self, context: Context) -> None:
+        """Leaves the fallback: torque control resumes at the next update (with a
+        zero torque-error integral)."""
+        context.get_mutable_discrete_state(self._fallback_state).set_value([0.0])
+        context.get_mutable_discrete_state(self._reason_state).set_value([0.0])
+        context.get_mutable_discrete_state(self._integral_state).set_value(self._zero_n)
+
+    # ----------------------------------------------------------------- computation
+
+    def _read_finite(self, port: InputPort, context: Context) -> np.ndarray:
+        value = port.Eval(context)
+        if not math.isfinite(value.sum()):
+            bad = np.flatnonzero(~np.isfinite(value))
+            raise ValueError(
+                f"{_WHERE} {self.GetSystemPathname()}: input port '{port.get_name()}' is "
+                f"not finite at t = {context.get_time():.6g} s, at indices {bad.tolist()}"
+            )
+        return value
+
+    def _tau_components(self, context: Context, tau_desired: np.ndarray):
+        """(τ_ff, τ_Ks, τ_Kd, τ_Kf, τ_ef) from the inputs, or (τ_d, 0, 0, 0, 0)."""
+        connected = [port.HasValue(context) for port in self._tau_terms]
+        if not any(connected):
+            zero = self._zero_n
+            return tau_desired, zero, zero, zero, zero
+        if not all(connected):
+            missing = [
+                p.get_name() for p, c in zip(self._tau_terms, connected) if not c
+            ]
+            raise RuntimeError(
+                f"{_WHERE} {self.GetSystemPathname()}: connect all of "
+                f"{list(TORQUE_COMPONENTS)} or none; unconnected: {missing}"
+            )
+        return tuple(port.Eval(context) for port in self._tau_terms)
+
+    def _position_command(self, context: Context) -> np.ndarray:
+        """q_ref if connected, else the q_cmd held in the state."""
+        if self._q_ref.HasValue(context):
+            return self._read_finite(self._q_ref, context).copy()
+        return context.get_discrete_state(self._q_cmd_state).get_value().copy()
+
+    def _write_position_control(
+        self,
+        discrete_state: DiscreteValues,
+        q_cmd: np.ndarray,
+        q_measured: np.ndarray,
+        fallback: bool,
+    ) -> None:
+        discrete_state.get_mutable_vector(self._q_cmd_state).set_value(q_cmd)
+        discrete_state.get_mutable_vector(self._delta_q_state).set_value(
+            q_cmd - q_measured
+        )
+        for state in (
+            self._unsaturated_state,
+            self._tau_commanded_state,
+            *self._component_states,
+        ):
+            discrete_state.get_mutable_vector(state).set_value(self._zero_n)
+        discrete_state.get_mutable_vector(self._fallback_state).set_value(
+            [1.0 if fallback else 0.0]
+        )
+
+    def _initialize(self, context: Context, discrete_state: DiscreteValues) -> None:
+        q_measured = self._read_finite(self._q_measured, context)
+        if self._q_ref.HasValue(context):
+            q_cmd = self._read_finite(self._q_ref, context).copy()
+        else:
+            q_cmd = q_measured.copy()
+        self._write_position_control(discrete_state, q_cmd, q_measured, False)
+
+    def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
+        q_measured = self._read_finite(self._q_measured, context)
+        if context.get_time() + 0.5 * self._period < self._start_time:
+            self._write_position_control(
+                discrete_state, self._position_command(context), q_measured, False
+            )
+            return
+        if self.fallback_active(context):
+            self._write_position_control(
+                discrete_state, self._position_command(context), q_measured, True
+            )
+            return
+
+        tau_desired = self._tau_desired.Eval(context)
+        tau_estimated = self._tau_estimated.Eval(context)
+        v = self._v.Eval(context)
+        terms = self._tau_components(context, tau_desired)
+        reason = 0
+        if not np.all(np.isfinite(tau_estimated)):
+            reason = 1
+        elif np.any(np.abs(tau_estimated) > self._tau_limit):
+            reason = 2
+        elif not (
+            np.all(np.isfinite(tau_desired))
+            and np.all(np.isfinite(v))
+            and all(np.all(np.isfinite(term)) for term in terms)
+        ):
+            reason = 3
+        if reason == 0:
+            k_tau, kp = self._k_tau, self._kp
+            e_tau = tau_desired - tau_estimated
+            integral = context.get_discrete_state(self._integral_state).get_value()
+            integral = np.clip(
+                integral + e_tau * self._period,
+                -self._integral_limit,
+                self._integral_limit,
+            )
+            # Eq. 11: τ* = τ_d + K_p e_τ + K_i ∫ e_τ dt.
+            tau_star = tau_desired + kp * e_tau + self._ki * integral
+            friction = self._k_v * v
+            if self._config.coulomb_compensation:
+                friction = friction + self._k_c * np.tanh(v / self._coulomb_velocity)
+            # Eq. 10: Δq = K_τ τ* + K_v q̂̇.
+            delta_q = k_tau * tau_star + friction
+            if np.any(np.abs(delta_q) > self._fallback_limit):
+                reason = 4
+        if reason:
+            self._latch(context, discrete_state, q_measured, reason)
+            return
+
+        saturated = np.clip(delta_q, -self._delta_q_limit, self._delta_q_limit)
+        q_cmd = q_measured + saturated
+        tau_ff, tau_ks, tau_kd, tau_kf, tau_ef = terms
+        # The components of Δq (class docstring; Sec. 4.2 eqs. 13-14, Sec. 5.5).
+        components = (
+            k_tau * tau_ff,  # feedforward_torque
+            friction,  # feedforward_friction
+            k_tau * (1.0 + kp) * tau_ks,  # feedback_position = K6 e_q
+            k_tau * (1.0 + kp) * tau_kd,  # feedback_velocity = K7 ė_q
+            k_tau * kp * (tau_ff - tau_ef - tau_estimated),  # feedback_acceleration
+            k_tau * ((1.0 + kp) * tau_kf + kp * tau_ef),  # feedback_force = K9 e_f
+            k_tau * self._ki * integral,  # feedback_torque_integral
+        )
+        discrete_state.get_mutable_vector(self._q_cmd_state).set_value(q_cmd)
+        discrete_state.get_mutable_vector(self._delta_q_state).set_value(saturated)
+        discrete_state.get_mutable_vector(self._unsaturated_state).set_value(delta_q)
+        discrete_state.get_mutable_vector(self._tau_commanded_state).set_value(tau_star)
+        for state, value in zip(self._component_states, components):
+            discrete_state.get_mutable_vector(state).set_value(value)
+        discrete_state.get_mutable_vector(self._integral_state).set_value(integral)
+        discrete_state.get_mutable_vector(self._fallback_state).set_value([0.0])
+
+    def _latch(
+        self,
+        context: Context,
+        discrete_state: DiscreteValues,
+        q_measured: np.ndarray,
+        reason: int,
+    ) -> None:
+        _logger.warning(
+            "%s %s: falling back to position control at t = %.6g s: %s",
+            _WHERE,
+            self.GetSystemPathname(),
+            context.get_time(),
+            FALLBACK_REASONS[reason],
+        )
+        self._write_position_control(
+            discrete_state, self._position_command(context), q_measured, True
+        )
+        discrete_state.get_mutable_vector(self._reason_state).set_value([float(reason)])
+
+
+# --------------------------------------------------------------------- wiring
+
+
+class JointCommandMerger(LeafSystem):
+    """The whole-robot position command: a full reference with the entries of the
+    torque-controlled joints replaced by the torque controller's q_cmd.
+
+    .. code-block:: text
+
+                       ┌────────────────────┐
+        q_ref ────────►│                    │
+                       │ JointCommandMerger ├──► q_cmd
+        q_controlled ─►│                    │
+                       └────────────────────┘
+
+    Inputs:
+        q_ref (N): the position reference of every joint (rad), all_joint_names
+            order: the joints not in joint_names stay position controlled.
+        q_controlled (n): DeltaQTorqueController's q_cmd (rad), joint_names order.
+
+    Output:
+        q_cmd (N): q_ref with the joint_names entries replaced by q_controlled
+            (direct feedthrough, no state: it is wiring).
+    """
+
+    def __init__(self, all_joint_names: Sequence[str], joint_names: Sequence[str]):
+        """
+        Args:
+            all_joint_names: the N joints of the command (e.g. HRP-2's JOINT_NAMES).
+            joint_names: the n torque-controlled joints, each among all_joint_names.
+
+        Raises:
+            KeyError: a joint of joint_names is not in all_joint_names.
+            ValueError: duplicated names.
+        """
+        super().__init__()
+        self._rows = _selection_rows(all_joint_names, joint_names, "JointCommandMerger")
+        N, n = len(all_joint_names), len(joint_names)
+        self._q_ref = self.DeclareVectorInputPort("q_ref", N)
+        self._q_controlled = self.DeclareVectorInputPort("q_controlled", n)
+        self.DeclareVectorOutputPort("q_cmd", N, self._calc)
+
+    def _calc(self, context: Context, output: BasicVector) -> None:
+        q_cmd = self._q_ref.Eval(context).copy()
+        q_cmd[self._rows] = self._q_controlled.Eval(context)
+        output.set_value(q_cmd)
+
+
+def _selection_rows(
+    all_joint_names: Sequence[str], joint_names: Sequence[str], where: str
+) -> np.ndarray:
+    all_joint_names, joint_names = list(all_joint_names), list(joint_names)
+    for names, what in (
+        (all_joint_names, "all_joint_names"),
+        (joint_names, "joint_names"),
+    ):
+        duplicates = sorted({j for j in names if names.count(j) > 1})
+        if duplicates:
+            raise ValueError(f"{where}: duplicated joints {duplicates} in {what}")
+    missing = [j for j in joint_names if j not in all_joint_names]
+    if missing:
+        raise KeyError(f"{where}: joints {missing} are not among all_joint_names")
+    return np.array([all_joint_names.index(j) for j in joint_names], dtype=int)
+
+
+def make_joint_selector(
+    all_joint_names: Sequence[str], joint_names: Sequence[str]
+) -> MatrixGain:
+    """A MatrixGain (ports u0 → y0) that selects the joint_names entries of an
+    all_joint_names vector, e.g. the right leg's q_measured from the station's."""
+    rows = _selection_rows(all_joint_names, joint_names, "make_joint_selector")
+    select = np.zeros((len(rows), len(all_joint_names)))
+    select[np.arange(len(rows)), rows] = 1.0
+    return MatrixGain(select)
+
+
+def connect_inverse_dynamics(
+    builder: DiagramBuilder,
+    inverse_dynamics: InverseDynamicsController,
+    torque_controller: DeltaQTorqueController,
+) -> None:
+    """Connects tau_desired and the five tau_* terms of `inverse_dynamics` to
+    `torque_controller` (both already in `builder`, for the same joints)."""
+    if tuple(inverse_dynamics.joint_names()) != tuple(torque_controller.joint_names()):
+        raise ValueError(
+            "connect_inverse_dynamics: the controllers' joints differ: "
+            f"{inverse_dynamics.joint_names()} vs {torque_controller.joint_names()}"
+        )
+    for name in ("tau_desired", *TORQUE_COMPONENTS):
+        builder.Connect(
+            inverse_dynamics.GetOutputPort(name), torque_controller.GetInputPort(name)
+        )
+
+
+# --------------------------------------------------------------------- Sec. 4.2
+
+
+class TorqueControlGains(NamedTuple):
+    """The gains of eq. 14: K6, K7, K8 (n, n) and K9 (n, k), None without a force
+    task. K6 is in rad/rad, K7 in s, K8 in s², K9 in rad/N (rad/(N·m) for torque
+    rows of the wrench)."""
+
+    k6: np.ndarray
+    k7: np.ndarray
+    k8: np.ndarray
+    k9: np.ndarray | None
+
+
+class UserGains(NamedTuple):
+    """The user's gains: K_p (n, n), K_s (n, n, N·m/rad), K_d (n, n, N·m·s/rad),
+    K_f (k, k), None without a force task."""
+
+    kp: np.ndarray
+    ks: np.ndarray
+    kd: np.ndarray
+    kf: np.ndarray | None
+
+
+def _as_matrix(name: str, value, size: int) -> np.ndarray:
+    """A number, a vector (a diagonal) or a (size, size) matrix as a matrix."""
+    array = np.asarray(value, dtype=float)
+    if array.ndim == 0 or (array.ndim == 1 and array.size == 1):
+        matrix = float(array.reshape(-1)[0]) * np.eye(size)
+    elif array.shape == (size,):
+        matrix = np.diag(array)
+    elif array.shape == (size, size):
+        matrix = array.copy()
+    else:
+        raise ValueError(
+            f"gain mapping: '{name}' has shape {array.shape}, expected a number, "
+            f"({size},) or ({size}, {size})"
+        )
+    if not np.all(np.isfinite(matrix)):
+        raise ValueError(f"gain mapping: '{name}' is not finite")
+    return matrix
+
+
+def _joint_count(*values) -> int:
+    """n from the first of `values` that is a vector or a matrix (1 if none)."""
+    for value in values:
+        if value is not None and np.ndim(value) >= 1 and np.size(value) > 1:
+            return int(np.shape(value)[0])
+    return 1
+
+
+def _check_shape(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
+    array = np.asarray(value, dtype=float)
+    if array.shape != shape:
+        raise ValueError(
+            f"gain mapping: '{name}' has shape {array.shape}, expected {shape}"
+        )
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"gain mapping: '{name}' is not finite")
+    return array
+
+
+def gains_from_user(
+    k_tau,
+    kp,
+    ks,
+    kd,
+    kf,
+    mass_matrix: np.ndarray,
+    jacobian: np.ndarray | None,
+) -> TorqueControlGains:
+    """{K_p, K_s, K_d, K_f} → {K6, K7, K8, K9} given K_τ, M_j, J_j (paper Sec. 4.2).
+
+    Args:
+        k_tau: K_τ (rad/(N·m)): a number, an (n,) diagonal or an (n, n) matrix.
+        kp, ks, kd: K_p, K_s (N·m/rad), K_d (N·m·s/rad): the same forms.
+        kf: K_f: a number, a (k,) diagonal or a (k, k) matrix; ignored without a
+            force task.
+        mass_matrix: M_j (n, n), e.g. InverseDynamicsController.joint_space_model.
+        jacobian: J_j (k, n), the force task's Jacobian in the frame of f; None
+            without a force task (then K9 is None).
+    """
+    M = np.asarray(mass_matrix, dtype=float)
+    if M.ndim != 2 or M.shape[0] != M.shape[1]:
+        raise ValueError(
+            f"gain mapping: 'mass_matrix' has shape {M.shape}, expected (n, n)"
+        )
+    n = M.shape[0]
+    M = _check_shape("mass_matrix", M, (n, n))
+    K_tau = _as_matrix("k_tau", k_tau, n)
+    Kp = _as_matrix("kp", kp, n)
+    I = np.eye(n)
+    k6 = K_tau @ (I + Kp) @ _as_matrix("ks", ks, n)  # K6 = K_τ (I + K_p) K_s
+    k7 = K_tau @ (I + Kp) @ _as_matrix("kd", kd, n)  # K7 = K_τ (I + K_p) K_d
+    k8 = K_tau @ Kp @ M  # K8 = K_τ K_p M_j
+    k9 = None
+    if jacobian is not None:
+        J = np.asarray(jacobian, dtype=float)
+        if J.ndim != 2 or J.shape[1] != n:
+            raise ValueError(
+                f"gain mapping: 'jacobian' has shape {J.shape}, expected (k, {n})"
+            )
+        J = _check_shape("jacobian", J, J.shape)
+        Kf = _as_matrix("kf", kf, J.shape[0])
+        # K9 = −K_τ (K_p J_jᵀ (I + K_f) + J_jᵀ K_f)
+        k9 = -K_tau @ (Kp @ J.T @ (np.eye(J.shape[0]) + Kf) + J.T @ Kf)
+    return TorqueControlGains(k6, k7, k8, k9)
+
+
+def user_from_gains(
+    k_tau,
+    k6,
+    k7,
+    k9=None,
+    jacobian: np.ndarray | None = None,
+    *,
+    kp=2.0,
+    k8=None,
+    mass_matrix: np.ndarray | None = None,
+) -> UserGains:
+    """{K6, K7, K9} (and K_p, or K8 with M_j) → {K_p, K_s, K_d, K_f}, the inverse of
+    `gains_from_user` (paper Sec. 4.2).
+
+    The set {K6, K7, K8, K9} over-determines the user's gains: K8 = K_τ K_p M_j fixes
+    K_p by itself, so either K_p is given (default 2, the paper's) or it is computed
+    from K8 and M_j (pass kp=None, k8 and mass_matrix): K_p = K_τ⁻¹ K8 M_j⁻¹.
+    Then K_s = (K_τ (I + K_p))⁻¹ K6, K_d = (K_τ (I + K_p))⁻¹ K7, and K_f solves
+    J_jᵀ K_f = (I + K_p)⁻¹ (−K_τ⁻¹ K9 − K_p J_jᵀ) (exactly when J_j has full row
+    rank k, as the right leg's 6 x 6 Jacobian away from singularities).
+
+    Args:
+        k_tau: K_τ (rad/(N·m)): a number, an (n,) diagonal or an (n, n) matrix.
+        k6, k7: K6, K7, same forms.
+        k9: K9 (n, k); None without a force task (then K_f is None).
+        jacobian: J_j (k, n), needed with k9.
+        kp: K_p (same forms as k_tau), or None to compute it from k8 and mass_matrix.
+        k8, mass_matrix: K8 and M_j (n, n), only with kp=None.
+
+    Raises:
+        ValueError: wrong shapes, singular K_τ (I + K_p) or M_j, a rank-deficient
+            J_j, or a K9 that no K_f produces for these K_p, K_τ, J_j.
+    """
+    n = _joint_count(k_tau, k6, k7, kp, k8, mass_matrix)
+    K_tau = _as_matrix("k_tau", k_tau, n)
+    K6 = _as_matrix("k6", k6, n)
+    K7 = _as_matrix("k7", k7, n)
+    if kp is None:
+        if k8 is None or mass_matrix is None:
+            raise ValueError("user_from_gains: with kp=None, give k8 and mass_matrix")
+        K8 = _check_shape("k8", k8, (n, n))
+        M = _check_shape("mass_matrix", mass_matrix, (n, n))
+        # K8 = K_τ K_p M_j  →  K_p = K_τ⁻¹ K8 M_j⁻¹
+        Kp = np.linalg.solve(M.T, np.linalg.solve(K_tau, K8).T).T
+    else:
+        if k8 is not None or mass_matrix is not None:
+            raise ValueError(
+                "user_from_gains: give kp, or k8 and mass_matrix, not both"
+            )
+        Kp = _as_matrix("kp", kp, n)
+    I = np.eye(n)
+    A = K_tau @ (I + Kp)
+    if np.linalg.cond(A) > 1e12:
+        raise ValueError("user_from_gains: K_τ (I + K_p) is singular")
+    ks = np.linalg.solve(A, K6)
+    kd = np.linalg.solve(A, K7)
+    kf = None
+    if k9 is not None:
+        if jacobian is None:
+            raise ValueError("user_from_gains: k9 needs the jacobian")
+        J = np.asarray(jacobian, dtype=float)
+        if J.ndim != 2 or J.shape[1] != n:
+            raise ValueError(
+                f"gain mapping: 'jacobian' has shape {J.shape}, expected (k, {n})"
+            )
+        J = _check_shape("jacobian", J, J.shape)
+        k = J.shape[0]
+        K9 = _check_shape("k9", k9, (n, k))
+        if np.linalg.matrix_rank(J) < k:
+            raise ValueError(
+                f"user_from_gains: J_j has rank {np.linalg.matrix_rank(J)} < {k}: K_f "
+                "is not determined by K9"
+            )
+        # K9 = −K_τ (K_p J_jᵀ + (I + K_p) J_jᵀ K_f)
+        B = np.linalg.solve(I + Kp, -np.linalg.solve(K_tau, K9) - Kp @ J.T)
+        kf, *_ = np.linalg.lstsq(J.T, B, rcond=None)
+        residual = np.linalg.norm(J.T @ kf - B)
+        if residual > 1e-8 * max(np.linalg.norm(B), 1e-300):
+            raise ValueError(
+                "user_from_gains: no K_f gives this K9 for these K_p, K_τ and J_j "
+                f"(relative residual {residual / np.linalg.norm(B):.3g})"
+            )
+    return UserGains(Kp, ks, kd, kf)
+
+
+def inverse_dynamics_gains_for_k6(
+    k_tau,
+    k6,
+    joint_inertia,
+    kp=2.0,
+    damping_ratio: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """K_s and K_d of eq. 12 for a position-feedback gain K6 (the paper's tuning knob,
+    Sec. 4.2 and 5.3: K6 = 1 is the native position servo's position gain).
+
+    K_s = K6 / (K_τ (1 + K_p)) per joint (inverse of K6 = K_τ (1 + K_p) K_s), and
+    K_d = 2 ζ sqrt(K_s M_jj): if the torque loop tracks τ_d, each joint's error obeys
+    M_jj ë + K_d ė + K_s e = 0, a second-order system of damping ratio ζ (the
+    coupling of M_j's off-diagonal terms neglected; on HRP-2 M_jj is dominated by
+    the reflected rotor inertia ρ² I_r, so it barely changes with the posture). Then
+    K7 = K_τ (1 + K_p) K_d = 2 ζ sqrt(K6 K_τ (1 + K_p) M_jj).
+
+    Args:
+        k_tau: K_τ per joint (rad/(N·m)), a number or (n,).
+        k6: K6 per joint (rad/rad), a number or (n,).
+        joint_inertia: M_jj per joint (kg·m²), (n,) or a number, e.g. the diagonal
+            of InverseDynamicsController.joint_space_model(q).mass_matrix.
+        kp: K_p per joint, a number or (n,).
+        damping_ratio: ζ (dimensionless, >= 0).
+
+    Returns:
+        (ks, kd): (n,) arrays in N·m/rad and N·m·s/rad.
+    """
+    sizes = [np.size(x) for x in (k_tau, k6, joint_inertia, kp)]
+    n = max(sizes)
+    where = "inverse_dynamics_gains_for_k6"
+    k_tau = gain_vector("k_tau", k_tau, n, where)
+    k6 = gain_vector("k6", k6, n, where)
+    inertia = gain_vector("joint_inertia", joint_inertia, n, where)
+    kp = gain_vector("kp", kp, n, where)
+    if not np.all(k_tau > 0):
+        raise ValueError(f"{where}: k_tau must be > 0, got {k_tau}")
+    if not (math.isfinite(damping_ratio) and damping_ratio >= 0):
+        raise ValueError(f"{where}: damping_ratio={damping_ratio} must be >= 0")
+    ks = k6 / (k_tau * (1.0 + kp))
+    kd = 2.0 * damping_ratio * np.sqrt(ks * inertia)
+    return ks, kd
