@@ -74,6 +74,40 @@ def _identify(args: argparse.Namespace) -> int:
     return 0
 
 
+def _motor_model(args: argparse.Namespace, out: Path):
+    """The --motor-model file, or one identified now (saved under out/identify)."""
+    from hrp2_drake.identification.motor_model import MotorModel
+
+    if args.motor_model:
+        return MotorModel.load(args.motor_model)
+    from hrp2_drake.experiments.identification import IdentifyConfig, run_identify
+
+    print("no --motor-model: identifying one first (hrp2-drake identify)", file=sys.stderr)
+    run_identify(IdentifyConfig(), out / "identify")
+    return MotorModel.load(out / "identify" / "motor_model.yaml")
+
+
+def _experiment(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if args.name == "motion":
+        from hrp2_drake.experiments.motion import MotionConfig, run_motion, write_motion_report
+
+        config = load_config(MotionConfig, filename=args.config) if args.config else MotionConfig()
+        if args.end is not None:
+            config.end = args.end
+        model = _motor_model(args, out)
+        summary = write_motion_report(run_motion(config, model), out)
+        print(f"report: {out / 'motion.md'}")
+        for label, verdict in summary["verdicts"].items():
+            print(
+                f"  {label}: better than position control on "
+                f"{len(verdict['average'])}/5 (average), {len(verdict['maximum'])}/5 (maximum)"
+            )
+        return 0
+    raise ValueError(f"unknown experiment '{args.name}'")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="hrp2-drake",
@@ -112,6 +146,16 @@ def main(argv: list[str] | None = None) -> int:
     ident.add_argument("--duration-scale", type=float, help="shorten the collection")
     ident.add_argument("--out", default="out/identify", help="output folder")
     ident.set_defaults(run=_identify)
+
+    exp = commands.add_parser(
+        "experiment", help="run one experiment of the paper (motion: Sec. 5.3)"
+    )
+    exp.add_argument("name", choices=["motion"])
+    exp.add_argument("--config", help="the experiment's config YAML file")
+    exp.add_argument("--motor-model", help="MotorModel YAML (default: identify one)")
+    exp.add_argument("--end", type=float, help="motion: stop the climbing motion at (s)")
+    exp.add_argument("--out", default="out/experiment", help="output folder")
+    exp.set_defaults(run=_experiment)
 
     args = parser.parse_args(argv)
     try:

@@ -8,7 +8,6 @@ import pytest
 
 from hrp2_drake.cli import main
 from hrp2_drake.experiments import hrp2
-from hrp2_drake.experiments.identification import IdentifyConfig, collect_log, identify
 from hrp2_drake.identification.excitation import (
     PHASE_HIGH_TORQUE,
     PHASE_HIGH_VELOCITY,
@@ -40,11 +39,8 @@ def test_plan_rejects_unknown_joints():
 
 
 @pytest.fixture(scope="module")
-def short_log():
-    """A shortened collection (about 45 s simulated) on the hanging robot."""
-    config = IdentifyConfig(duration_scale=0.5)
-    log, names = collect_log(config, progress=False)
-    return config, log, names
+def short_log(short_identification):
+    return short_identification[:3]
 
 
 @pytest.mark.slow
@@ -62,9 +58,8 @@ def test_collection_excites_every_right_leg_joint(short_log):
 
 
 @pytest.mark.slow
-def test_identification_recovers_the_emulator_within_10_percent(short_log):
-    config, log, names = short_log
-    result = identify(config, log, names)
+def test_identification_recovers_the_emulator_within_10_percent(short_identification):
+    result = short_identification[3]
     truth = hrp2.true_motor_model()
     k_tau = result.identified.k_tau
     k_v = result.identified.k_v
