@@ -108,6 +108,17 @@ def _experiment(args: argparse.Namespace) -> int:
     raise ValueError(f"unknown experiment '{args.name}'")
 
 
+def _reproduce(args: argparse.Namespace) -> int:
+    from hrp2_drake.experiments.reproduce import ReproduceConfig, run_reproduce, verdicts
+
+    config = ReproduceConfig(jobs=args.jobs, quick=args.quick, replays=not args.no_replays)
+    results = run_reproduce(config, Path(args.out))
+    for claim, verdict, evidence in verdicts(results):
+        print(f"  [{verdict}] {claim}: {evidence}")
+    failed = [s for s, r in results.items() if isinstance(r, dict) and r.get("ok") is False]
+    return 1 if failed else 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="hrp2-drake",
@@ -156,6 +167,17 @@ def main(argv: list[str] | None = None) -> int:
     exp.add_argument("--end", type=float, help="motion: stop the climbing motion at (s)")
     exp.add_argument("--out", default="out/experiment", help="output folder")
     exp.set_defaults(run=_experiment)
+
+    rep = commands.add_parser(
+        "reproduce",
+        help="identification and every experiment of the paper: DIR/report.md, "
+        "DIR/results.json, figures and Meshcat replays",
+    )
+    rep.add_argument("--out", default="out/reproduce", help="output folder")
+    rep.add_argument("--jobs", type=int, default=2, help="parallel processes")
+    rep.add_argument("--quick", action="store_true", help="CI-sized durations")
+    rep.add_argument("--no-replays", action="store_true", help="skip Meshcat replays")
+    rep.set_defaults(run=_reproduce)
 
     args = parser.parse_args(argv)
     try:

@@ -7,6 +7,8 @@ Sections (all by default; pick with --only):
              servo and sensors (baseline: what our Python systems cost on top).
   sg         per-tick cost of the Savitzky-Golay filters (scripts/bench_savitzky_golay.py).
   estimator  per-tick cost of the floating-base torque estimator (scripts/bench_estimator.py).
+  control    per-tick cost of the controller stack and real-time factor of the motion
+             experiment's diagrams (scripts/bench_control.py).
   fit        fit_asymmetric from 10^3 to 10^6 samples, Newton and QP (scripts/bench_fitting.py).
 
 Figures vary from run to run (2 cores, shared): compare rows of the same run.
@@ -74,7 +76,7 @@ def bench_simulation(duration: float) -> list[dict]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--only", default="sim,sg,estimator,fit")
+    parser.add_argument("--only", default="sim,sg,estimator,control,fit")
     parser.add_argument("--duration", type=float, default=3.0, help="simulated s")
     parser.add_argument("--json", type=Path, help="also write the rows here")
     args = parser.parse_args()
@@ -97,6 +99,11 @@ def main() -> int:
         else:
             print("estimator", file=sys.stderr)
             results["estimator"] = bench_estimator()
+    if "control" in sections:
+        from bench_control import bench_controller_stack, bench_motion_experiment
+
+        print("control", file=sys.stderr)
+        results["control"] = bench_controller_stack() + bench_motion_experiment()
     if "fit" in sections:
         from bench_fitting import bench_fitting
 

@@ -404,6 +404,7 @@ def plot_figures(result: IdentificationResult, out: Path) -> list[str]:
 def run_identify(config: IdentifyConfig, out: Path, log_path: Path | None = None) -> dict:
     """The whole `hrp2-drake identify`: collect (or load), identify, report."""
     config.validate()
+    out.mkdir(parents=True, exist_ok=True)
     if log_path is None:
         log, names = collect_log(config)
         save_log(out / "identification_log.npz", log, names)

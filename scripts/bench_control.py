@@ -1,0 +1,91 @@
+"""Per-tick cost of the controller stack (InverseDynamicsController +
+DeltaQTorqueController updates, right leg) and the real-time factor of the
+motion experiment's diagrams (position control vs the whole torque-control stack).
+
+Run: .venv/bin/python scripts/bench_control.py
+"""
+
+import sys
+import time
+
+import numpy as np
+from pydrake.systems.analysis import Simulator
+
+from hrp2_drake.control.inverse_dynamics import (
+    InverseDynamicsConfig,
+    InverseDynamicsController,
+    make_fixed_base_plant,
+)
+from hrp2_drake.control.torque_controller import (
+    DeltaQTorqueController,
+    TorqueControllerConfig,
+)
+from hrp2_drake.experiments import hrp2
+from hrp2_drake.experiments.builders import (
+    TorqueControlConfig,
+    build_position_control,
+    build_torque_control,
+)
+from hrp2_drake.experiments.motion import MotionConfig, _reference
+from hrp2_drake.robot import model
+
+PERIOD = 1e-3
+
+
+def _us_per_update(system, context, ticks: int) -> float:
+    start = time.perf_counter()
+    for tick in range(ticks):
+        context.SetTime(tick * PERIOD)
+        context.SetDiscreteState(system.EvalUniquePeriodicDiscreteUpdate(context))
+    return (time.perf_counter() - start) / ticks * 1e6
+
+
+def bench_controller_stack(ticks: int = 2000) -> list[dict]:
+    joints = list(model.RIGHT_LEG)
+    n = len(joints)
+    q = model.half_sitting()[:n]
+    inverse_dynamics = InverseDynamicsController(
+        make_fixed_base_plant(model.add_hrp2, model.BASE_BODY),
+        InverseDynamicsConfig(joints=joints, ks=[3000.0], kd=[50.0]),
+    )
+    context = inverse_dynamics.CreateDefaultContext()
+    for name, value in (("q_ref", q), ("v_ref", np.full(n, 0.3)), ("vdot_ref", np.ones(n)),
+                        ("q", q + 1e-3), ("v", np.full(n, 0.25))):
+        inverse_dynamics.GetInputPort(name).FixValue(context, value)
+    id_us = _us_per_update(inverse_dynamics, context, ticks)
+
+    torque = DeltaQTorqueController(
+        hrp2.true_motor_model(joints), TorqueControllerConfig(joints=joints)
+    )
+    context = torque.CreateDefaultContext()
+    for name, value in (("tau_desired", np.full(n, 10.0)), ("tau_estimated", np.full(n, 9.0)),
+                        ("v", np.full(n, 0.2)), ("q_measured", q)):
+        torque.GetInputPort(name).FixValue(context, value)
+    dq_us = _us_per_update(torque, context, ticks)
+    return [
+        {"name": "InverseDynamicsController update (6 joints)", "us_per_tick": id_us},
+        {"name": "DeltaQTorqueController update (6 joints)", "us_per_tick": dq_us},
+        {"name": "controller stack (both)", "us_per_tick": id_us + dq_us},
+    ]
+
+
+def bench_motion_experiment(duration: float = 2.0) -> list[dict]:
+    config = MotionConfig(start=3.0, end=3.0 + duration, settle=0.0)
+    reference = _reference(config)
+    rows = []
+    for label, control in (
+        ("motion: position control", build_position_control(config.station, reference)),
+        ("motion: torque control (estimation + controllers)", build_torque_control(
+            config.station, reference, hrp2.true_motor_model(), TorqueControlConfig())),
+    ):
+        simulator = Simulator(control.diagram)
+        simulator.Initialize()
+        start = time.perf_counter()
+        simulator.AdvanceTo(duration)
+        rows.append({"name": label, "real_time_factor": duration / (time.perf_counter() - start)})
+    return rows
+
+
+if __name__ == "__main__":
+    for row in bench_controller_stack() + bench_motion_experiment():
+        print(row, file=sys.stdout)
