@@ -10,9 +10,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Sequence
 
+import math
+
 import numpy as np
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import Frame, JointIndex
+from pydrake.systems.framework import Context, InputPort
 
 
 @dataclass(frozen=True)
@@ -101,4 +104,26 @@ def check_vector(name: str, value: np.ndarray, size: int, where: str) -> np.ndar
     bad = np.flatnonzero(~np.isfinite(value))
     if bad.size:
         raise ValueError(f"{where}: '{name}' is not finite at entries {bad.tolist()}")
+    return value
+
+
+def check_joint_names(names: Sequence[str], where: str) -> None:
+    """Raises ValueError if `names` is empty or repeats a joint."""
+    if not names:
+        raise ValueError(f"{where}.joints is empty")
+    duplicates = sorted({j for j in names if list(names).count(j) > 1})
+    if duplicates:
+        raise ValueError(f"{where}.joints: duplicated joints {duplicates}")
+
+
+def eval_finite(port: InputPort, context: Context, where: str) -> np.ndarray:
+    """The value of a vector input port; ValueError naming the port, the time and the
+    entries if it is not finite (a NaN from a sensor must not reach a controller)."""
+    value = port.Eval(context)
+    if not math.isfinite(value.sum()):
+        bad = np.flatnonzero(~np.isfinite(value))
+        raise ValueError(
+            f"{where}: input port '{port.get_name()}' is not finite at "
+            f"t = {context.get_time():.6g} s, at indices {bad.tolist()}"
+        )
     return value

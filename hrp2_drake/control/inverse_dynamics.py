@@ -44,7 +44,13 @@ from pydrake.multibody.tree import (
 )
 from pydrake.systems.framework import Context, DiscreteValues, InputPort, LeafSystem
 
-from hrp2_drake.multibody import check_vector, get_frame, joint_indexing
+from hrp2_drake.multibody import (
+    check_joint_names,
+    check_vector,
+    eval_finite,
+    get_frame,
+    joint_indexing,
+)
 
 _WHERE = "InverseDynamicsController"
 
@@ -128,11 +134,7 @@ class InverseDynamicsConfig:
     def validate(self) -> None:
         """Raises ValueError naming the bad field (yaml_load_typed does not call it)."""
         where = "InverseDynamicsConfig"
-        if not self.joints:
-            raise ValueError(f"{where}.joints is empty")
-        duplicates = sorted({j for j in self.joints if list(self.joints).count(j) > 1})
-        if duplicates:
-            raise ValueError(f"{where}.joints: duplicated joints {duplicates}")
+        check_joint_names(self.joints, where)
         n = len(self.joints)
         gain_vector("ks", self.ks, n, where)
         gain_vector("kd", self.kd, n, where)
@@ -570,14 +572,7 @@ class InverseDynamicsController(LeafSystem):
         )
 
     def _read(self, port: InputPort, context: Context) -> np.ndarray:
-        value = port.Eval(context)
-        if not math.isfinite(value.sum()):
-            bad = np.flatnonzero(~np.isfinite(value))
-            raise ValueError(
-                f"{_WHERE} {self.GetSystemPathname()}: input port '{port.get_name()}' is "
-                f"not finite at t = {context.get_time():.6g} s, at indices {bad.tolist()}"
-            )
-        return value
+        return eval_finite(port, context, f"{_WHERE} {self.GetSystemPathname()}")
 
     def _read_optional(self, port: InputPort | None, context: Context):
         if port is None or not port.HasValue(context):

@@ -46,6 +46,7 @@ from hrp2_drake.control.inverse_dynamics import (
     gain_vector,
 )
 from hrp2_drake.identification.motor_model import MotorModel
+from hrp2_drake.multibody import check_joint_names, eval_finite
 
 _WHERE = "DeltaQTorqueController"
 _logger = logging.getLogger(__name__)
@@ -118,11 +119,7 @@ class TorqueControllerConfig:
     def validate(self) -> None:
         """Raises ValueError naming the bad field (yaml_load_typed does not call it)."""
         where = "TorqueControllerConfig"
-        if not self.joints:
-            raise ValueError(f"{where}.joints is empty")
-        duplicates = sorted({j for j in self.joints if list(self.joints).count(j) > 1})
-        if duplicates:
-            raise ValueError(f"{where}.joints: duplicated joints {duplicates}")
+        check_joint_names(self.joints, where)
         gains = self.vectors()  # checks sizes, finiteness and signs
         for name in ("integral_limit", "delta_q_limit", "tau_limit"):
             if not np.all(gains[name] > 0):
@@ -353,14 +350,7 @@ class DeltaQTorqueController(LeafSystem):
     # ----------------------------------------------------------------- computation
 
     def _read_finite(self, port: InputPort, context: Context) -> np.ndarray:
-        value = port.Eval(context)
-        if not math.isfinite(value.sum()):
-            bad = np.flatnonzero(~np.isfinite(value))
-            raise ValueError(
-                f"{_WHERE} {self.GetSystemPathname()}: input port '{port.get_name()}' is "
-                f"not finite at t = {context.get_time():.6g} s, at indices {bad.tolist()}"
-            )
-        return value
+        return eval_finite(port, context, f"{_WHERE} {self.GetSystemPathname()}")
 
     def _tau_components(self, context: Context, tau_desired: np.ndarray):
         """(τ_ff, τ_Ks, τ_Kd, τ_Kf, τ_ef) from the inputs, or (τ_d, 0, 0, 0, 0)."""

@@ -29,6 +29,7 @@ from hrp2_drake.control.inverse_dynamics import (
     make_fixed_base_plant,
 )
 from hrp2_drake.control.torque_controller import (
+    DELTA_Q_COMPONENTS,
     DeltaQTorqueController,
     JointCommandMerger,
     TorqueControllerConfig,
@@ -42,14 +43,9 @@ from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.robot import model
 from hrp2_drake.robot.station import StationConfig, make_station
 
-COMPONENTS = (
-    "feedforward_torque",
-    "feedforward_friction",
-    "feedback_position",
-    "feedback_velocity",
-    "feedback_acceleration",
-    "feedback_force",
-)
+#: The six components of Δq of paper Sec. 5.5 (the controller's seventh, the torque
+#: integral, is zero with the paper's K_i = 0).
+COMPONENTS = DELTA_Q_COMPONENTS[:6]
 
 
 @dataclass

@@ -8,16 +8,13 @@ move) with the paper's formulas.
 """
 
 import json
-import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 from pydrake.systems.analysis import Simulator
 
-from hrp2_drake.experiments import hrp2
 from hrp2_drake.experiments.builders import (
-    COMPONENTS,
     ControlDiagram,
     JointReference,
     TorqueControlConfig,
@@ -281,7 +278,7 @@ def write_motion_report(result: MotionResult, out: Path) -> dict:
         r = literal[0]
         lines += [
             "",
-            f"Paper-literal eq. 13 (q̂, q̂̇ from the 40 ms-delayed estimates in every term): "
+            "Paper-literal eq. 13 (q̂, q̂̇ from the 40 ms-delayed estimates in every term): "
             + (f"diverged; the fallback to position control latched at {r.fallback_time:.2f} s."
                if r.fallback_time else
                f"maximum errors {', '.join(f'{e * 1e3:.1f}' for e in r.max_error)} mrad.")
