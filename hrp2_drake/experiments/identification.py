@@ -153,6 +153,7 @@ def identify(
     held = split_blocks(data.t, config.held_out_block, config.held_out_every)
     train, test = usable & ~held, usable & held
     columns = {name: i for i, name in enumerate(estimator.config().joints)}
+    labelled = bool(np.any(data.phase >= 0))
     results = []
     for name in config.joints:
         j = columns[name]
@@ -165,12 +166,14 @@ def identify(
             ),
         }
         # The piecewise-linear model of Sec. 3.2 has no velocity term: the paper fitted
-        # it to the static high-torque data (Fig. 1), and so do we.
-        pushes = train & (data.phase == PHASE_HIGH_TORQUE)
+        # it to the static high-torque data (Fig. 1), and so do we (an unlabelled log:
+        # its near-zero-velocity samples).
+        static = np.abs(data.dq[:, j]) < config.zero_velocity_threshold
+        pushes = train & (data.phase == PHASE_HIGH_TORQUE if labelled else static)
         piecewise = _fit_piecewise(data.joint(j, pushes), name)
         tau_h, dq_h, dlt_h = data.joint(j, test)
         validation = {}
-        static_h = test & (data.phase == PHASE_HIGH_TORQUE)
+        static_h = test & (data.phase == PHASE_HIGH_TORQUE if labelled else static)
         for method, fitted in list(models.items()) + [("piecewise_linear", piecewise)]:
             if fitted is None:
                 continue

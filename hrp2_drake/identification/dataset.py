@@ -25,7 +25,8 @@ class IdentificationData:
             (m, n), estimator joint order.
         tau: estimated joint torques τ̂ (N·m), (m, n).
         delta_q: Δq = q_cmd − q, smoothed by the same window (rad), (m, n).
-        phase, excited_joint: the log's labels (see excitation.py), (m,).
+        phase, excited_joint: the log's labels (see excitation.py), (m,); -1 where
+            the log has none.
         tau_true: ground-truth joint torques if the log has them (simulation), else None.
     """
 
@@ -99,8 +100,9 @@ def noncausal_estimates(
     for row, k in enumerate(keep):
         tau[row] = estimator.estimate(q[k], dq[k], ddq[k], acc[k], gyro[k], alpha[k], wrenches[k]).tau
     tau_true = log["joint_torque_true"][keep][:, cols] if "joint_torque_true" in log else None
+    # Unlabelled logs (e.g. from a real robot): phase and excited joint -1.
     labels = {
-        key: np.asarray(log[key])[keep] if key in log else np.zeros(len(keep), int)
+        key: np.asarray(log[key])[keep] if key in log else np.full(len(keep), -1)
         for key in ("phase", "excited_joint")
     }
     return IdentificationData(
