@@ -8,7 +8,6 @@ import json
 import numpy as np
 import pytest
 
-from hrp2_drake.experiments import hrp2
 from hrp2_drake.experiments.builders import COMPONENTS, TorqueControlConfig
 from hrp2_drake.experiments.components import (
     PANELS,
