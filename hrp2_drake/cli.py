@@ -105,6 +105,38 @@ def _experiment(args: argparse.Namespace) -> int:
                 f"{len(verdict['average'])}/5 (average), {len(verdict['maximum'])}/5 (maximum)"
             )
         return 0
+    if args.name == "force":
+        from hrp2_drake.experiments.force import ForceConfig, run_force_experiment
+
+        config = load_config(ForceConfig, filename=args.config) if args.config else ForceConfig()
+        summary = run_force_experiment(config, _motor_model(args, out), out)
+        m = summary["baseline"]["metrics"]["ft_reading"]
+        print(
+            f"report: {out / 'force.md'}; overshoot {m['overshoot'] * 100:+.1f}%, lag "
+            f"{m['lag_ms']:+.0f} ms, coupling on X {m['coupling_x'] * 100:.1f}%"
+        )
+        return 0
+    if args.name == "stability":
+        from hrp2_drake.experiments.stability import StabilityConfig, run_stability_experiment
+        from hrp2_drake.identification.motor_model import MotorModel
+
+        config = (
+            load_config(StabilityConfig, filename=args.config)
+            if args.config
+            else StabilityConfig()
+        )
+        asymmetric = _motor_model(args, out)
+        path = Path(args.motor_model or out / "identify" / "motor_model.yaml")
+        least_squares = path.with_name("motor_model_least_squares.yaml")
+        if not least_squares.is_file():
+            raise FileNotFoundError(
+                f"{least_squares}: the stability experiment also needs the symmetric "
+                "fit written by `hrp2-drake identify` next to the motor model"
+            )
+        models = {"asymmetric": asymmetric, "least_squares": MotorModel.load(least_squares)}
+        summary = run_stability_experiment(config, models, out)
+        print(f"report: {out / 'stability.md'}; contrast shown: {summary['contrast']}")
+        return 0
     raise ValueError(f"unknown experiment '{args.name}'")
 
 
@@ -159,9 +191,12 @@ def main(argv: list[str] | None = None) -> int:
     ident.set_defaults(run=_identify)
 
     exp = commands.add_parser(
-        "experiment", help="run one experiment of the paper (motion: Sec. 5.3)"
+        "experiment",
+        help="run one experiment of the paper: motion (Sec. 5.3), force (5.4), "
+        "stability (5.2); the component analysis (5.5) needs motion and force: "
+        "see reproduce",
     )
-    exp.add_argument("name", choices=["motion"])
+    exp.add_argument("name", choices=["motion", "force", "stability"])
     exp.add_argument("--config", help="the experiment's config YAML file")
     exp.add_argument("--motor-model", help="MotorModel YAML (default: identify one)")
     exp.add_argument("--end", type=float, help="motion: stop the climbing motion at (s)")

@@ -506,6 +506,7 @@ def run_force(
     label: str = "K6 = 0.1, K_f = 1",
     static: tuple[np.ndarray, np.ndarray] | None = None,
     gain: np.ndarray | None = None,
+    meshcat=None,
 ) -> ForceRun:
     """Runs the experiment once (after the settle-phase measurement of f0, unless
     `static` gives it). With config.compatible_reference and no `gain`, a first run
@@ -528,6 +529,7 @@ def run_force(
         reference,
         motor_model,
         _torque_config(config),
+        meshcat=meshcat,
         force_reference=f_ref,
     )
     signals = run_controller(control, config.duration, f"force: {label}")

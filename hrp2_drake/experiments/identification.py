@@ -246,6 +246,10 @@ def write_report(result: IdentificationResult, out: Path, log_is_simulated: bool
         }
     (out / "identification.json").write_text(json.dumps(summary, indent=2))
     result.identified.save(out / "motor_model.yaml")
+    # The symmetric fit too: the open-loop stability experiment contrasts the two.
+    MotorModel.from_joints(
+        {r.joint: r.models["least_squares"] for r in result.joints}
+    ).save(out / "motor_model_least_squares.yaml")
     figures = plot_figures(result, out)
     (out / "identification.md").write_text(_markdown(result, summary, figures))
     return summary
