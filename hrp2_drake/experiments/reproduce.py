@@ -270,7 +270,8 @@ def verdicts(results: dict) -> list[tuple[str, str, str]]:
         asym = max(r["validation"]["asymmetric"]["overestimation"] for r in joints.values())
         ls = min(r["validation"]["least_squares"]["overestimation"] for r in joints.values())
         out.append((
-            "The asymmetric penalty almost never over-estimates |Δq|; least squares does (Fig. 3)",
+            "The asymmetric penalty almost never over-estimates the magnitude of Δq; least "
+            "squares does (Fig. 3)",
             "holds" if asym < 0.05 and ls > asym else "does not hold",
             f"held-out over-estimated share: asymmetric ≤ {asym * 100:.1f}%, "
             f"least squares ≥ {ls * 100:.1f}%",
