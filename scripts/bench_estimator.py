@@ -12,6 +12,11 @@ Rows:
   only reads them: the framework's own per-tick cost (use it for ratios).
 - "net allocated blocks per tick": Python heap blocks still allocated after the ticks,
   per tick (0: nothing accumulates).
+- "estimation stage ...": what add_estimator adds for HRP-2 as the experiments configure
+  it (hrp2.estimator_config: window 80, unknown wrench on the torso): the encoder
+  filter (k = 30, order 2), the sensor filter (k = 30, order 1) and the estimator, each
+  update alone, their sum (goal: < 100 us), and the whole chain simulated on constant
+  sensor signals (multiplexer and demultiplexers included).
 
 Run: .venv/bin/python scripts/bench_estimator.py
 """
@@ -22,13 +27,18 @@ import time
 
 import numpy as np
 from pydrake.multibody.plant import MultibodyPlant
-from pydrake.systems.framework import LeafSystem
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder, LeafSystem
+from pydrake.systems.primitives import ConstantVectorSource
 
 from hrp2_drake.estimation.torque_estimator import (
     FloatingBaseTorqueEstimator,
     ForceTorqueSensorConfig,
     TorqueEstimatorConfig,
 )
+from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayFilter
+from hrp2_drake.estimation.torque_estimator import add_estimator
+from hrp2_drake.experiments import hrp2
 from hrp2_drake.robot import model
 
 PERIOD = 1e-3  # s
@@ -103,8 +113,9 @@ class _NoopEstimator(LeafSystem):
 
 
 def bench_estimator(num_ticks: int = 2000) -> list[dict]:
-    """Measures the HRP-2 estimator's update. Returns rows {"name", "us_per_tick"}
-    (and {"name", "blocks_per_tick"} for the allocation row)."""
+    """Measures the HRP-2 estimator's update, then the estimation stage
+    (bench_estimation_stage). Returns rows {"name", "us_per_tick"} (and {"name",
+    "blocks_per_tick"} for the allocation row)."""
     plant = MultibodyPlant(0.0)
     model.add_hrp2(plant)
     plant.Finalize()
@@ -176,12 +187,86 @@ def bench_estimator(num_ticks: int = 2000) -> list[dict]:
             "blocks_per_tick": (sys.getallocatedblocks() - before) / num_ticks,
         }
     )
-    return rows
+    return rows + bench_estimation_stage(num_ticks)
+
+
+def _sensor_signals() -> dict[str, np.ndarray]:
+    """Constant station-like outputs: half-sitting, at rest, standing wrenches."""
+    standing = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 280.0])
+    signals = {
+        "q_measured": model.half_sitting(),
+        "imu_linear_acceleration": np.array([0.1, -0.2, 9.81]),
+        "imu_angular_velocity": np.array([0.01, -0.02, 0.005]),
+    }
+    for name in model.FT_SENSORS:
+        signals[f"wrench_{name}"] = standing if "foot" in name else np.zeros(6)
+    return signals
+
+
+def _filter_us_per_update(system: SavitzkyGolayFilter, num_ticks: int) -> float:
+    context = system.CreateDefaultContext()
+    rng = np.random.default_rng(1)
+    system.get_input_port().FixValue(context, rng.normal(size=system.num_signals()))
+    _us_per_update(system, context, 50)
+    return _us_per_update(system, context, num_ticks)
+
+
+def bench_estimation_stage(num_ticks: int = 2000) -> list[dict]:
+    """The per-tick cost of the SG stage and the estimator for the 30-joint HRP-2 as
+    add_estimator wires them (module docstring). Rows {"name", "us_per_tick"}."""
+    config = hrp2.estimator_config()
+    n, k = model.NUM_JOINTS, 3 + 3 + 6 * len(config.sensors)
+    encoder = _filter_us_per_update(
+        SavitzkyGolayFilter(n, config.window, 2, config.period), num_ticks
+    )
+    sensor = _filter_us_per_update(
+        SavitzkyGolayFilter(k, config.window, 1, config.period), num_ticks
+    )
+    estimator = FloatingBaseTorqueEstimator(hrp2.estimator_plant(), config)
+    context = estimator.CreateDefaultContext()
+    _fix(estimator, context, _inputs(len(config.sensors)), list(config.sensors))
+    _us_per_update(estimator, context, 50)
+    update = _us_per_update(estimator, context, num_ticks)
+
+    # The whole chain in a simulation, on constant signals from a station look-alike.
+    station_builder = DiagramBuilder()
+    for name, value in _sensor_signals().items():
+        source = station_builder.AddNamedSystem(name, ConstantVectorSource(value))
+        station_builder.ExportOutput(source.get_output_port(), name)
+    builder = DiagramBuilder()
+    station = builder.AddNamedSystem("station", station_builder.Build())
+    add_estimator(builder, station, hrp2.estimator_plant(), config)
+    simulator = Simulator(builder.Build())
+    simulator.Initialize()
+    simulator.AdvanceTo(50 * config.period)
+    start = time.perf_counter()
+    simulator.AdvanceTo((50 + num_ticks) * config.period)
+    simulated = (time.perf_counter() - start) / num_ticks * 1e6
+    label = f"window {config.window}, unknown wrench on the torso"
+    return [
+        {
+            "name": f"estimation stage: encoder SG filter k={n} order 2",
+            "us_per_tick": encoder,
+        },
+        {
+            "name": f"estimation stage: sensor SG filter k={k} order 1",
+            "us_per_tick": sensor,
+        },
+        {"name": f"estimation stage: estimator ({label})", "us_per_tick": update},
+        {
+            "name": "estimation stage: SG filters + estimator (sum of updates)",
+            "us_per_tick": encoder + sensor + update,
+        },
+        {
+            "name": "estimation stage: add_estimator chain simulated on constant signals",
+            "us_per_tick": simulated,
+        },
+    ]
 
 
 if __name__ == "__main__":
     for row in bench_estimator():
         if "us_per_tick" in row:
-            print(f"{row['name']:<50s} {row['us_per_tick']:8.1f} us/tick")
+            print(f"{row['name']:<72s} {row['us_per_tick']:8.1f} us/tick")
         else:
-            print(f"{row['name']:<50s} {row['blocks_per_tick']:8.3f}")
+            print(f"{row['name']:<72s} {row['blocks_per_tick']:8.3f}")

@@ -208,6 +208,13 @@ class SavitzkyGolayFilter(LeafSystem):
         self._ring = self.DeclareDiscreteState(2)  # [newest row, number of samples]
         self._estimates = [self.DeclareDiscreteState(k) for _ in range(order + 1)]
         self._evaluation_time = self.DeclareDiscreteState(1)
+        # Plain ints for DiscreteValues.get_mutable_value/set_value (the cheapest
+        # accessors per tick), and the (order + 1, k) result of one matrix product.
+        self._samples_group = int(self._samples)
+        self._ring_group = int(self._ring)
+        self._estimate_groups = [int(group) for group in self._estimates]
+        self._time_group = int(self._evaluation_time)
+        self._fit = np.zeros((order + 1, k))
         names = ("value", "derivative", "second_derivative")
         for name, group in zip(names, self._estimates):
             self.DeclareStateOutputPort(name, group)
@@ -261,34 +268,33 @@ class SavitzkyGolayFilter(LeafSystem):
         discrete_state.get_mutable_vector(self._ring).SetZero()
 
     def _update(self, context, discrete_state):
+        # The hot path of every control period: a handful of pybind calls and one
+        # matrix product (see scripts/bench_savitzky_golay.py).
         u = self._signal.Eval(context)
         if not math.isfinite(u.sum()):
             self._raise_not_finite(u, context.get_time())
         N = self._window
-        ring = discrete_state.get_mutable_vector(self._ring).get_mutable_value()
-        samples = discrete_state.get_mutable_vector(self._samples).get_mutable_value()
+        ring = discrete_state.get_mutable_value(self._ring_group)
+        samples = discrete_state.get_mutable_value(self._samples_group)
         samples = samples.reshape(N, self._num_signals)  # a view on the state
         num_samples = int(ring[1])
         row = (int(ring[0]) + 1) % N if num_samples > 0 else N - 1
         ring[0] = row
         ring[1] = min(num_samples + 1, N)
-        estimates = [
-            discrete_state.get_mutable_vector(group).get_mutable_value()
-            for group in self._estimates
-        ]
         if num_samples == 0:
             # Start-up: the window is the first sample N times, whose fit is a constant.
             samples[:] = u
-            estimates[0][:] = u
-            for derivative in estimates[1:]:
-                derivative[:] = 0.0
+            self._fit[0] = u
+            self._fit[1:] = 0.0
         else:
             samples[row] = u
-            weights = self._rolled_weights[row]
-            for d, out in enumerate(estimates):
-                np.dot(weights[d], samples, out=out)
-        time = discrete_state.get_mutable_vector(self._evaluation_time)
-        time.SetAtIndex(0, context.get_time() - self._delay)
+            # All estimates at once: (order + 1, N) weights times the (N, k) ring.
+            np.dot(self._rolled_weights[row], samples, out=self._fit)
+        for group, estimate in zip(self._estimate_groups, self._fit):
+            discrete_state.set_value(group, estimate)
+        discrete_state.get_mutable_value(self._time_group)[0] = (
+            context.get_time() - self._delay
+        )
 
     def _raise_not_finite(self, u: np.ndarray, time: float):
         bad = np.flatnonzero(~np.isfinite(u))

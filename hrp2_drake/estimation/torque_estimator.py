@@ -2,38 +2,49 @@
 one IMU and 6-axis F/T sensors (paper Sec. 2), and `add_estimator`, which wires the
 whole estimation chain (Savitzky-Golay filters + estimator) to a robot diagram.
 
-The method (paper Sec. 2.2-2.4), on a private floating-base model of the robot:
+The method (paper Sec. 2.2-2.4), on a private model of the robot built from the given
+plant (the "internal model", see below):
 
-1. Base motion from the IMU (Sec. 2.3 and its footnote 1). Joint torques depend on
-   neither the pose of the base nor its linear velocity, and a uniform gravity field is
-   equivalent to an upward acceleration of the whole system. So the internal model has
-   no gravity, its base sits at the identity pose with zero linear velocity, and every
-   acceleration is a *proper* acceleration (acceleration minus gravity, what an
-   accelerometer reads). The base angular velocity comes from the gyro through the
-   kinematics of the chain from the base to the IMU (ω_B = R_WI ω_I − J_ω,joints q̇),
-   and the base spatial acceleration [α_B; a_Bo] from the 6x6 system
-   J_I,base A_B = A_I − J_I,joints q̈ − J̇_I v, where A_I = [α_I; a_I] holds the measured
-   angular acceleration (filtered gyro derivative, or zero) and the accelerometer's proper
-   acceleration, both rotated into the base frame.
+1. Base motion from the IMU (Sec. 2.3 and its footnote 1, "move the base in the model").
+   Joint torques depend on neither the pose of the base nor its linear velocity, and a
+   uniform gravity field is equivalent to an upward acceleration of the whole system.
+   So the internal model has no gravity, every acceleration is a *proper* acceleration
+   (acceleration minus gravity, what an accelerometer reads), and its floating base is
+   the IMU frame itself, at the identity pose with zero linear velocity: its angular
+   velocity is the gyro reading and its spatial acceleration [α; a] is the measured
+   angular acceleration (filtered gyro derivative, or zero) and the accelerometer's
+   reading, with no kinematics to compute.
 2. F/T compensation (Sec. 2.2). Each sensor reads S, the wrench that the subtree below
    it exerts on the body above it. Newton-Euler on that subtree (with proper
    accelerations, so gravity is included) gives the external wrench on it,
    F_ext = S − offset + Σ_b Ḣ_b, where Ḣ_b is the rate of change of momentum of each
    body b below the sensor, about the sensor origin (see "Offset calibration" for the
-   offset). Σ_b Ḣ_b is the base-row part of one inverse dynamics of the model in which
-   only the bodies below that sensor have mass (a private context per sensor), shifted
-   from the base origin to the sensor origin: exact, also with moving links below the
-   sensor (HRP-2's grippers).
-3. Joint torques (Sec. 2.3, eq. 2): one inverse dynamics (RNEA) of the internal model with
-   the external wrenches applied to the bodies right below the sensors gives
-   G = M v̇ + h − J_mᵀ f_m (n + 6 generalized forces).
+   offset). In the internal model each sensor is a 6-dof joint (at the identity, at
+   rest, for ever) between the subtree and a massless mount on the joint above it, so
+   one inverse dynamics without external wrenches gives Σ_b Ḣ_b of every sensor at
+   once: the generalized forces of those joints, [torque about So; force] in S. Exact,
+   also with moving links below the sensor (HRP-2's grippers).
+3. Joint torques (Sec. 2.3, eq. 2): a second inverse dynamics (RNEA) of the internal
+   model, on the same kinematics, with the external wrenches applied to the bodies right
+   below the sensors gives G = M v̇ + h − J_mᵀ f_m (n + 6 generalized forces on the
+   robot's degrees of freedom; the sensor joints' rows are not used).
 4. Unknown wrench (Sec. 2.4). The n + 6 equations G = [J_uᵀ Sᵀ] [f_u; τ] are solved for
    the unknown wrench f_u on one link u (the base by default, or a chosen link such as the
    torso) and τ. A = [J_uᵀ Sᵀ] is square; it is checked to have full column rank at
-   construction (it always has for a tree: its base rows hold the invertible 6x6
-   J_u,baseᵀ), so the least-squares solution is exact:
-   f_u = J_u,base⁻ᵀ G_base, τ = G_joints − J_u,jointsᵀ f_u. For u = base, f_u = G_base
-   and τ = S G (eq. 2).
+   construction (it always has for a tree: its root rows hold the invertible 6x6
+   J_u,rootᵀ), so the least-squares solution is exact:
+   f_u = J_u,root⁻ᵀ G_root, τ = G_joints − J_u,jointsᵀ f_u. With u on the IMU's body (the
+   torso for HRP-2, the paper's choice) J_u is constant and J_u,joints = 0, so τ = S G;
+   the estimate does not depend on which body is the model's base, so for u = the
+   robot's base this is eq. 2.
+
+The internal model is a copy of the plant's bodies (inertias), frames, joints (revolute,
+prismatic, welds) and actuators (rotor inertia, gear ratio), re-rooted at a massless body
+welded to the IMU frame (a revolute or prismatic joint turned around keeps its q and its
+generalized force with the opposite axis), plus one mount and one 6-dof joint per F/T
+sensor. Per update: one SetPositionsAndVelocities and two inverse dynamics (plus a
+Jacobian when the unknown-wrench link moves relative to the IMU); that is what makes the
+Python estimator run at 1 kHz with room to spare (scripts/bench_estimator.py).
 
 Reflected rotor inertia: the model's actuators may carry a rotor inertia I_r and a gear
 ratio ρ (Drake adds ρ² I_r to the joint's diagonal of the mass matrix). With
@@ -56,10 +67,17 @@ from pydrake.multibody.math import SpatialForce
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import (
     BodyIndex,
+    FixedOffsetFrame,
+    FrameIndex,
     JacobianWrtVariable,
+    ModelInstanceIndex,
     MultibodyForces,
+    PrismaticJoint,
+    QuaternionFloatingJoint,
+    RevoluteJoint,
     RigidBody,
     SpatialInertia,
+    WeldJoint,
 )
 from pydrake.systems.framework import (
     Context,
@@ -75,6 +93,7 @@ from hrp2_drake.multibody import check_vector, get_frame, joint_indexing
 
 ANGULAR_ACCELERATION_MODES = ("gyro_derivative", "neglected")
 _WHERE = "FloatingBaseTorqueEstimator"
+_ROOT = "torque_estimator_imu_root"  # the internal model's floating body
 
 
 @dataclass
@@ -214,13 +233,17 @@ class TorqueEstimate(NamedTuple):
 @dataclass
 class _Sensor:
     name: str
-    frame: object  # the sensor Frame S
-    body: RigidBody  # the body right below the sensor, B
-    R_BS: np.ndarray
-    p_BoSo_B: np.ndarray
+    frame: object  # the sensor Frame S (of the user's plant)
+    body: RigidBody  # the body right below the sensor, B (of the user's plant)
+    X_BS: RigidTransform
     bodies: list[int]  # BodyIndex of every body below the sensor (B's subtree)
-    context: Context  # the plant with mass only below the sensor (compensation)
     port: object = None
+    # In the internal model (see _with_sensor_joints):
+    model_body: RigidBody | None = None  # B
+    model_frame: object = None  # S, on B
+    p_BoSo_S: np.ndarray | None = None  # where external wrenches are applied
+    joint: object = None  # the 6-dof joint above B
+    rows: np.ndarray | None = None  # its 6 velocities
 
 
 class FloatingBaseTorqueEstimator(LeafSystem):
@@ -277,19 +300,23 @@ class FloatingBaseTorqueEstimator(LeafSystem):
     wrenches read ≈ 0 while calibrating); afterwards the average is frozen and
     subtracted from every reading. Before t0 the offsets are zero. The offsets and the
     number of samples averaged are discrete state (`offsets(context)`,
-    `num_calibration_samples(context)`); with T = 0 the offsets stay zero.
+    `num_calibration_samples(context)`); with T = 0 the offsets stay zero, or at the
+    values given to `set_offsets` (e.g. calibrated in an earlier run, lifted).
 
     Errors: a NaN or infinite input raises ValueError naming the port; an unknown
     frame, body or joint name raises KeyError naming it; a model whose degrees of
-    freedom are not the floating base plus config.joints raises ValueError.
+    freedom are not the floating base plus config.joints raises ValueError, and so
+    does a joint that is neither revolute, prismatic nor a weld.
 
-    Allocated once at construction: one private context of `plant` for the robot, one
-    per F/T sensor in which only the bodies below that sensor have mass (its inverse
-    dynamics gives the compensation ΣḢ), and the MultibodyForces; nothing per update
-    but small numpy temporaries. `plant`'s default parameters (masses, inertias, rotor
-    inertias, gear ratios) are read at construction. `plant` must be a finalized
-    model of the robot alone: floating base, no welds to the world; its gravity and
-    force elements are ignored.
+    Allocated once at construction: the internal model (module docstring), one context
+    of it and two MultibodyForces; nothing per update but small numpy temporaries. Per
+    update: one SetPositionsAndVelocities, two inverse dynamics on the same kinematics
+    (F/T compensation, then τ̂), and a Jacobian of the unknown-wrench link unless it
+    is rigidly attached to the IMU (scripts/bench_estimator.py measures it).
+    `plant`'s default parameters (masses, inertias, rotor inertias, gear ratios) are
+    read at construction. `plant` must be a finalized model of the robot alone:
+    floating base, no welds to the world, only revolute, prismatic and weld joints
+    besides the base's; its gravity and force elements are ignored.
     """
 
     def __init__(self, plant: MultibodyPlant, config: TorqueEstimatorConfig):
@@ -306,48 +333,73 @@ class FloatingBaseTorqueEstimator(LeafSystem):
             raise ValueError(f"{_WHERE}: the plant must be finalized")
         self._plant = plant
         self._config = copy.deepcopy(config)
-        self._context = plant.CreateDefaultContext()
-        self._forces = MultibodyForces(plant)
-        self._world = plant.world_frame()
+        plant_context = plant.CreateDefaultContext()
         self._zero3 = np.zeros(3)
 
         self._base = self._find_base(plant, config)
         self._indexing = joint_indexing(plant, config.joints)
         n = self._n = self._indexing.size
-        # Index arrays, or slices when contiguous (cheaper per tick).
-        self._jq = _as_slice(self._indexing.q)
-        self._jv = _as_slice(self._indexing.v)
         self._check_dofs(plant)
-        start = self._base.floating_velocities_start_in_v()
-        self._base_v = slice(start, start + 6)  # [ω_WB; v_WBo]
-        self._base_w = slice(start, start + 3)
-        self._base_a = slice(start + 3, start + 6)
+        plant.SetFreeBodyPose(plant_context, self._base, RigidTransform())
+        self._check_base_jacobian(plant, plant_context)
 
-        # The base at the identity pose, with zero linear velocity, for ever.
-        plant.SetFreeBodyPose(self._context, self._base, RigidTransform())
-        plant.SetVelocities(self._context, np.zeros(plant.num_velocities()))
-        self._q_full = plant.GetPositions(self._context).copy()
-        self._v_full = np.zeros(plant.num_velocities())
-        self._nq = plant.num_positions()
-        self._x_full = np.concatenate([self._q_full, self._v_full])
-        self._no_forces = MultibodyForces(plant)  # stays zero
-        self._vdot_full = np.zeros(plant.num_velocities())
-        self._check_base_jacobian(plant)
-
-        self._imu = get_frame(plant, config.imu_frame, "IMU frame")
-        if self._imu.body().index() == plant.world_body().index():
+        imu = get_frame(plant, config.imu_frame, "IMU frame")
+        if imu.body().index() == plant.world_body().index():
             raise ValueError(
                 f"{_WHERE}: IMU frame '{config.imu_frame}' is on the world"
             )
         self._parent = self._tree_parents(plant)
         self._sensors = [
-            self._make_sensor(plant, name, sensor)
+            self._make_sensor(plant, plant_context, name, sensor)
             for name, sensor in config.sensors.items()
         ]
         self._check_disjoint_subtrees()
-        self._reflected_inertia = self._reflected_inertias(plant)
-        self._unknown_frame = self._find_unknown_wrench_frame(plant, config)
-        self._check_rank(plant)
+        self._reflected_inertia = self._reflected_inertias(plant, plant_context)
+        unknown_frame = self._find_unknown_wrench_frame(plant, config)
+        self._check_rank(plant, plant_context, unknown_frame)
+        below = [b for s in self._sensors for b in s.bodies]
+        if int(imu.body().index()) in below:
+            raise ValueError(
+                f"{_WHERE}: IMU frame '{config.imu_frame}' is below an F/T sensor"
+            )
+
+        # The internal model, in which everything is computed (module docstring).
+        model, frames = _internal_model(plant, plant_context, imu, self._sensors)
+        self._model = model
+        self._context = model.CreateDefaultContext()
+        root = model.GetBodyByName(_ROOT, model.GetModelInstanceByName(_ROOT))
+        start = root.floating_velocities_start_in_v()
+        nq, nv = model.num_positions(), model.num_velocities()
+        indexing = joint_indexing(model, config.joints)
+        # Work arrays, views on one buffer: x = [q; v] of the model, v̇, the F/T
+        # readings (k, 6); one sum checks that every input is finite.
+        k = len(self._sensors)
+        self._buffer = np.zeros(nq + 2 * nv + 6 * k)
+        self._x = self._buffer[: nq + nv]
+        self._vdot = self._buffer[nq + nv : nq + 2 * nv]
+        self._raw = self._buffer[nq + 2 * nv :].reshape(k, 6)
+        model.SetFreeBodyPose(self._context, root, RigidTransform())
+        self._x[:nq] = model.GetPositions(self._context)  # the identities, for ever
+        # Where the inputs go (index arrays: the model's order is not the joints').
+        self._jq = indexing.q
+        self._jv = indexing.v
+        self._x_jv = nq + indexing.v
+        self._x_w = slice(nq + start, nq + start + 3)  # ω of the root: the gyro
+        self._root_v = slice(start, start + 6)  # [ω; v] of the root (the IMU frame)
+        self._root_w = slice(start, start + 3)  # α of the root: imu α
+        self._root_a = slice(start + 3, start + 6)  # a of the root: accelerometer
+        self._sensor_rows = (
+            np.concatenate([s.rows for s in self._sensors])
+            if self._sensors
+            else np.zeros(0, dtype=int)
+        )
+        self._forces = MultibodyForces(model)
+        self._no_forces = MultibodyForces(model)  # stays zero
+        self._world = model.world_frame()
+        u = unknown_frame or self._base.body_frame()
+        self._unknown_frame, self._unknown_map = self._unknown_wrench_map(
+            model, frames[int(u.index())]
+        )
 
         # Ports.
         self._q_port = self.DeclareVectorInputPort("q", n)
@@ -370,13 +422,14 @@ class FloatingBaseTorqueEstimator(LeafSystem):
         for sensor, state in zip(self._sensors, self._external_states):
             self.DeclareStateOutputPort(f"external_wrench_{sensor.name}", state)
         self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
+        # Plain ints: the cheapest DiscreteValues accessors per tick.
+        self._tau_group = int(self._tau_state)
+        self._unknown_group = int(self._unknown_state)
+        self._external_groups = [int(state) for state in self._external_states]
+        self._calibration_group = int(self._calibration_state)
 
-        # Work arrays of the update.
-        self._raw = np.zeros((k, 6))
-        self._compensated = np.zeros((k, 6))
-        self._external = np.zeros((k, 6))
-        self._A_I = np.zeros(6)
         self._neglect_alpha = config.angular_acceleration == "neglected"
+        self._calibrates = config.offset_calibration_time > 0
         # Calibrate at the updates with start <= t < start + time (half-period margins).
         self._calibration_begin = config.offset_calibration_start - 0.5 * config.period
         self._calibration_end = (
@@ -384,7 +437,7 @@ class FloatingBaseTorqueEstimator(LeafSystem):
             + config.offset_calibration_time
             - 0.5 * config.period
         )
-        self._period = config.period
+        self._subtract_rotor = not config.include_rotor_inertia
 
     # ----------------------------------------------------------------- construction
 
@@ -426,16 +479,17 @@ class FloatingBaseTorqueEstimator(LeafSystem):
                 f"{6 + self._n}; joints not in the config: {missing}"
             )
 
-    def _check_base_jacobian(self, plant: MultibodyPlant) -> None:
+    def _check_base_jacobian(self, plant: MultibodyPlant, context: Context) -> None:
         J = plant.CalcJacobianSpatialVelocity(
-            self._context,
+            context,
             JacobianWrtVariable.kV,
             self._base.body_frame(),
             self._zero3,
-            self._world,
-            self._world,
+            plant.world_frame(),
+            plant.world_frame(),
         )
-        if not np.allclose(J[:, self._base_v], np.eye(6), atol=1e-12):
+        start = self._base.floating_velocities_start_in_v()
+        if not np.allclose(J[:, start : start + 6], np.eye(6), atol=1e-12):
             raise ValueError(
                 f"{_WHERE}: the floating joint of '{self._base.name()}' does not have "
                 "velocities [ω_WB; v_WBo] (e.g. a quaternion or rpy floating joint)"
@@ -475,7 +529,11 @@ class FloatingBaseTorqueEstimator(LeafSystem):
         return sorted(out)
 
     def _make_sensor(
-        self, plant: MultibodyPlant, name: str, cfg: ForceTorqueSensorConfig
+        self,
+        plant: MultibodyPlant,
+        context: Context,
+        name: str,
+        cfg: ForceTorqueSensorConfig,
     ):
         frame = get_frame(plant, cfg.frame, f"F/T sensor '{name}' frame")
         if cfg.body:
@@ -504,26 +562,8 @@ class FloatingBaseTorqueEstimator(LeafSystem):
                 f"{_WHERE}: F/T sensor '{name}': frame '{cfg.frame}' is not rigidly "
                 f"attached to body '{body.name()}'"
             )
-        X_BS = frame.CalcPose(self._context, body.body_frame())
-        below = self._subtree(index)
-        # The plant with every body above the sensor massless: its inverse dynamics
-        # gives the momentum rate of the bodies below (see _compensate).
-        context = plant.CreateDefaultContext()
-        plant.SetFreeBodyPose(context, self._base, RigidTransform())
-        for i in range(plant.num_bodies()):
-            if i not in below and i != int(plant.world_body().index()):
-                plant.get_body(BodyIndex(i)).SetSpatialInertiaInBodyFrame(
-                    context, SpatialInertia.Zero()
-                )
-        return _Sensor(
-            name,
-            frame,
-            body,
-            X_BS.rotation().matrix(),
-            X_BS.translation(),
-            below,
-            context,
-        )
+        X_BS = frame.CalcPose(context, body.body_frame())
+        return _Sensor(name, frame, body, X_BS, self._subtree(index))
 
     def _check_disjoint_subtrees(self) -> None:
         owner: dict[int, str] = {}
@@ -536,13 +576,14 @@ class FloatingBaseTorqueEstimator(LeafSystem):
                     )
                 owner[b] = sensor.name
 
-    def _reflected_inertias(self, plant: MultibodyPlant) -> np.ndarray:
+    def _reflected_inertias(
+        self, plant: MultibodyPlant, context: Context
+    ) -> np.ndarray:
         by_joint = {}
         for index in plant.GetJointActuatorIndices():
             actuator = plant.get_joint_actuator(index)
             by_joint[int(actuator.joint().index())] = (
-                actuator.rotor_inertia(self._context)
-                * actuator.gear_ratio(self._context) ** 2
+                actuator.rotor_inertia(context) * actuator.gear_ratio(context) ** 2
             )
         return np.array(
             [
@@ -566,16 +607,16 @@ class FloatingBaseTorqueEstimator(LeafSystem):
             )
         return body.body_frame()
 
-    def _check_rank(self, plant: MultibodyPlant) -> None:
+    def _check_rank(self, plant: MultibodyPlant, context: Context, frame) -> None:
         """A = [J_uᵀ Sᵀ] must have full column rank (Sec. 2.4)."""
         nv = plant.num_velocities()
-        frame = self._unknown_frame or self._base.body_frame()
+        frame = frame or self._base.body_frame()
         J_u = plant.CalcJacobianSpatialVelocity(
-            self._context,
+            context,
             JacobianWrtVariable.kV,
             frame,
             self._zero3,
-            self._world,
+            plant.world_frame(),
             frame,
         )
         S = np.zeros((self._n, nv))
@@ -611,7 +652,36 @@ class FloatingBaseTorqueEstimator(LeafSystem):
     def num_calibration_samples(self, context: Context) -> int:
         return int(context.get_discrete_state(self._calibration_state).get_value()[-1])
 
+    def set_offsets(self, context: Context, offsets: np.ndarray) -> None:
+        """Sets the F/T offsets in use (k, 6), config.sensors order, sensor frames (N·m,
+        N): e.g. offsets calibrated earlier with nothing touching the sensors (robot
+        lifted) for a run that starts in contact. A calibration period
+        (config.offset_calibration_time > 0) that has not started yet replaces them."""
+        k = len(self._sensors)
+        value = check_vector("offsets", np.ravel(offsets), 6 * k, _WHERE)
+        state = context.get_mutable_discrete_state(self._calibration_state)
+        state.get_mutable_value()[:-1] = value
+
     # ----------------------------------------------------------------- computation
+
+    def _unknown_wrench_map(self, model: MultibodyPlant, frame):
+        """(frame, T) for the unknown wrench of the model's frame `frame` (Sec. 2.4):
+        if it is welded to the root, J_u is constant and f_u = T G_root with the
+        constant 6x6 T = J_u,rootᵀ⁻¹ (then frame is None); else (frame, None) and J_u
+        is computed at every update."""
+        J_u = model.CalcJacobianSpatialVelocity(
+            self._context,
+            JacobianWrtVariable.kV,
+            frame,
+            self._zero3,
+            model.world_frame(),
+            frame,
+        )
+        others = np.ones(model.num_velocities(), dtype=bool)
+        others[self._root_v] = False
+        if np.any(J_u[:, others] != 0.0):
+            return frame, None
+        return None, np.linalg.inv(J_u[:, self._root_v]).T
 
     def estimate(
         self,
@@ -653,97 +723,93 @@ class FloatingBaseTorqueEstimator(LeafSystem):
             if offsets is None
             else check_vector("offsets", np.ravel(offsets), 6 * k, _WHERE).reshape(k, 6)
         )
-        self._set_kinematics(q, v, vdot, acc, gyro, alpha)
-        compensated = np.zeros((k, 6))
-        self._compensate(raw, compensated)
-        external = compensated - off
-        tau, unknown = self._dynamics(external, vdot)
-        return TorqueEstimate(tau.copy(), unknown.copy(), external)
+        x, model_vdot = self._x, self._vdot
+        x[self._jq] = q
+        x[self._x_jv] = v
+        x[self._x_w] = gyro
+        model_vdot[self._jv] = vdot
+        model_vdot[self._root_w] = alpha
+        model_vdot[self._root_a] = acc
+        self._raw[:] = raw
+        self._model.SetPositionsAndVelocities(self._context, x)
+        external = self._compensate()
+        external -= off
+        tau, unknown = self._dynamics(external)
+        return TorqueEstimate(tau, unknown, external)
 
-    def _set_kinematics(self, q, v, vdot, acc, gyro, alpha) -> None:
-        """Sets the private context and self._vdot_full from the measurements (step 1)."""
-        plant, context, imu, W = self._plant, self._context, self._imu, self._world
-        self._q_full[self._jq] = q
-        plant.SetPositions(context, self._q_full)
-        J_I = plant.CalcJacobianSpatialVelocity(
-            context, JacobianWrtVariable.kV, imu, self._zero3, W, W
-        )
-        R_WI = imu.CalcRotationMatrixInWorld(context).matrix()
-        J_Ij = J_I[:, self._jv]
-        # ω_WI = ω_WB + J_ω,joints q̇ (the base at the identity pose: W = B).
-        self._v_full[self._base_w] = R_WI @ gyro - J_Ij[:3] @ v
-        self._v_full[self._jv] = v
-        plant.SetVelocities(context, self._v_full)
-        self._x_full[: self._nq] = self._q_full
-        self._x_full[self._nq :] = self._v_full
-        bias = plant.CalcBiasSpatialAcceleration(
-            context, JacobianWrtVariable.kV, imu, self._zero3, W, W
-        ).get_coeffs()
-        A_I = self._A_I
-        A_I[:3] = R_WI @ alpha
-        A_I[3:] = R_WI @ acc
-        rhs = A_I - J_Ij @ vdot - bias
-        # J_I,base = [I 0; −[p_BoIo]× I] (checked at construction for the base frame):
-        # solve the 6x6 system J_I,base A_B = rhs by blocks.
-        alpha_B = rhs[:3]
-        self._vdot_full[self._base_w] = alpha_B
-        self._vdot_full[self._base_a] = rhs[3:] - J_I[3:, self._base_w] @ alpha_B
-        self._vdot_full[self._jv] = vdot
+    def _compensate(self) -> np.ndarray:
+        """Step 2 without the offsets: S_s + Σ_b Ḣ_b (about So, in S) of every sensor,
+        (k, 6), from the readings in self._raw and the model's context. Σ_b Ḣ_b of
+        every sensor at once: the generalized forces of the sensor joints in one
+        inverse dynamics without external wrenches."""
+        G = self._model.CalcInverseDynamics(self._context, self._vdot, self._no_forces)
+        return self._raw + G[self._sensor_rows].reshape(self._raw.shape)
 
-    def _compensate(self, raw: np.ndarray, out: np.ndarray) -> None:
-        """out[s] = S_s + Σ_b Ḣ_b (about So, in S): step 2 without the offsets.
-
-        Σ_b Ḣ_b comes from Drake's inverse dynamics on the sensor's own context, where
-        only the bodies below the sensor have mass: the base rows of M v̇ + h are then
-        the momentum rate of those bodies, about the base origin, in the base frame.
-        """
-        plant, x = self._plant, self._x_full
-        for s, sensor in enumerate(self._sensors):
-            plant.SetPositionsAndVelocities(sensor.context, x)
-            G = plant.CalcInverseDynamics(
-                sensor.context, self._vdot_full, self._no_forces
-            )
-            torque_Bo, force = G[self._base_w], G[self._base_a]
-            X_WS = sensor.frame.CalcPoseInWorld(self._context)
-            p = X_WS.translation()
-            # Shift from the base origin Bo (= Wo) to So: τ_So = τ_Bo + p_SoBo × f.
-            torque_So = torque_Bo - np.array(
-                (
-                    p[1] * force[2] - p[2] * force[1],
-                    p[2] * force[0] - p[0] * force[2],
-                    p[0] * force[1] - p[1] * force[0],
-                )
-            )
-            R_SW = X_WS.rotation().matrix().T
-            out[s, :3] = raw[s, :3] + R_SW @ torque_So
-            out[s, 3:] = raw[s, 3:] + R_SW @ force
-
-    def _dynamics(self, external: np.ndarray, vdot: np.ndarray):
-        """Steps 3 and 4: (tau, unknown wrench) from the external wrenches."""
-        plant, context, forces = self._plant, self._context, self._forces
+    def _dynamics(self, external: np.ndarray):
+        """Steps 3 and 4: (tau, unknown wrench) from the external wrenches (k, 6)."""
+        model, context, forces = self._model, self._context, self._forces
         forces.SetZero()
         for s, sensor in enumerate(self._sensors):
-            R_BS = sensor.R_BS
-            F_B = SpatialForce(R_BS @ external[s, :3], R_BS @ external[s, 3:])
-            sensor.body.AddInForce(
-                context, sensor.p_BoSo_B, F_B, sensor.body.body_frame(), forces
+            sensor.model_body.AddInForce(
+                context,
+                sensor.p_BoSo_S,
+                SpatialForce(external[s]),
+                sensor.model_frame,
+                forces,
             )
         # G = M v̇ + h − J_mᵀ f_m, without gravity (proper accelerations carry it).
-        G = plant.CalcInverseDynamics(context, self._vdot_full, forces)
+        G = model.CalcInverseDynamics(context, self._vdot, forces)
         tau = G[self._jv]
-        if self._unknown_frame is None:
-            unknown = G[self._base_v]  # J_u = [I 0] for the base at the identity pose
+        G_root = G[self._root_v]
+        if self._unknown_map is not None:
+            # u welded to the root: f_u = J_u,rootᵀ⁻¹ G_root, J_u,joints = 0.
+            unknown = self._unknown_map @ G_root
         else:
             frame = self._unknown_frame
-            J_u = plant.CalcJacobianSpatialVelocity(
+            J_u = model.CalcJacobianSpatialVelocity(
                 context, JacobianWrtVariable.kV, frame, self._zero3, self._world, frame
             )
-            # [J_uᵀ Sᵀ] [f_u; τ] = G (Sec. 2.4): base rows first.
-            unknown = np.linalg.solve(J_u[:, self._base_v].T, G[self._base_v])
+            # [J_uᵀ Sᵀ] [f_u; τ] = G (Sec. 2.4): root rows first. Expressed in u, with
+            # the root at the identity pose, J_u,root = [R 0; −R[p]× R] (R = R_uW, p =
+            # p_WUo), whose inverse transpose is [R −R[p]×; 0 R]: no 6x6 solve.
+            J_root = J_u[:, self._root_v]
+            R = J_root[:3, :3]
+            unknown = np.empty(6)
+            unknown[:3] = R @ G_root[:3] + J_root[3:, :3] @ G_root[3:]
+            unknown[3:] = R @ G_root[3:]
             tau -= J_u[:, self._jv].T @ unknown
-        if not self._config.include_rotor_inertia:
-            tau -= self._reflected_inertia * vdot
+        if self._subtract_rotor:
+            tau -= self._reflected_inertia * self._vdot[self._jv]
         return tau, unknown
+
+    def _read_all(self, context: Context) -> None:
+        """Reads every input into the work arrays; ValueError naming the first port
+        (in port order) that is not finite."""
+        x, vdot = self._x, self._vdot
+        x[self._jq] = self._q_port.Eval(context)
+        x[self._x_jv] = self._v_port.Eval(context)
+        x[self._x_w] = self._gyro_port.Eval(context)
+        vdot[self._jv] = self._vdot_port.Eval(context)
+        if not self._neglect_alpha:
+            vdot[self._root_w] = self._alpha_port.Eval(context)
+        vdot[self._root_a] = self._acc_port.Eval(context)
+        raw = self._raw
+        for s, sensor in enumerate(self._sensors):
+            raw[s] = sensor.port.Eval(context)
+        # One check for all (the other entries of the buffer are finite).
+        if not math.isfinite(self._buffer.sum()):
+            ports = [
+                self._q_port,
+                self._v_port,
+                self._vdot_port,
+                self._acc_port,
+                self._gyro_port,
+            ]
+            if not self._neglect_alpha:
+                ports.append(self._alpha_port)
+            for port in ports + [sensor.port for sensor in self._sensors]:
+                self._read(port, context)
+            raise AssertionError(f"{_WHERE}: non-finite work array")  # unreachable
 
     def _read(self, port, context: Context) -> np.ndarray:
         value = port.Eval(context)
@@ -756,47 +822,184 @@ class FloatingBaseTorqueEstimator(LeafSystem):
         return value
 
     def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
-        q = self._read(self._q_port, context)
-        v = self._read(self._v_port, context)
-        vdot = self._read(self._vdot_port, context)
-        acc = self._read(self._acc_port, context)
-        gyro = self._read(self._gyro_port, context)
-        alpha = (
-            self._zero3
-            if self._neglect_alpha
-            else self._read(self._alpha_port, context)
-        )
-        raw = self._raw
-        for s, sensor in enumerate(self._sensors):
-            raw[s] = self._read(sensor.port, context)
-
-        self._set_kinematics(q, v, vdot, acc, gyro, alpha)
-        self._compensate(raw, self._compensated)
-
-        calibration = discrete_state.get_mutable_vector(
-            self._calibration_state
-        ).get_mutable_value()
+        self._read_all(context)
+        # Step 1: the root (the IMU frame) at the identity, with the gyro's angular
+        # velocity and the IMU's proper acceleration (set by _read_all).
+        self._model.SetPositionsAndVelocities(self._context, self._x)
+        external = self._compensate()
+        calibration = discrete_state.get_mutable_value(self._calibration_group)
         offsets = calibration[:-1].reshape(-1, 6)  # a view on the state
-        if self._calibration_begin <= context.get_time() < self._calibration_end:
+        if (
+            self._calibrates
+            and self._calibration_begin <= context.get_time() < self._calibration_end
+        ):
             count = calibration[-1] + 1.0
-            offsets += (self._compensated - offsets) / count  # running mean
+            offsets += (external - offsets) / count  # running mean
             calibration[-1] = count
-        np.subtract(self._compensated, offsets, out=self._external)
+        external -= offsets
+        tau, unknown = self._dynamics(external)
+        discrete_state.set_value(self._tau_group, tau)
+        discrete_state.set_value(self._unknown_group, unknown)
+        for group, wrench in zip(self._external_groups, external):
+            discrete_state.set_value(group, wrench)
 
-        tau, unknown = self._dynamics(self._external, vdot)
-        discrete_state.get_mutable_vector(self._tau_state).set_value(tau)
-        discrete_state.get_mutable_vector(self._unknown_state).set_value(unknown)
-        for s, state in enumerate(self._external_states):
-            discrete_state.get_mutable_vector(state).set_value(self._external[s])
 
+def _internal_model(
+    plant: MultibodyPlant, context: Context, imu: object, sensors: list[_Sensor]
+) -> tuple[MultibodyPlant, dict[int, object]]:
+    """The estimator's internal model of `plant` (module docstring): its bodies (with
+    their inertias in `context`), frames, joints and actuators (rotor inertias and
+    gear ratios in `context`), without geometry, force elements or gravity, with
+    - a massless floating root body welded to the IMU frame `imu`, every joint
+      oriented away from it (a revolute or prismatic joint turned around keeps its q
+      and generalized force with the opposite axis, a weld its inverse pose);
+    - above each F/T sensor's body B, a massless "mount" body at B's place on the
+      joint that holds B, and a 6-dof joint (QuaternionFloatingJoint) from a frame S on
+      the mount to the frame S on B. At the identity (kept for ever, at rest) the model
+      moves as `plant` does; the joint's generalized forces in an inverse dynamics are
+      the wrench [torque about So; force] in S that the mount applies to B's subtree.
 
-def _as_slice(indices: np.ndarray):
-    """`indices` as a slice if they are consecutive, else unchanged."""
-    if len(indices) and np.array_equal(
-        indices, np.arange(indices[0], indices[0] + len(indices))
-    ):
-        return slice(int(indices[0]), int(indices[0]) + len(indices))
-    return indices
+    Fills each sensor's model_* fields and rows. Returns the model (finalized) and the
+    model's copy of every frame of `plant` by frame index.
+
+    Raises:
+        ValueError: a joint of `plant` that is neither revolute, prismatic nor weld
+            (nor the floating joint of the base).
+    """
+    model = MultibodyPlant(0.0)
+    model.mutable_gravity_field().set_gravity_vector(np.zeros(3))
+    for i in range(2, plant.num_model_instances()):  # 0: world, 1: default
+        model.AddModelInstance(plant.GetModelInstanceName(ModelInstanceIndex(i)))
+    for i in range(1, plant.num_bodies()):
+        body = plant.get_body(BodyIndex(i))
+        model.AddRigidBody(
+            body.name(),
+            body.model_instance(),
+            body.CalcSpatialInertiaInBodyFrame(context),
+        )
+    frames: dict[int, object] = {}
+    for i in range(plant.num_frames()):
+        frame = plant.get_frame(FrameIndex(i))
+        if frame.is_ephemeral():
+            continue  # e.g. the frames of the base's floating joint, rebuilt by Drake
+        body_frame = model.get_body(frame.body().index()).body_frame()
+        frames[i] = (
+            body_frame
+            if frame.is_body_frame()
+            else model.AddFrame(
+                FixedOffsetFrame(
+                    frame.name(),
+                    body_frame,
+                    frame.GetFixedPoseInBodyFrame(),
+                    frame.model_instance(),
+                )
+            )
+        )
+
+    # The tree rooted at the IMU's body, and the joint that holds each body.
+    world = int(plant.world_body().index())
+    links = {}
+    for j in plant.GetJointIndices():
+        joint = plant.get_joint(j)
+        a, b = int(joint.parent_body().index()), int(joint.child_body().index())
+        if world not in (a, b):
+            links.setdefault(a, []).append((b, joint))
+            links.setdefault(b, []).append((a, joint))
+    holder = {}  # body -> (parent body, joint)
+    stack, seen = [int(imu.body().index())], {int(imu.body().index())}
+    while stack:
+        a = stack.pop()
+        for b, joint in links.get(a, []):
+            if b not in seen:
+                seen.add(b)
+                holder[b] = (a, joint)
+                stack.append(b)
+
+    root_instance = model.AddModelInstance(_ROOT)
+    root = model.AddRigidBody(_ROOT, root_instance, SpatialInertia.Zero())
+    model.AddJoint(
+        WeldJoint(
+            f"{_ROOT}_weld",
+            root.body_frame(),
+            frames[int(imu.index())],
+            RigidTransform(),
+        )
+    )
+    by_body = {int(sensor.body.index()): sensor for sensor in sensors}
+    for child, (parent_index, joint) in sorted(holder.items()):
+        forward = int(joint.child_body().index()) == child
+        on_parent, on_child = (
+            (joint.frame_on_parent(), joint.frame_on_child())
+            if forward
+            else (joint.frame_on_child(), joint.frame_on_parent())
+        )
+        F = frames[int(on_parent.index())]
+        M = frames[int(on_child.index())]
+        sensor = by_body.get(child)
+        if sensor is not None:
+            # The joint holds a massless mount at B's place; B hangs from the mount.
+            B = model.get_body(BodyIndex(child))
+            mount = model.AddRigidBody(
+                f"{sensor.name}_ft_sensor_mount", root_instance, SpatialInertia.Zero()
+            )
+            M = model.AddFrame(
+                FixedOffsetFrame(
+                    f"{sensor.name}_ft_sensor_mount_joint",
+                    mount.body_frame(),
+                    on_child.GetFixedPoseInBodyFrame(),
+                )
+            )
+            sensor.model_body = B
+            sensor.model_frame = model.AddFrame(
+                FixedOffsetFrame(
+                    f"{sensor.name}_ft_sensor",
+                    B.body_frame(),
+                    sensor.X_BS,
+                    root_instance,
+                )
+            )
+            S_mount = model.AddFrame(
+                FixedOffsetFrame(
+                    f"{sensor.name}_ft_sensor_on_mount",
+                    mount.body_frame(),
+                    sensor.X_BS,
+                )
+            )
+            sensor.joint = model.AddJoint(
+                QuaternionFloatingJoint(
+                    f"{sensor.name}_ft_sensor_joint", S_mount, sensor.model_frame
+                )
+            )
+            R_BS = sensor.X_BS.rotation().matrix()
+            sensor.p_BoSo_S = R_BS.T @ sensor.X_BS.translation()
+        sign = 1.0 if forward else -1.0
+        kind = joint.type_name()
+        if kind == "revolute":
+            copy_ = RevoluteJoint(joint.name(), F, M, sign * joint.revolute_axis())
+        elif kind == "prismatic":
+            copy_ = PrismaticJoint(joint.name(), F, M, sign * joint.translation_axis())
+        elif kind == "weld":
+            X_FM = joint.X_FM() if forward else joint.X_FM().inverse()
+            copy_ = WeldJoint(joint.name(), F, M, X_FM)
+        else:
+            raise ValueError(
+                f"{_WHERE}: joint '{joint.name()}' is a {kind} joint; only revolute, "
+                "prismatic and weld joints (and the floating base) are supported"
+            )
+        copies = model.AddJoint(copy_)
+        for index in plant.GetJointActuatorIndices():
+            actuator = plant.get_joint_actuator(index)
+            if actuator.joint().index() == joint.index():
+                added = model.AddJointActuator(
+                    actuator.name(), copies, actuator.effort_limit()
+                )
+                added.set_default_rotor_inertia(actuator.rotor_inertia(context))
+                added.set_default_gear_ratio(actuator.gear_ratio(context))
+    model.Finalize()
+    for sensor in sensors:
+        # QuaternionFloatingJoint velocities: [ω_FM; v_FM] in F (= S at the identity).
+        sensor.rows = sensor.joint.velocity_start() + np.arange(6)
+    return model, frames
 
 
 # --------------------------------------------------------------------- the chain
