@@ -369,6 +369,31 @@ def test_offset_calibration(plant, truth):
     assert np.max(np.abs(uncalibrated["tau"] - sample["tau"])) > 0.1
 
 
+def test_set_offsets_subtracts_known_offsets(plant, truth):
+    """Offsets calibrated earlier (robot lifted) and set for a run that starts in
+    contact: the estimate is as without bias."""
+    rng = np.random.default_rng(52)
+    estimator = FloatingBaseTorqueEstimator(plant, _config(plant))
+    context = estimator.CreateDefaultContext()
+    bias = rng.normal(0.0, 2.0, (len(SENSORS), 6))
+    estimator.set_offsets(context, bias)
+    np.testing.assert_allclose(estimator.offsets(context), bias)
+    sample = truth.sample(rng)
+    _fix(estimator, context, _biased(sample, bias))
+    out = _step(estimator, context)
+    np.testing.assert_allclose(out["tau"], sample["tau"], rtol=0, atol=1e-8)
+    with pytest.raises(ValueError, match="offsets"):
+        estimator.set_offsets(context, np.zeros(5))
+
+
+def test_imu_below_a_force_sensor_is_an_error(plant):
+    """The base motion comes from the IMU: it cannot sit below an F/T sensor, whose
+    wrench would then be inside the chain from the IMU to the base."""
+    sensors = {"chest": ForceTorqueSensorConfig(frame="CHEST_LINK1", body="CHEST_LINK1")}
+    with pytest.raises(ValueError, match="IMU frame 'imu' is below an F/T sensor"):
+        FloatingBaseTorqueEstimator(plant, _config(plant, sensors=sensors))
+
+
 # ------------------------------------------------------------------ bad inputs
 
 
