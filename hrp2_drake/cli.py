@@ -105,6 +105,27 @@ def _experiment(args: argparse.Namespace) -> int:
                 f"{len(verdict['average'])}/5 (average), {len(verdict['maximum'])}/5 (maximum)"
             )
         return 0
+    if args.name == "estimation":
+        from hrp2_drake.experiments.estimation import (
+            EstimationConfig,
+            run_estimation_experiment,
+        )
+
+        config = (
+            load_config(EstimationConfig, filename=args.config)
+            if args.config
+            else EstimationConfig()
+        )
+        summary = run_estimation_experiment(config, out)
+        print(f"report: {out / 'estimation.md'}")
+        for scenario, analysis in summary["scenarios"].items():
+            best = analysis["best_window"]
+            worst = analysis["windows"][str(best)]["right_leg_worst_ratio"]
+            print(
+                f"  {scenario}: best window {best}, worst right-leg RMS/peak "
+                f"{worst * 100:.2f}% (goal 3%: {'met' if analysis['goal_met'] else 'NOT met'})"
+            )
+        return 0
     if args.name == "force":
         from hrp2_drake.experiments.force import ForceConfig, run_force_experiment
 
@@ -192,11 +213,11 @@ def main(argv: list[str] | None = None) -> int:
 
     exp = commands.add_parser(
         "experiment",
-        help="run one experiment of the paper: motion (Sec. 5.3), force (5.4), "
-        "stability (5.2); the component analysis (5.5) needs motion and force: "
-        "see reproduce",
+        help="run one experiment of the paper: estimation (Sec. 2), motion (5.3), "
+        "force (5.4), stability (5.2); the component analysis (5.5) needs motion and "
+        "force: see reproduce",
     )
-    exp.add_argument("name", choices=["motion", "force", "stability"])
+    exp.add_argument("name", choices=["estimation", "motion", "force", "stability"])
     exp.add_argument("--config", help="the experiment's config YAML file")
     exp.add_argument("--motor-model", help="MotorModel YAML (default: identify one)")
     exp.add_argument("--end", type=float, help="motion: stop the climbing motion at (s)")

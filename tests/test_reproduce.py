@@ -14,7 +14,7 @@ def test_reproduce_quick_writes_the_report_and_numbers(tmp_path, capsys):
     code = main(["reproduce", "--quick", "--no-replays", "--out", str(out)])
     assert code == 0, capsys.readouterr().err[-3000:]
     results = json.loads((out / "results.json").read_text())
-    for step in ("identify", "motion", "force", "stability", "components"):
+    for step in ("identify", "estimation", "motion", "force", "stability", "components"):
         assert results[step].get("ok", True), (step, results[step].get("error"))
     assert len(results["identify"]["joints"]) == 6
     assert len(results["motion"]["runs"]) == 6  # position, 4 x K6, paper-literal
@@ -28,6 +28,7 @@ def test_reproduce_quick_writes_the_report_and_numbers(tmp_path, capsys):
         "force/figure5_force_tracking.png",
         "components/figure6_components.png",
         "stability/figure_open_loop_stability.png",
+        "estimation/estimation_tau_hanging.png",
     ):
         assert (out / figure).stat().st_size > 10000, figure
         assert f"({figure})" in report, figure
