@@ -15,12 +15,15 @@ from hrp2_drake.config import load_config
 from hrp2_drake.robot.station import SCENARIOS
 
 
+def _config(schema, args: argparse.Namespace):
+    """The --config YAML file read into `schema`, or its defaults."""
+    return load_config(schema, filename=args.config) if args.config else schema()
+
+
 def _simulate(args: argparse.Namespace) -> int:
     from hrp2_drake.experiments.simulate import SimulateConfig, run_simulate, summarize
 
-    config = (
-        load_config(SimulateConfig, filename=args.config) if args.config else SimulateConfig()
-    )
+    config = _config(SimulateConfig, args)
     if args.scenario:
         config.station.scenario = args.scenario
     if args.duration is not None:
@@ -53,9 +56,7 @@ def _simulate(args: argparse.Namespace) -> int:
 def _identify(args: argparse.Namespace) -> int:
     from hrp2_drake.experiments.identification import IdentifyConfig, run_identify
 
-    config = (
-        load_config(IdentifyConfig, filename=args.config) if args.config else IdentifyConfig()
-    )
+    config = _config(IdentifyConfig, args)
     if args.duration_scale is not None:
         config.duration_scale = args.duration_scale
     out = Path(args.out)
@@ -93,7 +94,7 @@ def _experiment(args: argparse.Namespace) -> int:
     if args.name == "motion":
         from hrp2_drake.experiments.motion import MotionConfig, run_motion, write_motion_report
 
-        config = load_config(MotionConfig, filename=args.config) if args.config else MotionConfig()
+        config = _config(MotionConfig, args)
         if args.end is not None:
             config.end = args.end
         model = _motor_model(args, out)
@@ -111,11 +112,7 @@ def _experiment(args: argparse.Namespace) -> int:
             run_estimation_experiment,
         )
 
-        config = (
-            load_config(EstimationConfig, filename=args.config)
-            if args.config
-            else EstimationConfig()
-        )
+        config = _config(EstimationConfig, args)
         summary = run_estimation_experiment(config, out)
         print(f"report: {out / 'estimation.md'}")
         for scenario, analysis in summary["scenarios"].items():
@@ -129,7 +126,7 @@ def _experiment(args: argparse.Namespace) -> int:
     if args.name == "force":
         from hrp2_drake.experiments.force import ForceConfig, run_force_experiment
 
-        config = load_config(ForceConfig, filename=args.config) if args.config else ForceConfig()
+        config = _config(ForceConfig, args)
         summary = run_force_experiment(config, _motor_model(args, out), out)
         m = summary["baseline"]["metrics"]["ft_reading"]
         print(
@@ -141,11 +138,7 @@ def _experiment(args: argparse.Namespace) -> int:
         from hrp2_drake.experiments.stability import StabilityConfig, run_stability_experiment
         from hrp2_drake.identification.motor_model import MotorModel
 
-        config = (
-            load_config(StabilityConfig, filename=args.config)
-            if args.config
-            else StabilityConfig()
-        )
+        config = _config(StabilityConfig, args)
         asymmetric = _motor_model(args, out)
         path = Path(args.motor_model or out / "identify" / "motor_model.yaml")
         least_squares = path.with_name("motor_model_least_squares.yaml")

@@ -89,7 +89,13 @@ from pydrake.systems.framework import (
 from pydrake.systems.primitives import Demultiplexer, Multiplexer
 
 from hrp2_drake.estimation.savitzky_golay import EVALUATION_POINTS, SavitzkyGolayFilter
-from hrp2_drake.multibody import check_vector, get_frame, joint_indexing
+from hrp2_drake.multibody import (
+    check_joint_names,
+    check_vector,
+    eval_finite,
+    get_frame,
+    joint_indexing,
+)
 
 ANGULAR_ACCELERATION_MODES = ("gyro_derivative", "neglected")
 _WHERE = "FloatingBaseTorqueEstimator"
@@ -164,11 +170,7 @@ class TorqueEstimatorConfig:
     def validate(self) -> None:
         """Raises ValueError naming the bad field (yaml_load_typed does not call it)."""
         where = "TorqueEstimatorConfig"
-        if not self.joints:
-            raise ValueError(f"{where}.joints is empty")
-        duplicates = sorted({j for j in self.joints if self.joints.count(j) > 1})
-        if duplicates:
-            raise ValueError(f"{where}.joints: duplicated joints {duplicates}")
+        check_joint_names(self.joints, where)
         if not self.imu_frame:
             raise ValueError(f"{where}.imu_frame is empty")
         for name, sensor in self.sensors.items():
@@ -812,14 +814,7 @@ class FloatingBaseTorqueEstimator(LeafSystem):
             raise AssertionError(f"{_WHERE}: non-finite work array")  # unreachable
 
     def _read(self, port, context: Context) -> np.ndarray:
-        value = port.Eval(context)
-        if not math.isfinite(value.sum()):
-            bad = np.flatnonzero(~np.isfinite(value))
-            raise ValueError(
-                f"{_WHERE} {self.GetSystemPathname()}: input port '{port.get_name()}' is "
-                f"not finite at t = {context.get_time():.6g} s, at indices {bad.tolist()}"
-            )
-        return value
+        return eval_finite(port, context, f"{_WHERE} {self.GetSystemPathname()}")
 
     def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
         self._read_all(context)
