@@ -87,3 +87,10 @@ def test_experiment_command_with_a_saved_model(identified_model, tmp_path):
     )
     assert code == 0
     assert json.loads((out / "motion.json").read_text())["runs"][1]["k6"] == 1.0
+
+
+def test_torque_control_config_errors():
+    with pytest.raises(ValueError, match="must end before start_time"):
+        TorqueControlConfig(offset_calibration_time=0.5).validate()
+    with pytest.raises(ValueError, match="friction_velocity"):
+        TorqueControlConfig(friction_velocity="measured").validate()

@@ -166,6 +166,9 @@ class TorqueControlConfig:
         kf: force-feedback gain K_f (one value or 6).
         delta_q_limit: saturation of Δq (rad).
         start_time: position control until then (the filters fill), s.
+        offset_calibration_time: F/T offset calibration at start-up (s, from 0.2 s;
+            0 = none): only when nothing touches the feet and hands then (the robot
+            hanging); must end before start_time.
     """
 
     joints: list[str] = field(default_factory=lambda: list(model.RIGHT_LEG))
@@ -181,10 +184,19 @@ class TorqueControlConfig:
     kf: list[float] = field(default_factory=lambda: [0.0])
     delta_q_limit: float = 0.1
     start_time: float = 0.5
+    offset_calibration_time: float = 0.0
 
     def validate(self) -> None:
         if self.position_source not in ("encoders", "estimate"):
             raise ValueError(f"TorqueControlConfig.position_source: '{self.position_source}'")
+        if self.offset_calibration_time > 0 and (
+            0.2 + self.offset_calibration_time > self.start_time
+        ):
+            raise ValueError(
+                "TorqueControlConfig.offset_calibration_time: the calibration "
+                f"(0.2 s + {self.offset_calibration_time} s) must end before "
+                f"start_time = {self.start_time} s"
+            )
         for name in ("feedback_velocity", "friction_velocity"):
             if getattr(self, name) not in ("estimate", "reference"):
                 raise ValueError(f"TorqueControlConfig.{name}: '{getattr(self, name)}'")
@@ -210,7 +222,12 @@ def build_torque_control(
         builder,
         station,
         hrp2.estimator_plant(),
-        hrp2.estimator_config(config.window, evaluation=config.evaluation),
+        hrp2.estimator_config(
+            config.window,
+            evaluation=config.evaluation,
+            offset_calibration_time=config.offset_calibration_time,
+            offset_calibration_start=0.2,
+        ),
     )
     select = lambda name: builder.AddNamedSystem(  # noqa: E731
         name, make_joint_selector(model.JOINT_NAMES, joints)

@@ -81,7 +81,8 @@ class MotionConfig:
     Args:
         station: the robot (the paper's: hanging).
         k6: the torque controllers' position gains (paper: 1, 0.5, 0.25, 0.1).
-        torque_control: every other setting of the torque controllers.
+        torque_control: every other setting of the torque controllers (default: F/T
+            offsets calibrated during 0.2-0.45 s, the robot hanging).
         start, end: the part of the climbing motion to run (s); end < 0: to its end.
         settle: time before the motion starts, holding its first pose (s).
         smoothing: the reference spline's smoothing (see `climbing_reference`).
@@ -90,7 +91,11 @@ class MotionConfig:
 
     station: StationConfig = field(default_factory=lambda: StationConfig(scenario="hanging"))
     k6: list[float] = field(default_factory=lambda: list(PAPER_K6))
-    torque_control: TorqueControlConfig = field(default_factory=TorqueControlConfig)
+    torque_control: TorqueControlConfig = field(
+        # Hanging, the feet and hands touch nothing at start-up: calibrate the F/T
+        # offsets then (paper Sec. 2.2), before torque control starts at 0.5 s.
+        default_factory=lambda: TorqueControlConfig(offset_calibration_time=0.25)
+    )
     start: float = 0.0
     end: float = -1.0
     settle: float = 1.0
