@@ -30,6 +30,7 @@ index (`NoisySampler`), so every run of a config repeats the same noise.
 """
 
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -140,11 +141,33 @@ def initial_joint_positions(config: StationConfig) -> np.ndarray:
     return q
 
 
-def _plant_for_kinematics() -> tuple[MultibodyPlant, JointIndexing]:
+@functools.cache
+def _kinematic_model() -> tuple[MultibodyPlant, JointIndexing]:
+    """HRP-2 alone (floating, no scenario), parsed once: for the kinematics that set a
+    scenario up (sole heights, block and string placement)."""
     plant = MultibodyPlant(0.0)
     model.add_hrp2(plant)
     plant.Finalize()
     return plant, model.hrp2_joint_indexing(plant)
+
+
+def _posed(q: np.ndarray, X_WB: RigidTransform | None = None):
+    """(plant, context) of the kinematic model at joint angles q, waist at X_WB
+    (default: the origin, upright)."""
+    plant, indexing = _kinematic_model()
+    context = plant.CreateDefaultContext()
+    x = plant.GetPositions(context)
+    x[indexing.q] = q
+    plant.SetPositions(context, x)
+    if X_WB is not None:
+        plant.SetFreeBodyPose(context, plant.GetBodyByName(model.BASE_BODY), X_WB)
+    return plant, context
+
+
+def _frame_position(q: np.ndarray, frame: str) -> np.ndarray:
+    """Position in the world of `frame` with the waist at the origin, upright (m)."""
+    plant, context = _posed(q)
+    return plant.GetFrameByName(frame).CalcPoseInWorld(context).translation()
 
 
 def _raise_right_foot(q: np.ndarray, height: float) -> np.ndarray:
@@ -152,18 +175,11 @@ def _raise_right_foot(q: np.ndarray, height: float) -> np.ndarray:
     that the right sole is `height` higher, at the same x, relative to the waist."""
     from scipy.optimize import least_squares
 
-    plant, indexing = _plant_for_kinematics()
-    context = plant.CreateDefaultContext()
-    sole = plant.GetFrameByName(model.SOLE_FRAMES["right_foot"])
-
     def sole_xz(angles: np.ndarray) -> np.ndarray:
         qj = q.copy()
         qj[2], qj[3] = angles
         qj[4] = q[4] - (angles[0] - q[2]) - (angles[1] - q[3])
-        x = plant.GetPositions(context)
-        x[indexing.q] = qj
-        plant.SetPositions(context, x)
-        return sole.CalcPoseInWorld(context).translation()[[0, 2]]
+        return _frame_position(qj, model.SOLE_FRAMES["right_foot"])[[0, 2]]
 
     target = sole_xz(q[2:4]) + [0.0, height]
     fit = least_squares(lambda a: sole_xz(a) - target, q[2:4])
@@ -177,15 +193,7 @@ def _raise_right_foot(q: np.ndarray, height: float) -> np.ndarray:
 
 def _lowest_sole_height(q: np.ndarray) -> float:
     """Height of the lowest sole when the waist is at the origin, upright."""
-    plant, indexing = _plant_for_kinematics()
-    context = plant.CreateDefaultContext()
-    x = plant.GetPositions(context)
-    x[indexing.q] = q
-    plant.SetPositions(context, x)
-    return min(
-        plant.GetFrameByName(f).CalcPoseInWorld(context).translation()[2]
-        for f in model.SOLE_FRAMES.values()
-    )
+    return min(_frame_position(q, f)[2] for f in model.SOLE_FRAMES.values())
 
 
 def _add_ground(plant: MultibodyPlant) -> None:
@@ -200,15 +208,10 @@ def _add_ground(plant: MultibodyPlant) -> None:
     )
 
 
-def _add_block(plant: MultibodyPlant, q: np.ndarray, base_z: float, height: float):
-    plant_k, indexing = _plant_for_kinematics()
-    context = plant_k.CreateDefaultContext()
-    x = plant_k.GetPositions(context)
-    x[indexing.q] = q
-    plant_k.SetPositions(context, x)
-    p = plant_k.GetFrameByName(model.SOLE_FRAMES["right_foot"]).CalcPoseInWorld(
-        context
-    ).translation()
+def _add_block(plant: MultibodyPlant, q: np.ndarray, height: float):
+    """A rigid block under the right sole (horizontal position of the sole with the
+    waist above the origin)."""
+    p = _frame_position(q, model.SOLE_FRAMES["right_foot"])
     size = (0.36, 0.18, height)  # clear of the left foot (0.19 m apart)
     X_WB = RigidTransform([p[0] + 0.015, p[1], height / 2])
     shape = Box(*size)
@@ -249,7 +252,7 @@ def make_station(config: StationConfig, meshcat: Meshcat | None = None) -> Diagr
     if config.scenario != "hanging":
         _add_ground(plant)
     if config.scenario == "standing_on_block":
-        _add_block(plant, q0, base_height, config.block_height)
+        _add_block(plant, q0, config.block_height)
     if config.scenario == "hanging":
         _add_strings(plant, q0, X_WB0, config.hanging)
     plant.Finalize()
@@ -289,12 +292,7 @@ def _add_strings(
     plant: MultibodyPlant, q0: np.ndarray, X_WB0: RigidTransform, cfg: HangingConfig
 ) -> None:
     """Two strings from fixed anchors to the shoulders, stretched by the weight."""
-    plant_k, indexing = _plant_for_kinematics()
-    context = plant_k.CreateDefaultContext()
-    x = plant_k.GetPositions(context)
-    x[indexing.q] = q0
-    plant_k.SetPositions(context, x)
-    plant_k.SetFreeBodyPose(context, plant_k.GetBodyByName(model.BASE_BODY), X_WB0)
+    plant_k, context = _posed(q0, X_WB0)
     torso_k = plant_k.GetBodyByName(model.IMU_BODY)
     X_WT = torso_k.EvalPoseInWorld(context)
     stretch = plant_k.CalcTotalMass(context) * GRAVITY / (2 * cfg.stiffness)
@@ -325,8 +323,8 @@ def _add_sensors(
 ) -> None:
     seeds = iter(range(1000 * cfg.seed + 1, 1000 * cfg.seed + 100))
 
-    def sampler(name: str, signal_port, size: int, noise, resolution=None, initial=None):
-        std, bias = noise.vectors(size, f"sensors.{name}")
+    def sampler(name: str, signal_port, std, bias, resolution=None, initial=None):
+        size = len(std)
         system = builder.AddNamedSystem(
             name,
             NoisySampler(size, cfg.period, std, bias, next(seeds), resolution, initial),
@@ -345,8 +343,13 @@ def _add_sensors(
         servo = load_servo_params()
         resolution = servo.vectors(indexing.names)["encoder_resolution"]
     builder.ExportOutput(
-        sampler("encoders", positions.get_output_port(), indexing.size, cfg.encoder,
-                resolution, q0),
+        sampler(
+            "encoders",
+            positions.get_output_port(),
+            *cfg.encoder.vectors(indexing.size, "sensors.encoders"),
+            resolution,
+            q0,
+        ),
         "q_measured",
     )
 
@@ -371,11 +374,19 @@ def _add_sensors(
         plant.get_body_spatial_velocities_output_port(), gyro.get_body_velocities_input_port()
     )
     builder.ExportOutput(
-        sampler("imu_accelerometer", accel.get_measurement_output_port(), 3, cfg.accelerometer),
+        sampler(
+            "imu_accelerometer",
+            accel.get_measurement_output_port(),
+            *cfg.accelerometer.vectors(3, "sensors.imu_accelerometer"),
+        ),
         "imu_linear_acceleration",
     )
     builder.ExportOutput(
-        sampler("imu_gyroscope", gyro.get_measurement_output_port(), 3, cfg.gyroscope),
+        sampler(
+            "imu_gyroscope",
+            gyro.get_measurement_output_port(),
+            *cfg.gyroscope.vectors(3, "sensors.imu_gyroscope"),
+        ),
         "imu_angular_velocity",
     )
 
@@ -387,20 +398,14 @@ def _add_sensors(
     builder.Connect(plant.get_reaction_forces_output_port(), readout.get_input_port())
     stds, biases = zip(*(cfg.force_torque[n].vectors(6, f"sensors.force_torque.{n}")
                          for n in names))
-    ft_noise = _Stacked(np.concatenate(stds), np.concatenate(biases))
-    sampled = sampler("force_torque", readout.get_output_port(), 6 * len(names), ft_noise)
+    sampled = sampler(
+        "force_torque",
+        readout.get_output_port(),
+        np.concatenate(stds),
+        np.concatenate(biases),
+    )
     demux = builder.AddNamedSystem("force_torque_demux", Demultiplexer([6] * len(names)))
     builder.Connect(sampled, demux.get_input_port())
     for k, name in enumerate(names):
         builder.ExportOutput(demux.get_output_port(k), f"wrench_{name}")
 
-
-@dataclass
-class _Stacked:
-    """Noise vectors already at full size (the four F/T sensors side by side)."""
-
-    std: np.ndarray
-    bias: np.ndarray
-
-    def vectors(self, size: int, where: str) -> tuple[np.ndarray, np.ndarray]:
-        return self.std, self.bias
