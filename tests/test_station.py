@@ -200,7 +200,7 @@ def test_config_errors_say_what_and_where(tmp_path):
     assert config.scenario == "standing" and config.sensors.seed == 4
     bad_noise = StationConfig()
     bad_noise.sensors.accelerometer = NoiseConfig(std=[0.1, 0.2])
-    with pytest.raises(ValueError, match=r"sensors\.imu_accelerometer\.std must hold 1 or 3"):
+    with pytest.raises(ValueError, match=r"sensors\.accelerometer\.std must hold 1 or 3"):
         make_station(bad_noise)
     with pytest.raises(KeyError, match="no joint 'RLEG_FT'"):
         plant = MultibodyPlant(0.0)

@@ -346,7 +346,7 @@ def _add_sensors(
         sampler(
             "encoders",
             positions.get_output_port(),
-            *cfg.encoder.vectors(indexing.size, "sensors.encoders"),
+            *cfg.encoder.vectors(indexing.size, "sensors.encoder"),
             resolution,
             q0,
         ),
@@ -377,7 +377,7 @@ def _add_sensors(
         sampler(
             "imu_accelerometer",
             accel.get_measurement_output_port(),
-            *cfg.accelerometer.vectors(3, "sensors.imu_accelerometer"),
+            *cfg.accelerometer.vectors(3, "sensors.accelerometer"),
         ),
         "imu_linear_acceleration",
     )
@@ -385,7 +385,7 @@ def _add_sensors(
         sampler(
             "imu_gyroscope",
             gyro.get_measurement_output_port(),
-            *cfg.gyroscope.vectors(3, "sensors.imu_gyroscope"),
+            *cfg.gyroscope.vectors(3, "sensors.gyroscope"),
         ),
         "imu_angular_velocity",
     )
