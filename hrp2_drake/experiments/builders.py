@@ -40,6 +40,7 @@ from hrp2_drake.control.torque_controller import (
 from hrp2_drake.estimation.torque_estimator import add_estimator
 from hrp2_drake.experiments import hrp2
 from hrp2_drake.identification.motor_model import MotorModel
+from hrp2_drake.multibody import joint_indexing
 from hrp2_drake.robot import model
 from hrp2_drake.robot.station import StationConfig, make_station
 
@@ -202,6 +203,18 @@ class TorqueControlConfig:
                 raise ValueError(f"TorqueControlConfig.{name}: '{getattr(self, name)}'")
 
 
+def _joint_inertia(plant, joints: list[str], q: np.ndarray) -> np.ndarray:
+    """Diagonal of the mass matrix (kg·m², reflected rotor inertia included) of
+    `joints` at the 30 joint angles q: what sets K_d for a damping ratio."""
+    indexing = joint_indexing(plant, model.JOINT_NAMES)
+    context = plant.CreateDefaultContext()
+    x = plant.GetPositions(context)
+    x[indexing.q] = q
+    plant.SetPositions(context, x)
+    rows = indexing.subset(joints).v
+    return np.diag(plant.CalcMassMatrix(context))[rows]
+
+
 def build_torque_control(
     station_config: StationConfig,
     reference: JointReference,
@@ -229,21 +242,14 @@ def build_torque_control(
             offset_calibration_start=0.2,
         ),
     )
-    select = lambda name: builder.AddNamedSystem(  # noqa: E731
-        name, make_joint_selector(model.JOINT_NAMES, joints)
-    )
+    def select(name: str):
+        """A selector of the controlled joints from a 30-joint vector."""
+        return builder.AddNamedSystem(name, make_joint_selector(model.JOINT_NAMES, joints))
 
     # Inverse dynamics on the fixed-base model (paper footnote 3).
     fixed = make_fixed_base_plant(model.add_hrp2, model.BASE_BODY)
     controller_model = motor_model.subset(joints)
-    id_probe = InverseDynamicsController(
-        fixed, InverseDynamicsConfig(joints=joints, ks=[1.0], kd=[1.0])
-    )
-    q0 = reference.at(0.0)[0]
-    inertia = np.diag(
-        id_probe.joint_space_model(q0[[model.JOINT_NAMES.index(j) for j in joints]],
-                                   np.zeros(len(joints))).mass_matrix
-    )
+    inertia = _joint_inertia(fixed, joints, reference.at(0.0)[0])
     ks, kd = inverse_dynamics_gains_for_k6(
         controller_model.k_tau, config.k6, inertia, config.kp, config.damping_ratio
     )

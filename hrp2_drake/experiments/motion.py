@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 from pydrake.systems.analysis import Simulator
+from pydrake.trajectories import PiecewisePolynomial
 
 from hrp2_drake.experiments.builders import (
     ControlDiagram,
@@ -113,8 +114,6 @@ def _reference(config: MotionConfig) -> JointReference:
     traj = motion.trajectory.Clone()
     traj.shiftRight(config.settle)
     first = motion.trajectory.value(0.0)
-    from pydrake.trajectories import PiecewisePolynomial
-
     hold = PiecewisePolynomial.FirstOrderHold([0.0, config.settle], np.hstack([first, first]))
     hold.ConcatenateInTime(traj)
     return JointReference(hold)
