@@ -86,6 +86,6 @@ def test_generator_reproduces_the_committed_model(tmp_path):
         check=True,
         capture_output=True,
     )
-    for name in ("hrp2.urdf", "servo.yaml", "climbing32.pos.gz"):
+    for name in ("hrp2.urdf", "servo_ideal.yaml", "climbing32.pos.gz"):
         committed = (model.models_dir() / name).read_bytes()
         assert (tmp_path / name).read_bytes() == committed, name

@@ -1,5 +1,6 @@
-"""Hrp2ServoEmulation: the law itself, the effective motor model in closed loop on
-the simulated robot, and the stability of the explicit torques at 1 kHz."""
+"""Hrp2ServoEmulation: the law itself (the `ideal` preset), the effective motor model
+in closed loop on the simulated robot, the stability of the explicit torques at 1 kHz,
+and each mechanism of the calibrated servo (latency, voltage limit, hysteresis)."""
 
 import numpy as np
 import pytest
@@ -32,6 +33,12 @@ TABLE1_K_V = np.array([13.0, 6.332, 7.0, 6.561, 7.698, 6.0]) * 1e-3
 
 @pytest.fixture(scope="module")
 def params():
+    """The `ideal` preset: the exact linear law these tests need."""
+    return load_servo_params("ideal")
+
+
+@pytest.fixture(scope="module")
+def calibrated():
     return load_servo_params()
 
 
@@ -119,7 +126,9 @@ def test_explicit_torques_are_stable_at_1khz(params, plant):
 
 
 def _fixed_base(q_cmd_system, external_force=None):
-    config = StationConfig(scenario="fixed_base", sensors=SensorsConfig.noiseless())
+    config = StationConfig(
+        scenario="fixed_base", sensors=SensorsConfig.noiseless(), servo_file="ideal"
+    )
     builder = DiagramBuilder()
     station = builder.AddSystem(make_station(config))
     source = builder.AddSystem(q_cmd_system)
@@ -212,3 +221,206 @@ def test_closed_loop_constant_velocity_k_v_within_1_percent(params):
     k_v = np.where(directions > 0, eff_pos["k_v"], eff_neg["k_v"])
     friction_part = (dq2 - k_tau * tau2) - (dq1 - k_tau * tau1)
     np.testing.assert_allclose(friction_part / (v2 - v1), k_v, rtol=0.01)
+
+
+# --- The calibrated servo's mechanisms -------------------------------------------
+
+
+def test_calibrated_file_keeps_table1_and_adds_every_mechanism(calibrated):
+    """The identified Kτ, Kv of the calibrated servo are still Table 1 (Kv with the
+    latency in it); the right leg has latency, a voltage limit, hysteresis and a dead
+    zone of the authors' measured size (0.3-3 mrad half-width, not 0.04-0.3)."""
+    eff = effective_motor_parameters(calibrated, model.RIGHT_LEG)
+    np.testing.assert_allclose(eff["k_tau"], TABLE1_K_TAU, rtol=1e-7)
+    np.testing.assert_allclose(eff["k_v"], TABLE1_K_V, rtol=1e-7)
+    p = calibrated.vectors(model.RIGHT_LEG)
+    assert np.all(p["latency"] > 0)
+    assert np.all(p["hysteresis_width"] > 0)
+    assert np.all(np.isfinite(p["no_load_speed"][1:]))  # the moving joints
+    assert np.all((eff["deadzone"] > 3e-4) & (eff["deadzone"] < 3e-3))
+    ideal = effective_motor_parameters(load_servo_params("ideal"), model.RIGHT_LEG)
+    assert np.all(eff["deadzone"] > 2 * ideal["deadzone"])
+
+
+def _single_joint_servo(plant, overrides: dict, off=()):
+    """The ideal preset with `overrides` on every joint."""
+    from dataclasses import replace
+
+    base = load_servo_params("ideal")
+    params = type(base)({n: replace(j, **overrides) for n, j in base.joints.items()})
+    q0 = model.half_sitting()
+    return Hrp2ServoEmulation(plant, params, model.JOINT_NAMES, 1e-3, q0, off), params, q0
+
+
+def _first_change_time(plant, latency: float) -> float:
+    """A q_cmd step out of a 1 kHz controller (a zero-order hold, like our
+    controllers' state outputs) at t = 10 ms: when the servo's torque first moves."""
+    from pydrake.systems.primitives import ZeroOrderHold
+
+    servo, _, q0 = _single_joint_servo(plant, {"latency": latency})
+    builder = DiagramBuilder()
+    step = q0 + 0.01
+    traj = PiecewisePolynomial.ZeroOrderHold([0.0, 0.0095, 1.0], np.column_stack([q0, step, step]))
+    source = builder.AddSystem(TrajectorySource(traj))
+    hold = builder.AddSystem(ZeroOrderHold(1e-3, len(q0)))
+    builder.Connect(source.get_output_port(), hold.get_input_port())
+    builder.AddSystem(servo)
+    builder.Connect(hold.get_output_port(), servo.get_input_port(0))
+    x = np.zeros(plant.num_positions() + plant.num_velocities())
+    x[model.hrp2_joint_indexing(plant).q] = q0
+    state = builder.AddSystem(ConstantVectorSource(x))
+    builder.Connect(state.get_output_port(), servo.get_input_port(1))
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    hold.GetMyMutableContextFromRoot(simulator.get_mutable_context()).SetDiscreteState(q0)
+    simulator.Initialize()
+    context = servo.GetMyContextFromRoot(simulator.get_context())
+    before = servo.get_output_port().Eval(context).copy()
+    for t in (np.arange(1, 200) + 0.5) * 1e-4:  # between the 1 ms ticks
+        simulator.AdvanceTo(t)
+        if np.abs(servo.get_output_port().Eval(context) - before).max() > 1e-9:
+            return t
+    return np.inf
+
+
+@pytest.mark.parametrize("latency", [0.001, 0.003])
+def test_latency_delays_a_step_by_whole_periods(plant, latency):
+    """A q_cmd step reaches the servo's torque exactly `latency` after it does with
+    no latency (the ideal preset)."""
+    reference = _first_change_time(plant, 0.0)
+    assert reference < 0.0115
+    assert _first_change_time(plant, latency) - reference == pytest.approx(latency, abs=1e-6)
+
+
+def test_voltage_limit_is_the_torque_speed_line(plant):
+    """With a large position error the current sits on the voltage limit
+    i = i_s (1 - q̇/ω0) at every constant speed (and braking is not limited until
+    -i_s (1 + q̇/ω0) < -i_max); switched off, it is the driver's i_max."""
+    servo, params, q0 = _single_joint_servo(
+        plant, {"stall_current": 30.0, "no_load_speed": 5.0, "k5": 0.0, "k2": 0.0, "k3": 0.0}
+    )
+    off, _, _ = _single_joint_servo(
+        plant,
+        {"stall_current": 30.0, "no_load_speed": 5.0, "k5": 0.0, "k2": 0.0, "k3": 0.0},
+        off=("voltage_limit",),
+    )
+    p = params.vectors(model.JOINT_NAMES)
+    q_cmd = q0 + 0.5  # far outside the dead zone: the current command saturates
+    for speed in (0.0, 1.0, 2.5, 4.0, 5.0, 6.0):
+        v = np.full(30, speed)
+        # v >> v_s: the direction gain is K1 (1 + a) for these positive speeds.
+        k1 = p["k1"] * (1 + p["k1_asymmetry"] * np.tanh(speed / p["v_coulomb"]))
+        limited = servo.joint_torques(q_cmd, q0, v)
+        expected = k1 * np.minimum(p["i_max"], 30.0 * (1 - speed / 5.0))
+        np.testing.assert_allclose(limited, expected, rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(off.joint_torques(q_cmd, q0, v), k1 * p["i_max"], rtol=1e-12)
+    # Braking at speed (error against the motion) draws up to the driver's limit.
+    braking = servo.joint_torques(q0 - 0.5, q0, np.full(30, 4.0))
+    k1 = p["k1"] * (1 + p["k1_asymmetry"] * np.tanh(4.0 / p["v_coulomb"]))
+    np.testing.assert_allclose(braking, -k1 * np.minimum(p["i_max"], 30.0 * 1.8), rtol=1e-12)
+
+
+def test_voltage_limit_caps_the_speed_in_closed_loop():
+    """Fixed base, the right knee commanded 1.2 rad away: the servo saturates and the
+    knee runs at the speed where the torque-speed line meets its friction, below the
+    no-load speed; without the limit it runs more than twice as fast."""
+    q0 = initial_joint_positions(StationConfig(scenario="fixed_base"))
+    q_cmd = q0.copy()
+    q_cmd[3] += 1.2
+    speeds = {}
+    for off in ((), ("voltage_limit",)):
+        config = StationConfig(
+            scenario="fixed_base", sensors=SensorsConfig.noiseless(), servo_off=list(off)
+        )
+        builder = DiagramBuilder()
+        station = builder.AddSystem(make_station(config))
+        source = builder.AddSystem(ConstantVectorSource(q_cmd))
+        builder.Connect(source.get_output_port(), station.GetInputPort("q_cmd"))
+        simulator = Simulator(builder.Build())
+        ctx = station.GetMyContextFromRoot(simulator.get_context())
+        peak = 0.0
+        for t in np.arange(1, 40) * 0.005:
+            simulator.AdvanceTo(t)
+            peak = max(peak, abs(station.GetOutputPort("state_true").Eval(ctx)[30 + 3]))
+        speeds[off] = peak
+    p = load_servo_params().vectors(["RLEG_JOINT3"])
+    w0, i_s = p["no_load_speed"][0], p["stall_current"][0]
+    k1 = p["k1"][0] * (1 + p["k1_asymmetry"][0])
+    # Torque-speed line = viscous + Coulomb friction (gravity and inertia aside).
+    v_friction = (k1 * i_s - p["k3"][0]) / (k1 * i_s / w0 + p["k2"][0])
+    assert speeds[()] < w0
+    assert speeds[()] == pytest.approx(v_friction, rel=0.1)
+    assert speeds[("voltage_limit",)] > 2 * speeds[()]
+
+
+def test_direction_state_switches_with_hysteresis(plant):
+    """The joint moves forward, then back: the direction state (which sets K1± and
+    the Coulomb friction) keeps the old direction after the velocity reversal and
+    crosses zero only after the joint travelled δ ln 2 back (Dahl), at a different
+    position on the way back than on the way out: a hysteresis loop, not sign(q̇)."""
+    width = 3e-4
+    servo, _, q0 = _single_joint_servo(plant, {"hysteresis_width": width})
+    builder = DiagramBuilder()
+    builder.AddSystem(servo)
+    indexing = model.hrp2_joint_indexing(plant)
+    # q(t) = q0 + A sin(2π t): forward until 0.25 s, back until 0.75 s.
+    times = np.arange(0.0, 1.0001, 0.001)
+    amplitude = 0.005
+    x = np.zeros((plant.num_positions() + plant.num_velocities(), len(times)))
+    x[indexing.q] = q0[:, None] + amplitude * np.sin(2 * np.pi * times)
+    x[plant.num_positions() + indexing.v] = amplitude * 2 * np.pi * np.cos(2 * np.pi * times)
+    state = builder.AddSystem(TrajectorySource(PiecewisePolynomial.FirstOrderHold(times, x)))
+    builder.Connect(state.get_output_port(), servo.get_input_port(1))
+    command = builder.AddSystem(ConstantVectorSource(q0))
+    builder.Connect(command.get_output_port(), servo.get_input_port(0))
+    simulator = Simulator(builder.Build())
+    context = servo.GetMyContextFromRoot(simulator.get_context())
+    s, q = [], []
+    for t in times[1:]:
+        simulator.AdvanceTo(t)
+        s.append(context.get_discrete_state(0).get_value()[3])
+        q.append(x[indexing.q[3], int(round(t * 1000))])
+    s, q = np.array(s), np.array(q)
+    t = times[1:]
+    # Right after the reversal at 0.25 s the state still says "forward".
+    assert s[np.searchsorted(t, 0.2505)] > 0.99
+    # It crosses zero after the joint travelled δ ln 2 back from its peak.
+    cross = np.argmax((t > 0.25) & (s < 0))
+    travel = q0[3] + amplitude - q[cross]
+    assert travel == pytest.approx(width * np.log(2), abs=2e-5)
+    # Way out vs way back: at the same position and speed magnitude, opposite states.
+    mid_out = np.searchsorted(t, 0.05)
+    mid_back = np.searchsorted(t, 0.45)
+    assert s[mid_out] > 0.99 and s[mid_back] < -0.99
+    # With the hysteresis off, the state follows tanh(q̇ / v_s) at once: the
+    # torque at a given (q, q̇) then does not depend on the history.
+    off, _, _ = _single_joint_servo(plant, {"hysteresis_width": width}, off=("hysteresis",))
+    ctx = off.CreateDefaultContext()
+    off.get_input_port(0).FixValue(ctx, q0)
+    off.get_input_port(1).FixValue(ctx, x[:, 260])
+    tanh_torque = off.get_output_port().Eval(ctx)[3]
+    expected = off.joint_torques(q0, x[indexing.q, 260], x[plant.num_positions() + indexing.v, 260])[3]
+    assert tanh_torque == pytest.approx(expected, rel=1e-12)
+
+
+def test_unknown_mechanism_is_one_clear_error(plant, params):
+    with pytest.raises(ValueError, match="unknown mechanism.*'backlash'"):
+        Hrp2ServoEmulation(plant, params, model.JOINT_NAMES, off=("backlash",))
+    with pytest.raises(ValueError, match="StationConfig.servo_off"):
+        StationConfig(servo_off=["latencies"]).validate()
+    with pytest.raises(FileNotFoundError, match="ideal"):
+        load_servo_params("no_such_servo.yaml")
+
+
+def test_calibrated_servo_is_stable_at_1khz(calibrated, plant):
+    """The calibrated servo's explicit torques, with the Dahl presliding spring and on
+    the voltage limit, are stable per joint with the reflected inertia (and the
+    30-joint station holds half-sitting: tests/test_station.py)."""
+    reflected = np.array(
+        [
+            plant.get_joint_actuator(i).default_rotor_inertia()
+            * plant.get_joint_actuator(i).default_gear_ratio() ** 2
+            for i in plant.GetJointActuatorIndices()
+        ]
+    )
+    assert explicit_stability_margin(calibrated, model.JOINT_NAMES, reflected, 1e-3).max() < 1.0

@@ -1,20 +1,36 @@
 """Hrp2ServoEmulation: the closed-source HRP-2 position servo (DESIGN.md).
 
-Per joint, with e = q_cmd - q_encoder (paper eq. 5, plus what the paper found on the
-robot, Sec. 3.2):
+Per joint, with e = q_cmd(t - d) - q_encoder (paper eq. 5, plus what the paper and the
+authors' measurements show of the real robot, Sec. 3.2; models/hrp2/README.md gives
+the source of every mechanism and number):
 
-    i        = sat(deadzone(K4 e - K5 q̇, i_dz), i_max)          current, A
-    K1(q̇)   = K1 (1 + a tanh(q̇ / v_s))                          K1± by direction
-    τ_motor  = K1(q̇) i
-    τ_fric   = K2 q̇ + K3 tanh(q̇ / v_s)                          viscous + Coulomb
-    τ        = τ_motor - τ_fric                                  joint actuation
+    u        = K4 e - K5 q̇                                       current command, A
+    i        = clip(deadzone(u, i_dz), i_lo(q̇), i_hi(q̇))        dead zone, limits
+    i_hi     = min(i_max,  i_s (1 - q̇ / ω0))                     voltage limit
+    i_lo     = max(-i_max, -i_s (1 + q̇ / ω0))                    (back-EMF)
+    s        = direction state in [-1, 1] (Dahl: ds/dq = (1 - s sign(q̇)) / δ)
+    τ        = K1 (1 + a s) i - K2 q̇ - K3 s                      joint actuation
 
-Without dead zone and saturation this is exactly the paper's eq. 6,
+Mechanisms (each switchable off, `SERVO_MECHANISMS`):
+  - "latency": the command reaches the servo board d = `latency` seconds after the
+    controller sent it (whole control periods).
+  - "voltage_limit": the motor's supply voltage caps the current it can drive
+    against its back-EMF, i ≤ (V - k_e ρ q̇) / R: the torque-speed line through the
+    stall current i_s = V / R and the joint-side no-load speed ω0 = V / (k_e ρ).
+  - "hysteresis": the direction-dependent gain K1 (1 ± a) and the Coulomb friction
+    switch after the joint has moved `hysteresis_width` δ in the new direction (Dahl
+    presliding: gear lost motion, stiction), not at sign(q̇). Off, or δ = 0: s =
+    tanh(q̇ / v_s), instantaneous, as in the `ideal` preset.
+  - "deadzone": the current dead zone i_dz.
+
+Without dead zone, saturation and latency this is exactly the paper's eq. 6,
 Δq = Kτ τ + Kv q̇ + Kc sign(q̇), with Kτ = 1/(K1 K4), Kv = (K1 K5 + K2)/(K1 K4),
-Kc = K3/(K1 K4) (`effective_motor_parameters`). The parameters live in
-models/hrp2/servo.yaml and are the hidden truth of the simulation: only
-hrp2_drake.robot reads them; estimation, identification and control must find
-everything from signals.
+Kc = K3/(K1 K4); the latency adds d to the Kv an identification measures, since it
+sees Δq = q_cmd(t) - q with the command as sent (`effective_motor_parameters`).
+The parameters live in models/hrp2/servo.yaml (calibrated, `hrp2-drake calibrate`)
+or servo_ideal.yaml (the `ideal` preset, eq. 6 with a small dead zone and Coulomb
+term) and are the hidden truth of the simulation: only hrp2_drake.robot reads them;
+estimation, identification and control must find everything from signals.
 
 Stability: the torque is explicit (held over each plant step). Every joint carries
 the reflected rotor inertia ρ² I_r, which bounds the joint-space inertia from below,
@@ -23,6 +39,7 @@ discrete closed loop; tests/test_servo.py checks it and a closed-loop run.
 """
 
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -30,9 +47,16 @@ from typing import Sequence
 import numpy as np
 from pydrake.common.yaml import yaml_load_typed
 from pydrake.multibody.plant import MultibodyPlant
-from pydrake.systems.framework import BasicVector, Context, LeafSystem
+from pydrake.systems.framework import BasicVector, Context, DiscreteValues, LeafSystem
 
 from hrp2_drake.multibody import JointIndexing, joint_indexing
+
+#: The servo mechanisms that can be switched off (`Hrp2ServoEmulation(..., off=...)`,
+#: `StationConfig.servo_off`).
+SERVO_MECHANISMS = ("latency", "voltage_limit", "hysteresis", "deadzone")
+
+#: `StationConfig.servo_file` / `load_servo_params` names of the shipped servo files.
+SERVO_PRESETS = {"calibrated": "servo.yaml", "ideal": "servo_ideal.yaml"}
 
 
 @dataclass
@@ -41,15 +65,25 @@ class ServoJointParams:
 
     Args:
         k1: motor drive gain, joint side (N·m/A).
-        k1_asymmetry: a in K1± = K1 (1 ± a), blended by tanh(q̇ / v_coulomb).
+        k1_asymmetry: a in K1± = K1 (1 ± a), by direction of motion.
         k2: viscous friction (N·m·s/rad).
         k3: Coulomb friction (N·m).
         k4: proportional gain of the current command (A/rad).
         k5: derivative gain of the current command (A·s/rad).
         i_deadzone: dead zone of the current command (A).
-        i_max: current saturation (A).
-        v_coulomb: velocity scale of the smooth sign tanh(q̇ / v_coulomb) (rad/s).
+        i_max: current saturation of the driver (A).
+        v_coulomb: velocity scale of the smooth sign tanh(q̇ / v_coulomb) (rad/s),
+            used when the direction state has no hysteresis.
         encoder_resolution: joint-side encoder quantum (rad).
+        latency: transport latency of the command from the controller to the servo
+            board (s, rounded to whole servo periods); 0: none.
+        stall_current: supply voltage over winding resistance, V / R (A): the current
+            the motor draws at rest with the full voltage; inf: no voltage limit.
+        no_load_speed: joint-side speed where the back-EMF equals the supply voltage,
+            V / (k_e ρ) (rad/s); inf: no voltage limit.
+        hysteresis_width: joint travel after a reversal over which the direction
+            state switches (rad; Dahl presliding, gear lost motion); 0: the state is
+            tanh(q̇ / v_coulomb), switching exactly with the sign of q̇.
     """
 
     k1: float = 1.0
@@ -62,6 +96,26 @@ class ServoJointParams:
     i_max: float = float("inf")
     v_coulomb: float = 0.05
     encoder_resolution: float = 0.0
+    latency: float = 0.0
+    stall_current: float = float("inf")
+    no_load_speed: float = float("inf")
+    hysteresis_width: float = 0.0
+
+    def validate(self, where: str) -> None:
+        positive = ("k1", "k4", "i_max", "v_coulomb", "stall_current", "no_load_speed")
+        for name in positive:
+            value = getattr(self, name)
+            if not value > 0:
+                raise ValueError(f"{where}.{name}: must be > 0, got {value}")
+        non_negative = (
+            "k2", "k3", "k5", "i_deadzone", "encoder_resolution", "latency", "hysteresis_width"
+        )
+        for name in non_negative:
+            value = getattr(self, name)
+            if not (value >= 0 and math.isfinite(value)):
+                raise ValueError(f"{where}.{name}: must be finite and >= 0, got {value}")
+        if not 0 <= self.k1_asymmetry < 1:
+            raise ValueError(f"{where}.k1_asymmetry: must be in [0, 1), got {self.k1_asymmetry}")
 
 
 @dataclass
@@ -78,14 +132,33 @@ class ServoParams:
         keys = ServoJointParams.__dataclass_fields__.keys()
         return {k: np.array([getattr(self.joints[n], k) for n in names]) for k in keys}
 
+    def validate(self, source: str = "servo parameters") -> None:
+        for name, joint in self.joints.items():
+            joint.validate(f"{source}: joints.{name}")
+
+
+def servo_file_path(path: str | Path | None = None) -> Path:
+    """The servo data file: a path, a preset name (`SERVO_PRESETS`), or None for the
+    calibrated default (models/hrp2/servo.yaml)."""
+    from hrp2_drake.robot.model import models_dir
+
+    if path is None or str(path) == "":
+        path = "calibrated"
+    if str(path) in SERVO_PRESETS:
+        return models_dir() / SERVO_PRESETS[str(path)]
+    return Path(path)
+
 
 def load_servo_params(path: str | Path | None = None) -> ServoParams:
-    """Loads the servo data file (default: models/hrp2/servo.yaml)."""
-    if path is None:
-        from hrp2_drake.robot.model import SERVO_FILE, models_dir
-
-        path = models_dir() / SERVO_FILE
-    return yaml_load_typed(schema=ServoParams, filename=str(path))
+    """Loads a servo data file: a path, "ideal", "calibrated", or None (calibrated)."""
+    filename = servo_file_path(path)
+    if not filename.is_file():
+        raise FileNotFoundError(
+            f"servo file {filename} not found (give a path or one of {sorted(SERVO_PRESETS)})"
+        )
+    params = yaml_load_typed(schema=ServoParams, filename=str(filename))
+    params.validate(str(filename))
+    return params
 
 
 def effective_motor_parameters(
@@ -93,21 +166,24 @@ def effective_motor_parameters(
 ) -> dict[str, np.ndarray]:
     """The effective Kτ, Kv, Kc of eq. 6 implied by the servo parameters.
 
-    For evaluation only (the ground truth an identification is compared with).
+    For evaluation only (the ground truth an identification is compared with). Kv
+    includes the command latency d: an identification sees Δq = q_cmd - q with the
+    command as the controller sent it, which leads the one the servo acts on by q̇ d.
 
     Args:
         direction: 0 for the nominal gain K1 (q̇ = 0), +1 / -1 for K1± (|q̇| >> v_s).
 
     Returns:
-        dict with "k_tau" (rad/(N·m)), "k_v" (s), "k_c" (rad), and "deadzone" (rad,
-        the Δq below which the servo produces no current at rest).
+        dict with "k_tau" (rad/(N·m)), "k_v" (s), "k_c" (rad), "latency" (s) and
+        "deadzone" (rad, the Δq below which the servo produces no current at rest).
     """
     p = params.vectors(names)
     k1 = p["k1"] * (1.0 + direction * p["k1_asymmetry"])
     return {
         "k_tau": 1.0 / (k1 * p["k4"]),
-        "k_v": (k1 * p["k5"] + p["k2"]) / (k1 * p["k4"]),
+        "k_v": (k1 * p["k5"] + p["k2"]) / (k1 * p["k4"]) + p["latency"],
         "k_c": p["k3"] / (k1 * p["k4"]),
+        "latency": p["latency"].copy(),
         "deadzone": p["i_deadzone"] / p["k4"],
     }
 
@@ -119,28 +195,56 @@ def explicit_stability_margin(
 
     The linearised joint is I v̇ = -k q - c v with k = K1 K4 and the largest
     damping the servo can show, c = K1+ K5 + K2 + K3 / v_s (the slope of the smooth
-    Coulomb sign at q̇ = 0, and K1+ >= K1). The plant integrates
-    v' = v + h (-k q - c v) / I, q' = q + h v'. A radius < 1 means stable; since the
-    joint-space inertia of the whole robot is at least diag(inertia) (reflected rotor
-    inertia), the per-joint bound holds for the coupled robot.
+    Coulomb sign at q̇ = 0, and K1+ >= K1). With hysteresis the Coulomb term is the
+    Dahl presliding spring K3 s with s' = s + h v' / δ, i.e. a stiffness K3 / δ, in
+    place of the K3 / v_s damping. On the voltage limit
+    the current no longer depends on q but falls with q̇: k = 0 and c gets
+    K1+ i_s / ω0 in place of K1+ K5; the larger radius of the two cases is returned.
+    The plant integrates v' = v + h (-k q - c v) / I, q' = q + h v'. A radius
+    < 1 means stable; since the joint-space inertia of the whole robot is at least
+    diag(inertia) (reflected rotor inertia), the per-joint bound holds for the
+    coupled robot. (The latency delays the command only: it does not enter the
+    servo's own loop.)
 
     Args:
         inertia: a lower bound of each joint's inertia (kg·m²), e.g. ρ² I_r.
         time_step: the plant's time step (s).
     """
     p = params.vectors(names)
-    k = p["k1"] * p["k4"]
-    c = p["k1"] * (1 + p["k1_asymmetry"]) * p["k5"] + p["k2"] + p["k3"] / p["v_coulomb"]
-    radius = np.empty(len(names))
     h = time_step
+    k1_plus = p["k1"] * (1 + p["k1_asymmetry"])
+    radius = np.empty(len(names))
     for j in range(len(names)):
-        a = np.array(
-            [[1 - h * c[j] / inertia[j], -h * k[j] / inertia[j]], [0.0, 1.0]]
-        )
-        # q' = q + h v' -> second row uses the updated velocity.
-        a[1] = [h * a[0, 0], 1 + h * a[0, 1]]
-        radius[j] = max(abs(np.linalg.eigvals(a)))
+        dahl = p["hysteresis_width"][j] > 0
+        coulomb_damping = 0.0 if dahl else p["k3"][j] / p["v_coulomb"][j]
+        cases = [(p["k1"][j] * p["k4"][j], k1_plus[j] * p["k5"][j])]
+        if math.isfinite(p["no_load_speed"][j]) and math.isfinite(p["stall_current"][j]):
+            cases.append((0.0, k1_plus[j] * p["stall_current"][j] / p["no_load_speed"][j]))
+        worst = 0.0
+        for k, c_servo in cases:
+            c = c_servo + p["k2"][j] + coulomb_damping
+            if dahl:
+                # s follows q exactly (s - q / δ is conserved while the presliding
+                # spring is linear): the Coulomb term is a spring K3 / δ.
+                k = k + p["k3"][j] / p["hysteresis_width"][j]
+            m = inertia[j]
+            a = np.array([[1 - h * c / m, -h * k / m], [0.0, 1.0]])
+            a[1] = [h * a[0, 0], 1 + h * a[0, 1]]  # q' = q + h v'
+            if k == 0:
+                # No stiffness (on the voltage limit, no Dahl spring): q is a free
+                # integrator that feeds nothing back; judge v alone.
+                a = a[:1, :1]
+            worst = max(worst, max(abs(np.linalg.eigvals(a))))
+        radius[j] = worst
     return radius
+
+
+def dahl_step(s: np.ndarray, dq: np.ndarray, width: np.ndarray) -> np.ndarray:
+    """Direction state after the joint moved dq (rad): the exact solution of Dahl's
+    ds/dq = (1 - s sign(dq)) / width over the step; stays in [-1, 1]."""
+    decay = np.exp(-np.abs(dq) / width)
+    target = np.sign(dq)
+    return np.where(dq == 0, s, target + (s - target) * decay)
 
 
 class Hrp2ServoEmulation(LeafSystem):
@@ -160,6 +264,11 @@ class Hrp2ServoEmulation(LeafSystem):
         actuation: joint torques (N·m) in the plant's actuation order, to be
             connected to the plant's actuation input.
 
+    Discrete state (updated every `period`): the direction state s of each joint and
+    the commands in transit (one row per period of the longest latency). A joint
+    with latency d = k periods acts on the command its board received k periods ago;
+    with d = 0 (or "latency" off) on q_cmd directly, as the `ideal` preset does.
+
     The encoder quantization (`encoder_resolution`) applies to the position error,
     like the real servo; the velocity is the plant's (a real servo differentiates
     motor-side encoder counts at a high rate).
@@ -170,46 +279,146 @@ class Hrp2ServoEmulation(LeafSystem):
         plant: MultibodyPlant,
         params: ServoParams,
         joint_names: Sequence[str],
+        period: float = 0.001,
+        initial_q_cmd: Sequence[float] | None = None,
+        off: Sequence[str] = (),
     ):
         super().__init__()
+        unknown = sorted(set(off) - set(SERVO_MECHANISMS))
+        if unknown:
+            raise ValueError(
+                f"Hrp2ServoEmulation: unknown mechanism(s) {unknown} to switch off "
+                f"(known: {list(SERVO_MECHANISMS)})"
+            )
         self._indexing: JointIndexing = joint_indexing(plant, joint_names)
         if np.any(self._indexing.u < 0):
             missing = [n for n, u in zip(joint_names, self._indexing.u) if u < 0]
             raise ValueError(f"Hrp2ServoEmulation: joints without actuator: {missing}")
-        self._p = params.vectors(joint_names)
+        if not period > 0:
+            raise ValueError(f"Hrp2ServoEmulation: period must be > 0, got {period}")
+        n = len(joint_names)
+        p = params.vectors(joint_names)
+        if "deadzone" in off:
+            p["i_deadzone"] = np.zeros(n)
+        if "voltage_limit" in off:
+            p["stall_current"] = np.full(n, np.inf)
+            p["no_load_speed"] = np.full(n, np.inf)
+        if "hysteresis" in off:
+            p["hysteresis_width"] = np.zeros(n)
+        delays = np.rint(p["latency"] / period).astype(int)
+        if "latency" in off:
+            delays[:] = 0
+        self._p = p
+        self._off = tuple(off)
+        self._period = period
+        self._delays = delays
+        self._dahl = p["hysteresis_width"] > 0
+        self._width = np.where(self._dahl, p["hysteresis_width"], 1.0)
         self._nq = plant.num_positions()
         self._num_actuators = plant.num_actuators()
-        n = len(joint_names)
+        self._n = n
         self._q_cmd = self.DeclareVectorInputPort("q_cmd", n)
         self._state = self.DeclareVectorInputPort(
             "state", plant.num_positions() + plant.num_velocities()
         )
+        depth = int(delays.max())
+        initial = np.zeros(n) if initial_q_cmd is None else np.asarray(initial_q_cmd, float)
+        if initial.shape != (n,):
+            raise ValueError(
+                f"Hrp2ServoEmulation: initial_q_cmd has {initial.size} values, expected {n}"
+            )
+        # [s (n); commands in transit, newest first (depth x n)]; s and the last
+        # encoder-side position for the Dahl state's travel.
+        self._depth = depth
+        self._xs = self.DeclareDiscreteState(np.zeros(n))
+        self._x_last_q = self.DeclareDiscreteState(np.zeros(n))
+        self._x_transit = self.DeclareDiscreteState(np.tile(initial, depth) if depth else np.zeros(0))
+        self._q_initialized = self.DeclareDiscreteState(np.zeros(1))
+        self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
         self.DeclareVectorOutputPort("actuation", plant.num_actuators(), self._calc)
 
     @property
     def joint_names(self) -> tuple[str, ...]:
         return self._indexing.names
 
-    def joint_torques(self, q_cmd: np.ndarray, q: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """The servo law (module docstring) on joint vectors; N·m."""
+    @property
+    def mechanisms_off(self) -> tuple[str, ...]:
+        return self._off
+
+    @property
+    def latency_periods(self) -> np.ndarray:
+        """Command latency of each joint in servo periods."""
+        return self._delays.copy()
+
+    def joint_torques(
+        self, q_cmd: np.ndarray, q: np.ndarray, v: np.ndarray, s: np.ndarray | None = None
+    ) -> np.ndarray:
+        """The servo law (module docstring) on joint vectors; N·m.
+
+        Args:
+            q_cmd: the command the servo acts on (after the latency), rad.
+            q, v: joint positions (rad) and velocities (rad/s).
+            s: the direction state of the joints with hysteresis (ignored for the
+                others, which use tanh(q̇ / v_s)); None: tanh for every joint.
+        """
         p = self._p
         res = p["encoder_resolution"]
         q_encoder = np.where(res > 0, np.round(q / np.where(res > 0, res, 1)) * res, q)
         u = p["k4"] * (q_cmd - q_encoder) - p["k5"] * v
-        current = np.sign(u) * np.clip(np.abs(u) - p["i_deadzone"], 0.0, p["i_max"])
-        smooth_sign = np.tanh(v / p["v_coulomb"])
-        k1 = p["k1"] * (1.0 + p["k1_asymmetry"] * smooth_sign)
-        return k1 * current - p["k2"] * v - p["k3"] * smooth_sign
+        current = np.sign(u) * np.maximum(np.abs(u) - p["i_deadzone"], 0.0)
+        # Driver limit and the voltage limit: |R i + k_e ρ q̇| <= V.
+        with np.errstate(invalid="ignore"):
+            back_emf = np.where(np.isfinite(p["no_load_speed"]), v / p["no_load_speed"], 0.0)
+        upper = np.minimum(p["i_max"], p["stall_current"] * (1.0 - back_emf))
+        lower = np.maximum(-p["i_max"], -p["stall_current"] * (1.0 + back_emf))
+        current = np.clip(current, lower, upper)
+        direction = np.tanh(v / p["v_coulomb"])
+        if s is not None:
+            direction = np.where(self._dahl, s, direction)
+        k1 = p["k1"] * (1.0 + p["k1_asymmetry"] * direction)
+        return k1 * current - p["k2"] * v - p["k3"] * direction
 
-    def _calc(self, context: Context, output: BasicVector) -> None:
+    def _joint_state(self, context: Context) -> tuple[np.ndarray, np.ndarray]:
+        x = self._state.Eval(context)
+        return x[self._indexing.q], x[self._nq + self._indexing.v]
+
+    def _checked_command(self, context: Context) -> np.ndarray:
         q_cmd = self._q_cmd.Eval(context)
         if not np.all(np.isfinite(q_cmd)):
             bad = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(q_cmd))]
             raise ValueError(f"Hrp2ServoEmulation: q_cmd is not finite for {bad}")
-        x = self._state.Eval(context)
-        q = x[self._indexing.q]
-        v = x[self._nq + self._indexing.v]
-        tau = self.joint_torques(q_cmd, q, v)
+        return q_cmd
+
+    def _applied_command(self, context: Context) -> np.ndarray:
+        q_cmd = self._checked_command(context)
+        if self._depth == 0:
+            return q_cmd
+        transit = context.get_discrete_state(self._x_transit).get_value().reshape(
+            self._depth, self._n
+        )
+        rows = np.maximum(self._delays - 1, 0)
+        delayed = transit[rows, np.arange(self._n)]
+        return np.where(self._delays > 0, delayed, q_cmd)
+
+    def _update(self, context: Context, state: DiscreteValues) -> None:
+        q, _ = self._joint_state(context)
+        s = context.get_discrete_state(self._xs).get_value()
+        last_q = context.get_discrete_state(self._x_last_q).get_value()
+        started = context.get_discrete_state(self._q_initialized).get_value()[0] > 0
+        travel = q - last_q if started else np.zeros(self._n)
+        state.set_value(self._xs, np.where(self._dahl, dahl_step(s, travel, self._width), 0.0))
+        state.set_value(self._x_last_q, q)
+        state.set_value(self._q_initialized, [1.0])
+        if self._depth:
+            transit = context.get_discrete_state(self._x_transit).get_value()
+            q_cmd = self._checked_command(context)
+            state.set_value(self._x_transit, np.concatenate([q_cmd, transit[: -self._n]]))
+
+    def _calc(self, context: Context, output: BasicVector) -> None:
+        q_cmd = self._applied_command(context)
+        q, v = self._joint_state(context)
+        s = context.get_discrete_state(self._xs).get_value()
+        tau = self.joint_torques(q_cmd, q, v, s)
         actuation = np.zeros(self._num_actuators)
         actuation[self._indexing.u] = tau
         output.set_value(actuation)

@@ -50,7 +50,12 @@ from pydrake.systems.sensors import Accelerometer, Gyroscope
 from hrp2_drake.multibody import JointIndexing
 from hrp2_drake.robot import model
 from hrp2_drake.robot.sensors import ForceTorqueReadout, NoisySampler, SensorsConfig
-from hrp2_drake.robot.servo import Hrp2ServoEmulation, load_servo_params
+from hrp2_drake.robot.servo import (
+    SERVO_MECHANISMS,
+    Hrp2ServoEmulation,
+    ServoParams,
+    load_servo_params,
+)
 
 SCENARIOS = ("fixed_base", "hanging", "standing", "standing_on_block")
 GRAVITY = 9.81
@@ -91,7 +96,12 @@ class StationConfig:
         hanging: the strings of the "hanging" scenario.
         block_height: height of the block under the right foot (m),
             "standing_on_block" only.
-        servo_file: the servo data file; empty for models/hrp2/servo.yaml.
+        servo_file: the servo data file: a path, "ideal" (models/hrp2/servo_ideal.yaml:
+            the paper's eq. 6 with a small dead zone, for tests of the exact linear
+            law) or "calibrated" / empty (models/hrp2/servo.yaml, calibrated to the
+            real robot by `hrp2-drake calibrate`).
+        servo_off: servo mechanisms to switch off (`SERVO_MECHANISMS`: "latency",
+            "voltage_limit", "hysteresis", "deadzone").
         contact_approximation: Drake's discrete contact approximation.
     """
 
@@ -102,6 +112,7 @@ class StationConfig:
     hanging: HangingConfig = field(default_factory=HangingConfig)
     block_height: float = 0.05
     servo_file: str = ""
+    servo_off: list[str] = field(default_factory=list)
     contact_approximation: str = "sap"
 
     def validate(self) -> None:
@@ -114,6 +125,12 @@ class StationConfig:
             raise ValueError(
                 f"StationConfig.initial_positions: {len(self.initial_positions)} values, "
                 f"expected {model.NUM_JOINTS} (or none for half-sitting)"
+            )
+        unknown = sorted(set(self.servo_off) - set(SERVO_MECHANISMS))
+        if unknown:
+            raise ValueError(
+                f"StationConfig.servo_off: unknown servo mechanism(s) {unknown}, "
+                f"expected some of {list(SERVO_MECHANISMS)}"
             )
         if len(self.hanging.sway_damping) != 2:
             raise ValueError(
@@ -264,16 +281,24 @@ def make_station(config: StationConfig, meshcat: Meshcat | None = None) -> Diagr
     if config.scenario != "fixed_base":
         plant.SetDefaultFloatingBaseBodyPose(base, X_WB0)
 
+    servo_params = load_servo_params(config.servo_file or None)
     servo = builder.AddNamedSystem(
         "servo",
-        Hrp2ServoEmulation(plant, load_servo_params(config.servo_file or None), model.JOINT_NAMES),
+        Hrp2ServoEmulation(
+            plant,
+            servo_params,
+            model.JOINT_NAMES,
+            period=config.time_step,
+            initial_q_cmd=q0,
+            off=config.servo_off,
+        ),
     )
     builder.Connect(plant.get_state_output_port(), servo.get_input_port(1))
     builder.Connect(servo.get_output_port(), plant.get_actuation_input_port())
     builder.ExportInput(servo.get_input_port(0), "q_cmd")
     builder.ExportInput(plant.get_applied_spatial_force_input_port(), "applied_spatial_force")
 
-    _add_sensors(builder, plant, indexing, config.sensors, q0)
+    _add_sensors(builder, plant, indexing, config.sensors, q0, servo_params)
 
     builder.ExportOutput(plant.get_net_actuation_output_port(), "joint_torque_true")
     builder.ExportOutput(plant.get_state_output_port(), "state_true")
@@ -320,6 +345,7 @@ def _add_sensors(
     indexing: JointIndexing,
     cfg: SensorsConfig,
     q0: np.ndarray,
+    servo: ServoParams,
 ) -> None:
     seeds = iter(range(1000 * cfg.seed + 1, 1000 * cfg.seed + 100))
 
@@ -340,7 +366,6 @@ def _add_sensors(
     builder.Connect(plant.get_state_output_port(), positions.get_input_port())
     resolution = None
     if cfg.encoder_quantization:
-        servo = load_servo_params()
         resolution = servo.vectors(indexing.names)["encoder_resolution"]
     builder.ExportOutput(
         sampler(
