@@ -2,6 +2,8 @@
 
     hrp2-drake simulate [--scenario S] [--duration T] [--trajectory climbing|FILE]
                         [--config FILE] [--out DIR] [--html]
+    hrp2-drake calibrate [--config FILE] [--out DIR] [--install]
+    hrp2-drake identify | experiment NAME | reproduce   (see --help)
 """
 
 import argparse
@@ -154,6 +156,25 @@ def _experiment(args: argparse.Namespace) -> int:
     raise ValueError(f"unknown experiment '{args.name}'")
 
 
+def _calibrate(args: argparse.Namespace) -> int:
+    from hrp2_drake.experiments.calibrate import CalibrationConfig, calibrate
+
+    config = _config(CalibrationConfig, args)
+    if args.max_iterations is not None:
+        config.max_iterations = args.max_iterations
+    if args.jobs is not None:
+        config.jobs = args.jobs
+    config.validate()
+    summary = calibrate(config, Path(args.out), install=args.install)
+    for label, ratio_max, ratio_avg in zip(
+        ("hip roll", "hip pitch", "knee", "ankle pitch", "ankle roll"),
+        np.divide(summary["max_error"], summary["paper_max_error"]),
+        np.divide(summary["average_error"], summary["paper_average_error"]),
+    ):
+        print(f"  {label}: max error {ratio_max:.2f}x paper, average {ratio_avg:.2f}x")
+    return 0
+
+
 def _reproduce(args: argparse.Namespace) -> int:
     from hrp2_drake.experiments.reproduce import ReproduceConfig, run_reproduce, verdicts
 
@@ -216,6 +237,23 @@ def main(argv: list[str] | None = None) -> int:
     exp.add_argument("--end", type=float, help="motion: stop the climbing motion at (s)")
     exp.add_argument("--out", default="out/experiment", help="output folder")
     exp.set_defaults(run=_experiment)
+
+    cal = commands.add_parser(
+        "calibrate",
+        help="fit the emulated servo's hidden parameters to the paper's measurements "
+        "of the real HRP-2 (Table 1, position control in Tables 2 and 3): servo.yaml "
+        "and a report with plots",
+    )
+    cal.add_argument("--config", help="CalibrationConfig YAML file")
+    cal.add_argument("--out", default="out/calibrate", help="output folder")
+    cal.add_argument("--max-iterations", type=int, help="optimizer evaluations")
+    cal.add_argument("--jobs", type=int, help="parallel simulations (1 or 2)")
+    cal.add_argument(
+        "--install",
+        action="store_true",
+        help="also write models/hrp2/servo.yaml (the simulated robot's servo)",
+    )
+    cal.set_defaults(run=_calibrate)
 
     rep = commands.add_parser(
         "reproduce",

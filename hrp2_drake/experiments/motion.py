@@ -120,7 +120,11 @@ def _reference(config: MotionConfig) -> JointReference:
 
 
 def run_controller(
-    control: ControlDiagram, duration: float, label: str, log_period: float = 0.001
+    control: ControlDiagram,
+    duration: float,
+    label: str,
+    log_period: float = 0.001,
+    stream=None,
 ) -> dict[str, np.ndarray]:
     """Simulates a built control diagram and returns the logged ports."""
     from pydrake.systems.framework import DiagramBuilder
@@ -130,7 +134,7 @@ def run_controller(
     ports = {name: control.diagram.GetOutputPort(name) for name in control.output_names()}
     loggers = add_loggers(builder, ports, log_period)
     simulator = Simulator(builder.Build())
-    run_with_progress(simulator, duration, label)
+    run_with_progress(simulator, duration, label, stream=stream)
     return logs_to_arrays(loggers, simulator.get_context())
 
 
