@@ -9,13 +9,20 @@ import pytest
 from hrp2_drake.cli import main
 from hrp2_drake.experiments.builders import TorqueControlConfig
 from hrp2_drake.experiments.motion import (
+    PAPER_K6,
+    PAPER_TABLE2,
+    PAPER_TABLE3,
     MotionConfig,
     average_error,
     climbing_reference,
+    derive_sample_count,
+    judge_claim,
+    paper_sample_count,
     run_motion,
     write_motion_report,
 )
 from hrp2_drake.robot import model
+from hrp2_drake.robot.station import StationConfig
 
 
 def test_average_error_is_the_papers_formula():
@@ -36,7 +43,12 @@ def test_climbing_reference_is_smooth_and_close_to_the_data():
 
 @pytest.fixture(scope="module")
 def short_motion(identified_model):
-    config = MotionConfig(start=3.0, end=4.5, settle=0.7, k6=[1.0, 0.1])
+    # The `ideal` servo, as the identified model (conftest); reproduce runs the
+    # calibrated one.
+    config = MotionConfig(
+        station=StationConfig(scenario="hanging", servo_file="ideal"),
+        start=3.0, end=4.5, settle=0.7, k6=[1.0, 0.1],
+    )
     config.torque_control = TorqueControlConfig(start_time=0.5)
     return run_motion(config, identified_model)
 
@@ -60,8 +72,13 @@ def test_torque_control_beats_position_control_at_k6_1_not_at_0_1(short_motion):
 
 @pytest.mark.slow
 def test_paper_literal_controller_falls_back(short_motion):
+    """On the `ideal` servo, the paper's eq. 12-13 as written (the 40 ms-late q̂ in
+    e_q) diverges and falls back; the authors' code (encoders in e_q, q̂̇ in the
+    velocity terms) runs."""
     literal = [r for r in short_motion.runs if "literal" in r.label][0]
     assert literal.fallback_time is not None
+    authors = [r for r in short_motion.runs if "authors" in r.label][0]
+    assert authors.fallback_time is None
 
 
 @pytest.mark.slow
@@ -69,9 +86,14 @@ def test_motion_report(short_motion, tmp_path):
     summary = write_motion_report(short_motion, tmp_path)
     assert (tmp_path / "figure4_tracking_error.png").stat().st_size > 20000
     text = (tmp_path / "motion.md").read_text()
-    assert "Table 2" in text and "(0.115)" in text  # the paper's knee value beside ours
+    assert "Table 2" in text and "(0.115, " in text  # the paper's knee value beside ours
     data = json.loads((tmp_path / "motion.json").read_text())
-    assert len(data["runs"]) == 4 and data["verdicts"] == summary["verdicts"]
+    assert len(data["runs"]) == 5 and data["verdicts"] == summary["verdicts"]
+    # Each K6 judged against the paper's claim, exceptions included.
+    assert "as written with their exceptions" in text
+    assert {v["claim"]["verdict"].split(" ")[0] for v in data["verdicts"].values()} <= {
+        "holds", "does"
+    }
 
 
 @pytest.mark.slow
@@ -94,3 +116,36 @@ def test_torque_control_config_errors():
         TorqueControlConfig(offset_calibration_time=0.5).validate()
     with pytest.raises(ValueError, match="friction_velocity"):
         TorqueControlConfig(friction_velocity="measured").validate()
+
+
+def test_claims_as_written_hold_on_the_papers_own_tables():
+    """The rules that judge Sec. 5.3's claims (exceptions included) accept the paper's
+    own Tables 2 and 3, and reject a table where the exception does not show."""
+    for c, k6 in enumerate(PAPER_K6):
+        judged = judge_claim(
+            k6, PAPER_TABLE2[:, c + 1], PAPER_TABLE3[:, c + 1], PAPER_TABLE2[:, 0], PAPER_TABLE3[:, 0]
+        )
+        assert judged["verdict"] == "holds", (k6, judged["misses"])
+    # K6 = 0.25 with the ankle roll's maximum lower than position control: the
+    # claim's exception fails.
+    table3 = PAPER_TABLE3[:, 3].copy()
+    table3[4] = 0.5 * PAPER_TABLE3[4, 0]
+    judged = judge_claim(0.25, PAPER_TABLE2[:, 3], table3, PAPER_TABLE2[:, 0], PAPER_TABLE3[:, 0])
+    assert judged["verdict"] == "holds except 1 of 10 cells"
+    assert "ankle roll max" in judged["misses"][0]
+
+
+def test_table2_sample_count_from_the_papers_own_numbers():
+    """N of Table 2's N⁻¹ sqrt(Σ e²): the four joints below their speed limit agree
+    within 7%, and N is about the moving part of the 19 s motion at 1 kHz."""
+    n = paper_sample_count()
+    per_joint = np.array(n["per_joint"])
+    used = per_joint[[0, 1, 3, 4]]
+    assert np.all(np.abs(used / n["n"] - 1) < 0.07)
+    assert 10_000 < n["n"] < 13_000
+    # The derivation itself: an error proportional to a speed profile, sampled N
+    # times, has exactly the paper's max / (N⁻¹ sqrt(Σ e²)) ratio.
+    speeds = np.abs(np.sin(np.linspace(0, 3, 5000)))[:, None] * np.ones((1, 5))
+    derived = derive_sample_count(speeds)["per_joint"]
+    ratio = speeds.max(0) / (np.sqrt((speeds**2).sum(0)) / np.array(derived))
+    np.testing.assert_allclose(ratio, PAPER_TABLE3[:, 0] / PAPER_TABLE2[:, 0], rtol=1e-12)

@@ -24,19 +24,32 @@ What it must not use, and does not: the torque-control columns of Tables 2 and 3
 Figure 5 and Sec. 5.2 (they stay out-of-sample predictions).
 
 Table 2's "average" is N⁻¹ sqrt(Σ e²), which depends on the number of samples N the
-paper does not give: `derive_sample_count` derives it from the paper's own numbers.
+paper does not give: `motion.derive_sample_count` derives it from the paper's own
+numbers.
 """
 
+import io
 import json
 import math
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
+from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
 
+from hrp2_drake.experiments.builders import build_position_control
+from hrp2_drake.experiments.motion import (
+    MOVING_JOINTS,
+    PAPER_TABLE2,
+    PAPER_TABLE3,
+    MotionConfig,
+    _reference,
+    paper_sample_count,
+    run_controller,
+)
 from hrp2_drake.robot import model
 from hrp2_drake.robot.servo import (
     ServoJointParams,
@@ -44,15 +57,14 @@ from hrp2_drake.robot.servo import (
     effective_motor_parameters,
     load_servo_params,
 )
+from hrp2_drake.robot.station import StationConfig
 
-#: The moving joints of the climbing swing (hip yaw stays at 0), Tables 2 and 3 rows.
-MOVING_JOINTS = model.RIGHT_LEG[1:]
-MOVING_LABELS = model.RIGHT_LEG_LABELS[1:]
+MOVING_LABELS = tuple(model.RIGHT_LEG_LABELS[model.RIGHT_LEG.index(j)] for j in MOVING_JOINTS)
 
 #: The position-control column of the paper's Table 2 (N⁻¹ sqrt(Σ e²), rad) and
 #: Table 3 (maximum error, rad): hip roll, hip pitch, knee, ankle pitch, ankle roll.
-PAPER_POSITION_AVERAGE = np.array([0.020, 0.056, 0.115, 0.064, 0.029]) * 1e-3
-PAPER_POSITION_MAX = np.array([4.79, 17.01, 61.86, 19.56, 6.11]) * 1e-3
+PAPER_POSITION_AVERAGE = PAPER_TABLE2[:, 0] * 1e-3
+PAPER_POSITION_MAX = PAPER_TABLE3[:, 0] * 1e-3
 
 #: Piecewise-linear fits Δq = f±(τ) of HRP-2's legs by the paper's authors (Sec. 3.2,
 #: Fig. 1): andreadelprete/sot-torque-control, python/hrp2_motors_parameters_pwl.py
@@ -93,47 +105,6 @@ def pwl_priors(joint: str) -> tuple[float, float | None]:
     return half_width, coulomb
 
 
-def derive_sample_count(reference_speed: np.ndarray, dt: float) -> dict:
-    """The N of Table 2's N⁻¹ sqrt(Σ e²), derived from the paper's own numbers.
-
-    The paper logs at 1 kHz (Sec. 5.1) but does not say over how long. In position
-    control the servo's error is dominated by its velocity term Kv q̇ (the paper's
-    Sec. 5.5: friction compensation is what torque control adds), so on a joint far
-    from its speed limit e(t) ≈ Kv q̇(t): then max|e| / sqrt(Σ e²) = max|q̇| /
-    sqrt(Σ q̇²) over the log, whatever Kv, and the paper's ratio of Table 3 to Table 2,
-    max / (N⁻¹ sqrt(Σ e²)), gives N = ratio · sqrt(Σ q̇²) / max|q̇|, with Σ over the N
-    samples of the log. If the log holds the whole motion at 1 kHz, Σ q̇² is the
-    reference's (rest adds nothing), and N follows per joint. The four joints below
-    their speed limit (all but the knee) agree within ±7%: N is their geometric mean,
-    i.e. a log of N ms, the moving part of the swing.
-
-    Args:
-        reference_speed: the reference's joint speeds (rad/s), samples x the five
-            moving joints, at period `dt` over the whole motion.
-        dt: the paper's log period (s).
-
-    Returns:
-        dict with "n" (the derived N), "per_joint" (N of each moving joint), "used"
-        (the joints averaged) and "log_duration" (s).
-    """
-    ratio = PAPER_POSITION_MAX / PAPER_POSITION_AVERAGE
-    energy = np.sum(reference_speed**2, axis=0) * (0.001 / dt)  # Σ q̇² at the log rate
-    per_joint = ratio * np.sqrt(energy) / np.abs(reference_speed).max(axis=0)
-    used = [j for j, name in enumerate(MOVING_JOINTS) if name != "RLEG_JOINT3"]
-    n = float(np.exp(np.mean(np.log(per_joint[used]))))
-    return {
-        "n": n,
-        "per_joint": per_joint.tolist(),
-        "used": [MOVING_LABELS[j] for j in used],
-        "log_duration": n * dt,
-    }
-
-
-def paper_average(error: np.ndarray, n_samples: float) -> np.ndarray:
-    """Table 2's N⁻¹ sqrt(Σ e²) per column (rad), with the paper's N."""
-    return np.sqrt(np.sum(error**2, axis=0)) / n_samples
-
-
 @dataclass
 class CalibrationConfig:
     """Configuration of `hrp2-drake calibrate`.
@@ -160,6 +131,8 @@ class CalibrationConfig:
         average_weight: weight of Table 2's residuals relative to Table 3's.
         max_iterations: the optimizer's iterations (each: two simulations in parallel).
         settle: time holding the first pose before the swing (s).
+        end: where the climbing motion is cut (s); < 0: its end (19.07 s). Shorter
+            runs are for tests: Table 2's N is the whole motion's.
         jobs: parallel simulations (1 or 2).
     """
 
@@ -172,6 +145,7 @@ class CalibrationConfig:
     average_weight: float = 0.5
     max_iterations: int = 12
     settle: float = 1.0
+    end: float = -1.0
     jobs: int = 2
 
     def validate(self) -> None:
@@ -245,7 +219,11 @@ def write_servo_yaml(params: ServoParams, path: Path, header: list[str]) -> None
 
 
 def position_control_errors(
-    servo_file: str, settle: float = 1.0, servo_off: tuple[str, ...] = (), log: bool = False
+    servo_file: str,
+    settle: float = 1.0,
+    servo_off: tuple[str, ...] = (),
+    log: bool = False,
+    end: float = -1.0,
 ) -> dict:
     """The hanging robot's own position servo on the whole climbing swing: the
     tracking error of the five moving right-leg joints after `settle`.
@@ -254,14 +232,8 @@ def position_control_errors(
         dict with "max" (rad), "sum_squares" (Σ e², rad², at 1 kHz) and "rms" (rad)
         per moving joint, and "peak_speed" (rad/s); with `log`, "signals".
     """
-    import io
-
-    from hrp2_drake.experiments.builders import build_position_control
-    from hrp2_drake.experiments.motion import MotionConfig, _reference, run_controller
-    from hrp2_drake.robot.station import StationConfig
-
     station = StationConfig(scenario="hanging", servo_file=servo_file, servo_off=list(servo_off))
-    config = MotionConfig(station=station, settle=settle)
+    config = MotionConfig(station=station, settle=settle, end=end)
     reference = _reference(config)
     control = build_position_control(station, reference)
     signals = run_controller(control, reference.end_time(), "position control", stream=io.StringIO())
@@ -269,7 +241,6 @@ def position_control_errors(
     after = t >= settle
     columns = [model.JOINT_NAMES.index(j) for j in MOVING_JOINTS]
     error = (signals["q_ref"] - signals["q_measured"])[after][:, columns]
-    x = signals["state_true"]
     out = {
         "max": np.abs(error).max(axis=0),
         "sum_squares": np.sum(error**2, axis=0),
@@ -284,7 +255,7 @@ def _evaluate(args: tuple) -> dict:
     """Process-pool worker: writes the servo for `speeds` and runs position control."""
     config, speeds, path, off = args
     write_servo_yaml(build_servo(config, speeds), Path(path), ["calibration candidate"])
-    result = position_control_errors(path, config.settle, off)
+    result = position_control_errors(path, config.settle, off, end=config.end)
     return {k: v.tolist() for k, v in result.items()}
 
 
@@ -336,16 +307,6 @@ def gear_ratios(joints) -> np.ndarray:
     return np.array([ratios[j] for j in joints])
 
 
-def reference_speeds() -> np.ndarray:
-    """The climbing reference's speeds of the moving joints at 1 kHz (rad/s)."""
-    from hrp2_drake.experiments.motion import climbing_reference
-
-    reference = climbing_reference()
-    t = np.arange(0.0, reference.end_time(), 0.001)
-    columns = [model.JOINT_NAMES.index(j) for j in MOVING_JOINTS]
-    return np.array([reference.at(x)[1][columns] for x in t])
-
-
 def run_calibration(config: CalibrationConfig, work: Path, stream=None) -> CalibrationResult:
     """Fits the no-load speeds of the moving joints to the position-control column of
     Tables 2 and 3 (module docstring), then measures the calibrated servo, the `ideal`
@@ -356,7 +317,7 @@ def run_calibration(config: CalibrationConfig, work: Path, stream=None) -> Calib
     config.validate()
     work.mkdir(parents=True, exist_ok=True)
     wall0 = time.perf_counter()
-    sample_count = derive_sample_count(reference_speeds(), 0.001)
+    sample_count = paper_sample_count()
     n = sample_count["n"]
     print(
         f"calibrate: Table 2's N = {n:.0f} samples (a {sample_count['log_duration']:.1f} s log "
@@ -371,7 +332,7 @@ def run_calibration(config: CalibrationConfig, work: Path, stream=None) -> Calib
     step = 0.04  # finite-difference step of log(ω0)
     history: list[Evaluation] = []
     cache: dict[tuple, dict] = {}
-    pool = ProcessPoolExecutor(max_workers=config.jobs)
+    pool = ProcessPoolExecutor(max_workers=config.jobs, mp_context=get_context("spawn"))
     counter = iter(range(10**6))
 
     def submit(x: np.ndarray):
@@ -464,7 +425,7 @@ def run_calibration(config: CalibrationConfig, work: Path, stream=None) -> Calib
         runs = {"calibrated": (str(final_path), ()), "ideal": ("ideal", ())}
         runs |= {f"{m} off": (str(final_path), (m,)) for m in SERVO_MECHANISMS}
         futures = {
-            label: pool.submit(_measure, path, config.settle, off)
+            label: pool.submit(_measure, path, config.settle, off, config.end)
             for label, (path, off) in runs.items()
         }
         measured = {}
@@ -495,13 +456,12 @@ def run_calibration(config: CalibrationConfig, work: Path, stream=None) -> Calib
     )
 
 
-def _measure(path: str, settle: float, off: tuple) -> dict:
-    """Process-pool worker: position-control errors plus the knee's error and speed
-    over time (for the report's plot)."""
-    result = position_control_errors(path, settle, off, log=True)
+def _measure(path: str, settle: float, off: tuple, end: float) -> dict:
+    """Process-pool worker: position-control errors plus the knee's error over time
+    (for the report's plot)."""
+    result = position_control_errors(path, settle, off, log=True, end=end)
     signals = result.pop("signals")
     j = model.JOINT_NAMES.index("RLEG_JOINT3")
-    nq = len(signals["q_ref"][0])
     out = {k: v.tolist() for k, v in result.items()}
     out["signals"] = {
         "t": signals["t"][::5].tolist(),

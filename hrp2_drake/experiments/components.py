@@ -111,7 +111,7 @@ def find_motion_run(motion_signals: dict[str, dict], k6: float) -> str:
     paper-literal run is skipped)."""
     for label in motion_signals:
         match = re.search(r"K6\s*=\s*([0-9.]+(?:[eE][+-]?[0-9]+)?)", label)
-        if match and "literal" not in label and math.isclose(float(match[1]), k6):
+        if match and "," not in label and math.isclose(float(match[1]), k6):
             return label
     raise KeyError(
         f"analyse_components: no motion run with K6 = {k6:g} among "
