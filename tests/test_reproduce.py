@@ -17,7 +17,8 @@ def test_reproduce_quick_writes_the_report_and_numbers(tmp_path, capsys):
     for step in ("identify", "estimation", "motion", "force", "stability", "components"):
         assert results[step].get("ok", True), (step, results[step].get("error"))
     assert len(results["identify"]["joints"]) == 6
-    assert len(results["motion"]["runs"]) == 6  # position, 4 x K6, paper-literal
+    # position, 4 x K6, paper-literal, authors' code
+    assert len(results["motion"]["runs"]) == 7
     assert "baseline" in results["force"]
     report = (out / "report.md").read_text()
     assert "## Verdicts" in report and report.count("| holds") >= 5
