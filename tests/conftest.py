@@ -7,7 +7,8 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 
 @pytest.fixture(scope="session")
 def short_identification():
-    """A shortened identification run on the hanging robot (about 45 s simulated),
+    """A shortened identification run on the hanging robot (about 45 s simulated, the
+    `ideal` servo),
     shared by the tests that need data or an identified motor model.
 
     Returns (config, log, joint_names, result)."""
@@ -17,7 +18,13 @@ def short_identification():
         identify,
     )
 
-    config = IdentifyConfig(duration_scale=0.5)
+    from hrp2_drake.robot.station import StationConfig
+
+    # The `ideal` servo: these tests check the machinery against the exact linear law;
+    # `reproduce` reports what the calibrated servo costs.
+    config = IdentifyConfig(
+        duration_scale=0.5, station=StationConfig(scenario="hanging", servo_file="ideal")
+    )
     log, names = collect_log(config, progress=False)
     return config, log, names, identify(config, log, names)
 

@@ -21,6 +21,7 @@ from hrp2_drake.experiments.components import (
 from hrp2_drake.experiments.force import ForceConfig, run_force
 from hrp2_drake.experiments.motion import MotionConfig, run_motion
 from hrp2_drake.robot import model
+from hrp2_drake.robot.station import StationConfig
 
 
 def _fake_signals(amplitudes: dict[str, float], samples: int = 1000) -> dict:
@@ -103,10 +104,17 @@ def short_runs(identified_model):
     """A fast second of the climbing swing at K6 = 1 and 0.1 (hanging), and one period
     of the force sinusoid (standing on the block), with an identified motor model."""
     motor_model = identified_model
-    config = MotionConfig(start=3.0, end=4.0, settle=0.7, k6=[1.0, 0.1])
+    # The `ideal` servo (the analysis is the subject; reproduce runs the calibrated one).
+    config = MotionConfig(
+        station=StationConfig(scenario="hanging", servo_file="ideal"),
+        start=3.0, end=4.0, settle=0.7, k6=[1.0, 0.1],
+    )
     config.torque_control = TorqueControlConfig(start_time=0.5)
-    motion = run_motion(config, motor_model, include_paper_literal=False)
-    force = ForceConfig(settle=0.6, static_average=0.2, hold=0.3, periods=1.0)
+    motion = run_motion(config, motor_model, include_variants=False)
+    force = ForceConfig(
+        station=StationConfig(scenario="standing_on_block", servo_file="ideal"),
+        settle=0.6, static_average=0.2, hold=0.3, periods=1.0,
+    )
     force.ablations = []
     return motion.signals, run_force(force, motor_model).signals
 

@@ -24,12 +24,17 @@ from hrp2_drake.experiments.force import (
     write_force_report,
 )
 from hrp2_drake.experiments.builders import COMPONENTS
+from hrp2_drake.robot.station import StationConfig
 
 F0 = np.array([-1.4, -1.3, -0.2, 3.0, 9.9, 265.0])  # a static wrench, [N·m; N]
 
 
 def _config(**changes) -> ForceConfig:
-    config = ForceConfig(settle=0.6, static_average=0.2, hold=0.3, periods=1.0)
+    # The `ideal` servo (the experiment's machinery; reproduce runs the calibrated one).
+    config = ForceConfig(
+        station=StationConfig(scenario="standing_on_block", servo_file="ideal"),
+        settle=0.6, static_average=0.2, hold=0.3, periods=1.0,
+    )
     config.ablations = []
     for name, value in changes.items():
         setattr(config, name, value)

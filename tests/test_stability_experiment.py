@@ -22,6 +22,7 @@ from hrp2_drake.experiments.stability import (
 )
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.robot import model
+from hrp2_drake.robot.station import StationConfig
 
 JOINT = "RLEG_JOINT4"  # ankle pitch
 
@@ -36,7 +37,7 @@ def fits(short_identification) -> dict[str, MotorModel]:
 def test_least_squares_over_estimates_friction_at_high_speed(fits):
     ls, asym = fits["least_squares"], fits["asymmetric"]
     assert ls.k_v[0] > 1.02 * asym.k_v[0]
-    config = StabilityConfig()
+    config = StabilityConfig(station=StationConfig(scenario="fixed_base", servo_file="ideal"))
     # Predicted (steady state, emulator's parameters): with the command's 1 ms delay
     # compensated, LS over-compensates friction above about 1.1 rad/s, the
     # asymmetric fit only above about 2.6 rad/s; uncompensated, neither does.
@@ -85,6 +86,7 @@ def test_stability_config_loads_and_validates():
 @pytest.fixture(scope="module")
 def short_stability(fits):
     config = StabilityConfig(
+        station=StationConfig(scenario="fixed_base", servo_file="ideal"),
         push_velocities=[2.0],
         command_delay_compensation=[0.0, 0.001],
         prepare=0.4,

@@ -618,7 +618,7 @@ def _closed_loop(
     """Station (noiseless sensors by default, servo holding its initial pose) +
     add_estimator. Returns (chain, estimator plant, logs, final F/T offsets)."""
     station_config = StationConfig(
-        scenario=scenario, sensors=sensors or SensorsConfig.noiseless()
+        scenario=scenario, sensors=sensors or SensorsConfig.noiseless(), servo_file="ideal"
     )
     builder = DiagramBuilder()
     station = builder.AddNamedSystem("station", make_station(station_config))

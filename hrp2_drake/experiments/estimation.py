@@ -143,6 +143,7 @@ class EstimationConfig:
         motions: per scenario, the sinusoids the servo tracks; empty: default_motions().
         sensors: the station's sensors (default: HRP-2-like noise and biases).
         seed: the sensors' noise seed (overrides sensors.seed).
+        servo_file: the station's servo (`StationConfig.servo_file`; empty: calibrated).
         calibration_time: F/T offset calibration (s), while hanging, starting at
             calibration_start; 0 for none.
         calibration_start: start of the calibration (s), after the filters fill.
@@ -158,6 +159,7 @@ class EstimationConfig:
     motions: dict[str, list[JointSinusoid]] = field(default_factory=dict)
     sensors: SensorsConfig = field(default_factory=SensorsConfig)
     seed: int = 0
+    servo_file: str = ""
     calibration_time: float = 0.5
     calibration_start: float = 0.2
     plot_seconds: float = 4.0
@@ -233,7 +235,7 @@ def sinusoid_reference(
 
 def _station_config(config: EstimationConfig, scenario: str) -> StationConfig:
     sensors = dataclasses.replace(config.sensors, seed=config.seed)
-    return StationConfig(scenario=scenario, sensors=sensors)
+    return StationConfig(scenario=scenario, sensors=sensors, servo_file=config.servo_file)
 
 
 def _build(

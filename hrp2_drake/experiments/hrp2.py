@@ -96,9 +96,12 @@ def right_leg_collection(duration_scale: float = 1.0, seed: int = 0) -> Collecti
     )
 
 
-def true_motor_model(joint_names=model.RIGHT_LEG, direction: int = 0) -> MotorModel:
-    """The emulated servo's effective Kτ, Kv, Kc: ground truth, for evaluation only."""
+def true_motor_model(
+    joint_names=model.RIGHT_LEG, direction: int = 0, servo_file: str = ""
+) -> MotorModel:
+    """The emulated servo's effective Kτ, Kv, Kc: ground truth, for evaluation only.
+    `servo_file` as `StationConfig.servo_file` (empty: the calibrated servo)."""
     from hrp2_drake.robot.servo import effective_motor_parameters, load_servo_params
 
-    eff = effective_motor_parameters(load_servo_params(), joint_names, direction)
+    eff = effective_motor_parameters(load_servo_params(servo_file or None), joint_names, direction)
     return MotorModel(list(joint_names), eff["k_tau"], eff["k_v"], eff["k_c"])

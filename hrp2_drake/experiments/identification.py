@@ -220,7 +220,11 @@ def write_report(result: IdentificationResult, out: Path, log_is_simulated: bool
     """Writes report.md, results.json, motor_model.yaml and the figures; returns the
     results as a dict."""
     out.mkdir(parents=True, exist_ok=True)
-    truth = hrp2.true_motor_model(result.config.joints) if log_is_simulated else None
+    truth = (
+        hrp2.true_motor_model(result.config.joints, servo_file=result.config.station.servo_file)
+        if log_is_simulated
+        else None
+    )
     rows = {}
     for k, r in enumerate(result.joints):
         row = {m: {"k_tau": float(r.models[m].k_tau[0]), "k_v": float(r.models[m].k_v[0])}

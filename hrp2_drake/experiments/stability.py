@@ -353,19 +353,27 @@ def predicted_thresholds(
     """The speed above which the open-loop joint accelerates, per direction ("+",
     "-"), predicted from the emulated servo's hidden parameters (ground truth: for
     the report only) at steady speed: the smallest v > 0 where the servo's net torque
-    with Δq = (K̂_v + δ_c − δ) q̇ (δ = 1 ms, the command's delay) pushes the joint
-    along q̇; None if none below 10 rad/s."""
+    with Δq = (K̂_v + δ_c − δ − d) q̇ (δ = 1 ms, the command's delay; d, the servo's
+    command latency) pushes the joint along q̇, the current limited by the voltage
+    limit; None if none below 10 rad/s."""
     from hrp2_drake.robot.servo import load_servo_params
 
-    p = {k: float(x[0]) for k, x in load_servo_params().vectors([config.joint]).items()}
-    k_v = motor_model.for_joint(config.joint).k_v + delay - COMMAND_DELAY
+    servo = load_servo_params(config.station.servo_file or None)
+    p = {k: float(x[0]) for k, x in servo.vectors([config.joint]).items()}
+    k_v = motor_model.for_joint(config.joint).k_v + delay - COMMAND_DELAY - p["latency"]
     out = {}
     for sign, name in ((1.0, "+"), (-1.0, "-")):
         found = None
         for speed in np.arange(0.01, 10.0, 0.01):
             v = sign * speed
             u = p["k4"] * k_v * v - p["k5"] * v
-            current = np.sign(u) * np.clip(abs(u) - p["i_deadzone"], 0.0, p["i_max"])
+            current = np.sign(u) * max(abs(u) - p["i_deadzone"], 0.0)
+            back_emf = v / p["no_load_speed"]
+            current = np.clip(
+                current,
+                max(-p["i_max"], -p["stall_current"] * (1 + back_emf)),
+                min(p["i_max"], p["stall_current"] * (1 - back_emf)),
+            )
             smooth = math.tanh(v / p["v_coulomb"])
             k1 = p["k1"] * (1 + p["k1_asymmetry"] * smooth)
             torque = k1 * current - p["k2"] * v - p["k3"] * smooth
@@ -428,14 +436,14 @@ def models_from_identification(result, joints=None) -> dict[str, MotorModel]:
     }
 
 
-def emulator_parameters(joint: str) -> dict[str, float]:
+def emulator_parameters(joint: str, servo_file: str = "") -> dict[str, float]:
     """The emulated servo's effective K_τ, K_v per direction of motion (ground truth,
     for the report only): keys k_tau+, k_tau-, k_v+, k_v-."""
     from hrp2_drake.experiments import hrp2
 
     out = {}
     for direction, sign in ((1, "+"), (-1, "-")):
-        truth = hrp2.true_motor_model([joint], direction).for_joint(joint)
+        truth = hrp2.true_motor_model([joint], direction, servo_file).for_joint(joint)
         out[f"k_tau{sign}"], out[f"k_v{sign}"] = truth.k_tau, truth.k_v
     return out
 
@@ -468,7 +476,7 @@ def summarize(result: StabilityResult) -> dict:
         "release_time": c.release_time,
         "runs": [asdict(r) for r in result.runs],
         "predicted_threshold": result.predicted_threshold,
-        "emulator": emulator_parameters(c.joint),
+        "emulator": emulator_parameters(c.joint, c.station.servo_file),
         "verdicts": verdicts,
         "contrast": contrast(result),
     }
@@ -547,7 +555,7 @@ def _markdown(result: StabilityResult, summary: dict, figure: str) -> str:
     for key, value in result.predicted_threshold.items():
         cells = [f"{value[d]:.2f} rad/s" if value[d] else "none" for d in ("+", "-")]
         lines.append(f"| {key} | " + " | ".join(cells) + " |")
-    truth = emulator_parameters(c.joint)
+    truth = emulator_parameters(c.joint, c.station.servo_file)
     fits = {r.model: r.k_v for r in result.runs}
     over = ", ".join(
         f"{name} {(k_v - truth['k_v+']) * 1e3:+.2f} ms" for name, k_v in fits.items()
