@@ -155,13 +155,19 @@ class TorqueControlConfig:
             "estimate" (q̂̇, the paper's) or "reference" (q̇_d, default).
 
     Why the defaults differ from the paper's eq. 13 (measured in the motion
-    experiment): the servo turns Δq = K_τ τ* + K_v q̇_x into τ = τ* + (K_v/K_τ)(q̇_x −
-    q̇). With q̇_x = q̂̇, delayed 40 ms by the centred window, the last term is about
-    −(K_v/K_τ) d q̈: a negative inertia of 5 kg·m² on the knee (K_v/K_τ = 129 N·m·s/rad,
-    d = 0.04 s) against 0.8 kg·m² of real inertia, and the leg diverges within a second
-    (the fallback trips). With q̇_x = q̇_d the same term is the servo's own damping on the
-    velocity error, (K_v/K_τ)(q̇_d − q̇), so K_d of eq. 12 is not needed; the position
-    error from the encoders avoids the delay in K_s e_q likewise. Causal ("end")
+    experiment, its "K6 = 1 with the estimates" table): the servo turns Δq = K_τ τ* +
+    K_v q̇_x into τ = τ* + (K_v/K_τ)(q̇_x − q̇). With q̇_x = q̂̇, delayed d = 40 ms by
+    the centred window, the last term is about −(K_v/K_τ) d q̈: the friction
+    feedforward arrives late and acts as an added inertia (passive: the real part of
+    (K_v/K_τ)(e^{−sd} − 1) is never positive) of 5 kg·m² on the knee and 2.3 on the
+    hip pitch, so the leg lags its reference (the authors' code, which fed q̂̇ there:
+    hip pitch maximum error 53 mrad against 6 with q̇_d, on the calibrated servo). With
+    q̇_x = q̇_d the same term is the servo's own damping on the velocity error,
+    (K_v/K_τ)(q̇_d − q̇), so K_d of eq. 12 is not needed. e_q from the 40 ms-old q̂ is
+    what makes the paper's eq. 12-13 as written unstable: with K6 = 1 it is the servo's
+    whole stiffness acting on a 40 ms-old position (it diverges on the `ideal` servo,
+    and oscillates at 76-137 mrad on the calibrated one, bounded only by the voltage
+    limit); the raw encoders avoid it, as the authors' code did. Causal ("end")
     filters remove the delay but their derivatives are too noisy for K_p = 2.
         force_frame: frame of the force task ("" = motion control only).
         kf: force-feedback gain K_f (one value or 6).

@@ -491,6 +491,7 @@ def write_motion_report(result: MotionResult, out: Path) -> dict:
         "joints": list(MOVING_JOINTS),
         "paper_table2": PAPER_TABLE2.tolist(),
         "paper_table3": PAPER_TABLE3.tolist(),
+        "sample_count": paper_sample_count(),
         "verdicts": verdicts,
     }
     (out / "motion.json").write_text(json.dumps(summary, indent=2))
