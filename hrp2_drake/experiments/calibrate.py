@@ -199,9 +199,10 @@ def build_servo(
             share = ideal.k2 / (ideal.k1 * ideal.k5 + ideal.k2)
             p.k2 = share * damping
             p.k5 = (1 - share) * damping / p.k1
-            p.stall_current = config.stall_current
             speed = no_load_speeds.get(_mirror(name))
-            p.no_load_speed = float(speed) if speed is not None else math.inf
+            if speed is not None:  # no data, no voltage limit (both .inf)
+                p.stall_current = config.stall_current
+                p.no_load_speed = float(speed)
         out.joints[name] = p
     return out
 

@@ -228,6 +228,20 @@ ABLATIONS: dict[str, tuple[str, Callable[[ForceConfig], ForceConfig]]] = {
         "estimator window 40 (20 ms delay)",
         lambda c: replace(c, torque_control=replace(c.torque_control, window=40)),
     ),
+    # What the calibrated servo's static non-linearities cost (the plant changes: f0
+    # and the posture gain are measured again).
+    "servo_no_hysteresis": (
+        "servo without direction hysteresis (Coulomb friction switching at sign(q̇))",
+        lambda c: replace(
+            c, station=replace(c.station, servo_off=[*c.station.servo_off, "hysteresis"])
+        ),
+    ),
+    "servo_no_deadzone": (
+        "servo without dead zone",
+        lambda c: replace(
+            c, station=replace(c.station, servo_off=[*c.station.servo_off, "deadzone"])
+        ),
+    ),
 }
 
 
@@ -563,8 +577,11 @@ def run_force_all(config: ForceConfig, motor_model: MotorModel) -> ForceResult:
     for name in config.ablations:
         label, change = ABLATIONS[name]
         variant = change(config)
-        gain = baseline.posture_gain if variant.compatible_reference else None
-        variants.append(run_force(variant, motor_model, label, static, gain))
+        same_plant = variant.station == config.station
+        gain = baseline.posture_gain if variant.compatible_reference and same_plant else None
+        variants.append(
+            run_force(variant, motor_model, label, static if same_plant else None, gain)
+        )
     return ForceResult(baseline, variants)
 
 

@@ -114,6 +114,11 @@ class ServoJointParams:
             value = getattr(self, name)
             if not (value >= 0 and math.isfinite(value)):
                 raise ValueError(f"{where}.{name}: must be finite and >= 0, got {value}")
+        if math.isfinite(self.stall_current) != math.isfinite(self.no_load_speed):
+            raise ValueError(
+                f"{where}: stall_current and no_load_speed set the voltage limit together "
+                f"(both finite, or both .inf), got {self.stall_current}, {self.no_load_speed}"
+            )
         if not 0 <= self.k1_asymmetry < 1:
             raise ValueError(f"{where}.k1_asymmetry: must be in [0, 1), got {self.k1_asymmetry}")
 
@@ -313,6 +318,10 @@ class Hrp2ServoEmulation(LeafSystem):
         self._period = period
         self._delays = delays
         self._dahl = p["hysteresis_width"] > 0
+        finite = np.isfinite(p["no_load_speed"])
+        self._inverse_no_load_speed = np.where(
+            finite, 1.0 / np.where(finite, p["no_load_speed"], 1.0), 0.0
+        )
         self._width = np.where(self._dahl, p["hysteresis_width"], 1.0)
         self._nq = plant.num_positions()
         self._num_actuators = plant.num_actuators()
@@ -367,8 +376,7 @@ class Hrp2ServoEmulation(LeafSystem):
         u = p["k4"] * (q_cmd - q_encoder) - p["k5"] * v
         current = np.sign(u) * np.maximum(np.abs(u) - p["i_deadzone"], 0.0)
         # Driver limit and the voltage limit: |R i + k_e ρ q̇| <= V.
-        with np.errstate(invalid="ignore"):
-            back_emf = np.where(np.isfinite(p["no_load_speed"]), v / p["no_load_speed"], 0.0)
+        back_emf = v * self._inverse_no_load_speed
         upper = np.minimum(p["i_max"], p["stall_current"] * (1.0 - back_emf))
         lower = np.maximum(-p["i_max"], -p["stall_current"] * (1.0 + back_emf))
         current = np.clip(current, lower, upper)
