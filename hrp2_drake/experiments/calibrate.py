@@ -268,6 +268,7 @@ class Evaluation:
     max_error: list[float]  # rad
     average_error: list[float]  # rad, Table 2's formula with the derived N
     cost: float
+    kind: str  # "iterate" (the optimizer's point) or "finite difference"
 
 
 @dataclass
@@ -345,7 +346,7 @@ def run_calibration(config: CalibrationConfig, work: Path, stream=None) -> Calib
         r = _residuals(result, n, config.average_weight)
         return np.concatenate([r, config.prior_weight * (x - prior)])
 
-    def record(x: np.ndarray, result: dict) -> np.ndarray:
+    def record(x: np.ndarray, result: dict, kind: str = "iterate") -> np.ndarray:
         r = residuals(x, result)
         history.append(
             Evaluation(
@@ -353,6 +354,7 @@ def run_calibration(config: CalibrationConfig, work: Path, stream=None) -> Calib
                 list(result["max"]),
                 (np.sqrt(np.asarray(result["sum_squares"])) / n).tolist(),
                 float(0.5 * r @ r),
+                kind,
             )
         )
         ratios = np.asarray(result["max"]) / PAPER_POSITION_MAX
@@ -385,7 +387,9 @@ def run_calibration(config: CalibrationConfig, work: Path, stream=None) -> Calib
             fun(x)
         entry = cache[key]
         if "r_there" not in entry:
-            entry["r_there"] = record(perturbed(x), entry["there"].result())
+            entry["r_there"] = record(
+                perturbed(x), entry["there"].result(), "finite difference"
+            )
         r0 = residuals(x, entry["here"])
         dx = perturbed(x) - x
         m = len(MOVING_JOINTS)
@@ -586,14 +590,20 @@ def plot_calibration(result: CalibrationResult, out: Path) -> list[str]:
     # 1. Convergence: each simulation's max-error ratios and cost.
     fig, axes = plt.subplots(1, 2, figsize=(12, 4))
     ratios = np.array([np.asarray(e.max_error) / PAPER_POSITION_MAX for e in result.history])
+    costs = np.array([e.cost for e in result.history])
+    iterate = np.array([e.kind == "iterate" for e in result.history])
+    index = np.arange(len(result.history))
     for j, label in enumerate(MOVING_LABELS):
-        axes[0].plot(ratios[:, j], "o-", label=label, ms=3)
+        line = axes[0].plot(index[iterate], ratios[iterate, j], "o-", label=label, ms=3)[0]
+        axes[0].plot(index[~iterate], ratios[~iterate, j], "x", color=line.get_color(), alpha=0.5)
     axes[0].axhspan(0.8, 1.2, color="g", alpha=0.1, label="±20%")
-    axes[0].set_xlabel("simulation")
+    axes[0].set_xlabel("simulation (o: the optimizer's points, x: finite-difference steps)")
     axes[0].set_ylabel("max error / paper (Table 3)")
     axes[0].set_yscale("log")
     axes[0].legend(fontsize=8)
-    axes[1].semilogy([e.cost for e in result.history], "ko-", ms=3)
+    axes[1].semilogy(index[iterate], costs[iterate], "ko-", ms=3, label="optimizer's points")
+    axes[1].semilogy(index[~iterate], costs[~iterate], "kx", alpha=0.5, label="finite-difference steps")
+    axes[1].legend(fontsize=8)
     axes[1].set_xlabel("simulation")
     axes[1].set_ylabel("cost ½‖r‖² (log ratios)")
     for ax in axes:
