@@ -14,11 +14,11 @@ from hrp2_drake.experiments.calibrate import (
     pwl_priors,
     write_servo_yaml,
 )
+from hrp2_drake.experiments.identification import PAPER_TABLE1
 from hrp2_drake.robot import model
 from hrp2_drake.robot.servo import effective_motor_parameters, load_servo_params
 
-TABLE1_K_TAU = np.array([0.212, 0.030, 0.12, 0.051, 0.177, 0.240]) * 1e-3
-TABLE1_K_V = np.array([13.0, 6.332, 7.0, 6.561, 7.698, 6.0]) * 1e-3
+TABLE1_K_TAU, TABLE1_K_V = np.array([PAPER_TABLE1[j] for j in model.RIGHT_LEG]).T * 1e-3
 
 
 def test_pwl_priors_are_the_central_segments_of_the_authors_fits():

@@ -368,20 +368,28 @@ def verdicts(results: dict) -> list[tuple[str, str, str]]:
             ls, asym = as_is["least_squares"], as_is["asymmetric"]
             holds = bool(ls["accelerates_at"]) and not asym["accelerates_at"]
             others = "; ".join(
-                f"with δc = {delay} compensated: least squares accelerates from "
-                f"{v['least_squares']['accelerates_at'] or 'no'} rad/s, asymmetric from "
-                f"{v['asymmetric']['accelerates_at'] or 'no'} rad/s"
+                f"with δc = {delay} compensated: least squares "
+                f"{_push_outcome(v['least_squares'])}, asymmetric "
+                f"{_push_outcome(v['asymmetric'])}"
                 for delay, v in stability["verdicts"].items() if delay != "0 ms"
             )
             out.append((
                 "Least-squares fit: open-loop unstable once a speed is reached; asymmetric "
                 "fit: stable (Sec. 5.2), with the controller as it is",
                 "holds" if holds else "does not hold",
-                f"least squares accelerates from {ls['accelerates_at'] or 'no'} rad/s, "
-                f"asymmetric from {asym['accelerates_at'] or 'no'} rad/s"
+                f"least squares {_push_outcome(ls)}, asymmetric {_push_outcome(asym)}"
                 + (f" ({others}: not the verdict)" if others else ""),
             ))
     return out
+
+
+def _push_outcome(fit: dict) -> str:
+    """What the open-loop joint did after the pushes of one fit (stability verdicts)."""
+    if not fit["accelerates_at"]:
+        pushes = sorted(fit["accelerates_at"] + fit["stable_at"])
+        return f"stable after every push ({', '.join(f'{v:g}' for v in pushes)} rad/s)"
+    speeds = ", ".join(f"{v:g}" for v in fit["accelerates_at"])
+    return f"accelerates away after the pushes at {speeds} rad/s"
 
 
 def _predictions(results: dict) -> list[str]:
@@ -409,13 +417,7 @@ def _predictions(results: dict) -> list[str]:
             f"| Fig. 5 | (amplitude of the z force) | ratio {m['amplitude_ratio']:.2f} | - |",
         ]
     stability = results.get("stability", {})
-
-    def accelerates(fit: dict) -> str:
-        pushes = sorted(fit["accelerates_at"] + fit["stable_at"])
-        if not fit["accelerates_at"]:
-            return f"stable after every push ({', '.join(f'{v:g}' for v in pushes)} rad/s)"
-        return f"accelerates away after the pushes at {', '.join(f'{v:g}' for v in fit['accelerates_at'])} rad/s"
-
+    accelerates = _push_outcome
     for delay, v in stability.get("verdicts", {}).items():
         label = "as it is" if delay == "0 ms" else f"with δc = {delay} compensated"
         lines += [
