@@ -342,8 +342,10 @@ def test_bad_inputs(fixed_plant, floating_plant):
     inputs = _inputs(0)
     inputs["v"] = inputs["v"].copy()
     inputs["v"][2] = np.nan
-    with pytest.raises(ValueError, match="'v' is not finite"):
-        _step(controller, inputs)
+    # A bad sample never raises in the loop: NaN in, NaN out (the Δq controller then
+    # falls back to position control).
+    outputs = _step(controller, inputs)
+    assert all(np.all(np.isnan(value)) for value in outputs.values())
     with pytest.raises(ValueError, match="f_ref"):
         controller.compute(**dict(_inputs(0), f_ref=np.full(6, np.inf)))
     with pytest.raises(ValueError, match="floating_base"):

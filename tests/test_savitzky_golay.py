@@ -7,7 +7,7 @@ import scipy.signal
 from pydrake.common.yaml import yaml_load_typed
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem
-from pydrake.systems.primitives import ConstantVectorSource
+from pydrake.systems.primitives import ConstantVectorSource, TrajectorySource
 
 from hrp2_drake.estimation.savitzky_golay import (
     SavitzkyGolayConfig,
@@ -148,14 +148,16 @@ def test_config_from_yaml():
 
 def test_ports_and_delay():
     system = SavitzkyGolayFilter(4, window=80, order=2, period=PERIOD)
-    names = [system.get_output_port(i).get_name() for i in range(4)]
-    assert names == ["value", "derivative", "second_derivative", "evaluation_time"]
+    names = [system.get_output_port(i).get_name() for i in range(5)]
+    assert names == [
+        "value", "derivative", "second_derivative", "evaluation_time", "input_fault"
+    ]
     assert system.get_input_port().get_name() == "signal"
     assert system.get_input_port().size() == 4
     assert system.delay() == pytest.approx(0.0395)  # (80 - 1) / 2 ms
     assert not system.HasAnyDirectFeedthrough()
     first_order = SavitzkyGolayFilter(4, window=80, order=1, evaluation="end")
-    assert first_order.num_output_ports() == 3
+    assert first_order.num_output_ports() == 4
     assert not first_order.HasOutputPort("second_derivative")
     assert first_order.delay() == 0.0
 
@@ -250,14 +252,33 @@ def test_causal_centre_equals_offline_on_noise():
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf])
-def test_non_finite_input_raises(bad):
+def test_non_finite_samples_are_held_and_flagged(bad):
+    """A 3-sample burst of bad entries: the filter holds each bad entry's previous
+    value, its estimates stay finite (here: exactly the constant), input_fault counts
+    the consecutive bad samples and returns to 0 at the next good one."""
+    from pydrake.trajectories import PiecewisePolynomial
+
+    good = np.array([1.0, -2.0, 2.0, 0.5])
+    burst = good.copy()
+    burst[[1, 3]] = bad
+    # Samples at 1 ms ticks: good, then bad at 10, 11, 12 ms, then good again.
+    values = np.column_stack([good, burst, good, good])
+    source = PiecewisePolynomial.ZeroOrderHold([0.0, 0.0095, 0.0125, 1.0], values)
     builder = DiagramBuilder()
-    source = builder.AddSystem(ConstantVectorSource([1.0, bad, 2.0, bad]))
+    src = builder.AddSystem(TrajectorySource(source))
     system = builder.AddNamedSystem("q_filter", SavitzkyGolayFilter(4, 10, 2))
-    builder.Connect(source.get_output_port(), system.get_input_port())
+    builder.Connect(src.get_output_port(), system.get_input_port())
     simulator = Simulator(builder.Build())
-    with pytest.raises(ValueError, match=r"q_filter.*'signal'.*indices \[1, 3\]"):
-        simulator.AdvanceTo(0.01)
+    context = system.GetMyContextFromRoot(simulator.get_context())
+    faults = []
+    for t in (np.arange(1, 30) + 0.5) * 1e-3:
+        simulator.AdvanceTo(t)
+        value = system.GetOutputPort("value").Eval(context)
+        np.testing.assert_allclose(value, good, atol=1e-12)
+        assert np.all(np.isfinite(system.GetOutputPort("derivative").Eval(context)))
+        faults.append(system.GetOutputPort("input_fault").Eval(context)[0])
+    assert faults[8:14] == [0.0, 1.0, 2.0, 3.0, 0.0, 0.0]
+    assert system.bad_sample_count(context) == 3
 
 
 def test_wrong_size_input_raises():

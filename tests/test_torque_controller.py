@@ -577,12 +577,21 @@ def test_bad_config_and_inputs(motor):
     controller = DeltaQTorqueController(motor, _config(joints=LEG[3:0:-1]))
     assert controller.motor_model().k_tau.tolist() == K_TAU[3:0:-1].tolist()
 
-    # NaN encoders raise (no command is safe without them).
+    # NaN encoders: no torque command is safe without them, the servo gets q_ref.
     inputs = _inputs(14)
     inputs["q_measured"][1] = np.nan
-    fixture = _Fixture(DeltaQTorqueController(motor, _config()), inputs)
-    with pytest.raises(ValueError, match="q_measured"):
-        fixture.step()
+    controller = DeltaQTorqueController(motor, _config())
+    fixture = _Fixture(controller, inputs)
+    out = fixture.step()
+    assert controller.fallback_reason(fixture.context) == "q_measured is not finite"
+    # No q_ref connected: it holds the last command it sent (finite).
+    assert np.all(np.isfinite(out["q_cmd"])) and np.all(np.isfinite(out["delta_q"]))
+    assert out["fallback_active"][0] == 1
+    # The estimation filters holding a bad sample: the fallback latches too.
+    controller = DeltaQTorqueController(motor, _config())
+    fixture = _Fixture(controller, dict(_inputs(14), sensor_fault=np.array([1.0])))
+    fixture.step()
+    assert controller.fallback_reason(fixture.context).startswith("sensor_fault")
 
     # Only some of the inverse-dynamics terms connected.
     fixture = _Fixture(

@@ -28,6 +28,7 @@ controller can split its Δq into the six components of paper Sec. 5.5 (see
                                                           K9 of Sec. 4.2 also weighs)
 """
 
+import logging
 import math
 from dataclasses import dataclass, field
 from typing import Callable, NamedTuple
@@ -53,6 +54,7 @@ from hrp2_drake.multibody import (
 )
 
 _WHERE = "InverseDynamicsController"
+_logger = logging.getLogger(__name__)
 
 #: The components of τ_d (and tau_force_error), in the order of the output ports
 #: after tau_desired; DeltaQTorqueController has input ports of the same names.
@@ -580,6 +582,25 @@ class InverseDynamicsController(LeafSystem):
         return self._read(port, context)
 
     def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
+        # A bad sample must not take the loop down: NaN in, NaN out (the Δq controller
+        # downstream then falls back to position control).
+        ports = [self._q_ref, self._v_ref, self._vdot_ref, self._q, self._v]
+        if self._force_frame is not None:
+            ports += [self._f_ref, self._f]
+        bad = [p.get_name() for p in ports if not math.isfinite(p.Eval(context).sum())]
+        if bad:
+            if math.isfinite(context.get_discrete_state(self._tau_state).get_value().sum()):
+                _logger.warning(
+                    "%s %s: input %s not finite at t = %.6g s: outputs NaN",
+                    _WHERE, self.GetSystemPathname(), bad, context.get_time(),
+                )
+            discrete_state.get_mutable_vector(self._tau_state).SetFromVector(
+                np.full(self._n, np.nan)
+            )
+            for state in self._component_states:
+                size = discrete_state.get_vector(state).size()
+                discrete_state.get_mutable_vector(state).SetFromVector(np.full(size, np.nan))
+            return
         q_ref = self._read(self._q_ref, context)
         v_ref = self._read(self._v_ref, context)
         vdot_ref = self._read(self._vdot_ref, context)

@@ -70,6 +70,8 @@ FALLBACK_REASONS: dict[int, str] = {
     2: "|tau_estimated| exceeds tau_limit",
     3: "tau_desired, v or a torque component of the inverse dynamics is not finite",
     4: "|delta_q| before saturation exceeds delta_q_fallback_limit",
+    5: "q_measured is not finite",
+    6: "sensor_fault: the estimation filters hold a NaN or infinite sample",
 }
 
 
@@ -185,6 +187,8 @@ class DeltaQTorqueController(LeafSystem):
         v (n): the estimated joint velocities q̂̇ (rad/s).
         q_measured (n): the encoders (rad), from which q_cmd = q_measured + Δq.
         q_ref (n, optional): the position reference of the fallback (rad).
+        sensor_fault (1, optional): > 0 while the estimation filters hold a bad
+            sample (`EstimationChain.input_fault`): the estimates rest on held data.
         tau_feedforward, tau_position_feedback, tau_velocity_feedback,
         tau_force_feedback, tau_force_error (n each, optional: connect all or none,
             e.g. with `connect_inverse_dynamics`): the terms of τ_d of the
@@ -233,15 +237,17 @@ class DeltaQTorqueController(LeafSystem):
       - Saturation: Δq is clipped to ±config.delta_q_limit (0.1 rad) per joint.
       - Fallback to position control, latched (it stays until `reset_fallback`):
         when τ̂ is NaN or infinite, |τ̂| > config.tau_limit, τ_d, q̂̇ or a tau_* input
-        is not finite, or |Δq| before saturation > config.delta_q_fallback_limit,
+        is not finite, |Δq| before saturation > config.delta_q_fallback_limit,
+        q_measured is not finite, or sensor_fault > 0,
         the controller commands q_cmd = q_ref if q_ref is connected, else holds the
         last q_cmd it sent (the last safe one), with Δq = q_cmd − q_measured, and
         sets fallback_active; a warning is logged with the reason
         (`fallback_reason`). The integral stops.
       - Before config.start_time it commands the same position (q_ref, else the
         q_cmd held since initialization) without latching anything.
-      - A NaN or infinite q_measured (or q_ref when connected) raises ValueError:
-        without encoders no command is safe.
+      - A NaN or infinite q_measured latches the fallback too (without encoders no
+        torque command is safe; the servo holds q_ref), with Δq reported 0 where it is
+        not finite. A NaN q_ref (our own reference) raises ValueError.
       - An initialization event sets q_cmd = q_ref if connected, else q_measured
         (Δq = 0), so the servo holds the robot from the first step.
 
@@ -290,6 +296,7 @@ class DeltaQTorqueController(LeafSystem):
         self._v = self.DeclareVectorInputPort("v", n)
         self._q_measured = self.DeclareVectorInputPort("q_measured", n)
         self._q_ref = self.DeclareVectorInputPort("q_ref", n)
+        self._sensor_fault = self.DeclareVectorInputPort("sensor_fault", 1)
         self._tau_terms = [
             self.DeclareVectorInputPort(name, n) for name in TORQUE_COMPONENTS
         ]
@@ -382,8 +389,9 @@ class DeltaQTorqueController(LeafSystem):
         fallback: bool,
     ) -> None:
         discrete_state.get_mutable_vector(self._q_cmd_state).set_value(q_cmd)
+        delta_q = q_cmd - q_measured
         discrete_state.get_mutable_vector(self._delta_q_state).set_value(
-            q_cmd - q_measured
+            np.where(np.isfinite(delta_q), delta_q, 0.0)
         )
         for state in (
             self._unsaturated_state,
@@ -404,7 +412,16 @@ class DeltaQTorqueController(LeafSystem):
         self._write_position_control(discrete_state, q_cmd, q_measured, False)
 
     def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
-        q_measured = self._read_finite(self._q_measured, context)
+        q_measured = self._q_measured.Eval(context)
+        if not math.isfinite(q_measured.sum()):
+            # No torque command is safe without the encoders: hand back to the servo.
+            if not self.fallback_active(context):
+                self._latch(context, discrete_state, q_measured, 5)
+            else:
+                self._write_position_control(
+                    discrete_state, self._position_command(context), q_measured, True
+                )
+            return
         if context.get_time() + 0.5 * self._period < self._start_time:
             self._write_position_control(
                 discrete_state, self._position_command(context), q_measured, False
@@ -421,7 +438,9 @@ class DeltaQTorqueController(LeafSystem):
         v = self._v.Eval(context)
         terms = self._tau_components(context, tau_desired)
         reason = 0
-        if not np.all(np.isfinite(tau_estimated)):
+        if self._sensor_fault.HasValue(context) and self._sensor_fault.Eval(context)[0] > 0:
+            reason = 6
+        elif not np.all(np.isfinite(tau_estimated)):
             reason = 1
         elif np.any(np.abs(tau_estimated) > self._tau_limit):
             reason = 2

@@ -150,7 +150,7 @@ class SavitzkyGolayFilter(LeafSystem):
     Every `period` seconds (offset 0) a discrete update reads `signal`, stores it in a
     ring buffer of the last N samples and computes the outputs with one precomputed
     weight matrix (savgol_coefficients, kept rolled to the ring's position, so a step
-    neither refits nor shifts nor allocates the buffer). The outputs are discrete state:
+    neither refits nor shifts nor allocates the buffer). The outputs (and `input_fault`) are discrete state:
     no direct feedthrough, the one-sample delay of a real controller.
 
     Start-up: at the first sample the whole window is filled with that sample, so value =
@@ -162,7 +162,12 @@ class SavitzkyGolayFilter(LeafSystem):
     is_ready(context) is False. From the N-th sample on, the estimates are exact for
     polynomials of degree <= order.
 
-    A NaN or infinite input raises ValueError naming the system and the indices.
+    A bad sample (NaN or infinite entries) never takes the diagram down: each bad entry
+    holds the previous sample's value (0 before any), the estimates stay finite, and
+    the output `input_fault` counts the consecutive bad samples (0 once a good one
+    arrives; the window then flushes the held values within N samples).
+    `bad_sample_count(context)` is the total. A consumer decides what a fault means (the
+    torque controller falls back to position control).
     """
 
     def __init__(
@@ -208,6 +213,8 @@ class SavitzkyGolayFilter(LeafSystem):
         self._ring = self.DeclareDiscreteState(2)  # [newest row, number of samples]
         self._estimates = [self.DeclareDiscreteState(k) for _ in range(order + 1)]
         self._evaluation_time = self.DeclareDiscreteState(1)
+        self._fault = self.DeclareDiscreteState(1)  # consecutive bad samples
+        self._fault_total = self.DeclareDiscreteState(1)
         # Plain ints for DiscreteValues.get_mutable_value/set_value (the cheapest
         # accessors per tick), and the (order + 1, k) result of one matrix product.
         self._samples_group = int(self._samples)
@@ -219,6 +226,7 @@ class SavitzkyGolayFilter(LeafSystem):
         for name, group in zip(names, self._estimates):
             self.DeclareStateOutputPort(name, group)
         self.DeclareStateOutputPort("evaluation_time", self._evaluation_time)
+        self.DeclareStateOutputPort("input_fault", self._fault)
         self.DeclarePeriodicDiscreteUpdateEvent(self._period, 0.0, self._update)
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
 
@@ -261,6 +269,10 @@ class SavitzkyGolayFilter(LeafSystem):
         """The time (s) the outputs refer to (same as the evaluation_time port)."""
         return context.get_discrete_state(self._evaluation_time).get_value()[0]
 
+    def bad_sample_count(self, context) -> int:
+        """How many samples had NaN or infinite entries (held, see the class docstring)."""
+        return int(context.get_discrete_state(self._fault_total).get_value()[0])
+
     def _initialize(self, context, discrete_state):
         # Fill the window with the input at initialization, then forget it was a sample:
         # the first periodic update (usually at the same time) fills it again.
@@ -271,13 +283,20 @@ class SavitzkyGolayFilter(LeafSystem):
         # The hot path of every control period: a handful of pybind calls and one
         # matrix product (see scripts/bench_savitzky_golay.py).
         u = self._signal.Eval(context)
-        if not math.isfinite(u.sum()):
-            self._raise_not_finite(u, context.get_time())
         N = self._window
         ring = discrete_state.get_mutable_value(self._ring_group)
         samples = discrete_state.get_mutable_value(self._samples_group)
         samples = samples.reshape(N, self._num_signals)  # a view on the state
         num_samples = int(ring[1])
+        fault = discrete_state.get_mutable_value(int(self._fault))
+        if math.isfinite(u.sum()):
+            fault[0] = 0.0
+        else:
+            # Hold the previous sample's value of each bad entry (0 before any).
+            previous = samples[int(ring[0])] if num_samples > 0 else np.zeros_like(u)
+            u = np.where(np.isfinite(u), u, previous)
+            fault[0] += 1.0
+            discrete_state.get_mutable_value(int(self._fault_total))[0] += 1.0
         row = (int(ring[0]) + 1) % N if num_samples > 0 else N - 1
         ring[0] = row
         ring[1] = min(num_samples + 1, N)
@@ -296,13 +315,6 @@ class SavitzkyGolayFilter(LeafSystem):
             context.get_time() - self._delay
         )
 
-    def _raise_not_finite(self, u: np.ndarray, time: float):
-        bad = np.flatnonzero(~np.isfinite(u))
-        raise ValueError(
-            f"SavitzkyGolayFilter {self.GetSystemPathname()}: input port 'signal' is "
-            f"not finite at t = {time:.6g} s, at indices {bad.tolist()} "
-            f"(values {u[bad].tolist()})"
-        )
 
 
 def savgol_filter_offline(

@@ -84,9 +84,10 @@ from pydrake.systems.framework import (
     DiagramBuilder,
     DiscreteValues,
     LeafSystem,
+    OutputPort,
     System,
 )
-from pydrake.systems.primitives import Demultiplexer, Multiplexer
+from pydrake.systems.primitives import Adder, Demultiplexer, Multiplexer
 
 from hrp2_drake.estimation.savitzky_golay import EVALUATION_POINTS, SavitzkyGolayFilter
 from hrp2_drake.multibody import (
@@ -1010,11 +1011,14 @@ class EstimationChain:
         sensor_filter: one Savitzky-Golay filter (order 1) of [accelerometer (3); gyro
             (3); F/T sensors (6 each, config.sensors order)]: values, and the gyro's
             derivative as the angular acceleration.
+        input_fault: the sum of the filters' `input_fault` (consecutive NaN or
+            infinite samples they held): > 0 means the estimates rest on held data.
     """
 
     estimator: FloatingBaseTorqueEstimator
     encoder_filter: SavitzkyGolayFilter
     sensor_filter: SavitzkyGolayFilter
+    input_fault: OutputPort  # (1,) consecutive bad samples held by either filter
 
     def delay(self) -> float:
         """Seconds between the robot state an output of the estimator describes and the
@@ -1122,4 +1126,7 @@ def add_estimator(
     builder.Connect(
         rates.get_output_port(1), estimator.GetInputPort("imu_angular_acceleration")
     )
-    return EstimationChain(estimator, encoder_filter, sensor_filter)
+    fault = builder.AddNamedSystem(f"{name}_input_fault", Adder(2, 1))
+    builder.Connect(encoder_filter.GetOutputPort("input_fault"), fault.get_input_port(0))
+    builder.Connect(sensor_filter.GetOutputPort("input_fault"), fault.get_input_port(1))
+    return EstimationChain(estimator, encoder_filter, sensor_filter, fault.get_output_port())

@@ -322,6 +322,7 @@ def build_torque_control(
     builder.Connect(q_enc.get_output_port(), torque.GetInputPort("q_measured"))
     q_ref_leg = builder.GetSubsystemByName("q_ref_leg")
     builder.Connect(q_ref_leg.get_output_port(), torque.GetInputPort("q_ref"))
+    builder.Connect(chain.input_fault, torque.GetInputPort("sensor_fault"))
 
     merger = builder.AddNamedSystem("merger", JointCommandMerger(model.JOINT_NAMES, joints))
     builder.Connect(blocks["q_ref"], merger.GetInputPort("q_ref"))
@@ -335,6 +336,7 @@ def build_torque_control(
         "tau_desired": inverse_dynamics.GetOutputPort("tau_desired"),
         "delta_q": torque.GetOutputPort("delta_q"),
         "fallback_active": torque.GetOutputPort("fallback_active"),
+        "sensor_fault": chain.input_fault,
         "external_wrench_right_foot": chain.estimator.GetOutputPort(
             "external_wrench_right_foot"
         ),

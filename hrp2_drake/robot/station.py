@@ -32,6 +32,7 @@ index (`NoisySampler`), so every run of a config repeats the same noise.
 
 import functools
 from dataclasses import dataclass, field
+from typing import Sequence
 
 import numpy as np
 from pydrake.geometry import Box, Meshcat, MeshcatVisualizer, MeshcatVisualizerParams, Role
@@ -49,6 +50,7 @@ from pydrake.systems.sensors import Accelerometer, Gyroscope
 
 from hrp2_drake.multibody import JointIndexing
 from hrp2_drake.robot import model
+from hrp2_drake.robot.faults import FaultInjector, SensorFault
 from hrp2_drake.robot.sensors import ForceTorqueReadout, NoisySampler, SensorsConfig
 from hrp2_drake.robot.servo import (
     SERVO_MECHANISMS,
@@ -100,6 +102,8 @@ class StationConfig:
             the paper's eq. 6 with a small dead zone, for tests of the exact linear
             law) or "calibrated" / empty (models/hrp2/servo.yaml, calibrated to the
             real robot by `hrp2-drake calibrate`).
+        faults: sensor faults to inject (`hrp2_drake.robot.faults`): what the sensor
+            ports read; the ground truth is untouched.
         servo_off: servo mechanisms to switch off (`SERVO_MECHANISMS`: "latency",
             "voltage_limit", "hysteresis", "deadzone").
         contact_approximation: Drake's discrete contact approximation.
@@ -113,6 +117,7 @@ class StationConfig:
     block_height: float = 0.05
     servo_file: str = ""
     servo_off: list[str] = field(default_factory=list)
+    faults: list[SensorFault] = field(default_factory=list)
     contact_approximation: str = "sap"
 
     def validate(self) -> None:
@@ -132,6 +137,11 @@ class StationConfig:
                 f"StationConfig.servo_off: unknown servo mechanism(s) {unknown}, "
                 f"expected some of {list(SERVO_MECHANISMS)}"
             )
+        sizes = {"q_measured": model.NUM_JOINTS, "imu_linear_acceleration": 3,
+                 "imu_angular_velocity": 3}
+        sizes |= {f"wrench_{name}": 6 for name in model.FT_SENSORS}
+        for k, fault in enumerate(self.faults):
+            fault.validate(f"StationConfig.faults[{k}]", sizes)
         if len(self.hanging.sway_damping) != 2:
             raise ValueError(
                 "StationConfig.hanging.sway_damping: expected [rotational, translational]"
@@ -298,7 +308,7 @@ def make_station(config: StationConfig, meshcat: Meshcat | None = None) -> Diagr
     builder.ExportInput(servo.get_input_port(0), "q_cmd")
     builder.ExportInput(plant.get_applied_spatial_force_input_port(), "applied_spatial_force")
 
-    _add_sensors(builder, plant, indexing, config.sensors, q0, servo_params)
+    _add_sensors(builder, plant, indexing, config.sensors, q0, servo_params, config.faults)
 
     builder.ExportOutput(plant.get_net_actuation_output_port(), "joint_torque_true")
     builder.ExportOutput(plant.get_state_output_port(), "state_true")
@@ -346,8 +356,20 @@ def _add_sensors(
     cfg: SensorsConfig,
     q0: np.ndarray,
     servo: ServoParams,
+    faults: Sequence[SensorFault] = (),
 ) -> None:
     seeds = iter(range(1000 * cfg.seed + 1, 1000 * cfg.seed + 100))
+
+    def export(port, name: str) -> None:
+        """Exports a sensor port, through a FaultInjector if a fault names it."""
+        mine = [f for f in faults if f.signal == name]
+        if mine:
+            injector = builder.AddNamedSystem(
+                f"faults_{name}", FaultInjector(port.size(), mine, cfg.period)
+            )
+            builder.Connect(port, injector.get_input_port())
+            port = injector.get_output_port()
+        builder.ExportOutput(port, name)
 
     def sampler(name: str, signal_port, std, bias, resolution=None, initial=None):
         size = len(std)
@@ -367,7 +389,7 @@ def _add_sensors(
     resolution = None
     if cfg.encoder_quantization:
         resolution = servo.vectors(indexing.names)["encoder_resolution"]
-    builder.ExportOutput(
+    export(
         sampler(
             "encoders",
             positions.get_output_port(),
@@ -398,7 +420,7 @@ def _add_sensors(
     builder.Connect(
         plant.get_body_spatial_velocities_output_port(), gyro.get_body_velocities_input_port()
     )
-    builder.ExportOutput(
+    export(
         sampler(
             "imu_accelerometer",
             accel.get_measurement_output_port(),
@@ -406,7 +428,7 @@ def _add_sensors(
         ),
         "imu_linear_acceleration",
     )
-    builder.ExportOutput(
+    export(
         sampler(
             "imu_gyroscope",
             gyro.get_measurement_output_port(),
@@ -432,5 +454,5 @@ def _add_sensors(
     demux = builder.AddNamedSystem("force_torque_demux", Demultiplexer([6] * len(names)))
     builder.Connect(sampled, demux.get_input_port())
     for k, name in enumerate(names):
-        builder.ExportOutput(demux.get_output_port(k), f"wrench_{name}")
+        export(demux.get_output_port(k), f"wrench_{name}")
 

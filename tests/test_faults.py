@@ -1,0 +1,105 @@
+"""Sensor faults: the station's FaultInjector (each kind) and what the closed loop does
+with a bad sample (the filters hold it, the torque controller falls back to position
+control, nothing raises)."""
+
+import numpy as np
+import pytest
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
+
+from hrp2_drake.experiments import hrp2
+from hrp2_drake.experiments.builders import (
+    JointReference,
+    TorqueControlConfig,
+    build_torque_control,
+)
+from hrp2_drake.experiments.motion import run_controller
+from hrp2_drake.robot import model
+from hrp2_drake.robot.faults import FaultInjector, SensorFault
+from hrp2_drake.robot.sensors import SensorsConfig
+from hrp2_drake.robot.station import StationConfig, initial_joint_positions
+
+
+def _inject(faults, times):
+    """The injector's output at `times` for a ramp input x(t) = t (1 kHz samples)."""
+    from pydrake.systems.primitives import TrajectorySource
+    from pydrake.trajectories import PiecewisePolynomial
+
+    grid = np.arange(0.0, 0.1, 0.001)
+    ramp = PiecewisePolynomial.ZeroOrderHold(grid, np.tile(grid, (3, 1)))
+    builder = DiagramBuilder()
+    source = builder.AddSystem(TrajectorySource(ramp))
+    injector = builder.AddSystem(FaultInjector(3, faults, 0.001))
+    builder.Connect(source.get_output_port(), injector.get_input_port())
+    simulator = Simulator(builder.Build())
+    context = injector.GetMyContextFromRoot(simulator.get_context())
+    out = []
+    for t in times:
+        simulator.AdvanceTo(t)
+        out.append(injector.get_output_port().Eval(context).copy())
+    return np.array(out)
+
+
+def test_each_fault_kind():
+    times = [0.0095, 0.0105, 0.0125, 0.0155, 0.0205]
+    # NaN burst on entry 1 from 10 to 15 ms.
+    nan = _inject([SensorFault("s", "nan", 0.010, 0.005, [1])], times)
+    assert np.isnan(nan[1:3, 1]).all() and np.isfinite(nan[:, [0, 2]]).all()
+    assert np.isfinite(nan[[0, 3, 4]]).all()
+    # Freeze: holds a value sampled before the fault.
+    frozen = _inject([SensorFault("s", "freeze", 0.010, 0.005)], times)
+    assert frozen[1, 0] == frozen[2, 0] and frozen[2, 0] < 0.010
+    assert frozen[4, 0] > 0.019  # released
+    # Zero, bias, one-period glitch.
+    zero = _inject([SensorFault("s", "zero", 0.010, 0.005)], times)
+    assert np.all(zero[1:3] == 0.0)
+    bias = _inject([SensorFault("s", "bias", 0.010, np.inf, [], [0.5])], times)
+    ramp = np.floor(np.array(times) * 1000 + 1e-6) / 1000  # the input at those times
+    np.testing.assert_allclose(bias[:, 0], ramp + [0.0, 0.5, 0.5, 0.5, 0.5], atol=1e-12)
+    glitch = _inject([SensorFault("s", "glitch", 0.010, 1.0, [2], [1.0])], [0.0105, 0.0115])
+    assert glitch[0, 2] > 1.0 and glitch[1, 2] < 0.1
+
+
+def test_fault_config_errors_name_the_field():
+    with pytest.raises(ValueError, match=r"faults\[0\].signal.*wrench_nowhere"):
+        StationConfig(faults=[SensorFault("wrench_nowhere")]).validate()
+    with pytest.raises(ValueError, match=r"faults\[0\].kind"):
+        StationConfig(faults=[SensorFault("q_measured", "melt")]).validate()
+    with pytest.raises(ValueError, match=r"faults\[0\].indices"):
+        StationConfig(faults=[SensorFault("imu_angular_velocity", indices=[3])]).validate()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "fault",
+    [
+        SensorFault("wrench_right_foot", "nan", 0.7, 0.005),
+        SensorFault("q_measured", "nan", 0.7, 0.005, [3]),
+    ],
+    ids=["ft_nan_burst", "encoder_nan_burst"],
+)
+def test_a_bad_sample_hands_back_to_the_servo(fault):
+    """A 5 ms NaN burst from one F/T sensor or one encoder during torque control: the
+    diagram keeps running (nothing raises), the torque controller falls back to
+    position control within 3 ms, and the leg keeps tracking (position control)."""
+    station = StationConfig(
+        scenario="fixed_base", servo_file="ideal", sensors=SensorsConfig.noiseless(),
+        faults=[fault],
+    )
+    q0 = initial_joint_positions(station)
+    reference = JointReference.hold(q0, 1.2)
+    control = build_torque_control(
+        station, reference, hrp2.true_motor_model(servo_file="ideal"),
+        TorqueControlConfig(k6=1.0, window=40),
+    )
+    signals = run_controller(control, 1.0, "fault", stream=open("/dev/null", "w"))
+    t = signals["t"]
+    fallback = t[np.argmax(signals["fallback_active"][:, 0] > 0)]
+    assert signals["fallback_active"][-1, 0] == 1
+    assert 0.7 <= fallback <= 0.703
+    assert np.all(np.isfinite(signals["q_cmd"]))
+    leg = [model.JOINT_NAMES.index(j) for j in model.RIGHT_LEG]
+    error = np.abs(signals["q_ref"][:, leg] - signals["q_measured"][:, leg])
+    after = (t > 0.71) & np.all(np.isfinite(error), axis=1)
+    assert error[after].max() < 0.01  # rad: the servo holds the pose
