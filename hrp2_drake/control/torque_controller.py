@@ -104,6 +104,9 @@ class TorqueControllerConfig:
             holds the position (see the class docstring), e.g. while the estimator's
             filters fill their window.
         period: the update period (s).
+        latch_fallback: the fallback latches until `reset_fallback` (default, the
+            controller alone); False: it lasts while its reason does, for a
+            SafetySupervisor that decides when torque control resumes and ramps.
     """
 
     joints: list[str] = field(default_factory=list)
@@ -117,6 +120,7 @@ class TorqueControllerConfig:
     coulomb_velocity: float = 0.05
     start_time: float = 0.0
     period: float = 0.001
+    latch_fallback: bool = True
 
     def validate(self) -> None:
         """Raises ValueError naming the bad field (yaml_load_typed does not call it)."""
@@ -415,19 +419,14 @@ class DeltaQTorqueController(LeafSystem):
         q_measured = self._q_measured.Eval(context)
         if not math.isfinite(q_measured.sum()):
             # No torque command is safe without the encoders: hand back to the servo.
-            if not self.fallback_active(context):
-                self._latch(context, discrete_state, q_measured, 5)
-            else:
-                self._write_position_control(
-                    discrete_state, self._position_command(context), q_measured, True
-                )
+            self._latch(context, discrete_state, q_measured, 5)
             return
         if context.get_time() + 0.5 * self._period < self._start_time:
             self._write_position_control(
                 discrete_state, self._position_command(context), q_measured, False
             )
             return
-        if self.fallback_active(context):
+        if self.fallback_active(context) and self._config.latch_fallback:
             self._write_position_control(
                 discrete_state, self._position_command(context), q_measured, True
             )
@@ -501,13 +500,14 @@ class DeltaQTorqueController(LeafSystem):
         q_measured: np.ndarray,
         reason: int,
     ) -> None:
-        _logger.warning(
-            "%s %s: falling back to position control at t = %.6g s: %s",
-            _WHERE,
-            self.GetSystemPathname(),
-            context.get_time(),
-            FALLBACK_REASONS[reason],
-        )
+        if not self.fallback_active(context):
+            _logger.warning(
+                "%s %s: falling back to position control at t = %.6g s: %s",
+                _WHERE,
+                self.GetSystemPathname(),
+                context.get_time(),
+                FALLBACK_REASONS[reason],
+            )
         self._write_position_control(
             discrete_state, self._position_command(context), q_measured, True
         )

@@ -16,7 +16,7 @@ Both return a `ControlDiagram`: the diagram, which exports every signal an exper
 logs as a named output port (`LOGGED`), and its station.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort
@@ -28,6 +28,7 @@ from hrp2_drake.control.inverse_dynamics import (
     InverseDynamicsController,
     make_fixed_base_plant,
 )
+from hrp2_drake.control.safety import SafetyConfig, SafetySupervisor, supervisor_sensors
 from hrp2_drake.control.torque_controller import (
     DELTA_Q_COMPONENTS,
     DeltaQTorqueController,
@@ -176,6 +177,12 @@ class TorqueControlConfig:
         offset_calibration_time: F/T offset calibration at start-up (s, from 0.2 s;
             0 = none): only when nothing touches the feet and hands then (the robot
             hanging); must end before start_time.
+        supervised: a SafetySupervisor between the controllers and the robot
+            (default): faults hand the robot back to its servo with a ramp, torque
+            control starts with a ramp and resumes once faults have cleared; the Δq
+            controller's own fallback then does not latch. False: the controller's
+            latched fallback alone.
+        safety: the supervisor's settings (its start_time is start_time).
     """
 
     joints: list[str] = field(default_factory=lambda: list(model.RIGHT_LEG))
@@ -192,8 +199,11 @@ class TorqueControlConfig:
     delta_q_limit: float = 0.1
     start_time: float = 0.5
     offset_calibration_time: float = 0.0
+    supervised: bool = True
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
 
     def validate(self) -> None:
+        self.safety.validate()
         if self.position_source not in ("encoders", "estimate"):
             raise ValueError(f"TorqueControlConfig.position_source: '{self.position_source}'")
         if self.offset_calibration_time > 0 and (
@@ -309,6 +319,7 @@ def build_torque_control(
                 kp=[config.kp],
                 delta_q_limit=[config.delta_q_limit],
                 start_time=config.start_time,
+                latch_fallback=not config.supervised,
             ),
         ),
     )
@@ -327,11 +338,34 @@ def build_torque_control(
     merger = builder.AddNamedSystem("merger", JointCommandMerger(model.JOINT_NAMES, joints))
     builder.Connect(blocks["q_ref"], merger.GetInputPort("q_ref"))
     builder.Connect(torque.GetOutputPort("q_cmd"), merger.GetInputPort("q_controlled"))
-    builder.Connect(merger.get_output_port(), station.GetInputPort("q_cmd"))
+    q_cmd = merger.get_output_port()
+    supervisor_ports = {}
+    if config.supervised:
+        safety = replace(config.safety, start_time=config.start_time)
+        supervisor = builder.AddNamedSystem(
+            "safety_supervisor",
+            SafetySupervisor(
+                model.NUM_JOINTS, supervisor_sensors(list(model.FT_SENSORS)), safety
+            ),
+        )
+        builder.Connect(q_cmd, supervisor.GetInputPort("q_torque"))
+        builder.Connect(blocks["q_ref"], supervisor.GetInputPort("q_position"))
+        for name in ("q_measured", *supervisor_sensors(list(model.FT_SENSORS))):
+            builder.Connect(station.GetOutputPort(name), supervisor.GetInputPort(name))
+        builder.Connect(
+            torque.GetOutputPort("fallback_active"),
+            supervisor.GetInputPort("controller_fallback"),
+        )
+        q_cmd = supervisor.GetOutputPort("q_cmd")
+        supervisor_ports = {
+            f"supervisor_{name}": supervisor.GetOutputPort(name)
+            for name in ("mode", "fault", "transition")
+        }
+    builder.Connect(q_cmd, station.GetInputPort("q_cmd"))
 
-    ports = _station_ports(station) | {
+    ports = _station_ports(station) | supervisor_ports | {
         "q_ref": blocks["q_ref"],
-        "q_cmd": merger.get_output_port(),
+        "q_cmd": q_cmd,
         "tau_estimated": chain.estimator.GetOutputPort("tau"),
         "tau_desired": inverse_dynamics.GetOutputPort("tau_desired"),
         "delta_q": torque.GetOutputPort("delta_q"),

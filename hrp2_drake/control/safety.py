@@ -1,0 +1,341 @@
+"""SafetySupervisor: between the torque-control chain and the robot, it watches the
+sensors and decides, every control period, how much of the torque chain's command the
+robot gets; on any fault it hands the robot back to its position servo, bumplessly.
+
+Sensor health (each a bit of the `fault` output, `FAULT_BITS`):
+  - a NaN or infinite sample (encoders, IMU, F/T) or torque-chain command;
+  - a value out of range (F/T force and torque, accelerometer, gyroscope);
+  - an encoder jump no joint can make in one period (a glitch);
+  - a stale sensor: a noisy sensor (IMU, F/T) repeating its sample exactly for
+    `stale_samples` periods, or an encoder that does not move for
+    `encoder_stale_samples` periods while the reference moved (a frozen driver; a
+    joint at rest cannot be told from a frozen encoder, and then needs no torque);
+  - the emergency stop input, and the torque controller's own fallback.
+
+Mode: α in [0, 1] (0: position control, the robot's servo tracks q_position; 1: torque
+control, the servo gets q_torque). q_cmd = α q_torque + (1 − α) q_position, computed
+from the live inputs (no extra delay). α ramps at 1/ramp_time per second both ways, so
+no mode switch makes a step in q_cmd; a NaN q_torque is replaced by its last finite
+value during the ramp down. Torque control starts at start_time and resumes once every
+fault has been clear for reentry_time. The emergency stop latches: the robot holds the pose
+measured when it was pressed (ramping down from torque control) until
+`reset_emergency_stop`.
+
+.. code-block:: text
+
+                          ┌──────────────────┐
+    q_torque ────────────►│                  ├──► q_cmd
+    q_position ──────────►│                  ├──► mode (α)
+    q_measured ──────────►│ SafetySupervisor ├──► fault (bits)
+    <sensor> (each) ─────►│                  ├──► transition ([time, bits])
+    e_stop (optional) ───►│                  │
+    controller_fallback ─►│                  │
+      (optional)          └──────────────────┘
+"""
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from pydrake.systems.framework import BasicVector, Context, DiscreteValues, LeafSystem
+
+_logger = logging.getLogger(__name__)
+
+#: The bits of the `fault` output and of a transition's reason.
+FAULT_BITS: dict[int, str] = {
+    1: "encoder not finite",
+    2: "sensor not finite",
+    4: "sensor out of range",
+    8: "encoder jump",
+    16: "stale sensor",
+    32: "stale encoder",
+    64: "emergency stop",
+    128: "torque controller fallback",
+    256: "torque command not finite",
+}
+
+
+def describe_faults(bits: int) -> str:
+    """The names of the faults in a bitmask, or "none"."""
+    names = [name for bit, name in FAULT_BITS.items() if int(bits) & bit]
+    return ", ".join(names) or "none"
+
+
+@dataclass
+class SafetyConfig:
+    """Configuration of the SafetySupervisor.
+
+    Args:
+        period: control period (s).
+        start_time: torque control may start from then (s).
+        ramp_time: duration of a full position <-> torque transfer (s).
+        reentry_time: how long every fault must stay clear before torque control
+            resumes (s); covers the estimation window's memory of a bad sample.
+        stale_samples: identical consecutive samples of a noisy sensor that mean stale
+            (0: no check, for noiseless simulated sensors).
+        encoder_stale_samples: periods an encoder may not move while the reference
+            moves by more than encoder_motion (rad).
+        encoder_motion: reference motion over encoder_stale_samples that an encoder
+            must follow (rad).
+        encoder_jump_speed: a joint moving faster than this between two samples is a
+            glitch (rad/s).
+        force_limit, torque_limit: F/T range (N, N·m).
+        acceleration_limit: accelerometer range (m/s²).
+        angular_velocity_limit: gyroscope range (rad/s).
+    """
+
+    period: float = 0.001
+    start_time: float = 0.5
+    ramp_time: float = 0.05
+    reentry_time: float = 0.2
+    stale_samples: int = 5
+    encoder_stale_samples: int = 10
+    encoder_motion: float = 0.001
+    encoder_jump_speed: float = 10.0
+    force_limit: float = 2000.0
+    torque_limit: float = 300.0
+    acceleration_limit: float = 100.0
+    angular_velocity_limit: float = 20.0
+
+    def validate(self) -> None:
+        where = "SafetyConfig"
+        positive = (
+            "period", "ramp_time", "encoder_motion", "encoder_jump_speed",
+            "force_limit", "torque_limit", "acceleration_limit", "angular_velocity_limit",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{where}.{name}: must be finite and > 0, got {value}")
+        for name in ("start_time", "reentry_time"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{where}.{name}: must be finite and >= 0, got {value}")
+        if self.stale_samples == 1 or self.stale_samples < 0:
+            raise ValueError(f"{where}.stale_samples: must be 0 or >= 2, got {self.stale_samples}")
+        if self.encoder_stale_samples < 2:
+            raise ValueError(
+                f"{where}.encoder_stale_samples: must be >= 2, got {self.encoder_stale_samples}"
+            )
+
+
+class SafetySupervisor(LeafSystem):
+    """The safety supervisor (module docstring).
+
+    Args:
+        num_joints: n, the size of q_torque, q_position, q_measured and q_cmd.
+        sensors: name -> kind of each monitored sensor input ("wrench" (6: torque then
+            force), "acceleration" (3) or "angular_velocity" (3)); the input ports are
+            named after them.
+        config: the SafetyConfig.
+    """
+
+    _KINDS = {"wrench": 6, "acceleration": 3, "angular_velocity": 3}
+
+    def __init__(self, num_joints: int, sensors: dict[str, str], config: SafetyConfig):
+        super().__init__()
+        config.validate()
+        unknown = {k for k in sensors.values() if k not in self._KINDS}
+        if unknown:
+            raise ValueError(f"SafetySupervisor: unknown sensor kinds {sorted(unknown)}")
+        self._config = config
+        self._n = n = num_joints
+        self._q_torque = self.DeclareVectorInputPort("q_torque", n)
+        self._q_position = self.DeclareVectorInputPort("q_position", n)
+        self._q_measured = self.DeclareVectorInputPort("q_measured", n)
+        self._sensors = [
+            (name, kind, self.DeclareVectorInputPort(name, self._KINDS[kind]))
+            for name, kind in sensors.items()
+        ]
+        self._e_stop = self.DeclareVectorInputPort("e_stop", 1)
+        self._controller_fallback = self.DeclareVectorInputPort("controller_fallback", 1)
+        sensor_size = sum(self._KINDS[k] for k in sensors.values())
+        # State.
+        self._alpha = self.DeclareDiscreteState(1)
+        self._fault = self.DeclareDiscreteState(1)
+        self._clear_time = self.DeclareDiscreteState(1)
+        self._transition = self.DeclareDiscreteState(2)
+        self._last_torque = self.DeclareDiscreteState(n)  # last finite q_torque
+        self._last_encoder = self.DeclareDiscreteState(n)
+        self._encoder_count = self.DeclareDiscreteState(n)
+        self._encoder_anchor = self.DeclareDiscreteState(n)  # q_position when it stopped
+        self._last_sensor = self.DeclareDiscreteState(sensor_size)
+        self._sensor_count = self.DeclareDiscreteState(sensor_size)
+        self._hold = self.DeclareDiscreteState(n + 1)  # [e-stop pose; pressed]
+        self._started = self.DeclareDiscreteState(1)
+        self._had_fault = self.DeclareDiscreteState(1)  # a fault since start_time
+        self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
+        self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
+        self.DeclareVectorOutputPort(
+            "q_cmd", n, self._calc_q_cmd,
+            prerequisites_of_calc={
+                self.xd_ticket(),
+                self._q_torque.ticket(),
+                self._q_position.ticket(),
+            },
+        )
+        self.DeclareStateOutputPort("mode", self._alpha)
+        self.DeclareStateOutputPort("fault", self._fault)
+        self.DeclareStateOutputPort("transition", self._transition)
+
+    def config(self) -> SafetyConfig:
+        return self._config
+
+    def mode(self, context: Context) -> float:
+        return float(context.get_discrete_state(self._alpha).get_value()[0])
+
+    def emergency_stopped(self, context: Context) -> bool:
+        """True once the emergency stop was pressed (it latches)."""
+        return bool(context.get_discrete_state(self._hold).get_value()[-1] > 0)
+
+    def reset_emergency_stop(self, context: Context) -> None:
+        """Releases a latched emergency stop: a deliberate act (the position command
+        returns from the held pose to q_position at once); torque control may resume
+        after reentry_time."""
+        hold = context.get_mutable_discrete_state(self._hold).get_mutable_value()
+        hold[-1] = 0.0
+
+    # ---------------------------------------------------------------- updates
+
+    def _initialize(self, context: Context, state: DiscreteValues) -> None:
+        q = self._q_measured.Eval(context)
+        q_position = self._q_position.Eval(context)
+        state.set_value(self._last_encoder, q)
+        state.set_value(self._encoder_anchor, q_position)
+        state.set_value(self._last_torque, q_position)
+        sensors = [port.Eval(context) for _, _, port in self._sensors]
+        if sensors:
+            state.set_value(self._last_sensor, np.concatenate(sensors))
+
+    def _health(self, context: Context, state: DiscreteValues) -> int:
+        c = self._config
+        bits = 0
+        q = self._q_measured.Eval(context)
+        last = context.get_discrete_state(self._last_encoder).get_value()
+        started = context.get_discrete_state(self._started).get_value()[0] > 0
+        if not math.isfinite(q.sum()):
+            bits |= 1
+        else:
+            if started and np.any(np.abs(q - last) > c.encoder_jump_speed * c.period):
+                bits |= 8
+            # Frozen encoder: unchanged while the reference moved.
+            q_position = self._q_position.Eval(context)
+            count = context.get_discrete_state(self._encoder_count).get_value().copy()
+            anchor = context.get_discrete_state(self._encoder_anchor).get_value().copy()
+            same = q == last
+            count = np.where(same, count + 1, 0)
+            anchor = np.where(same, anchor, q_position)
+            moved = np.abs(q_position - anchor) > c.encoder_motion
+            if np.any((count >= c.encoder_stale_samples) & moved):
+                bits |= 32
+            state.set_value(self._encoder_count, count)
+            state.set_value(self._encoder_anchor, anchor)
+            state.set_value(self._last_encoder, q)
+        if self._sensors:
+            values = np.concatenate([port.Eval(context) for _, _, port in self._sensors])
+            if not math.isfinite(values.sum()):
+                bits |= 2
+            else:
+                offset = 0
+                for _, kind, port in self._sensors:
+                    v = values[offset : offset + port.size()]
+                    offset += port.size()
+                    if kind == "wrench":
+                        bad = (np.abs(v[:3]) > c.torque_limit).any() or (
+                            np.abs(v[3:]) > c.force_limit
+                        ).any()
+                    elif kind == "acceleration":
+                        bad = (np.abs(v) > c.acceleration_limit).any()
+                    else:
+                        bad = (np.abs(v) > c.angular_velocity_limit).any()
+                    if bad:
+                        bits |= 4
+                last_sensor = context.get_discrete_state(self._last_sensor).get_value()
+                count = context.get_discrete_state(self._sensor_count).get_value()
+                count = np.where(values == last_sensor, count + 1, 0)
+                if c.stale_samples and started and np.any(count >= c.stale_samples - 1):
+                    bits |= 16
+                state.set_value(self._sensor_count, count)
+                state.set_value(self._last_sensor, values)
+        if self._e_stop.HasValue(context) and self._e_stop.Eval(context)[0] > 0:
+            bits |= 64
+        if (
+            self._controller_fallback.HasValue(context)
+            and self._controller_fallback.Eval(context)[0] > 0
+        ):
+            bits |= 128
+        if not math.isfinite(self._q_torque.Eval(context).sum()):
+            bits |= 256
+        return bits
+
+    def _update(self, context: Context, state: DiscreteValues) -> None:
+        c = self._config
+        t = context.get_time()
+        bits = self._health(context, state)
+        state.set_value(self._started, [1.0])
+        previous_bits = int(context.get_discrete_state(self._fault).get_value()[0])
+        state.set_value(self._fault, [float(bits)])
+        clear = context.get_discrete_state(self._clear_time).get_value()[0]
+        clear = clear + c.period if bits == 0 else 0.0
+        state.set_value(self._clear_time, [clear])
+        q_torque = self._q_torque.Eval(context)
+        if math.isfinite(q_torque.sum()):
+            state.set_value(self._last_torque, q_torque)
+        # E-stop (latched): hold the pose measured when it was pressed.
+        hold = context.get_discrete_state(self._hold).get_value().copy()
+        if bits & 64 and hold[-1] == 0:
+            q = self._q_measured.Eval(context)
+            if not math.isfinite(q.sum()):
+                q = context.get_discrete_state(self._last_encoder).get_value()
+            hold[:-1] = q
+            hold[-1] = 1.0
+            state.set_value(self._hold, hold)
+        # Mode: torque from start_time while healthy; after a fault, only once every
+        # fault has been clear for reentry_time.
+        alpha = context.get_discrete_state(self._alpha).get_value()[0]
+        running = t + 0.5 * c.period >= c.start_time
+        had_fault = context.get_discrete_state(self._had_fault).get_value()[0] > 0
+        if running and bits:
+            state.set_value(self._had_fault, [1.0])
+        want_torque = (
+            running
+            and bits == 0
+            and hold[-1] == 0
+            and (not had_fault or clear >= c.reentry_time)
+        )
+        step = c.period / c.ramp_time
+        new_alpha = min(1.0, alpha + step) if want_torque else max(0.0, alpha - step)
+        if bits and not previous_bits:
+            _logger.warning(
+                "SafetySupervisor %s: fault at t = %.6g s (%s): to position control",
+                self.GetSystemPathname(), t, describe_faults(bits),
+            )
+            state.set_value(self._transition, [t, float(bits)])
+        elif want_torque and alpha == 0 and new_alpha > 0:
+            state.set_value(self._transition, [t, 0.0])
+        state.set_value(self._alpha, [new_alpha])
+
+    # ----------------------------------------------------------------- output
+
+    def _calc_q_cmd(self, context: Context, output: BasicVector) -> None:
+        alpha = context.get_discrete_state(self._alpha).get_value()[0]
+        q_position = self._q_position.Eval(context)
+        hold = context.get_discrete_state(self._hold).get_value()
+        if hold[-1] > 0:
+            q_position = hold[:-1]
+        if alpha <= 0.0:
+            output.set_value(q_position)
+            return
+        q_torque = self._q_torque.Eval(context)
+        if not math.isfinite(q_torque.sum()):
+            q_torque = context.get_discrete_state(self._last_torque).get_value()
+        output.set_value(alpha * q_torque + (1.0 - alpha) * q_position)
+
+
+def supervisor_sensors(wrenches: Sequence[str]) -> dict[str, str]:
+    """The station's monitored sensor ports: the IMU and the given F/T sensors."""
+    out = {"imu_linear_acceleration": "acceleration", "imu_angular_velocity": "angular_velocity"}
+    out |= {f"wrench_{name}": "wrench" for name in wrenches}
+    return out

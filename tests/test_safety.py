@@ -1,0 +1,139 @@
+"""SafetySupervisor: each health check, the ramped transfer both ways, re-entry, the
+latched emergency stop (the closed loop is in tests/test_faults.py)."""
+
+import numpy as np
+import pytest
+
+from hrp2_drake.control.safety import SafetyConfig, SafetySupervisor, describe_faults
+
+PERIOD = 0.001
+
+
+class _Harness:
+    """The supervisor alone, its inputs fixed, stepped like the simulator does."""
+
+    def __init__(self, **config):
+        defaults = {"start_time": 0.0, "ramp_time": 0.01, "reentry_time": 0.02}
+        config = SafetyConfig(**(defaults | config))
+        self.system = SafetySupervisor(2, {"wrench_x": "wrench"}, config)
+        self.context = self.system.CreateDefaultContext()
+        self.rng = np.random.default_rng(0)
+        self.inputs = dict(
+            q_torque=np.array([0.1, 0.2]),
+            q_position=np.array([0.0, 0.0]),
+            q_measured=np.array([0.0, 0.0]),
+        )
+        self.fix()
+
+    def fix(self, **changes):
+        self.inputs |= changes
+        for name, value in self.inputs.items():
+            self.system.GetInputPort(name).FixValue(self.context, value)
+
+    def step(self, n: int = 1, noisy: bool = True, **changes):
+        """n periods; a fresh noisy F/T sample each period unless `wrench_x` given."""
+        for _ in range(n):
+            if noisy and "wrench_x" not in changes:
+                self.fix(wrench_x=self.rng.normal(0.0, 0.5, 6))
+            if changes:
+                self.fix(**changes)
+            self.context.SetDiscreteState(
+                self.system.EvalUniquePeriodicDiscreteUpdate(self.context)
+            )
+            self.context.SetTime(self.context.get_time() + PERIOD)
+        return self
+
+    def out(self, name):
+        return self.system.GetOutputPort(name).Eval(self.context).copy()
+
+
+def test_ramps_into_torque_control_without_a_step():
+    h = _Harness()
+    h.fix(wrench_x=np.zeros(6))
+    modes, commands = [], []
+    for _ in range(15):
+        h.step()
+        modes.append(h.out("mode")[0])
+        commands.append(h.out("q_cmd"))
+    assert modes[:3] == pytest.approx([0.1, 0.2, 0.3]) and modes[-1] == 1.0
+    # q_cmd = α q_torque + (1 − α) q_position: steps of 0.1 * |q_torque − q_position|.
+    steps = np.abs(np.diff(commands, axis=0)).max()
+    assert steps == pytest.approx(0.1 * 0.2)
+    np.testing.assert_allclose(commands[-1], [0.1, 0.2])
+
+
+@pytest.mark.parametrize(
+    "changes, bit",
+    [
+        (dict(q_measured=np.array([np.nan, 0.0])), 1),
+        (dict(wrench_x=np.array([0, 0, 0, np.inf, 0, 0.0])), 2),
+        (dict(wrench_x=np.array([0, 0, 0, 0, 0, 5000.0])), 4),
+        (dict(q_measured=np.array([0.0, 0.05])), 8),  # 50 rad/s in one period
+        (dict(q_torque=np.array([np.nan, 0.0])), 256),
+    ],
+    ids=["encoder_nan", "sensor_inf", "force_out_of_range", "encoder_jump", "command_nan"],
+)
+def test_each_fault_is_detected_at_the_next_period_and_ramps_down(changes, bit):
+    h = _Harness().step(20)
+    assert h.out("mode")[0] == 1.0
+    last = h.out("q_cmd")
+    h.step(**changes)
+    assert int(h.out("fault")[0]) & bit, describe_faults(h.out("fault")[0])
+    assert h.out("transition")[1] == h.out("fault")[0]
+    assert h.out("mode")[0] == pytest.approx(0.9)
+    command = h.out("q_cmd")
+    assert np.all(np.isfinite(command))  # a NaN q_torque is replaced by the last one
+    assert np.abs(command - last).max() <= 0.1 * 0.2 + 1e-12
+
+
+def test_stale_sensor_within_stale_samples_and_not_when_disabled():
+    h = _Harness(stale_samples=5).step(10)
+    frozen = h.rng.normal(0.0, 0.5, 6)
+    h.step(4, wrench_x=frozen)
+    assert h.out("fault")[0] == 0.0
+    h.step(1, wrench_x=frozen)  # the 5th identical sample
+    assert int(h.out("fault")[0]) & 16
+    h = _Harness(stale_samples=0).step(10)
+    h.step(20, wrench_x=frozen)
+    assert h.out("fault")[0] == 0.0
+
+
+def test_frozen_encoder_is_caught_only_while_the_reference_moves():
+    h = _Harness(encoder_stale_samples=10)
+    h.step(30)  # at rest, the encoder never changes: no fault
+    assert h.out("fault")[0] == 0.0
+    # The reference moves 0.3 mrad per period, the encoder stays: caught after the
+    # reference has moved 1 mrad and 10 periods have passed.
+    for k in range(1, 12):
+        h.step(q_position=np.array([3e-4 * k, 0.0]))
+    assert int(h.out("fault")[0]) & 32
+
+
+def test_reentry_waits_and_the_emergency_stop_latches():
+    h = _Harness().step(20)
+    h.step(q_measured=np.array([np.nan, 0.0]))
+    h.step(q_measured=np.array([0.0, 0.0]))
+    # Clear again: position control for reentry_time (20 ms), then the ramp up.
+    modes = [h.step().out("mode")[0] for _ in range(40)]
+    assert min(modes) == 0.0
+    first_up = next(k for k, m in enumerate(modes) if k > 10 and m > 0)
+    assert first_up >= 18 and modes[-1] == 1.0
+    # Emergency stop: hold the measured pose, latched after the button is released.
+    h.fix(q_measured=np.array([0.01, -0.02]))
+    h.step(e_stop=np.array([1.0]))
+    h.step(12, e_stop=np.array([0.0]))
+    assert h.system.emergency_stopped(h.context)
+    np.testing.assert_allclose(h.out("q_cmd"), [0.01, -0.02])
+    assert h.out("mode")[0] == 0.0
+    h.system.reset_emergency_stop(h.context)
+    h.step(40)
+    assert h.out("mode")[0] == 1.0
+
+
+def test_config_errors_name_the_field():
+    with pytest.raises(ValueError, match="ramp_time"):
+        SafetyConfig(ramp_time=0.0).validate()
+    with pytest.raises(ValueError, match="stale_samples"):
+        SafetyConfig(stale_samples=1).validate()
+    with pytest.raises(ValueError, match="unknown sensor kinds"):
+        SafetySupervisor(2, {"x": "thermometer"}, SafetyConfig())
