@@ -107,3 +107,32 @@ def test_a_bad_sample_hands_back_to_the_servo_and_torque_control_resumes(fault):
     assert steps < 0.002  # rad per period, mode switches included
     error = np.abs(signals["q_ref"][:, leg] - signals["q_measured"][:, leg])
     assert np.nanmax(error[t > 0.6]) < 0.01
+
+
+def test_model_error_and_extra_latency():
+    """The controllers' wrong model: every link's mass within ±20%, the same joints
+    and actuators; the extra latency: whole periods on every joint's command."""
+    from pydrake.multibody.plant import MultibodyPlant
+
+    from hrp2_drake.robot.servo import Hrp2ServoEmulation, load_servo_params
+
+    exact, wrong = MultibodyPlant(0.0), MultibodyPlant(0.0)
+    model.add_hrp2(exact)
+    model.add_hrp2_with_model_error(wrong, 0.2, seed=3)
+    exact.Finalize()
+    wrong.Finalize()
+    ratios = np.array(
+        [
+            wrong.get_body(i).default_mass() / exact.get_body(i).default_mass()
+            for i in exact.GetBodyIndices(exact.GetModelInstanceByName("hrp2"))
+            if exact.get_body(i).default_mass() > 0
+        ]
+    )
+    assert np.all(np.abs(ratios - 1) <= 0.2) and np.std(ratios) > 0.05
+    assert wrong.num_actuators() == exact.num_actuators() == 30
+    with pytest.raises(ValueError, match="error"):
+        model.add_hrp2_with_model_error(MultibodyPlant(0.0), 1.5)
+    params = load_servo_params()
+    servo = Hrp2ServoEmulation(exact, params, model.JOINT_NAMES, 1e-3, extra_latency=0.002)
+    base = Hrp2ServoEmulation(exact, params, model.JOINT_NAMES, 1e-3)
+    np.testing.assert_array_equal(servo.latency_periods, base.latency_periods + 2)

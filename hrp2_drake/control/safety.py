@@ -15,8 +15,11 @@ Sensor health (each a bit of the `fault` output, `FAULT_BITS`):
 Mode: α in [0, 1] (0: position control, the robot's servo tracks q_position; 1: torque
 control, the servo gets q_torque). q_cmd = α q_torque + (1 − α) q_position, computed
 from the live inputs (no extra delay). α ramps at 1/ramp_time per second both ways, so
-no mode switch makes a step in q_cmd; a NaN q_torque is replaced by its last finite
-value during the ramp down. Torque control starts at start_time and resumes once every
+no mode switch makes a step in q_cmd: from the first period of a fault (or of the
+controller's own fallback) on, q_torque is replaced by the torque chain's last healthy
+offset from q_position, q_position + α (q_torque − q_position)_last, until torque control
+is wanted again: neither a NaN nor the chain's jump to its own fallback reaches the
+robot, and q_cmd moves with the reference while the offset ramps away. Torque control starts at start_time and resumes once every
 fault has been clear for reentry_time. The emergency stop latches: the robot holds the pose
 measured when it was pressed (ramping down from torque control) until
 `reset_emergency_stop`.
@@ -157,7 +160,8 @@ class SafetySupervisor(LeafSystem):
         self._fault = self.DeclareDiscreteState(1)
         self._clear_time = self.DeclareDiscreteState(1)
         self._transition = self.DeclareDiscreteState(2)
-        self._last_torque = self.DeclareDiscreteState(n)  # last finite q_torque
+        # q_torque − q_position of the last healthy period.
+        self._last_torque = self.DeclareDiscreteState(n)
         self._last_encoder = self.DeclareDiscreteState(n)
         self._encoder_count = self.DeclareDiscreteState(n)
         self._encoder_anchor = self.DeclareDiscreteState(n)  # q_position when it stopped
@@ -166,6 +170,7 @@ class SafetySupervisor(LeafSystem):
         self._hold = self.DeclareDiscreteState(n + 1)  # [e-stop pose; pressed]
         self._started = self.DeclareDiscreteState(1)
         self._had_fault = self.DeclareDiscreteState(1)  # a fault since start_time
+        self._want_torque = self.DeclareDiscreteState(1)  # ramping up or in torque
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
         self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
         self.DeclareVectorOutputPort(
@@ -174,6 +179,7 @@ class SafetySupervisor(LeafSystem):
                 self.xd_ticket(),
                 self._q_torque.ticket(),
                 self._q_position.ticket(),
+                self._controller_fallback.ticket(),
             },
         )
         self.DeclareStateOutputPort("mode", self._alpha)
@@ -204,7 +210,6 @@ class SafetySupervisor(LeafSystem):
         q_position = self._q_position.Eval(context)
         state.set_value(self._last_encoder, q)
         state.set_value(self._encoder_anchor, q_position)
-        state.set_value(self._last_torque, q_position)
         sensors = [port.Eval(context) for _, _, port in self._sensors]
         if sensors:
             state.set_value(self._last_sensor, np.concatenate(sensors))
@@ -280,9 +285,6 @@ class SafetySupervisor(LeafSystem):
         clear = context.get_discrete_state(self._clear_time).get_value()[0]
         clear = clear + c.period if bits == 0 else 0.0
         state.set_value(self._clear_time, [clear])
-        q_torque = self._q_torque.Eval(context)
-        if math.isfinite(q_torque.sum()):
-            state.set_value(self._last_torque, q_torque)
         # E-stop (latched): hold the pose measured when it was pressed.
         hold = context.get_discrete_state(self._hold).get_value().copy()
         if bits & 64 and hold[-1] == 0:
@@ -305,6 +307,12 @@ class SafetySupervisor(LeafSystem):
             and hold[-1] == 0
             and (not had_fault or clear >= c.reentry_time)
         )
+        state.set_value(self._want_torque, [1.0 if want_torque else 0.0])
+        # The last command of a healthy torque chain in use: what a ramp down starts
+        # from (once a fault is seen, the chain's own output is not trusted).
+        q_torque = self._q_torque.Eval(context)
+        if want_torque and math.isfinite(q_torque.sum()):
+            state.set_value(self._last_torque, q_torque - self._q_position.Eval(context))
         step = c.period / c.ramp_time
         new_alpha = min(1.0, alpha + step) if want_torque else max(0.0, alpha - step)
         if bits and not previous_bits:
@@ -329,8 +337,18 @@ class SafetySupervisor(LeafSystem):
             output.set_value(q_position)
             return
         q_torque = self._q_torque.Eval(context)
-        if not math.isfinite(q_torque.sum()):
-            q_torque = context.get_discrete_state(self._last_torque).get_value()
+        fault = context.get_discrete_state(self._fault).get_value()[0] > 0
+        fallback = (
+            self._controller_fallback.HasValue(context)
+            and self._controller_fallback.Eval(context)[0] > 0
+        )
+        wanted = context.get_discrete_state(self._want_torque).get_value()[0] > 0
+        if fault or fallback or not wanted or not math.isfinite(q_torque.sum()):
+            # The torque chain's last healthy offset from the reference, which the
+            # ramp takes to zero: q_cmd moves with the reference, bumplessly.
+            offset = context.get_discrete_state(self._last_torque).get_value()
+            output.set_value(q_position + alpha * offset)
+            return
         output.set_value(alpha * q_torque + (1.0 - alpha) * q_position)
 
 

@@ -16,6 +16,7 @@ Both return a `ControlDiagram`: the diagram, which exports every signal an exper
 logs as a named output port (`LOGGED`), and its station.
 """
 
+import functools
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -183,6 +184,10 @@ class TorqueControlConfig:
             controller's own fallback then does not latch. False: the controller's
             latched fallback alone.
         safety: the supervisor's settings (its start_time is start_time).
+        model_error: the estimator's and inverse dynamics' model of the robot has
+            every link's mass and COM off by a random factor within ±model_error
+            (a fault: `model.add_hrp2_with_model_error`); 0: the exact model.
+        model_error_seed: the seed of those factors.
     """
 
     joints: list[str] = field(default_factory=lambda: list(model.RIGHT_LEG))
@@ -201,9 +206,15 @@ class TorqueControlConfig:
     offset_calibration_time: float = 0.0
     supervised: bool = True
     safety: SafetyConfig = field(default_factory=SafetyConfig)
+    model_error: float = 0.0
+    model_error_seed: int = 0
 
     def validate(self) -> None:
         self.safety.validate()
+        if not 0 <= self.model_error < 1:
+            raise ValueError(
+                f"TorqueControlConfig.model_error: {self.model_error} must be in [0, 1)"
+            )
         if self.position_source not in ("encoders", "estimate"):
             raise ValueError(f"TorqueControlConfig.position_source: '{self.position_source}'")
         if self.offset_calibration_time > 0 and (
@@ -246,11 +257,19 @@ def build_torque_control(
     builder = DiagramBuilder()
     station = builder.AddNamedSystem("station", make_station(station_config, meshcat))
     blocks = _add_reference(builder, reference)
+    # The controllers' model of the robot (with errors, if asked: a fault).
+    add_model = model.add_hrp2
+    if config.model_error > 0:
+        add_model = functools.partial(
+            model.add_hrp2_with_model_error,
+            error=config.model_error,
+            seed=config.model_error_seed,
+        )
 
     chain = add_estimator(
         builder,
         station,
-        hrp2.estimator_plant(),
+        hrp2.estimator_plant(add_model),
         hrp2.estimator_config(
             config.window,
             evaluation=config.evaluation,
@@ -263,7 +282,7 @@ def build_torque_control(
         return builder.AddNamedSystem(name, make_joint_selector(model.JOINT_NAMES, joints))
 
     # Inverse dynamics on the fixed-base model (paper footnote 3).
-    fixed = make_fixed_base_plant(model.add_hrp2, model.BASE_BODY)
+    fixed = make_fixed_base_plant(add_model, model.BASE_BODY)
     controller_model = motor_model.subset(joints)
     inertia = _joint_inertia(fixed, joints, reference.at(0.0)[0])
     ks, kd = inverse_dynamics_gains_for_k6(

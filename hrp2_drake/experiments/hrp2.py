@@ -39,10 +39,11 @@ def estimator_config(window: int = 80, **options) -> TorqueEstimatorConfig:
     )
 
 
-def estimator_plant() -> MultibodyPlant:
-    """HRP-2 alone with a floating base: the estimator's internal model."""
+def estimator_plant(add_model=model.add_hrp2) -> MultibodyPlant:
+    """HRP-2 alone with a floating base: the estimator's internal model (`add_model`:
+    e.g. a model with errors, `model.add_hrp2_with_model_error`)."""
     plant = MultibodyPlant(0.0)
-    model.add_hrp2(plant)
+    add_model(plant)
     plant.Finalize()
     return plant
 

@@ -287,6 +287,7 @@ class Hrp2ServoEmulation(LeafSystem):
         period: float = 0.001,
         initial_q_cmd: Sequence[float] | None = None,
         off: Sequence[str] = (),
+        extra_latency: float = 0.0,
     ):
         super().__init__()
         unknown = sorted(set(off) - set(SERVO_MECHANISMS))
@@ -313,6 +314,11 @@ class Hrp2ServoEmulation(LeafSystem):
         delays = np.rint(p["latency"] / period).astype(int)
         if "latency" in off:
             delays[:] = 0
+        if not (math.isfinite(extra_latency) and extra_latency >= 0):
+            raise ValueError(
+                f"Hrp2ServoEmulation: extra_latency must be finite and >= 0, got {extra_latency}"
+            )
+        delays = delays + int(np.rint(extra_latency / period))
         self._p = p
         self._off = tuple(off)
         self._period = period

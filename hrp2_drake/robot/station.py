@@ -104,6 +104,8 @@ class StationConfig:
             real robot by `hrp2-drake calibrate`).
         faults: sensor faults to inject (`hrp2_drake.robot.faults`): what the sensor
             ports read; the ground truth is untouched.
+        extra_command_latency: latency added to every joint's command (s, whole
+            periods): a fault, on top of the servo's own.
         servo_off: servo mechanisms to switch off (`SERVO_MECHANISMS`: "latency",
             "voltage_limit", "hysteresis", "deadzone").
         contact_approximation: Drake's discrete contact approximation.
@@ -118,6 +120,7 @@ class StationConfig:
     servo_file: str = ""
     servo_off: list[str] = field(default_factory=list)
     faults: list[SensorFault] = field(default_factory=list)
+    extra_command_latency: float = 0.0
     contact_approximation: str = "sap"
 
     def validate(self) -> None:
@@ -301,6 +304,7 @@ def make_station(config: StationConfig, meshcat: Meshcat | None = None) -> Diagr
             period=config.time_step,
             initial_q_cmd=q0,
             off=config.servo_off,
+            extra_latency=config.extra_command_latency,
         ),
     )
     builder.Connect(plant.get_state_output_port(), servo.get_input_port(1))
