@@ -4,22 +4,59 @@
                         [--config FILE] [--out DIR] [--html]
     hrp2-drake calibrate [--config FILE] [--out DIR] [--install]
     hrp2-drake identify | experiment NAME | reproduce   (see --help)
+
+Bad input (a file, a YAML key, an array of a log, an option) is reported on one line,
+`hrp2-drake <command>: error: <what and where>`, with exit code 2, before anything is
+simulated; `hrp2-drake --debug <command> ...` lets the exception propagate instead.
 """
 
 import argparse
 import json
+import math
+import os
 import sys
+import zipfile
 from pathlib import Path
 
 import numpy as np
+import yaml
 
-from hrp2_drake.config import load_config
+from hrp2_drake.config import load_config, one_line, validate_config
 from hrp2_drake.robot.station import SCENARIOS
+
+#: What bad input raises: reported on one line with exit code 2 (--debug: re-raised).
+USER_ERRORS = (
+    ValueError,
+    KeyError,
+    OSError,  # FileNotFoundError, IsADirectoryError, PermissionError, ...
+    EOFError,
+    yaml.YAMLError,
+    zipfile.BadZipFile,
+)
 
 
 def _config(schema, args: argparse.Namespace):
-    """The --config YAML file read into `schema`, or its defaults."""
+    """The --config YAML file read into `schema` (and validated), or its defaults."""
     return load_config(schema, filename=args.config) if args.config else schema()
+
+
+def _output_folder(path: str) -> Path:
+    """The --out folder, created (with its parents) before anything runs, so that a
+    path that cannot be a writable folder is reported before simulating."""
+    out = Path(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise ValueError(f"--out {path}: exists and is not a folder") from None
+    except NotADirectoryError:
+        raise ValueError(
+            f"--out {path}: a parent of it is a file, not a folder"
+        ) from None
+    except PermissionError:
+        raise ValueError(f"--out {path}: permission denied, cannot create it") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise ValueError(f"--out {path}: folder not writable")
+    return out
 
 
 def _simulate(args: argparse.Namespace) -> int:
@@ -34,11 +71,10 @@ def _simulate(args: argparse.Namespace) -> int:
         config.trajectory = args.trajectory
     if args.seed is not None:
         config.station.sensors.seed = args.seed
-    config.validate()
+    validate_config(config)
+    out = _output_folder(args.out)
 
     result = run_simulate(config, html=args.html)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     log = out / f"simulate_{config.station.scenario}.npz"
     np.savez_compressed(log, **result.signals)
     summary = summarize(result, config)
@@ -61,8 +97,8 @@ def _identify(args: argparse.Namespace) -> int:
     config = _config(IdentifyConfig, args)
     if args.duration_scale is not None:
         config.duration_scale = args.duration_scale
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    validate_config(config)
+    out = _output_folder(args.out)
     summary = run_identify(config, out, Path(args.log) if args.log else None)
     print(f"report: {out / 'identification.md'}; model: {out / 'motor_model.yaml'}")
     for joint, row in summary["joints"].items():
@@ -77,12 +113,24 @@ def _identify(args: argparse.Namespace) -> int:
     return 0
 
 
-def _motor_model(args: argparse.Namespace, out: Path):
-    """The --motor-model file, or one identified now (saved under out/identify)."""
+def _motor_model(args: argparse.Namespace, out: Path, config=None):
+    """The --motor-model file (or the config's `motor_model`), or one identified now
+    (saved under out/identify)."""
     from hrp2_drake.identification.motor_model import MotorModel
 
-    if args.motor_model:
-        return MotorModel.load(args.motor_model)
+    path = args.motor_model or getattr(config, "motor_model", "")
+    if path:
+        loaded = MotorModel.load(path)
+        # The joints the experiment torque-controls: checked before simulating.
+        needed = getattr(getattr(config, "torque_control", None), "joints", None)
+        needed = needed or ([config.joint] if hasattr(config, "joint") else [])
+        missing = [j for j in needed if j not in loaded.joint_names]
+        if missing:
+            raise ValueError(
+                f"{path}: the motor model has no joints {missing} (it has "
+                f"{loaded.joint_names}), which the experiment torque-controls"
+            )
+        return loaded
     from hrp2_drake.experiments.identification import IdentifyConfig, run_identify
 
     print("no --motor-model: identifying one first (hrp2-drake identify)", file=sys.stderr)
@@ -91,15 +139,19 @@ def _motor_model(args: argparse.Namespace, out: Path):
 
 
 def _experiment(args: argparse.Namespace) -> int:
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    if args.end is not None and args.name != "motion":
+        raise ValueError(
+            f"--end: only the motion experiment has an end, not {args.name}"
+        )
     if args.name == "motion":
         from hrp2_drake.experiments.motion import MotionConfig, run_motion, write_motion_report
 
         config = _config(MotionConfig, args)
         if args.end is not None:
             config.end = args.end
-        model = _motor_model(args, out)
+        validate_config(config)
+        out = _output_folder(args.out)
+        model = _motor_model(args, out, config)
         summary = write_motion_report(run_motion(config, model), out)
         print(f"report: {out / 'motion.md'}")
         for label, verdict in summary["verdicts"].items():
@@ -115,6 +167,8 @@ def _experiment(args: argparse.Namespace) -> int:
         )
 
         config = _config(EstimationConfig, args)
+        validate_config(config)
+        out = _output_folder(args.out)
         summary = run_estimation_experiment(config, out)
         print(f"report: {out / 'estimation.md'}")
         for scenario, analysis in summary["scenarios"].items():
@@ -129,7 +183,9 @@ def _experiment(args: argparse.Namespace) -> int:
         from hrp2_drake.experiments.force import ForceConfig, run_force_experiment
 
         config = _config(ForceConfig, args)
-        summary = run_force_experiment(config, _motor_model(args, out), out)
+        validate_config(config)
+        out = _output_folder(args.out)
+        summary = run_force_experiment(config, _motor_model(args, out, config), out)
         m = summary["baseline"]["metrics"]["ft_reading"]
         print(
             f"report: {out / 'force.md'}; overshoot {m['overshoot'] * 100:+.1f}%, lag "
@@ -141,7 +197,9 @@ def _experiment(args: argparse.Namespace) -> int:
         from hrp2_drake.identification.motor_model import MotorModel
 
         config = _config(StabilityConfig, args)
-        asymmetric = _motor_model(args, out)
+        validate_config(config)
+        out = _output_folder(args.out)
+        asymmetric = _motor_model(args, out, config)
         path = Path(args.motor_model or out / "identify" / "motor_model.yaml")
         least_squares = path.with_name("motor_model_least_squares.yaml")
         if not least_squares.is_file():
@@ -152,6 +210,20 @@ def _experiment(args: argparse.Namespace) -> int:
         models = {"asymmetric": asymmetric, "least_squares": MotorModel.load(least_squares)}
         summary = run_stability_experiment(config, models, out)
         print(f"report: {out / 'stability.md'}; contrast shown: {summary['contrast']}")
+        return 0
+    if args.name == "faults":
+        from hrp2_drake.experiments.faults import FaultCampaignConfig, run_fault_campaign
+
+        config = _config(FaultCampaignConfig, args)
+        validate_config(config)
+        out = _output_folder(args.out)
+        _motor_model(args, out)  # checks --motor-model, or identifies one first
+        path = Path(args.motor_model or out / "identify" / "motor_model.yaml")
+        summary = run_fault_campaign(config, path, out)
+        print(f"report: {out / 'faults.md'}")
+        for key, value in summary["verdict"].items():
+            if isinstance(value, bool):
+                print(f"  {key.replace('_', ' ')}: {'yes' if value else 'no'}")
         return 0
     raise ValueError(f"unknown experiment '{args.name}'")
 
@@ -164,8 +236,8 @@ def _calibrate(args: argparse.Namespace) -> int:
         config.max_iterations = args.max_iterations
     if args.jobs is not None:
         config.jobs = args.jobs
-    config.validate()
-    summary = calibrate(config, Path(args.out), install=args.install)
+    validate_config(config)
+    summary = calibrate(config, _output_folder(args.out), install=args.install)
     for label, ratio_max, ratio_avg in zip(
         ("hip roll", "hip pitch", "knee", "ankle pitch", "ankle roll"),
         np.divide(summary["max_error"], summary["paper_max_error"]),
@@ -179,40 +251,101 @@ def _reproduce(args: argparse.Namespace) -> int:
     from hrp2_drake.experiments.reproduce import ReproduceConfig, run_reproduce, verdicts
 
     config = ReproduceConfig(jobs=args.jobs, quick=args.quick, replays=not args.no_replays)
-    results = run_reproduce(config, Path(args.out))
+    validate_config(config)
+    results = run_reproduce(config, _output_folder(args.out))
     for claim, verdict, evidence in verdicts(results):
         print(f"  [{verdict}] {claim}: {evidence}")
     failed = [s for s, r in results.items() if isinstance(r, dict) and r.get("ok") is False]
     return 1 if failed else 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line (and exit code 2), like the
+    command's own."""
+
+    def error(self, message: str):
+        hint = f"see {self.prog} --help"
+        self.exit(2, f"{self.prog}: error: {one_line(message)} ({hint})\n")
+
+
+def _number(kind: type, low: float | None = None, strict: bool = True):
+    """An argparse type: a finite `kind` (float or int), > low (>= low if not
+    strict)."""
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"expected {'an integer' if kind is int else 'a number'}, got '{text}'"
+            ) from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"expected a finite number, got '{text}'")
+        if low is not None and not (value > low if strict else value >= low):
+            raise argparse.ArgumentTypeError(
+                f"must be {'>' if strict else '>='} {low:g}, got '{text}'"
+            )
+        return value
+
+    parse.__name__ = kind.__name__  # argparse names the type in its messages
+    return parse
+
+
+def _message(error: BaseException) -> str:
+    """One line for a user error: its message, the file's name first for OSError."""
+    if isinstance(error, KeyError) and error.args:
+        text = str(error.args[0])
+    elif isinstance(error, OSError) and error.filename and error.strerror:
+        text = f"{error.filename}: {error.strerror}"
+    else:
+        text = str(error)
+    return one_line(text) or type(error).__name__
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
+    """Runs the command; bad input is one line on stderr and exit code 2 (`--debug`:
+    the exception propagates, with its traceback)."""
+    # --debug is accepted before and after the command name.
+    debug = argparse.ArgumentParser(add_help=False)
+    debug.add_argument(
+        "--debug",
+        action="store_true",
+        default=argparse.SUPPRESS,
+        help="let errors propagate with their Python traceback (for developers)",
+    )
+    parser = _Parser(
         prog="hrp2-drake",
         description="Torque control without joint-torque sensors on a simulated HRP-2 "
         "(Del Prete et al. 2015) in Drake.",
+        parents=[debug],
     )
     commands = parser.add_subparsers(dest="command", required=True)
 
     sim = commands.add_parser(
         "simulate",
+        parents=[debug],
         help="run a scenario with the position servo holding half-sitting or "
         "following a trajectory; write the logged signals (.npz)",
     )
     sim.add_argument("--config", help="SimulateConfig YAML file")
     sim.add_argument("--scenario", choices=SCENARIOS, help="default: standing")
-    sim.add_argument("--duration", type=float, help="simulated seconds (default 5)")
+    sim.add_argument(
+        "--duration", type=_number(float, 0.0), help="simulated seconds (default 5)"
+    )
     sim.add_argument(
         "--trajectory",
         help="'climbing' (HRP-2 stair climbing) or a file: time + 30 joint angles",
     )
-    sim.add_argument("--seed", type=int, help="sensor noise seed")
+    sim.add_argument(
+        "--seed", type=_number(int, 0, strict=False), help="sensor noise seed"
+    )
     sim.add_argument("--out", default="out", help="output folder (default: out)")
     sim.add_argument("--html", action="store_true", help="write a Meshcat HTML replay")
     sim.set_defaults(run=_simulate)
 
     ident = commands.add_parser(
         "identify",
+        parents=[debug],
         help="identify the right leg's motor model (paper Sec. 3): data collection on "
         "the hanging robot (or --log), non-causal estimation, every fit, Table 1, "
         "Figures 1 and 3",
@@ -221,33 +354,52 @@ def main(argv: list[str] | None = None) -> int:
     ident.add_argument(
         "--log", help="an identification log (.npz, see README) instead of simulating"
     )
-    ident.add_argument("--duration-scale", type=float, help="shorten the collection")
+    ident.add_argument(
+        "--duration-scale", type=_number(float, 0.0), help="shorten the collection"
+    )
     ident.add_argument("--out", default="out/identify", help="output folder")
     ident.set_defaults(run=_identify)
 
     exp = commands.add_parser(
         "experiment",
+        parents=[debug],
         help="run one experiment of the paper: estimation (Sec. 2), motion (5.3), "
-        "force (5.4), stability (5.2); the component analysis (5.5) needs motion and "
-        "force: see reproduce",
+        "force (5.4), stability (5.2), or the fault campaign of the supervised torque "
+        "control (faults); the component analysis (5.5) needs motion and force: see "
+        "reproduce",
     )
-    exp.add_argument("name", choices=["estimation", "motion", "force", "stability"])
+    exp.add_argument(
+        "name", choices=["estimation", "motion", "force", "stability", "faults"]
+    )
     exp.add_argument("--config", help="the experiment's config YAML file")
     exp.add_argument("--motor-model", help="MotorModel YAML (default: identify one)")
-    exp.add_argument("--end", type=float, help="motion: stop the climbing motion at (s)")
+    exp.add_argument(
+        "--end",
+        type=_number(float, 0.0),
+        help="motion: stop the climbing motion at (s)",
+    )
     exp.add_argument("--out", default="out/experiment", help="output folder")
     exp.set_defaults(run=_experiment)
 
     cal = commands.add_parser(
         "calibrate",
+        parents=[debug],
         help="fit the emulated servo's hidden parameters to the paper's measurements "
         "of the real HRP-2 (Table 1, position control in Tables 2 and 3): servo.yaml "
         "and a report with plots",
     )
     cal.add_argument("--config", help="CalibrationConfig YAML file")
     cal.add_argument("--out", default="out/calibrate", help="output folder")
-    cal.add_argument("--max-iterations", type=int, help="optimizer evaluations")
-    cal.add_argument("--jobs", type=int, help="parallel simulations (1 or 2)")
+    cal.add_argument(
+        "--max-iterations",
+        type=_number(int, 1, strict=False),
+        help="optimizer evaluations",
+    )
+    cal.add_argument(
+        "--jobs",
+        type=_number(int, 1, strict=False),
+        help="parallel simulations (1 or 2)",
+    )
     cal.add_argument(
         "--install",
         action="store_true",
@@ -257,21 +409,44 @@ def main(argv: list[str] | None = None) -> int:
 
     rep = commands.add_parser(
         "reproduce",
+        parents=[debug],
         help="identification and every experiment of the paper: DIR/report.md, "
         "DIR/results.json, figures and Meshcat replays",
     )
     rep.add_argument("--out", default="out/reproduce", help="output folder")
-    rep.add_argument("--jobs", type=int, default=2, help="parallel processes")
+    rep.add_argument(
+        "--jobs",
+        type=_number(int, 1, strict=False),
+        default=2,
+        help="parallel processes",
+    )
     rep.add_argument("--quick", action="store_true", help="CI-sized durations")
     rep.add_argument("--no-replays", action="store_true", help="skip Meshcat replays")
     rep.set_defaults(run=_reproduce)
 
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exit:  # --help (0), or a bad option (2), already printed
+        code = exit.code
+        return code if isinstance(code, int) else 0 if code is None else 2
+    if getattr(args, "debug", False):
+        return args.run(args)
+    prog = f"hrp2-drake {args.command}"
     try:
         return args.run(args)
-    except (ValueError, KeyError, FileNotFoundError) as error:
-        print(f"hrp2-drake {args.command}: error: {error}", file=sys.stderr)
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
+    except USER_ERRORS as error:
+        print(f"{prog}: error: {_message(error)}", file=sys.stderr)
         return 2
+    except Exception as error:  # a bug, or a simulation that failed: no traceback
+        print(
+            f"{prog}: internal error: {type(error).__name__}: {_message(error)} "
+            "(run with --debug for the traceback)",
+            file=sys.stderr,
+        )
+        return 1
 
 
 if __name__ == "__main__":

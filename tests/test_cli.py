@@ -48,3 +48,11 @@ def test_simulate_reports_bad_input(tmp_path, capsys):
     config.write_text("station: {scenario: standing, sensors: {gyro: {}}}\n")
     assert main(["simulate", "--config", str(config)]) == 2
     assert "station.sensors.gyro" in capsys.readouterr().err
+
+
+def test_help_and_option_errors_return_exit_codes(capsys):
+    assert main(["--help"]) == 0
+    assert "--debug" in capsys.readouterr().out
+    assert main(["simulate", "--duration", "soon"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "argument --duration" in err

@@ -7,6 +7,8 @@ the Table 1 analogue, the validation table and Figures 1 and 3.
 
 import json
 import sys
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -14,8 +16,10 @@ import numpy as np
 
 from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
 from hrp2_drake.experiments import hrp2
+from hrp2_drake.config import check_finite
 from hrp2_drake.identification.dataset import (
     IdentificationData,
+    check_log,
     noncausal_estimates,
     split_blocks,
 )
@@ -29,6 +33,7 @@ from hrp2_drake.identification.excitation import (
     save_log,
 )
 from hrp2_drake.identification.fitting import (
+    check_identified,
     fit_asymmetric,
     fit_least_squares,
     fit_piecewise_linear,
@@ -91,12 +96,37 @@ class IdentifyConfig:
     held_out_every: int = 3
 
     def validate(self) -> None:
+        """Raises ValueError naming the bad field (yaml_load_typed does not call it)."""
         self.station.validate()
+        self.station.sensors.validate()
+        if not self.joints:
+            raise ValueError("IdentifyConfig.joints: no joint to identify")
         unknown = [j for j in self.joints if j not in model.JOINT_NAMES]
         if unknown:
             raise ValueError(f"IdentifyConfig.joints: unknown joints {unknown}")
-        if self.window % 2 == 0:
-            raise ValueError(f"IdentifyConfig.window must be odd, got {self.window}")
+        if len(set(self.joints)) != len(self.joints):
+            raise ValueError(
+                f"IdentifyConfig.joints: duplicated joints in {self.joints}"
+            )
+        if self.window % 2 == 0 or self.window < 3:
+            raise ValueError(
+                f"IdentifyConfig.window must be odd and >= 3, got {self.window}"
+            )
+        if self.stride < 1:
+            raise ValueError(f"IdentifyConfig.stride must be >= 1, got {self.stride}")
+        if self.held_out_every < 2:
+            raise ValueError(
+                f"IdentifyConfig.held_out_every must be >= 2, got {self.held_out_every}"
+            )
+        for name in ("duration_scale", "zero_velocity_threshold", "held_out_block"):
+            check_finite(getattr(self, name), f"IdentifyConfig.{name}", 0.0)
+        check_finite(self.w, "IdentifyConfig.w", 1.0, strict=False)
+        if not self.w_sweep:
+            raise ValueError(
+                "IdentifyConfig.w_sweep: empty, expected some weights >= 1"
+            )
+        for k, w in enumerate(self.w_sweep):
+            check_finite(w, f"IdentifyConfig.w_sweep[{k}]", 1.0, strict=False)
 
     def collection_or_default(self) -> CollectionConfig:
         if self.collection.sinusoids or self.collection.pushes.body:
@@ -161,10 +191,14 @@ def identify(
         models = {
             "least_squares": fit_least_squares(tau, dq, dlt, joint_name=name),
             "asymmetric": fit_asymmetric(tau, dq, dlt, config.w, joint_name=name),
-            "two_stage": fit_two_stage(
-                tau, dq, dlt, config.zero_velocity_threshold, config.w, joint_name=name
-            ),
         }
+        # Refuse data that identify no motor (noise, too little excitation): the
+        # two models written to files must be positive and explain the data.
+        check_identified(models["least_squares"], tau, dq, dlt)
+        check_identified(models["asymmetric"], tau, dq, dlt, min_explained=None)
+        models["two_stage"] = fit_two_stage(
+            tau, dq, dlt, config.zero_velocity_threshold, config.w, joint_name=name
+        )
         # The piecewise-linear model of Sec. 3.2 has no velocity term: the paper fitted
         # it to the static high-torque data (Fig. 1), and so do we (an unlabelled log:
         # its near-zero-velocity samples).
@@ -421,8 +455,69 @@ def run_identify(config: IdentifyConfig, out: Path, log_path: Path | None = None
         save_log(out / "identification_log.npz", log, names)
         simulated = True
     else:
-        log, names = load_log(log_path)
+        log, names = read_log(log_path)
         simulated = "joint_torque_true" in log
     print("estimating and fitting ...", file=sys.stderr)
-    result = identify(config, log, names)
+    try:
+        result = identify(config, log, names)
+    except (ValueError, KeyError) as error:
+        if log_path is None:
+            raise
+        message = error.args[0] if isinstance(error, KeyError) and error.args else error
+        raise ValueError(f"{log_path}: {message}; no motor model written") from error
     return write_report(result, out, simulated)
+
+
+def read_log(path: str | Path) -> tuple[dict, list[str]]:
+    """`load_log` with every problem of the file as one error naming it: missing, a
+    folder, not a (complete) .npz archive, a missing or misshapen array, text or NaN
+    in an array, time not increasing on a constant grid (`check_log`), or no column
+    for a joint of the estimator."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"identification log '{path}' not found")
+    if path.is_dir():
+        raise IsADirectoryError(
+            f"identification log '{path}' is a folder, expected .npz"
+        )
+    try:
+        log, names = load_log(path)
+    except ValueError as error:
+        if str(error).startswith(f"{path}:"):
+            raise
+        detail = _npz_problem(path) or str(error)
+        raise ValueError(
+            f"{path}: not a valid identification log (.npz): {detail}"
+        ) from None
+    except (
+        OSError,
+        EOFError,
+        IndexError,
+        KeyError,
+        TypeError,
+        zipfile.BadZipFile,
+        zlib.error,
+    ) as error:
+        detail = _npz_problem(path) or str(error) or type(error).__name__
+        raise ValueError(
+            f"{path}: not a readable identification log (.npz archive): {detail}"
+        ) from None
+    check_log(log, names, str(path), hrp2.estimator_config().joints)
+    return log, names
+
+
+def _npz_problem(path: Path) -> str | None:
+    """The first array of an .npz file that cannot be read or is a scalar, as
+    "array 'name': problem" (None if none: the archive itself is the problem)."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            for key in data.files:
+                try:
+                    value = data[key]
+                except Exception as error:  # each array on its own: name the bad one
+                    return f"array '{key}': {error}"
+                if value.ndim == 0:
+                    return f"array '{key}' is a scalar, expected one value per sample"
+    except Exception:
+        return None
+    return None

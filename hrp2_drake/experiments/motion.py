@@ -16,6 +16,7 @@ import numpy as np
 from pydrake.systems.analysis import Simulator
 from pydrake.trajectories import PiecewisePolynomial
 
+from hrp2_drake.config import check_finite
 from hrp2_drake.experiments.builders import (
     ControlDiagram,
     JointReference,
@@ -226,6 +227,34 @@ class MotionConfig:
     smoothing: float = 1e-8
     motor_model: str = ""
 
+    def validate(self) -> None:
+        """Raises ValueError naming the bad field (yaml_load_typed does not call it)."""
+        self.station.validate()
+        self.station.sensors.validate()
+        self.torque_control.validate()
+        if not self.k6:
+            raise ValueError("MotionConfig.k6: empty, expected one gain or more (> 0)")
+        for k, k6 in enumerate(self.k6):
+            check_finite(k6, f"MotionConfig.k6[{k}]", 0.0)
+        check_finite(self.smoothing, "MotionConfig.smoothing", 0.0)
+        check_finite(self.settle, "MotionConfig.settle", 0.0, strict=False)
+        check_finite(self.start, "MotionConfig.start", 0.0, strict=False)
+        check_finite(self.end, "MotionConfig.end")
+        motion_end = float(model.load_trajectory()[0][-1])
+        if self.start >= motion_end:
+            raise ValueError(
+                f"MotionConfig.start = {self.start} s is not before the end of the "
+                f"climbing motion ({motion_end:g} s)"
+            )
+        if self.end >= 0 and not self.start + 0.001 <= self.end <= motion_end:
+            raise ValueError(
+                f"MotionConfig.end = {self.end} s must be after start = {self.start} s "
+                f"(by 1 ms or more) and at most the motion's end, {motion_end:g} s "
+                "(or < 0: to the end)"
+            )
+        if self.motor_model and not Path(self.motor_model).is_file():
+            raise ValueError(f"MotionConfig.motor_model: no file '{self.motor_model}'")
+
 
 def _reference(config: MotionConfig) -> JointReference:
     motion = climbing_reference(
@@ -354,6 +383,8 @@ def run_motion(
     """Runs position control and every K6 of torque control on the climbing motion."""
     from dataclasses import replace
 
+    config.validate()
+    motor_model.subset(list(config.torque_control.joints))  # KeyError before simulating
     reference = _reference(config)
     duration = reference.end_time()
     delay = (config.torque_control.window - 1) / 2 * 0.001 + 0.002

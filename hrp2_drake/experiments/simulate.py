@@ -5,18 +5,22 @@ Also the building blocks the other experiments reuse: a joint-reference source f
 sampled waypoints, loggers for named ports, and a simulation loop with progress.
 """
 
+import functools
 import sys
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort
 from pydrake.systems.primitives import ConstantVectorSource, TrajectorySource, VectorLogSink
 from pydrake.trajectories import PiecewisePolynomial
 
+from hrp2_drake.config import check_finite
 from hrp2_drake.robot import model
 from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
 
@@ -42,9 +46,50 @@ class SimulateConfig:
     log_period: float = 0.001
 
     def validate(self) -> None:
+        """Raises ValueError naming the bad field; reads the trajectory file (if any)
+        so that a bad one is reported before anything is simulated."""
         self.station.validate()
-        if not self.duration > 0:
-            raise ValueError(f"SimulateConfig.duration must be > 0, got {self.duration}")
+        self.station.sensors.validate()
+        for name, low, strict in (
+            ("duration", 0.0, True),
+            ("trajectory_start", 0.0, False),
+            ("log_period", 0.0, True),
+        ):
+            check_finite(getattr(self, name), f"SimulateConfig.{name}", low, strict)
+        if self.station.initial_positions:
+            check_joint_limits(
+                np.array(self.station.initial_positions, float)[np.newaxis],
+                "SimulateConfig.station.initial_positions",
+            )
+        if self.trajectory and self.trajectory != "climbing":
+            load_joint_trajectory(self.trajectory)
+
+
+@functools.cache
+def joint_position_limits() -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) position limits (rad) of the 30 joints, HRP-2 order, as the
+    MultibodyPlant reads them from the URDF."""
+    plant = MultibodyPlant(0.0)
+    model.add_hrp2(plant)
+    plant.Finalize()
+    joints = [plant.GetJointByName(name) for name in model.JOINT_NAMES]
+    lower = np.array([j.position_lower_limits()[0] for j in joints])
+    upper = np.array([j.position_upper_limits()[0] for j in joints])
+    return lower, upper
+
+
+def check_joint_limits(q: np.ndarray, where: str, tolerance: float = 1e-9) -> None:
+    """Raises ValueError naming `where`, the first offending joint and row unless every
+    row of q (m, 30) lies within the joints' position limits."""
+    lower, upper = joint_position_limits()
+    outside = (q < lower - tolerance) | (q > upper + tolerance)
+    if np.any(outside):
+        row, j = np.argwhere(outside)[0]
+        raise ValueError(
+            f"{where}: {model.JOINT_NAMES[j]} = {q[row, j]:.6g} rad (row {row}) is "
+            f"outside its position limits [{lower[j]:.6g}, {upper[j]:.6g}] rad "
+            f"({np.count_nonzero(np.any(outside, axis=1))} rows out of limits)"
+        )
 
 
 def joint_reference(
@@ -69,18 +114,55 @@ def joint_reference(
 
 
 def load_joint_trajectory(spec: str) -> tuple[np.ndarray, np.ndarray]:
-    """(t, q) of a named ("climbing") or file trajectory; q has 30 columns."""
+    """(t, q) of a named ("climbing") or file trajectory; q has 30 columns.
+
+    A file is text, one row per sample: the time (s), then the 30 joint angles (rad)
+    in HRP-2 order. Raises (naming the file) unless it has exactly 31 columns, at
+    least two rows, finite numbers, strictly increasing times and angles within the
+    joints' position limits (the URDF's).
+    """
     if spec == "climbing":
         return model.load_trajectory()
     path = Path(spec)
-    if not path.is_file():
+    if not path.exists():
         raise FileNotFoundError(f"trajectory file '{spec}' not found")
-    data = np.loadtxt(path, ndmin=2)
-    if data.shape[1] < 1 + model.NUM_JOINTS:
+    if path.is_dir():
+        raise IsADirectoryError(f"trajectory file '{spec}' is a folder")
+    columns = 1 + model.NUM_JOINTS
+    try:
+        with warnings.catch_warnings():  # an empty file: reported below, not warned
+            warnings.simplefilter("ignore", UserWarning)
+            data = np.loadtxt(path, ndmin=2)
+    except (ValueError, UnicodeDecodeError) as error:
+        detail = "; ".join(str(error).splitlines())
         raise ValueError(
-            f"{spec}: {data.shape[1]} columns, expected time + {model.NUM_JOINTS} joints"
+            f"trajectory file '{spec}': not a text table of numbers "
+            f"(time + {model.NUM_JOINTS} joint angles per row): {detail}"
+        ) from None
+    if data.size == 0:
+        raise ValueError(
+            f"trajectory file '{spec}': empty, expected rows of time + "
+            f"{model.NUM_JOINTS} joint angles"
         )
-    return data[:, 0], data[:, 1 : 1 + model.NUM_JOINTS]
+    if data.shape[1] != columns or data.shape[0] < 2:
+        raise ValueError(
+            f"trajectory file '{spec}': {data.shape[0]} rows of {data.shape[1]} "
+            f"columns, expected at least 2 rows of exactly {columns} (time + "
+            f"{model.NUM_JOINTS} joint angles)"
+        )
+    if not np.all(np.isfinite(data)):
+        row = int(np.argwhere(~np.isfinite(data))[0, 0])
+        raise ValueError(f"trajectory file '{spec}': NaN or inf in row {row}")
+    t, q = data[:, 0], data[:, 1:]
+    steps = np.diff(t)
+    if np.any(steps <= 0):
+        row = int(np.flatnonzero(steps <= 0)[0]) + 1
+        raise ValueError(
+            f"trajectory file '{spec}': the time column must be strictly increasing, "
+            f"row {row} has t = {t[row]:g} s after {t[row - 1]:g} s"
+        )
+    check_joint_limits(q, f"trajectory file '{spec}'")
+    return t, q
 
 
 def add_loggers(

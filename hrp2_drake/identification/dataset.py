@@ -7,7 +7,7 @@ floating-base estimator as online (`FloatingBaseTorqueEstimator.estimate`).
 """
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -46,6 +46,74 @@ class IdentificationData:
         return self.tau[mask, j], self.dq[mask, j], self.delta_q[mask, j]
 
 
+#: Largest relative deviation of a log's sampling period from its median: the
+#: Savitzky-Golay filters assume a constant period.
+MAX_PERIOD_JITTER = 0.1
+
+
+def check_log(
+    log: Mapping[str, np.ndarray],
+    log_joint_names: Sequence[str],
+    source: str = "the log",
+    joints: Sequence[str] = (),
+) -> None:
+    """Raises ValueError naming `source` and the array unless the log can be filtered.
+
+    Every array must hold finite numbers (not text or objects); "t" must be 1-D and
+    strictly increasing on a constant grid (each period within MAX_PERIOD_JITTER of
+    the median); "q_cmd" and "q_measured" must be (samples, joints); `joints` must
+    all be among `log_joint_names`.
+    """
+    for key, value in log.items():
+        array = np.asarray(value)
+        if array.dtype.kind not in "biuf":
+            kind = "text" if array.dtype.kind in "US" else f"'{array.dtype}' values"
+            raise ValueError(f"{source}: array '{key}' holds {kind}, expected numbers")
+        if array.dtype.kind == "f" and not np.all(np.isfinite(array)):
+            bad = ~np.isfinite(array.reshape(len(array), -1) if array.ndim else array)
+            first = int(np.argwhere(bad)[0][0]) if array.ndim else 0
+            raise ValueError(
+                f"{source}: array '{key}' has {np.count_nonzero(bad)} NaN or inf "
+                f"values (first at sample {first})"
+            )
+    t = np.asarray(log["t"])
+    if t.ndim != 1 or t.size < 2:
+        raise ValueError(
+            f"{source}: array 't' must be 1-D with 2 or more samples, "
+            f"got shape {t.shape}"
+        )
+    steps = np.diff(t.astype(float))
+    if np.any(steps <= 0):
+        k = int(np.flatnonzero(steps <= 0)[0]) + 1
+        raise ValueError(
+            f"{source}: array 't' must be strictly increasing, sample {k} has "
+            f"t = {t[k]:.6g} s after {t[k - 1]:.6g} s"
+        )
+    period = float(np.median(steps))
+    jitter = np.abs(steps - period) > MAX_PERIOD_JITTER * period
+    if np.any(jitter):
+        k = int(np.flatnonzero(jitter)[0]) + 1
+        raise ValueError(
+            f"{source}: array 't' is not sampled at a constant period: step "
+            f"{steps[k - 1]:.6g} s before sample {k}, median {period:.6g} s "
+            f"({np.count_nonzero(jitter)} steps off by more than "
+            f"{MAX_PERIOD_JITTER:.0%})"
+        )
+    for key in ("q_cmd", "q_measured"):
+        if key in log and np.shape(log[key]) != (t.size, len(log_joint_names)):
+            raise ValueError(
+                f"{source}: array '{key}' has shape {np.shape(log[key])}, expected "
+                f"({t.size}, {len(log_joint_names)}) (samples, joints)"
+            )
+    missing = [j for j in joints if j not in log_joint_names]
+    if missing:
+        shown = ", ".join(missing[:3]) + (", ..." if len(missing) > 3 else "")
+        raise ValueError(
+            f"{source}: array 'joint_names' lacks {len(missing)} of the "
+            f"{len(joints)} joints needed ({shown})"
+        )
+
+
 def noncausal_estimates(
     log: dict[str, np.ndarray],
     log_joint_names: Sequence[str],
@@ -67,9 +135,12 @@ def noncausal_estimates(
         stride: keep every stride-th sample (neighbouring samples at 1 kHz add little).
 
     Raises:
-        ValueError: the log lacks a signal, has NaN, or is shorter than the window.
+        ValueError: the log lacks a signal, has NaN or text, its time is not
+            increasing on a constant grid (`check_log`), or it is shorter than the
+            window.
         KeyError: an estimator joint is not in the log.
     """
+    check_log(log, log_joint_names)
     t = np.asarray(log["t"], float)
     if len(t) < window:
         raise ValueError(f"the log has {len(t)} samples, fewer than the window {window}")

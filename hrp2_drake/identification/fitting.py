@@ -8,6 +8,8 @@ returns a one-joint model named `joint_name`; combine joints with
 - `fit_asymmetric`: eq. 8, by Newton's method ("newton") or as the QP of eq. 9 ("qp").
 - `fit_two_stage`: Sec. 3.3.1, k_tau from zero-velocity samples, then k_v.
 - `fit_piecewise_linear`: Sec. 3.2.1-3.2.2, the model the paper abandoned.
+- `check_identified`: refuses a fitted model the data do not identify (k_tau or
+  k_v not positive, or too little of Δq explained).
 
 Data that cannot identify the model raise ValueError naming the joint and the problem.
 All linear fits work on a regressor whose columns are scaled to unit RMS and a Δq scaled
@@ -34,6 +36,11 @@ MIN_VELOCITY = 1e-3  # rad/s; data with max |q̇| below this contain no motion.
 MIN_SAMPLES = 10  # fewest samples of any fit (or stage, or piecewise segment).
 MAX_CONDITION = 1e6  # largest condition number of the unit-RMS-column regressor.
 MAX_NEWTON_ITERATIONS = 100
+#: Least share of Δq's mean square that the least-squares fit of eq. 6 must explain
+#: (1 - Σ(Δq̂ - Δq)² / ΣΔq²) for the data to identify a model. Noise-only Δq gives
+#: ~0.03 on a short log; HRP-2's emulated right leg 0.54 (knee, whose error the
+#: voltage limit shapes) to 0.98.
+MIN_EXPLAINED = 0.2
 
 
 def fit_least_squares(
@@ -251,6 +258,60 @@ def overestimation_share(
     over = _overestimation_sign(delta_q) * (predicted - delta_q) > tolerance
     share = np.mean(over, axis=0)
     return float(share) if over.ndim == 1 else share
+
+
+def explained_share(
+    model, tau: np.ndarray, dq: np.ndarray, delta_q: np.ndarray
+) -> float:
+    """1 - Σ(Δq̂ - Δq)² / ΣΔq²: the share of Δq's mean square (about zero: eq. 6 has
+    no intercept) that a one-joint model explains; 0 or less for no better than
+    Δq̂ = 0."""
+    delta_q = np.asarray(delta_q, dtype=float)
+    residual = model.predict(tau, dq) - delta_q
+    total = float(np.sum(delta_q**2))
+    return 1.0 - float(np.sum(residual**2)) / total if total > 0 else 0.0
+
+
+def check_identified(
+    model: MotorModel,
+    tau: np.ndarray,
+    dq: np.ndarray,
+    delta_q: np.ndarray,
+    min_explained: float | None = MIN_EXPLAINED,
+) -> None:
+    """Refuses a one-joint linear model that the data did not identify.
+
+    A servo's Δq grows with the torque it delivers and with the velocity it follows
+    (eq. 6): k_tau <= 0 or k_v <= 0 is noise, not a motor. And a fit that explains
+    less than `min_explained` of Δq's mean square (`explained_share`; None: not
+    tested) found no law in the data: too little excitation, or Δq is noise.
+
+    Raises:
+        ValueError: naming the joint, the fit and what is wrong.
+    """
+    name = model.joint_names[0]
+    method = model.reports[name].method if name in model.reports else "fit"
+    where = f"joint {name!r} ({method.replace('_', ' ')})"
+    problems = [
+        f"{symbol} = {value:.3g} {unit} is not > 0"
+        for symbol, value, unit in (
+            ("k_tau", model.k_tau[0], "rad/(N·m)"),
+            ("k_v", model.k_v[0], "s"),
+        )
+        if not value > 0
+    ]
+    if min_explained is not None:
+        share = explained_share(model, tau, dq, delta_q)
+        if share < min_explained:
+            problems.append(
+                f"the model explains {share:.1%} of delta_q's mean square "
+                f"(< {min_explained:.0%})"
+            )
+    if problems:
+        raise ValueError(
+            f"{where}: the data do not identify a motor model: {'; '.join(problems)} "
+            "(too little excitation, or delta_q is noise)"
+        )
 
 
 def fit_joints(

@@ -19,7 +19,9 @@ from pathlib import Path
 from typing import Mapping, NamedTuple
 
 import numpy as np
-from pydrake.common.yaml import yaml_dump_typed, yaml_load_typed
+from pydrake.common.yaml import yaml_dump_typed
+
+from hrp2_drake.config import load_config
 
 
 @dataclass
@@ -52,10 +54,15 @@ class JointMotorParameters(NamedTuple):
     k_c: float
 
 
+class MotorModelFileError(ValueError, RuntimeError):
+    """A motor-model file that cannot be read; the message names the file and the
+    problem. (Also a RuntimeError: what `load` raised for an unknown key before.)"""
+
+
 # yaml_load_typed reads the field types at run time: this module must not use
 # `from __future__ import annotations` (it would turn them into strings).
 @dataclass
-class _MotorModelFile:
+class MotorModelFile:
     """YAML schema of `MotorModel.save` and `load` (k_c may be omitted: zeros)."""
 
     joint_names: list[str] = field(default_factory=list)
@@ -193,7 +200,7 @@ class MotorModel:
 
     def save(self, path: str | Path) -> None:
         """Writes joint_names, k_tau, k_v, k_c to a YAML file (not the reports)."""
-        data = _MotorModelFile(
+        data = MotorModelFile(
             joint_names=list(self.joint_names),
             k_tau=self.k_tau.tolist(),
             k_v=self.k_v.tolist(),
@@ -203,12 +210,33 @@ class MotorModel:
 
     @staticmethod
     def load(path: str | Path) -> "MotorModel":
-        """Reads a file written by `save`; an unknown key or a size mismatch raises."""
-        data = yaml_load_typed(schema=_MotorModelFile, filename=str(path))
+        """Reads a file written by `save`.
+
+        Raises:
+            FileNotFoundError, IsADirectoryError: `path` is not a file.
+            MotorModelFileError: (a ValueError) naming the file and the problem: a
+                YAML syntax error, an unknown key, a value of the wrong type, a size
+                mismatch, NaN, or k_tau <= 0 or k_v < 0 (no servo works that way).
+        """
+        try:
+            data = load_config(MotorModelFile, filename=path)
+        except ValueError as error:
+            raise MotorModelFileError(str(error)) from None
         fields = dataclasses.asdict(data)
         if not fields["k_c"]:
             fields["k_c"] = None
-        return MotorModel(**fields)
+        try:
+            loaded = MotorModel(**fields)
+        except ValueError as error:
+            raise MotorModelFileError(f"{path}: {error}") from None
+        for name, bad in (("k_tau", loaded.k_tau <= 0), ("k_v", loaded.k_v < 0)):
+            if np.any(bad):
+                joints = [j for j, b in zip(loaded.joint_names, bad) if b]
+                raise MotorModelFileError(
+                    f"{path}: {name} must be {'> 0' if name == 'k_tau' else '>= 0'}, "
+                    f"not for joints {joints} ({getattr(loaded, name)[bad].tolist()})"
+                )
+        return loaded
 
 
 @dataclass

@@ -14,7 +14,7 @@ sensor is digital (encoders).
   sensor frame, about its origin. Standing still, an ankle sensor reads +z force.
 """
 
-
+import math
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -23,6 +23,8 @@ from pydrake.common.value import AbstractValue
 from pydrake.multibody.math import SpatialForce
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.framework import Context, DiscreteValues, LeafSystem
+
+from hrp2_drake.robot import model
 
 
 @dataclass
@@ -94,6 +96,23 @@ class SensorsConfig:
         default_factory=lambda: NoiseConfig([0.005], [0.002, -0.001, 0.0015])
     )
     force_torque: dict[str, NoiseConfig] = field(default_factory=_default_ft)
+
+    def validate(self) -> None:
+        """Raises ValueError naming the bad field (yaml_load_typed does not call it):
+        the period must be finite and > 0, the seed >= 0, and each noise config must
+        hold 1 or as many values as its sensor has axes."""
+        if not (math.isfinite(self.period) and self.period > 0):
+            raise ValueError(
+                "SensorsConfig.period must be a finite number > 0 (s), "
+                f"got {self.period}"
+            )
+        if self.seed < 0:
+            raise ValueError(f"SensorsConfig.seed must be >= 0, got {self.seed}")
+        self.encoder.vectors(model.NUM_JOINTS, "SensorsConfig.encoder")
+        self.accelerometer.vectors(3, "SensorsConfig.accelerometer")
+        self.gyroscope.vectors(3, "SensorsConfig.gyroscope")
+        for name, noise in self.force_torque.items():
+            noise.vectors(6, f"SensorsConfig.force_torque.{name}")
 
     @staticmethod
     def noiseless(period: float = 0.001) -> "SensorsConfig":
