@@ -136,3 +136,18 @@ def test_model_error_and_extra_latency():
     servo = Hrp2ServoEmulation(exact, params, model.JOINT_NAMES, 1e-3, extra_latency=0.002)
     base = Hrp2ServoEmulation(exact, params, model.JOINT_NAMES, 1e-3)
     np.testing.assert_array_equal(servo.latency_periods, base.latency_periods + 2)
+
+
+def test_sensor_clock_stops_for_a_frozen_driver():
+    from hrp2_drake.robot.faults import SensorClock
+
+    clock = SensorClock(["a", "b"], [SensorFault("b", "freeze", 0.010, 0.005)], 0.001)
+    simulator = Simulator(clock)
+    context = simulator.get_context()
+    stamps = {}
+    for t in (0.0085, 0.0125, 0.0175):
+        simulator.AdvanceTo(t)
+        stamps[t] = clock.get_output_port().Eval(context).copy()
+    np.testing.assert_allclose(stamps[0.0085], [0.008, 0.008])
+    np.testing.assert_allclose(stamps[0.0125], [0.012, 0.009])  # b stopped at 9 ms
+    np.testing.assert_allclose(stamps[0.0175], [0.017, 0.017])

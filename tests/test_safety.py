@@ -137,3 +137,21 @@ def test_config_errors_name_the_field():
         SafetyConfig(stale_samples=1).validate()
     with pytest.raises(ValueError, match="unknown sensor kinds"):
         SafetySupervisor(2, {"x": "thermometer"}, SafetyConfig())
+
+
+def test_stale_stamps_are_caught_within_three_periods():
+    """With the drivers' time stamps (`sensor_time`), a sensor that stops sending is
+    stale once its latest sample is older than stale_time (2.5 periods)."""
+    h = _Harness()
+    h.system = SafetySupervisor(2, {"wrench_x": "wrench"}, h.system.config(), 2)
+    h.context = h.system.CreateDefaultContext()
+    h.fix()
+    for _ in range(10):
+        h.step(sensor_time=np.full(2, h.context.get_time() - PERIOD))
+    assert h.out("fault")[0] == 0.0
+    frozen = h.context.get_time() - PERIOD
+    faults = []
+    for _ in range(4):
+        h.step(sensor_time=np.array([h.context.get_time() - PERIOD, frozen]))
+        faults.append(int(h.out("fault")[0]) & 16)
+    assert faults[0] == 0 and faults[2] == 16

@@ -6,10 +6,12 @@ Sensor health (each a bit of the `fault` output, `FAULT_BITS`):
   - a NaN or infinite sample (encoders, IMU, F/T) or torque-chain command;
   - a value out of range (F/T force and torque, accelerometer, gyroscope);
   - an encoder jump no joint can make in one period (a glitch);
-  - a stale sensor: a noisy sensor (IMU, F/T) repeating its sample exactly for
-    `stale_samples` periods, or an encoder that does not move for
-    `encoder_stale_samples` periods while the reference moved (a frozen driver; a
-    joint at rest cannot be told from a frozen encoder, and then needs no torque);
+  - a stale sensor: its latest sample older than `stale_time` (the `sensor_time`
+    input: the stamps or sequence counters a driver sends); without stamps, a noisy
+    sensor (IMU, F/T) repeating its sample exactly for `stale_samples` periods, or an
+    encoder that does not move for `encoder_stale_samples` periods while the
+    reference moved (a joint at rest cannot be told from a frozen encoder without
+    stamps, and then needs no torque);
   - the emergency stop input, and the torque controller's own fallback.
 
 Mode: α in [0, 1] (0: position control, the robot's servo tracks q_position; 1: torque
@@ -31,6 +33,7 @@ measured when it was pressed (ramping down from torque control) until
     q_position ──────────►│                  ├──► mode (α)
     q_measured ──────────►│ SafetySupervisor ├──► fault (bits)
     <sensor> (each) ─────►│                  ├──► transition ([time, bits])
+    sensor_time (opt.) ──►│                  │
     e_stop (optional) ───►│                  │
     controller_fallback ─►│                  │
       (optional)          └──────────────────┘
@@ -87,6 +90,8 @@ class SafetyConfig:
         force_limit, torque_limit: F/T range (N, N·m).
         acceleration_limit: accelerometer range (m/s²).
         angular_velocity_limit: gyroscope range (rad/s).
+        stale_time: a sensor whose latest sample is older than this is stale (s; the
+            `sensor_time` input, the stamps a driver sends).
     """
 
     period: float = 0.001
@@ -101,12 +106,14 @@ class SafetyConfig:
     torque_limit: float = 300.0
     acceleration_limit: float = 100.0
     angular_velocity_limit: float = 20.0
+    stale_time: float = 0.0025
 
     def validate(self) -> None:
         where = "SafetyConfig"
         positive = (
             "period", "ramp_time", "encoder_motion", "encoder_jump_speed",
             "force_limit", "torque_limit", "acceleration_limit", "angular_velocity_limit",
+            "stale_time",
         )
         for name in positive:
             value = getattr(self, name)
@@ -133,11 +140,19 @@ class SafetySupervisor(LeafSystem):
             force), "acceleration" (3) or "angular_velocity" (3)); the input ports are
             named after them.
         config: the SafetyConfig.
+        num_sensor_stamps: the size of the optional `sensor_time` input (the time of
+            each sensor's latest sample); 0: no such input.
     """
 
     _KINDS = {"wrench": 6, "acceleration": 3, "angular_velocity": 3}
 
-    def __init__(self, num_joints: int, sensors: dict[str, str], config: SafetyConfig):
+    def __init__(
+        self,
+        num_joints: int,
+        sensors: dict[str, str],
+        config: SafetyConfig,
+        num_sensor_stamps: int = 0,
+    ):
         super().__init__()
         config.validate()
         unknown = {k for k in sensors.values() if k not in self._KINDS}
@@ -154,6 +169,11 @@ class SafetySupervisor(LeafSystem):
         ]
         self._e_stop = self.DeclareVectorInputPort("e_stop", 1)
         self._controller_fallback = self.DeclareVectorInputPort("controller_fallback", 1)
+        self._sensor_time = (
+            self.DeclareVectorInputPort("sensor_time", num_sensor_stamps)
+            if num_sensor_stamps
+            else None
+        )
         sensor_size = sum(self._KINDS[k] for k in sensors.values())
         # State.
         self._alpha = self.DeclareDiscreteState(1)
@@ -264,6 +284,10 @@ class SafetySupervisor(LeafSystem):
                     bits |= 16
                 state.set_value(self._sensor_count, count)
                 state.set_value(self._last_sensor, values)
+        if self._sensor_time is not None and self._sensor_time.HasValue(context):
+            age = context.get_time() - self._sensor_time.Eval(context)
+            if np.any(age > c.stale_time):
+                bits |= 16
         if self._e_stop.HasValue(context) and self._e_stop.Eval(context)[0] > 0:
             bits |= 64
         if (

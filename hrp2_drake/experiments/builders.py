@@ -44,7 +44,7 @@ from hrp2_drake.experiments import hrp2
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import joint_indexing
 from hrp2_drake.robot import model
-from hrp2_drake.robot.station import StationConfig, make_station
+from hrp2_drake.robot.station import SENSOR_SIGNALS, StationConfig, make_station
 
 #: The six components of Δq of paper Sec. 5.5 (the controller's seventh, the torque
 #: integral, is zero with the paper's K_i = 0).
@@ -233,6 +233,8 @@ class TorqueControlConfig:
 def _joint_inertia(plant, joints: list[str], q: np.ndarray) -> np.ndarray:
     """Diagonal of the mass matrix (kg·m², reflected rotor inertia included) of
     `joints` at the 30 joint angles q: what sets K_d for a damping ratio."""
+    if not np.all(np.isfinite(q)):
+        raise ValueError(f"the reference's joint angles at t = 0 are not finite: {q}")
     indexing = joint_indexing(plant, model.JOINT_NAMES)
     context = plant.CreateDefaultContext()
     x = plant.GetPositions(context)
@@ -364,7 +366,10 @@ def build_torque_control(
         supervisor = builder.AddNamedSystem(
             "safety_supervisor",
             SafetySupervisor(
-                model.NUM_JOINTS, supervisor_sensors(list(model.FT_SENSORS)), safety
+                model.NUM_JOINTS,
+                supervisor_sensors(list(model.FT_SENSORS)),
+                safety,
+                num_sensor_stamps=len(SENSOR_SIGNALS),
             ),
         )
         builder.Connect(q_cmd, supervisor.GetInputPort("q_torque"))
@@ -374,6 +379,9 @@ def build_torque_control(
         builder.Connect(
             torque.GetOutputPort("fallback_active"),
             supervisor.GetInputPort("controller_fallback"),
+        )
+        builder.Connect(
+            station.GetOutputPort("sensor_time"), supervisor.GetInputPort("sensor_time")
         )
         q_cmd = supervisor.GetOutputPort("q_cmd")
         supervisor_ports = {

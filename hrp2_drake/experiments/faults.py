@@ -241,15 +241,22 @@ def run_fault_campaign(config: FaultCampaignConfig, motor_model_path: Path, out:
         jobs += [(kind, config, case, str(motor_model_path), False) for case in cases]
     wall = time.perf_counter()
     results = []
-    with ProcessPoolExecutor(max_workers=config.jobs, mp_context=get_context("spawn")) as pool:
-        for k, result in enumerate(pool.map(_job, jobs)):
+
+    def collect(done) -> None:
+        for result in done:
             results.append(result)
             print(
-                f"faults: {k + 1}/{len(jobs)} {result['experiment']}: {result['case']} "
-                f"({result['seconds']:.0f} s)",
+                f"faults: {len(results)}/{len(jobs)} {result['experiment']}: "
+                f"{result['case']} ({result['seconds']:.0f} s)",
                 file=stream,
                 flush=True,
             )
+
+    if config.jobs == 1:  # in this process (e.g. inside reproduce's own workers)
+        collect(_job(job) for job in jobs)
+    else:
+        with ProcessPoolExecutor(config.jobs, mp_context=get_context("spawn")) as pool:
+            collect(pool.map(_job, jobs))
     summary = {
         "results": results,
         "config": asdict(config),

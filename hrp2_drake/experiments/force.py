@@ -502,9 +502,10 @@ def measure_static_wrench(
 
 def posture_gain(run: ForceRun) -> np.ndarray:
     """G (30, rad/N): the slope of a regression of each joint angle (encoders) on
-    f_ref,z − f0,z over the sinusoid of `run` (zero outside the right leg)."""
+    f_ref,z − f0,z over the sinusoid of `run` (zero outside the right leg). Samples
+    with a non-finite encoder reading (a sensor fault) are left out."""
     s, c = run.signals, run.config
-    on = s["t"] >= c.sinusoid_start
+    on = (s["t"] >= c.sinusoid_start) & np.all(np.isfinite(s["q_measured"]), axis=1)
     x = s["f_ref"][on, FZ] - run.static_wrench[FZ]
     gain = np.zeros(model.NUM_JOINTS)
     basis = np.column_stack([x, np.ones(len(x))])

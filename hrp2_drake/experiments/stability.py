@@ -240,6 +240,9 @@ def open_loop_config(config: StabilityConfig) -> TorqueControlConfig:
         feedback_velocity="estimate",
         friction_velocity="estimate",
         start_time=config.release_time,
+        # The experiment is the open loop released at once at speed (Sec. 5.2): no
+        # supervisor ramp, the controller's own latched fallback as the only guard.
+        supervised=False,
     )
 
 

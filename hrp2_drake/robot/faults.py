@@ -119,3 +119,36 @@ class FaultInjector(LeafSystem):
             else:  # bias, glitch
                 value[rows] += magnitude
         output.set_value(value)
+
+
+class SensorClock(LeafSystem):
+    """The time stamp of each sensor's latest sample, as a real driver reports it
+    (a message time, a sequence counter): updated every `period`, except while a
+    "freeze" fault holds that sensor (a stale driver sends nothing new).
+
+    .. code-block:: text
+
+        ┌─────────────┐
+        │ SensorClock ├──► sensor_time (one stamp per signal, s)
+        └─────────────┘
+    """
+
+    def __init__(self, signals: Sequence[str], faults: Sequence[SensorFault], period: float):
+        super().__init__()
+        self._freezes = [
+            (signals.index(f.signal), f.start, f.start + f.duration)
+            for f in faults
+            if f.kind == "freeze"
+        ]
+        self._stamps = self.DeclareDiscreteState(len(signals))
+        self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
+        self.DeclareStateOutputPort("sensor_time", self._stamps)
+
+    def _update(self, context: Context, state: DiscreteValues) -> None:
+        t = context.get_time()
+        stamps = context.get_discrete_state(self._stamps).get_value().copy()
+        frozen = {k for k, start, end in self._freezes if start <= t + 1e-9 < end}
+        for k in range(len(stamps)):
+            if k not in frozen:
+                stamps[k] = t
+        state.set_value(self._stamps, stamps)

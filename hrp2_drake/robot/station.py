@@ -7,6 +7,7 @@
     applied_spatial_force ►│   MultibodyPlant (HRP-2)     ├──► imu_linear_acceleration
                            │ + Hrp2ServoEmulation         ├──► imu_angular_velocity
                            │ + encoders, IMU, 4 F/T       ├──► wrench_<sensor> (x4)
+                           │   (+ fault injection)        ├──► sensor_time
                            │   (noise, bias, 1 kHz)       ├──► joint_torque_true
                            │                              ├──► state_true
                            │                              ├──► body_poses
@@ -50,7 +51,7 @@ from pydrake.systems.sensors import Accelerometer, Gyroscope
 
 from hrp2_drake.multibody import JointIndexing
 from hrp2_drake.robot import model
-from hrp2_drake.robot.faults import FaultInjector, SensorFault
+from hrp2_drake.robot.faults import FaultInjector, SensorClock, SensorFault
 from hrp2_drake.robot.sensors import ForceTorqueReadout, NoisySampler, SensorsConfig
 from hrp2_drake.robot.servo import (
     SERVO_MECHANISMS,
@@ -60,6 +61,13 @@ from hrp2_drake.robot.servo import (
 )
 
 SCENARIOS = ("fixed_base", "hanging", "standing", "standing_on_block")
+#: The sensor ports of the station, in the order of its `sensor_time` output.
+SENSOR_SIGNALS = (
+    "q_measured",
+    "imu_linear_acceleration",
+    "imu_angular_velocity",
+    *(f"wrench_{name}" for name in model.FT_SENSORS),
+)
 GRAVITY = 9.81
 
 
@@ -459,4 +467,10 @@ def _add_sensors(
     builder.Connect(sampled, demux.get_input_port())
     for k, name in enumerate(names):
         export(demux.get_output_port(k), f"wrench_{name}")
+
+    # The time stamp of every sensor's latest sample (SENSOR_SIGNALS order).
+    clock = builder.AddNamedSystem(
+        "sensor_clock", SensorClock(SENSOR_SIGNALS, faults, cfg.period)
+    )
+    builder.ExportOutput(clock.get_output_port(), "sensor_time")
 
