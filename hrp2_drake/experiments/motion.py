@@ -302,6 +302,7 @@ class ControllerRun:
     fallback_time: float | None  # s, when the torque controller fell back, if it did
     torque_estimation_rms: list[float] | None = None  # τ̂ vs truth (N·m), right leg
     torque_estimation_peak: list[float] | None = None
+    supervisor_faults: str | None = None  # what the SafetySupervisor saw, if anything
 
 
 def is_variant(label: str) -> bool:
@@ -355,6 +356,11 @@ def evaluate(label: str, k6, signals: dict, settle: float, delay: float) -> Cont
         np.sqrt(np.mean(error**2, axis=0)).tolist(),
         fallback,
     )
+    if "supervisor_fault" in signals:
+        from hrp2_drake.control.safety import describe_faults
+
+        bits = int(np.bitwise_or.reduce(signals["supervisor_fault"][:, 0].astype(int)))
+        run.supervisor_faults = describe_faults(bits)
     if "tau_estimated" in signals:
         shift = int(round(delay / (t[1] - t[0])))
         leg = [model.JOINT_NAMES.index(j) for j in model.RIGHT_LEG]
@@ -475,6 +481,7 @@ def write_motion_report(result: MotionResult, out: Path) -> dict:
             f"({', '.join(better_avg) or '-'}), lower maximum on {len(better_max)}/5 "
             f"({', '.join(better_max) or '-'})"
             + (f"; fell back to position control at {run.fallback_time:.2f} s" if run.fallback_time else "")
+            + (f"; safety supervisor saw: {run.supervisor_faults}" if run.supervisor_faults not in (None, "none") else "")
         )
     lines.append(
         f"\n\"Equivalent\" is within ±{EQUIVALENT * 100:.0f}% (the paper's own \"almost "
