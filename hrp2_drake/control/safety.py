@@ -7,11 +7,12 @@ Sensor health (each a bit of the `fault` output, `FAULT_BITS`):
   - a value out of range (F/T force and torque, accelerometer, gyroscope);
   - an encoder jump no joint can make in one period (a glitch);
   - a stale sensor: its latest sample older than `stale_time` (the `sensor_time`
-    input: the stamps or sequence counters a driver sends); without stamps, a noisy
-    sensor (IMU, F/T) repeating its sample exactly for `stale_samples` periods, or an
-    encoder that does not move for `encoder_stale_samples` periods while the
-    reference moved (a joint at rest cannot be told from a frozen encoder without
-    stamps, and then needs no torque);
+    input: the stamps or sequence counters a driver sends); a noisy sensor (IMU, F/T)
+    repeating its sample exactly for `stale_samples` periods (a stuck or zeroed
+    reading: a live noisy sensor never repeats); without stamps, also an encoder that
+    does not move for `encoder_stale_samples` periods while the reference moved (a
+    heuristic: a joint at rest cannot be told from a frozen encoder, and a joint
+    starting from rest can lag its reference that long);
   - the emergency stop input, and the torque controller's own fallback.
 
 Mode: α in [0, 1] (0: position control, the robot's servo tracks q_position; 1: torque
@@ -253,7 +254,11 @@ class SafetySupervisor(LeafSystem):
             count = np.where(same, count + 1, 0)
             anchor = np.where(same, anchor, q_position)
             moved = np.abs(q_position - anchor) > c.encoder_motion
-            if np.any((count >= c.encoder_stale_samples) & moved):
+            # Only without the drivers' stamps: a joint starting to move from rest
+            # (latency, dead zone, stiction) can stay on its count for several periods
+            # while its reference moves away.
+            stamped = self._sensor_time is not None and self._sensor_time.HasValue(context)
+            if not stamped and np.any((count >= c.encoder_stale_samples) & moved):
                 bits |= 32
             state.set_value(self._encoder_count, count)
             state.set_value(self._encoder_anchor, anchor)
