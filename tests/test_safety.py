@@ -155,3 +155,16 @@ def test_stale_stamps_are_caught_within_three_periods():
         h.step(sensor_time=np.array([h.context.get_time() - PERIOD, frozen]))
         faults.append(int(h.out("fault")[0]) & 16)
     assert faults[0] == 0 and faults[2] == 16
+
+
+def test_a_controller_that_keeps_faulting_is_not_retried_forever():
+    h = _Harness(max_reentries=2).step(20)
+    modes = []
+    for _ in range(3):
+        h.step(q_measured=np.array([np.nan, 0.0]))
+        h.step(q_measured=np.array([0.0, 0.0]))
+        h.step(40)
+        modes.append(h.out("mode")[0])
+    assert modes == [1.0, 1.0, 0.0]  # resumed twice, then position control stays
+    h.step(100)
+    assert h.out("mode")[0] == 0.0

@@ -23,7 +23,8 @@ controller's own fallback) on, q_torque is replaced by the torque chain's last h
 offset from q_position, q_position + α (q_torque − q_position)_last, until torque control
 is wanted again: neither a NaN nor the chain's jump to its own fallback reaches the
 robot, and q_cmd moves with the reference while the offset ramps away. Torque control starts at start_time and resumes once every
-fault has been clear for reentry_time. The emergency stop latches: the robot holds the pose
+fault has been clear for reentry_time (at most max_reentries times: then position
+control stays). The emergency stop latches: the robot holds the pose
 measured when it was pressed (ramping down from torque control) until
 `reset_emergency_stop`.
 
@@ -93,6 +94,9 @@ class SafetyConfig:
         angular_velocity_limit: gyroscope range (rad/s).
         stale_time: a sensor whose latest sample is older than this is stale (s; the
             `sensor_time` input, the stamps a driver sends).
+        max_reentries: torque control resumes after at most this many faults; the
+            next one leaves the robot in position control for good (a controller that
+            keeps faulting is not retried forever).
     """
 
     period: float = 0.001
@@ -108,6 +112,7 @@ class SafetyConfig:
     acceleration_limit: float = 100.0
     angular_velocity_limit: float = 20.0
     stale_time: float = 0.0025
+    max_reentries: int = 3
 
     def validate(self) -> None:
         where = "SafetyConfig"
@@ -126,6 +131,8 @@ class SafetyConfig:
                 raise ValueError(f"{where}.{name}: must be finite and >= 0, got {value}")
         if self.stale_samples == 1 or self.stale_samples < 0:
             raise ValueError(f"{where}.stale_samples: must be 0 or >= 2, got {self.stale_samples}")
+        if self.max_reentries < 0:
+            raise ValueError(f"{where}.max_reentries: must be >= 0, got {self.max_reentries}")
         if self.encoder_stale_samples < 2:
             raise ValueError(
                 f"{where}.encoder_stale_samples: must be >= 2, got {self.encoder_stale_samples}"
@@ -190,7 +197,7 @@ class SafetySupervisor(LeafSystem):
         self._sensor_count = self.DeclareDiscreteState(sensor_size)
         self._hold = self.DeclareDiscreteState(n + 1)  # [e-stop pose; pressed]
         self._started = self.DeclareDiscreteState(1)
-        self._had_fault = self.DeclareDiscreteState(1)  # a fault since start_time
+        self._had_fault = self.DeclareDiscreteState(1)  # faults since start_time
         self._want_torque = self.DeclareDiscreteState(1)  # ramping up or in torque
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
         self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
@@ -327,14 +334,16 @@ class SafetySupervisor(LeafSystem):
         # fault has been clear for reentry_time.
         alpha = context.get_discrete_state(self._alpha).get_value()[0]
         running = t + 0.5 * c.period >= c.start_time
-        had_fault = context.get_discrete_state(self._had_fault).get_value()[0] > 0
-        if running and bits:
-            state.set_value(self._had_fault, [1.0])
+        faults = context.get_discrete_state(self._had_fault).get_value()[0]
+        if running and bits and not previous_bits:
+            faults += 1
+            state.set_value(self._had_fault, [faults])
         want_torque = (
             running
             and bits == 0
             and hold[-1] == 0
-            and (not had_fault or clear >= c.reentry_time)
+            and faults <= c.max_reentries
+            and (faults == 0 or clear >= c.reentry_time)
         )
         state.set_value(self._want_torque, [1.0 if want_torque else 0.0])
         # The last command of a healthy torque chain in use: what a ramp down starts
