@@ -168,8 +168,8 @@ class TorqueControlConfig:
     (K_v/K_τ)(q̇_d − q̇), so K_d of eq. 12 is not needed. e_q from the 40 ms-old q̂ is
     what makes the paper's eq. 12-13 as written unstable: with K6 = 1 it is the servo's
     whole stiffness acting on a 40 ms-old position (it diverges on the `ideal` servo,
-    and oscillates at 76-137 mrad on the calibrated one, bounded only by the voltage
-    limit); the raw encoders avoid it, as the authors' code did. Causal ("end")
+    and, unsupervised, oscillates at 76-137 mrad on the calibrated one, bounded only by
+    the voltage limit); the raw encoders avoid it, as the authors' code did. Causal ("end")
     filters remove the delay but their derivatives are too noisy for K_p = 2.
         force_frame: frame of the force task ("" = motion control only).
         kf: force-feedback gain K_f (one value or 6).
