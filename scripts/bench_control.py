@@ -16,6 +16,7 @@ from hrp2_drake.control.inverse_dynamics import (
     InverseDynamicsController,
     make_fixed_base_plant,
 )
+from hrp2_drake.control.safety import SafetyConfig, SafetySupervisor, supervisor_sensors
 from hrp2_drake.control.torque_controller import (
     DeltaQTorqueController,
     TorqueControllerConfig,
@@ -62,10 +63,34 @@ def bench_controller_stack(ticks: int = 2000) -> list[dict]:
                         ("v", np.full(n, 0.2)), ("q_measured", q)):
         torque.GetInputPort(name).FixValue(context, value)
     dq_us = _us_per_update(torque, context, ticks)
+
+    # The safety supervisor of the 30 joints with HRP-2's sensors (stamps included):
+    # its update, and its q_cmd output (computed from live inputs every period).
+    sensors = supervisor_sensors(list(model.FT_SENSORS))
+    supervisor = SafetySupervisor(
+        model.NUM_JOINTS, sensors, SafetyConfig(start_time=0.0), num_sensor_stamps=7
+    )
+    context = supervisor.CreateDefaultContext()
+    rng = np.random.default_rng(0)
+    q30 = model.half_sitting()
+    for name, value in (("q_torque", q30 + 1e-3), ("q_position", q30), ("q_measured", q30)):
+        supervisor.GetInputPort(name).FixValue(context, value)
+    for name, kind in sensors.items():
+        size = 6 if kind == "wrench" else 3
+        supervisor.GetInputPort(name).FixValue(context, rng.normal(0, 1, size))
+    supervisor.GetInputPort("sensor_time").FixValue(context, np.zeros(7))
+    start = time.perf_counter()
+    for tick in range(ticks):
+        context.SetTime(tick * PERIOD)
+        supervisor.GetInputPort("sensor_time").FixValue(context, np.full(7, (tick - 1) * PERIOD))
+        context.SetDiscreteState(supervisor.EvalUniquePeriodicDiscreteUpdate(context))
+        supervisor.GetOutputPort("q_cmd").Eval(context)
+    sup_us = (time.perf_counter() - start) / ticks * 1e6
     return [
         {"name": "InverseDynamicsController update (6 joints)", "us_per_tick": id_us},
         {"name": "DeltaQTorqueController update (6 joints)", "us_per_tick": dq_us},
         {"name": "controller stack (both)", "us_per_tick": id_us + dq_us},
+        {"name": "SafetySupervisor update + q_cmd (30 joints, 6 sensors)", "us_per_tick": sup_us},
     ]
 
 
