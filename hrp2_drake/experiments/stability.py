@@ -359,7 +359,7 @@ def predicted_thresholds(
     with Δq = (K̂_v + δ_c − δ − d) q̇ (δ = 1 ms, the command's delay; d, the servo's
     command latency) pushes the joint along q̇, the current limited by the voltage
     limit; None if none below 10 rad/s."""
-    from hrp2_drake.robot.servo import load_servo_params
+    from hrp2_drake.robot.servo import load_servo_params, servo_torque
 
     servo = load_servo_params(config.station.servo_file or None)
     p = {k: float(x[0]) for k, x in servo.vectors([config.joint]).items()}
@@ -369,17 +369,8 @@ def predicted_thresholds(
         found = None
         for speed in np.arange(0.01, 10.0, 0.01):
             v = sign * speed
-            u = p["k4"] * k_v * v - p["k5"] * v
-            current = np.sign(u) * max(abs(u) - p["i_deadzone"], 0.0)
-            back_emf = v / p["no_load_speed"]
-            current = np.clip(
-                current,
-                max(-p["i_max"], -p["stall_current"] * (1 + back_emf)),
-                min(p["i_max"], p["stall_current"] * (1 - back_emf)),
-            )
-            smooth = math.tanh(v / p["v_coulomb"])
-            k1 = p["k1"] * (1 + p["k1_asymmetry"] * smooth)
-            torque = k1 * current - p["k2"] * v - p["k3"] * smooth
+            # Steady speed: the board sees the error k_v q̇, the direction is settled.
+            torque = servo_torque(p, k_v * v, v, math.tanh(v / p["v_coulomb"]))
             if torque * sign > 0:
                 found = float(speed)
                 break

@@ -244,6 +244,24 @@ def explicit_stability_margin(
     return radius
 
 
+def servo_torque(
+    p: dict[str, np.ndarray], error: np.ndarray, v: np.ndarray, direction: np.ndarray
+) -> np.ndarray:
+    """The servo law (module docstring), N·m: joint torque for the position error
+    e = q_cmd − q_encoder (rad) the board sees, the joint velocity v (rad/s) and the
+    direction state (tanh(q̇ / v_s) without hysteresis). `p`: `ServoParams.vectors`
+    (arrays over the joints, or one joint's scalars)."""
+    u = p["k4"] * error - p["k5"] * v
+    current = np.sign(u) * np.maximum(np.abs(u) - p["i_deadzone"], 0.0)
+    # Driver limit and the voltage limit |R i + k_e ρ q̇| <= V (v / inf = 0: no limit).
+    back_emf = v / p["no_load_speed"]
+    upper = np.minimum(p["i_max"], p["stall_current"] * (1.0 - back_emf))
+    lower = np.maximum(-p["i_max"], -p["stall_current"] * (1.0 + back_emf))
+    current = np.clip(current, lower, upper)
+    k1 = p["k1"] * (1.0 + p["k1_asymmetry"] * direction)
+    return k1 * current - p["k2"] * v - p["k3"] * direction
+
+
 def dahl_step(s: np.ndarray, dq: np.ndarray, width: np.ndarray) -> np.ndarray:
     """Direction state after the joint moved dq (rad): the exact solution of Dahl's
     ds/dq = (1 - s sign(dq)) / width over the step; stays in [-1, 1]."""
@@ -320,14 +338,8 @@ class Hrp2ServoEmulation(LeafSystem):
             )
         delays = delays + int(np.rint(extra_latency / period))
         self._p = p
-        self._off = tuple(off)
-        self._period = period
         self._delays = delays
         self._dahl = p["hysteresis_width"] > 0
-        finite = np.isfinite(p["no_load_speed"])
-        self._inverse_no_load_speed = np.where(
-            finite, 1.0 / np.where(finite, p["no_load_speed"], 1.0), 0.0
-        )
         self._width = np.where(self._dahl, p["hysteresis_width"], 1.0)
         self._nq = plant.num_positions()
         self._num_actuators = plant.num_actuators()
@@ -342,23 +354,19 @@ class Hrp2ServoEmulation(LeafSystem):
             raise ValueError(
                 f"Hrp2ServoEmulation: initial_q_cmd has {initial.size} values, expected {n}"
             )
-        # [s (n); commands in transit, newest first (depth x n)]; s and the last
-        # encoder-side position for the Dahl state's travel.
+        # The direction state s, the joint positions of the last update (the travel
+        # that moves s), and the commands in transit, newest first (depth x n).
         self._depth = depth
         self._xs = self.DeclareDiscreteState(np.zeros(n))
         self._x_last_q = self.DeclareDiscreteState(np.zeros(n))
         self._x_transit = self.DeclareDiscreteState(np.tile(initial, depth) if depth else np.zeros(0))
-        self._q_initialized = self.DeclareDiscreteState(np.zeros(1))
+        self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
         self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
         self.DeclareVectorOutputPort("actuation", plant.num_actuators(), self._calc)
 
     @property
     def joint_names(self) -> tuple[str, ...]:
         return self._indexing.names
-
-    @property
-    def mechanisms_off(self) -> tuple[str, ...]:
-        return self._off
 
     @property
     def latency_periods(self) -> np.ndarray:
@@ -379,18 +387,10 @@ class Hrp2ServoEmulation(LeafSystem):
         p = self._p
         res = p["encoder_resolution"]
         q_encoder = np.where(res > 0, np.round(q / np.where(res > 0, res, 1)) * res, q)
-        u = p["k4"] * (q_cmd - q_encoder) - p["k5"] * v
-        current = np.sign(u) * np.maximum(np.abs(u) - p["i_deadzone"], 0.0)
-        # Driver limit and the voltage limit: |R i + k_e ρ q̇| <= V.
-        back_emf = v * self._inverse_no_load_speed
-        upper = np.minimum(p["i_max"], p["stall_current"] * (1.0 - back_emf))
-        lower = np.maximum(-p["i_max"], -p["stall_current"] * (1.0 + back_emf))
-        current = np.clip(current, lower, upper)
         direction = np.tanh(v / p["v_coulomb"])
         if s is not None:
             direction = np.where(self._dahl, s, direction)
-        k1 = p["k1"] * (1.0 + p["k1_asymmetry"] * direction)
-        return k1 * current - p["k2"] * v - p["k3"] * direction
+        return servo_torque(p, q_cmd - q_encoder, v, direction)
 
     def _joint_state(self, context: Context) -> tuple[np.ndarray, np.ndarray]:
         x = self._state.Eval(context)
@@ -414,15 +414,15 @@ class Hrp2ServoEmulation(LeafSystem):
         delayed = transit[rows, np.arange(self._n)]
         return np.where(self._delays > 0, delayed, q_cmd)
 
+    def _initialize(self, context: Context, state: DiscreteValues) -> None:
+        state.set_value(self._x_last_q, self._joint_state(context)[0])
+
     def _update(self, context: Context, state: DiscreteValues) -> None:
         q, _ = self._joint_state(context)
         s = context.get_discrete_state(self._xs).get_value()
-        last_q = context.get_discrete_state(self._x_last_q).get_value()
-        started = context.get_discrete_state(self._q_initialized).get_value()[0] > 0
-        travel = q - last_q if started else np.zeros(self._n)
+        travel = q - context.get_discrete_state(self._x_last_q).get_value()
         state.set_value(self._xs, np.where(self._dahl, dahl_step(s, travel, self._width), 0.0))
         state.set_value(self._x_last_q, q)
-        state.set_value(self._q_initialized, [1.0])
         if self._depth:
             transit = context.get_discrete_state(self._x_transit).get_value()
             q_cmd = self._checked_command(context)
