@@ -196,8 +196,7 @@ class SafetySupervisor(LeafSystem):
         self._last_sensor = self.DeclareDiscreteState(sensor_size)
         self._sensor_count = self.DeclareDiscreteState(sensor_size)
         self._hold = self.DeclareDiscreteState(n + 1)  # [e-stop pose; pressed]
-        self._started = self.DeclareDiscreteState(1)
-        self._had_fault = self.DeclareDiscreteState(1)  # faults since start_time
+        self._fault_count = self.DeclareDiscreteState(1)  # faults since start_time
         self._want_torque = self.DeclareDiscreteState(1)  # ramping up or in torque
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
         self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
@@ -247,11 +246,10 @@ class SafetySupervisor(LeafSystem):
         bits = 0
         q = self._q_measured.Eval(context)
         last = context.get_discrete_state(self._last_encoder).get_value()
-        started = context.get_discrete_state(self._started).get_value()[0] > 0
         if not math.isfinite(q.sum()):
             bits |= 1
         else:
-            if started and np.any(np.abs(q - last) > c.encoder_jump_speed * c.period):
+            if np.any(np.abs(q - last) > c.encoder_jump_speed * c.period):
                 bits |= 8
             # Frozen encoder: unchanged while the reference moved.
             q_position = self._q_position.Eval(context)
@@ -292,7 +290,7 @@ class SafetySupervisor(LeafSystem):
                 last_sensor = context.get_discrete_state(self._last_sensor).get_value()
                 count = context.get_discrete_state(self._sensor_count).get_value()
                 count = np.where(values == last_sensor, count + 1, 0)
-                if c.stale_samples and started and np.any(count >= c.stale_samples - 1):
+                if c.stale_samples and np.any(count >= c.stale_samples - 1):
                     bits |= 16
                 state.set_value(self._sensor_count, count)
                 state.set_value(self._last_sensor, values)
@@ -315,7 +313,6 @@ class SafetySupervisor(LeafSystem):
         c = self._config
         t = context.get_time()
         bits = self._health(context, state)
-        state.set_value(self._started, [1.0])
         previous_bits = int(context.get_discrete_state(self._fault).get_value()[0])
         state.set_value(self._fault, [float(bits)])
         clear = context.get_discrete_state(self._clear_time).get_value()[0]
@@ -334,10 +331,10 @@ class SafetySupervisor(LeafSystem):
         # fault has been clear for reentry_time.
         alpha = context.get_discrete_state(self._alpha).get_value()[0]
         running = t + 0.5 * c.period >= c.start_time
-        faults = context.get_discrete_state(self._had_fault).get_value()[0]
+        faults = context.get_discrete_state(self._fault_count).get_value()[0]
         if running and bits and not previous_bits:
             faults += 1
-            state.set_value(self._had_fault, [faults])
+            state.set_value(self._fault_count, [faults])
         want_torque = (
             running
             and bits == 0
