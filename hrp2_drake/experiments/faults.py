@@ -10,6 +10,8 @@ fault and against position control, the largest step of q_cmd beyond the referen
 own motion, and whether anything raised or diverged.
 """
 
+import functools
+import io
 import json
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -20,9 +22,18 @@ from pathlib import Path
 import numpy as np
 
 from hrp2_drake.control.safety import describe_faults
+from hrp2_drake.experiments import hrp2
+from hrp2_drake.experiments.builders import (
+    TorqueControlConfig,
+    build_position_control,
+    build_torque_control,
+)
+from hrp2_drake.experiments.force import ForceConfig, run_force
+from hrp2_drake.experiments.motion import MotionConfig, _reference, run_controller
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.robot import model
 from hrp2_drake.robot.faults import SensorFault
+from hrp2_drake.robot.station import StationConfig
 
 #: Tracking during a fault may exceed position control's by at most this (rad), and a
 #: mode switch may step q_cmd by at most this beyond the reference's motion (rad).
@@ -106,14 +117,6 @@ def _shifted(case: FaultCase, t0: float) -> list[SensorFault]:
 
 def _motion_run(config: FaultCampaignConfig, case: FaultCase | None, motor_path: str,
                 position_control: bool = False) -> dict:
-    from hrp2_drake.experiments.builders import (
-        TorqueControlConfig,
-        build_position_control,
-        build_torque_control,
-    )
-    from hrp2_drake.experiments.motion import MotionConfig, _reference, run_controller
-    from hrp2_drake.robot.station import StationConfig
-
     t_fault = config.motion_fault_time
     station = StationConfig(scenario="hanging")
     torque = TorqueControlConfig(k6=config.k6, offset_calibration_time=0.25)
@@ -128,16 +131,11 @@ def _motion_run(config: FaultCampaignConfig, case: FaultCase | None, motor_path:
         control = build_position_control(station, reference)
     else:
         control = build_torque_control(station, reference, MotorModel.load(motor_path), torque)
-    import io
-
     signals = run_controller(control, reference.end_time(), "faults", stream=io.StringIO())
     return _summarize(signals, t_fault, "motion")
 
 
 def _force_run(config: FaultCampaignConfig, case: FaultCase | None, motor_path: str) -> dict:
-    from hrp2_drake.experiments.force import ForceConfig, run_force
-    from hrp2_drake.robot.station import StationConfig
-
     t_fault = config.force_fault_time
     force = ForceConfig()
     force.ablations = []
@@ -161,16 +159,20 @@ def _force_run(config: FaultCampaignConfig, case: FaultCase | None, motor_path: 
     return out
 
 
+@functools.cache
+def _joint_positions() -> np.ndarray:
+    """Where the 30 joint angles are in the floating-base station's state."""
+    return model.hrp2_joint_indexing(hrp2.estimator_plant()).q
+
+
 def _summarize(signals: dict, t_fault: float, experiment: str) -> dict:
     """What the campaign reports of one run (see the module docstring)."""
-    from hrp2_drake.experiments import hrp2
-
     t = signals["t"]
     leg = [model.JOINT_NAMES.index(j) for j in model.RIGHT_LEG]
     after = t >= t_fault
     # Tracking against the true joint angles (ground truth, for evaluation): a faulty
     # encoder is what the controllers see, not where the leg is.
-    q_true = signals["state_true"][:, model.hrp2_joint_indexing(hrp2.estimator_plant()).q]
+    q_true = signals["state_true"][:, _joint_positions()]
     error = signals["q_ref"][:, leg] - q_true[:, leg]
     finite = np.all(np.isfinite(error), axis=1)
     out = {
@@ -271,11 +273,10 @@ def run_fault_campaign(config: FaultCampaignConfig, motor_model_path: Path, out:
     }
     summary["verdict"] = _verdict(results)
     figure = _plot(results, out)
-    traces = [r.pop("trace", None) for r in results]
+    for result in results:  # plotted; the summary keeps the numbers
+        result.pop("trace", None)
     (out / "faults.json").write_text(json.dumps(summary, indent=2, default=float))
     (out / "faults.md").write_text(_report(summary, out) + f"\n![{figure}]({figure})\n")
-    for r, trace in zip(results, traces):
-        r["trace"] = trace
     return summary
 
 

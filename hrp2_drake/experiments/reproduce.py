@@ -189,10 +189,7 @@ def step_estimation(out: Path, model_path: Path, quick: bool, replays: bool) -> 
 def step_faults(out: Path, model_path: Path, quick: bool, replays: bool) -> dict:
     from hrp2_drake.experiments.faults import FaultCampaignConfig, run_fault_campaign
 
-    summary = run_fault_campaign(FaultCampaignConfig(quick=quick, jobs=1), model_path, out)
-    for result in summary["results"]:
-        result.pop("trace", None)
-    return summary
+    return run_fault_campaign(FaultCampaignConfig(quick=quick, jobs=1), model_path, out)
 
 
 STEP_FUNCTIONS: dict[str, Callable] = {
