@@ -88,16 +88,16 @@ def add_hrp2_with_model_error(
     [1 - error, 1 + error] (uniform, repeatable by seed; rotational inertias scale with
     the mass): a controller's or estimator's model that is wrong about the robot.
     error = 0 is `add_hrp2`."""
-    import re
     import xml.etree.ElementTree as ElementTree
 
     if not 0 <= error < 1:
         raise ValueError(f"add_hrp2_with_model_error: error={error} must be in [0, 1)")
-    text = (models_dir() / URDF_FILE).read_text()
     if error == 0:
         return add_hrp2(plant)
+    # Keep the file's `drake:` prefix on the tags Drake reads (gear ratio, rotor).
+    ElementTree.register_namespace("drake", "http://drake.mit.edu")
     rng = np.random.default_rng(seed)
-    root = ElementTree.fromstring(text)
+    root = ElementTree.fromstring((models_dir() / URDF_FILE).read_text())
     for inertial in root.iter("inertial"):
         mass_scale, com_scale = (float(v) for v in 1.0 + error * rng.uniform(-1.0, 1.0, 2))
         mass = inertial.find("mass")
@@ -109,11 +109,6 @@ def add_hrp2_with_model_error(
         xyz = [float(v) * com_scale for v in origin.get("xyz").split()]
         origin.set("xyz", " ".join(f"{v:.9g}" for v in xyz))
     perturbed = ElementTree.tostring(root, encoding="unicode")
-    # ElementTree writes the drake: namespace as ns0; keep the file's prefix.
-    perturbed = re.sub(r"ns\d+:", "drake:", perturbed)
-    perturbed = re.sub(r'xmlns:drake="[^"]*"', "", perturbed)
-    header = 'xmlns:drake="http://drake.mit.edu"'
-    perturbed = perturbed.replace("<robot ", f"<robot {header} ", 1)
     (instance,) = Parser(plant).AddModelsFromString(perturbed, "urdf")
     return instance
 
