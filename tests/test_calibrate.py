@@ -12,11 +12,14 @@ from hrp2_drake.experiments.calibrate import (
     CalibrationConfig,
     build_servo,
     pwl_priors,
-    write_servo_yaml,
 )
 from hrp2_drake.experiments.identification import PAPER_TABLE1
 from hrp2_drake.robot import model
-from hrp2_drake.robot.servo import effective_motor_parameters, load_servo_params
+from hrp2_drake.robot.servo import (
+    effective_motor_parameters,
+    load_servo_params,
+    save_servo_params,
+)
 
 TABLE1_K_TAU, TABLE1_K_V = np.array([PAPER_TABLE1[j] for j in model.RIGHT_LEG]).T * 1e-3
 
@@ -64,7 +67,7 @@ def test_committed_servo_is_what_calibrate_writes(tmp_path):
     }
     rebuilt = build_servo(CalibrationConfig(), speeds)
     path = tmp_path / "servo.yaml"
-    write_servo_yaml(rebuilt, path, ["test"])
+    save_servo_params(rebuilt, path, ["test"])
     again = load_servo_params(path)
     for name in model.JOINT_NAMES:
         a, b = committed.joints[name], again.joints[name]

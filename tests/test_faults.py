@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
-from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
 
 from hrp2_drake.experiments import hrp2
 from hrp2_drake.experiments.builders import (
@@ -17,7 +16,6 @@ from hrp2_drake.experiments.builders import (
 from hrp2_drake.experiments.motion import run_controller
 from hrp2_drake.robot import model
 from hrp2_drake.robot.faults import FaultInjector, SensorFault
-from hrp2_drake.robot.sensors import SensorsConfig
 from hrp2_drake.robot.station import StationConfig, initial_joint_positions
 
 

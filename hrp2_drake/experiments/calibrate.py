@@ -30,7 +30,6 @@ numbers.
 
 import io
 import json
-import math
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -56,6 +55,7 @@ from hrp2_drake.robot.servo import (
     ServoParams,
     effective_motor_parameters,
     load_servo_params,
+    save_servo_params,
 )
 from hrp2_drake.robot.station import StationConfig
 
@@ -207,18 +207,6 @@ def build_servo(
     return out
 
 
-def write_servo_yaml(params: ServoParams, path: Path, header: list[str]) -> None:
-    """Writes a servo data file (every parameter of every joint, 9 digits)."""
-    lines = [f"# {h}" if h else "#" for h in header]
-    lines.append("joints:")
-    for name, joint in params.joints.items():
-        lines.append(f"  {name}:")
-        for key, value in asdict(joint).items():
-            text = ".inf" if value == math.inf else f"{value:.9g}"
-            lines.append(f"    {key}: {text}")
-    path.write_text("\n".join(lines) + "\n")
-
-
 def position_control_errors(
     servo_file: str,
     settle: float = 1.0,
@@ -255,7 +243,7 @@ def position_control_errors(
 def _evaluate(args: tuple) -> dict:
     """Process-pool worker: writes the servo for `speeds` and runs position control."""
     config, speeds, path, off = args
-    write_servo_yaml(build_servo(config, speeds), Path(path), ["calibration candidate"])
+    save_servo_params(build_servo(config, speeds), Path(path), ["calibration candidate"])
     result = position_control_errors(path, config.settle, off, end=config.end)
     return {k: v.tolist() for k, v in result.items()}
 
@@ -424,7 +412,7 @@ def run_calibration(config: CalibrationConfig, work: Path, stream=None) -> Calib
         print(f"calibrate: {solution.message}", file=stream, flush=True)
         # The calibrated servo, the ideal preset and each mechanism off, in parallel.
         final_path = work / "servo.yaml"
-        write_servo_yaml(build_servo(config, speeds), final_path, ["calibrated"])
+        save_servo_params(build_servo(config, speeds), final_path, ["calibrated"])
         from hrp2_drake.robot.servo import SERVO_MECHANISMS
 
         runs = {"calibrated": (str(final_path), ()), "ideal": ("ideal", ())}
@@ -672,9 +660,9 @@ def calibrate(config: CalibrationConfig, out: Path, install: bool = False, strea
         + ", ".join(f"{k} {v:.4g}" for k, v in result.speeds.items()),
     ]
     servo = build_servo(config, result.speeds)
-    write_servo_yaml(servo, out / "servo.yaml", header)
+    save_servo_params(servo, out / "servo.yaml", header)
     if install:
-        write_servo_yaml(servo, models_dir() / SERVO_FILE, header)
+        save_servo_params(servo, models_dir() / SERVO_FILE, header)
         print(f"calibrate: wrote {models_dir() / SERVO_FILE}", file=stream, flush=True)
     summary = write_calibration_report(result, config, out)
     print(f"calibrate: wrote {out / 'calibration.md'} ({result.wall_time / 60:.1f} min)", file=stream)

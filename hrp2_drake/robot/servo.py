@@ -40,7 +40,7 @@ discrete closed loop; tests/test_servo.py checks it and a closed-loop run.
 
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Sequence
 
@@ -164,6 +164,20 @@ def load_servo_params(path: str | Path | None = None) -> ServoParams:
     params = yaml_load_typed(schema=ServoParams, filename=str(filename))
     params.validate(str(filename))
     return params
+
+
+def save_servo_params(params: ServoParams, path: str | Path, header: Sequence[str]) -> None:
+    """Writes a servo data file that `load_servo_params` reads back: every parameter
+    of every joint (9 significant digits, .inf for no limit), after `header` as
+    comment lines."""
+    lines = [f"# {h}" if h else "#" for h in header]
+    lines.append("joints:")
+    for name, joint in params.joints.items():
+        lines.append(f"  {name}:")
+        for key, value in asdict(joint).items():
+            text = ".inf" if value == math.inf else f"{value:.9g}"
+            lines.append(f"    {key}: {text}")
+    Path(path).write_text("\n".join(lines) + "\n")
 
 
 def effective_motor_parameters(
