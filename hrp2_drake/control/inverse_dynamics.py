@@ -277,8 +277,11 @@ class InverseDynamicsController(LeafSystem):
     model's business (eq. 10) and because the torque estimate τ̂ (eq. 2) is a
     rigid-body torque too; Sec. 4.2 needs the same ĥ in both.
 
-    Errors: a NaN or infinite input raises ValueError naming the port; an unknown
-    joint or frame name raises KeyError; a floating-base plant without
+    Errors: in the periodic update a NaN or infinite sample of q_ref, v_ref, vdot_ref,
+    q, v, f_ref or f makes every output NaN (logged once), so that the Δq controller
+    falls back to position control instead of the loop stopping; `compute` and the
+    base inputs raise ValueError naming the port; an unknown joint or frame name
+    raises KeyError; a floating-base plant without
     config.floating_base (or the converse) raises ValueError.
     """
 
@@ -587,7 +590,8 @@ class InverseDynamicsController(LeafSystem):
         ports = [self._q_ref, self._v_ref, self._vdot_ref, self._q, self._v]
         if self._force_frame is not None:
             ports += [self._f_ref, self._f]
-        bad = [p.get_name() for p in ports if not math.isfinite(p.Eval(context).sum())]
+        values = [port.Eval(context) for port in ports]
+        bad = [p.get_name() for p, x in zip(ports, values) if not math.isfinite(x.sum())]
         if bad:
             if math.isfinite(context.get_discrete_state(self._tau_state).get_value().sum()):
                 _logger.warning(
@@ -601,16 +605,8 @@ class InverseDynamicsController(LeafSystem):
                 size = discrete_state.get_vector(state).size()
                 discrete_state.get_mutable_vector(state).SetFromVector(np.full(size, np.nan))
             return
-        q_ref = self._read(self._q_ref, context)
-        v_ref = self._read(self._v_ref, context)
-        vdot_ref = self._read(self._vdot_ref, context)
-        q = self._read(self._q, context)
-        v = self._read(self._v, context)
-        if self._force_frame is not None:
-            f_ref = self._read(self._f_ref, context)
-            f = self._read(self._f, context)
-        else:
-            f_ref = f = self._zero6
+        q_ref, v_ref, vdot_ref, q, v = values[:5]
+        f_ref, f = values[5:] if self._force_frame is not None else (self._zero6, self._zero6)
         terms = self._eq12(
             q_ref,
             v_ref,

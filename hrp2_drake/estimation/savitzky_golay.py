@@ -221,6 +221,8 @@ class SavitzkyGolayFilter(LeafSystem):
         self._ring_group = int(self._ring)
         self._estimate_groups = [int(group) for group in self._estimates]
         self._time_group = int(self._evaluation_time)
+        self._fault_group = int(self._fault)
+        self._fault_total_group = int(self._fault_total)
         self._fit = np.zeros((order + 1, k))
         names = ("value", "derivative", "second_derivative")
         for name, group in zip(names, self._estimates):
@@ -288,7 +290,7 @@ class SavitzkyGolayFilter(LeafSystem):
         samples = discrete_state.get_mutable_value(self._samples_group)
         samples = samples.reshape(N, self._num_signals)  # a view on the state
         num_samples = int(ring[1])
-        fault = discrete_state.get_mutable_value(int(self._fault))
+        fault = discrete_state.get_mutable_value(self._fault_group)
         if math.isfinite(u.sum()):
             fault[0] = 0.0
         else:
@@ -296,7 +298,7 @@ class SavitzkyGolayFilter(LeafSystem):
             previous = samples[int(ring[0])] if num_samples > 0 else np.zeros_like(u)
             u = np.where(np.isfinite(u), u, previous)
             fault[0] += 1.0
-            discrete_state.get_mutable_value(int(self._fault_total))[0] += 1.0
+            discrete_state.get_mutable_value(self._fault_total_group)[0] += 1.0
         row = (int(ring[0]) + 1) % N if num_samples > 0 else N - 1
         ring[0] = row
         ring[1] = min(num_samples + 1, N)
