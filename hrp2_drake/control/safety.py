@@ -183,6 +183,15 @@ class SafetySupervisor(LeafSystem):
             else None
         )
         sensor_size = sum(self._KINDS[k] for k in sensors.values())
+        # The range of every monitored entry, in input order.
+        ranges = {
+            "wrench": [config.torque_limit] * 3 + [config.force_limit] * 3,
+            "acceleration": [config.acceleration_limit] * 3,
+            "angular_velocity": [config.angular_velocity_limit] * 3,
+        }
+        self._sensor_limits = np.array(
+            [limit for kind in sensors.values() for limit in ranges[kind]]
+        )
         # State.
         self._alpha = self.DeclareDiscreteState(1)
         self._fault = self.DeclareDiscreteState(1)
@@ -273,20 +282,8 @@ class SafetySupervisor(LeafSystem):
             if not math.isfinite(values.sum()):
                 bits |= 2
             else:
-                offset = 0
-                for _, kind, port in self._sensors:
-                    v = values[offset : offset + port.size()]
-                    offset += port.size()
-                    if kind == "wrench":
-                        bad = (np.abs(v[:3]) > c.torque_limit).any() or (
-                            np.abs(v[3:]) > c.force_limit
-                        ).any()
-                    elif kind == "acceleration":
-                        bad = (np.abs(v) > c.acceleration_limit).any()
-                    else:
-                        bad = (np.abs(v) > c.angular_velocity_limit).any()
-                    if bad:
-                        bits |= 4
+                if np.any(np.abs(values) > self._sensor_limits):
+                    bits |= 4
                 last_sensor = context.get_discrete_state(self._last_sensor).get_value()
                 count = context.get_discrete_state(self._sensor_count).get_value()
                 count = np.where(values == last_sensor, count + 1, 0)
