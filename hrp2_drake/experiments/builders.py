@@ -363,18 +363,19 @@ def build_torque_control(
     supervisor_ports = {}
     if config.supervised:
         safety = replace(config.safety, start_time=config.start_time)
+        monitored = supervisor_sensors(list(model.FT_SENSORS))
         supervisor = builder.AddNamedSystem(
             "safety_supervisor",
             SafetySupervisor(
                 model.NUM_JOINTS,
-                supervisor_sensors(list(model.FT_SENSORS)),
+                monitored,
                 safety,
                 num_sensor_stamps=len(SENSOR_SIGNALS),
             ),
         )
         builder.Connect(q_cmd, supervisor.GetInputPort("q_torque"))
         builder.Connect(blocks["q_ref"], supervisor.GetInputPort("q_position"))
-        for name in ("q_measured", *supervisor_sensors(list(model.FT_SENSORS))):
+        for name in ("q_measured", *monitored):
             builder.Connect(station.GetOutputPort(name), supervisor.GetInputPort(name))
         builder.Connect(
             torque.GetOutputPort("fallback_active"),

@@ -61,13 +61,15 @@ from hrp2_drake.robot.servo import (
 )
 
 SCENARIOS = ("fixed_base", "hanging", "standing", "standing_on_block")
-#: The sensor ports of the station, in the order of its `sensor_time` output.
-SENSOR_SIGNALS = (
-    "q_measured",
-    "imu_linear_acceleration",
-    "imu_angular_velocity",
-    *(f"wrench_{name}" for name in model.FT_SENSORS),
-)
+#: The sensor ports of the station and their sizes, in the order of its
+#: `sensor_time` output.
+SENSOR_SIZES: dict[str, int] = {
+    "q_measured": model.NUM_JOINTS,
+    "imu_linear_acceleration": 3,
+    "imu_angular_velocity": 3,
+    **{f"wrench_{name}": 6 for name in model.FT_SENSORS},
+}
+SENSOR_SIGNALS = tuple(SENSOR_SIZES)
 GRAVITY = 9.81
 
 
@@ -148,11 +150,8 @@ class StationConfig:
                 f"StationConfig.servo_off: unknown servo mechanism(s) {unknown}, "
                 f"expected some of {list(SERVO_MECHANISMS)}"
             )
-        sizes = {"q_measured": model.NUM_JOINTS, "imu_linear_acceleration": 3,
-                 "imu_angular_velocity": 3}
-        sizes |= {f"wrench_{name}": 6 for name in model.FT_SENSORS}
         for k, fault in enumerate(self.faults):
-            fault.validate(f"StationConfig.faults[{k}]", sizes)
+            fault.validate(f"StationConfig.faults[{k}]", SENSOR_SIZES)
         if len(self.hanging.sway_damping) != 2:
             raise ValueError(
                 "StationConfig.hanging.sway_damping: expected [rotational, translational]"
