@@ -271,10 +271,15 @@ class CalibrationResult:
     wall_time: float
 
 
+def _average(result: dict, n: float) -> np.ndarray:
+    """Table 2's N⁻¹ sqrt(Σ e²) of a run's errors with the paper's N (rad)."""
+    return np.sqrt(np.asarray(result["sum_squares"])) / n
+
+
 def _residuals(result: dict, n: float, weight: float) -> np.ndarray:
     """Log ratios simulation / paper: Table 3 (max), then Table 2 (average)."""
     max_error = np.asarray(result["max"])
-    average = np.sqrt(np.asarray(result["sum_squares"])) / n
+    average = _average(result, n)
     return np.concatenate(
         [
             np.log(max_error / PAPER_POSITION_MAX),
@@ -340,7 +345,7 @@ def run_calibration(config: CalibrationConfig, work: Path, stream=None) -> Calib
             Evaluation(
                 np.exp(x).tolist(),
                 list(result["max"]),
-                (np.sqrt(np.asarray(result["sum_squares"])) / n).tolist(),
+                _average(result, n).tolist(),
                 float(0.5 * r @ r),
                 kind,
             )
@@ -433,7 +438,7 @@ def run_calibration(config: CalibrationConfig, work: Path, stream=None) -> Calib
     def summary(result: dict) -> dict:
         return {
             "max": list(result["max"]),
-            "average": (np.sqrt(np.asarray(result["sum_squares"])) / n).tolist(),
+            "average": _average(result, n).tolist(),
             "rms": list(result["rms"]),
         }
 
