@@ -127,3 +127,26 @@ def eval_finite(port: InputPort, context: Context, where: str) -> np.ndarray:
             f"t = {context.get_time():.6g} s, at indices {bad.tolist()}"
         )
     return value
+
+
+def tree_parents(plant: MultibodyPlant, base) -> dict[int, int]:
+    """Parent body index of every body of the tree rooted at the body `base` (a
+    BodyIndex), through the joints between bodies (those to the world, floating or
+    welds, ignored); -1 for the base."""
+    world = int(plant.world_body().index())
+    neighbours: dict[int, list[int]] = {}
+    for j in plant.GetJointIndices():
+        joint = plant.get_joint(j)
+        a, b = int(joint.parent_body().index()), int(joint.child_body().index())
+        if world in (a, b):
+            continue
+        neighbours.setdefault(a, []).append(b)
+        neighbours.setdefault(b, []).append(a)
+    parent, stack = {int(base): -1}, [int(base)]
+    while stack:
+        a = stack.pop()
+        for b in neighbours.get(a, []):
+            if b not in parent:
+                parent[b] = a
+                stack.append(b)
+    return parent

@@ -1,6 +1,7 @@
-"""FloatingBaseTorqueEstimator: joint torques of a floating-base robot from encoders,
-one IMU and 6-axis F/T sensors (paper Sec. 2), and `add_estimator`, which wires the
-whole estimation chain (Savitzky-Golay filters + estimator) to a robot diagram.
+"""FloatingBaseTorqueEstimator: joint torques of a robot, floating-base or welded to the
+world, from encoders, one IMU (optional for a fixed base) and 6-axis F/T sensors (paper
+Sec. 2), and `add_estimator`, which wires the whole estimation chain (Savitzky-Golay
+filters + estimator) to a robot diagram.
 
 The method (paper Sec. 2.2-2.4), on a private model of the robot built from the given
 plant (the "internal model", see below):
@@ -14,20 +15,34 @@ plant (the "internal model", see below):
    velocity is the gyro reading and its spatial acceleration [α; a] is the measured
    angular acceleration (filtered gyro derivative, or zero) and the accelerometer's
    reading, with no kinematics to compute.
+   A robot welded to the world (fixed base) may have no IMU (config.imu_frame empty):
+   gravity is known, so the model's root is the base's frame B, at rest, with the
+   constant proper acceleration [0; R_BW (−g_W)] (g_W the plant's gravity, R_BW from
+   the plant's default pose of the base). With an IMU (e.g. an arm on a moving
+   platform) a fixed base is treated as a floating one: the IMU gives the motion.
 2. F/T compensation (Sec. 2.2). Each sensor reads S, the wrench that the subtree below
    it exerts on the body above it. Newton-Euler on that subtree (with proper
    accelerations, so gravity is included) gives the external wrench on it,
-   F_ext = S − offset + Σ_b Ḣ_b, where Ḣ_b is the rate of change of momentum of each
+   F_total = S − offset + Σ_b Ḣ_b, where Ḣ_b is the rate of change of momentum of each
    body b below the sensor, about the sensor origin (see "Offset calibration" for the
    offset). In the internal model each sensor is a 6-dof joint (at the identity, at
    rest, for ever) between the subtree and a massless mount on the joint above it, so
    one inverse dynamics without external wrenches gives Σ_b Ḣ_b of every sensor at
    once: the generalized forces of those joints, [torque about So; force] in S. Exact,
    also with moving links below the sensor (HRP-2's grippers).
+   Nested sensors (Sec. 2.2; iCub's leg has one in the thigh and one at the ankle): an
+   outer sensor A's joint carries A's whole subtree, nested sensors included, so
+   F_A,total is the external wrench on all of it. A's external wrench is that on its
+   *segment*, the bodies between A and the sensors B directly below it:
+   F_A = F_A,total − Σ_B X*_AB F_B,total (X*_AB moves a wrench about So_B in S_B to
+   about So_A in S_A, from the model's kinematics), i.e. the segment's own
+   Newton-Euler F_A = S_A − Σ_B X*_AB S_B + Σ_segment Ḣ_b (offsets removed from each
+   reading).
 3. Joint torques (Sec. 2.3, eq. 2): a second inverse dynamics (RNEA) of the internal
-   model, on the same kinematics, with the external wrenches applied to the bodies right
-   below the sensors gives G = M v̇ + h − J_mᵀ f_m (n + 6 generalized forces on the
-   robot's degrees of freedom; the sensor joints' rows are not used).
+   model, on the same kinematics, with each sensor's external wrench applied to the
+   body right below that sensor gives G = M v̇ + h − J_mᵀ f_m (n + 6 generalized forces
+   on the robot's degrees of freedom and the root's; the sensor joints' rows are not
+   used).
 4. Unknown wrench (Sec. 2.4). The n + 6 equations G = [J_uᵀ Sᵀ] [f_u; τ] are solved for
    the unknown wrench f_u on one link u (the base by default, or a chosen link such as the
    torso) and τ. A = [J_uᵀ Sᵀ] is square; it is checked to have full column rank at
@@ -36,15 +51,19 @@ plant (the "internal model", see below):
    f_u = J_u,root⁻ᵀ G_root, τ = G_joints − J_u,jointsᵀ f_u. With u on the IMU's body (the
    torso for HRP-2, the paper's choice) J_u is constant and J_u,joints = 0, so τ = S G;
    the estimate does not depend on which body is the model's base, so for u = the
-   robot's base this is eq. 2.
+   robot's base this is eq. 2. For a fixed base the model's root keeps its 6 degrees of
+   freedom: f_u on the base is then the wrench the mounting exerts on it.
 
 The internal model is a copy of the plant's bodies (inertias), frames, joints (revolute,
 prismatic, welds) and actuators (rotor inertia, gear ratio), re-rooted at a massless body
-welded to the IMU frame (a revolute or prismatic joint turned around keeps its q and its
-generalized force with the opposite axis), plus one mount and one 6-dof joint per F/T
-sensor. Per update: one SetPositionsAndVelocities and two inverse dynamics (plus a
-Jacobian when the unknown-wrench link moves relative to the IMU); that is what makes the
-Python estimator run at 1 kHz with room to spare (scripts/bench_estimator.py).
+welded to the IMU frame (or to the fixed base's frame without IMU; a revolute or
+prismatic joint turned around keeps its q and its generalized force with the opposite
+axis), plus one mount and one 6-dof joint per F/T sensor; the joint that attaches the
+robot to the world (floating or weld) is not copied. Per update: one
+SetPositionsAndVelocities and two inverse dynamics (plus a Jacobian when the
+unknown-wrench link moves relative to the IMU, and one relative pose per nested sensor);
+that is what makes the Python estimator run at 1 kHz with room to spare
+(scripts/bench_estimator.py).
 
 Reflected rotor inertia: the model's actuators may carry a rotor inertia I_r and a gear
 ratio ρ (Drake adds ρ² I_r to the joint's diagonal of the mass matrix). With
@@ -53,7 +72,8 @@ applies on the joint when the plant's mass matrix includes it (as in our simulat
 HRP-2); without, ρ² I_r q̈ is removed from each joint's torque.
 
 Only rigid-body dynamics enter the internal model: its force elements (joint damping,
-springs) and gravity are not used, τ̂ is the torque the actuators transmit.
+springs) are not used and its gravity is off (the plant's gravity enters only as a fixed
+base's proper acceleration without IMU); τ̂ is the torque the actuators transmit.
 """
 
 import copy
@@ -96,6 +116,7 @@ from hrp2_drake.multibody import (
     eval_finite,
     get_frame,
     joint_indexing,
+    tree_parents,
 )
 
 ANGULAR_ACCELERATION_MODES = ("gyro_derivative", "neglected")
@@ -115,7 +136,10 @@ class ForceTorqueSensorConfig:
             (for HRP-2 the foot or hand). The sensor carries this body and all the
             bodies beyond it (e.g. a gripper link), whose weight and inertia it
             compensates; the external wrench is assumed to act on this body. Empty: the
-            body of `frame`. `frame` must be rigidly attached to it.
+            body of `frame`. `frame` must be rigidly attached to it and not on a body
+            below it (for an F/T weld, the body is the weld's child, below the sensor).
+            Sensors may be nested (one below another, e.g. a thigh and an ankle
+            sensor); two sensors cannot share a body.
     """
 
     frame: str = ""
@@ -128,13 +152,18 @@ class TorqueEstimatorConfig:
 
     Args:
         joints: names of the n one-dof joints, in the order of every joint vector (q,
-            v, vdot, tau); together with the floating base they must cover every degree
-            of freedom of the model.
+            v, vdot, tau); together with the floating base (if any) they must cover
+            every degree of freedom of the model.
         imu_frame: name of the IMU frame (gyro and accelerometer axes and origin).
+            Empty for no IMU, allowed only for a robot welded to the world (a fixed
+            base, whose motion is known: at rest, under the plant's gravity); then the
+            estimator has no imu_* ports.
         sensors: F/T sensors by name (the name makes the ports wrench_<name> and
             external_wrench_<name>).
-        base_body: name of the floating base body; empty for the model's unique
-            floating base.
+        base_body: name of the base body: the floating base body, or for a robot
+            welded to the world a body welded to it (directly or through welds). Empty:
+            the model's unique floating base or, without any, its unique body welded
+            directly to the world.
         angular_acceleration: "gyro_derivative" (the IMU body's angular acceleration
             is the imu_angular_acceleration input, the filtered derivative of the gyro)
             or "neglected" (it is taken as zero and that input is not read; paper
@@ -142,7 +171,10 @@ class TorqueEstimatorConfig:
         include_rotor_inertia: include the actuators' reflected rotor inertia ρ² I_r
             in τ̂.
         unknown_wrench_body: the link u that carries the unknown wrench (Sec. 2.4);
-            empty for the floating base (then τ̂ is eq. 2).
+            empty for the base (then τ̂ is eq. 2; for a fixed base, f_u is the
+            mounting's wrench on it). For a fixed base, another link assumes the
+            mounting exerts no wrench (a fixed-base approximation of a free robot,
+            e.g. hanging from strings tied to u).
         offset_calibration_time: length (s) of the start-up F/T offset calibration, 0
             for none (see the estimator's docstring).
         offset_calibration_start: time (s) the calibration starts, to skip the
@@ -172,8 +204,6 @@ class TorqueEstimatorConfig:
         """Raises ValueError naming the bad field (yaml_load_typed does not call it)."""
         where = "TorqueEstimatorConfig"
         check_joint_names(self.joints, where)
-        if not self.imu_frame:
-            raise ValueError(f"{where}.imu_frame is empty")
         for name, sensor in self.sensors.items():
             if not (name and name.replace("_", "a").isalnum() and name.isascii()):
                 raise ValueError(
@@ -225,7 +255,9 @@ class TorqueEstimate(NamedTuple):
             expressed in its frame (N·m, N).
         external_wrenches: (k, 6) compensated external wrench of each sensor, in
             config.sensors order: [torque; force] exerted by the environment on the
-            bodies below the sensor, about the sensor origin, in the sensor frame.
+            bodies below the sensor (for a sensor with sensors nested below it, on its
+            segment: the bodies between it and them), about the sensor origin, in the
+            sensor frame.
     """
 
     tau: np.ndarray
@@ -241,7 +273,7 @@ class _Sensor:
     X_BS: RigidTransform
     bodies: list[int]  # BodyIndex of every body below the sensor (B's subtree)
     port: object = None
-    # In the internal model (see _with_sensor_joints):
+    # In the internal model (see _internal_model):
     model_body: RigidBody | None = None  # B
     model_frame: object = None  # S, on B
     p_BoSo_S: np.ndarray | None = None  # where external wrenches are applied
@@ -250,9 +282,9 @@ class _Sensor:
 
 
 class FloatingBaseTorqueEstimator(LeafSystem):
-    """Joint torques, external wrenches and the unknown wrench of a floating-base robot
-    from encoders, one IMU and k 6-axis F/T sensors (paper Sec. 2; method in the module
-    docstring).
+    """Joint torques, external wrenches and the unknown wrench of a robot, floating-base
+    or welded to the world, from encoders, one IMU (optional for a fixed base) and k
+    6-axis F/T sensors, possibly nested (paper Sec. 2; method in the module docstring).
 
     .. code-block:: text
 
@@ -261,7 +293,7 @@ class FloatingBaseTorqueEstimator(LeafSystem):
         v ────────────────────────►│                             ├──► unknown_wrench
         vdot ─────────────────────►│ FloatingBaseTorqueEstimator ├──► external_wrench_<s>
         imu_linear_acceleration ──►│                             │    (one per sensor s)
-        imu_angular_velocity ─────►│                             │
+        imu_angular_velocity ─────►│ (imu_*: only with an IMU)   │
         imu_angular_acceleration ─►│                             │
         wrench_<s> ───────────────►│ (one per sensor s)          │
                                    └─────────────────────────────┘
@@ -278,18 +310,27 @@ class FloatingBaseTorqueEstimator(LeafSystem):
         wrench_<sensor> (6): the sensor reading [torque; force] (N·m, N): the wrench
             the bodies below the sensor exert on the body above it, about the sensor
             origin, in the sensor frame.
+        The three imu_* ports exist only with an IMU (config.imu_frame not empty); a
+        robot welded to the world may have none (`has_imu()`).
 
     Outputs (discrete state, updated every config.period; zero before the first update):
         tau (n): estimated joint torques τ̂ (N·m), config.joints order.
         unknown_wrench (6): the unknown wrench f_u [torque; force] (N·m, N) on the
             unknown-wrench link u (config.unknown_wrench_body, default the base), about
-            u's origin, expressed in u's frame; gravity excluded (it is the wrench of
-            the environment, e.g. a push or a string). Close to zero when every
-            contact is measured (monitoring, paper Sec. 2.4).
+            u's origin, expressed in u's frame: the wrench that the environment exerts
+            on the robot and no F/T sensor measures (e.g. a push or a string), assumed
+            on u; gravity excluded (the weight is not part of it). Close to zero when
+            every contact is measured (monitoring, paper Sec. 2.4). For a fixed base
+            and u = the base, it is the wrench the mounting (the weld to the world)
+            exerts on the base, plus any unmeasured wrench on the bodies welded to the
+            base: it holds the robot, so at rest without contact its force is the
+            robot's weight, upward.
         external_wrench_<sensor> (6): the compensated external wrench [torque; force]
             the environment exerts on the bodies below that sensor, about the sensor
             origin, in the sensor frame (standing still, a foot's is +z ground
-            reaction).
+            reaction). For a sensor A with sensors nested below it: on A's segment
+            only, the bodies between A and those sensors (module docstring, step 2).
+            τ̂ assumes it acts on the body right below the sensor.
 
     Offset calibration (config.offset_calibration_time = T > 0, starting at
     t0 = config.offset_calibration_start): F/T sensors drift, so their offsets are
@@ -298,35 +339,42 @@ class FloatingBaseTorqueEstimator(LeafSystem):
     hands free; it may move, slow motions are compensated); wait t0 for the filters'
     windows to fill (default 0.2 s, 2.5 windows of 80 ms), then keep contact-free for
     T more seconds (e.g. 0.5 s). At every update with t0 <= t < t0 + T the estimator
-    averages the compensated wrench S + ΣḢ of each sensor, which is the offset when
-    nothing touches, and uses the running average as the offset (so the external
-    wrenches read ≈ 0 while calibrating); afterwards the average is frozen and
-    subtracted from every reading. Before t0 the offsets are zero. The offsets and the
-    number of samples averaged are discrete state (`offsets(context)`,
+    averages the compensated wrench S + ΣḢ of each sensor (Ḣ of every body below it,
+    nested sensors' included), which is the offset of its reading when nothing
+    touches, and uses the running average as the offset (so the external wrenches read
+    ≈ 0 while calibrating); afterwards the average is frozen and subtracted from every
+    reading (before the nested sensors' wrenches are taken out of the outer one's, so
+    an offset stays with its sensor). Before t0 the offsets are zero. The offsets and
+    the number of samples averaged are discrete state (`offsets(context)`,
     `num_calibration_samples(context)`); with T = 0 the offsets stay zero, or at the
     values given to `set_offsets` (e.g. calibrated in an earlier run, lifted).
 
     Errors: a NaN or infinite input raises ValueError naming the port; an unknown
-    frame, body or joint name raises KeyError naming it; a model whose degrees of
-    freedom are not the floating base plus config.joints raises ValueError, and so
-    does a joint that is neither revolute, prismatic nor a weld.
+    frame, body or joint name raises KeyError naming it; ValueError for a model whose
+    degrees of freedom are not the base's plus config.joints, a joint that is neither
+    revolute, prismatic nor a weld, a floating base without IMU, an IMU below an F/T
+    sensor, an F/T sensor body that is the base, not rigidly attached to its frame or
+    above it, two sensors on one body.
 
     Allocated once at construction: the internal model (module docstring), one context
     of it and two MultibodyForces; nothing per update but small numpy temporaries. Per
     update: one SetPositionsAndVelocities, two inverse dynamics on the same kinematics
-    (F/T compensation, then τ̂), and a Jacobian of the unknown-wrench link unless it
-    is rigidly attached to the IMU (scripts/bench_estimator.py measures it).
-    `plant`'s default parameters (masses, inertias, rotor inertias, gear ratios) are
-    read at construction. `plant` must be a finalized model of the robot alone:
-    floating base, no welds to the world, only revolute, prismatic and weld joints
-    besides the base's; its gravity and force elements are ignored.
+    (F/T compensation, then τ̂), one relative pose per nested sensor, and a Jacobian of
+    the unknown-wrench link unless it is rigidly attached to the IMU (or the fixed base
+    without IMU) (scripts/bench_estimator.py measures it).
+    `plant`'s default parameters (masses, inertias, rotor inertias, gear ratios) and,
+    for a fixed base without IMU, its gravity and the base's default pose are read at
+    construction. `plant` must be a finalized model of the robot alone: a floating
+    base, or a base welded to the world (directly or through welds), only revolute,
+    prismatic and weld joints besides; its force elements are ignored.
     """
 
     def __init__(self, plant: MultibodyPlant, config: TorqueEstimatorConfig):
         """
         Args:
             plant: a finalized MultibodyPlant holding only the robot, with a floating
-                base (for HRP-2: MultibodyPlant(0.0), add_hrp2, Finalize). It must
+                base (for HRP-2: MultibodyPlant(0.0), add_hrp2, Finalize) or welded to
+                the world (a fixed base; then config.imu_frame may be empty). It must
                 outlive the estimator; it is never modified.
             config: joint, frame and sensor names and options (validated here).
         """
@@ -339,35 +387,34 @@ class FloatingBaseTorqueEstimator(LeafSystem):
         plant_context = plant.CreateDefaultContext()
         self._zero3 = np.zeros(3)
 
-        self._base = self._find_base(plant, config)
+        self._base, self._fixed_base = self._find_base(plant, config)
         self._indexing = joint_indexing(plant, config.joints)
         n = self._n = self._indexing.size
+        self._parent = tree_parents(plant, self._base.index())
         self._check_dofs(plant)
-        plant.SetFreeBodyPose(plant_context, self._base, RigidTransform())
+        if not self._fixed_base:
+            plant.SetFreeBodyPose(plant_context, self._base, RigidTransform())
         self._check_base_jacobian(plant, plant_context)
 
-        imu = get_frame(plant, config.imu_frame, "IMU frame")
-        if imu.body().index() == plant.world_body().index():
-            raise ValueError(
-                f"{_WHERE}: IMU frame '{config.imu_frame}' is on the world"
-            )
-        self._parent = self._tree_parents(plant)
+        imu = self._find_imu(plant, config)
+        self._has_imu = imu is not None
         self._sensors = [
             self._make_sensor(plant, plant_context, name, sensor)
             for name, sensor in config.sensors.items()
         ]
-        self._check_disjoint_subtrees()
+        nesting = self._nest_sensors()
         self._reflected_inertia = self._reflected_inertias(plant, plant_context)
         unknown_frame = self._find_unknown_wrench_frame(plant, config)
-        self._check_rank(plant, plant_context, unknown_frame)
         below = [b for s in self._sensors for b in s.bodies]
-        if int(imu.body().index()) in below:
+        if self._has_imu and int(imu.body().index()) in below:
             raise ValueError(
                 f"{_WHERE}: IMU frame '{config.imu_frame}' is below an F/T sensor"
             )
 
-        # The internal model, in which everything is computed (module docstring).
-        model, frames = _internal_model(plant, plant_context, imu, self._sensors)
+        # The internal model, in which everything is computed (module docstring). Its
+        # root is the IMU frame, or the fixed base's frame without IMU.
+        root_frame = imu if self._has_imu else self._base.body_frame()
+        model, frames = _internal_model(plant, plant_context, root_frame, self._sensors)
         self._model = model
         self._context = model.CreateDefaultContext()
         root = model.GetBodyByName(_ROOT, model.GetModelInstanceByName(_ROOT))
@@ -391,30 +438,43 @@ class FloatingBaseTorqueEstimator(LeafSystem):
         self._root_v = slice(start, start + 6)  # [ω; v] of the root (the IMU frame)
         self._root_w = slice(start, start + 3)  # α of the root: imu α
         self._root_a = slice(start + 3, start + 6)  # a of the root: accelerometer
+        if not self._has_imu:
+            # Fixed base, gravity known (step 1): the root (the base frame B) is at
+            # rest, ω = α = 0 (left at zero), with proper acceleration R_BW (−g_W).
+            R_WB = self._base.EvalPoseInWorld(plant_context).rotation()
+            g_W = plant.gravity_field().gravity_vector()
+            self._vdot[self._root_a] = R_WB.inverse() @ (-g_W)
         self._sensor_rows = (
             np.concatenate([s.rows for s in self._sensors])
             if self._sensors
             else np.zeros(0, dtype=int)
         )
+        # (outer, inner, S_outer, S_inner) for every sensor directly below another.
+        self._nesting = [
+            (a, b, self._sensors[a].model_frame, self._sensors[b].model_frame)
+            for a, b in nesting
+        ]
         self._forces = MultibodyForces(model)
         self._no_forces = MultibodyForces(model)  # stays zero
         self._world = model.world_frame()
-        u = unknown_frame or self._base.body_frame()
-        self._unknown_frame, self._unknown_map = self._unknown_wrench_map(
-            model, frames[int(u.index())]
-        )
+        u = frames[int((unknown_frame or self._base.body_frame()).index())]
+        self._check_rank(model, u)
+        self._unknown_frame, self._unknown_map = self._unknown_wrench_map(model, u)
 
         # Ports.
         self._q_port = self.DeclareVectorInputPort("q", n)
         self._v_port = self.DeclareVectorInputPort("v", n)
         self._vdot_port = self.DeclareVectorInputPort("vdot", n)
-        self._acc_port = self.DeclareVectorInputPort("imu_linear_acceleration", 3)
-        self._gyro_port = self.DeclareVectorInputPort("imu_angular_velocity", 3)
-        self._alpha_port = self.DeclareVectorInputPort("imu_angular_acceleration", 3)
+        self._acc_port = self._gyro_port = self._alpha_port = None
+        if self._has_imu:
+            self._acc_port = self.DeclareVectorInputPort("imu_linear_acceleration", 3)
+            self._gyro_port = self.DeclareVectorInputPort("imu_angular_velocity", 3)
+            self._alpha_port = self.DeclareVectorInputPort(
+                "imu_angular_acceleration", 3
+            )
         for sensor in self._sensors:
             sensor.port = self.DeclareVectorInputPort(f"wrench_{sensor.name}", 6)
 
-        k = len(self._sensors)
         self._tau_state = self.DeclareDiscreteState(n)
         self._unknown_state = self.DeclareDiscreteState(6)
         self._external_states = [self.DeclareDiscreteState(6) for _ in range(k)]
@@ -432,6 +492,7 @@ class FloatingBaseTorqueEstimator(LeafSystem):
         self._calibration_group = int(self._calibration_state)
 
         self._neglect_alpha = config.angular_acceleration == "neglected"
+        self._read_alpha = self._has_imu and not self._neglect_alpha
         self._calibrates = config.offset_calibration_time > 0
         # Calibrate at the updates with start <= t < start + time (half-period margins).
         self._calibration_begin = config.offset_calibration_start - 0.5 * config.period
@@ -445,44 +506,97 @@ class FloatingBaseTorqueEstimator(LeafSystem):
     # ----------------------------------------------------------------- construction
 
     @staticmethod
-    def _find_base(plant: MultibodyPlant, config: TorqueEstimatorConfig) -> RigidBody:
+    def _find_base(
+        plant: MultibodyPlant, config: TorqueEstimatorConfig
+    ) -> tuple[RigidBody, bool]:
+        """(base body, fixed): the floating base, or a body welded to the world."""
+        world = plant.world_body()
+        welded = {int(b.index()) for b in plant.GetBodiesWeldedTo(world)}
+        welded.discard(int(world.index()))
         if config.base_body:
             if not plant.HasBodyNamed(config.base_body):
                 raise KeyError(
                     f"{_WHERE}: base body '{config.base_body}' is not a body"
                 )
             base = plant.GetBodyByName(config.base_body)
-            if not base.is_floating_base_body():
-                raise ValueError(
-                    f"{_WHERE}: base body '{config.base_body}' is not a floating base"
-                )
-            return base
-        bases = sorted(int(b) for b in plant.GetFloatingBaseBodies())
-        if len(bases) != 1:
-            found = [plant.get_body(BodyIndex(b)).name() for b in bases]
+            if base.is_floating_base_body():
+                return base, False
+            if int(base.index()) in welded:
+                return base, True
             raise ValueError(
-                f"{_WHERE}: the plant must have exactly one floating base body, it has "
-                f"{found}: give a model of the robot alone, welded to nothing"
+                f"{_WHERE}: base body '{config.base_body}' is not a floating base, nor "
+                "welded to the world"
             )
-        return plant.get_body(BodyIndex(bases[0]))
+        floating = sorted(int(b) for b in plant.GetFloatingBaseBodies())
+        if len(floating) == 1:
+            return plant.get_body(BodyIndex(floating[0])), False
+        # Bodies welded directly to the world (not through other welded bodies).
+        direct = set()
+        for j in plant.GetJointIndices():
+            joint = plant.get_joint(j)
+            ends = {int(joint.parent_body().index()), int(joint.child_body().index())}
+            if joint.num_velocities() == 0 and int(world.index()) in ends:
+                direct |= ends - {int(world.index())}
+        if not floating and len(direct) == 1:
+            return plant.get_body(BodyIndex(direct.pop())), True
+
+        def names(indices) -> list[str]:
+            return [plant.get_body(BodyIndex(b)).name() for b in sorted(indices)]
+
+        raise ValueError(
+            f"{_WHERE}: the plant must have exactly one floating base body, or none "
+            "and exactly one body welded to the world; it has floating bases "
+            f"{names(floating)} and bodies welded to the world {names(direct)}: give a "
+            "model of the robot alone, or name its base in "
+            "TorqueEstimatorConfig.base_body"
+        )
+
+    def _base_dofs(self) -> int:
+        return 0 if self._fixed_base else 6
 
     def _check_dofs(self, plant: MultibodyPlant) -> None:
-        if plant.num_velocities() != 6 + self._n:
-            start = self._base.floating_velocities_start_in_v()
-            covered = set(self._indexing.v.tolist()) | set(range(start, start + 6))
+        """The base's and config.joints' velocities are all of the plant's, and every
+        joint with degrees of freedom but the floating base's is in the robot's tree."""
+        for j in plant.GetJointIndices():
+            joint = plant.get_joint(j)
+            if joint.num_velocities() == 0:
+                continue
+            child = int(joint.child_body().index())
+            if not self._fixed_base and child == int(self._base.index()):
+                if joint.parent_body().index() == plant.world_body().index():
+                    continue  # the floating base's joint
+            parent = int(joint.parent_body().index())
+            if parent not in self._parent or child not in self._parent:
+                raise ValueError(
+                    f"{_WHERE}: joint '{joint.name()}' (between '"
+                    f"{joint.parent_body().name()}' and '{joint.child_body().name()}') "
+                    f"is not in the tree of the base '{self._base.name()}': only the "
+                    "base may be attached to the world; give a model of the robot alone"
+                )
+        expected = self._base_dofs() + self._n
+        if plant.num_velocities() != expected:
+            covered = set(self._indexing.v.tolist())
+            if not self._fixed_base:
+                start = self._base.floating_velocities_start_in_v()
+                covered |= set(range(start, start + 6))
             missing = [
                 plant.get_joint(j).name()
                 for j in plant.GetJointIndices()
                 if plant.get_joint(j).num_velocities() > 0
                 and plant.get_joint(j).velocity_start() not in covered
             ]
+            what = "the fixed base and" if self._fixed_base else "the floating base and"
             raise ValueError(
-                f"{_WHERE}: the plant has {plant.num_velocities()} velocities, but the "
-                f"floating base and the {self._n} joints of the config cover "
-                f"{6 + self._n}; joints not in the config: {missing}"
+                f"{_WHERE}: the plant has {plant.num_velocities()} velocities, but "
+                f"{what} the {self._n} joints of the config cover {expected}; joints "
+                f"not in the config: {missing}"
             )
 
     def _check_base_jacobian(self, plant: MultibodyPlant, context: Context) -> None:
+        """A floating base's velocities must be [ω_WB; v_WBo]; a fixed base has none
+        (welded to the world, its motion is the IMU's or none)."""
+        if self._fixed_base:
+            return
         J = plant.CalcJacobianSpatialVelocity(
             context,
             JacobianWrtVariable.kV,
@@ -498,27 +612,27 @@ class FloatingBaseTorqueEstimator(LeafSystem):
                 "velocities [ω_WB; v_WBo] (e.g. a quaternion or rpy floating joint)"
             )
 
-    def _tree_parents(self, plant: MultibodyPlant) -> dict[int, int]:
-        """Parent body index of every body of the tree rooted at the base."""
-        world = int(plant.world_body().index())
-        neighbours: dict[int, list[int]] = {}
-        for j in plant.GetJointIndices():
-            joint = plant.get_joint(j)
-            a, b = int(joint.parent_body().index()), int(joint.child_body().index())
-            if world in (a, b):
-                continue
-            neighbours.setdefault(a, []).append(b)
-            neighbours.setdefault(b, []).append(a)
-        base = int(self._base.index())
-        parent = {base: -1}
-        stack = [base]
-        while stack:
-            a = stack.pop()
-            for b in neighbours.get(a, []):
-                if b not in parent:
-                    parent[b] = a
-                    stack.append(b)
-        return parent
+    def _find_imu(self, plant: MultibodyPlant, config: TorqueEstimatorConfig):
+        """The IMU frame, or None without IMU (only for a fixed base)."""
+        if not config.imu_frame:
+            if not self._fixed_base:
+                raise ValueError(
+                    f"{_WHERE}: TorqueEstimatorConfig.imu_frame is empty, but the base "
+                    f"'{self._base.name()}' is floating: its motion comes from the IMU "
+                    "(only a robot welded to the world may go without IMU)"
+                )
+            return None
+        imu = get_frame(plant, config.imu_frame, "IMU frame")
+        if imu.body().index() == plant.world_body().index():
+            raise ValueError(
+                f"{_WHERE}: IMU frame '{config.imu_frame}' is on the world"
+            )
+        if int(imu.body().index()) not in self._parent:
+            raise ValueError(
+                f"{_WHERE}: IMU frame '{config.imu_frame}' is on body "
+                f"'{imu.body().name()}', which is not in the robot's tree"
+            )
+        return imu
 
     def _subtree(self, body: int) -> list[int]:
         children: dict[int, list[int]] = {}
@@ -560,24 +674,49 @@ class FloatingBaseTorqueEstimator(LeafSystem):
                 "the body right below the sensor"
             )
         welded = {int(b.index()) for b in plant.GetBodiesWeldedTo(body)} | {index}
-        if int(frame.body().index()) not in welded:
+        on = int(frame.body().index())
+        if on not in welded:
             raise ValueError(
                 f"{_WHERE}: F/T sensor '{name}': frame '{cfg.frame}' is not rigidly "
                 f"attached to body '{body.name()}'"
             )
+        bodies = self._subtree(index)
+        if on != index and on in bodies:
+            # E.g. the ankle link above an F/T weld whose frame is on the foot: the
+            # sensor would wrongly carry the ankle link.
+            raise ValueError(
+                f"{_WHERE}: F/T sensor '{name}': body '{body.name()}' is above its "
+                f"frame '{cfg.frame}' (on body '{frame.body().name()}'): give the body "
+                "right below the sensor"
+            )
         X_BS = frame.CalcPose(context, body.body_frame())
-        return _Sensor(name, frame, body, X_BS, self._subtree(index))
+        return _Sensor(name, frame, body, X_BS, bodies)
 
-    def _check_disjoint_subtrees(self) -> None:
+    def _nest_sensors(self) -> list[tuple[int, int]]:
+        """(outer, inner) sensor indices for every sensor directly below another (the
+        innermost sensor whose subtree holds its body). Raises ValueError for two
+        sensors on one body."""
         owner: dict[int, str] = {}
         for sensor in self._sensors:
-            for b in sensor.bodies:
-                if b in owner:
-                    raise ValueError(
-                        f"{_WHERE}: F/T sensors '{owner[b]}' and '{sensor.name}' carry "
-                        "the same bodies (nested sensors are not supported)"
-                    )
-                owner[b] = sensor.name
+            b = int(sensor.body.index())
+            if b in owner:
+                raise ValueError(
+                    f"{_WHERE}: F/T sensors '{owner[b]}' and '{sensor.name}' have "
+                    f"the same body '{sensor.body.name()}': give each sensor the body "
+                    "right below it"
+                )
+            owner[b] = sensor.name
+        subtrees = [set(sensor.bodies) for sensor in self._sensors]
+        pairs = []
+        for inner, sensor in enumerate(self._sensors):
+            outers = [
+                a
+                for a, bodies in enumerate(subtrees)
+                if a != inner and int(sensor.body.index()) in bodies
+            ]
+            if outers:  # nested subtrees: the smallest is the innermost
+                pairs.append((min(outers, key=lambda a: len(subtrees[a])), inner))
+        return pairs
 
     def _reflected_inertias(
         self, plant: MultibodyPlant, context: Context
@@ -610,21 +749,23 @@ class FloatingBaseTorqueEstimator(LeafSystem):
             )
         return body.body_frame()
 
-    def _check_rank(self, plant: MultibodyPlant, context: Context, frame) -> None:
-        """A = [J_uᵀ Sᵀ] must have full column rank (Sec. 2.4)."""
-        nv = plant.num_velocities()
-        frame = frame or self._base.body_frame()
-        J_u = plant.CalcJacobianSpatialVelocity(
-            context,
+    def _check_rank(self, model: MultibodyPlant, frame) -> None:
+        """A = [J_uᵀ Sᵀ] must have full column rank (Sec. 2.4). Checked on the internal
+        model, whose root has 6 degrees of freedom for a fixed base too (the base's
+        rows), at its default configuration; the sensor joints' rows are left out."""
+        J_u = model.CalcJacobianSpatialVelocity(
+            self._context,
             JacobianWrtVariable.kV,
             frame,
             self._zero3,
-            plant.world_frame(),
+            model.world_frame(),
             frame,
         )
-        S = np.zeros((self._n, nv))
-        S[np.arange(self._n), self._indexing.v] = 1.0
-        A = np.hstack([J_u.T, S.T])
+        columns = np.concatenate(
+            [np.arange(self._root_v.start, self._root_v.stop), self._jv]
+        )
+        S = np.hstack([np.zeros((self._n, 6)), np.eye(self._n)])
+        A = np.hstack([J_u[:, columns].T, S.T])
         rank = np.linalg.matrix_rank(A)
         if rank < A.shape[1]:
             raise ValueError(
@@ -642,6 +783,25 @@ class FloatingBaseTorqueEstimator(LeafSystem):
 
     def sensor_names(self) -> list[str]:
         return [s.name for s in self._sensors]
+
+    def base_body(self) -> RigidBody:
+        """The robot's base (of `plant`): its floating base or its body welded to the
+        world (`is_fixed_base()`)."""
+        return self._base
+
+    def is_fixed_base(self) -> bool:
+        """True if the base is welded to the world (directly or through welds)."""
+        return self._fixed_base
+
+    def has_imu(self) -> bool:
+        """False for a fixed base without IMU (no imu_* ports)."""
+        return self._has_imu
+
+    def nested_sensors(self) -> dict[str, str]:
+        """Each sensor nested below another: {inner name: the outer sensor's name}."""
+        return {
+            self._sensors[b].name: self._sensors[a].name for a, b, _, _ in self._nesting
+        }
 
     def reflected_inertia(self) -> np.ndarray:
         """ρ² I_r of each joint (kg·m²), config.joints order (0 without actuator)."""
@@ -691,35 +851,57 @@ class FloatingBaseTorqueEstimator(LeafSystem):
         q: np.ndarray,
         v: np.ndarray,
         vdot: np.ndarray,
-        imu_linear_acceleration: np.ndarray,
-        imu_angular_velocity: np.ndarray,
-        imu_angular_acceleration: np.ndarray,
+        imu_linear_acceleration: np.ndarray | None,
+        imu_angular_velocity: np.ndarray | None,
+        imu_angular_acceleration: np.ndarray | None,
         wrenches: np.ndarray,
         offsets: np.ndarray | None = None,
     ) -> TorqueEstimate:
         """The estimate of one sample, without a Context (e.g. on logged data with
         non-causal filters, paper Sec. 3.4.3). Same units and frames as the ports;
         `wrenches` and `offsets` are (k, 6) in config.sensors order (offsets default
-        to zero). imu_angular_acceleration is ignored in "neglected" mode.
+        to zero). imu_angular_acceleration is ignored (may be None) in "neglected"
+        mode. Without IMU (`has_imu()` False) the three imu_* arguments must be None.
 
         Raises:
-            ValueError: a wrong size or a non-finite value, naming the argument.
+            ValueError: a wrong size or a non-finite value, naming the argument; an
+                imu_* argument None with an IMU, or given without.
         """
         n, k = self._n, len(self._sensors)
         q = check_vector("q", q, n, _WHERE)
         v = check_vector("v", v, n, _WHERE)
         vdot = check_vector("vdot", vdot, n, _WHERE)
-        acc = check_vector(
-            "imu_linear_acceleration", imu_linear_acceleration, 3, _WHERE
-        )
-        gyro = check_vector("imu_angular_velocity", imu_angular_velocity, 3, _WHERE)
-        alpha = (
-            self._zero3
-            if self._neglect_alpha
-            else check_vector(
-                "imu_angular_acceleration", imu_angular_acceleration, 3, _WHERE
+        imu = {
+            "imu_linear_acceleration": imu_linear_acceleration,
+            "imu_angular_velocity": imu_angular_velocity,
+            "imu_angular_acceleration": imu_angular_acceleration,
+        }
+        if self._has_imu:
+            needed = list(imu)[:2] if self._neglect_alpha else list(imu)
+            absent = [name for name in needed if imu[name] is None]
+            if absent:
+                raise ValueError(
+                    f"{_WHERE}: {absent} are None, but the estimator has an IMU "
+                    f"('{self._config.imu_frame}')"
+                )
+            acc = check_vector(
+                "imu_linear_acceleration", imu_linear_acceleration, 3, _WHERE
             )
-        )
+            gyro = check_vector("imu_angular_velocity", imu_angular_velocity, 3, _WHERE)
+            alpha = (
+                self._zero3
+                if self._neglect_alpha
+                else check_vector(
+                    "imu_angular_acceleration", imu_angular_acceleration, 3, _WHERE
+                )
+            )
+        else:
+            given = [name for name, value in imu.items() if value is not None]
+            if given:
+                raise ValueError(
+                    f"{_WHERE}: {given} given, but the estimator has no IMU "
+                    "(TorqueEstimatorConfig.imu_frame is empty): pass None"
+                )
         raw = check_vector("wrenches", np.ravel(wrenches), 6 * k, _WHERE).reshape(k, 6)
         off = (
             np.zeros((k, 6))
@@ -729,24 +911,45 @@ class FloatingBaseTorqueEstimator(LeafSystem):
         x, model_vdot = self._x, self._vdot
         x[self._jq] = q
         x[self._x_jv] = v
-        x[self._x_w] = gyro
         model_vdot[self._jv] = vdot
-        model_vdot[self._root_w] = alpha
-        model_vdot[self._root_a] = acc
+        if self._has_imu:
+            x[self._x_w] = gyro
+            model_vdot[self._root_w] = alpha
+            model_vdot[self._root_a] = acc
         self._raw[:] = raw
         self._model.SetPositionsAndVelocities(self._context, x)
-        external = self._compensate()
-        external -= off
+        total = self._compensate()
+        total -= off
+        external = self._segments(total)
         tau, unknown = self._dynamics(external)
         return TorqueEstimate(tau, unknown, external)
 
     def _compensate(self) -> np.ndarray:
-        """Step 2 without the offsets: S_s + Σ_b Ḣ_b (about So, in S) of every sensor,
-        (k, 6), from the readings in self._raw and the model's context. Σ_b Ḣ_b of
-        every sensor at once: the generalized forces of the sensor joints in one
-        inverse dynamics without external wrenches."""
+        """Step 2 without the offsets: F_total = S_s + Σ_b Ḣ_b (about So, in S) of every
+        sensor, (k, 6), b over all the bodies below it (nested sensors' included),
+        from the readings in self._raw and the model's context. Σ_b Ḣ_b of every
+        sensor at once: the generalized forces of the sensor joints in one inverse
+        dynamics without external wrenches."""
         G = self._model.CalcInverseDynamics(self._context, self._vdot, self._no_forces)
         return self._raw + G[self._sensor_rows].reshape(self._raw.shape)
+
+    def _segments(self, total: np.ndarray) -> np.ndarray:
+        """Step 2, nested sensors (paper Sec. 2.2): the external wrench of each sensor
+        A on its segment, F_A = F_A,total − Σ_B X*_AB F_B,total over the sensors B
+        directly below A, from the total wrenches (k, 6) (offsets removed). X*_AB
+        moves a wrench about So_B in S_B to about So_A in S_A: with X_AB = (R, p) the
+        pose of S_B in S_A from the model's kinematics, f_A = R f_B and
+        τ_A = R τ_B + p × f_A."""
+        if not self._nesting:
+            return total
+        external = total.copy()
+        for a, b, S_a, S_b in self._nesting:
+            X_AB = self._model.CalcRelativeTransform(self._context, S_a, S_b)
+            R = X_AB.rotation().matrix()
+            force = R @ total[b, 3:]
+            external[a, :3] -= R @ total[b, :3] + np.cross(X_AB.translation(), force)
+            external[a, 3:] -= force
+        return external
 
     def _dynamics(self, external: np.ndarray):
         """Steps 3 and 4: (tau, unknown wrench) from the external wrenches (k, 6)."""
@@ -791,24 +994,21 @@ class FloatingBaseTorqueEstimator(LeafSystem):
         x, vdot = self._x, self._vdot
         x[self._jq] = self._q_port.Eval(context)
         x[self._x_jv] = self._v_port.Eval(context)
-        x[self._x_w] = self._gyro_port.Eval(context)
         vdot[self._jv] = self._vdot_port.Eval(context)
-        if not self._neglect_alpha:
-            vdot[self._root_w] = self._alpha_port.Eval(context)
-        vdot[self._root_a] = self._acc_port.Eval(context)
+        if self._has_imu:
+            x[self._x_w] = self._gyro_port.Eval(context)
+            if not self._neglect_alpha:
+                vdot[self._root_w] = self._alpha_port.Eval(context)
+            vdot[self._root_a] = self._acc_port.Eval(context)
         raw = self._raw
         for s, sensor in enumerate(self._sensors):
             raw[s] = sensor.port.Eval(context)
         # One check for all (the other entries of the buffer are finite).
         if not math.isfinite(self._buffer.sum()):
-            ports = [
-                self._q_port,
-                self._v_port,
-                self._vdot_port,
-                self._acc_port,
-                self._gyro_port,
-            ]
-            if not self._neglect_alpha:
+            ports = [self._q_port, self._v_port, self._vdot_port]
+            if self._has_imu:
+                ports += [self._acc_port, self._gyro_port]
+            if self._read_alpha:
                 ports.append(self._alpha_port)
             for port in ports + [sensor.port for sensor in self._sensors]:
                 self._read(port, context)
@@ -820,9 +1020,10 @@ class FloatingBaseTorqueEstimator(LeafSystem):
     def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
         self._read_all(context)
         # Step 1: the root (the IMU frame) at the identity, with the gyro's angular
-        # velocity and the IMU's proper acceleration (set by _read_all).
+        # velocity and the IMU's proper acceleration (set by _read_all); or the fixed
+        # base at rest with its constant proper acceleration (set at construction).
         self._model.SetPositionsAndVelocities(self._context, self._x)
-        external = self._compensate()
+        total = self._compensate()
         calibration = discrete_state.get_mutable_value(self._calibration_group)
         offsets = calibration[:-1].reshape(-1, 6)  # a view on the state
         if (
@@ -830,9 +1031,10 @@ class FloatingBaseTorqueEstimator(LeafSystem):
             and self._calibration_begin <= context.get_time() < self._calibration_end
         ):
             count = calibration[-1] + 1.0
-            offsets += (external - offsets) / count  # running mean
+            offsets += (total - offsets) / count  # running mean
             calibration[-1] = count
-        external -= offsets
+        total -= offsets
+        external = self._segments(total)
         tau, unknown = self._dynamics(external)
         discrete_state.set_value(self._tau_group, tau)
         discrete_state.set_value(self._unknown_group, unknown)
@@ -841,14 +1043,20 @@ class FloatingBaseTorqueEstimator(LeafSystem):
 
 
 def _internal_model(
-    plant: MultibodyPlant, context: Context, imu: object, sensors: list[_Sensor]
+    plant: MultibodyPlant,
+    context: Context,
+    root_frame: object,
+    sensors: list[_Sensor],
 ) -> tuple[MultibodyPlant, dict[int, object]]:
     """The estimator's internal model of `plant` (module docstring): its bodies (with
     their inertias in `context`), frames, joints and actuators (rotor inertias and
     gear ratios in `context`), without geometry, force elements or gravity, with
-    - a massless floating root body welded to the IMU frame `imu`, every joint
-      oriented away from it (a revolute or prismatic joint turned around keeps its q
-      and generalized force with the opposite axis, a weld its inverse pose);
+    - a massless floating root body welded to `root_frame` (the IMU frame, or the
+      fixed base's frame without IMU), every joint of the robot's tree oriented away
+      from it (a revolute or prismatic joint turned around keeps its q and generalized
+      force with the opposite axis, a weld its inverse pose); the joints to the world
+      (the base's floating joint or weld) are left out, and the bodies out of the
+      robot's tree (none for a model of the robot alone) are welded to the world;
     - above each F/T sensor's body B, a massless "mount" body at B's place on the
       joint that holds B, and a 6-dof joint (QuaternionFloatingJoint) from a frame S on
       the mount to the frame S on B. At the identity (kept for ever, at rest) the model
@@ -902,7 +1110,8 @@ def _internal_model(
             links.setdefault(a, []).append((b, joint))
             links.setdefault(b, []).append((a, joint))
     holder = {}  # body -> (parent body, joint)
-    stack, seen = [int(imu.body().index())], {int(imu.body().index())}
+    top = int(root_frame.body().index())
+    stack, seen = [top], {top}
     while stack:
         a = stack.pop()
         for b, joint in links.get(a, []):
@@ -917,10 +1126,15 @@ def _internal_model(
         WeldJoint(
             f"{_ROOT}_weld",
             root.body_frame(),
-            frames[int(imu.index())],
+            frames[int(root_frame.index())],
             RigidTransform(),
         )
     )
+    for i in range(1, plant.num_bodies()):
+        if i not in seen:  # not the robot's: keep it out of the model's dofs
+            model.WeldFrames(
+                model.world_frame(), model.get_body(BodyIndex(i)).body_frame()
+            )
     by_body = {int(sensor.body.index()): sensor for sensor in sensors}
     for child, (parent_index, joint) in sorted(holder.items()):
         forward = int(joint.child_body().index()) == child
@@ -1010,14 +1224,15 @@ class EstimationChain:
         encoder_filter: Savitzky-Golay filter of the encoders (order 2): q, v, vdot.
         sensor_filter: one Savitzky-Golay filter (order 1) of [accelerometer (3); gyro
             (3); F/T sensors (6 each, config.sensors order)]: values, and the gyro's
-            derivative as the angular acceleration.
+            derivative as the angular acceleration. Without IMU it holds the F/T
+            sensors only; None without IMU and F/T sensors.
         input_fault: the sum of the filters' `input_fault` (consecutive NaN or
             infinite samples they held): > 0 means the estimates rest on held data.
     """
 
     estimator: FloatingBaseTorqueEstimator
     encoder_filter: SavitzkyGolayFilter
-    sensor_filter: SavitzkyGolayFilter
+    sensor_filter: SavitzkyGolayFilter | None
     input_fault: OutputPort  # (1,) consecutive bad samples held by either filter
 
     def delay(self) -> float:
@@ -1056,14 +1271,20 @@ def add_estimator(
         wrench_<s> (each) ───────┘                    └─► derivative ─► Demux ─┘
                                      (the gyro's derivative: imu_angular_acceleration)
 
+    Without IMU (config.imu_frame empty, a fixed base) the two imu ports are neither
+    read nor needed: the Mux, the order-1 filter and the value Demux carry the F/T
+    sensors only, and there is no derivative Demux; without F/T sensors either, there
+    is no order-1 filter at all (EstimationChain.sensor_filter is None).
+
     Args:
         builder: the builder that holds `station`.
         station: the system whose outputs are the robot's sensors.
-        plant: the estimator's floating-base model of the robot (see
-            FloatingBaseTorqueEstimator; not the station's plant, which may be welded or
-            carry contact and strings).
+        plant: the estimator's model of the robot (see FloatingBaseTorqueEstimator: a
+            floating base, or welded to the world; not the station's plant, which may
+            be welded or carry contact and strings).
         config: names and options; config.joints must be the order of the encoder port.
-        encoders, accelerometer, gyroscope: names of the station's output ports.
+        encoders, accelerometer, gyroscope: names of the station's output ports
+            (accelerometer and gyroscope only with an IMU).
         wrench_prefix: the F/T port of sensor s is wrench_prefix + s.
         name: name of the estimator; the other systems' names start with it (give
             another to add a second chain to the same builder).
@@ -1076,7 +1297,9 @@ def add_estimator(
     """
     config.validate()
     names = list(config.sensors)
-    ports = [encoders, accelerometer, gyroscope] + [wrench_prefix + n for n in names]
+    has_imu = bool(config.imu_frame)
+    imu_ports = [accelerometer, gyroscope] if has_imu else []
+    ports = [encoders] + imu_ports + [wrench_prefix + n for n in names]
     missing = [p for p in ports if not station.HasOutputPort(p)]
     if missing:
         raise KeyError(
@@ -1102,31 +1325,42 @@ def add_estimator(
         builder.Connect(
             encoder_filter.GetOutputPort(source), estimator.GetInputPort(target)
         )
+    faults = [encoder_filter.GetOutputPort("input_fault")]
 
-    sizes = [3, 3] + [6] * len(names)
-    mux = builder.AddNamedSystem(f"{name}_sensor_mux", Multiplexer(sizes))
-    for k, port in enumerate(ports[1:]):
-        builder.Connect(station.GetOutputPort(port), mux.get_input_port(k))
-    sensor_filter = builder.AddNamedSystem(
-        f"{name}_sensor_filter",
-        SavitzkyGolayFilter(
-            sum(sizes), config.window, 1, config.period, config.evaluation
-        ),
+    sizes = [3] * len(imu_ports) + [6] * len(names)
+    sensor_filter = None
+    if sizes:
+        mux = builder.AddNamedSystem(f"{name}_sensor_mux", Multiplexer(sizes))
+        for k, port in enumerate(ports[1:]):
+            builder.Connect(station.GetOutputPort(port), mux.get_input_port(k))
+        sensor_filter = builder.AddNamedSystem(
+            f"{name}_sensor_filter",
+            SavitzkyGolayFilter(
+                sum(sizes), config.window, 1, config.period, config.evaluation
+            ),
+        )
+        builder.Connect(mux.get_output_port(), sensor_filter.get_input_port())
+        values = builder.AddNamedSystem(f"{name}_sensor_values", Demultiplexer(sizes))
+        builder.Connect(sensor_filter.GetOutputPort("value"), values.get_input_port())
+        imu_targets = ["imu_linear_acceleration", "imu_angular_velocity"]
+        targets = imu_targets[: len(imu_ports)] + [f"wrench_{n}" for n in names]
+        for k, target in enumerate(targets):
+            builder.Connect(values.get_output_port(k), estimator.GetInputPort(target))
+        if has_imu:
+            rates = builder.AddNamedSystem(
+                f"{name}_sensor_derivatives", Demultiplexer(sizes)
+            )
+            builder.Connect(
+                sensor_filter.GetOutputPort("derivative"), rates.get_input_port()
+            )
+            builder.Connect(
+                rates.get_output_port(1),
+                estimator.GetInputPort("imu_angular_acceleration"),
+            )
+        faults.append(sensor_filter.GetOutputPort("input_fault"))
+    fault = builder.AddNamedSystem(f"{name}_input_fault", Adder(len(faults), 1))
+    for k, port in enumerate(faults):
+        builder.Connect(port, fault.get_input_port(k))
+    return EstimationChain(
+        estimator, encoder_filter, sensor_filter, fault.get_output_port()
     )
-    builder.Connect(mux.get_output_port(), sensor_filter.get_input_port())
-    values = builder.AddNamedSystem(f"{name}_sensor_values", Demultiplexer(sizes))
-    builder.Connect(sensor_filter.GetOutputPort("value"), values.get_input_port())
-    targets = ["imu_linear_acceleration", "imu_angular_velocity"] + [
-        f"wrench_{n}" for n in names
-    ]
-    for k, target in enumerate(targets):
-        builder.Connect(values.get_output_port(k), estimator.GetInputPort(target))
-    rates = builder.AddNamedSystem(f"{name}_sensor_derivatives", Demultiplexer(sizes))
-    builder.Connect(sensor_filter.GetOutputPort("derivative"), rates.get_input_port())
-    builder.Connect(
-        rates.get_output_port(1), estimator.GetInputPort("imu_angular_acceleration")
-    )
-    fault = builder.AddNamedSystem(f"{name}_input_fault", Adder(2, 1))
-    builder.Connect(encoder_filter.GetOutputPort("input_fault"), fault.get_input_port(0))
-    builder.Connect(sensor_filter.GetOutputPort("input_fault"), fault.get_input_port(1))
-    return EstimationChain(estimator, encoder_filter, sensor_filter, fault.get_output_port())
