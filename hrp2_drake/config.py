@@ -16,6 +16,7 @@ import copy
 import dataclasses
 import inspect
 import math
+import types
 import typing
 from collections.abc import Hashable
 from pathlib import Path
@@ -95,8 +96,17 @@ def parse_yaml(text: str, source: str) -> Any:
         raise ValueError(f"{source}: invalid YAML: {one_line(error)}") from None
 
 
+def _optional(schema: Any) -> Any:
+    """X for Optional[X] (X | None), else `schema` itself."""
+    args = [a for a in typing.get_args(schema) if a is not type(None)]
+    if typing.get_origin(schema) in (typing.Union, types.UnionType) and len(args) == 1:
+        return args[0]
+    return schema
+
+
 def _unknown_keys(schema: Any, data: Any, path: str) -> list[str]:
     """Paths of keys in `data` that `schema` (a dataclass type) does not have."""
+    schema = _optional(schema)
     origin, args = typing.get_origin(schema), typing.get_args(schema)
     if origin is list and isinstance(data, list):
         return sum(
@@ -134,6 +144,9 @@ def _type_errors(schema: Any, value: Any, path: str) -> list[str]:
     """'<path>: expected ..., got ...' for the values of `value` whose YAML type does
     not fit `schema` (the checks yaml_load_typed makes, but naming the key)."""
     where = path or "the file"
+    if value is None and _optional(schema) is not schema:
+        return []
+    schema = _optional(schema)
     origin, args = typing.get_origin(schema), typing.get_args(schema)
     if schema is float:
         if isinstance(value, bool) or not isinstance(value, (int, float, str)):

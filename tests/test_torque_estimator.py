@@ -15,7 +15,7 @@ from pydrake.common.yaml import yaml_load_typed
 from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 from pydrake.multibody.math import SpatialForce, SpatialVelocity
 from pydrake.multibody.plant import ExternallyAppliedSpatialForce, MultibodyPlant
-from pydrake.multibody.tree import JacobianWrtVariable
+from pydrake.multibody.tree import JacobianWrtVariable, SpatialInertia
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
@@ -484,7 +484,12 @@ def test_bad_sensors(plant):
             ValueError,
             "not rigidly attached",
         ),
-        (sensors(wrist=ForceTorqueSensorConfig("RARM_LINK5")), ValueError, "nested"),
+        (
+            # Nested sensors are supported; a body above its sensor frame is not.
+            sensors(right_hand=ForceTorqueSensorConfig("RARM_HAND", "RARM_LINK5")),
+            ValueError,
+            "body 'RARM_LINK5' is above its frame 'RARM_HAND'",
+        ),
         (sensors(waist=ForceTorqueSensorConfig("BODY")), ValueError, "is the base"),
         (
             sensors(**{"left foot": ForceTorqueSensorConfig("LLEG_FOOT")}),
@@ -498,13 +503,24 @@ def test_bad_sensors(plant):
             FloatingBaseTorqueEstimator(plant, _config(plant, sensors=value))
 
 
-def test_plant_must_float():
+def test_plant_needs_exactly_one_base():
+    """A welded HRP-2 is a fixed base (with its IMU: e.g. on a moving platform; fixed
+    bases are tested in test_estimator_layouts.py); a second free body leaves no
+    unique base."""
     welded = MultibodyPlant(0.0)
     model.add_hrp2(welded)
     welded.WeldFrames(welded.world_frame(), welded.GetFrameByName(model.BASE_BODY))
     welded.Finalize()
+    estimator = FloatingBaseTorqueEstimator(welded, _config(welded))
+    assert estimator.is_fixed_base() and estimator.has_imu()
+    two = MultibodyPlant(0.0)
+    instance = model.add_hrp2(two)
+    two.AddRigidBody(
+        "box", instance, SpatialInertia.SolidBoxWithMass(1.0, 0.1, 0.1, 0.1)
+    )
+    two.Finalize()
     with pytest.raises(ValueError, match="exactly one floating base"):
-        FloatingBaseTorqueEstimator(welded, _config(welded))
+        FloatingBaseTorqueEstimator(two, _config(two))
 
 
 def test_yaml_config(plant):
@@ -717,7 +733,7 @@ def test_closed_loop_offset_calibration():
     start-up calibration finds the biases, then the external wrenches read ~0 and τ̂
     is unbiased (only the sensors' filtered noise remains)."""
     sensors = SensorsConfig.noiseless()
-    sensors.force_torque = SensorsConfig().force_torque  # HRP-2-like bias and noise
+    sensors.force_torque = StationConfig().sensors_config().force_torque  # HRP-2's
     bias = np.array([sensors.force_torque[s].bias for s in SENSORS])
     # Calibrate over [0.2, 0.7) s, after the filters' start-up (the default start).
     changes = dict(unknown_wrench_body=model.IMU_BODY, offset_calibration_time=0.5)

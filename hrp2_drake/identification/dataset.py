@@ -151,25 +151,26 @@ def noncausal_estimates(
     if missing:
         raise KeyError(f"the log has no column for joints {missing}")
     cols = [column[j] for j in config.joints]
-    signals = ["imu_linear_acceleration", "imu_angular_velocity"] + [
-        f"wrench_{name}" for name in config.sensors
-    ]
+    imu = bool(config.imu_frame)
+    signals = ["imu_linear_acceleration", "imu_angular_velocity"] if imu else []
+    signals += [f"wrench_{name}" for name in config.sensors]
     absent = [s for s in signals if s not in log]
     if absent:
         raise ValueError(f"the log lacks {absent}, which the estimator needs")
 
     q, dq, ddq = savgol_filter_offline(log["q_measured"][:, cols], dt, window, 2)
     delta_q = savgol_filter_offline(log["q_cmd"][:, cols] - log["q_measured"][:, cols], dt, window, 2)[0]
-    acc = savgol_filter_offline(log["imu_linear_acceleration"], dt, window, 1)[0]
-    gyro, alpha, _ = savgol_filter_offline(log["imu_angular_velocity"], dt, window, 1)
-    wrenches = np.stack(
-        [savgol_filter_offline(log[f"wrench_{name}"], dt, window, 1)[0] for name in config.sensors],
-        axis=1,
-    )
+    if imu:  # else a fixed base: the estimator knows its motion (none) and gravity
+        acc = savgol_filter_offline(log["imu_linear_acceleration"], dt, window, 1)[0]
+        gyro, alpha, _ = savgol_filter_offline(log["imu_angular_velocity"], dt, window, 1)
+    wrenches = np.zeros((len(t), len(config.sensors), 6))
+    for s, name in enumerate(config.sensors):
+        wrenches[:, s] = savgol_filter_offline(log[f"wrench_{name}"], dt, window, 1)[0]
     keep = np.arange(0, len(t), stride)
     tau = np.empty((len(keep), len(cols)))
     for row, k in enumerate(keep):
-        tau[row] = estimator.estimate(q[k], dq[k], ddq[k], acc[k], gyro[k], alpha[k], wrenches[k]).tau
+        motion = (acc[k], gyro[k], alpha[k]) if imu else (None, None, None)
+        tau[row] = estimator.estimate(q[k], dq[k], ddq[k], *motion, wrenches[k]).tau
     tau_true = log["joint_torque_true"][keep][:, cols] if "joint_torque_true" in log else None
     # Unlabelled logs (e.g. from a real robot): phase and excited joint -1.
     labels = {

@@ -19,6 +19,7 @@ A station is any Diagram with the ports of DESIGN.md: input `q_cmd` and
 `imu_angular_velocity`, `wrench_<sensor>`; `joint_torque_true` is logged if present.
 """
 
+import copy
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -33,17 +34,16 @@ from pydrake.systems.framework import Context, Diagram, DiagramBuilder, LeafSyst
 from pydrake.systems.primitives import TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
+from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
+
 # Phases of an identification log, per sample.
 PHASE_TRANSITION, PHASE_HIGH_TORQUE, PHASE_HIGH_VELOCITY = 0, 1, 2
 
-#: Signals of an identification log (besides "t", "phase", "excited_joint"): what a
-#: real robot records. Units: rad, m/s², rad/s, [N·m; N].
-IDENTIFICATION_LOG_SIGNALS = (
-    "q_cmd",
-    "q_measured",
-    "imu_linear_acceleration",
-    "imu_angular_velocity",
-)
+#: Signals every identification log holds (besides "t", "phase", "excited_joint"):
+#: what a real robot records, rad. A robot with an IMU adds its
+#: `IMU_LOG_SIGNALS` (m/s², rad/s), and every F/T sensor s its "wrench_<s>" ([N·m; N]).
+IDENTIFICATION_LOG_SIGNALS = ("q_cmd", "q_measured")
+IMU_LOG_SIGNALS = ("imu_linear_acceleration", "imu_angular_velocity")
 
 
 @dataclass
@@ -130,6 +130,21 @@ class CollectionConfig:
                 raise ValueError(f"CollectionConfig.sinusoids[{s.joint}]: bad amplitudes/duration")
         if self.pushes.extra_ramps < 0:
             raise ValueError("CollectionConfig.pushes.extra_ramps must be >= 0")
+
+    def is_empty(self) -> bool:
+        return not (self.sinusoids or self.pushes.body)
+
+    def scaled(self, duration_scale: float, seed: int | None = None) -> "CollectionConfig":
+        """A copy shortened (or lengthened) by `duration_scale`: the pushes' random
+        ramps and the sinusoids' durations (each at least 2 s) scale, the 12
+        single-axis pushes stay; `seed` replaces the pushes' seed if given."""
+        out = copy.deepcopy(self)
+        out.pushes.extra_ramps = round(self.pushes.extra_ramps * duration_scale)
+        if seed is not None:
+            out.pushes.seed = seed
+        for s in out.sinusoids:
+            s.duration = max(2.0, s.duration * duration_scale)
+        return out
 
 
 @dataclass
@@ -298,8 +313,6 @@ def collect(
         "wrench_<sensor>", ["joint_torque_true"], "applied_wrench"} as arrays with
         one row per sample.
     """
-    from hrp2_drake.experiments.simulate import add_loggers, logs_to_arrays, run_with_progress
-
     builder = DiagramBuilder()
     builder.AddNamedSystem("station", station)
     q_source = builder.AddNamedSystem("q_cmd_source", TrajectorySource(plan.q_cmd))
@@ -313,7 +326,11 @@ def collect(
     for i in range(station.num_output_ports()):
         port = station.get_output_port(i)
         name = port.get_name()
-        if name in IDENTIFICATION_LOG_SIGNALS or name.startswith("wrench_") or name == "joint_torque_true":
+        if (
+            name in IDENTIFICATION_LOG_SIGNALS + IMU_LOG_SIGNALS
+            or name.startswith("wrench_")
+            or name == "joint_torque_true"
+        ):
             ports[name] = port
     loggers = add_loggers(builder, ports, log_period)
     simulator = Simulator(builder.Build())
@@ -350,8 +367,6 @@ def load_log(path: str | Path) -> tuple[dict[str, np.ndarray], list[str]]:
     missing = [key for key in required if key not in log]
     if missing:
         raise ValueError(f"{path}: identification log lacks {missing}")
-    if not any(key.startswith("wrench_") for key in log):
-        raise ValueError(f"{path}: identification log has no wrench_<sensor> signal")
     names = [str(n) for n in log.pop("joint_names")]
     m, n = len(log["t"]), len(names)
     for key, value in log.items():

@@ -1,4 +1,6 @@
-"""The HRP-2 model: names, files, and loading models/hrp2 into a MultibodyPlant.
+"""HRP-2's names, files and model loading, from its robot description
+(models/hrp2/robot.yaml), for HRP-2's own experiments and tests: the generic paths
+(station, builders, commands) read a `RobotDescription` instead.
 
 Joint vectors of this project are always in HRP-2 order (`JOINT_NAMES`): right leg
 0-5, left leg 6-11, chest 12-13, head 14-15, right arm 16-22, left arm 23-29.
@@ -6,15 +8,14 @@ Joint vectors of this project are always in HRP-2 order (`JOINT_NAMES`): right l
 
 from __future__ import annotations
 
-import gzip
 import os
 from pathlib import Path
 
 import numpy as np
-from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import ModelInstanceIndex
 
+from hrp2_drake.description import RobotDescription, load_robot_description
 from hrp2_drake.multibody import JointIndexing, joint_indexing
 
 
@@ -22,7 +23,7 @@ def models_dir() -> Path:
     """models/hrp2 of the source tree, or $HRP2_DRAKE_MODELS if set."""
     env = os.environ.get("HRP2_DRAKE_MODELS")
     path = Path(env) if env else Path(__file__).resolve().parents[2] / "models" / "hrp2"
-    if not (path / "hrp2.urdf").is_file():
+    if not (path / "robot.yaml").is_file():
         raise FileNotFoundError(
             f"HRP-2 model not found in {path}: install hrp2_drake in editable mode "
             "(pip install -e .) or set HRP2_DRAKE_MODELS to the models/hrp2 folder"
@@ -30,28 +31,25 @@ def models_dir() -> Path:
     return path
 
 
-URDF_FILE = "hrp2.urdf"
-SERVO_FILE = "servo.yaml"
-TRAJECTORY_FILE = "climbing32.pos.gz"
+def description() -> RobotDescription:
+    """HRP-2's robot description (shared, cached: do not modify)."""
+    return load_robot_description(models_dir() / "robot.yaml", check=False)
 
-JOINT_NAMES: tuple[str, ...] = (
-    *(f"RLEG_JOINT{i}" for i in range(6)),
-    *(f"LLEG_JOINT{i}" for i in range(6)),
-    "CHEST_JOINT0",
-    "CHEST_JOINT1",
-    "HEAD_JOINT0",
-    "HEAD_JOINT1",
-    *(f"RARM_JOINT{i}" for i in range(7)),
-    *(f"LARM_JOINT{i}" for i in range(7)),
-)
+
+_HRP2 = description()
+URDF_FILE = _HRP2.model_file
+SERVO_FILE = _HRP2.servo_file
+TRAJECTORY_FILE = _HRP2.trajectory_file
+
+JOINT_NAMES: tuple[str, ...] = tuple(_HRP2.joints)
 NUM_JOINTS = len(JOINT_NAMES)
-RIGHT_LEG: tuple[str, ...] = JOINT_NAMES[:6]
+RIGHT_LEG: tuple[str, ...] = tuple(_HRP2.controlled_joints)
 #: The paper's names of the right-leg joints (Table 1 order).
-RIGHT_LEG_LABELS = ("hip yaw", "hip roll", "hip pitch", "knee", "ankle pitch", "ankle roll")
+RIGHT_LEG_LABELS = tuple(_HRP2.joint_labels)
 
-BASE_BODY = "BODY"  # the waist: the floating base of the model
-IMU_BODY = "CHEST_LINK1"
-IMU_FRAME = "imu"  # massless link welded to CHEST_LINK1 (the torso)
+BASE_BODY = _HRP2.base_body  # the waist: the floating base of the model
+IMU_BODY = _HRP2.unknown_wrench_body  # the torso, which carries the IMU
+IMU_FRAME = _HRP2.imu_frame  # massless link welded to CHEST_LINK1 (the torso)
 #: F/T sensor name -> the fixed joint that splits the end-effector at the sensor.
 #: The joint's child link frame is the sensor frame.
 FT_SENSORS: dict[str, str] = {
@@ -62,55 +60,28 @@ FT_SENSORS: dict[str, str] = {
 }
 #: Body below each F/T sensor (the part whose weight and inertia the sensor sees).
 FT_SENSOR_BODIES: dict[str, str] = {
-    "right_foot": "RLEG_FOOT",
-    "left_foot": "LLEG_FOOT",
-    "right_hand": "RARM_HAND",
-    "left_hand": "LARM_HAND",
+    name: sensor.body for name, sensor in _HRP2.force_torque_sensors.items()
 }
-SOLE_FRAMES: dict[str, str] = {"right_foot": "r_sole", "left_foot": "l_sole"}
+SOLE_FRAMES: dict[str, str] = dict(zip(("right_foot", "left_foot"), _HRP2.scenarios.soles))
 #: Shoulder points (CHEST_LINK1 frame, m) where the hanging strings are tied.
-SHOULDERS: dict[str, tuple[float, float, float]] = {
-    "right": (0.008, -0.25, 0.181),
-    "left": (0.008, 0.25, 0.181),
-}
+SHOULDERS: dict[str, tuple[float, float, float]] = dict(
+    zip(("right", "left"), map(tuple, _HRP2.scenarios.hanging.points))
+)
 
 
 def add_hrp2(plant: MultibodyPlant) -> ModelInstanceIndex:
     """Parses models/hrp2/hrp2.urdf into `plant` (not finalized) and returns it."""
-    (instance,) = Parser(plant).AddModels(str(models_dir() / URDF_FILE))
-    return instance
+    return _HRP2.add_model(plant, weld_base=False)
 
 
 def add_hrp2_with_model_error(
     plant: MultibodyPlant, error: float, seed: int = 0
 ) -> ModelInstanceIndex:
     """HRP-2 with every link's mass and COM scaled by its own random factor in
-    [1 - error, 1 + error] (uniform, repeatable by seed; rotational inertias scale with
-    the mass): a controller's or estimator's model that is wrong about the robot.
-    error = 0 is `add_hrp2`."""
-    import xml.etree.ElementTree as ElementTree
-
+    [1 - error, 1 + error] (`RobotDescription.add_model`). error = 0 is `add_hrp2`."""
     if not 0 <= error < 1:
         raise ValueError(f"add_hrp2_with_model_error: error={error} must be in [0, 1)")
-    if error == 0:
-        return add_hrp2(plant)
-    # Keep the file's `drake:` prefix on the tags Drake reads (gear ratio, rotor).
-    ElementTree.register_namespace("drake", "http://drake.mit.edu")
-    rng = np.random.default_rng(seed)
-    root = ElementTree.fromstring((models_dir() / URDF_FILE).read_text())
-    for inertial in root.iter("inertial"):
-        mass_scale, com_scale = (float(v) for v in 1.0 + error * rng.uniform(-1.0, 1.0, 2))
-        mass = inertial.find("mass")
-        mass.set("value", f"{float(mass.get('value')) * mass_scale:.9g}")
-        inertia = inertial.find("inertia")
-        for key, value in inertia.attrib.items():
-            inertia.set(key, f"{float(value) * mass_scale:.9g}")
-        origin = inertial.find("origin")
-        xyz = [float(v) * com_scale for v in origin.get("xyz").split()]
-        origin.set("xyz", " ".join(f"{v:.9g}" for v in xyz))
-    perturbed = ElementTree.tostring(root, encoding="unicode")
-    (instance,) = Parser(plant).AddModelsFromString(perturbed, "urdf")
-    return instance
+    return _HRP2.add_model(plant, weld_base=False, model_error=error, seed=seed)
 
 
 def hrp2_joint_indexing(plant: MultibodyPlant) -> JointIndexing:
@@ -132,9 +103,7 @@ def load_trajectory() -> tuple[np.ndarray, np.ndarray]:
         (t, q): times (s), shape (m,), and joint positions (rad), shape (m, 30), in
         HRP-2 joint order.
     """
-    with gzip.open(models_dir() / TRAJECTORY_FILE, "rt") as stream:
-        data = np.loadtxt(stream)
-    return data[:, 0], data[:, 1 : 1 + NUM_JOINTS]
+    return _HRP2.load_trajectory()
 
 
 def half_sitting() -> np.ndarray:

@@ -1,4 +1,5 @@
-"""HRP-2's sensors: encoders, torso IMU, and four 6-axis F/T sensors, with noise.
+"""A robot's simulated sensors: encoders, an IMU (optional) and 6-axis F/T sensors,
+with noise (defaults: HRP-2-like magnitudes).
 
 Each sensor is a clean signal from the plant followed by a `NoisySampler`: sampled at
 the control period (1 kHz), plus a constant bias and white Gaussian noise (a pure
@@ -7,10 +8,10 @@ sensor is digital (encoders).
 
 - Encoders: the joint positions, quantized at each joint's encoder resolution.
 - IMU: Drake's `Accelerometer` (proper acceleration: the plant's gravity is passed,
-  so a robot at rest reads +g upward) and `Gyroscope` on the torso's IMU frame.
+  so a robot at rest reads +g upward) and `Gyroscope` on the IMU frame.
 - F/T: `ForceTorqueReadout` turns the reaction forces of the fixed joints that split
-  the feet and hands at the sensors into what a sensor reads: the wrench that the body
-  below the sensor (foot, hand) exerts on the body above it, torque then force, in the
+  links at the sensors (feet, hands, a wrist) into what a sensor reads: the wrench that
+  the body below the sensor exerts on the body above it, torque then force, in the
   sensor frame, about its origin. Standing still, an ankle sensor reads +z force.
 """
 
@@ -23,8 +24,6 @@ from pydrake.common.value import AbstractValue
 from pydrake.multibody.math import SpatialForce
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.framework import Context, DiscreteValues, LeafSystem
-
-from hrp2_drake.robot import model
 
 
 @dataclass
@@ -58,16 +57,11 @@ class NoiseConfig:
         return out[0], out[1]
 
 
-def _default_ft() -> dict[str, NoiseConfig]:
-    # HRP-2-like 6-axis sensors (JR3-class): ~0.5 N and ~0.02 N·m noise at 1 kHz,
-    # offsets of a few N / a few 0.01 N·m that drift between power-ups.
-    std = [0.02, 0.02, 0.02, 0.5, 0.5, 0.5]
-    return {
-        "right_foot": NoiseConfig(std, [0.04, -0.03, 0.02, 2.0, -1.5, 4.0]),
-        "left_foot": NoiseConfig(std, [-0.02, 0.05, -0.01, -1.0, 2.5, -3.0]),
-        "right_hand": NoiseConfig(std, [0.01, -0.02, 0.01, 0.8, -0.6, 1.2]),
-        "left_hand": NoiseConfig(std, [-0.01, 0.01, 0.02, -0.5, 0.9, -1.0]),
-    }
+def _default_ft() -> NoiseConfig:
+    # 6-axis sensors of the JR3/ATI class: ~0.5 N and ~0.02 N·m noise at 1 kHz. Their
+    # offsets (a few N, a few 0.01 N·m, drifting between power-ups) are per sensor:
+    # a robot description gives them in `force_torque`.
+    return NoiseConfig([0.02, 0.02, 0.02, 0.5, 0.5, 0.5], [0.0])
 
 
 @dataclass
@@ -82,7 +76,9 @@ class SensorsConfig:
         encoder: additional encoder noise (rad); none by default.
         accelerometer: m/s². MEMS-class: 0.02 m/s² noise, ~0.05 m/s² bias.
         gyroscope: rad/s. 0.005 rad/s noise, ~0.002 rad/s bias.
-        force_torque: per sensor name, [τx, τy, τz, fx, fy, fz] in N·m and N.
+        force_torque: per sensor name, [τx, τy, τz, fx, fy, fz] in N·m and N;
+            a sensor not listed has `force_torque_default`.
+        force_torque_default: the F/T sensors not in `force_torque`.
     """
 
     period: float = 0.001
@@ -95,12 +91,20 @@ class SensorsConfig:
     gyroscope: NoiseConfig = field(
         default_factory=lambda: NoiseConfig([0.005], [0.002, -0.001, 0.0015])
     )
-    force_torque: dict[str, NoiseConfig] = field(default_factory=_default_ft)
+    force_torque: dict[str, NoiseConfig] = field(default_factory=dict)
+    force_torque_default: NoiseConfig = field(default_factory=_default_ft)
 
-    def validate(self) -> None:
+    def force_torque_noise(self, name: str) -> NoiseConfig:
+        """The noise of F/T sensor `name`."""
+        return self.force_torque.get(name, self.force_torque_default)
+
+    def validate(
+        self, num_joints: int | None = None, sensor_names: Sequence[str] | None = None
+    ) -> None:
         """Raises ValueError naming the bad field (yaml_load_typed does not call it):
         the period must be finite and > 0, the seed >= 0, and each noise config must
-        hold 1 or as many values as its sensor has axes."""
+        hold 1 or as many values as its sensor has axes (the encoders' only when the
+        number of joints is given); `force_torque` may only name the given sensors."""
         if not (math.isfinite(self.period) and self.period > 0):
             raise ValueError(
                 "SensorsConfig.period must be a finite number > 0 (s), "
@@ -108,11 +112,20 @@ class SensorsConfig:
             )
         if self.seed < 0:
             raise ValueError(f"SensorsConfig.seed must be >= 0, got {self.seed}")
-        self.encoder.vectors(model.NUM_JOINTS, "SensorsConfig.encoder")
+        if num_joints is not None:
+            self.encoder.vectors(num_joints, "SensorsConfig.encoder")
         self.accelerometer.vectors(3, "SensorsConfig.accelerometer")
         self.gyroscope.vectors(3, "SensorsConfig.gyroscope")
+        self.force_torque_default.vectors(6, "SensorsConfig.force_torque_default")
         for name, noise in self.force_torque.items():
             noise.vectors(6, f"SensorsConfig.force_torque.{name}")
+        if sensor_names is not None:
+            unknown = sorted(set(self.force_torque) - set(sensor_names))
+            if unknown:
+                raise ValueError(
+                    f"SensorsConfig.force_torque: unknown sensors {unknown}, the robot has "
+                    f"{sorted(sensor_names)}"
+                )
 
     @staticmethod
     def noiseless(period: float = 0.001) -> "SensorsConfig":
@@ -124,7 +137,7 @@ class SensorsConfig:
             encoder=zero,
             accelerometer=zero,
             gyroscope=zero,
-            force_torque={name: zero for name in _default_ft()},
+            force_torque_default=zero,
         )
 
 
@@ -205,7 +218,7 @@ class NoisySampler(LeafSystem):
 
 
 class ForceTorqueReadout(LeafSystem):
-    """What F/T sensors read, from the reaction forces of the joints at the sensors.
+    """What F/T sensors read, from the reaction forces of the fixed joints at the sensors.
 
     .. code-block:: text
 
@@ -217,18 +230,40 @@ class ForceTorqueReadout(LeafSystem):
         reaction_forces: the plant's reaction-forces output (one SpatialForce per
             joint: the force on the child body at the joint's child frame, expressed
             in that frame).
-        wrenches: 6 values per sensor in `sensor_joints` order, [τ; f] (N·m, N) that
-            the child (foot, hand) exerts on the parent, about the sensor origin, in
-            the sensor frame (the joint's child frame).
+        wrenches: 6 values per sensor in `sensors` order, [τ; f] (N·m, N) that the
+            body below the sensor exerts on the body above it, about the sensor frame's
+            origin, in the sensor frame.
     """
 
-    def __init__(self, plant: MultibodyPlant, sensor_joints: Sequence[str]):
+    def __init__(self, plant: MultibodyPlant, sensors: Sequence[tuple[str, str, str]]):
+        """
+        Args:
+            plant: the finalized plant.
+            sensors: (fixed joint, sensor frame, body below the sensor) per sensor;
+                the frame is rigidly attached to the joint's bodies.
+        """
         super().__init__()
-        self._joints = []
-        for name in sensor_joints:
-            if not plant.HasJointNamed(name):
-                raise KeyError(f"ForceTorqueReadout: the plant has no joint '{name}'")
-            self._joints.append(int(plant.GetJointByName(name).index()))
+        context = plant.CreateDefaultContext()
+        self._joints, maps = [], []
+        for joint_name, frame_name, body_name in sensors:
+            if not plant.HasJointNamed(joint_name):
+                raise KeyError(f"ForceTorqueReadout: the plant has no joint '{joint_name}'")
+            joint = plant.GetJointByName(joint_name)
+            below = plant.GetBodyByName(body_name)
+            # The reaction is the force on the child: the sensor reads its opposite
+            # when the child is the body below the sensor.
+            sign = -1.0 if joint.child_body().index() == below.index() else 1.0
+            X_SC = joint.frame_on_child().CalcPose(context, plant.GetFrameByName(frame_name))
+            R, p = X_SC.rotation().matrix(), X_SC.translation()
+            # [τ; f] about Co in C -> about So in S: f_S = R f, τ_S = R τ + p × (R f).
+            cross = np.array([[0, -p[2], p[1]], [p[2], 0, -p[0]], [-p[1], p[0], 0]])
+            T = np.zeros((6, 6))
+            T[:3, :3] = R
+            T[:3, 3:] = cross @ R
+            T[3:, 3:] = R
+            self._joints.append(int(joint.index()))
+            maps.append(sign * T)
+        self._maps = np.array(maps).reshape(-1, 6, 6)
         self._reaction = self.DeclareAbstractInputPort(
             "reaction_forces", AbstractValue.Make([SpatialForce()])
         )
@@ -238,5 +273,4 @@ class ForceTorqueReadout(LeafSystem):
         forces = self._reaction.Eval(context)
         out = output.get_mutable_value()
         for k, j in enumerate(self._joints):
-            # The sensor reads the opposite of the force on the child.
-            out[6 * k : 6 * k + 6] = -forces[j].get_coeffs()
+            out[6 * k : 6 * k + 6] = self._maps[k] @ forces[j].get_coeffs()

@@ -1,4 +1,6 @@
-"""Hrp2ServoEmulation: the closed-source HRP-2 position servo (DESIGN.md).
+"""Hrp2ServoEmulation: a robot's emulated position servo (DESIGN.md), modelled on
+HRP-2's closed-source one; its parameters come from the robot description's
+servo_file (HRP-2: models/hrp2/servo.yaml; the iiwa: models/iiwa14/servo.yaml).
 
 Per joint, with e = q_cmd(t - d) - q_encoder (paper eq. 5, plus what the paper and the
 authors' measurements show of the real robot, Sec. 3.2; models/hrp2/README.md gives
@@ -54,9 +56,6 @@ from hrp2_drake.multibody import JointIndexing, joint_indexing
 #: The servo mechanisms that can be switched off (`Hrp2ServoEmulation(..., off=...)`,
 #: `StationConfig.servo_off`).
 SERVO_MECHANISMS = ("latency", "voltage_limit", "hysteresis", "deadzone")
-
-#: `StationConfig.servo_file` / `load_servo_params` names of the shipped servo files.
-SERVO_PRESETS = {"calibrated": "servo.yaml", "ideal": "servo_ideal.yaml"}
 
 
 @dataclass
@@ -142,24 +141,29 @@ class ServoParams:
             joint.validate(f"{source}: joints.{name}")
 
 
-def servo_file_path(path: str | Path | None = None) -> Path:
-    """The servo data file: a path, a preset name (`SERVO_PRESETS`), or None for the
-    calibrated default (models/hrp2/servo.yaml)."""
-    from hrp2_drake.robot.model import models_dir
+def servo_file_path(path: str | Path | None = None, robot: str | Path | None = None) -> Path:
+    """The servo data file: a path, a preset of the robot description (e.g. "ideal"),
+    or None / "" / "calibrated" for the robot's `servo_file` (`robot` as
+    `load_robot_description`: None for the default robot)."""
+    from hrp2_drake.description import load_robot_description
 
-    if path is None or str(path) == "":
-        path = "calibrated"
-    if str(path) in SERVO_PRESETS:
-        return models_dir() / SERVO_PRESETS[str(path)]
-    return Path(path)
+    return load_robot_description(robot, check=False).servo_path(str(path or ""))
 
 
-def load_servo_params(path: str | Path | None = None) -> ServoParams:
-    """Loads a servo data file: a path, "ideal", "calibrated", or None (calibrated)."""
-    filename = servo_file_path(path)
+def load_servo_params(
+    path: str | Path | None = None, robot: str | Path | None = None
+) -> ServoParams:
+    """Loads a servo data file: a path, a preset name ("ideal", "calibrated"), or None
+    (the robot's calibrated servo); see `servo_file_path`."""
+    from hrp2_drake.description import load_robot_description
+
+    filename = servo_file_path(path, robot)
     if not filename.is_file():
+        description = load_robot_description(robot, check=False)
+        presets = ["calibrated", *description.servo_presets]
         raise FileNotFoundError(
-            f"servo file {filename} not found (give a path or one of {sorted(SERVO_PRESETS)})"
+            f"servo file {filename} not found (give a path or one of {presets} of robot "
+            f"'{description.name}')"
         )
     params = yaml_load_typed(schema=ServoParams, filename=str(filename))
     params.validate(str(filename))
@@ -285,7 +289,7 @@ def dahl_step(s: np.ndarray, dq: np.ndarray, width: np.ndarray) -> np.ndarray:
 
 
 class Hrp2ServoEmulation(LeafSystem):
-    """The HRP-2 position servo: q_cmd and the plant state in, joint torques out.
+    """The emulated position servo: q_cmd and the plant state in, joint torques out.
 
     .. code-block:: text
 

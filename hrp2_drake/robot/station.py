@@ -1,30 +1,38 @@
-"""make_station(config): the simulated HRP-2 as one Diagram with named ports.
+"""make_station(config): a simulated robot (HRP-2 by default, any robot description)
+as one Diagram with named ports.
 
 .. code-block:: text
 
                            ┌──────────────────────────────┐
     q_cmd ────────────────►│                              ├──► q_measured
-    applied_spatial_force ►│   MultibodyPlant (HRP-2)     ├──► imu_linear_acceleration
-                           │ + Hrp2ServoEmulation         ├──► imu_angular_velocity
-                           │ + encoders, IMU, 4 F/T       ├──► wrench_<sensor> (x4)
+    applied_spatial_force ►│   MultibodyPlant (robot)     ├──► imu_linear_acceleration  (if an IMU)
+                           │ + Hrp2ServoEmulation         ├──► imu_angular_velocity     (if an IMU)
+                           │ + encoders, IMU, F/T         ├──► wrench_<sensor> (each)
                            │   (+ fault injection)        ├──► sensor_time
                            │   (noise, bias, 1 kHz)       ├──► joint_torque_true
                            │                              ├──► state_true
                            │                              ├──► body_poses
                            └──────────────────────────────┘
 
+The robot is `StationConfig.robot`, a robot description (hrp2_drake/description.py):
+its model, joints, IMU, F/T sensors, servo parameters and sensor noise.
+
 Scenarios (`StationConfig.scenario`):
-  - "fixed_base": the waist welded 1 m above the ground.
-  - "hanging": floating base held by two strings from the shoulders (spring-dampers to
-    fixed anchors, as in the paper's Fig. 2b), feet in the air.
-  - "standing": both feet on flat ground.
-  - "standing_on_block": left foot on the ground, right foot on a rigid block
-    (the paper's Fig. 2a); the right leg is bent so that the sole rests on the block.
+  - "fixed_base": the base welded at the description's base_pose (a fixed robot has
+    only this one).
+  - "hanging": floating base held by two strings (the description's
+    scenarios.hanging: HRP-2's shoulders; spring-dampers to fixed anchors, as in the
+    paper's Fig. 2b), feet in the air.
+  - "standing": the soles (scenarios.soles) on flat ground.
+  - "standing_on_block": one sole on a rigid block (the paper's Fig. 2a), the leg
+    (scenarios.block) bent so that the sole rests on it.
+Every scenario but "hanging" has a ground (its top at z = 0), and `obstacles` adds
+boxes (e.g. a table for an arm's force task).
 
 `joint_torque_true` and `state_true` are ground truth, for evaluation only: estimators,
 identification and controllers must not read them. `joint_torque_true` is the torque
-the servo applied over the last plant step (the plant's net actuation, HRP-2 joint
-order), the same step the accelerometer and F/T readings come from.
+the servo applied over the last plant step (the plant's net actuation, in the
+description's joint order), the same step the accelerometer and F/T readings come from.
 
 The noise of every sensor is a pure function of `SensorsConfig.seed` and the sample
 index (`NoisySampler`), so every run of a config repeats the same noise.
@@ -37,7 +45,7 @@ from typing import Sequence
 
 import numpy as np
 from pydrake.geometry import Box, Meshcat, MeshcatVisualizer, MeshcatVisualizerParams, Role
-from pydrake.math import RigidTransform
+from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.multibody.plant import (
     AddMultibodyPlant,
     CoulombFriction,
@@ -49,8 +57,8 @@ from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import Demultiplexer, MatrixGain
 from pydrake.systems.sensors import Accelerometer, Gyroscope
 
-from hrp2_drake.multibody import JointIndexing
-from hrp2_drake.robot import model
+from hrp2_drake.description import RobotDescription, load_robot_description
+from hrp2_drake.multibody import JointIndexing, joint_indexing, tree_parents
 from hrp2_drake.robot.faults import FaultInjector, SensorClock, SensorFault
 from hrp2_drake.robot.sensors import ForceTorqueReadout, NoisySampler, SensorsConfig
 from hrp2_drake.robot.servo import (
@@ -61,16 +69,33 @@ from hrp2_drake.robot.servo import (
 )
 
 SCENARIOS = ("fixed_base", "hanging", "standing", "standing_on_block")
-#: The sensor ports of the station and their sizes, in the order of its
-#: `sensor_time` output.
-SENSOR_SIZES: dict[str, int] = {
-    "q_measured": model.NUM_JOINTS,
-    "imu_linear_acceleration": 3,
-    "imu_angular_velocity": 3,
-    **{f"wrench_{name}": 6 for name in model.FT_SENSORS},
-}
-SENSOR_SIGNALS = tuple(SENSOR_SIZES)
 GRAVITY = 9.81
+
+
+def sensor_sizes(robot: RobotDescription) -> dict[str, int]:
+    """The sensor ports of the robot's station and their sizes, in the order of its
+    `sensor_time` output: q_measured, the IMU's two (if any), wrench_<sensor> each."""
+    sizes = {"q_measured": len(robot.joints)}
+    if robot.has_imu():
+        sizes |= {"imu_linear_acceleration": 3, "imu_angular_velocity": 3}
+    return sizes | {f"wrench_{name}": 6 for name in robot.force_torque_sensors}
+
+
+@dataclass
+class BoxObstacle:
+    """A rigid box welded to the world (collision and illustration).
+
+    Args:
+        name: its geometry name.
+        size: [x, y, z] edge lengths (m).
+        pose: [x, y, z, roll, pitch, yaw] of its centre in the world (m, rad).
+        friction: Coulomb friction coefficient (static = dynamic).
+    """
+
+    name: str = "box"
+    size: list[float] = field(default_factory=lambda: [0.5, 0.5, 0.1])
+    pose: list[float] = field(default_factory=lambda: [0.0] * 6)
+    friction: float = 1.0
 
 
 @dataclass
@@ -97,21 +122,26 @@ class HangingConfig:
 
 @dataclass
 class StationConfig:
-    """Configuration of the simulated HRP-2 (load with `load_station_config`).
+    """Configuration of a simulated robot.
 
     Args:
-        scenario: one of "fixed_base", "hanging", "standing", "standing_on_block".
+        robot: its robot description: a robot.yaml path, or the name of a robot in
+            models/ ("hrp2", "iiwa14"); empty: HRP-2.
+        scenario: one of "fixed_base", "hanging", "standing", "standing_on_block"
+            (a fixed robot: "fixed_base" only).
         time_step: the plant's discrete time step (s).
-        initial_positions: the 30 initial joint angles (rad), HRP-2 order; empty for
-            half-sitting (the first sample of the climbing motion).
-        sensors: noise, bias and sampling of the sensors.
+        initial_positions: the initial joint angles (rad, the description's joint
+            order); empty for its home pose (HRP-2: half-sitting, the first sample of
+            the climbing motion).
+        sensors: noise, bias and sampling of the sensors; none: the description's.
         hanging: the strings of the "hanging" scenario.
         block_height: height of the block under the right foot (m),
             "standing_on_block" only.
-        servo_file: the servo data file: a path, "ideal" (models/hrp2/servo_ideal.yaml:
-            the paper's eq. 6 with a small dead zone, for tests of the exact linear
-            law) or "calibrated" / empty (models/hrp2/servo.yaml, calibrated to the
-            real robot by `hrp2-drake calibrate`).
+        servo_file: the servo data file: a path, a preset of the description (HRP-2:
+            "ideal", models/hrp2/servo_ideal.yaml: the paper's eq. 6 with a small dead
+            zone, for tests of the exact linear law) or "calibrated" / empty (the
+            description's servo_file; HRP-2's is calibrated to the real robot by
+            `hrp2-drake calibrate`).
         faults: sensor faults to inject (`hrp2_drake.robot.faults`): what the sensor
             ports read; the ground truth is untouched.
         extra_command_latency: latency added to every joint's command (s, whole
@@ -119,12 +149,14 @@ class StationConfig:
         servo_off: servo mechanisms to switch off (`SERVO_MECHANISMS`: "latency",
             "voltage_limit", "hysteresis", "deadzone").
         contact_approximation: Drake's discrete contact approximation.
+        obstacles: boxes welded to the world.
     """
 
+    robot: str = ""
     scenario: str = "hanging"
     time_step: float = 0.001
     initial_positions: list[float] = field(default_factory=list)
-    sensors: SensorsConfig = field(default_factory=SensorsConfig)
+    sensors: SensorsConfig | None = None
     hanging: HangingConfig = field(default_factory=HangingConfig)
     block_height: float = 0.05
     servo_file: str = ""
@@ -132,17 +164,43 @@ class StationConfig:
     faults: list[SensorFault] = field(default_factory=list)
     extra_command_latency: float = 0.0
     contact_approximation: str = "sap"
+    obstacles: list[BoxObstacle] = field(default_factory=list)
+
+    def description(self) -> RobotDescription:
+        """The robot description (checked against its model; cached)."""
+        return load_robot_description(self.robot or None)
+
+    def sensors_config(self) -> SensorsConfig:
+        """The sensors: `sensors`, or the description's."""
+        return self.sensors if self.sensors is not None else self.description().sensors
 
     def validate(self) -> None:
+        robot = self.description()
         if self.scenario not in SCENARIOS:
             raise ValueError(
                 f"StationConfig.scenario: unknown scenario '{self.scenario}', "
                 f"expected one of {SCENARIOS}"
             )
-        if len(self.initial_positions) not in (0, model.NUM_JOINTS):
+        if robot.base == "fixed" and self.scenario != "fixed_base":
+            raise ValueError(
+                f"StationConfig.scenario: '{self.scenario}', but robot '{robot.name}' is "
+                "fixed-base: only 'fixed_base'"
+            )
+        needs = {
+            "hanging": robot.scenarios.hanging.body,
+            "standing": robot.scenarios.soles,
+            "standing_on_block": robot.scenarios.block.sole and robot.scenarios.soles,
+        }
+        if self.scenario in needs and not needs[self.scenario]:
+            raise ValueError(
+                f"StationConfig.scenario: '{self.scenario}' needs the robot description's "
+                f"scenarios section, which robot '{robot.name}' does not fill"
+            )
+        n = len(robot.joints)
+        if len(self.initial_positions) not in (0, n):
             raise ValueError(
                 f"StationConfig.initial_positions: {len(self.initial_positions)} values, "
-                f"expected {model.NUM_JOINTS} (or none for half-sitting)"
+                f"expected {n} (or none for the home pose)"
             )
         unknown = sorted(set(self.servo_off) - set(SERVO_MECHANISMS))
         if unknown:
@@ -151,7 +209,7 @@ class StationConfig:
                 f"expected some of {list(SERVO_MECHANISMS)}"
             )
         for k, fault in enumerate(self.faults):
-            fault.validate(f"StationConfig.faults[{k}]", SENSOR_SIZES)
+            fault.validate(f"StationConfig.faults[{k}]", sensor_sizes(robot))
         if len(self.hanging.sway_damping) != 2:
             raise ValueError(
                 "StationConfig.hanging.sway_damping: expected [rotational, translational]"
@@ -159,105 +217,115 @@ class StationConfig:
             )
         if not self.time_step > 0:
             raise ValueError(f"StationConfig.time_step must be > 0, got {self.time_step}")
-        if set(self.sensors.force_torque) != set(model.FT_SENSORS):
-            raise ValueError(
-                "StationConfig.sensors.force_torque: sensors "
-                f"{sorted(self.sensors.force_torque)}, expected {sorted(model.FT_SENSORS)}"
-            )
+        self.sensors_config().validate(n, robot.sensor_names())
+        for k, box in enumerate(self.obstacles):
+            if len(box.size) != 3 or not all(v > 0 for v in box.size):
+                raise ValueError(
+                    f"StationConfig.obstacles[{k}].size: 3 lengths > 0, got {box.size}"
+                )
+            if len(box.pose) != 6 or not np.all(np.isfinite(box.pose)):
+                raise ValueError(
+                    f"StationConfig.obstacles[{k}].pose: [x, y, z, roll, pitch, yaw], "
+                    f"got {box.pose}"
+                )
 
 
 def initial_joint_positions(config: StationConfig) -> np.ndarray:
-    """The scenario's initial joint angles (rad, 30): what the servo should hold."""
+    """The scenario's initial joint angles (rad, the description's joint order): what
+    the servo should hold."""
+    robot = config.description()
     q = (
         np.array(config.initial_positions, float)
         if config.initial_positions
-        else model.half_sitting()
+        else robot.home_positions()
     )
     if config.scenario == "standing_on_block":
-        q = _raise_right_foot(q, config.block_height)
+        q = _raise_sole(robot, q, config.block_height)
     return q
 
 
-@functools.cache
-def _kinematic_model() -> tuple[MultibodyPlant, JointIndexing]:
-    """HRP-2 alone (floating, no scenario), parsed once: for the kinematics that set a
-    scenario up (sole heights, block and string placement)."""
+@functools.lru_cache(maxsize=8)
+def _kinematic_model(source_file: str) -> tuple[MultibodyPlant, JointIndexing]:
+    """The robot alone (floating, no scenario), parsed once per description: for the
+    kinematics that set a scenario up (sole heights, block and string placement)."""
+    robot = load_robot_description(source_file)
     plant = MultibodyPlant(0.0)
-    model.add_hrp2(plant)
+    robot.add_model(plant, weld_base=False)
     plant.Finalize()
-    return plant, model.hrp2_joint_indexing(plant)
+    return plant, joint_indexing(plant, robot.joints)
 
 
-def _posed(q: np.ndarray, X_WB: RigidTransform | None = None):
-    """(plant, context) of the kinematic model at joint angles q, waist at X_WB
+def _posed(robot: RobotDescription, q: np.ndarray, X_WB: RigidTransform | None = None):
+    """(plant, context) of the kinematic model at joint angles q, base at X_WB
     (default: the origin, upright)."""
-    plant, indexing = _kinematic_model()
+    plant, indexing = _kinematic_model(robot.source_file)
     context = plant.CreateDefaultContext()
     x = plant.GetPositions(context)
     x[indexing.q] = q
     plant.SetPositions(context, x)
     if X_WB is not None:
-        plant.SetFreeBodyPose(context, plant.GetBodyByName(model.BASE_BODY), X_WB)
+        plant.SetFreeBodyPose(context, plant.GetBodyByName(robot.base_body), X_WB)
     return plant, context
 
 
-def _frame_position(q: np.ndarray, frame: str) -> np.ndarray:
-    """Position in the world of `frame` with the waist at the origin, upright (m)."""
-    plant, context = _posed(q)
+def _frame_position(robot: RobotDescription, q: np.ndarray, frame: str) -> np.ndarray:
+    """Position in the world of `frame` with the base at the origin, upright (m)."""
+    plant, context = _posed(robot, q)
     return plant.GetFrameByName(frame).CalcPoseInWorld(context).translation()
 
 
-def _raise_right_foot(q: np.ndarray, height: float) -> np.ndarray:
-    """Bends the right leg (hip pitch, knee; ankle pitch keeps the sole parallel) so
-    that the right sole is `height` higher, at the same x, relative to the waist."""
+def _raise_sole(robot: RobotDescription, q: np.ndarray, height: float) -> np.ndarray:
+    """Bends the block's leg (hip pitch, knee; ankle pitch keeps the sole parallel) so
+    that its sole is `height` higher, at the same x, relative to the base."""
     from scipy.optimize import least_squares
 
-    def sole_xz(angles: np.ndarray) -> np.ndarray:
+    block = robot.scenarios.block
+    hip, knee, ankle = (robot.joints.index(name) for name in block.joints)
+
+    def bent(angles: np.ndarray) -> np.ndarray:
         qj = q.copy()
-        qj[2], qj[3] = angles
-        qj[4] = q[4] - (angles[0] - q[2]) - (angles[1] - q[3])
-        return _frame_position(qj, model.SOLE_FRAMES["right_foot"])[[0, 2]]
+        qj[hip], qj[knee] = angles
+        qj[ankle] = q[ankle] - (angles[0] - q[hip]) - (angles[1] - q[knee])
+        return qj
 
-    target = sole_xz(q[2:4]) + [0.0, height]
-    fit = least_squares(lambda a: sole_xz(a) - target, q[2:4])
+    def sole_xz(angles: np.ndarray) -> np.ndarray:
+        return _frame_position(robot, bent(angles), block.sole)[[0, 2]]
+
+    start = np.array([q[hip], q[knee]])
+    target = sole_xz(start) + [0.0, height]
+    fit = least_squares(lambda a: sole_xz(a) - target, start)
     if np.max(np.abs(fit.fun)) > 1e-6:
-        raise ValueError(f"block_height {height} m is out of the right leg's reach")
-    out = q.copy()
-    out[2], out[3] = fit.x
-    out[4] = q[4] - (fit.x[0] - q[2]) - (fit.x[1] - q[3])
-    return out
+        raise ValueError(f"block_height {height} m is out of the leg's reach")
+    return bent(fit.x)
 
 
-def _lowest_sole_height(q: np.ndarray) -> float:
-    """Height of the lowest sole when the waist is at the origin, upright."""
-    return min(_frame_position(q, f)[2] for f in model.SOLE_FRAMES.values())
+def _lowest_sole_height(robot: RobotDescription, q: np.ndarray) -> float:
+    """Height of the lowest sole when the base is at the origin, upright."""
+    return min(_frame_position(robot, q, f)[2] for f in robot.scenarios.soles)
+
+
+def _add_box(plant: MultibodyPlant, name: str, X_WB: RigidTransform, size, color, friction=1.0):
+    shape = Box(*size)
+    plant.RegisterCollisionGeometry(
+        plant.world_body(), X_WB, shape, name, CoulombFriction(friction, friction)
+    )
+    plant.RegisterVisualGeometry(plant.world_body(), X_WB, shape, name, color)
 
 
 def _add_ground(plant: MultibodyPlant) -> None:
     # A thick box rather than a HalfSpace: same point contact for the sole spheres,
     # without Drake's warning that half spaces do not support deformable contact.
-    X_WG = RigidTransform([0.0, 0.0, -0.05])
-    plant.RegisterCollisionGeometry(
-        plant.world_body(), X_WG, Box(6, 6, 0.1), "ground", CoulombFriction(1.0, 1.0)
-    )
-    plant.RegisterVisualGeometry(
-        plant.world_body(), X_WG, Box(6, 6, 0.1), "ground", [0.8, 0.8, 0.75, 1.0]
-    )
+    _add_box(plant, "ground", RigidTransform([0.0, 0.0, -0.05]), (6, 6, 0.1),
+             [0.8, 0.8, 0.75, 1.0])
 
 
-def _add_block(plant: MultibodyPlant, q: np.ndarray, height: float):
-    """A rigid block under the right sole (horizontal position of the sole with the
-    waist above the origin)."""
-    p = _frame_position(q, model.SOLE_FRAMES["right_foot"])
-    size = (0.36, 0.18, height)  # clear of the left foot (0.19 m apart)
+def _add_block(plant: MultibodyPlant, robot: RobotDescription, q: np.ndarray, height: float):
+    """A rigid block under the block's sole (horizontal position of the sole with the
+    base above the origin)."""
+    p = _frame_position(robot, q, robot.scenarios.block.sole)
+    size = (0.36, 0.18, height)  # HRP-2: clear of the left foot (0.19 m apart)
     X_WB = RigidTransform([p[0] + 0.015, p[1], height / 2])
-    shape = Box(*size)
-    plant.RegisterCollisionGeometry(
-        plant.world_body(), X_WB, shape, "block", CoulombFriction(1.0, 1.0)
-    )
-    plant.RegisterVisualGeometry(
-        plant.world_body(), X_WB, shape, "block", [0.6, 0.3, 0.2, 1.0]
-    )
+    _add_box(plant, "block", X_WB, size, [0.6, 0.3, 0.2, 1.0])
 
 
 def make_station(config: StationConfig, meshcat: Meshcat | None = None) -> Diagram:
@@ -267,6 +335,7 @@ def make_station(config: StationConfig, meshcat: Meshcat | None = None) -> Diagr
     If `meshcat` is given, a MeshcatVisualizer publishes the illustration geometry.
     """
     config.validate()
+    robot = config.description()
     q0 = initial_joint_positions(config)
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(
@@ -276,38 +345,43 @@ def make_station(config: StationConfig, meshcat: Meshcat | None = None) -> Diagr
         ),
         builder,
     )
-    model.add_hrp2(plant)
-    base = plant.GetBodyByName(model.BASE_BODY)
-    base_height = -_lowest_sole_height(q0)
-    if config.scenario == "fixed_base":
-        X_WB0 = RigidTransform([0.0, 0.0, 1.0])
-        plant.WeldFrames(plant.world_frame(), base.body_frame(), X_WB0)
+    fixed = config.scenario == "fixed_base"
+    robot.add_model(plant, weld_base=fixed)
+    base = plant.GetBodyByName(robot.base_body)
+    if fixed:
+        X_WB0 = robot.base_transform()
     elif config.scenario == "hanging":
-        X_WB0 = RigidTransform([0.0, 0.0, base_height + config.hanging.feet_clearance])
+        X_WB0 = RigidTransform(
+            [0.0, 0.0, -_lowest_sole_height(robot, q0) + config.hanging.feet_clearance]
+        )
     else:
-        X_WB0 = RigidTransform([0.0, 0.0, base_height])
+        X_WB0 = RigidTransform([0.0, 0.0, -_lowest_sole_height(robot, q0)])
     if config.scenario != "hanging":
         _add_ground(plant)
     if config.scenario == "standing_on_block":
-        _add_block(plant, q0, config.block_height)
+        _add_block(plant, robot, q0, config.block_height)
+    for box in config.obstacles:
+        x, y, z, roll, pitch, yaw = box.pose
+        _add_box(plant, box.name, RigidTransform(RollPitchYaw(roll, pitch, yaw), [x, y, z]),
+                 box.size, [0.5, 0.5, 0.6, 1.0], box.friction)
     if config.scenario == "hanging":
-        _add_strings(plant, q0, X_WB0, config.hanging)
+        _add_strings(plant, robot, q0, X_WB0, config.hanging)
     plant.Finalize()
     plant.set_name("plant")
 
-    indexing = model.hrp2_joint_indexing(plant)
+    indexing = joint_indexing(plant, robot.joints)
     for name, angle in zip(indexing.names, q0):
         plant.GetJointByName(name).set_default_angle(angle)
-    if config.scenario != "fixed_base":
+    if not fixed:
         plant.SetDefaultFloatingBaseBodyPose(base, X_WB0)
 
-    servo_params = load_servo_params(config.servo_file or None)
+    servo_params = load_servo_params(robot.servo_path(config.servo_file))
     servo = builder.AddNamedSystem(
         "servo",
         Hrp2ServoEmulation(
             plant,
             servo_params,
-            model.JOINT_NAMES,
+            robot.joints,
             period=config.time_step,
             initial_q_cmd=q0,
             off=config.servo_off,
@@ -319,7 +393,10 @@ def make_station(config: StationConfig, meshcat: Meshcat | None = None) -> Diagr
     builder.ExportInput(servo.get_input_port(0), "q_cmd")
     builder.ExportInput(plant.get_applied_spatial_force_input_port(), "applied_spatial_force")
 
-    _add_sensors(builder, plant, indexing, config.sensors, q0, servo_params, config.faults)
+    _add_sensors(
+        builder, plant, robot, indexing, config.sensors_config(), q0, servo_params,
+        config.faults,
+    )
 
     builder.ExportOutput(plant.get_net_actuation_output_port(), "joint_torque_true")
     builder.ExportOutput(plant.get_state_output_port(), "state_true")
@@ -330,20 +407,25 @@ def make_station(config: StationConfig, meshcat: Meshcat | None = None) -> Diagr
             builder, scene_graph, meshcat, MeshcatVisualizerParams(role=Role.kIllustration)
         )
     diagram = builder.Build()
-    diagram.set_name(f"hrp2_station_{config.scenario}")
+    diagram.set_name(f"{robot.name}_station_{config.scenario}")
     return diagram
 
 
 def _add_strings(
-    plant: MultibodyPlant, q0: np.ndarray, X_WB0: RigidTransform, cfg: HangingConfig
+    plant: MultibodyPlant,
+    robot: RobotDescription,
+    q0: np.ndarray,
+    X_WB0: RigidTransform,
+    cfg: HangingConfig,
 ) -> None:
-    """Two strings from fixed anchors to the shoulders, stretched by the weight."""
-    plant_k, context = _posed(q0, X_WB0)
-    torso_k = plant_k.GetBodyByName(model.IMU_BODY)
-    X_WT = torso_k.EvalPoseInWorld(context)
-    stretch = plant_k.CalcTotalMass(context) * GRAVITY / (2 * cfg.stiffness)
-    torso = plant.GetBodyByName(model.IMU_BODY)
-    for p_TS in model.SHOULDERS.values():
+    """Two strings from fixed anchors to the description's hanging points, stretched
+    by the weight."""
+    hanging = robot.scenarios.hanging
+    plant_k, context = _posed(robot, q0, X_WB0)
+    X_WT = plant_k.GetBodyByName(hanging.body).EvalPoseInWorld(context)
+    stretch = plant_k.CalcTotalMass(context) * GRAVITY / (len(hanging.points) * cfg.stiffness)
+    torso = plant.GetBodyByName(hanging.body)
+    for p_TS in hanging.points:
         anchor = X_WT @ np.array(p_TS) + [0.0, 0.0, cfg.string_length + stretch]
         plant.AddForceElement(
             LinearSpringDamper(
@@ -360,9 +442,32 @@ def _add_strings(
     )
 
 
+def force_torque_joint(plant: MultibodyPlant, robot: RobotDescription, name: str) -> str:
+    """The fixed joint whose reaction force F/T sensor `name` reads: the joint that
+    holds the sensor's body (towards the base). A ValueError names the field if that
+    joint is not a weld."""
+    sensor = robot.force_torque_sensors[name]
+    body_name = sensor.body or plant.GetFrameByName(sensor.frame).body().name()
+    body = int(plant.GetBodyByName(body_name).index())
+    parent = tree_parents(plant, plant.GetBodyByName(robot.base_body).index())[body]
+    for j in plant.GetJointIndices():
+        joint = plant.get_joint(j)
+        ends = {int(joint.parent_body().index()), int(joint.child_body().index())}
+        if ends == {body, parent}:
+            if joint.type_name() != "weld":
+                raise ValueError(
+                    f"force_torque_sensors.{name}.body: '{body_name}' hangs from "
+                    f"{joint.type_name()} joint '{joint.name()}'; a simulated F/T sensor "
+                    "needs a fixed joint above its body"
+                )
+            return joint.name()
+    raise ValueError(f"force_torque_sensors.{name}.body: no joint holds '{body_name}'")
+
+
 def _add_sensors(
     builder: DiagramBuilder,
     plant: MultibodyPlant,
+    robot: RobotDescription,
     indexing: JointIndexing,
     cfg: SensorsConfig,
     q0: np.ndarray,
@@ -411,65 +516,82 @@ def _add_sensors(
         "q_measured",
     )
 
-    # IMU in the torso.
-    imu = plant.GetFrameByName(model.IMU_FRAME)
-    X_BS = imu.GetFixedPoseInBodyFrame()
-    body = imu.body()
-    accel = builder.AddNamedSystem(
-        "accelerometer", Accelerometer(body, X_BS, plant.gravity_field().gravity_vector())
-    )
-    gyro = builder.AddNamedSystem("gyroscope", Gyroscope(body, X_BS))
-    builder.Connect(plant.get_body_poses_output_port(), accel.get_body_poses_input_port())
-    builder.Connect(
-        plant.get_body_spatial_velocities_output_port(), accel.get_body_velocities_input_port()
-    )
-    builder.Connect(
-        plant.get_body_spatial_accelerations_output_port(),
-        accel.get_body_accelerations_input_port(),
-    )
-    builder.Connect(plant.get_body_poses_output_port(), gyro.get_body_poses_input_port())
-    builder.Connect(
-        plant.get_body_spatial_velocities_output_port(), gyro.get_body_velocities_input_port()
-    )
-    export(
-        sampler(
-            "imu_accelerometer",
-            accel.get_measurement_output_port(),
-            *cfg.accelerometer.vectors(3, "sensors.accelerometer"),
-        ),
-        "imu_linear_acceleration",
-    )
-    export(
-        sampler(
-            "imu_gyroscope",
-            gyro.get_measurement_output_port(),
-            *cfg.gyroscope.vectors(3, "sensors.gyroscope"),
-        ),
-        "imu_angular_velocity",
-    )
+    if robot.has_imu():
+        imu = plant.GetFrameByName(robot.imu_frame)
+        X_BS = imu.GetFixedPoseInBodyFrame()
+        body = imu.body()
+        accel = builder.AddNamedSystem(
+            "accelerometer", Accelerometer(body, X_BS, plant.gravity_field().gravity_vector())
+        )
+        gyro = builder.AddNamedSystem("gyroscope", Gyroscope(body, X_BS))
+        builder.Connect(plant.get_body_poses_output_port(), accel.get_body_poses_input_port())
+        builder.Connect(
+            plant.get_body_spatial_velocities_output_port(),
+            accel.get_body_velocities_input_port(),
+        )
+        builder.Connect(
+            plant.get_body_spatial_accelerations_output_port(),
+            accel.get_body_accelerations_input_port(),
+        )
+        builder.Connect(plant.get_body_poses_output_port(), gyro.get_body_poses_input_port())
+        builder.Connect(
+            plant.get_body_spatial_velocities_output_port(),
+            gyro.get_body_velocities_input_port(),
+        )
+        export(
+            sampler(
+                "imu_accelerometer",
+                accel.get_measurement_output_port(),
+                *cfg.accelerometer.vectors(3, "sensors.accelerometer"),
+            ),
+            "imu_linear_acceleration",
+        )
+        export(
+            sampler(
+                "imu_gyroscope",
+                gyro.get_measurement_output_port(),
+                *cfg.gyroscope.vectors(3, "sensors.gyroscope"),
+            ),
+            "imu_angular_velocity",
+        )
 
-    # Four F/T sensors: one readout, one sampler, then one port per sensor.
-    names = list(model.FT_SENSORS)
-    readout = builder.AddNamedSystem(
-        "force_torque_readout", ForceTorqueReadout(plant, list(model.FT_SENSORS.values()))
-    )
-    builder.Connect(plant.get_reaction_forces_output_port(), readout.get_input_port())
-    stds, biases = zip(*(cfg.force_torque[n].vectors(6, f"sensors.force_torque.{n}")
-                         for n in names))
-    sampled = sampler(
-        "force_torque",
-        readout.get_output_port(),
-        np.concatenate(stds),
-        np.concatenate(biases),
-    )
-    demux = builder.AddNamedSystem("force_torque_demux", Demultiplexer([6] * len(names)))
-    builder.Connect(sampled, demux.get_input_port())
-    for k, name in enumerate(names):
-        export(demux.get_output_port(k), f"wrench_{name}")
+    # The F/T sensors: one readout, one sampler, then one port per sensor.
+    names = robot.sensor_names()
+    if names:
+        readout = builder.AddNamedSystem(
+            "force_torque_readout",
+            ForceTorqueReadout(
+                plant,
+                [
+                    (
+                        force_torque_joint(plant, robot, name),
+                        robot.force_torque_sensors[name].frame,
+                        robot.force_torque_sensors[name].body
+                        or plant.GetFrameByName(robot.force_torque_sensors[name].frame)
+                        .body()
+                        .name(),
+                    )
+                    for name in names
+                ],
+            ),
+        )
+        builder.Connect(plant.get_reaction_forces_output_port(), readout.get_input_port())
+        stds, biases = zip(
+            *(cfg.force_torque_noise(n).vectors(6, f"sensors.force_torque.{n}") for n in names)
+        )
+        sampled = sampler(
+            "force_torque",
+            readout.get_output_port(),
+            np.concatenate(stds),
+            np.concatenate(biases),
+        )
+        demux = builder.AddNamedSystem("force_torque_demux", Demultiplexer([6] * len(names)))
+        builder.Connect(sampled, demux.get_input_port())
+        for k, name in enumerate(names):
+            export(demux.get_output_port(k), f"wrench_{name}")
 
-    # The time stamp of every sensor's latest sample (SENSOR_SIGNALS order).
+    # The time stamp of every sensor's latest sample (sensor_sizes order).
     clock = builder.AddNamedSystem(
-        "sensor_clock", SensorClock(SENSOR_SIGNALS, faults, cfg.period)
+        "sensor_clock", SensorClock(tuple(sensor_sizes(robot)), faults, cfg.period)
     )
     builder.ExportOutput(clock.get_output_port(), "sensor_time")
-
