@@ -1,9 +1,14 @@
 """The `hrp2-drake` command.
 
-    hrp2-drake simulate [--scenario S] [--duration T] [--trajectory climbing|FILE]
-                        [--config FILE] [--out DIR] [--html]
+    hrp2-drake simulate [--robot R] [--scenario S] [--duration T]
+                        [--trajectory default|FILE] [--config FILE] [--out DIR] [--html]
+    hrp2-drake identify [--robot R] [--log LOG] [--config FILE] [--out DIR]
+    hrp2-drake estimate [--robot R] --log LOG [--window N] [--out DIR]
     hrp2-drake calibrate [--config FILE] [--out DIR] [--install]
-    hrp2-drake identify | experiment NAME | reproduce   (see --help)
+    hrp2-drake experiment NAME | reproduce   (HRP-2, the paper's experiments; see --help)
+
+--robot is a robot description (models/<name>/robot.yaml, or its name: hrp2, iiwa14);
+without it, HRP-2.
 
 Bad input (a file, a YAML key, an array of a log, an option) is reported on one line,
 `hrp2-drake <command>: error: <what and where>`, with exit code 2, before anything is
@@ -11,6 +16,7 @@ simulated; `hrp2-drake --debug <command> ...` lets the exception propagate inste
 """
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -59,10 +65,20 @@ def _output_folder(path: str) -> Path:
     return out
 
 
+def _use_robot(station, args: argparse.Namespace) -> None:
+    """--robot into a StationConfig; a fixed robot gets the "fixed_base" scenario
+    unless --scenario says otherwise."""
+    if args.robot:
+        station.robot = args.robot
+    if not getattr(args, "scenario", None) and station.description().base == "fixed":
+        station.scenario = "fixed_base"
+
+
 def _simulate(args: argparse.Namespace) -> int:
     from hrp2_drake.experiments.simulate import SimulateConfig, run_simulate, summarize
 
     config = _config(SimulateConfig, args)
+    _use_robot(config.station, args)
     if args.scenario:
         config.station.scenario = args.scenario
     if args.duration is not None:
@@ -70,7 +86,9 @@ def _simulate(args: argparse.Namespace) -> int:
     if args.trajectory is not None:
         config.trajectory = args.trajectory
     if args.seed is not None:
-        config.station.sensors.seed = args.seed
+        config.station.sensors = dataclasses.replace(
+            config.station.sensors_config(), seed=args.seed
+        )
     validate_config(config)
     out = _output_folder(args.out)
 
@@ -95,6 +113,7 @@ def _identify(args: argparse.Namespace) -> int:
     from hrp2_drake.experiments.identification import IdentifyConfig, run_identify
 
     config = _config(IdentifyConfig, args)
+    _use_robot(config.station, args)
     if args.duration_scale is not None:
         config.duration_scale = args.duration_scale
     validate_config(config)
@@ -113,6 +132,50 @@ def _identify(args: argparse.Namespace) -> int:
     return 0
 
 
+def _estimate(args: argparse.Namespace) -> int:
+    from hrp2_drake.description import load_robot_description
+    from hrp2_drake.experiments.estimate_log import run_estimate
+
+    robot = load_robot_description(args.robot or None)
+    out = _output_folder(args.out)
+    summary = run_estimate(robot, Path(args.log), out, args.window)
+    print(f"report: {out / 'estimate.md'}; arrays: {out / 'estimate.npz'}")
+    for joint, rms in summary.get("rms_error_vs_truth", {}).items():
+        print(f"  {joint}: RMS error vs truth {rms:.4f} N·m")
+    return 0
+
+
+def _track(args: argparse.Namespace) -> int:
+    from hrp2_drake.experiments.track import TrackConfig, run_track
+
+    config = _config(TrackConfig, args)
+    if args.robot:
+        config.station.robot = args.robot
+        if config.station.description().base == "floating":
+            config.station.scenario = "hanging"
+    if args.quick:
+        config.duration, config.force_duration, config.k6 = 2.5, 2.0, config.k6[:1]
+    validate_config(config)
+    out = _output_folder(args.out)
+    if args.motor_model:
+        motor_model = _motor_model(args, out, config)
+    else:
+        from hrp2_drake.experiments.identification import IdentifyConfig, run_identify
+        from hrp2_drake.identification.motor_model import MotorModel
+
+        print("no --motor-model: identifying one first (hrp2-drake identify)", file=sys.stderr)
+        identify = IdentifyConfig(station=config.station, duration_scale=0.5 if args.quick else 1.0)
+        run_identify(identify, out / "identify")
+        motor_model = MotorModel.load(out / "identify" / "motor_model.yaml")
+    summary = run_track(config, motor_model, out)
+    print(f"report: {out / 'track.md'}")
+    for name, errors in summary["tracking"].items():
+        print(f"  {name}: maximum error {max(errors['maximum']) * 1e3:.2f} mrad")
+    if "force_task" in summary:
+        print(f"  force task: RMS error {summary['force_task']['rms_error_N']:.2f} N")
+    return 0
+
+
 def _motor_model(args: argparse.Namespace, out: Path, config=None):
     """The --motor-model file (or the config's `motor_model`), or one identified now
     (saved under out/identify)."""
@@ -122,8 +185,13 @@ def _motor_model(args: argparse.Namespace, out: Path, config=None):
     if path:
         loaded = MotorModel.load(path)
         # The joints the experiment torque-controls: checked before simulating.
-        needed = getattr(getattr(config, "torque_control", None), "joints", None)
-        needed = needed or ([config.joint] if hasattr(config, "joint") else [])
+        torque_control = getattr(config, "torque_control", None)
+        if torque_control is not None:
+            station = getattr(config, "station", None)
+            robot = station.description() if station is not None else None
+            needed = torque_control.joints or (robot.controlled_joints if robot else [])
+        else:
+            needed = [config.joint] if hasattr(config, "joint") else []
         missing = [j for j in needed if j not in loaded.joint_names]
         if missing:
             raise ValueError(
@@ -327,14 +395,19 @@ def main(argv: list[str] | None = None) -> int:
         help="run a scenario with the position servo holding half-sitting or "
         "following a trajectory; write the logged signals (.npz)",
     )
+    robot_help = "robot description: a robot.yaml or a name in models/ (default: hrp2)"
+    sim.add_argument("--robot", help=robot_help)
     sim.add_argument("--config", help="SimulateConfig YAML file")
-    sim.add_argument("--scenario", choices=SCENARIOS, help="default: standing")
+    sim.add_argument(
+        "--scenario", choices=SCENARIOS, help="default: standing (a fixed robot: fixed_base)"
+    )
     sim.add_argument(
         "--duration", type=_number(float, 0.0), help="simulated seconds (default 5)"
     )
     sim.add_argument(
         "--trajectory",
-        help="'climbing' (HRP-2 stair climbing) or a file: time + 30 joint angles",
+        help="'default' (the robot's own, HRP-2: stair climbing) or a file: time + "
+        "the joint angles",
     )
     sim.add_argument(
         "--seed", type=_number(int, 0, strict=False), help="sensor noise seed"
@@ -346,10 +419,11 @@ def main(argv: list[str] | None = None) -> int:
     ident = commands.add_parser(
         "identify",
         parents=[debug],
-        help="identify the right leg's motor model (paper Sec. 3): data collection on "
-        "the hanging robot (or --log), non-causal estimation, every fit, Table 1, "
-        "Figures 1 and 3",
+        help="identify the motor model of the robot's controlled joints (paper Sec. 3; "
+        "HRP-2: the right leg, hanging): data collection (or --log), non-causal "
+        "estimation, every fit, Table 1, Figures 1 and 3",
     )
+    ident.add_argument("--robot", help=robot_help)
     ident.add_argument("--config", help="IdentifyConfig YAML file")
     ident.add_argument(
         "--log", help="an identification log (.npz, see README) instead of simulating"
@@ -359,6 +433,33 @@ def main(argv: list[str] | None = None) -> int:
     )
     ident.add_argument("--out", default="out/identify", help="output folder")
     ident.set_defaults(run=_identify)
+
+    est = commands.add_parser(
+        "estimate",
+        parents=[debug],
+        help="offline torque estimation of a recorded log (.npz: t, q_measured, the "
+        "IMU, wrench_<sensor>): τ̂, compensated and unknown wrenches, plot",
+    )
+    est.add_argument("--robot", help=robot_help)
+    est.add_argument("--log", required=True, help="the log (.npz, see README)")
+    est.add_argument(
+        "--window", type=_number(int, 3), default=81, help="Savitzky-Golay window (odd)"
+    )
+    est.add_argument("--out", default="out/estimate", help="output folder")
+    est.set_defaults(run=_estimate)
+
+    track = commands.add_parser(
+        "track",
+        parents=[debug],
+        help="torque control of any robot against its position servo: joint "
+        "tracking, and a force task at the tool (fixed-base robots)",
+    )
+    track.add_argument("--robot", help=robot_help)
+    track.add_argument("--config", help="TrackConfig YAML file")
+    track.add_argument("--motor-model", help="MotorModel YAML (default: identify one)")
+    track.add_argument("--quick", action="store_true", help="shorter runs (CI)")
+    track.add_argument("--out", default="out/track", help="output folder")
+    track.set_defaults(run=_track)
 
     exp = commands.add_parser(
         "experiment",

@@ -384,8 +384,11 @@ class SafetySupervisor(LeafSystem):
         output.set_value(alpha * q_torque + (1.0 - alpha) * q_position)
 
 
-def supervisor_sensors(wrenches: Sequence[str]) -> dict[str, str]:
-    """The station's monitored sensor ports: the IMU and the given F/T sensors."""
-    out = {"imu_linear_acceleration": "acceleration", "imu_angular_velocity": "angular_velocity"}
+def supervisor_sensors(wrenches: Sequence[str], imu: bool = True) -> dict[str, str]:
+    """The station's monitored sensor ports: the IMU (if any) and the given F/T
+    sensors."""
+    out = {}
+    if imu:
+        out = {"imu_linear_acceleration": "acceleration", "imu_angular_velocity": "angular_velocity"}
     out |= {f"wrench_{name}": "wrench" for name in wrenches}
     return out

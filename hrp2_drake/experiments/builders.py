@@ -16,18 +16,16 @@ Both return a `ControlDiagram`: the diagram, which exports every signal an exper
 logs as a named output port (`LOGGED`), and its station.
 """
 
-import functools
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort
+from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort, PortDataType
 from pydrake.systems.primitives import MatrixGain, TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
 from hrp2_drake.control.inverse_dynamics import (
     InverseDynamicsConfig,
     InverseDynamicsController,
-    make_fixed_base_plant,
 )
 from hrp2_drake.control.safety import SafetyConfig, SafetySupervisor, supervisor_sensors
 from hrp2_drake.control.torque_controller import (
@@ -39,12 +37,11 @@ from hrp2_drake.control.torque_controller import (
     inverse_dynamics_gains_for_k6,
     make_joint_selector,
 )
+from hrp2_drake.description import RobotDescription
 from hrp2_drake.estimation.torque_estimator import add_estimator
-from hrp2_drake.experiments import hrp2
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import joint_indexing
-from hrp2_drake.robot import model
-from hrp2_drake.robot.station import SENSOR_SIGNALS, StationConfig, make_station
+from hrp2_drake.robot.station import StationConfig, make_station, sensor_sizes
 
 #: The six components of Δq of paper Sec. 5.5 (the controller's seventh, the torque
 #: integral, is zero with the paper's K_i = 0).
@@ -53,8 +50,8 @@ COMPONENTS = DELTA_Q_COMPONENTS[:6]
 
 @dataclass
 class JointReference:
-    """A joint-space reference for all 30 joints: positions, velocities, accelerations
-    as one trajectory of 90 rows [q; q̇; q̈] (rad, rad/s, rad/s²)."""
+    """A joint-space reference for all n joints of a robot: positions, velocities,
+    accelerations as one trajectory of 3n rows [q; q̇; q̈] (rad, rad/s, rad/s²)."""
 
     trajectory: PiecewisePolynomial
 
@@ -90,21 +87,28 @@ class ControlDiagram:
     station: Diagram
 
     def output_names(self) -> list[str]:
+        """The logged signals: every vector output (not `contact_results`)."""
         return [
-            self.diagram.get_output_port(i).get_name()
-            for i in range(self.diagram.num_output_ports())
+            port.get_name()
+            for port in map(self.diagram.get_output_port, range(self.diagram.num_output_ports()))
+            if port.get_data_type() == PortDataType.kVectorValued
         ]
 
 
 def _build(builder: DiagramBuilder, station: Diagram, ports: dict[str, OutputPort]):
+    ports = ports | {"contact_results": station.GetOutputPort("contact_results")}
     for name, port in ports.items():
         builder.ExportOutput(port, name)
     return ControlDiagram(builder.Build(), station)
 
 
-def _add_reference(builder: DiagramBuilder, reference: JointReference):
+def _add_reference(builder: DiagramBuilder, reference: JointReference, n: int):
+    if reference.trajectory.rows() != 3 * n:
+        raise ValueError(
+            f"the joint reference has {reference.trajectory.rows()} rows, expected "
+            f"3 x {n} joints"
+        )
     source = builder.AddNamedSystem("reference", TrajectorySource(reference.trajectory))
-    n = model.NUM_JOINTS
     blocks = {}
     for k, name in enumerate(("q_ref", "v_ref", "vdot_ref")):
         select = np.zeros((n, 3 * n))
@@ -115,32 +119,38 @@ def _add_reference(builder: DiagramBuilder, reference: JointReference):
     return blocks
 
 
-def _station_ports(station: Diagram) -> dict[str, OutputPort]:
-    return {
-        name: station.GetOutputPort(name)
-        for name in ("q_measured", "joint_torque_true", "state_true", "wrench_right_foot")
-    }
+def _station_ports(station: Diagram, robot: RobotDescription) -> dict[str, OutputPort]:
+    names = ["q_measured", "joint_torque_true", "state_true"]
+    if robot.force_sensor:
+        names.append(f"wrench_{robot.force_sensor}")
+    return {name: station.GetOutputPort(name) for name in names}
 
 
 def build_position_control(
     station_config: StationConfig, reference: JointReference, meshcat=None
 ) -> ControlDiagram:
-    """The baseline: HRP-2's own position servo tracking the reference (q_cmd = q_ref)."""
+    """The baseline: the robot's own position servo tracking the reference (q_cmd =
+    q_ref)."""
+    robot = station_config.description()
     builder = DiagramBuilder()
     station = builder.AddNamedSystem("station", make_station(station_config, meshcat))
-    blocks = _add_reference(builder, reference)
+    blocks = _add_reference(builder, reference, len(robot.joints))
     builder.Connect(blocks["q_ref"], station.GetInputPort("q_cmd"))
-    ports = _station_ports(station) | {"q_ref": blocks["q_ref"], "q_cmd": blocks["q_ref"]}
+    ports = _station_ports(station, robot) | {
+        "q_ref": blocks["q_ref"],
+        "q_cmd": blocks["q_ref"],
+    }
     return _build(builder, station, ports)
 
 
 @dataclass
 class TorqueControlConfig:
-    """The paper's torque control of a set of joints (the right leg), Sec. 4.
+    """The paper's torque control of a set of joints (HRP-2's right leg), Sec. 4.
 
     Args:
         joints: the torque-controlled joints; every other joint stays in position
-            control on its reference.
+            control on its reference. Empty: the robot description's
+            controlled_joints.
         k6: position-feedback gain relative to the position servo (Sec. 4.2): 1 = the
             servo's own stiffness, 0.1 = 10% of it.
         kp: torque-feedback gain K_p (paper: 2).
@@ -171,7 +181,9 @@ class TorqueControlConfig:
     and, unsupervised, oscillates at 76-137 mrad on the calibrated one, bounded only by
     the voltage limit); the raw encoders avoid it, as the authors' code did. Causal ("end")
     filters remove the delay but their derivatives are too noisy for K_p = 2.
-        force_frame: frame of the force task ("" = motion control only).
+        force_frame: frame of the force task ("" = motion control only); its wrench
+            is the estimate of the F/T sensor whose body it is (or the
+            description's force_sensor).
         kf: force-feedback gain K_f (one value or 6).
         delta_q_limit: saturation of Δq (rad).
         start_time: position control until then (the filters fill), s.
@@ -186,11 +198,11 @@ class TorqueControlConfig:
         safety: the supervisor's settings (its start_time is start_time).
         model_error: the estimator's and inverse dynamics' model of the robot has
             every link's mass and COM off by a random factor within ±model_error
-            (a fault: `model.add_hrp2_with_model_error`); 0: the exact model.
+            (a fault: `RobotDescription.add_model`); 0: the exact model.
         model_error_seed: the seed of those factors.
     """
 
-    joints: list[str] = field(default_factory=lambda: list(model.RIGHT_LEG))
+    joints: list[str] = field(default_factory=list)
     k6: float = 1.0
     kp: float = 2.0
     damping_ratio: float = 1.0
@@ -208,6 +220,10 @@ class TorqueControlConfig:
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     model_error: float = 0.0
     model_error_seed: int = 0
+
+    def controlled_joints(self, robot: RobotDescription) -> list[str]:
+        """`joints`, or the robot's controlled joints if empty."""
+        return list(self.joints or robot.controlled_joints)
 
     def validate(self) -> None:
         self.safety.validate()
@@ -230,12 +246,13 @@ class TorqueControlConfig:
                 raise ValueError(f"TorqueControlConfig.{name}: '{getattr(self, name)}'")
 
 
-def _joint_inertia(plant, joints: list[str], q: np.ndarray) -> np.ndarray:
+def _joint_inertia(plant, all_joints: list[str], joints: list[str], q: np.ndarray) -> np.ndarray:
     """Diagonal of the mass matrix (kg·m², reflected rotor inertia included) of
-    `joints` at the 30 joint angles q: what sets K_d for a damping ratio."""
+    `joints` at the joint angles q (all_joints order): what sets K_d for a damping
+    ratio."""
     if not np.all(np.isfinite(q)):
         raise ValueError(f"the reference's joint angles at t = 0 are not finite: {q}")
-    indexing = joint_indexing(plant, model.JOINT_NAMES)
+    indexing = joint_indexing(plant, all_joints)
     context = plant.CreateDefaultContext()
     x = plant.GetPositions(context)
     x[indexing.q] = q
@@ -255,24 +272,25 @@ def build_torque_control(
     """Station + estimation chain + inverse dynamics + Δq torque controller (paper Sec.
     4) on `config.joints`, the other joints in position control on the reference."""
     config.validate()
-    joints = list(config.joints)
+    robot = station_config.description()
+    joints = config.controlled_joints(robot)
+    unknown = [j for j in joints if j not in robot.joints]
+    if unknown:
+        raise ValueError(
+            f"TorqueControlConfig.joints: {unknown} are not joints of robot '{robot.name}'"
+        )
+    all_joints = list(robot.joints)
     builder = DiagramBuilder()
     station = builder.AddNamedSystem("station", make_station(station_config, meshcat))
-    blocks = _add_reference(builder, reference)
+    blocks = _add_reference(builder, reference, len(all_joints))
     # The controllers' model of the robot (with errors, if asked: a fault).
-    add_model = model.add_hrp2
-    if config.model_error > 0:
-        add_model = functools.partial(
-            model.add_hrp2_with_model_error,
-            error=config.model_error,
-            seed=config.model_error_seed,
-        )
+    errors = dict(model_error=config.model_error, seed=config.model_error_seed)
 
     chain = add_estimator(
         builder,
         station,
-        hrp2.estimator_plant(add_model),
-        hrp2.estimator_config(
+        robot.make_plant(**errors),
+        robot.estimator_config(
             config.window,
             evaluation=config.evaluation,
             offset_calibration_time=config.offset_calibration_time,
@@ -280,13 +298,16 @@ def build_torque_control(
         ),
     )
     def select(name: str):
-        """A selector of the controlled joints from a 30-joint vector."""
-        return builder.AddNamedSystem(name, make_joint_selector(model.JOINT_NAMES, joints))
+        """A selector of the controlled joints from a vector of all joints."""
+        return builder.AddNamedSystem(name, make_joint_selector(all_joints, joints))
 
-    # Inverse dynamics on the fixed-base model (paper footnote 3).
-    fixed = make_fixed_base_plant(add_model, model.BASE_BODY)
+    # Inverse dynamics on the fixed-base model (paper footnote 3): a floating robot's
+    # base welded upright at the origin, a fixed robot as it is mounted.
+    fixed = robot.make_plant(weld_base=True, **errors) if robot.base == "fixed" else (
+        _upright(robot, errors)
+    )
     controller_model = motor_model.subset(joints)
-    inertia = _joint_inertia(fixed, joints, reference.at(0.0)[0])
+    inertia = _joint_inertia(fixed, all_joints, joints, reference.at(0.0)[0])
     ks, kd = inverse_dynamics_gains_for_k6(
         controller_model.k_tau, config.k6, inertia, config.kp, config.damping_ratio
     )
@@ -323,9 +344,7 @@ def build_torque_control(
             "force_reference", TrajectorySource(force_reference)
         )
         builder.Connect(f_ref.get_output_port(), inverse_dynamics.GetInputPort("f_ref"))
-        sensor = next(
-            name for name, body in model.FT_SENSOR_BODIES.items() if body == config.force_frame
-        )
+        sensor = robot.sensor_of_body(config.force_frame)
         builder.Connect(
             chain.estimator.GetOutputPort(f"external_wrench_{sensor}"),
             inverse_dynamics.GetInputPort("f"),
@@ -356,21 +375,21 @@ def build_torque_control(
     builder.Connect(q_ref_leg.get_output_port(), torque.GetInputPort("q_ref"))
     builder.Connect(chain.input_fault, torque.GetInputPort("sensor_fault"))
 
-    merger = builder.AddNamedSystem("merger", JointCommandMerger(model.JOINT_NAMES, joints))
+    merger = builder.AddNamedSystem("merger", JointCommandMerger(all_joints, joints))
     builder.Connect(blocks["q_ref"], merger.GetInputPort("q_ref"))
     builder.Connect(torque.GetOutputPort("q_cmd"), merger.GetInputPort("q_controlled"))
     q_cmd = merger.get_output_port()
     supervisor_ports = {}
     if config.supervised:
         safety = replace(config.safety, start_time=config.start_time)
-        monitored = supervisor_sensors(list(model.FT_SENSORS))
+        monitored = supervisor_sensors(robot.sensor_names(), imu=robot.has_imu())
         supervisor = builder.AddNamedSystem(
             "safety_supervisor",
             SafetySupervisor(
-                model.NUM_JOINTS,
+                len(all_joints),
                 monitored,
                 safety,
-                num_sensor_stamps=len(SENSOR_SIGNALS),
+                num_sensor_stamps=len(sensor_sizes(robot)),
             ),
         )
         builder.Connect(q_cmd, supervisor.GetInputPort("q_torque"))
@@ -391,7 +410,7 @@ def build_torque_control(
         }
     builder.Connect(q_cmd, station.GetInputPort("q_cmd"))
 
-    ports = _station_ports(station) | supervisor_ports | {
+    ports = _station_ports(station, robot) | supervisor_ports | {
         "q_ref": blocks["q_ref"],
         "q_cmd": q_cmd,
         "tau_estimated": chain.estimator.GetOutputPort("tau"),
@@ -399,9 +418,20 @@ def build_torque_control(
         "delta_q": torque.GetOutputPort("delta_q"),
         "fallback_active": torque.GetOutputPort("fallback_active"),
         "sensor_fault": chain.input_fault,
-        "external_wrench_right_foot": chain.estimator.GetOutputPort(
-            "external_wrench_right_foot"
-        ),
     }
+    if robot.force_sensor:
+        name = f"external_wrench_{robot.force_sensor}"
+        ports[name] = chain.estimator.GetOutputPort(name)
     ports |= {name: torque.GetOutputPort(name) for name in COMPONENTS}
     return _build(builder, station, ports)
+
+
+def _upright(robot: RobotDescription, errors: dict):
+    """A floating robot's model with its base welded upright at the origin."""
+    from pydrake.multibody.plant import MultibodyPlant
+
+    plant = MultibodyPlant(0.0)
+    robot.add_model(plant, weld_base=False, **errors)
+    plant.WeldFrames(plant.world_frame(), plant.GetBodyByName(robot.base_body).body_frame())
+    plant.Finalize()
+    return plant

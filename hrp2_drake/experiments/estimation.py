@@ -141,7 +141,8 @@ class EstimationConfig:
         ramp: time over which the sinusoids' amplitude rises from 0 (s, smoothstep).
         duration_scale: multiplies duration, settle excepted (e.g. 0.3 for tests).
         motions: per scenario, the sinusoids the servo tracks; empty: default_motions().
-        sensors: the station's sensors (default: HRP-2-like noise and biases).
+        sensors: the station's sensors (none: the robot description's, HRP-2's noise
+            and biases).
         seed: the sensors' noise seed (overrides sensors.seed).
         servo_file: the station's servo (`StationConfig.servo_file`; empty: calibrated).
         calibration_time: F/T offset calibration (s), while hanging, starting at
@@ -157,7 +158,7 @@ class EstimationConfig:
     ramp: float = 1.0
     duration_scale: float = 1.0
     motions: dict[str, list[JointSinusoid]] = field(default_factory=dict)
-    sensors: SensorsConfig = field(default_factory=SensorsConfig)
+    sensors: SensorsConfig | None = None
     seed: int = 0
     servo_file: str = ""
     calibration_time: float = 0.5
@@ -234,7 +235,8 @@ def sinusoid_reference(
 
 
 def _station_config(config: EstimationConfig, scenario: str) -> StationConfig:
-    sensors = dataclasses.replace(config.sensors, seed=config.seed)
+    base = StationConfig().sensors_config() if config.sensors is None else config.sensors
+    sensors = dataclasses.replace(base, seed=config.seed)
     return StationConfig(scenario=scenario, sensors=sensors, servo_file=config.servo_file)
 
 

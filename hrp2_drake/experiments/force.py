@@ -510,7 +510,7 @@ def posture_gain(run: ForceRun) -> np.ndarray:
     gain = np.zeros(model.NUM_JOINTS)
     basis = np.column_stack([x, np.ones(len(x))])
     for j, name in enumerate(model.JOINT_NAMES):
-        if name in c.torque_control.joints:
+        if name in c.torque_control.controlled_joints(model.description()):
             gain[j] = np.linalg.lstsq(basis, s["q_measured"][on, j], rcond=None)[0][0]
     return gain
 
@@ -621,7 +621,7 @@ def summarize(result: ForceResult) -> dict:
             "metrics": run.metrics,
             "fallback_time": run.fallback_time,
             "joint_motion_peak_to_peak": dict(
-                zip(c.torque_control.joints, joint_motion(run).tolist())
+                zip(c.torque_control.controlled_joints(model.description()), joint_motion(run).tolist())
             ),
             "verdict": {name: _verdict(run.metrics[name], c) for name in run.metrics},
         }
@@ -699,7 +699,7 @@ def joint_motion(run: ForceRun) -> np.ndarray:
     """Peak-to-peak motion of the torque-controlled joints (encoders, rad) during the
     sinusoid, in the order of run.config.torque_control.joints."""
     on = run.signals["t"] >= run.config.sinusoid_start
-    columns = [model.JOINT_NAMES.index(j) for j in run.config.torque_control.joints]
+    columns = [model.JOINT_NAMES.index(j) for j in run.config.torque_control.controlled_joints(model.description())]
     q = run.signals["q_measured"][on][:, columns]
     return q.max(axis=0) - q.min(axis=0)
 

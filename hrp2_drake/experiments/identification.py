@@ -1,4 +1,5 @@
-"""`hrp2-drake identify`: motor identification of the right leg (paper Sec. 3, 5.2).
+"""`hrp2-drake identify [--robot FILE]`: motor identification of a robot's controlled
+joints (paper Sec. 3, 5.2; HRP-2's right leg by default).
 
 Collects (or loads) an identification log, estimates q̇, q̈, τ̂ non-causally, runs every
 fit of the paper per joint on training blocks, validates on held-out blocks, and writes
@@ -40,6 +41,8 @@ from hrp2_drake.identification.fitting import (
     fit_two_stage,
     overestimation_share,
 )
+from hrp2_drake.description import RobotDescription
+from hrp2_drake.experiments.ground_truth import true_motor_model
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.robot import model
 from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
@@ -65,10 +68,11 @@ class IdentifyConfig:
 
     Args:
         station: the robot during data collection (the paper's: hanging).
-        collection: pushes and sinusoids; empty sinusoids and push body: HRP-2's
-            right-leg default (`hrp2.right_leg_collection`).
+        collection: pushes and sinusoids; empty sinusoids and push body: the robot
+            description's `identification` (HRP-2: pushes on the right foot, one
+            sinusoid per right-leg joint).
         duration_scale: shortens the default collection (1 = about 90 s of data).
-        joints: the joints to identify.
+        joints: the joints to identify; empty: the robot's controlled joints.
         window: Savitzky-Golay window of the non-causal estimates (odd).
         stride: keep every stride-th sample of the log.
         w: weight of over-estimation in the asymmetric penalty. The paper used 100;
@@ -86,7 +90,7 @@ class IdentifyConfig:
     station: StationConfig = field(default_factory=lambda: StationConfig(scenario="hanging"))
     collection: CollectionConfig = field(default_factory=CollectionConfig)
     duration_scale: float = 1.0
-    joints: list[str] = field(default_factory=lambda: list(model.RIGHT_LEG))
+    joints: list[str] = field(default_factory=list)
     window: int = 81
     stride: int = 5
     w: float = 1000.0
@@ -98,10 +102,11 @@ class IdentifyConfig:
     def validate(self) -> None:
         """Raises ValueError naming the bad field (yaml_load_typed does not call it)."""
         self.station.validate()
-        self.station.sensors.validate()
-        if not self.joints:
+        robot = self.station.description()
+        joints = self.identified_joints()
+        if not joints:
             raise ValueError("IdentifyConfig.joints: no joint to identify")
-        unknown = [j for j in self.joints if j not in model.JOINT_NAMES]
+        unknown = [j for j in joints if j not in robot.joints]
         if unknown:
             raise ValueError(f"IdentifyConfig.joints: unknown joints {unknown}")
         if len(set(self.joints)) != len(self.joints):
@@ -128,10 +133,16 @@ class IdentifyConfig:
         for k, w in enumerate(self.w_sweep):
             check_finite(w, f"IdentifyConfig.w_sweep[{k}]", 1.0, strict=False)
 
+    def identified_joints(self) -> list[str]:
+        """`joints`, or the robot's controlled joints if empty."""
+        return list(self.joints or self.station.description().controlled_joints)
+
     def collection_or_default(self) -> CollectionConfig:
         if self.collection.sinusoids or self.collection.pushes.body:
             return self.collection
-        return hrp2.right_leg_collection(self.duration_scale, self.station.sensors.seed)
+        return self.station.description().identification.scaled(
+            self.duration_scale, self.station.sensors_config().seed
+        )
 
 
 @dataclass
@@ -160,13 +171,19 @@ class IdentificationResult:
 
 def collect_log(config: IdentifyConfig, progress: bool = True) -> tuple[dict, list[str]]:
     """Runs the data collection on the simulated robot."""
+    robot = config.station.description()
     station = make_station(config.station)
     plant = station.GetSubsystemByName("plant")
     collection = config.collection_or_default()
-    plan = make_plan(collection, model.JOINT_NAMES, initial_joint_positions(config.station))
+    if collection.is_empty():
+        raise ValueError(
+            f"IdentifyConfig.collection: empty, and robot '{robot.name}' describes no "
+            "identification excitation"
+        )
+    plan = make_plan(collection, robot.joints, initial_joint_positions(config.station))
     body = plant.GetBodyByName(collection.pushes.body).index() if collection.pushes.body else None
     log = collect(station, plan, body, collection.pushes.point, progress=progress)
-    return log, list(model.JOINT_NAMES)
+    return log, list(robot.joints)
 
 
 def identify(
@@ -174,7 +191,8 @@ def identify(
 ) -> IdentificationResult:
     """Non-causal estimation, then every fit per joint, validated on held-out blocks."""
     config.validate()
-    estimator = FloatingBaseTorqueEstimator(hrp2.estimator_plant(), hrp2.estimator_config())
+    robot = config.station.description()
+    estimator = FloatingBaseTorqueEstimator(robot.make_plant(), robot.estimator_config())
     data = noncausal_estimates(log, log_joint_names, estimator, config.window, config.stride)
     log_period = float(np.median(np.diff(log["t"])))
     margin = config.window * log_period  # the filters' edges: fitted, not centred
@@ -185,7 +203,7 @@ def identify(
     columns = {name: i for i, name in enumerate(estimator.config().joints)}
     labelled = bool(np.any(data.phase >= 0))
     results = []
-    for name in config.joints:
+    for name in config.identified_joints():
         j = columns[name]
         tau, dq, dlt = data.joint(j, train)
         models = {
@@ -254,8 +272,10 @@ def write_report(result: IdentificationResult, out: Path, log_is_simulated: bool
     """Writes report.md, results.json, motor_model.yaml and the figures; returns the
     results as a dict."""
     out.mkdir(parents=True, exist_ok=True)
+    robot = result.config.station.description()
+    joints = result.config.identified_joints()
     truth = (
-        hrp2.true_motor_model(result.config.joints, servo_file=result.config.station.servo_file)
+        true_motor_model(robot, joints, servo_file=result.config.station.servo_file)
         if log_is_simulated
         else None
     )
@@ -277,10 +297,10 @@ def write_report(result: IdentificationResult, out: Path, log_is_simulated: bool
         rows[r.joint] = row
     summary = {"joints": rows}
     if result.estimation_rms is not None:
-        cols = [model.JOINT_NAMES.index(j) for j in result.config.joints]
+        cols = [robot.joints.index(j) for j in joints]
         summary["torque_estimation"] = {
             j: {"rms": float(result.estimation_rms[c]), "peak": float(result.estimation_peak[c])}
-            for j, c in zip(result.config.joints, cols)
+            for j, c in zip(joints, cols)
         }
     (out / "identification.json").write_text(json.dumps(summary, indent=2))
     result.identified.save(out / "motor_model.yaml")
@@ -293,9 +313,10 @@ def write_report(result: IdentificationResult, out: Path, log_is_simulated: bool
     return summary
 
 
-def _label(joint: str) -> str:
-    if joint in model.RIGHT_LEG:
-        return model.RIGHT_LEG_LABELS[model.RIGHT_LEG.index(joint)]
+def _label(joint: str, robot: RobotDescription | None = None) -> str:
+    robot = robot or model.description()
+    if joint in robot.controlled_joints:
+        return robot.labels()[robot.controlled_joints.index(joint)]
     return joint
 
 
@@ -327,7 +348,7 @@ def _markdown(result: IdentificationResult, summary: dict, figures: list[str]) -
             cells += ["–", "–", "–"]
         paper = row.get("paper")
         cells += [f"{paper['k_tau'] * 1e3:.3f}", f"{paper['k_v'] * 1e3:.3f}"] if paper else ["–", "–"]
-        lines.append(f"| {_label(joint)} | " + " | ".join(cells) + " |")
+        lines.append(f"| {_label(joint, result.config.station.description())} | " + " | ".join(cells) + " |")
     lines += [
         "",
         "## Validation on held-out samples",
@@ -342,7 +363,7 @@ def _markdown(result: IdentificationResult, summary: dict, figures: list[str]) -
         for m in LINEAR_METHODS + ("piecewise_linear",):
             v = row["validation"].get(m)
             cells.append(f"{v['rms'] * 1e3:.3f} / {v['overestimation'] * 100:.1f}%" if v else "failed")
-        lines.append(f"| {_label(joint)} | " + " | ".join(cells) + " |")
+        lines.append(f"| {_label(joint, result.config.station.description())} | " + " | ".join(cells) + " |")
     lines += [
         "",
         "## The asymmetric penalty's weight w",
@@ -362,12 +383,12 @@ def _markdown(result: IdentificationResult, summary: dict, figures: list[str]) -
                 e = row["emulator"]
                 cell += f" / {(v['k_tau'] / e['k_tau'] - 1) * 100:+.1f}%, {(v['k_v'] / e['k_v'] - 1) * 100:+.1f}%"
             cells.append(cell)
-        lines.append(f"| {_label(joint)} | " + " | ".join(cells) + " |")
+        lines.append(f"| {_label(joint, result.config.station.description())} | " + " | ".join(cells) + " |")
     if "torque_estimation" in summary:
         lines += ["", "## Non-causal torque estimate vs ground truth", "",
                   "| joint | RMS error (N·m) | peak |τ| (N·m) | RMS / peak |", "| --- | ---: | ---: | ---: |"]
         for joint, v in summary["torque_estimation"].items():
-            lines.append(f"| {_label(joint)} | {v['rms']:.3f} | {v['peak']:.1f} | {v['rms'] / v['peak'] * 100:.2f}% |")
+            lines.append(f"| {_label(joint, result.config.station.description())} | {v['rms']:.3f} | {v['peak']:.1f} | {v['rms'] / v['peak'] * 100:.2f}% |")
     lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures]
     return "\n".join(lines) + "\n"
 
@@ -386,7 +407,7 @@ def plot_figures(result: IdentificationResult, out: Path) -> list[str]:
 
     data, cfg = result.data, result.config
     by_joint = {r.joint: r for r in result.joints}
-    column = {name: i for i, name in enumerate(model.JOINT_NAMES)}
+    column = {name: i for i, name in enumerate(cfg.station.description().joints)}
     names = []
 
     fig1 = [j for j in ("RLEG_JOINT3", "RLEG_JOINT2") if j in by_joint]
@@ -407,7 +428,7 @@ def plot_figures(result: IdentificationResult, out: Path) -> list[str]:
                 ax.plot(grid, r.piecewise.negative(grid) * 1e3, "m:", label="piecewise, q̇ < 0")
             ax.set_xlabel("τ̂ (N·m)")
             ax.set_ylabel("Δq (mrad)")
-            ax.set_title(f"right {_label(joint)}, |q̇| < {cfg.zero_velocity_threshold} rad/s")
+            ax.set_title(f"right {_label(joint, cfg.station.description())}, |q̇| < {cfg.zero_velocity_threshold} rad/s")
             ax.grid(True, alpha=0.3)
             ax.legend(fontsize=7)
         fig.suptitle("Figure 1: torque vs position error at near-zero velocity")
@@ -431,7 +452,7 @@ def plot_figures(result: IdentificationResult, out: Path) -> list[str]:
                 share = overestimation_share(fitted, tau, dq, dlt)
                 kind = "symmetric, eq. 7" if method == "least_squares" else f"asymmetric, w={cfg.w:g}"
                 ax.set_title(
-                    f"right {_label(joint)}, {kind}: over-estimates {share * 100:.1f}%",
+                    f"right {_label(joint, cfg.station.description())}, {kind}: over-estimates {share * 100:.1f}%",
                     fontsize=10,
                 )
                 ax.set_xlabel("q̇ (rad/s)")
@@ -455,7 +476,7 @@ def run_identify(config: IdentifyConfig, out: Path, log_path: Path | None = None
         save_log(out / "identification_log.npz", log, names)
         simulated = True
     else:
-        log, names = read_log(log_path)
+        log, names = read_log(log_path, config.station.description())
         simulated = "joint_torque_true" in log
     print("estimating and fitting ...", file=sys.stderr)
     try:
@@ -468,7 +489,9 @@ def run_identify(config: IdentifyConfig, out: Path, log_path: Path | None = None
     return write_report(result, out, simulated)
 
 
-def read_log(path: str | Path) -> tuple[dict, list[str]]:
+def read_log(
+    path: str | Path, robot: RobotDescription | None = None
+) -> tuple[dict, list[str]]:
     """`load_log` with every problem of the file as one error naming it: missing, a
     folder, not a (complete) .npz archive, a missing or misshapen array, text or NaN
     in an array, time not increasing on a constant grid (`check_log`), or no column
@@ -502,7 +525,7 @@ def read_log(path: str | Path) -> tuple[dict, list[str]]:
         raise ValueError(
             f"{path}: not a readable identification log (.npz archive): {detail}"
         ) from None
-    check_log(log, names, str(path), hrp2.estimator_config().joints)
+    check_log(log, names, str(path), (robot or model.description()).joints)
     return log, names
 
 

@@ -6,23 +6,22 @@ sampled waypoints, loggers for named ports, and a simulation loop with progress.
 """
 
 import functools
-import sys
-import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
-from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort
+from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, TrajectorySource, VectorLogSink
 from pydrake.trajectories import PiecewisePolynomial
 
 from hrp2_drake.config import check_finite
-from hrp2_drake.robot import model
+from hrp2_drake.description import RobotDescription
 from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
+from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
+
+__all__ = ["add_loggers", "logs_to_arrays", "run_with_progress"]  # re-exported
 
 
 @dataclass
@@ -32,9 +31,10 @@ class SimulateConfig:
     Args:
         station: the simulated robot.
         duration: simulated time (s).
-        trajectory: "" to hold the scenario's initial pose (half-sitting), "climbing"
-            for HRP-2's stair-climbing joint trajectory, or a path to a text file in
-            the same format (time, then the 30 joint angles in HRP-2 order, rad).
+        trajectory: "" to hold the scenario's initial pose (HRP-2: half-sitting),
+            "default" (or "climbing") for the robot description's trajectory_file
+            (HRP-2: its stair-climbing motion), or a path to a text file in the same
+            format (time, then the robot's joint angles in its joint order, rad).
         trajectory_start: time (s) at which the trajectory starts (held before).
         log_period: period of the logged signals (s).
     """
@@ -49,44 +49,54 @@ class SimulateConfig:
         """Raises ValueError naming the bad field; reads the trajectory file (if any)
         so that a bad one is reported before anything is simulated."""
         self.station.validate()
-        self.station.sensors.validate()
         for name, low, strict in (
             ("duration", 0.0, True),
             ("trajectory_start", 0.0, False),
             ("log_period", 0.0, True),
         ):
             check_finite(getattr(self, name), f"SimulateConfig.{name}", low, strict)
+        robot = self.station.description()
         if self.station.initial_positions:
             check_joint_limits(
                 np.array(self.station.initial_positions, float)[np.newaxis],
                 "SimulateConfig.station.initial_positions",
+                robot,
             )
-        if self.trajectory and self.trajectory != "climbing":
-            load_joint_trajectory(self.trajectory)
+        if self.trajectory:
+            load_joint_trajectory(self.trajectory, robot)
 
 
-@functools.cache
-def joint_position_limits() -> tuple[np.ndarray, np.ndarray]:
-    """(lower, upper) position limits (rad) of the 30 joints, HRP-2 order, as the
-    MultibodyPlant reads them from the URDF."""
-    plant = MultibodyPlant(0.0)
-    model.add_hrp2(plant)
-    plant.Finalize()
-    joints = [plant.GetJointByName(name) for name in model.JOINT_NAMES]
+@functools.lru_cache(maxsize=8)
+def _limits(source_file: str) -> tuple[np.ndarray, np.ndarray]:
+    from hrp2_drake.description import load_robot_description
+
+    robot = load_robot_description(source_file)
+    plant = robot.make_plant()
+    joints = [plant.GetJointByName(name) for name in robot.joints]
     lower = np.array([j.position_lower_limits()[0] for j in joints])
     upper = np.array([j.position_upper_limits()[0] for j in joints])
     return lower, upper
 
 
-def check_joint_limits(q: np.ndarray, where: str, tolerance: float = 1e-9) -> None:
+def joint_position_limits(robot: RobotDescription | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) position limits (rad) of the robot's joints (default: HRP-2), in
+    its joint order, as the MultibodyPlant reads them from the model."""
+    robot = robot or StationConfig().description()
+    return _limits(robot.source_file)
+
+
+def check_joint_limits(
+    q: np.ndarray, where: str, robot: RobotDescription | None = None, tolerance: float = 1e-9
+) -> None:
     """Raises ValueError naming `where`, the first offending joint and row unless every
-    row of q (m, 30) lies within the joints' position limits."""
-    lower, upper = joint_position_limits()
+    row of q (m, n) lies within the robot's joint position limits (default: HRP-2)."""
+    robot = robot or StationConfig().description()
+    lower, upper = joint_position_limits(robot)
     outside = (q < lower - tolerance) | (q > upper + tolerance)
     if np.any(outside):
         row, j = np.argwhere(outside)[0]
         raise ValueError(
-            f"{where}: {model.JOINT_NAMES[j]} = {q[row, j]:.6g} rad (row {row}) is "
+            f"{where}: {robot.joints[j]} = {q[row, j]:.6g} rad (row {row}) is "
             f"outside its position limits [{lower[j]:.6g}, {upper[j]:.6g}] rad "
             f"({np.count_nonzero(np.any(outside, axis=1))} rows out of limits)"
         )
@@ -113,22 +123,29 @@ def joint_reference(
     )
 
 
-def load_joint_trajectory(spec: str) -> tuple[np.ndarray, np.ndarray]:
-    """(t, q) of a named ("climbing") or file trajectory; q has 30 columns.
+def load_joint_trajectory(
+    spec: str, robot: RobotDescription | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(t, q) of the robot's own ("default", or "climbing" for HRP-2) or a file
+    trajectory; q has a column per joint of the robot (default: HRP-2).
 
-    A file is text, one row per sample: the time (s), then the 30 joint angles (rad)
-    in HRP-2 order. Raises (naming the file) unless it has exactly 31 columns, at
-    least two rows, finite numbers, strictly increasing times and angles within the
-    joints' position limits (the URDF's).
+    A file is text, one row per sample: the time (s), then the n joint angles (rad)
+    in the robot's joint order. Raises (naming the file) unless it has exactly n + 1
+    columns, at least two rows, finite numbers, strictly increasing times and angles
+    within the joints' position limits (the model's).
     """
-    if spec == "climbing":
-        return model.load_trajectory()
+    robot = robot or StationConfig().description()
+    n = len(robot.joints)
+    if spec in ("default", "climbing"):
+        if not robot.trajectory_file:
+            raise ValueError(f"trajectory '{spec}': robot '{robot.name}' has no trajectory_file")
+        return robot.load_trajectory()
     path = Path(spec)
     if not path.exists():
         raise FileNotFoundError(f"trajectory file '{spec}' not found")
     if path.is_dir():
         raise IsADirectoryError(f"trajectory file '{spec}' is a folder")
-    columns = 1 + model.NUM_JOINTS
+    columns = 1 + n
     try:
         with warnings.catch_warnings():  # an empty file: reported below, not warned
             warnings.simplefilter("ignore", UserWarning)
@@ -137,18 +154,18 @@ def load_joint_trajectory(spec: str) -> tuple[np.ndarray, np.ndarray]:
         detail = "; ".join(str(error).splitlines())
         raise ValueError(
             f"trajectory file '{spec}': not a text table of numbers "
-            f"(time + {model.NUM_JOINTS} joint angles per row): {detail}"
+            f"(time + {n} joint angles per row): {detail}"
         ) from None
     if data.size == 0:
         raise ValueError(
             f"trajectory file '{spec}': empty, expected rows of time + "
-            f"{model.NUM_JOINTS} joint angles"
+            f"{n} joint angles"
         )
     if data.shape[1] != columns or data.shape[0] < 2:
         raise ValueError(
             f"trajectory file '{spec}': {data.shape[0]} rows of {data.shape[1]} "
             f"columns, expected at least 2 rows of exactly {columns} (time + "
-            f"{model.NUM_JOINTS} joint angles)"
+            f"{n} joint angles)"
         )
     if not np.all(np.isfinite(data)):
         row = int(np.argwhere(~np.isfinite(data))[0, 0])
@@ -161,72 +178,15 @@ def load_joint_trajectory(spec: str) -> tuple[np.ndarray, np.ndarray]:
             f"trajectory file '{spec}': the time column must be strictly increasing, "
             f"row {row} has t = {t[row]:g} s after {t[row - 1]:g} s"
         )
-    check_joint_limits(q, f"trajectory file '{spec}'")
+    check_joint_limits(q, f"trajectory file '{spec}'", robot)
     return t, q
 
 
-def add_loggers(
-    builder: DiagramBuilder, ports: dict[str, OutputPort], period: float
-) -> dict[str, VectorLogSink]:
-    """A VectorLogSink per named port, publishing every `period` seconds."""
-    loggers = {}
-    for name, port in ports.items():
-        logger = builder.AddNamedSystem(f"log_{name}", VectorLogSink(port.size(), period))
-        builder.Connect(port, logger.get_input_port())
-        loggers[name] = logger
-    return loggers
+def station_logged_ports(robot: RobotDescription) -> tuple[str, ...]:
+    """The station ports `simulate` logs: every sensor, and the ground truth."""
+    from hrp2_drake.robot.station import sensor_sizes
 
-
-def logs_to_arrays(loggers: dict[str, VectorLogSink], root_context) -> dict[str, np.ndarray]:
-    """{"t": times, name: (samples, size) array} from the loggers' logs."""
-    out: dict[str, np.ndarray] = {}
-    for name, logger in loggers.items():
-        log = logger.FindLog(root_context)
-        out.setdefault("t", log.sample_times())
-        out[name] = log.data().T
-    return out
-
-
-def run_with_progress(
-    simulator: Simulator,
-    duration: float,
-    label: str,
-    stream=None,
-    steps: int = 10,
-    on_step: Callable[[float], None] | None = None,
-) -> float:
-    """Advances `simulator` by `duration`, printing progress (one updating line on a
-    terminal, a line per step otherwise); returns the real-time factor (simulated
-    seconds per wall-clock second)."""
-    stream = stream or sys.stderr
-    t0 = simulator.get_context().get_time()
-    wall0 = time.perf_counter()
-    simulator.Initialize()
-    tty = stream.isatty()
-    prefix = "\r" if tty else ""
-    for k in range(1, steps + 1):
-        simulator.AdvanceTo(t0 + duration * k / steps)
-        wall = time.perf_counter() - wall0
-        print(
-            f"{prefix}{label}: {duration * k / steps:6.2f}/{duration:.2f} s "
-            f"simulated, {duration * k / steps / max(wall, 1e-9):5.2f}x real time",
-            end="" if tty and k < steps else "\n",
-            file=stream,
-            flush=True,
-        )
-        if on_step is not None:
-            on_step(simulator.get_context().get_time())
-    return duration / max(time.perf_counter() - wall0, 1e-9)
-
-
-STATION_LOGGED_PORTS = (
-    "q_measured",
-    "imu_linear_acceleration",
-    "imu_angular_velocity",
-    *(f"wrench_{name}" for name in model.FT_SENSORS),
-    "joint_torque_true",
-    "state_true",
-)
+    return (*sensor_sizes(robot), "joint_torque_true", "state_true")
 
 
 @dataclass
@@ -245,14 +205,15 @@ def build_simulation(
     config.validate()
     builder = DiagramBuilder()
     station = builder.AddNamedSystem("station", make_station(config.station, meshcat))
+    robot = config.station.description()
     if config.trajectory:
-        t, q = load_joint_trajectory(config.trajectory)
+        t, q = load_joint_trajectory(config.trajectory, robot)
         source = TrajectorySource(joint_reference(t, q, config.trajectory_start))
     else:
         source = ConstantVectorSource(initial_joint_positions(config.station))
     source = builder.AddNamedSystem("q_cmd_source", source)
     builder.Connect(source.get_output_port(), station.GetInputPort("q_cmd"))
-    ports = {name: station.GetOutputPort(name) for name in STATION_LOGGED_PORTS}
+    ports = {name: station.GetOutputPort(name) for name in station_logged_ports(robot)}
     ports["q_cmd"] = source.get_output_port()
     loggers = add_loggers(builder, ports, config.log_period)
     return builder.Build(), station, loggers
@@ -291,7 +252,7 @@ def summarize(result: SimulationResult, config: SimulateConfig) -> dict[str, flo
         "max_abs_tracking_error_rad": float(np.abs(q_err).max()),
         "max_abs_joint_torque_Nm": float(np.abs(s["joint_torque_true"]).max()),
     }
-    if config.station.scenario != "fixed_base":
+    if config.station.scenario != "fixed_base":  # the base's free joint: [quaternion; xyz]
         base_xyz = s["state_true"][:, 4:7]
         summary["base_drift_m"] = float(np.linalg.norm(base_xyz[-1] - base_xyz[0]))
         summary["base_height_final_m"] = float(base_xyz[-1, 2])

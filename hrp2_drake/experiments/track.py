@@ -1,0 +1,443 @@
+"""`hrp2-drake track --robot FILE`: the paper's torque control on any robot described
+by a robot description, against its own position servo.
+
+Two runs per controller, from the description alone:
+
+1. **Free-space tracking**: every controlled joint follows a sinusoid around the home
+   pose (the other joints hold it), under the robot's position servo, then under the
+   paper's torque control (estimation + inverse dynamics + Δq controller, Sec. 4)
+   with each K6 of the config. Table: maximum and RMS tracking error per joint, of
+   the true joint angles.
+2. **Force task at the tool** (fixed-base robots with a `tool_frame` and a
+   `force_sensor`): a table is placed under the tool tip at the home pose, and the
+   torque controller (K6 of `force_k6`, K_f) presses with a force that ramps to
+   `press` then oscillates by ±`amplitude` (the environment's reaction as f_ref, in
+   the sensor frame, eq. 12). Ground truth is the contact force on the robot
+   (Drake's contact results), for evaluation only.
+
+Writes track.md, track.json and plots. Nothing here knows a robot's names.
+"""
+
+import json
+import sys
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.multibody.plant import ContactResults, MultibodyPlant
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import Context, DiagramBuilder, LeafSystem
+from pydrake.trajectories import PiecewisePolynomial
+
+from hrp2_drake.description import RobotDescription
+from hrp2_drake.experiments.builders import (
+    JointReference,
+    TorqueControlConfig,
+    build_position_control,
+    build_torque_control,
+)
+from hrp2_drake.identification.motor_model import MotorModel
+from hrp2_drake.multibody import joint_indexing
+from hrp2_drake.robot.station import BoxObstacle, StationConfig
+from hrp2_drake.simulation import run_with_progress
+
+
+@dataclass
+class TrackConfig:
+    """Configuration of `hrp2-drake track`.
+
+    Args:
+        station: the robot (its `robot`, scenario, sensors, servo).
+        torque_control: the torque controller (its k6 is replaced by each of `k6`;
+            default: the F/T offsets calibrated over [0.2, 0.5) s, while the robot
+            holds its home pose and the tool just touches the table).
+        k6: the torque controller's position gains to compare (Sec. 4.2).
+        duration: length of the free-space motion (s), after `settle`.
+        settle: position control at the home pose before torque control starts (s).
+        amplitude: of each controlled joint's sinusoid (rad).
+        frequency: of the sinusoids (Hz); joint k is phase-shifted by k/n of a period.
+        force_task: run the force task (fixed-base robots with a tool_frame).
+        force_k6: K6 of the force task.
+        kf: force gain K_f of the force task.
+        press: the mean force of the tool on the table (N).
+        force_amplitude: the oscillation of the force around `press` (N).
+        force_frequency: its frequency (Hz).
+        force_duration: the force task's length after the ramp (s).
+        ramp: time to lower the tool onto the table (first half) and ramp the force
+            from 0 to `press` (second half) (s).
+        gap: height of the tool above the table at home (m).
+    """
+
+    station: StationConfig = field(default_factory=lambda: StationConfig(robot="iiwa14", scenario="fixed_base"))
+    torque_control: TorqueControlConfig = field(
+        default_factory=lambda: TorqueControlConfig(offset_calibration_time=0.3)
+    )
+    k6: list[float] = field(default_factory=lambda: [1.0, 0.3])
+    duration: float = 6.0
+    settle: float = 0.6
+    amplitude: float = 0.2
+    frequency: float = 0.4
+    force_task: bool = True
+    force_k6: float = 0.3
+    kf: float = 1.0
+    press: float = 20.0
+    force_amplitude: float = 10.0
+    force_frequency: float = 0.5
+    force_duration: float = 4.0
+    ramp: float = 1.0
+    gap: float = 0.005
+
+    def validate(self) -> None:
+        self.station.validate()
+        self.torque_control.validate()
+        if not self.k6 or any(not k > 0 for k in self.k6):
+            raise ValueError(f"TrackConfig.k6: positive gains, got {self.k6}")
+        for name in ("duration", "settle", "frequency", "force_k6", "ramp",
+                     "force_frequency", "force_duration"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"TrackConfig.{name} must be > 0, got {getattr(self, name)}")
+        robot = self.station.description()
+        if self.force_task and robot.base == "fixed" and not (robot.tool_frame and robot.force_sensor):
+            raise ValueError(
+                f"TrackConfig.force_task: robot '{robot.name}' has no tool_frame and "
+                "force_sensor in its description"
+            )
+
+
+class ContactForceOnBodies(LeafSystem):
+    """The total contact force on a set of bodies, in the world frame (N): ground
+    truth for a force task (evaluation only).
+
+    .. code-block:: text
+
+                         ┌──────────────────────┐
+        contact_results ►│ ContactForceOnBodies ├──► force
+                         └──────────────────────┘
+    """
+
+    def __init__(self, plant: MultibodyPlant, bodies: list[str]):
+        super().__init__()
+        self._bodies = {plant.GetBodyByName(b).index() for b in bodies}
+        self._results = self.DeclareAbstractInputPort(
+            "contact_results", AbstractValue.Make(ContactResults())
+        )
+        self.DeclareVectorOutputPort("force", 3, self._calc)
+
+    def _calc(self, context: Context, output) -> None:
+        results = self._results.Eval(context)
+        total = np.zeros(3)
+        for i in range(results.num_point_pair_contacts()):
+            info = results.point_pair_contact_info(i)
+            if info.bodyB_index() in self._bodies:
+                total += info.contact_force()
+            if info.bodyA_index() in self._bodies:
+                total -= info.contact_force()
+        output.set_value(total)  # (point contact only: the station has no hydroelastics)
+
+
+def sinusoid_reference(
+    robot: RobotDescription, q0: np.ndarray, config: TrackConfig
+) -> JointReference:
+    """Home pose for `settle`, then every controlled joint on a sinusoid (amplitude
+    ramped in over one period), sampled at 1 kHz."""
+    t = np.arange(0.0, config.settle + config.duration + 1e-9, 0.001)
+    n = len(robot.joints)
+    q, v, a = np.tile(q0, (len(t), 1)), np.zeros((len(t), n)), np.zeros((len(t), n))
+    w = 2 * np.pi * config.frequency
+    s = np.clip(t - config.settle, 0.0, None)
+    # Smooth envelope e(s) over the first period (C2 at both ends).
+    x = np.clip(s * config.frequency, 0.0, 1.0)
+    e = x**3 * (10 - 15 * x + 6 * x**2)
+    de = 30 * x**2 * (1 - x) ** 2 * config.frequency
+    dde = 60 * x * (1 - x) * (1 - 2 * x) * config.frequency**2
+    controlled = robot.controlled_joints
+    for k, name in enumerate(controlled):
+        j = robot.joints.index(name)
+        phase = 2 * np.pi * k / len(controlled)
+        sin, cos = np.sin(w * s + phase) - np.sin(phase), np.cos(w * s + phase)
+        A = config.amplitude
+        q[:, j] += A * e * sin
+        v[:, j] = A * (de * sin + e * w * cos)
+        a[:, j] = A * (dde * sin + 2 * de * w * cos - e * w**2 * np.sin(w * s + phase))
+    return JointReference.from_samples(t, q, v, a)
+
+
+def _tracking_errors(robot: RobotDescription, signals: dict, start: float) -> dict:
+    plant = robot.make_plant(weld_base=True) if robot.base == "fixed" else robot.make_plant()
+    indexing = joint_indexing(plant, robot.joints)
+    t = signals["t"]
+    keep = t >= start
+    q_true = signals["state_true"][keep][:, indexing.q]
+    error = signals["q_ref"][keep] - q_true
+    cols = [robot.joints.index(j) for j in robot.controlled_joints]
+    return {
+        "maximum": np.abs(error[:, cols]).max(axis=0).tolist(),
+        "rms": np.sqrt(np.mean(error[:, cols] ** 2, axis=0)).tolist(),
+    }
+
+
+def _simulate(control, duration: float, label: str, extra_ports=None) -> dict:
+    """Simulates a ControlDiagram, logging its outputs (and `extra_ports`)."""
+    from hrp2_drake.simulation import add_loggers, logs_to_arrays
+
+    builder = DiagramBuilder()
+    diagram = builder.AddNamedSystem("control", control.diagram)
+    ports = {
+        name: diagram.GetOutputPort(name)
+        for name in ("q_ref", "state_true", "q_cmd")
+    }
+    for name in control.output_names():
+        if name.startswith("external_wrench_") or name.startswith("wrench_"):
+            ports[name] = diagram.GetOutputPort(name)
+    if extra_ports:
+        ports |= extra_ports(builder, diagram)
+    loggers = add_loggers(builder, ports, 0.001)
+    simulator = Simulator(builder.Build())
+    run_with_progress(simulator, duration, label)
+    return logs_to_arrays(loggers, simulator.get_context())
+
+
+def run_tracking(config: TrackConfig, motor_model: MotorModel) -> dict:
+    """Free-space tracking: position control, then torque control at each K6."""
+    robot = config.station.description()
+    from hrp2_drake.robot.station import initial_joint_positions
+
+    q0 = initial_joint_positions(config.station)
+    reference = sinusoid_reference(robot, q0, config)
+    duration = reference.end_time()
+    runs = {}
+    signals = _simulate(build_position_control(config.station, reference), duration,
+                        "position control")
+    runs["position control"] = _tracking_errors(robot, signals, config.settle)
+    torque = replace(config.torque_control, start_time=config.settle)
+    for k6 in config.k6:
+        control = build_torque_control(
+            config.station, reference, motor_model, replace(torque, k6=k6)
+        )
+        signals = _simulate(control, duration, f"torque control K6={k6:g}")
+        runs[f"torque control K6={k6:g}"] = _tracking_errors(robot, signals, config.settle)
+    return runs
+
+
+def run_force_task(config: TrackConfig, motor_model: MotorModel, out: Path) -> dict:
+    """The force task at the tool on a table (module docstring)."""
+    from hrp2_drake.robot.station import initial_joint_positions
+
+    robot = config.station.description()
+    q0 = initial_joint_positions(config.station)
+    # The tool tip's pose at home (the tip frame is the centre of its contact sphere).
+    plant = robot.make_plant()
+    context = plant.CreateDefaultContext()
+    x = plant.GetPositions(context)
+    x[joint_indexing(plant, robot.joints).q] = q0
+    plant.SetPositions(context, x)
+    tip = plant.GetFrameByName(robot.tool_frame)
+    p_tip = tip.CalcPoseInWorld(context).translation()
+    # The table: `gap` below the tool at home, so that nothing touches while the F/T
+    # offsets are calibrated; the joint reference then lowers the tool onto it
+    # (a reference compatible with the contact, as in the paper's Sec. 5.4).
+    top = _lowest_collision_point(config.station, tip.body().name()) - config.gap
+    station = replace(
+        config.station,
+        obstacles=[BoxObstacle("table", [0.4, 0.4, 0.05], [p_tip[0], p_tip[1], top - 0.025, 0, 0, 0])],
+    )
+    # f_ref: the table's reaction on the tool, in the sensor frame at home.
+    sensor = robot.force_torque_sensors[robot.force_sensor]
+    R_WS = plant.GetFrameByName(sensor.frame).CalcPoseInWorld(context).rotation().matrix()
+    up_S = R_WS.T @ np.array([0.0, 0.0, 1.0])
+    t = np.arange(0.0, config.settle + config.ramp + config.force_duration + 1e-9, 0.01)
+    half = config.ramp / 2  # first half: lower the tool; second half: ramp the force
+    s = np.clip((t - config.settle - half) / half, 0.0, 1.0)
+    magnitude = config.press * s * s * (3 - 2 * s)
+    after = np.clip(t - config.settle - config.ramp, 0.0, None)
+    magnitude += config.force_amplitude * np.sin(2 * np.pi * config.force_frequency * after)
+    f_ref = np.zeros((6, len(t)))
+    f_ref[3:] = np.outer(up_S, magnitude)
+    force_reference = PiecewisePolynomial.FirstOrderHold(t, f_ref)
+    reference = _lowering(plant, context, robot, tip, q0, config, t[-1])
+    torque = replace(
+        config.torque_control,
+        k6=config.force_k6,
+        kf=[config.kf],
+        force_frame=sensor.frame,
+        start_time=config.settle,
+    )
+    control = build_torque_control(station, reference, motor_model, torque,
+                                   force_reference=force_reference)
+    tool_bodies = _bodies_below(plant, sensor.body or plant.GetFrameByName(sensor.frame).body().name())
+
+    def truth(builder, diagram):
+        station_plant = control.station.GetSubsystemByName("plant")
+        system = builder.AddNamedSystem("contact_force", ContactForceOnBodies(station_plant, tool_bodies))
+        builder.Connect(diagram.GetOutputPort("contact_results"), system.get_input_port())
+        return {"contact_force": system.get_output_port()}
+
+    signals = _simulate(control, t[-1], "force task", truth)
+    time = signals["t"]
+    desired = np.interp(time, t, magnitude)
+    achieved = signals["contact_force"][:, 2]  # the table pushes up on the tool
+    estimate = signals[f"external_wrench_{robot.force_sensor}"][:, 3:] @ up_S
+    window = time >= config.settle + config.ramp
+    error = achieved[window] - desired[window]
+    result = {
+        "press_N": config.press,
+        "amplitude_N": config.force_amplitude,
+        "rms_error_N": float(np.sqrt(np.mean(error**2))),
+        "max_error_N": float(np.abs(error).max()),
+        "mean_error_N": float(error.mean()),
+        "estimate_rms_error_N": float(np.sqrt(np.mean((estimate[window] - achieved[window]) ** 2))),
+        "amplitude_ratio": float(np.ptp(achieved[window]) / max(np.ptp(desired[window]), 1e-9)),
+    }
+    _plot_force(time, desired, achieved, estimate, config, out / "track_force.png")
+    return result
+
+
+def _lowering(plant, context, robot, tip, q0, config: TrackConfig, end: float) -> JointReference:
+    """Home, then the controlled joints move the tool tip straight down by `gap` over
+    the first half of the ramp (Δq = J⁺ Δx on the tip's translational Jacobian)."""
+    from pydrake.multibody.tree import JacobianWrtVariable
+
+    J = plant.CalcJacobianTranslationalVelocity(
+        context, JacobianWrtVariable.kV, tip, np.zeros(3), plant.world_frame(),
+        plant.world_frame(),
+    )
+    indexing = joint_indexing(plant, robot.joints)
+    cols = [robot.joints.index(j) for j in robot.controlled_joints]
+    dq = np.zeros(len(robot.joints))
+    dq[cols] = np.linalg.pinv(J[:, indexing.v[cols]]) @ np.array([0.0, 0.0, -config.gap])
+    t = np.arange(0.0, end + 1e-9, 0.001)
+    half = config.ramp / 2
+    x = np.clip((t - config.settle) / half, 0.0, 1.0)
+    e = x**3 * (10 - 15 * x + 6 * x**2)
+    de = 30 * x**2 * (1 - x) ** 2 / half
+    dde = 60 * x * (1 - x) * (1 - 2 * x) / half**2
+    return JointReference.from_samples(
+        t, q0 + np.outer(e, dq), np.outer(de, dq), np.outer(dde, dq)
+    )
+
+
+def _lowest_collision_point(station_config: StationConfig, body_name: str) -> float:
+    """World height (m) of the lowest point of `body_name`'s collision spheres at the
+    station's initial pose."""
+    from pydrake.geometry import Role, Sphere
+
+    from hrp2_drake.robot.station import make_station
+
+    station = make_station(station_config)
+    plant = station.GetSubsystemByName("plant")
+    scene_graph = station.GetSubsystemByName("scene_graph")
+    context = station.CreateDefaultContext()
+    query = scene_graph.get_query_output_port().Eval(
+        scene_graph.GetMyContextFromRoot(context)
+    )
+    inspector = query.inspector()
+    body = plant.GetBodyByName(body_name)
+    heights = [
+        query.GetPoseInWorld(g).translation()[2] - inspector.GetShape(g).radius()
+        for g in plant.GetCollisionGeometriesForBody(body)
+        if isinstance(inspector.GetShape(g), Sphere)
+        and inspector.GetProximityProperties(g) is not None
+    ]
+    if not heights:
+        raise ValueError(
+            f"tool_frame: its body '{body_name}' has no collision sphere to press with"
+        )
+    return min(heights)
+
+
+def _bodies_below(plant: MultibodyPlant, body: str) -> list[str]:
+    """`body` and every body welded to it beyond it (the tool)."""
+    return [b.name() for b in plant.GetBodiesWeldedTo(plant.GetBodyByName(body))] or [body]
+
+
+def _plot_force(t, desired, achieved, estimate, config: TrackConfig, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 3.5))
+    ax.plot(t, desired, "k--", lw=1, label="reference")
+    ax.plot(t, achieved, lw=1.5, label="contact force (truth)")
+    ax.plot(t, estimate, lw=0.8, alpha=0.8, label="estimate f̂ (F/T, compensated)")
+    ax.axvline(config.settle, color="0.7", lw=0.8)
+    ax.set_xlabel("t (s)")
+    ax.set_ylabel("force on the table (N)")
+    ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def run_track(config: TrackConfig, motor_model: MotorModel, out: Path) -> dict:
+    """The whole `hrp2-drake track`: tracking, the force task, report and plots."""
+    config.validate()
+    robot = config.station.description()
+    out.mkdir(parents=True, exist_ok=True)
+    summary = {"robot": robot.name, "joints": list(robot.controlled_joints)}
+    summary["tracking"] = run_tracking(config, motor_model)
+    if config.force_task and robot.base == "fixed":
+        summary["force_task"] = run_force_task(config, motor_model, out)
+    (out / "track.json").write_text(json.dumps(summary, indent=2))
+    _plot_tracking(robot, summary["tracking"], out / "track_errors.png")
+    (out / "track.md").write_text(_markdown(robot, config, summary))
+    return summary
+
+
+def _plot_tracking(robot: RobotDescription, runs: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = robot.labels()
+    x = np.arange(len(labels))
+    width = 0.8 / len(runs)
+    fig, ax = plt.subplots(figsize=(9, 3.5))
+    for k, (name, errors) in enumerate(runs.items()):
+        ax.bar(x + k * width, np.array(errors["maximum"]) * 1e3, width, label=name)
+    ax.set_xticks(x + 0.4 - width / 2, labels)
+    ax.set_ylabel("maximum tracking error (mrad)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _markdown(robot: RobotDescription, config: TrackConfig, summary: dict) -> str:
+    labels = robot.labels()
+    lines = [
+        f"# Torque control of {robot.name} against its position servo",
+        "",
+        f"Every controlled joint follows a sinusoid of {config.amplitude} rad at "
+        f"{config.frequency} Hz around the home pose for {config.duration} s (phases "
+        "spread over the joints), after a settle at home. Errors of the true joint "
+        "angles (mrad), from the end of the settle. Plot: `track_errors.png`.",
+        "",
+        "| controller | " + " | ".join(labels) + " |",
+        "| --- |" + " ---: |" * len(labels),
+    ]
+    for name, errors in summary["tracking"].items():
+        cells = [f"{m * 1e3:.2f} ({r * 1e3:.2f})" for m, r in zip(errors["maximum"], errors["rms"])]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines += ["", "Cells: maximum (RMS)."]
+    force = summary.get("force_task")
+    if force:
+        lines += [
+            "",
+            "## Force task at the tool",
+            "",
+            f"The tool presses on a table under its tip: {force['press_N']:g} N "
+            f"± {force['amplitude_N']:g} N at {config.force_frequency} Hz, K6 = "
+            f"{config.force_k6}, K_f = {config.kf}. Truth: the contact force from "
+            "Drake's contact results (evaluation only). Plot: `track_force.png`.",
+            "",
+            "| RMS error (N) | maximum error (N) | mean error (N) | amplitude ratio | "
+            "estimate f̂ vs truth, RMS (N) |",
+            "| ---: | ---: | ---: | ---: | ---: |",
+            f"| {force['rms_error_N']:.2f} | {force['max_error_N']:.2f} | "
+            f"{force['mean_error_N']:+.2f} | {force['amplitude_ratio']:.2f} | "
+            f"{force['estimate_rms_error_N']:.2f} |",
+        ]
+    return "\n".join(lines) + "\n"
