@@ -176,6 +176,50 @@ def _track(args: argparse.Namespace) -> int:
     return 0
 
 
+def _control(args: argparse.Namespace) -> int:
+    from hrp2_drake.experiments.lcm_control import LcmControlConfig, run_control
+    from hrp2_drake.identification.motor_model import MotorModel
+
+    config = _config(LcmControlConfig, args)
+    _use_robot(config.station, args)
+    if args.duration is not None:
+        config.duration = args.duration
+    if args.motion:
+        config.motion = args.motion
+    if args.realtime_rate is not None:
+        config.realtime_rate = args.realtime_rate
+    validate_config(config)
+    out = _output_folder(args.out)
+    motor_model = MotorModel.load(args.motor_model)
+    needed = config.torque_control.controlled_joints(config.station.description())
+    missing = [j for j in needed if j not in motor_model.joint_names]
+    if missing:
+        raise ValueError(f"{args.motor_model}: the motor model has no joints {missing}")
+    summary = run_control(config, motor_model, args.lcm, out)
+    t = summary["timing"]
+    print(
+        f"report: {out / 'control.md'}; {t['ticks']} ticks, median {t['tick_us']['median']:.0f} "
+        f"µs, p99 {t['tick_us']['p99']:.0f} µs, {t['overruns']} over the period; maximum "
+        f"error {max(summary['max_error_mrad']):.2f} mrad"
+    )
+    return 0
+
+
+def _sim_robot(args: argparse.Namespace) -> int:
+    from hrp2_drake.experiments.lcm_control import run_sim_robot
+    from hrp2_drake.robot.station import StationConfig
+
+    station = StationConfig()
+    _use_robot(station, args)
+    if args.scenario:
+        station.scenario = args.scenario
+    validate_config(station)
+    out = _output_folder(args.out) if args.out else None
+    summary = run_sim_robot(station, args.lcm, args.duration, out, rate=args.realtime_rate)
+    print(f"sim-robot: {summary['simulated']:.2f} s simulated")
+    return 0
+
+
 def _motor_model(args: argparse.Namespace, out: Path, config=None):
     """The --motor-model file (or the config's `motor_model`), or one identified now
     (saved under out/identify)."""
@@ -460,6 +504,44 @@ def main(argv: list[str] | None = None) -> int:
     track.add_argument("--quick", action="store_true", help="shorter runs (CI)")
     track.add_argument("--out", default="out/track", help="output folder")
     track.set_defaults(run=_track)
+
+    lcm_help = (
+        "LCM URL, e.g. udpm://239.255.76.67:7667?ttl=0 on a robot's network, "
+        "tcpq://127.0.0.1:7700 through `python -m hrp2_drake.hardware.tcpq_hub`, or memq://"
+    )
+    ctl = commands.add_parser(
+        "control",
+        parents=[debug],
+        help="torque control of a robot over LCM (the robot's bridge or sim-robot), "
+        "paced in real time, with per-tick timing",
+    )
+    ctl.add_argument("--robot", help=robot_help)
+    ctl.add_argument("--lcm", required=True, help=lcm_help)
+    ctl.add_argument("--motor-model", required=True, help="MotorModel YAML")
+    ctl.add_argument("--config", help="LcmControlConfig YAML file")
+    ctl.add_argument("--duration", type=_number(float, 0.0), help="seconds (default 5)")
+    ctl.add_argument("--motion", choices=("sinusoid", "hold"), help="default: sinusoid")
+    rate_help = "target real-time rate (default 1; < 1 slows the robot's clock, for tests)"
+    ctl.add_argument("--realtime-rate", type=_number(float, 0.0), help=rate_help)
+    ctl.add_argument("--out", default="out/control", help="output folder")
+    ctl.set_defaults(run=_control, scenario=None)
+
+    sim_robot = commands.add_parser(
+        "sim-robot",
+        parents=[debug],
+        help="the simulated robot behind the LCM channels, in real time: what a real "
+        "robot's bridge must do",
+    )
+    sim_robot.add_argument("--robot", help=robot_help)
+    sim_robot.add_argument("--lcm", required=True, help=lcm_help)
+    sim_robot.add_argument("--scenario", choices=SCENARIOS, help="default: hanging (fixed robots: fixed_base)")
+    sim_robot.add_argument(
+        "--duration", type=_number(float, 0.0), default=float("inf"),
+        help="seconds (default: until Ctrl-C or SIGTERM)",
+    )
+    sim_robot.add_argument("--realtime-rate", type=_number(float, 0.0), default=1.0, help=rate_help)
+    sim_robot.add_argument("--out", help="write the ground truth (sim_robot.npz) here on exit")
+    sim_robot.set_defaults(run=_sim_robot)
 
     exp = commands.add_parser(
         "experiment",

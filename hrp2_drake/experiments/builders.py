@@ -96,7 +96,8 @@ class ControlDiagram:
 
 
 def _build(builder: DiagramBuilder, station: Diagram, ports: dict[str, OutputPort]):
-    ports = ports | {"contact_results": station.GetOutputPort("contact_results")}
+    if station.HasOutputPort("contact_results"):
+        ports = ports | {"contact_results": station.GetOutputPort("contact_results")}
     for name, port in ports.items():
         builder.ExportOutput(port, name)
     return ControlDiagram(builder.Build(), station)
@@ -120,20 +121,30 @@ def _add_reference(builder: DiagramBuilder, reference: JointReference, n: int):
 
 
 def _station_ports(station: Diagram, robot: RobotDescription) -> dict[str, OutputPort]:
+    """The station's logged ports (ground truth only if it has it: a simulation)."""
     names = ["q_measured", "joint_torque_true", "state_true"]
     if robot.force_sensor:
         names.append(f"wrench_{robot.force_sensor}")
-    return {name: station.GetOutputPort(name) for name in names}
+    return {name: station.GetOutputPort(name) for name in names if station.HasOutputPort(name)}
+
+
+def _add_station(builder: DiagramBuilder, station_config: StationConfig, meshcat, station):
+    """The given station (e.g. `hardware.make_lcm_station`), or the simulated one."""
+    if station is None:
+        station = make_station(station_config, meshcat)
+    return builder.AddNamedSystem("station", station)
 
 
 def build_position_control(
-    station_config: StationConfig, reference: JointReference, meshcat=None
+    station_config: StationConfig, reference: JointReference, meshcat=None, station=None
 ) -> ControlDiagram:
     """The baseline: the robot's own position servo tracking the reference (q_cmd =
-    q_ref)."""
+    q_ref). `station`: a station Diagram to use instead of simulating
+    `station_config` (e.g. the LCM hardware station; the config still names the
+    robot)."""
     robot = station_config.description()
     builder = DiagramBuilder()
-    station = builder.AddNamedSystem("station", make_station(station_config, meshcat))
+    station = _add_station(builder, station_config, meshcat, station)
     blocks = _add_reference(builder, reference, len(robot.joints))
     builder.Connect(blocks["q_ref"], station.GetInputPort("q_cmd"))
     ports = _station_ports(station, robot) | {
@@ -268,9 +279,13 @@ def build_torque_control(
     config: TorqueControlConfig,
     meshcat=None,
     force_reference: PiecewisePolynomial | None = None,
+    station: Diagram | None = None,
 ) -> ControlDiagram:
     """Station + estimation chain + inverse dynamics + Δq torque controller (paper Sec.
-    4) on `config.joints`, the other joints in position control on the reference."""
+    4) on `config.joints`, the other joints in position control on the reference.
+    `station`: a station Diagram with the simulated station's ports to use instead of
+    simulating `station_config` (e.g. `hardware.make_lcm_station`: the same
+    controller on hardware; the config still names the robot)."""
     config.validate()
     robot = station_config.description()
     joints = config.controlled_joints(robot)
@@ -281,7 +296,7 @@ def build_torque_control(
         )
     all_joints = list(robot.joints)
     builder = DiagramBuilder()
-    station = builder.AddNamedSystem("station", make_station(station_config, meshcat))
+    station = _add_station(builder, station_config, meshcat, station)
     blocks = _add_reference(builder, reference, len(all_joints))
     # The controllers' model of the robot (with errors, if asked: a fault).
     errors = dict(model_error=config.model_error, seed=config.model_error_seed)

@@ -1,0 +1,115 @@
+"""Drake's `lcmt_drake_signal` and `lcmt_force_torque` on the wire, encoded and decoded
+with numpy, and carried through the LCM systems as raw bytes.
+
+pydrake's `PySerializer` hands Python message objects through the diagram, and the
+framework deep-copies such objects whenever it stores or caches one (several times per
+message and tick). `BytesSerializer` lets `LcmSubscriberSystem`/`LcmPublisherSystem`
+carry the encoded bytes instead (immutable: copying them is free), and the codecs
+read and write the few fields we use directly: the same messages on the wire, readable
+by any LCM tool (`lcm-spy` decodes them as Drake's types).
+"""
+
+import struct
+from typing import Sequence
+
+import numpy as np
+from drake import lcmt_drake_signal, lcmt_force_torque
+from pydrake.common.value import AbstractValue
+from pydrake.systems.lcm import SerializerInterface
+
+
+class BytesSerializer(SerializerInterface):
+    """An LCM serializer whose AbstractValue is the message's bytes (empty: none yet)."""
+
+    def __init__(self):
+        SerializerInterface.__init__(self)
+
+    def __repr__(self) -> str:
+        return "BytesSerializer()"
+
+    def CreateDefaultValue(self) -> AbstractValue:
+        return AbstractValue.Make(b"")
+
+    def Deserialize(self, buffer, abstract_value: AbstractValue) -> None:
+        abstract_value.set_value(bytes(buffer))
+
+    def Serialize(self, abstract_value: AbstractValue) -> bytes:
+        return abstract_value.get_value()
+
+
+class SignalCodec:
+    """`lcmt_drake_signal` with a fixed list of coordinate names (joint names, IMU
+    axes): values (float64), names, timestamp (µs)."""
+
+    FINGERPRINT = lcmt_drake_signal._get_packed_fingerprint()
+
+    def __init__(self, names: Sequence[str], channel: str):
+        self.names = list(names)
+        self.channel = channel
+        n = len(self.names)
+        self._head = self.FINGERPRINT + struct.pack(">i", n)
+        self._tail = b"".join(
+            struct.pack(">I", len(name.encode()) + 1) + name.encode() + b"\0" for name in self.names
+        )
+        self._size = len(self._head) + 8 * n + len(self._tail) + 8
+        self._checked: bytes | None = None
+
+    def encode(self, values: np.ndarray, time: float) -> bytes:
+        return b"".join((
+            self._head,
+            np.asarray(values, ">f8").tobytes(),
+            self._tail,
+            struct.pack(">q", int(round(time * 1e6))),
+        ))
+
+    def values(self, data: bytes) -> np.ndarray:
+        """The values (a read-only view on `data`); a ValueError naming the channel if
+        the message is not this signal (type, size or names)."""
+        if data is not self._checked:
+            self._check(data)
+        return np.frombuffer(data, ">f8", len(self.names), 12)
+
+    @staticmethod
+    def timestamp(data: bytes) -> int:
+        return struct.unpack_from(">q", data, len(data) - 8)[0] if data else -1
+
+    def _check(self, data: bytes) -> None:
+        if len(data) == self._size and data[: len(self._head)] == self._head and (
+            data[self._size - 8 - len(self._tail) : self._size - 8] == self._tail
+        ):
+            self._checked = data
+            return
+        if data[:8] != self.FINGERPRINT:
+            raise ValueError(f"channel {self.channel}: not an lcmt_drake_signal")
+        message = lcmt_drake_signal.decode(data)
+        raise ValueError(
+            f"channel {self.channel}: coordinates {list(message.coord)[:4]}... "
+            f"({message.dim}), expected {self.names[:4]}... ({len(self.names)})"
+        )
+
+
+class WrenchCodec:
+    """`lcmt_force_torque`: [τ; f] (the station's order) and a timestamp (ms, as Drake
+    documents the type)."""
+
+    FINGERPRINT = lcmt_force_torque._get_packed_fingerprint()
+    _FORMAT = struct.Struct(">qdddddd")
+    _ORDER = np.array([3, 4, 5, 0, 1, 2])  # fx fy fz tx ty tz -> tx ty tz fx fy fz
+
+    def __init__(self, channel: str):
+        self.channel = channel
+
+    def encode(self, wrench: np.ndarray, time: float) -> bytes:
+        tx, ty, tz, fx, fy, fz = (float(v) for v in wrench)
+        return self.FINGERPRINT + self._FORMAT.pack(
+            int(round(time * 1e3)), fx, fy, fz, tx, ty, tz
+        )
+
+    def values(self, data: bytes) -> np.ndarray:
+        if len(data) != 64 or data[:8] != self.FINGERPRINT:
+            raise ValueError(f"channel {self.channel}: not an lcmt_force_torque")
+        return np.frombuffer(data, ">f8", 6, 16)[self._ORDER]
+
+    @staticmethod
+    def timestamp(data: bytes) -> int:
+        return struct.unpack_from(">q", data, 8)[0] if data else -1
