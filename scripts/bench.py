@@ -10,10 +10,21 @@ Sections (all by default; pick with --only):
   control    per-tick cost of the controller stack and real-time factor of the motion
              experiment's diagrams (scripts/bench_control.py).
   fit        fit_asymmetric from 10^3 to 10^6 samples, Newton and QP (scripts/bench_fitting.py).
+  tick       one 1 kHz tick of estimation plus control for HRP-2, part by part (bench_tick):
+             the two Savitzky-Golay filters, the floating-base estimator, the inverse
+             dynamics and the Δq controller of the right leg, their sum, the safety
+             supervisor apart, and a no-op Python LeafSystem tick with the estimator's
+             ports; PASS/FAIL against the budget (<= 100 us and <= 10 no-op ticks).
+  lcm        the controller process's tick times over LCM in real time against
+             `hrp2-drake sim-robot` in another process, through the tcpq hub on
+             127.0.0.1 (scripts/bench_lcm.py; --lcm-duration, default 60 s): median,
+             p99 (goal <= 500 us), maximum, overruns of the 1 ms period.
 
 Figures vary from run to run (2 cores, shared): compare rows of the same run.
 
     python scripts/bench.py [--only sim,sg] [--duration 3] [--json out/bench.json]
+    python scripts/bench.py --only tick [--rounds 41]
+    python scripts/bench.py --only lcm [--lcm-duration 60]
 """
 
 import argparse
@@ -24,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantVectorSource
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -51,7 +62,9 @@ def bench_simulation(duration: float) -> list[dict]:
         config = StationConfig(scenario=scenario)
         builder = DiagramBuilder()
         station = builder.AddSystem(make_station(config))
-        source = builder.AddSystem(ConstantVectorSource(initial_joint_positions(config)))
+        source = builder.AddSystem(
+            ConstantVectorSource(initial_joint_positions(config))
+        )
         builder.Connect(source.get_output_port(), station.GetInputPort("q_cmd"))
         rtf = _real_time_factor(builder.Build(), duration)
         rows.append({"name": f"simulate {scenario}", "real_time_factor": rtf})
@@ -61,7 +74,8 @@ def bench_simulation(duration: float) -> list[dict]:
 
     builder = DiagramBuilder()
     plant, _ = AddMultibodyPlant(
-        MultibodyPlantConfig(time_step=1e-3, discrete_contact_approximation="sap"), builder
+        MultibodyPlantConfig(time_step=1e-3, discrete_contact_approximation="sap"),
+        builder,
     )
     model.add_hrp2(plant)
     plant.WeldFrames(plant.world_frame(), plant.GetFrameByName(model.BASE_BODY))
@@ -74,11 +88,290 @@ def bench_simulation(duration: float) -> list[dict]:
     return rows
 
 
+# ------------------------------------------------------------------ one tick
+
+TICK_BUDGET_US = 100.0  # issue "Run it on a robot": estimation plus control per tick
+TICK_BUDGET_NOOPS = 10.0  # ... and at most this many no-op Python system ticks
+PERIOD = 1e-3  # s
+
+
+class _NoopTick(LeafSystem):
+    """The FloatingBaseTorqueEstimator's ports (inputs, discrete state, state outputs,
+    periodic update) with an update that does nothing: what the framework alone costs
+    per tick of a Python LeafSystem (the baseline of the tick budget)."""
+
+    def __init__(self, n: int, sensors: list[str]):
+        super().__init__()
+        for name in ("q", "v", "vdot"):
+            self.DeclareVectorInputPort(name, n)
+        for name in (
+            "imu_linear_acceleration",
+            "imu_angular_velocity",
+            "imu_angular_acceleration",
+        ):
+            self.DeclareVectorInputPort(name, 3)
+        for name in sensors:
+            self.DeclareVectorInputPort(f"wrench_{name}", 6)
+        self.DeclareStateOutputPort("tau", self.DeclareDiscreteState(n))
+        self.DeclareStateOutputPort("unknown_wrench", self.DeclareDiscreteState(6))
+        for name in sensors:
+            self.DeclareStateOutputPort(
+                f"external_wrench_{name}", self.DeclareDiscreteState(6)
+            )
+        self.DeclareDiscreteState(6 * len(sensors) + 1)
+        self.DeclarePeriodicDiscreteUpdateEvent(PERIOD, 0.0, self._update)
+
+    def _update(self, context, discrete_state):
+        pass
+
+
+class _Ticker:
+    """One system on one context, ticked the way the Simulator does it at a periodic
+    update: EvalUniquePeriodicDiscreteUpdate, then SetDiscreteState (plus the Eval of
+    `output`, for a system whose output is computed from live inputs). `prepare(tick)`
+    runs before each tick, outside the timing (fresh sensor samples)."""
+
+    def __init__(self, system, context, output=None, prepare=None):
+        self.system = system
+        self.context = context
+        self.output = output
+        self.prepare = prepare
+        self.tick = 0
+
+    def us_per_tick(self, num_ticks: int) -> float:
+        system, context, output = self.system, self.context, self.output
+        elapsed = 0.0
+        for _ in range(num_ticks):
+            context.SetTime(self.tick * PERIOD)
+            if self.prepare is not None:
+                self.prepare(self.tick)
+            self.tick += 1
+            start = time.perf_counter()
+            context.SetDiscreteState(system.EvalUniquePeriodicDiscreteUpdate(context))
+            if output is not None:
+                output.Eval(context)
+            elapsed += time.perf_counter() - start
+        return elapsed / num_ticks * 1e6
+
+
+def _tick_systems() -> dict[str, _Ticker]:
+    """HRP-2's estimation and control systems as build_torque_control configures them
+    (estimator_config: window 80, unknown wrench on the torso; inverse dynamics and Δq
+    controller of the right leg on the upright fixed-base model, every port of the
+    diagram connected), each on its own context with healthy, plausible inputs
+    (half-sitting, small velocities, standing wrenches), initialized."""
+    from bench_estimator import _fix, _inputs
+
+    from hrp2_drake.control.inverse_dynamics import (
+        TORQUE_COMPONENTS,
+        InverseDynamicsConfig,
+        InverseDynamicsController,
+        make_fixed_base_plant,
+    )
+    from hrp2_drake.control.safety import (
+        SafetyConfig,
+        SafetySupervisor,
+        supervisor_sensors,
+    )
+    from hrp2_drake.control.torque_controller import (
+        DeltaQTorqueController,
+        TorqueControllerConfig,
+    )
+    from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayFilter
+    from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
+    from hrp2_drake.experiments import hrp2
+
+    config = hrp2.estimator_config()
+    sensors = list(config.sensors)
+    n_all = model.NUM_JOINTS
+    inputs = _inputs(len(sensors))
+    systems = {}
+
+    def filter_ticker(system, signal):
+        context = system.CreateDefaultContext()
+        system.get_input_port().FixValue(context, signal)
+        system.ExecuteInitializationEvents(context)
+        return _Ticker(system, context)
+
+    systems["SG encoder filter (30, order 2)"] = filter_ticker(
+        SavitzkyGolayFilter(n_all, config.window, 2, config.period, config.evaluation),
+        inputs["q"],
+    )
+    sensor_signal = np.concatenate(
+        [
+            inputs["imu_linear_acceleration"],
+            inputs["imu_angular_velocity"],
+            *inputs["wrenches"],
+        ]
+    )
+    systems["SG sensor filter (30, order 1)"] = filter_ticker(
+        SavitzkyGolayFilter(
+            sensor_signal.size, config.window, 1, config.period, config.evaluation
+        ),
+        sensor_signal,
+    )
+
+    estimator = FloatingBaseTorqueEstimator(hrp2.estimator_plant(), config)
+    context = estimator.CreateDefaultContext()
+    _fix(estimator, context, inputs, sensors)
+    systems["estimator (30 joints, IMU, 4 F/T)"] = _Ticker(estimator, context)
+
+    joints = list(model.RIGHT_LEG)
+    n = len(joints)
+    leg = [list(model.JOINT_NAMES).index(j) for j in joints]
+    q = model.half_sitting()[leg]
+    inverse_dynamics = InverseDynamicsController(
+        make_fixed_base_plant(model.add_hrp2, model.BASE_BODY),
+        InverseDynamicsConfig(joints=joints, ks=[3000.0], kd=[50.0]),
+    )
+    context = inverse_dynamics.CreateDefaultContext()
+    id_inputs = {
+        "q_ref": q,
+        "v_ref": np.full(n, 0.3),
+        "vdot_ref": np.ones(n),
+        "q": q + 1e-3,
+        "v": np.full(n, 0.25),
+    }
+    for name, value in id_inputs.items():
+        inverse_dynamics.GetInputPort(name).FixValue(context, value)
+    systems["inverse dynamics (right leg)"] = _Ticker(inverse_dynamics, context)
+
+    torque = DeltaQTorqueController(
+        hrp2.true_motor_model(joints), TorqueControllerConfig(joints=joints)
+    )
+    context = torque.CreateDefaultContext()
+    terms = inverse_dynamics.compute(*id_inputs.values())
+    fixed = {
+        "tau_desired": terms.tau_desired,
+        "tau_estimated": terms.tau_desired - 1.0,
+        "v": np.full(n, 0.2),
+        "q_measured": q,
+        "q_ref": q,
+        "sensor_fault": np.zeros(1),
+    }
+    fixed |= dict(zip(TORQUE_COMPONENTS, terms[1:]))
+    for name, value in fixed.items():
+        torque.GetInputPort(name).FixValue(context, value)
+    torque.ExecuteInitializationEvents(context)
+    systems["Δq torque controller (right leg)"] = _Ticker(torque, context)
+
+    # The safety supervisor (30 joints, IMU + 4 F/T, stamps) as bench_control measures
+    # it: update + q_cmd, fresh noisy samples and stamps every tick (a noisy sensor
+    # that repeats its sample is stale).
+    monitored = supervisor_sensors(sensors)
+    supervisor = SafetySupervisor(
+        n_all, monitored, SafetyConfig(start_time=0.0), num_sensor_stamps=7
+    )
+    context = supervisor.CreateDefaultContext()
+    q30 = model.half_sitting()
+    for name, value in (
+        ("q_torque", q30 + 1e-3),
+        ("q_position", q30),
+        ("q_measured", q30),
+    ):
+        supervisor.GetInputPort(name).FixValue(context, value)
+    rng = np.random.default_rng(0)
+    sizes = {name: 6 if kind == "wrench" else 3 for name, kind in monitored.items()}
+    ports = {name: supervisor.GetInputPort(name) for name in (*sizes, "sensor_time")}
+
+    def fresh_samples(tick, context=context):
+        ports["sensor_time"].FixValue(context, np.full(7, (tick - 1) * PERIOD))
+        for name, size in sizes.items():
+            ports[name].FixValue(context, rng.normal(0, 1, size))
+
+    fresh_samples(0)
+    supervisor.ExecuteInitializationEvents(context)
+
+    systems["safety supervisor (update + q_cmd)"] = _Ticker(
+        supervisor, context, supervisor.GetOutputPort("q_cmd"), fresh_samples
+    )
+
+    noop = _NoopTick(n_all, sensors)
+    context = noop.CreateDefaultContext()
+    _fix(noop, context, inputs, sensors)
+    systems["no-op LeafSystem (the estimator's ports)"] = _Ticker(noop, context)
+    return systems
+
+
+ESTIMATION_AND_CONTROL = (
+    "SG encoder filter (30, order 2)",
+    "SG sensor filter (30, order 1)",
+    "estimator (30 joints, IMU, 4 F/T)",
+    "inverse dynamics (right leg)",
+    "Δq torque controller (right leg)",
+)
+
+
+def bench_tick(rounds: int = 41, ticks_per_round: int = 250) -> list[dict]:
+    """Per-tick cost (us) of each part of HRP-2's 1 kHz estimation and control, and of
+    a no-op Python LeafSystem tick, in one run: `rounds` rounds, each ticking every
+    system `ticks_per_round` times in turn, in a shuffled order (so that a busy spell
+    of the shared machine hits every row alike); each row is the median over the
+    rounds of the round's mean.
+    The sum "estimation plus control" is that of the five parts of
+    ESTIMATION_AND_CONTROL (the supervisor is reported apart); the verdict is PASS
+    when it is <= TICK_BUDGET_US and <= TICK_BUDGET_NOOPS no-op ticks."""
+    systems = _tick_systems()
+    for ticker in systems.values():  # warm up; fill the filters' windows
+        ticker.us_per_tick(100)
+    samples = {name: [] for name in systems}
+    order = list(systems)
+    shuffle = np.random.default_rng(0).shuffle
+    for _ in range(rounds):
+        shuffle(order)
+        for name in order:
+            samples[name].append(systems[name].us_per_tick(ticks_per_round))
+    # Still healthy after every tick (the inputs are those of a robot at work).
+    supervisor = systems["safety supervisor (update + q_cmd)"]
+    assert supervisor.system.GetOutputPort("fault").Eval(supervisor.context)[0] == 0
+    torque = systems["Δq torque controller (right leg)"]
+    assert torque.system.GetOutputPort("fallback_active").Eval(torque.context)[0] == 0
+    median = {name: float(np.median(values)) for name, values in samples.items()}
+    noop = median["no-op LeafSystem (the estimator's ports)"]
+    total = sum(median[name] for name in ESTIMATION_AND_CONTROL)
+    ratio = total / noop
+    verdict = (
+        "PASS" if total <= TICK_BUDGET_US and ratio <= TICK_BUDGET_NOOPS else "FAIL"
+    )
+    rows = [
+        {"name": name, "us_per_tick": us, "noop_ticks": us / noop}
+        for name, us in median.items()
+    ]
+    rows.append(
+        {
+            "name": "estimation plus control (sum of the five parts)",
+            "us_per_tick": total,
+            "noop_ticks": ratio,
+        }
+    )
+    rows.append(
+        {
+            "name": (
+                f"verdict: {verdict} (budget <= {TICK_BUDGET_US:g} us and <= "
+                f"{TICK_BUDGET_NOOPS:g} no-op ticks; median of {rounds} rounds of "
+                f"{ticks_per_round} ticks)"
+            )
+        }
+    )
+    for row in rows:
+        if "us_per_tick" in row:
+            print(
+                f"  {row['name']:<52s} {row['us_per_tick']:7.1f} us  "
+                f"{row['noop_ticks']:5.2f} no-op ticks",
+                file=sys.stderr,
+            )
+        else:
+            print(f"  {row['name']}", file=sys.stderr)
+    return rows
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--only", default="sim,sg,estimator,control,fit")
+    parser.add_argument("--only", default="sim,sg,estimator,control,fit,tick,lcm")
     parser.add_argument("--duration", type=float, default=3.0, help="simulated s")
     parser.add_argument("--json", type=Path, help="also write the rows here")
+    parser.add_argument("--rounds", type=int, default=41, help="tick: rounds (median)")
+    parser.add_argument("--lcm-duration", type=float, default=60.0, help="lcm: seconds")
     args = parser.parse_args()
     sections = set(args.only.split(","))
 
@@ -109,6 +402,17 @@ def main() -> int:
 
         print("fitting", file=sys.stderr)
         results["fit"] = bench_fitting()
+    if "tick" in sections:
+        print("tick", file=sys.stderr)
+        results["tick"] = bench_tick(args.rounds)
+    if "lcm" in sections:
+        from bench_lcm import bench_lcm
+
+        print("lcm", file=sys.stderr)
+        results["lcm"] = [
+            bench_lcm(robot, args.lcm_duration, Path("out/bench_lcm") / robot)
+            for robot in ("hrp2", "iiwa14")
+        ]
 
     for section, rows in results.items():
         print(f"\n## {section}")
@@ -117,7 +421,11 @@ def main() -> int:
         print("| --- |" + " --- |" * len(keys))
         for row in rows:
             cells = [
-                f"{row[k]:.4g}" if isinstance(row.get(k), float) else str(row.get(k, ""))
+                (
+                    f"{row[k]:.4g}"
+                    if isinstance(row.get(k), float)
+                    else str(row.get(k, ""))
+                )
                 for k in keys
             ]
             print(f"| {row['name']} | " + " | ".join(cells) + " |")

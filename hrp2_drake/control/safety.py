@@ -221,6 +221,30 @@ class SafetySupervisor(LeafSystem):
         self.DeclareStateOutputPort("mode", self._alpha)
         self.DeclareStateOutputPort("fault", self._fault)
         self.DeclareStateOutputPort("transition", self._transition)
+        # Per period: plain ints for DiscreteValues (its cheapest accessors) and one
+        # buffer for the monitored sensors' samples, in input order.
+        self._alpha_group = int(self._alpha)
+        self._fault_group = int(self._fault)
+        self._clear_time_group = int(self._clear_time)
+        self._transition_group = int(self._transition)
+        self._last_torque_group = int(self._last_torque)
+        self._last_encoder_group = int(self._last_encoder)
+        self._encoder_count_group = int(self._encoder_count)
+        self._encoder_anchor_group = int(self._encoder_anchor)
+        self._last_sensor_group = int(self._last_sensor)
+        self._sensor_count_group = int(self._sensor_count)
+        self._hold_group = int(self._hold)
+        self._fault_count_group = int(self._fault_count)
+        self._want_torque_group = int(self._want_torque)
+        self._sensor_values = np.zeros(sensor_size)
+        ends = np.cumsum([self._KINDS[kind] for kind in sensors.values()])
+        self._sensor_rows = [
+            (port, self._sensor_values[end - self._KINDS[kind] : end])
+            for (_, kind, port), end in zip(self._sensors, ends)
+        ]
+        self._ones_n = np.ones(n)
+        self._ones_sensors = np.ones(sensor_size)
+        self._jump_limit = config.encoder_jump_speed * config.period
 
     def config(self) -> SafetyConfig:
         return self._config
@@ -251,49 +275,55 @@ class SafetySupervisor(LeafSystem):
             state.set_value(self._last_sensor, np.concatenate(sensors))
 
     def _health(self, context: Context, state: DiscreteValues) -> int:
+        # (state holds the current discrete state on entry; each group is read before
+        # it is written.)
         c = self._config
         bits = 0
         q = self._q_measured.Eval(context)
-        last = context.get_discrete_state(self._last_encoder).get_value()
-        if not math.isfinite(q.sum()):
+        last = state.get_value(self._last_encoder_group)
+        if not math.isfinite(q.dot(self._ones_n)):
             bits |= 1
         else:
-            if np.any(np.abs(q - last) > c.encoder_jump_speed * c.period):
+            if np.count_nonzero(np.abs(q - last) > self._jump_limit):
                 bits |= 8
             # Frozen encoder: unchanged while the reference moved.
             q_position = self._q_position.Eval(context)
-            count = context.get_discrete_state(self._encoder_count).get_value().copy()
-            anchor = context.get_discrete_state(self._encoder_anchor).get_value().copy()
+            count = state.get_value(self._encoder_count_group)
+            anchor = state.get_value(self._encoder_anchor_group)
             same = q == last
             count = np.where(same, count + 1, 0)
             anchor = np.where(same, anchor, q_position)
-            moved = np.abs(q_position - anchor) > c.encoder_motion
             # Only without the drivers' stamps: a joint starting to move from rest
             # (latency, dead zone, stiction) can stay on its count for several periods
             # while its reference moves away.
             stamped = self._sensor_time is not None and self._sensor_time.HasValue(context)
-            if not stamped and np.any((count >= c.encoder_stale_samples) & moved):
+            if not stamped and np.count_nonzero(
+                (count >= c.encoder_stale_samples)
+                & (np.abs(q_position - anchor) > c.encoder_motion)
+            ):
                 bits |= 32
-            state.set_value(self._encoder_count, count)
-            state.set_value(self._encoder_anchor, anchor)
-            state.set_value(self._last_encoder, q)
+            state.set_value(self._encoder_count_group, count)
+            state.set_value(self._encoder_anchor_group, anchor)
+            state.set_value(self._last_encoder_group, q)
         if self._sensors:
-            values = np.concatenate([port.Eval(context) for _, _, port in self._sensors])
-            if not math.isfinite(values.sum()):
+            values = self._sensor_values
+            for port, row in self._sensor_rows:
+                row[:] = port.Eval(context)
+            if not math.isfinite(values.dot(self._ones_sensors)):
                 bits |= 2
             else:
-                if np.any(np.abs(values) > self._sensor_limits):
+                if np.count_nonzero(np.abs(values) > self._sensor_limits):
                     bits |= 4
-                last_sensor = context.get_discrete_state(self._last_sensor).get_value()
-                count = context.get_discrete_state(self._sensor_count).get_value()
+                last_sensor = state.get_value(self._last_sensor_group)
+                count = state.get_value(self._sensor_count_group)
                 count = np.where(values == last_sensor, count + 1, 0)
-                if c.stale_samples and np.any(count >= c.stale_samples - 1):
+                if c.stale_samples and np.count_nonzero(count >= c.stale_samples - 1):
                     bits |= 16
-                state.set_value(self._sensor_count, count)
-                state.set_value(self._last_sensor, values)
+                state.set_value(self._sensor_count_group, count)
+                state.set_value(self._last_sensor_group, values)
         if self._sensor_time is not None and self._sensor_time.HasValue(context):
             age = context.get_time() - self._sensor_time.Eval(context)
-            if np.any(age > c.stale_time):
+            if np.count_nonzero(age > c.stale_time):
                 bits |= 16
         if self._e_stop.HasValue(context) and self._e_stop.Eval(context)[0] > 0:
             bits |= 64
@@ -302,49 +332,56 @@ class SafetySupervisor(LeafSystem):
             and self._controller_fallback.Eval(context)[0] > 0
         ):
             bits |= 128
-        if not math.isfinite(self._q_torque.Eval(context).sum()):
+        if not math.isfinite(self._q_torque.Eval(context).dot(self._ones_n)):
             bits |= 256
         return bits
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
         c = self._config
         t = context.get_time()
+        # The previous values (state holds the current discrete state on entry).
+        previous_bits = int(state.get_value(self._fault_group)[0])
+        clear = state.get_value(self._clear_time_group)[0]
+        hold = state.get_value(self._hold_group)
+        alpha = state.get_value(self._alpha_group)[0]
+        faults = state.get_value(self._fault_count_group)[0]
         bits = self._health(context, state)
-        previous_bits = int(context.get_discrete_state(self._fault).get_value()[0])
-        state.set_value(self._fault, [float(bits)])
-        clear = context.get_discrete_state(self._clear_time).get_value()[0]
+        state.get_mutable_value(self._fault_group)[0] = bits
         clear = clear + c.period if bits == 0 else 0.0
-        state.set_value(self._clear_time, [clear])
+        state.get_mutable_value(self._clear_time_group)[0] = clear
         # E-stop (latched): hold the pose measured when it was pressed.
-        hold = context.get_discrete_state(self._hold).get_value().copy()
-        if bits & 64 and hold[-1] == 0:
+        held = hold[-1] != 0
+        if bits & 64 and not held:
             q = self._q_measured.Eval(context)
             if not math.isfinite(q.sum()):
                 q = context.get_discrete_state(self._last_encoder).get_value()
+            hold = hold.copy()
             hold[:-1] = q
             hold[-1] = 1.0
-            state.set_value(self._hold, hold)
+            state.set_value(self._hold_group, hold)
+            held = True
         # Mode: torque from start_time while healthy; after a fault, only once every
         # fault has been clear for reentry_time.
-        alpha = context.get_discrete_state(self._alpha).get_value()[0]
         running = t + 0.5 * c.period >= c.start_time
-        faults = context.get_discrete_state(self._fault_count).get_value()[0]
         if running and bits and not previous_bits:
             faults += 1
-            state.set_value(self._fault_count, [faults])
+            state.get_mutable_value(self._fault_count_group)[0] = faults
         want_torque = (
             running
             and bits == 0
-            and hold[-1] == 0
+            and not held
             and faults <= c.max_reentries
             and (faults == 0 or clear >= c.reentry_time)
         )
-        state.set_value(self._want_torque, [1.0 if want_torque else 0.0])
+        state.get_mutable_value(self._want_torque_group)[0] = float(want_torque)
         # The last command of a healthy torque chain in use: what a ramp down starts
         # from (once a fault is seen, the chain's own output is not trusted).
-        q_torque = self._q_torque.Eval(context)
-        if want_torque and math.isfinite(q_torque.sum()):
-            state.set_value(self._last_torque, q_torque - self._q_position.Eval(context))
+        if want_torque:
+            q_torque = self._q_torque.Eval(context)
+            if math.isfinite(q_torque.dot(self._ones_n)):
+                state.set_value(
+                    self._last_torque_group, q_torque - self._q_position.Eval(context)
+                )
         step = c.period / c.ramp_time
         new_alpha = min(1.0, alpha + step) if want_torque else max(0.0, alpha - step)
         if bits and not previous_bits:
@@ -352,33 +389,34 @@ class SafetySupervisor(LeafSystem):
                 "SafetySupervisor %s: fault at t = %.6g s (%s): to position control",
                 self.GetSystemPathname(), t, describe_faults(bits),
             )
-            state.set_value(self._transition, [t, float(bits)])
+            state.set_value(self._transition_group, [t, float(bits)])
         elif want_torque and alpha == 0 and new_alpha > 0:
-            state.set_value(self._transition, [t, 0.0])
-        state.set_value(self._alpha, [new_alpha])
+            state.set_value(self._transition_group, [t, 0.0])
+        state.get_mutable_value(self._alpha_group)[0] = new_alpha
 
     # ----------------------------------------------------------------- output
 
     def _calc_q_cmd(self, context: Context, output: BasicVector) -> None:
-        alpha = context.get_discrete_state(self._alpha).get_value()[0]
+        xd = context.get_discrete_state()
+        alpha = xd.get_value(self._alpha_group)[0]
         q_position = self._q_position.Eval(context)
-        hold = context.get_discrete_state(self._hold).get_value()
+        hold = xd.get_value(self._hold_group)
         if hold[-1] > 0:
             q_position = hold[:-1]
         if alpha <= 0.0:
             output.set_value(q_position)
             return
         q_torque = self._q_torque.Eval(context)
-        fault = context.get_discrete_state(self._fault).get_value()[0] > 0
+        fault = xd.get_value(self._fault_group)[0] > 0
         fallback = (
             self._controller_fallback.HasValue(context)
             and self._controller_fallback.Eval(context)[0] > 0
         )
-        wanted = context.get_discrete_state(self._want_torque).get_value()[0] > 0
+        wanted = xd.get_value(self._want_torque_group)[0] > 0
         if fault or fallback or not wanted or not math.isfinite(q_torque.sum()):
             # The torque chain's last healthy offset from the reference, which the
             # ramp takes to zero: q_cmd moves with the reference, bumplessly.
-            offset = context.get_discrete_state(self._last_torque).get_value()
+            offset = xd.get_value(self._last_torque_group)
             output.set_value(q_position + alpha * offset)
             return
         output.set_value(alpha * q_torque + (1.0 - alpha) * q_position)

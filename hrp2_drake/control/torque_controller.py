@@ -325,7 +325,40 @@ class DeltaQTorqueController(LeafSystem):
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
         self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
 
+        # Per tick: plain ints for DiscreteValues.set_value (its cheapest accessor),
+        # the gains' products formed once, and one work array whose rows receive the
+        # inputs (one dot product checks them all for NaN and infinity).
+        self._q_cmd_group = int(self._q_cmd_state)
+        self._delta_q_group = int(self._delta_q_state)
+        self._unsaturated_group = int(self._unsaturated_state)
+        self._tau_commanded_group = int(self._tau_commanded_state)
+        self._component_groups = [int(state) for state in self._component_states]
+        self._fallback_group = int(self._fallback_state)
+        self._integral_group = int(self._integral_state)
+        self._position_groups = [  # zero outside torque control
+            self._unsaturated_group,
+            self._tau_commanded_group,
+            *self._component_groups,
+        ]
+        k_tau_one_plus_kp = self._k_tau * (1.0 + self._kp)
+        self._k_tau_kp = self._k_tau * self._kp
+        self._k_tau_ki = self._k_tau * self._ki
+        # The gains of τ_ff, τ_Ks, τ_Kd, τ_Kf, τ_ef in the components of Δq.
+        self._term_gains = np.stack(
+            [self._k_tau] + [k_tau_one_plus_kp] * 3 + [self._k_tau_kp]
+        )
+        self._integrates = bool(np.any(self._ki != 0.0))  # else ∫ e_τ dt is unused
+        self._clips_integral = bool(np.any(np.isfinite(self._integral_limit)))
+        self._minus_integral_limit = -self._integral_limit
+        self._minus_delta_q_limit = -self._delta_q_limit
+        # Rows: tau_desired, tau_estimated, v, then the five tau_* inputs (without
+        # them, τ_ff = τ_d in row 3 and zeros).
+        self._inputs = np.zeros((3 + len(TORQUE_COMPONENTS), n))
+        self._ones = np.ones(self._inputs.size)
+        self._ones_n = np.ones(n)
         self._zero_n = np.zeros(n)
+        self._zero_1 = np.zeros(1)
+        self._one_1 = np.ones(1)
 
     # ----------------------------------------------------------------- accessors
 
@@ -363,21 +396,31 @@ class DeltaQTorqueController(LeafSystem):
     def _read_finite(self, port: InputPort, context: Context) -> np.ndarray:
         return eval_finite(port, context, f"{_WHERE} {self.GetSystemPathname()}")
 
-    def _tau_components(self, context: Context, tau_desired: np.ndarray):
-        """(τ_ff, τ_Ks, τ_Kd, τ_Kf, τ_ef) from the inputs, or (τ_d, 0, 0, 0, 0)."""
-        connected = [port.HasValue(context) for port in self._tau_terms]
-        if not any(connected):
-            zero = self._zero_n
-            return tau_desired, zero, zero, zero, zero
-        if not all(connected):
-            missing = [
-                p.get_name() for p, c in zip(self._tau_terms, connected) if not c
-            ]
+    def _read_inputs(self, context: Context) -> np.ndarray:
+        """The rows τ_d, τ̂, q̂̇, τ_ff, τ_Ks, τ_Kd, τ_Kf, τ_ef from the inputs (without
+        the tau_* inputs: τ_ff = τ_d and zeros), in the work array it returns."""
+        inputs = self._inputs
+        inputs[0] = self._tau_desired.Eval(context)
+        inputs[1] = self._tau_estimated.Eval(context)
+        inputs[2] = self._v.Eval(context)
+        terms = self._tau_terms
+        if terms[0].HasValue(context):  # then all of them, or Eval raises
+            try:
+                for row, port in enumerate(terms, start=3):
+                    inputs[row] = port.Eval(context)
+                return inputs
+            except RuntimeError:
+                if all(port.HasValue(context) for port in terms):
+                    raise  # not a missing connection
+        if any(port.HasValue(context) for port in terms):
+            missing = [p.get_name() for p in terms if not p.HasValue(context)]
             raise RuntimeError(
                 f"{_WHERE} {self.GetSystemPathname()}: connect all of "
                 f"{list(TORQUE_COMPONENTS)} or none; unconnected: {missing}"
             )
-        return tuple(port.Eval(context) for port in self._tau_terms)
+        inputs[3] = inputs[0]
+        inputs[4:] = 0.0
+        return inputs
 
     def _position_command(self, context: Context) -> np.ndarray:
         """q_ref if connected, else the q_cmd held in the state."""
@@ -392,19 +435,15 @@ class DeltaQTorqueController(LeafSystem):
         q_measured: np.ndarray,
         fallback: bool,
     ) -> None:
-        discrete_state.get_mutable_vector(self._q_cmd_state).set_value(q_cmd)
+        discrete_state.set_value(self._q_cmd_group, q_cmd)
         delta_q = q_cmd - q_measured
-        discrete_state.get_mutable_vector(self._delta_q_state).set_value(
-            np.where(np.isfinite(delta_q), delta_q, 0.0)
+        discrete_state.set_value(
+            self._delta_q_group, np.where(np.isfinite(delta_q), delta_q, 0.0)
         )
-        for state in (
-            self._unsaturated_state,
-            self._tau_commanded_state,
-            *self._component_states,
-        ):
-            discrete_state.get_mutable_vector(state).set_value(self._zero_n)
-        discrete_state.get_mutable_vector(self._fallback_state).set_value(
-            [1.0 if fallback else 0.0]
+        for group in self._position_groups:
+            discrete_state.set_value(group, self._zero_n)
+        discrete_state.set_value(
+            self._fallback_group, self._one_1 if fallback else self._zero_1
         )
 
     def _initialize(self, context: Context, discrete_state: DiscreteValues) -> None:
@@ -416,8 +455,10 @@ class DeltaQTorqueController(LeafSystem):
         self._write_position_control(discrete_state, q_cmd, q_measured, False)
 
     def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
+        # The hot path of every control period: one Eval per input, whole-vector
+        # numpy and one set_value per output (scripts/bench.py --only tick).
         q_measured = self._q_measured.Eval(context)
-        if not math.isfinite(q_measured.sum()):
+        if not math.isfinite(q_measured.dot(self._ones_n)):
             # No torque command is safe without the encoders: hand back to the servo.
             self._latch(context, discrete_state, q_measured, 5)
             return
@@ -426,72 +467,85 @@ class DeltaQTorqueController(LeafSystem):
                 discrete_state, self._position_command(context), q_measured, False
             )
             return
-        if self.fallback_active(context) and self._config.latch_fallback:
+        # (discrete_state holds the current state on entry.)
+        fallback = discrete_state.get_value(self._fallback_group)[0]
+        if fallback and self._config.latch_fallback:
             self._write_position_control(
                 discrete_state, self._position_command(context), q_measured, True
             )
             return
 
-        tau_desired = self._tau_desired.Eval(context)
-        tau_estimated = self._tau_estimated.Eval(context)
-        v = self._v.Eval(context)
-        terms = self._tau_components(context, tau_desired)
-        reason = 0
-        if self._sensor_fault.HasValue(context) and self._sensor_fault.Eval(context)[0] > 0:
-            reason = 6
-        elif not np.all(np.isfinite(tau_estimated)):
-            reason = 1
-        elif np.any(np.abs(tau_estimated) > self._tau_limit):
-            reason = 2
-        elif not (
-            np.all(np.isfinite(tau_desired))
-            and np.all(np.isfinite(v))
-            and all(np.all(np.isfinite(term)) for term in terms)
+        inputs = self._read_inputs(context)
+        tau_desired, tau_estimated, v, tau_ff, tau_ks, tau_kd, tau_kf, tau_ef = inputs
+        finite = math.isfinite(inputs.reshape(-1).dot(self._ones))
+        if (
+            self._sensor_fault.HasValue(context)
+            and self._sensor_fault.Eval(context)[0] > 0
         ):
+            reason = 6
+        elif not (finite or math.isfinite(tau_estimated.dot(self._ones_n))):
+            reason = 1
+        elif np.count_nonzero(np.abs(tau_estimated) > self._tau_limit):
+            reason = 2
+        elif not finite:
             reason = 3
-        if reason == 0:
-            k_tau, kp = self._k_tau, self._kp
+        else:
             e_tau = tau_desired - tau_estimated
-            integral = context.get_discrete_state(self._integral_state).get_value()
-            integral = np.clip(
-                integral + e_tau * self._period,
-                -self._integral_limit,
-                self._integral_limit,
+            integral = (
+                discrete_state.get_value(self._integral_group) + e_tau * self._period
             )
+            if self._clips_integral:  # anti-windup: |∫ e_τ dt| <= integral_limit
+                integral = np.minimum(
+                    np.maximum(integral, self._minus_integral_limit),
+                    self._integral_limit,
+                )
             # Eq. 11: τ* = τ_d + K_p e_τ + K_i ∫ e_τ dt.
-            tau_star = tau_desired + kp * e_tau + self._ki * integral
+            tau_star = tau_desired + self._kp * e_tau
+            if self._integrates:
+                tau_star += self._ki * integral
             friction = self._k_v * v
             if self._config.coulomb_compensation:
                 friction = friction + self._k_c * np.tanh(v / self._coulomb_velocity)
             # Eq. 10: Δq = K_τ τ* + K_v q̂̇.
-            delta_q = k_tau * tau_star + friction
-            if np.any(np.abs(delta_q) > self._fallback_limit):
-                reason = 4
+            delta_q = self._k_tau * tau_star + friction
+            too_large = np.abs(delta_q) > self._fallback_limit
+            reason = 4 if np.count_nonzero(too_large) else 0
         if reason:
             self._latch(context, discrete_state, q_measured, reason)
             return
 
-        saturated = np.clip(delta_q, -self._delta_q_limit, self._delta_q_limit)
-        q_cmd = q_measured + saturated
-        tau_ff, tau_ks, tau_kd, tau_kf, tau_ef = terms
-        # The components of Δq (class docstring; Sec. 4.2 eqs. 13-14, Sec. 5.5).
-        components = (
-            k_tau * tau_ff,  # feedforward_torque
-            friction,  # feedforward_friction
-            k_tau * (1.0 + kp) * tau_ks,  # feedback_position = K6 e_q
-            k_tau * (1.0 + kp) * tau_kd,  # feedback_velocity = K7 ė_q
-            k_tau * kp * (tau_ff - tau_ef - tau_estimated),  # feedback_acceleration
-            k_tau * ((1.0 + kp) * tau_kf + kp * tau_ef),  # feedback_force = K9 e_f
-            k_tau * self._ki * integral,  # feedback_torque_integral
+        saturated = np.minimum(
+            np.maximum(delta_q, self._minus_delta_q_limit), self._delta_q_limit
         )
-        discrete_state.get_mutable_vector(self._q_cmd_state).set_value(q_cmd)
-        discrete_state.get_mutable_vector(self._delta_q_state).set_value(saturated)
-        discrete_state.get_mutable_vector(self._unsaturated_state).set_value(delta_q)
-        discrete_state.get_mutable_vector(self._tau_commanded_state).set_value(tau_star)
-        for state, value in zip(self._component_states, components):
-            discrete_state.get_mutable_vector(state).set_value(value)
-        discrete_state.get_mutable_vector(self._integral_state).set_value(integral)
-        discrete_state.get_mutable_vector(self._fallback_state).set_value([0.0])
+        # The components of Δq (class docstring; Sec. 4.2 eqs. 13-14, Sec. 5.5), from
+        # K_τ τ_ff, K_τ (1 + K_p) τ_Ks, K_τ (1 + K_p) τ_Kd, K_τ (1 + K_p) τ_Kf and
+        # K_τ K_p τ_ef (one product).
+        scaled = self._term_gains * inputs[3:]
+        feedforward_torque, feedback_position, feedback_velocity = scaled[:3]
+        feedback_force = scaled[3] + scaled[4]  # K9 e_f
+        feedback_acceleration = self._k_tau_kp * (tau_ff - tau_estimated) - scaled[4]
+        set_value = discrete_state.set_value
+        set_value(self._q_cmd_group, q_measured + saturated)
+        set_value(self._delta_q_group, saturated)
+        set_value(self._unsaturated_group, delta_q)
+        set_value(self._tau_commanded_group, tau_star)
+        for group, value in zip(
+            self._component_groups,
+            (
+                feedforward_torque,
+                friction,  # feedforward_friction
+                feedback_position,  # K6 e_q
+                feedback_velocity,  # K7 ė_q
+                feedback_acceleration,
+                feedback_force,
+            ),
+        ):
+            set_value(group, value)
+        if self._integrates:  # (else feedback_torque_integral stays zero)
+            set_value(self._component_groups[-1], self._k_tau_ki * integral)
+        set_value(self._integral_group, integral)
+        if fallback:  # not latched: torque control resumes
+            set_value(self._fallback_group, self._zero_1)
 
     def _latch(
         self,

@@ -25,6 +25,8 @@ from pydrake.systems.framework import LeafSystem
 
 EVALUATION_POINTS = ("centre", "end")
 ORDERS = (1, 2)
+# SavitzkyGolayFilter's ring-buffer state: bookkeeping, then the samples.
+_NEWEST_ROW, _NUM_SAMPLES, _CONSECUTIVE_BAD, _TOTAL_BAD, _RING_START = range(5)
 
 
 def _check_parameters(window: int, order: int, evaluation: str, where: str) -> None:
@@ -209,21 +211,21 @@ class SavitzkyGolayFilter(LeafSystem):
         )
 
         self._signal = self.DeclareVectorInputPort("signal", k)
-        self._samples = self.DeclareDiscreteState(N * k)  # (N, k) ring, row-major
-        self._ring = self.DeclareDiscreteState(2)  # [newest row, number of samples]
+        # The ring buffer: [newest row, number of samples, consecutive bad samples,
+        # total bad samples], then the last N samples (N, k), row-major: one group,
+        # that a step reaches with one accessor.
+        self._ring_state = self.DeclareDiscreteState(_RING_START + N * k)
         self._estimates = [self.DeclareDiscreteState(k) for _ in range(order + 1)]
         self._evaluation_time = self.DeclareDiscreteState(1)
         self._fault = self.DeclareDiscreteState(1)  # consecutive bad samples
-        self._fault_total = self.DeclareDiscreteState(1)
         # Plain ints for DiscreteValues.get_mutable_value/set_value (the cheapest
         # accessors per tick), and the (order + 1, k) result of one matrix product.
-        self._samples_group = int(self._samples)
-        self._ring_group = int(self._ring)
+        self._ring_group = int(self._ring_state)
         self._estimate_groups = [int(group) for group in self._estimates]
         self._time_group = int(self._evaluation_time)
         self._fault_group = int(self._fault)
-        self._fault_total_group = int(self._fault_total)
         self._fit = np.zeros((order + 1, k))
+        self._ones = np.ones(k)
         names = ("value", "derivative", "second_derivative")
         for name, group in zip(names, self._estimates):
             self.DeclareStateOutputPort(name, group)
@@ -264,8 +266,8 @@ class SavitzkyGolayFilter(LeafSystem):
 
     def is_ready(self, context) -> bool:
         """True once the window holds N real samples (see the class docstring)."""
-        ring = context.get_discrete_state(self._ring).get_value()
-        return ring[1] >= self._window
+        ring = context.get_discrete_state(self._ring_state).get_value()
+        return ring[_NUM_SAMPLES] >= self._window
 
     def evaluation_time(self, context) -> float:
         """The time (s) the outputs refer to (same as the evaluation_time port)."""
@@ -273,35 +275,44 @@ class SavitzkyGolayFilter(LeafSystem):
 
     def bad_sample_count(self, context) -> int:
         """How many samples had NaN or infinite entries (held, see the class docstring)."""
-        return int(context.get_discrete_state(self._fault_total).get_value()[0])
+        ring = context.get_discrete_state(self._ring_state).get_value()
+        return int(ring[_TOTAL_BAD])
 
     def _initialize(self, context, discrete_state):
         # Fill the window with the input at initialization, then forget it was a sample:
         # the first periodic update (usually at the same time) fills it again.
         self._update(context, discrete_state)
-        discrete_state.get_mutable_vector(self._ring).SetZero()
+        ring = discrete_state.get_mutable_value(self._ring_group)
+        ring[_NEWEST_ROW] = ring[_NUM_SAMPLES] = 0.0
 
     def _update(self, context, discrete_state):
         # The hot path of every control period: a handful of pybind calls and one
-        # matrix product (see scripts/bench_savitzky_golay.py).
+        # matrix product (scripts/bench.py --only tick).
         u = self._signal.Eval(context)
         N = self._window
         ring = discrete_state.get_mutable_value(self._ring_group)
-        samples = discrete_state.get_mutable_value(self._samples_group)
-        samples = samples.reshape(N, self._num_signals)  # a view on the state
-        num_samples = int(ring[1])
-        fault = discrete_state.get_mutable_value(self._fault_group)
-        if math.isfinite(u.sum()):
-            fault[0] = 0.0
+        samples = ring[_RING_START:].reshape(N, self._num_signals)  # a view
+        num_samples = int(ring[_NUM_SAMPLES])
+        if math.isfinite(u.dot(self._ones)):
+            if ring[_CONSECUTIVE_BAD]:
+                ring[_CONSECUTIVE_BAD] = 0.0
+                discrete_state.set_value(
+                    self._fault_group, ring[_CONSECUTIVE_BAD:_TOTAL_BAD]
+                )
         else:
             # Hold the previous sample's value of each bad entry (0 before any).
-            previous = samples[int(ring[0])] if num_samples > 0 else np.zeros_like(u)
+            previous = (
+                samples[int(ring[_NEWEST_ROW])] if num_samples > 0 else np.zeros_like(u)
+            )
             u = np.where(np.isfinite(u), u, previous)
-            fault[0] += 1.0
-            discrete_state.get_mutable_value(self._fault_total_group)[0] += 1.0
-        row = (int(ring[0]) + 1) % N if num_samples > 0 else N - 1
-        ring[0] = row
-        ring[1] = min(num_samples + 1, N)
+            ring[_CONSECUTIVE_BAD] += 1.0
+            ring[_TOTAL_BAD] += 1.0
+            discrete_state.set_value(
+                self._fault_group, ring[_CONSECUTIVE_BAD:_TOTAL_BAD]
+            )
+        row = (int(ring[_NEWEST_ROW]) + 1) % N if num_samples > 0 else N - 1
+        ring[_NEWEST_ROW] = row
+        ring[_NUM_SAMPLES] = min(num_samples + 1, N)
         if num_samples == 0:
             # Start-up: the window is the first sample N times, whose fit is a constant.
             samples[:] = u
@@ -316,7 +327,6 @@ class SavitzkyGolayFilter(LeafSystem):
         discrete_state.get_mutable_value(self._time_group)[0] = (
             context.get_time() - self._delay
         )
-
 
 
 def savgol_filter_offline(

@@ -456,6 +456,11 @@ class FloatingBaseTorqueEstimator(LeafSystem):
         ]
         self._forces = MultibodyForces(model)
         self._no_forces = MultibodyForces(model)  # stays zero
+        self._ones = np.ones(self._buffer.size)  # buffer · ones: one finiteness check
+        # Per sensor: how its external wrench is applied (see _dynamics).
+        self._external_forces = [
+            (s.model_body.AddInForce, s.p_BoSo_S, s.model_frame) for s in self._sensors
+        ]
         self._world = model.world_frame()
         u = frames[int((unknown_frame or self._base.body_frame()).index())]
         self._check_rank(model, u)
@@ -955,14 +960,11 @@ class FloatingBaseTorqueEstimator(LeafSystem):
         """Steps 3 and 4: (tau, unknown wrench) from the external wrenches (k, 6)."""
         model, context, forces = self._model, self._context, self._forces
         forces.SetZero()
-        for s, sensor in enumerate(self._sensors):
-            sensor.model_body.AddInForce(
-                context,
-                sensor.p_BoSo_S,
-                SpatialForce(external[s]),
-                sensor.model_frame,
-                forces,
-            )
+        # Each sensor's external wrench on the body B right below it, at So, in S.
+        for (add_in_force, p_BoSo_S, frame_S), wrench in zip(
+            self._external_forces, external
+        ):
+            add_in_force(context, p_BoSo_S, SpatialForce(wrench), frame_S, forces)
         # G = M v̇ + h − J_mᵀ f_m, without gravity (proper accelerations carry it).
         G = model.CalcInverseDynamics(context, self._vdot, forces)
         tau = G[self._jv]
@@ -1004,7 +1006,7 @@ class FloatingBaseTorqueEstimator(LeafSystem):
         for s, sensor in enumerate(self._sensors):
             raw[s] = sensor.port.Eval(context)
         # One check for all (the other entries of the buffer are finite).
-        if not math.isfinite(self._buffer.sum()):
+        if not math.isfinite(self._buffer.dot(self._ones)):
             ports = [self._q_port, self._v_port, self._vdot_port]
             if self._has_imu:
                 ports += [self._acc_port, self._gyro_port]
