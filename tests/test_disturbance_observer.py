@@ -1,0 +1,93 @@
+"""DisturbanceObserver on synthetic signals with a known disturbance: a joint that
+obeys the motor model exactly plus a torque d(t), seen through an estimator delay."""
+
+import math
+
+import numpy as np
+import pytest
+
+from hrp2_drake.control.disturbance_observer import (
+    DisturbanceObserver,
+    DisturbanceObserverConfig,
+)
+from hrp2_drake.identification.motor_model import MotorModel
+
+JOINTS = ["hip", "knee"]
+MODEL = MotorModel(JOINTS, [2e-4, 5e-5], [0.013, 0.0066], [0.0, 1e-4])
+PERIOD, DELAY = 0.001, 0.041
+
+
+def _run(disturbance, config: DisturbanceObserverConfig, steps: int = 800, nan_at=()):
+    """Feeds the observer τ̂ and q̂̇ delayed by DELAY, Δq as sent; returns d̂ per step."""
+    observer = DisturbanceObserver(MODEL, config)
+    context = observer.CreateDefaultContext()
+    lag = round(DELAY / PERIOD)
+    t = np.arange(steps + lag) * PERIOD
+    delta_q = np.column_stack([3e-3 * np.sin(7 * t), 2e-3 * np.cos(5 * t)])
+    v = np.column_stack([0.8 * np.cos(3 * t), -1.1 * np.sin(4 * t)])
+    d = np.array([disturbance(x) for x in t])
+    # The joint obeys eq. 6 plus the disturbance: τ = (Δq − K_v q̇ − K_c sign q̇)/K_τ + d.
+    tau = (delta_q - MODEL.k_v * v - MODEL.k_c * np.sign(v)) / MODEL.k_tau + d
+    out = []
+    for k in range(steps):
+        old = max(k - lag, 0)
+        observer.get_input_port(0).FixValue(context, delta_q[k])
+        observer.get_input_port(1).FixValue(context, v[old])
+        tau_k = np.full(2, np.nan) if k in nan_at else tau[old]
+        observer.get_input_port(2).FixValue(context, tau_k)
+        update = observer.EvalUniquePeriodicDiscreteUpdate(context)
+        context.SetDiscreteState(update)
+        out.append(observer.get_output_port().Eval(context).copy())
+    return np.array(out), d
+
+
+def test_a_step_disturbance_is_a_first_order_response():
+    bandwidth = 20.0
+    config = DisturbanceObserverConfig(JOINTS, bandwidth=bandwidth, delay=DELAY)
+    step = 0.3
+    estimate, _ = _run(lambda t: np.array([5.0, -2.0]) * (t >= step), config)
+    alpha = 1 - math.exp(-bandwidth * PERIOD)
+    lag = round(DELAY / PERIOD)
+    # The observer sees the step lag periods after it happened, then filters it.
+    k = np.arange(len(estimate))
+    seen = np.clip(k - (round(step / PERIOD) + lag) + 1, 0, None)
+    expected = np.outer(1 - (1 - alpha) ** seen, [5.0, -2.0])
+    np.testing.assert_allclose(estimate, expected, atol=1e-9)
+    # Time constant 1/bandwidth: 63% after 50 ms.
+    assert estimate[round(step / PERIOD) + lag + 49, 0] == pytest.approx(5 * (1 - 1 / math.e), rel=0.02)
+
+
+def test_no_disturbance_reads_zero_only_with_the_right_delay():
+    config = DisturbanceObserverConfig(JOINTS, bandwidth=20.0, delay=DELAY)
+    estimate, _ = _run(lambda t: np.zeros(2), config)
+    assert np.abs(estimate).max() < 1e-9
+    # Δq taken 10 ms too fresh: the model's torque no longer matches τ̂.
+    wrong = DisturbanceObserverConfig(JOINTS, bandwidth=20.0, delay=DELAY - 0.010)
+    estimate, _ = _run(lambda t: np.zeros(2), wrong)
+    assert np.abs(estimate[200:]).max() > 0.5  # measured 1.9 N·m
+
+
+def test_nan_input_holds_the_estimate_and_limit_clips():
+    config = DisturbanceObserverConfig(JOINTS, bandwidth=50.0, delay=DELAY, limit=[3.0, 10.0])
+    estimate, _ = _run(lambda t: np.array([5.0, -2.0]), config, steps=400, nan_at=range(300, 320))
+    np.testing.assert_array_equal(estimate[300:320], np.tile(estimate[299], (20, 1)))
+    assert estimate[-1, 0] == pytest.approx(3.0)  # clipped
+    assert estimate[-1, 1] == pytest.approx(-2.0, abs=1e-6)
+    assert not np.any(estimate[:round(DELAY / PERIOD)])  # nothing before Δq is that old
+
+
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        (dict(joints=[]), "joints is empty"),
+        (dict(bandwidth=0.0), "bandwidth"),
+        (dict(delay=-1.0), "delay"),
+        (dict(limit=[1.0, 2.0, 3.0]), "limit"),
+    ],
+)
+def test_bad_config(changes, message):
+    config = DisturbanceObserverConfig(**{"joints": JOINTS, **changes})
+    with pytest.raises(ValueError, match=message):
+        DisturbanceObserver(MODEL, config)
+    with pytest.raises(KeyError, match="ankle"):
+        DisturbanceObserver(MODEL, DisturbanceObserverConfig(["ankle"]))
