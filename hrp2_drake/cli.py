@@ -157,17 +157,10 @@ def _track(args: argparse.Namespace) -> int:
         config.duration, config.force_duration, config.k6 = 2.5, 2.0, config.k6[:1]
     validate_config(config)
     out = _output_folder(args.out)
-    if args.motor_model:
-        motor_model = _motor_model(args, out, config)
-    else:
-        from hrp2_drake.experiments.identification import IdentifyConfig, run_identify
-        from hrp2_drake.identification.motor_model import MotorModel
+    from hrp2_drake.experiments.identification import IdentifyConfig
 
-        print("no --motor-model: identifying one first (hrp2-drake identify)", file=sys.stderr)
-        identify = IdentifyConfig(station=config.station, duration_scale=0.5 if args.quick else 1.0)
-        run_identify(identify, out / "identify")
-        motor_model = MotorModel.load(out / "identify" / "motor_model.yaml")
-    summary = run_track(config, motor_model, out)
+    identify = IdentifyConfig(station=config.station, duration_scale=0.5 if args.quick else 1.0)
+    summary = run_track(config, _motor_model(args, out, config, identify), out)
     print(f"report: {out / 'track.md'}")
     for name, errors in summary["tracking"].items():
         print(f"  {name}: maximum error {max(errors['maximum']) * 1e3:.2f} mrad")
@@ -178,7 +171,6 @@ def _track(args: argparse.Namespace) -> int:
 
 def _control(args: argparse.Namespace) -> int:
     from hrp2_drake.experiments.lcm_control import LcmControlConfig, run_control
-    from hrp2_drake.identification.motor_model import MotorModel
 
     config = _config(LcmControlConfig, args)
     _use_robot(config.station, args)
@@ -190,12 +182,7 @@ def _control(args: argparse.Namespace) -> int:
         config.realtime_rate = args.realtime_rate
     validate_config(config)
     out = _output_folder(args.out)
-    motor_model = MotorModel.load(args.motor_model)
-    needed = config.torque_control.controlled_joints(config.station.description())
-    missing = [j for j in needed if j not in motor_model.joint_names]
-    if missing:
-        raise ValueError(f"{args.motor_model}: the motor model has no joints {missing}")
-    summary = run_control(config, motor_model, args.lcm, out)
+    summary = run_control(config, _motor_model(args, out, config), args.lcm, out)
     t = summary["timing"]
     print(
         f"report: {out / 'control.md'}; {t['ticks']} ticks, median {t['tick_us']['median']:.0f} "
@@ -220,9 +207,10 @@ def _sim_robot(args: argparse.Namespace) -> int:
     return 0
 
 
-def _motor_model(args: argparse.Namespace, out: Path, config=None):
-    """The --motor-model file (or the config's `motor_model`), or one identified now
-    (saved under out/identify)."""
+def _motor_model(args: argparse.Namespace, out: Path, config=None, identify=None):
+    """The --motor-model file (or the config's `motor_model`), checked against the
+    joints `config` torque-controls, or one identified now with `identify` (an
+    IdentifyConfig; default: HRP-2's), saved under out/identify."""
     from hrp2_drake.identification.motor_model import MotorModel
 
     path = args.motor_model or getattr(config, "motor_model", "")
@@ -231,9 +219,7 @@ def _motor_model(args: argparse.Namespace, out: Path, config=None):
         # The joints the experiment torque-controls: checked before simulating.
         torque_control = getattr(config, "torque_control", None)
         if torque_control is not None:
-            station = getattr(config, "station", None)
-            robot = station.description() if station is not None else None
-            needed = torque_control.joints or (robot.controlled_joints if robot else [])
+            needed = torque_control.controlled_joints(config.station.description())
         else:
             needed = [config.joint] if hasattr(config, "joint") else []
         missing = [j for j in needed if j not in loaded.joint_names]
@@ -246,7 +232,7 @@ def _motor_model(args: argparse.Namespace, out: Path, config=None):
     from hrp2_drake.experiments.identification import IdentifyConfig, run_identify
 
     print("no --motor-model: identifying one first (hrp2-drake identify)", file=sys.stderr)
-    run_identify(IdentifyConfig(), out / "identify")
+    run_identify(identify or IdentifyConfig(), out / "identify")
     return MotorModel.load(out / "identify" / "motor_model.yaml")
 
 

@@ -16,6 +16,7 @@ Both return a `ControlDiagram`: the diagram, which exports every signal an exper
 logs as a named output port (`LOGGED`), and its station.
 """
 
+import functools
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -26,6 +27,7 @@ from pydrake.trajectories import PiecewisePolynomial
 from hrp2_drake.control.inverse_dynamics import (
     InverseDynamicsConfig,
     InverseDynamicsController,
+    make_fixed_base_plant,
 )
 from hrp2_drake.control.safety import SafetyConfig, SafetySupervisor, supervisor_sensors
 from hrp2_drake.control.torque_controller import (
@@ -318,9 +320,12 @@ def build_torque_control(
 
     # Inverse dynamics on the fixed-base model (paper footnote 3): a floating robot's
     # base welded upright at the origin, a fixed robot as it is mounted.
-    fixed = robot.make_plant(weld_base=True, **errors) if robot.base == "fixed" else (
-        _upright(robot, errors)
-    )
+    if robot.base == "fixed":
+        fixed = robot.make_plant(weld_base=True, **errors)
+    else:
+        fixed = make_fixed_base_plant(
+            functools.partial(robot.add_model, weld_base=False, **errors), robot.base_body
+        )
     controller_model = motor_model.subset(joints)
     inertia = _joint_inertia(fixed, all_joints, joints, reference.at(0.0)[0])
     ks, kd = inverse_dynamics_gains_for_k6(
@@ -439,14 +444,3 @@ def build_torque_control(
         ports[name] = chain.estimator.GetOutputPort(name)
     ports |= {name: torque.GetOutputPort(name) for name in COMPONENTS}
     return _build(builder, station, ports)
-
-
-def _upright(robot: RobotDescription, errors: dict):
-    """A floating robot's model with its base welded upright at the origin."""
-    from pydrake.multibody.plant import MultibodyPlant
-
-    plant = MultibodyPlant(0.0)
-    robot.add_model(plant, weld_base=False, **errors)
-    plant.WeldFrames(plant.world_frame(), plant.GetBodyByName(robot.base_body).body_frame())
-    plant.Finalize()
-    return plant

@@ -19,9 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from hrp2_drake.description import RobotDescription
-from hrp2_drake.estimation.savitzky_golay import savgol_filter_offline
 from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
-from hrp2_drake.identification.dataset import check_log
+from hrp2_drake.identification.dataset import check_log, log_columns, noncausal_torques
 
 
 def read_estimation_log(path: str | Path, robot: RobotDescription) -> tuple[dict, list[str]]:
@@ -66,36 +65,21 @@ def estimate_log(
     robot: RobotDescription, log: dict, names: list[str], window: int = 81
 ) -> dict[str, np.ndarray]:
     """τ̂, the compensated external wrenches and the unknown wrench at every sample,
-    from centred (non-causal) Savitzky-Golay estimates of the log's signals."""
+    from centred (non-causal) Savitzky-Golay estimates of the log's signals (the same
+    path as identification's, `dataset.noncausal_torques`)."""
     if window % 2 == 0 or window < 3:
         raise ValueError(f"--window must be odd and >= 3, got {window}")
     t = np.asarray(log["t"], float)
-    if len(t) < window:
-        raise ValueError(f"the log has {len(t)} samples, fewer than the window {window}")
-    dt = float(np.median(np.diff(t)))
     estimator = FloatingBaseTorqueEstimator(robot.make_plant(), robot.estimator_config())
-    columns = [names.index(j) for j in robot.joints]
-    q, v, vdot = savgol_filter_offline(log["q_measured"][:, columns], dt, window, 2)
-    if robot.has_imu():
-        acc = savgol_filter_offline(log["imu_linear_acceleration"], dt, window, 1)[0]
-        gyro, alpha, _ = savgol_filter_offline(log["imu_angular_velocity"], dt, window, 1)
-    sensors = robot.sensor_names()
-    wrenches = np.zeros((len(t), len(sensors), 6))
-    for s, name in enumerate(sensors):
-        wrenches[:, s] = savgol_filter_offline(log[f"wrench_{name}"], dt, window, 1)[0]
+    columns = log_columns(names, robot.joints)
+    estimates, _ = noncausal_torques(log, columns, estimator, window, np.arange(len(t)))
     out = {
         "t": t,
-        "tau": np.empty((len(t), len(columns))),
-        "unknown_wrench": np.empty((len(t), 6)),
-        **{f"external_wrench_{name}": np.empty((len(t), 6)) for name in sensors},
+        "tau": np.array([e.tau for e in estimates]),
+        "unknown_wrench": np.array([e.unknown_wrench for e in estimates]),
     }
-    for k in range(len(t)):
-        motion = (acc[k], gyro[k], alpha[k]) if robot.has_imu() else (None, None, None)
-        estimate = estimator.estimate(q[k], v[k], vdot[k], *motion, wrenches[k])
-        out["tau"][k] = estimate.tau
-        out["unknown_wrench"][k] = estimate.unknown_wrench
-        for s, name in enumerate(sensors):
-            out[f"external_wrench_{name}"][k] = estimate.external_wrenches[s]
+    for s, name in enumerate(robot.sensor_names()):
+        out[f"external_wrench_{name}"] = np.array([e.external_wrenches[s] for e in estimates])
     return out
 
 

@@ -36,12 +36,8 @@ from pydrake.systems.primitives import TrajectorySource
 
 from hrp2_drake.estimation.torque_estimator import add_estimator
 from hrp2_drake.experiments import hrp2
-from hrp2_drake.experiments.simulate import (
-    add_loggers,
-    joint_reference,
-    logs_to_arrays,
-    run_with_progress,
-)
+from hrp2_drake.experiments.simulate import joint_reference
+from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
 from hrp2_drake.robot import model
 from hrp2_drake.robot.sensors import SensorsConfig
 from hrp2_drake.robot.station import (

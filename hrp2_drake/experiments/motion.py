@@ -24,7 +24,7 @@ from hrp2_drake.experiments.builders import (
     build_position_control,
     build_torque_control,
 )
-from hrp2_drake.experiments.simulate import add_loggers, logs_to_arrays, run_with_progress
+from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.robot import model
 from hrp2_drake.robot.station import StationConfig

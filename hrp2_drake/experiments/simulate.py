@@ -21,8 +21,6 @@ from hrp2_drake.description import RobotDescription
 from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
 from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
 
-__all__ = ["add_loggers", "logs_to_arrays", "run_with_progress"]  # re-exported
-
 
 @dataclass
 class SimulateConfig:

@@ -114,6 +114,60 @@ def check_log(
         )
 
 
+def log_columns(log_joint_names: Sequence[str], joints: Sequence[str]) -> list[int]:
+    """The log's column of each of `joints`; KeyError naming the missing ones."""
+    column = {name: i for i, name in enumerate(log_joint_names)}
+    missing = [j for j in joints if j not in column]
+    if missing:
+        raise KeyError(f"the log has no column for joints {missing}")
+    return [column[j] for j in joints]
+
+
+def noncausal_torques(
+    log: Mapping[str, np.ndarray],
+    columns: Sequence[int],
+    estimator: FloatingBaseTorqueEstimator,
+    window: int,
+    samples: np.ndarray,
+) -> tuple[list, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The estimator's `TorqueEstimate` at each of `samples` (indices), from centred
+    Savitzky-Golay estimates of the log's encoders (`columns`: the estimator's joints,
+    order 2), IMU (if the estimator has one) and F/T sensors (order 1); also
+    (q, q̇, q̈) at those samples.
+
+    Raises:
+        ValueError: the log is shorter than the window, or lacks a signal the
+            estimator needs.
+    """
+    t = np.asarray(log["t"], float)
+    if len(t) < window:
+        raise ValueError(f"the log has {len(t)} samples, fewer than the window {window}")
+    config = estimator.config()
+    imu = bool(config.imu_frame)
+    signals = ["imu_linear_acceleration", "imu_angular_velocity"] if imu else []
+    signals += [f"wrench_{name}" for name in config.sensors]
+    absent = [s for s in signals if s not in log]
+    if absent:
+        raise ValueError(f"the log lacks {absent}, which the estimator needs")
+    dt = float(np.median(np.diff(t)))
+    q, dq, ddq = savgol_filter_offline(log["q_measured"][:, columns], dt, window, 2)
+    if imu:  # else a fixed base: the estimator knows its motion (none) and gravity
+        acc = savgol_filter_offline(log["imu_linear_acceleration"], dt, window, 1)[0]
+        gyro, alpha, _ = savgol_filter_offline(log["imu_angular_velocity"], dt, window, 1)
+    wrenches = np.zeros((len(t), len(config.sensors), 6))
+    for s, name in enumerate(config.sensors):
+        wrenches[:, s] = savgol_filter_offline(log[f"wrench_{name}"], dt, window, 1)[0]
+    estimates = [
+        estimator.estimate(
+            q[k], dq[k], ddq[k],
+            *((acc[k], gyro[k], alpha[k]) if imu else (None, None, None)),
+            wrenches[k],
+        )
+        for k in samples
+    ]
+    return estimates, (q[samples], dq[samples], ddq[samples])
+
+
 def noncausal_estimates(
     log: dict[str, np.ndarray],
     log_joint_names: Sequence[str],
@@ -142,35 +196,12 @@ def noncausal_estimates(
     """
     check_log(log, log_joint_names)
     t = np.asarray(log["t"], float)
-    if len(t) < window:
-        raise ValueError(f"the log has {len(t)} samples, fewer than the window {window}")
-    dt = float(np.median(np.diff(t)))
-    config = estimator.config()
-    column = {name: i for i, name in enumerate(log_joint_names)}
-    missing = [j for j in config.joints if j not in column]
-    if missing:
-        raise KeyError(f"the log has no column for joints {missing}")
-    cols = [column[j] for j in config.joints]
-    imu = bool(config.imu_frame)
-    signals = ["imu_linear_acceleration", "imu_angular_velocity"] if imu else []
-    signals += [f"wrench_{name}" for name in config.sensors]
-    absent = [s for s in signals if s not in log]
-    if absent:
-        raise ValueError(f"the log lacks {absent}, which the estimator needs")
-
-    q, dq, ddq = savgol_filter_offline(log["q_measured"][:, cols], dt, window, 2)
-    delta_q = savgol_filter_offline(log["q_cmd"][:, cols] - log["q_measured"][:, cols], dt, window, 2)[0]
-    if imu:  # else a fixed base: the estimator knows its motion (none) and gravity
-        acc = savgol_filter_offline(log["imu_linear_acceleration"], dt, window, 1)[0]
-        gyro, alpha, _ = savgol_filter_offline(log["imu_angular_velocity"], dt, window, 1)
-    wrenches = np.zeros((len(t), len(config.sensors), 6))
-    for s, name in enumerate(config.sensors):
-        wrenches[:, s] = savgol_filter_offline(log[f"wrench_{name}"], dt, window, 1)[0]
+    cols = log_columns(log_joint_names, estimator.config().joints)
     keep = np.arange(0, len(t), stride)
-    tau = np.empty((len(keep), len(cols)))
-    for row, k in enumerate(keep):
-        motion = (acc[k], gyro[k], alpha[k]) if imu else (None, None, None)
-        tau[row] = estimator.estimate(q[k], dq[k], ddq[k], *motion, wrenches[k]).tau
+    estimates, (q, dq, ddq) = noncausal_torques(log, cols, estimator, window, keep)
+    tau = np.array([e.tau for e in estimates]).reshape(len(keep), len(cols))
+    dt = float(np.median(np.diff(t)))
+    delta_q = savgol_filter_offline(log["q_cmd"][:, cols] - log["q_measured"][:, cols], dt, window, 2)[0]
     tau_true = log["joint_torque_true"][keep][:, cols] if "joint_torque_true" in log else None
     # Unlabelled logs (e.g. from a real robot): phase and excited joint -1.
     labels = {
@@ -178,7 +209,7 @@ def noncausal_estimates(
         for key in ("phase", "excited_joint")
     }
     return IdentificationData(
-        t[keep], q[keep], dq[keep], ddq[keep], tau, delta_q[keep],
+        t[keep], q, dq, ddq, tau, delta_q[keep],
         labels["phase"], labels["excited_joint"], tau_true,
     )
 
