@@ -29,7 +29,7 @@ from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import BodyIndex, ModelInstanceIndex
 
 from hrp2_drake.config import load_config
-from hrp2_drake.multibody import tree_parents
+from hrp2_drake.multibody import is_strictly_below, tree_parents
 from hrp2_drake.estimation.torque_estimator import (
     ForceTorqueSensorConfig,
     TorqueEstimatorConfig,
@@ -271,6 +271,11 @@ class RobotDescription:
     def sensor_names(self) -> list[str]:
         return list(self.force_torque_sensors)
 
+    def sensor_body(self, name: str, plant: MultibodyPlant) -> str:
+        """The body right below F/T sensor `name`: its `body`, or its frame's body."""
+        sensor = self.force_torque_sensors[name]
+        return sensor.body or plant.GetFrameByName(sensor.frame).body().name()
+
     def has_imu(self) -> bool:
         return bool(self.imu_frame)
 
@@ -394,16 +399,15 @@ class RobotDescription:
         if self.base == "fixed" and plant.GetFloatingBaseBodies():
             names = [plant.get_body(BodyIndex(b)).name() for b in plant.GetFloatingBaseBodies()]
             raise ValueError(f"base: 'fixed', but the model has floating bodies {names}")
-        for key in ("joints",):
-            for j, name in enumerate(getattr(self, key)):
-                if not plant.HasJointNamed(name):
-                    raise ValueError(f"{key}[{j}]: no joint '{name}' in the model")
-                joint = plant.GetJointByName(name)
-                if joint.num_velocities() != 1:
-                    raise ValueError(
-                        f"{key}[{j}]: '{name}' is a {joint.type_name()} joint, expected "
-                        "one degree of freedom"
-                    )
+        for j, name in enumerate(self.joints):
+            if not plant.HasJointNamed(name):
+                raise ValueError(f"joints[{j}]: no joint '{name}' in the model")
+            joint = plant.GetJointByName(name)
+            if joint.num_velocities() != 1:
+                raise ValueError(
+                    f"joints[{j}]: '{name}' is a {joint.type_name()} joint, expected "
+                    "one degree of freedom"
+                )
         dofs = plant.num_velocities() - (6 if self.base == "floating" else 0)
         if dofs != len(self.joints):
             listed = set(self.joints)
@@ -445,7 +449,7 @@ class RobotDescription:
                     f"{where}.frame: '{sensor.frame}' is not rigidly attached to body "
                     f"'{body_name}'"
                 )
-            if _is_strictly_below(parent, int(frame.body().index()), int(body.index())):
+            if is_strictly_below(parent, int(frame.body().index()), int(body.index())):
                 raise ValueError(
                     f"{where}.body: '{body_name}' is above its frame '{sensor.frame}' (on "
                     f"body '{frame.body().name()}'): give the body right below the sensor"
@@ -456,13 +460,15 @@ class RobotDescription:
                 raise ValueError(f"imu_frame: no frame '{self.imu_frame}' in the model")
             imu_body = int(plant.GetFrameByName(self.imu_frame).body().index())
             for name, index in below.items():
-                if imu_body == index or _is_strictly_below(parent, imu_body, index):
+                if imu_body == index or is_strictly_below(parent, imu_body, index):
                     raise ValueError(
                         f"imu_frame: '{self.imu_frame}' is below F/T sensor '{name}': the "
                         "IMU must be on the base side of every sensor"
                     )
-        for key in ("unknown_wrench_body", "scenarios.hanging.body"):
-            value = self.unknown_wrench_body if key == "unknown_wrench_body" else self.scenarios.hanging.body
+        for key, value in (
+            ("unknown_wrench_body", self.unknown_wrench_body),
+            ("scenarios.hanging.body", self.scenarios.hanging.body),
+        ):
             if value and not plant.HasBodyNamed(value):
                 raise ValueError(f"{key}: no body '{value}' in the model")
         frames = [("tool_frame", self.tool_frame)] + [
@@ -518,16 +524,6 @@ def _perturbed_urdf(text: str, error: float, seed: int) -> str:
             xyz = [float(v) * com_scale for v in origin.get("xyz", "0 0 0").split()]
             origin.set("xyz", " ".join(f"{v:.9g}" for v in xyz))
     return ElementTree.tostring(root, encoding="unicode")
-
-
-def _is_strictly_below(parent: dict[int, int], body: int, ancestor: int) -> bool:
-    """Whether `body` lies in the subtree of `ancestor`, `ancestor` excluded."""
-    b = parent.get(body, -1)
-    while b != -1:
-        if b == ancestor:
-            return True
-        b = parent.get(b, -1)
-    return False
 
 
 def models_root() -> Path:

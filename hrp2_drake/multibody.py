@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 from pydrake.multibody.plant import MultibodyPlant
-from pydrake.multibody.tree import Frame, JointIndex
+from pydrake.multibody.tree import Frame, JointIndex, PrismaticJoint, RevoluteJoint, WeldJoint
 from pydrake.systems.framework import Context, InputPort
 
 
@@ -129,24 +129,88 @@ def eval_finite(port: InputPort, context: Context, where: str) -> np.ndarray:
     return value
 
 
+def tree_joints(plant: MultibodyPlant, root, through_world: bool = False) -> dict:
+    """{body index: (parent body index, the joint that holds it)} of every body of the
+    tree rooted at the body `root` (a BodyIndex), breadth first (a parent comes before
+    its children). Joints to the world are skipped unless `through_world` (e.g. to
+    root the tree at the world itself)."""
+    world = int(plant.world_body().index())
+    links: dict[int, list] = {}
+    for j in plant.GetJointIndices():
+        joint = plant.get_joint(j)
+        a, b = int(joint.parent_body().index()), int(joint.child_body().index())
+        if world in (a, b) and not through_world:
+            continue
+        links.setdefault(a, []).append((b, joint))
+        links.setdefault(b, []).append((a, joint))
+    holder: dict[int, tuple] = {}
+    queue, seen = [int(root)], {int(root)}
+    while queue:
+        a = queue.pop(0)
+        for b, joint in links.get(a, []):
+            if b not in seen:
+                seen.add(b)
+                holder[b] = (a, joint)
+                queue.append(b)
+    return holder
+
+
 def tree_parents(plant: MultibodyPlant, base) -> dict[int, int]:
     """Parent body index of every body of the tree rooted at the body `base` (a
     BodyIndex), through the joints between bodies (those to the world, floating or
     welds, ignored); -1 for the base."""
-    world = int(plant.world_body().index())
-    neighbours: dict[int, list[int]] = {}
-    for j in plant.GetJointIndices():
-        joint = plant.get_joint(j)
-        a, b = int(joint.parent_body().index()), int(joint.child_body().index())
-        if world in (a, b):
-            continue
-        neighbours.setdefault(a, []).append(b)
-        neighbours.setdefault(b, []).append(a)
-    parent, stack = {int(base): -1}, [int(base)]
-    while stack:
-        a = stack.pop()
-        for b in neighbours.get(a, []):
-            if b not in parent:
-                parent[b] = a
-                stack.append(b)
-    return parent
+    return {int(base): -1} | {b: a for b, (a, _) in tree_joints(plant, base).items()}
+
+
+def is_strictly_below(parent: dict[int, int], body: int, ancestor: int) -> bool:
+    """Whether `body` lies in the subtree of `ancestor`, `ancestor` excluded
+    (`parent`: a `tree_parents` map)."""
+    b = parent.get(body, -1)
+    while b != -1:
+        if b == ancestor:
+            return True
+        b = parent.get(b, -1)
+    return False
+
+
+def copy_joint(
+    model: MultibodyPlant,
+    plant: MultibodyPlant,
+    context: Context,
+    joint,
+    frame_on_parent: Frame,
+    frame_on_child: Frame,
+    forward: bool,
+):
+    """Adds to `model` (not finalized) a copy of `plant`'s revolute, prismatic or weld
+    `joint` between the model's frames `frame_on_parent` (inboard) and
+    `frame_on_child`, and a copy of its actuator (rotor inertia and gear ratio in
+    `context`). A joint turned around (`forward` False: its child is inboard in
+    `model`) keeps its q and its generalized force with the opposite axis, a weld its
+    inverse pose. Returns the copy.
+
+    Raises:
+        ValueError: another kind of joint, naming it.
+    """
+    sign = 1.0 if forward else -1.0
+    kind = joint.type_name()
+    F, M = frame_on_parent, frame_on_child
+    if kind == "revolute":
+        copy = RevoluteJoint(joint.name(), F, M, sign * joint.revolute_axis())
+    elif kind == "prismatic":
+        copy = PrismaticJoint(joint.name(), F, M, sign * joint.translation_axis())
+    elif kind == "weld":
+        copy = WeldJoint(joint.name(), F, M, joint.X_FM() if forward else joint.X_FM().inverse())
+    else:
+        raise ValueError(
+            f"joint '{joint.name()}' is a {kind} joint; only revolute, prismatic and "
+            "weld joints are supported"
+        )
+    copy = model.AddJoint(copy)
+    for index in plant.GetJointActuatorIndices():
+        actuator = plant.get_joint_actuator(index)
+        if actuator.joint().index() == joint.index():
+            added = model.AddJointActuator(actuator.name(), copy, actuator.effort_limit())
+            added.set_default_rotor_inertia(actuator.rotor_inertia(context))
+            added.set_default_gear_ratio(actuator.gear_ratio(context))
+    return copy

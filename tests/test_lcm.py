@@ -18,12 +18,10 @@ from hrp2_drake.cli import main
 from hrp2_drake.experiments.builders import build_torque_control
 from hrp2_drake.experiments.lcm_control import LcmControlConfig, control_reference
 from hrp2_drake.hardware.lcm_station import (
-    LcmChannels,
     make_lcm_station,
     make_sim_robot,
 )
 from hrp2_drake.hardware.messages import SignalCodec, WrenchCodec
-from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.robot.station import StationConfig, make_station
 
 IIWA = StationConfig(robot="iiwa14", scenario="fixed_base")

@@ -44,8 +44,6 @@ from pydrake.multibody.tree import (
     JacobianWrtVariable,
     ModelInstanceIndex,
     MultibodyForces,
-    PrismaticJoint,
-    RevoluteJoint,
     RigidBody,
     WeldJoint,
 )
@@ -55,8 +53,10 @@ from hrp2_drake.multibody import (
     check_joint_names,
     check_vector,
     eval_finite,
+    copy_joint,
     get_frame,
     joint_indexing,
+    tree_joints,
 )
 
 _WHERE = "InverseDynamicsController"
@@ -209,23 +209,11 @@ def _moved_part(
         for b in plant.GetBodiesKinematicallyAffectedBy([j.index() for j in controlled])
     }
     # The joint that holds each body, breadth-first from the world.
-    links: dict[int, list] = {}
-    for index in plant.GetJointIndices():
-        joint = plant.get_joint(index)
-        a, b = int(joint.parent_body().index()), int(joint.child_body().index())
-        links.setdefault(a, []).append((b, joint))
-        links.setdefault(b, []).append((a, joint))
-    holder, order = {}, []
-    queue, seen = [int(plant.world_body().index())], set()
-    seen.update(queue)
-    while queue:
-        a = queue.pop(0)
-        for b, joint in links.get(a, []):
-            if b not in seen:
-                seen.add(b)
-                holder[b] = joint
-                order.append(b)
-                queue.append(b)
+    holder = {
+        b: joint
+        for b, (_, joint) in tree_joints(plant, plant.world_body().index(), True).items()
+    }
+    order = list(holder)
 
     model = MultibodyPlant(time_step=0.0)
     model.mutable_gravity_field().set_gravity_vector(
@@ -287,24 +275,11 @@ def _moved_part(
             else (joint.frame_on_child(), joint.frame_on_parent())
         )
         F, M = copy_frame(on_parent), copy_frame(on_child)
-        sign = 1.0 if forward else -1.0
         if int(joint.index()) not in indices:
             X_FM = on_child.CalcPose(context, on_parent)
             model.AddJoint(WeldJoint(joint.name(), F, M, X_FM))
             continue
-        if joint.type_name() == "revolute":
-            copy = RevoluteJoint(joint.name(), F, M, sign * joint.revolute_axis())
-        else:
-            copy = PrismaticJoint(joint.name(), F, M, sign * joint.translation_axis())
-        copy = model.AddJoint(copy)
-        for index in plant.GetJointActuatorIndices():
-            actuator = plant.get_joint_actuator(index)
-            if actuator.joint().index() == joint.index():
-                added = model.AddJointActuator(
-                    actuator.name(), copy, actuator.effort_limit()
-                )
-                added.set_default_rotor_inertia(actuator.rotor_inertia(context))
-                added.set_default_gear_ratio(actuator.gear_ratio(context))
+        copy_joint(model, plant, context, joint, F, M, forward)
     frame_copy = copy_frame(frame) if frame is not None else None
     model.Finalize()
     return model, frame_copy

@@ -92,9 +92,7 @@ from pydrake.multibody.tree import (
     JacobianWrtVariable,
     ModelInstanceIndex,
     MultibodyForces,
-    PrismaticJoint,
     QuaternionFloatingJoint,
-    RevoluteJoint,
     RigidBody,
     SpatialInertia,
     WeldJoint,
@@ -115,7 +113,9 @@ from hrp2_drake.multibody import (
     check_vector,
     eval_finite,
     get_frame,
+    copy_joint,
     joint_indexing,
+    tree_joints,
     tree_parents,
 )
 
@@ -1103,24 +1103,9 @@ def _internal_model(
         )
 
     # The tree rooted at the IMU's body, and the joint that holds each body.
-    world = int(plant.world_body().index())
-    links = {}
-    for j in plant.GetJointIndices():
-        joint = plant.get_joint(j)
-        a, b = int(joint.parent_body().index()), int(joint.child_body().index())
-        if world not in (a, b):
-            links.setdefault(a, []).append((b, joint))
-            links.setdefault(b, []).append((a, joint))
-    holder = {}  # body -> (parent body, joint)
     top = int(root_frame.body().index())
-    stack, seen = [top], {top}
-    while stack:
-        a = stack.pop()
-        for b, joint in links.get(a, []):
-            if b not in seen:
-                seen.add(b)
-                holder[b] = (a, joint)
-                stack.append(b)
+    holder = tree_joints(plant, root_frame.body().index())
+    seen = set(holder) | {top}
 
     root_instance = model.AddModelInstance(_ROOT)
     root = model.AddRigidBody(_ROOT, root_instance, SpatialInertia.Zero())
@@ -1184,29 +1169,10 @@ def _internal_model(
             )
             R_BS = sensor.X_BS.rotation().matrix()
             sensor.p_BoSo_S = R_BS.T @ sensor.X_BS.translation()
-        sign = 1.0 if forward else -1.0
-        kind = joint.type_name()
-        if kind == "revolute":
-            copy_ = RevoluteJoint(joint.name(), F, M, sign * joint.revolute_axis())
-        elif kind == "prismatic":
-            copy_ = PrismaticJoint(joint.name(), F, M, sign * joint.translation_axis())
-        elif kind == "weld":
-            X_FM = joint.X_FM() if forward else joint.X_FM().inverse()
-            copy_ = WeldJoint(joint.name(), F, M, X_FM)
-        else:
-            raise ValueError(
-                f"{_WHERE}: joint '{joint.name()}' is a {kind} joint; only revolute, "
-                "prismatic and weld joints (and the floating base) are supported"
-            )
-        copies = model.AddJoint(copy_)
-        for index in plant.GetJointActuatorIndices():
-            actuator = plant.get_joint_actuator(index)
-            if actuator.joint().index() == joint.index():
-                added = model.AddJointActuator(
-                    actuator.name(), copies, actuator.effort_limit()
-                )
-                added.set_default_rotor_inertia(actuator.rotor_inertia(context))
-                added.set_default_gear_ratio(actuator.gear_ratio(context))
+        try:
+            copy_joint(model, plant, context, joint, F, M, forward)
+        except ValueError as error:
+            raise ValueError(f"{_WHERE}: {error} (besides the floating base)") from None
     model.Finalize()
     for sensor in sensors:
         # QuaternionFloatingJoint velocities: [ω_FM; v_FM] in F (= S at the identity).

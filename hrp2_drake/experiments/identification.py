@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 
 from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
-from hrp2_drake.experiments import hrp2
 from hrp2_drake.config import check_finite
 from hrp2_drake.identification.dataset import (
     IdentificationData,

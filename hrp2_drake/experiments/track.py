@@ -19,13 +19,13 @@ Writes track.md, track.json and plots. Nothing here knows a robot's names.
 """
 
 import json
-import sys
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.multibody.plant import ContactResults, MultibodyPlant
+from pydrake.multibody.tree import BodyIndex
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Context, DiagramBuilder, LeafSystem
 from pydrake.trajectories import PiecewisePolynomial
@@ -38,8 +38,8 @@ from hrp2_drake.experiments.builders import (
     build_torque_control,
 )
 from hrp2_drake.identification.motor_model import MotorModel
-from hrp2_drake.multibody import joint_indexing
-from hrp2_drake.robot.station import BoxObstacle, StationConfig
+from hrp2_drake.multibody import is_strictly_below, joint_indexing, tree_parents
+from hrp2_drake.robot.station import BoxObstacle, StationConfig, initial_joint_positions
 from hrp2_drake.simulation import run_with_progress
 
 
@@ -163,12 +163,14 @@ def sinusoid_reference(
     return JointReference.from_samples(t, q, v, a)
 
 
-def _tracking_errors(robot: RobotDescription, signals: dict, start: float) -> dict:
-    plant = robot.make_plant(weld_base=True) if robot.base == "fixed" else robot.make_plant()
-    indexing = joint_indexing(plant, robot.joints)
+def _tracking_errors(
+    robot: RobotDescription, q_index: np.ndarray, signals: dict, start: float
+) -> dict:
+    """Maximum and RMS of q_ref − q (true) of the controlled joints after `start`;
+    `q_index`: the joints' rows in the station's state."""
     t = signals["t"]
     keep = t >= start
-    q_true = signals["state_true"][keep][:, indexing.q]
+    q_true = signals["state_true"][keep][:, q_index]
     error = signals["q_ref"][keep] - q_true
     cols = [robot.joints.index(j) for j in robot.controlled_joints]
     return {
@@ -201,29 +203,26 @@ def _simulate(control, duration: float, label: str, extra_ports=None) -> dict:
 def run_tracking(config: TrackConfig, motor_model: MotorModel) -> dict:
     """Free-space tracking: position control, then torque control at each K6."""
     robot = config.station.description()
-    from hrp2_drake.robot.station import initial_joint_positions
-
     q0 = initial_joint_positions(config.station)
     reference = sinusoid_reference(robot, q0, config)
     duration = reference.end_time()
     runs = {}
-    signals = _simulate(build_position_control(config.station, reference), duration,
-                        "position control")
-    runs["position control"] = _tracking_errors(robot, signals, config.settle)
+    position = build_position_control(config.station, reference)
+    q_index = joint_indexing(position.station.GetSubsystemByName("plant"), robot.joints).q
+    signals = _simulate(position, duration, "position control")
+    runs["position control"] = _tracking_errors(robot, q_index, signals, config.settle)
     torque = replace(config.torque_control, start_time=config.settle)
     for k6 in config.k6:
         control = build_torque_control(
             config.station, reference, motor_model, replace(torque, k6=k6)
         )
         signals = _simulate(control, duration, f"torque control K6={k6:g}")
-        runs[f"torque control K6={k6:g}"] = _tracking_errors(robot, signals, config.settle)
+        runs[f"torque control K6={k6:g}"] = _tracking_errors(robot, q_index, signals, config.settle)
     return runs
 
 
 def run_force_task(config: TrackConfig, motor_model: MotorModel, out: Path) -> dict:
     """The force task at the tool on a table (module docstring)."""
-    from hrp2_drake.robot.station import initial_joint_positions
-
     robot = config.station.description()
     q0 = initial_joint_positions(config.station)
     # The tool tip's pose at home (the tip frame is the centre of its contact sphere).
@@ -265,7 +264,7 @@ def run_force_task(config: TrackConfig, motor_model: MotorModel, out: Path) -> d
     )
     control = build_torque_control(station, reference, motor_model, torque,
                                    force_reference=force_reference)
-    tool_bodies = _bodies_below(plant, sensor.body or plant.GetFrameByName(sensor.frame).body().name())
+    tool_bodies = _bodies_below(robot, plant, robot.sensor_body(robot.force_sensor, plant))
 
     def truth(builder, diagram):
         station_plant = control.station.GetSubsystemByName("plant")
@@ -320,7 +319,7 @@ def _lowering(plant, context, robot, tip, q0, config: TrackConfig, end: float) -
 def _lowest_collision_point(station_config: StationConfig, body_name: str) -> float:
     """World height (m) of the lowest point of `body_name`'s collision spheres at the
     station's initial pose."""
-    from pydrake.geometry import Role, Sphere
+    from pydrake.geometry import Sphere
 
     from hrp2_drake.robot.station import make_station
 
@@ -346,9 +345,15 @@ def _lowest_collision_point(station_config: StationConfig, body_name: str) -> fl
     return min(heights)
 
 
-def _bodies_below(plant: MultibodyPlant, body: str) -> list[str]:
-    """`body` and every body welded to it beyond it (the tool)."""
-    return [b.name() for b in plant.GetBodiesWeldedTo(plant.GetBodyByName(body))] or [body]
+def _bodies_below(robot: RobotDescription, plant: MultibodyPlant, body: str) -> list[str]:
+    """`body` and every body beyond it, away from the base (the tool)."""
+    top = int(plant.GetBodyByName(body).index())
+    parents = tree_parents(plant, plant.GetBodyByName(robot.base_body).index())
+    return [
+        plant.get_body(BodyIndex(b)).name()
+        for b in parents
+        if b == top or is_strictly_below(parents, b, top)
+    ]
 
 
 def _plot_force(t, desired, achieved, estimate, config: TrackConfig, path: Path) -> None:

@@ -58,7 +58,7 @@ from pydrake.systems.primitives import Demultiplexer, MatrixGain
 from pydrake.systems.sensors import Accelerometer, Gyroscope
 
 from hrp2_drake.description import RobotDescription, load_robot_description
-from hrp2_drake.multibody import JointIndexing, joint_indexing, tree_parents
+from hrp2_drake.multibody import JointIndexing, joint_indexing, tree_joints
 from hrp2_drake.robot.faults import FaultInjector, SensorClock, SensorFault
 from hrp2_drake.robot.sensors import ForceTorqueReadout, NoisySampler, SensorsConfig
 from hrp2_drake.robot.servo import (
@@ -442,26 +442,25 @@ def _add_strings(
     )
 
 
-def force_torque_joint(plant: MultibodyPlant, robot: RobotDescription, name: str) -> str:
-    """The fixed joint whose reaction force F/T sensor `name` reads: the joint that
-    holds the sensor's body (towards the base). A ValueError names the field if that
-    joint is not a weld."""
-    sensor = robot.force_torque_sensors[name]
-    body_name = sensor.body or plant.GetFrameByName(sensor.frame).body().name()
-    body = int(plant.GetBodyByName(body_name).index())
-    parent = tree_parents(plant, plant.GetBodyByName(robot.base_body).index())[body]
-    for j in plant.GetJointIndices():
-        joint = plant.get_joint(j)
-        ends = {int(joint.parent_body().index()), int(joint.child_body().index())}
-        if ends == {body, parent}:
-            if joint.type_name() != "weld":
-                raise ValueError(
-                    f"force_torque_sensors.{name}.body: '{body_name}' hangs from "
-                    f"{joint.type_name()} joint '{joint.name()}'; a simulated F/T sensor "
-                    "needs a fixed joint above its body"
-                )
-            return joint.name()
-    raise ValueError(f"force_torque_sensors.{name}.body: no joint holds '{body_name}'")
+def force_torque_readouts(
+    plant: MultibodyPlant, robot: RobotDescription
+) -> list[tuple[str, str, str]]:
+    """(fixed joint, sensor frame, body below) of each F/T sensor: the joint whose
+    reaction force the sensor reads is the one that holds its body (towards the base).
+    A ValueError names the field if that joint is not a weld."""
+    holders = tree_joints(plant, plant.GetBodyByName(robot.base_body).index())
+    out = []
+    for name, sensor in robot.force_torque_sensors.items():
+        body = robot.sensor_body(name, plant)
+        _, joint = holders[int(plant.GetBodyByName(body).index())]
+        if joint.type_name() != "weld":
+            raise ValueError(
+                f"force_torque_sensors.{name}.body: '{body}' hangs from "
+                f"{joint.type_name()} joint '{joint.name()}'; a simulated F/T sensor "
+                "needs a fixed joint above its body"
+            )
+        out.append((joint.name(), sensor.frame, body))
+    return out
 
 
 def _add_sensors(
@@ -560,20 +559,7 @@ def _add_sensors(
     if names:
         readout = builder.AddNamedSystem(
             "force_torque_readout",
-            ForceTorqueReadout(
-                plant,
-                [
-                    (
-                        force_torque_joint(plant, robot, name),
-                        robot.force_torque_sensors[name].frame,
-                        robot.force_torque_sensors[name].body
-                        or plant.GetFrameByName(robot.force_torque_sensors[name].frame)
-                        .body()
-                        .name(),
-                    )
-                    for name in names
-                ],
-            ),
+            ForceTorqueReadout(plant, force_torque_readouts(plant, robot)),
         )
         builder.Connect(plant.get_reaction_forces_output_port(), readout.get_input_port())
         stds, biases = zip(
