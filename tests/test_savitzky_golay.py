@@ -334,3 +334,93 @@ def test_offline_bad_inputs_raise():
     x[42, 1] = math.nan
     with pytest.raises(ValueError, match=r"not finite at index \[42, 1\]"):
         savgol_filter_offline(x, PERIOD, 21, 2)
+
+
+def _run_on_noise(system: SavitzkyGolayFilter, samples: np.ndarray) -> list[np.ndarray]:
+    """Feeds `samples` (T, k) one per period; returns the outputs after the last."""
+    return _outputs(system, _feed(system, samples))
+
+
+def _feed(system: SavitzkyGolayFilter, samples: np.ndarray, each=None):
+    """Simulates the filter with samples[k] at its update k; calls each(context)
+    after every update; returns the context."""
+    simulator = Simulator(system)
+    context = simulator.get_mutable_context()
+    port = system.get_input_port()
+    port.FixValue(context, samples[0])
+    simulator.Initialize()
+    for k, sample in enumerate(samples):
+        port.FixValue(context, sample)
+        simulator.AdvanceTo((k + 0.5) * PERIOD)
+        if each is not None:
+            each(k, context)
+    return context
+
+
+def test_per_signal_windows_share_one_evaluation_point():
+    """Each signal is the fit of its own window, all evaluated `delay` samples back:
+    the same numbers as one filter per signal with that window and delay."""
+    windows, delay = [21, 40, 81], 10
+    samples = np.random.default_rng(3).normal(size=(200, 3))
+    system = SavitzkyGolayFilter(3, windows, 2, PERIOD, delay=delay)
+    assert system.windows() == (21, 40, 81) and system.window() == 81
+    assert system.delay() == pytest.approx(delay * PERIOD)
+    together = _run_on_noise(system, samples)
+    for i, window in enumerate(windows):
+        alone = _run_on_noise(
+            SavitzkyGolayFilter(1, window, 2, PERIOD, delay=delay), samples[:, [i]]
+        )
+        weights = scipy.signal.savgol_coeffs(
+            window, 2, deriv=1, delta=PERIOD, pos=window - 1 - delay, use="dot"
+        )
+        assert together[1][i] == pytest.approx(weights @ samples[-window:, i], rel=1e-9)
+        for d in range(3):
+            assert together[d][i] == pytest.approx(alone[d][0], rel=1e-12, abs=1e-12)
+
+
+def test_per_signal_windows_exact_on_polynomials_at_the_common_time():
+    coefficients = _polynomial(2, 3, seed=5)
+    builder = DiagramBuilder()
+    source = builder.AddSystem(_PolynomialSource(coefficients))
+    system = builder.AddSystem(SavitzkyGolayFilter(3, [11, 30, 61], 2, PERIOD))
+    builder.Connect(source.get_output_port(), system.get_input_port())
+    simulator = Simulator(builder.Build())
+    simulator.AdvanceTo(0.1005)
+    context = system.GetMyContextFromRoot(simulator.get_context())
+    # "centre" with several windows: the centre of the shortest, 5 samples back.
+    assert system.delay() == pytest.approx(5 * PERIOD)
+    expected = _derivatives(coefficients, system.evaluation_time(context))
+    for d, output in enumerate(_outputs(system, context)):
+        np.testing.assert_allclose(output, expected[d], rtol=1e-7, atol=1e-7)
+
+
+def test_longer_window_at_the_same_delay_is_less_noisy():
+    """Off-centre evaluation of a longer window still averages more samples."""
+    noise = np.random.default_rng(7).normal(size=(4000, 1))
+    short = SavitzkyGolayFilter(1, 21, 2, PERIOD)  # centred: delay 10 samples
+    long = SavitzkyGolayFilter(1, 61, 2, PERIOD, delay=10)
+    spread = []
+    for system in (short, long):
+        out = []
+
+        def record(k, context, system=system, out=out):
+            if k >= 100:
+                out.append(system.GetOutputPort("derivative").Eval(context)[0])
+
+        _feed(system, noise, record)
+        spread.append(np.std(out))
+    assert spread[1] < 0.6 * spread[0], spread  # 0.54 on this noise
+
+
+@pytest.mark.parametrize(
+    "window, delay, match",
+    [
+        ([21, 40], None, "window has 2 values for 3 signals"),
+        ([21, 40, 2], None, "window=2"),
+        ([21, 40, 81], 25, r"delay=25 samples must lie in every window, within \[0, 20\]"),
+        (21, -1, "delay=-1"),
+    ],
+)
+def test_per_signal_window_errors(window, delay, match):
+    with pytest.raises(ValueError, match=match):
+        SavitzkyGolayFilter(3, window, 2, PERIOD, delay=delay)

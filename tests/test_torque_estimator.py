@@ -759,3 +759,38 @@ def test_add_estimator_needs_the_station_ports(plant):
     not_a_station = builder.AddNamedSystem("source", ConstantVectorSource(np.zeros(30)))
     with pytest.raises(KeyError, match="no output ports.*q_measured"):
         add_estimator(builder, not_a_station, plant, _config(plant))
+
+
+def test_per_signal_windows_keep_one_delay(plant):
+    """config.windows: each encoder, the IMU and each F/T sensor get their own window,
+    every filter evaluated at `window`'s centre (one delay for eq. 2)."""
+    config = _config(
+        plant, window=21, windows={"RLEG_JOINT3": 61, "imu": 41, "right_foot": 11}
+    )
+    builder = DiagramBuilder()
+    station = builder.AddNamedSystem(
+        "station", make_station(StationConfig(scenario="hanging", servo_file="ideal"))
+    )
+    chain = add_estimator(builder, station, plant, config)
+    encoders = chain.encoder_filter.windows()
+    assert encoders[model.JOINT_NAMES.index("RLEG_JOINT3")] == 61
+    assert encoders.count(21) == len(model.JOINT_NAMES) - 1
+    sensor_windows = chain.sensor_filter.windows()
+    assert sensor_windows[:6] == (41,) * 6  # accelerometer, gyro
+    foot = 6 + 6 * list(config.sensors).index("right_foot")
+    assert sensor_windows[foot : foot + 6] == (11,) * 6
+    assert chain.encoder_filter.delay() == chain.sensor_filter.delay() == 0.010
+    assert chain.delay() == pytest.approx(0.012)
+
+
+@pytest.mark.parametrize(
+    "windows, match",
+    [
+        ({"RLEG_JOINT9": 30}, "windows: 'RLEG_JOINT9' is not a joint, an F/T sensor or 'imu'"),
+        ({"imu": 10}, r"windows\['imu'\]=10 must be an integer >= 11"),
+        ({"left_hand": 40.0}, r"windows\['left_hand'\]=40.0 must be an integer"),
+    ],
+)
+def test_bad_per_signal_windows(plant, windows, match):
+    with pytest.raises(ValueError, match=match):
+        _config(plant, window=21, windows=windows).validate()

@@ -13,10 +13,18 @@ each estimate is one weighted sum of the window's samples (paper Sec. 2.1).
 Evaluation point: "end" evaluates the fit at the newest sample (no delay, noisier);
 "centre" evaluates it at the middle of the window, (N - 1) / 2 samples in the past (the
 paper's choice: N = 80 at 1 kHz, i.e. 39.5 ms, which the paper rounds to 40 ms).
+
+Per-signal windows (the paper's future work: "the same delay for all the sensors ...
+there is room for improvement"): `SavitzkyGolayFilter` may fit each signal over its own
+window N_i while evaluating every fit at one common point, `delay` samples before the
+newest sample, so every estimate still refers to the same instant (what eq. 2 needs to
+combine them). A window longer than 2 delay + 1 is evaluated off its centre, towards
+its newest end: more samples, hence less noise, at the same delay.
 """
 
 import math
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 from scipy.ndimage import correlate1d
@@ -105,6 +113,13 @@ def savgol_coefficients(
     return weights / dt ** np.arange(order + 1)[:, np.newaxis]
 
 
+def _delay_weights(window: int, order: int, dt: float, delay: float) -> np.ndarray:
+    """Weights (order + 1, window) of the fit evaluated `delay` samples before the
+    newest sample (fractional sample index window - 1 - delay), per second^d."""
+    weights = _fit_weights(window, order, [window - 1 - delay])[:, 0, :]
+    return weights / dt ** np.arange(order + 1)[:, np.newaxis]
+
+
 @dataclass
 class SavitzkyGolayConfig:
     """Parameters of one Savitzky-Golay filter (the paper, Sec. 5.1: N = 80, p = 2 for
@@ -175,40 +190,71 @@ class SavitzkyGolayFilter(LeafSystem):
     def __init__(
         self,
         num_signals: int,
-        window: int = 80,
+        window: int | Sequence[int] = 80,
         order: int = 2,
         period: float = 1e-3,
         evaluation: str = "centre",
+        delay: float | None = None,
     ):
         """
         Args:
             num_signals: k, the size of `signal`.
-            window: N, number of samples fitted (>= order + 1).
+            window: N, number of samples fitted (>= order + 1); or one window per
+                signal (k values), all evaluated at the same point (`delay`).
             order: polynomial order p, 1 or 2.
             period: sampling period (s) of the periodic update.
-            evaluation: "centre" or "end" (see savgol_coefficients).
+            evaluation: "centre" or "end" (see savgol_coefficients). With one window
+                per signal, "centre" is the centre of the shortest window.
+            delay: the evaluation point in samples before the newest sample, instead
+                of `evaluation` (0 = "end"); it must lie in every window (delay <=
+                N_i - 1).
         """
         super().__init__()
-        _check_parameters(window, order, evaluation, "SavitzkyGolayFilter")
-        _check_period(period, "period", "SavitzkyGolayFilter")
+        where = "SavitzkyGolayFilter"
         if not _is_integer(num_signals) or num_signals < 1:
             raise ValueError(
-                f"SavitzkyGolayFilter: num_signals={num_signals!r} must be an "
-                "integer >= 1"
+                f"{where}: num_signals={num_signals!r} must be an integer >= 1"
             )
         self._num_signals = k = int(num_signals)
-        self._window = N = int(window)
+        per_signal = isinstance(window, (list, tuple, np.ndarray))
+        windows = list(window) if per_signal else [window] * k
+        if len(windows) != k:
+            raise ValueError(
+                f"{where}: window has {len(windows)} values for {k} signals "
+                "(give one window, or one per signal)"
+            )
+        for n in windows:
+            _check_parameters(n, order, evaluation, where)
+        _check_period(period, "period", where)
+        self._windows = tuple(int(n) for n in windows)
+        self._window = N = max(self._windows)
         self._order = order
         self._period = float(period)
         self._evaluation = evaluation
-        self._delay = (N - 1) / 2 * self._period if evaluation == "centre" else 0.0
+        if delay is None:
+            delay = (min(self._windows) - 1) / 2 if evaluation == "centre" else 0.0
+        if not (isinstance(delay, (int, float)) and 0 <= delay <= min(self._windows) - 1):
+            raise ValueError(
+                f"{where}: delay={delay!r} samples must lie in every window, within "
+                f"[0, {min(self._windows) - 1}] (shortest window "
+                f"{min(self._windows)})"
+            )
+        self._delay_samples = float(delay)
+        self._delay = self._delay_samples * self._period
 
-        weights = savgol_coefficients(N, order, self._period, evaluation)
-        # The newest sample sits at ring row r, the oldest at r + 1 (mod N): window
-        # column j lives at row (r + 1 + j) % N, hence the roll by r + 1.
-        self._rolled_weights = np.stack(
-            [np.roll(weights, r + 1, axis=1) for r in range(N)]
-        )
+        # One weight matrix per distinct window, zero-padded to the ring's N rows (the
+        # oldest N - N_i samples get no weight). The newest sample sits at ring row r,
+        # the oldest at r + 1 (mod N): window column j lives at row (r + 1 + j) % N,
+        # hence the roll by r + 1. Signals sharing a window share one product.
+        self._groups = []
+        for n in sorted(set(self._windows)):
+            padded = np.zeros((order + 1, N))
+            padded[:, N - n :] = _delay_weights(n, order, self._period, self._delay_samples)
+            rolled = np.stack([np.roll(padded, r + 1, axis=1) for r in range(N)])
+            columns = [i for i, w in enumerate(self._windows) if w == n]
+            self._groups.append((np.array(columns), rolled))
+        self._single_window = len(self._groups) == 1
+        self._rolled_weights = self._groups[0][1]
 
         self._signal = self.DeclareVectorInputPort("signal", k)
         # The ring buffer: [newest row, number of samples, consecutive bad samples,
@@ -246,7 +292,12 @@ class SavitzkyGolayFilter(LeafSystem):
         return self._num_signals
 
     def window(self) -> int:
+        """The longest window (the ring buffer's length)."""
         return self._window
+
+    def windows(self) -> tuple[int, ...]:
+        """The window of each signal."""
+        return self._windows
 
     def order(self) -> int:
         return self._order
@@ -260,8 +311,8 @@ class SavitzkyGolayFilter(LeafSystem):
 
     def delay(self) -> float:
         """Seconds the outputs lag the newest sample: (N - 1) / 2 * period for "centre",
-        0 for "end". (A consumer updating on the same clock reads them one period later.)
-        """
+        0 for "end", the `delay` samples if given. (A consumer updating on the same
+        clock reads them one period later.)"""
         return self._delay
 
     def is_ready(self, context) -> bool:
@@ -320,8 +371,13 @@ class SavitzkyGolayFilter(LeafSystem):
             self._fit[1:] = 0.0
         else:
             samples[row] = u
-            # All estimates at once: (order + 1, N) weights times the (N, k) ring.
-            np.dot(self._rolled_weights[row], samples, out=self._fit)
+            # All estimates at once: (order + 1, N) weights times the (N, k) ring;
+            # with several windows, one product per window.
+            if self._single_window:
+                np.dot(self._rolled_weights[row], samples, out=self._fit)
+            else:
+                for columns, rolled in self._groups:
+                    self._fit[:, columns] = rolled[row] @ samples[:, columns]
         for group, estimate in zip(self._estimate_groups, self._fit):
             discrete_state.set_value(group, estimate)
         discrete_state.get_mutable_value(self._time_group)[0] = (

@@ -181,10 +181,17 @@ class TorqueEstimatorConfig:
             filters' start-up (their windows fill with the sensors' first samples;
             the default leaves 2.5 windows of 80 ms).
         period: the update period (s) of the estimator and of the filters.
-        window: number of samples N of every Savitzky-Golay filter of add_estimator
-            (one window for all, so all estimates refer to the same time).
+        window: number of samples N of the Savitzky-Golay filters of add_estimator
+            (the paper: one window for all); its evaluation point is every filter's,
+            so all estimates refer to the same time.
         evaluation: Savitzky-Golay evaluation point, "centre" (delay (N - 1) / 2
-            samples, the paper's choice) or "end".
+            samples of `window`, the paper's choice) or "end".
+        windows: per-signal windows instead of `window` (the paper's future work:
+            "the same delay for all the sensors ... there is room for
+            improvement"), by joint name (its encoder), F/T sensor name, or "imu"
+            (accelerometer and gyro). Each is still evaluated at `window`'s point, so
+            eq. 2 combines samples of one instant: a window must reach it (>= (window
+            + 1) / 2 for "centre"); a longer one is evaluated off its centre.
     """
 
     joints: list[str] = field(default_factory=list)
@@ -199,6 +206,15 @@ class TorqueEstimatorConfig:
     period: float = 0.001
     window: int = 80
     evaluation: str = "centre"
+    windows: dict[str, int] = field(default_factory=dict)
+
+    def delay_samples(self) -> float:
+        """The filters' common evaluation point, in samples before the newest."""
+        return (self.window - 1) / 2 if self.evaluation == "centre" else 0.0
+
+    def window_of(self, signal: str) -> int:
+        """The window of a joint's encoder, an F/T sensor or the "imu"."""
+        return self.windows.get(signal, self.window)
 
     def validate(self) -> None:
         """Raises ValueError naming the bad field (yaml_load_typed does not call it)."""
@@ -244,6 +260,22 @@ class TorqueEstimatorConfig:
                 f"{where}.evaluation='{self.evaluation}' must be one of "
                 f"{EVALUATION_POINTS}"
             )
+        signals = [*self.joints, *self.sensors, *(["imu"] if self.imu_frame else [])]
+        shortest = max(3, math.floor(self.delay_samples()) + 1)
+        for name, window in self.windows.items():
+            if name not in signals:
+                raise ValueError(
+                    f"{where}.windows: '{name}' is not a joint, an F/T sensor or "
+                    f"'imu' of this estimator ({len(signals)} signals: e.g. "
+                    f"{signals[:3]})"
+                )
+            if isinstance(window, bool) or not isinstance(window, int) or window < shortest:
+                raise ValueError(
+                    f"{where}.windows['{name}']={window!r} must be an integer >= "
+                    f"{shortest}: every window must reach the common evaluation point, "
+                    f"{self.delay_samples():g} samples back (window {self.window}, "
+                    f"{self.evaluation})"
+                )
 
 
 class TorqueEstimate(NamedTuple):
@@ -1227,7 +1259,8 @@ def add_estimator(
     the output ports of `station` (a robot diagram, simulated or real, already added to
     `builder`), with the paper's filters (Sec. 5.1): Savitzky-Golay of order 2 on the
     encoders (q, v, vdot), of order 1 on the IMU and the F/T sensors (values; the gyro's
-    derivative is the angular acceleration), one window for all (config.window, same
+    derivative is the angular acceleration), one window for all (config.window) or one
+    per signal (config.windows), every filter evaluated at config.window's point (one
     delay everywhere).
 
     .. code-block:: text
@@ -1282,7 +1315,13 @@ def add_estimator(
     estimator = builder.AddNamedSystem(name, FloatingBaseTorqueEstimator(plant, config))
     encoder_filter = builder.AddNamedSystem(
         f"{name}_encoder_filter",
-        SavitzkyGolayFilter(n, config.window, 2, config.period, config.evaluation),
+        SavitzkyGolayFilter(
+            n,
+            [config.window_of(j) for j in config.joints],
+            2,
+            config.period,
+            delay=config.delay_samples(),
+        ),
     )
     builder.Connect(station.GetOutputPort(encoders), encoder_filter.get_input_port())
     for source, target in (
@@ -1304,7 +1343,12 @@ def add_estimator(
         sensor_filter = builder.AddNamedSystem(
             f"{name}_sensor_filter",
             SavitzkyGolayFilter(
-                sum(sizes), config.window, 1, config.period, config.evaluation
+                sum(sizes),
+                [config.window_of("imu")] * (6 if has_imu else 0)
+                + [config.window_of(s) for s in names for _ in range(6)],
+                1,
+                config.period,
+                delay=config.delay_samples(),
             ),
         )
         builder.Connect(mux.get_output_port(), sensor_filter.get_input_port())
