@@ -139,6 +139,30 @@ def test_eq10_11(motor, seed):
     assert out["fallback_active"][0] == 0.0
 
 
+def test_disturbance_compensation(motor):
+    """τ* = eq. 11 − d̂; its share of Δq is the feedback_disturbance component; a
+    non-finite d̂ hands the joints back to the servo."""
+    inputs = _inputs(7)
+    disturbance = np.array([1.0, -2.0, 0.5, 3.0, -1.5, 0.0])
+    controller = DeltaQTorqueController(motor, _config(disturbance_compensation=True))
+    assert not DeltaQTorqueController(motor, _config()).HasInputPort("tau_disturbance")
+    fixture = _Fixture(controller, dict(inputs, tau_disturbance=disturbance))
+    out = fixture.step()
+    tau_star, delta_q = _eq10_11(inputs)
+    np.testing.assert_allclose(out["tau_commanded"], tau_star - disturbance, rtol=1e-13)
+    np.testing.assert_allclose(
+        out["delta_q"], delta_q - K_TAU * disturbance, rtol=1e-12, atol=1e-16
+    )
+    np.testing.assert_allclose(out["feedback_disturbance"], -K_TAU * disturbance)
+    total = sum(out[name] for name in DELTA_Q_COMPONENTS)
+    np.testing.assert_allclose(total, out["delta_q_unsaturated"], atol=1e-16)
+
+    fixture.fix(tau_disturbance=np.full(6, np.nan))
+    out = fixture.step()
+    assert out["fallback_active"][0] == 1.0
+    assert "tau_disturbance" in controller.fallback_reason(fixture.context)
+
+
 def test_integral_and_per_joint_gains(motor):
     """Per-joint K_p, K_i: the integral is the sum of e_τ · period (forward Euler),
     clipped at integral_limit."""
@@ -424,6 +448,7 @@ def test_composed_controller_is_eqs_13_14(motor, fixed_plant):
         feedback_acceleration=k8 @ dde_q,
         feedback_force=k9 @ e_f,
         feedback_torque_integral=np.zeros(6),
+        feedback_disturbance=np.zeros(6),
     )
     scale = np.max(np.abs(delta_q))
     for name in DELTA_Q_COMPONENTS:
@@ -432,7 +457,8 @@ def test_composed_controller_is_eqs_13_14(motor, fixed_plant):
         )
         # Every term matters in this test (no term hides another).
         assert (
-            name == "feedback_torque_integral" or np.max(np.abs(expected[name])) > 1e-5
+            name in ("feedback_torque_integral", "feedback_disturbance")
+            or np.max(np.abs(expected[name])) > 1e-5
         )
     np.testing.assert_allclose(sum(expected.values()), delta_q, atol=1e-10 * scale)
     np.testing.assert_allclose(sum(out.values()), delta_q, atol=1e-16)

@@ -6,6 +6,7 @@ wiring helpers that put a torque-controlled joint subset into a whole-robot comm
 The control law (per joint, all gains diagonal):
 
     τ* = τ_d + K_p e_τ + K_i ∫ e_τ dt,   e_τ = τ_d − τ̂                 (eq. 11)
+         [− d̂, a DisturbanceObserver's estimate, with disturbance_compensation]
     Δq = K_τ τ* + K_v q̂̇                                               (eq. 10)
     q_cmd = q_measured + Δq                                           (eq. 6: Δq is the
                                                                        servo's input error)
@@ -51,8 +52,9 @@ from hrp2_drake.multibody import check_joint_names, eval_finite
 _WHERE = "DeltaQTorqueController"
 _logger = logging.getLogger(__name__)
 
-#: The components of Δq (paper Sec. 5.5, plus the integral term, zero when K_i = 0),
-#: in the order of their output ports.
+#: The components of Δq (paper Sec. 5.5, plus the integral term, zero when K_i = 0,
+#: and the disturbance compensation, zero without it), in the order of their output
+#: ports.
 DELTA_Q_COMPONENTS: tuple[str, ...] = (
     "feedforward_torque",
     "feedforward_friction",
@@ -61,6 +63,7 @@ DELTA_Q_COMPONENTS: tuple[str, ...] = (
     "feedback_acceleration",
     "feedback_force",
     "feedback_torque_integral",
+    "feedback_disturbance",
 )
 
 #: Why the controller fell back to position control (`fallback_reason`), by code.
@@ -68,7 +71,8 @@ FALLBACK_REASONS: dict[int, str] = {
     0: "",
     1: "tau_estimated is not finite",
     2: "|tau_estimated| exceeds tau_limit",
-    3: "tau_desired, v or a torque component of the inverse dynamics is not finite",
+    3: "tau_desired, v, tau_disturbance or a torque component of the inverse dynamics "
+    "is not finite",
     4: "|delta_q| before saturation exceeds delta_q_fallback_limit",
     5: "q_measured is not finite",
     6: "sensor_fault: the estimation filters hold a NaN or infinite sample",
@@ -107,6 +111,9 @@ class TorqueControllerConfig:
         latch_fallback: the fallback latches until `reset_fallback` (default, the
             controller alone); False: it lasts while its reason does, for a
             SafetySupervisor that decides when torque control resumes and ramps.
+        disturbance_compensation: declare the input `tau_disturbance` (n), the
+            torque d̂ the motor model misses (a DisturbanceObserver's), and subtract
+            it from τ* (the paper's future work: a disturbance observer).
     """
 
     joints: list[str] = field(default_factory=list)
@@ -121,6 +128,7 @@ class TorqueControllerConfig:
     start_time: float = 0.0
     period: float = 0.001
     latch_fallback: bool = True
+    disturbance_compensation: bool = False
 
     def validate(self) -> None:
         """Raises ValueError naming the bad field (yaml_load_typed does not call it)."""
@@ -193,6 +201,8 @@ class DeltaQTorqueController(LeafSystem):
         q_ref (n, optional): the position reference of the fallback (rad).
         sensor_fault (1, optional): > 0 while the estimation filters hold a bad
             sample (`EstimationChain.input_fault`): the estimates rest on held data.
+        tau_disturbance (n, only with config.disturbance_compensation): d̂ (N·m),
+            subtracted from τ*; not finite: fallback (reason 3).
         tau_feedforward, tau_position_feedback, tau_velocity_feedback,
         tau_force_feedback, tau_force_error (n each, optional: connect all or none,
             e.g. with `connect_inverse_dynamics`): the terms of τ_d of the
@@ -225,6 +235,8 @@ class DeltaQTorqueController(LeafSystem):
         feedback_acceleration    = K_τ K_p (τ_ff − τ_ef − τ̂)
                                  = K_τ K_p (M_j q̈_d + ĥ_j − J_jᵀ f̂ − τ̂)
         feedback_torque_integral = K_τ K_i ∫ e_τ dt
+        feedback_disturbance     = −K_τ d̂                          (with
+                                                                    tau_disturbance)
 
     Identity: they sum to Δq of eq. 10 (delta_q_unsaturated) for any τ̂, because
     K_τ τ* = K_τ ((1 + K_p) τ_d − K_p τ̂ + K_i ∫ e_τ) expands into exactly these
@@ -304,6 +316,11 @@ class DeltaQTorqueController(LeafSystem):
         self._tau_terms = [
             self.DeclareVectorInputPort(name, n) for name in TORQUE_COMPONENTS
         ]
+        self._tau_disturbance = (
+            self.DeclareVectorInputPort("tau_disturbance", n)
+            if config.disturbance_compensation
+            else None
+        )
 
         self._q_cmd_state = self.DeclareDiscreteState(n)
         self._delta_q_state = self.DeclareDiscreteState(n)
@@ -333,6 +350,9 @@ class DeltaQTorqueController(LeafSystem):
         self._unsaturated_group = int(self._unsaturated_state)
         self._tau_commanded_group = int(self._tau_commanded_state)
         self._component_groups = [int(state) for state in self._component_states]
+        components = dict(zip(DELTA_Q_COMPONENTS, self._component_groups))
+        self._integral_component_group = components["feedback_torque_integral"]
+        self._disturbance_group = components["feedback_disturbance"]
         self._fallback_group = int(self._fallback_state)
         self._integral_group = int(self._integral_state)
         self._position_groups = [  # zero outside torque control
@@ -503,6 +523,12 @@ class DeltaQTorqueController(LeafSystem):
             tau_star = tau_desired + self._kp * e_tau
             if self._integrates:
                 tau_star += self._ki * integral
+            if self._tau_disturbance is not None:
+                disturbance = self._tau_disturbance.Eval(context)
+                if not math.isfinite(disturbance.dot(self._ones_n)):
+                    self._latch(context, discrete_state, q_measured, 3)
+                    return
+                tau_star = tau_star - disturbance
             friction = self._k_v * v
             if self._config.coulomb_compensation:
                 friction = friction + self._k_c * np.tanh(v / self._coulomb_velocity)
@@ -542,7 +568,9 @@ class DeltaQTorqueController(LeafSystem):
         ):
             set_value(group, value)
         if self._integrates:  # (else feedback_torque_integral stays zero)
-            set_value(self._component_groups[-1], self._k_tau_ki * integral)
+            set_value(self._integral_component_group, self._k_tau_ki * integral)
+        if self._tau_disturbance is not None:
+            set_value(self._disturbance_group, -self._k_tau * disturbance)
         set_value(self._integral_group, integral)
         if fallback:  # not latched: torque control resumes
             set_value(self._fallback_group, self._zero_1)

@@ -17,6 +17,7 @@ logs as a named output port (`LOGGED`), and its station.
 """
 
 import functools
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -28,6 +29,10 @@ from hrp2_drake.control.inverse_dynamics import (
     InverseDynamicsConfig,
     InverseDynamicsController,
     make_fixed_base_plant,
+)
+from hrp2_drake.control.disturbance_observer import (
+    DisturbanceObserver,
+    DisturbanceObserverConfig,
 )
 from hrp2_drake.control.safety import SafetyConfig, SafetySupervisor, supervisor_sensors
 from hrp2_drake.control.torque_controller import (
@@ -166,10 +171,14 @@ class TorqueControlConfig:
             controlled_joints.
         k6: position-feedback gain relative to the position servo (Sec. 4.2): 1 = the
             servo's own stiffness, 0.1 = 10% of it.
-        kp: torque-feedback gain K_p (paper: 2).
+        kp: torque-feedback gain K_p (paper: 2), one value or one per joint.
         damping_ratio: sets K_d from K_s and the joint inertia (see
             `inverse_dynamics_gains_for_k6`).
-        window: Savitzky-Golay window of the estimator (paper: 80 samples).
+        window: Savitzky-Golay window of the estimator (paper: 80 samples); its
+            centre is the estimates' common delay.
+        windows: per-joint (and per-sensor: an F/T sensor's name, or "imu") windows
+            instead of `window`, all evaluated at `window`'s point (see
+            TorqueEstimatorConfig.windows): each >= (window + 1) / 2.
         evaluation: where the filters evaluate their fit: "centre" (the paper's, delay
             (N − 1)/2 samples) or "end" (causal, no delay, noisier).
         position_source: "encoders" (e_q from the raw encoders, no delay; default) or
@@ -194,6 +203,12 @@ class TorqueControlConfig:
     and, unsupervised, oscillates at 76-137 mrad on the calibrated one, bounded only by
     the voltage limit); the raw encoders avoid it, as the authors' code did. Causal ("end")
     filters remove the delay but their derivatives are too noisy for K_p = 2.
+        disturbance_observer: bandwidth (rad/s) of a DisturbanceObserver whose d̂, the
+            torque the motor model misses, is subtracted from τ*; 0: none (the
+            paper's controller).
+        predictor: a DelayPredictor carries the estimator's τ̂ (and q̂̇, f̂ where
+            the controller reads them) from the chain's delay to the present with
+            the motor model, the joint inertia and the Δq already sent.
         force_frame: frame of the force task ("" = motion control only); its wrench
             is the estimate of the F/T sensor whose body it is (or the
             description's force_sensor).
@@ -217,13 +232,16 @@ class TorqueControlConfig:
 
     joints: list[str] = field(default_factory=list)
     k6: float = 1.0
-    kp: float = 2.0
+    kp: list[float] = field(default_factory=lambda: [2.0])
     damping_ratio: float = 1.0
     window: int = 80
+    windows: dict[str, int] = field(default_factory=dict)
     evaluation: str = "centre"
     position_source: str = "encoders"
     feedback_velocity: str = "reference"
     friction_velocity: str = "reference"
+    disturbance_observer: float = 0.0
+    predictor: bool = False
     force_frame: str = ""
     kf: list[float] = field(default_factory=lambda: [0.0])
     delta_q_limit: float = 0.1
@@ -257,6 +275,18 @@ class TorqueControlConfig:
         for name in ("feedback_velocity", "friction_velocity"):
             if getattr(self, name) not in ("estimate", "reference"):
                 raise ValueError(f"TorqueControlConfig.{name}: '{getattr(self, name)}'")
+        if isinstance(self.kp, (int, float)):  # a plain number from Python code
+            self.kp = [float(self.kp)]
+        if not self.kp or not all(math.isfinite(k) and k >= 0 for k in self.kp):
+            raise ValueError(
+                f"TorqueControlConfig.kp: {self.kp}: one value or one per joint, "
+                "each finite and >= 0"
+            )
+        if not (math.isfinite(self.disturbance_observer) and self.disturbance_observer >= 0):
+            raise ValueError(
+                f"TorqueControlConfig.disturbance_observer: {self.disturbance_observer} "
+                "must be a bandwidth >= 0 (rad/s; 0 = none)"
+            )
 
 
 def _joint_inertia(plant, all_joints: list[str], joints: list[str], q: np.ndarray) -> np.ndarray:
@@ -296,6 +326,11 @@ def build_torque_control(
         raise ValueError(
             f"TorqueControlConfig.joints: {unknown} are not joints of robot '{robot.name}'"
         )
+    if len(config.kp) not in (1, len(joints)):
+        raise ValueError(
+            f"TorqueControlConfig.kp: {len(config.kp)} values for {len(joints)} "
+            "joints (give one, or one per joint)"
+        )
     all_joints = list(robot.joints)
     builder = DiagramBuilder()
     station = _add_station(builder, station_config, meshcat, station)
@@ -309,11 +344,13 @@ def build_torque_control(
         robot.make_plant(**errors),
         robot.estimator_config(
             config.window,
+            windows=dict(config.windows),
             evaluation=config.evaluation,
             offset_calibration_time=config.offset_calibration_time,
             offset_calibration_start=0.2,
         ),
     )
+
     def select(name: str):
         """A selector of the controlled joints from a vector of all joints."""
         return builder.AddNamedSystem(name, make_joint_selector(all_joints, joints))
@@ -376,10 +413,11 @@ def build_torque_control(
             controller_model,
             TorqueControllerConfig(
                 joints=joints,
-                kp=[config.kp],
+                kp=list(config.kp),
                 delta_q_limit=[config.delta_q_limit],
                 start_time=config.start_time,
                 latch_fallback=not config.supervised,
+                disturbance_compensation=config.disturbance_observer > 0,
             ),
         ),
     )
@@ -394,6 +432,27 @@ def build_torque_control(
     q_ref_leg = builder.GetSubsystemByName("q_ref_leg")
     builder.Connect(q_ref_leg.get_output_port(), torque.GetInputPort("q_ref"))
     builder.Connect(chain.input_fault, torque.GetInputPort("sensor_fault"))
+    if config.disturbance_observer > 0:
+        # The observer inverts the controller's own model: no Coulomb term (the
+        # controller sends none), so what friction the model misses is d̂'s.
+        observed = MotorModel(
+            joints, controller_model.k_tau, controller_model.k_v, np.zeros(len(joints))
+        )
+        observer = builder.AddNamedSystem(
+            "disturbance_observer",
+            DisturbanceObserver(
+                observed,
+                DisturbanceObserverConfig(
+                    joints=joints, bandwidth=config.disturbance_observer, delay=chain.delay()
+                ),
+            ),
+        )
+        builder.Connect(torque.GetOutputPort("delta_q"), observer.GetInputPort("delta_q"))
+        builder.Connect(v_hat.get_output_port(), observer.GetInputPort("v"))
+        builder.Connect(tau_hat.get_output_port(), observer.GetInputPort("tau_estimated"))
+        builder.Connect(
+            observer.get_output_port(), torque.GetInputPort("tau_disturbance")
+        )
 
     merger = builder.AddNamedSystem("merger", JointCommandMerger(all_joints, joints))
     builder.Connect(blocks["q_ref"], merger.GetInputPort("q_ref"))

@@ -612,7 +612,7 @@ def summarize(result: ForceResult) -> dict:
             "label": run.label,
             "k6": c.torque_control.k6,
             "kf": list(c.torque_control.kf),
-            "kp": c.torque_control.kp,
+            "kp": list(c.torque_control.kp),
             "window": c.torque_control.window,
             "other_axes": c.other_axes,
             "compatible_reference": c.compatible_reference,
@@ -712,7 +712,7 @@ def _markdown(result: ForceResult, summary: dict, figure: str) -> str:
         "",
         f"HRP-2 standing, right foot on a {c.station.block_height * 100:.0f} cm block; "
         f"right leg in torque control (K6 = {c.torque_control.k6:g}, K_p = "
-        f"{c.torque_control.kp:g}, K_f = {c.torque_control.kf[0]:g}, window "
+        f"{', '.join(f'{k:g}' for k in c.torque_control.kp)}, K_f = {c.torque_control.kf[0]:g}, window "
         f"{c.torque_control.window}), the other joints in position control. Reference: "
         f"the standing pose; f_z = f0,z + {c.amplitude:g} sin(2π·{c.frequency:g} Hz·t) "
         f"for {c.periods:g} periods after {c.settle:g} s of position control and "
