@@ -34,6 +34,7 @@ from hrp2_drake.control.disturbance_observer import (
     DisturbanceObserver,
     DisturbanceObserverConfig,
 )
+from hrp2_drake.control.predictor import DelayPredictor, DelayPredictorConfig
 from hrp2_drake.control.safety import SafetyConfig, SafetySupervisor, supervisor_sensors
 from hrp2_drake.control.torque_controller import (
     DELTA_Q_COMPONENTS,
@@ -206,9 +207,11 @@ class TorqueControlConfig:
         disturbance_observer: bandwidth (rad/s) of a DisturbanceObserver whose d̂, the
             torque the motor model misses, is subtracted from τ*; 0: none (the
             paper's controller).
-        predictor: a DelayPredictor carries the estimator's τ̂ (and q̂̇, f̂ where
-            the controller reads them) from the chain's delay to the present with
-            the motor model, the joint inertia and the Δq already sent.
+        predictor: a DelayPredictor carries the estimator's τ̂ (and q̂̇ where the
+            controller reads the estimate) from the chain's delay to the present
+            with the motor model, the joint inertia at the start pose and the Δq
+            already sent. The disturbance observer keeps the delayed, aligned
+            estimates. (f̂ of a force task is not predicted.)
         force_frame: frame of the force task ("" = motion control only); its wrench
             is the estimate of the F/T sensor whose body it is (or the
             description's force_sensor).
@@ -389,12 +392,40 @@ def build_torque_control(
     v_hat = select("v_estimate_leg")
     builder.Connect(chain.encoder_filter.GetOutputPort("derivative"), v_hat.get_input_port())
     v_ref_leg = builder.GetSubsystemByName("v_ref_leg")
+    tau_hat = select("tau_estimate_leg")
+    builder.Connect(chain.estimator.GetOutputPort("tau"), tau_hat.get_input_port())
     position = q_enc if config.position_source == "encoders" else q_hat
-    velocity = {"estimate": v_hat, "reference": v_ref_leg}
+    velocity = {"estimate": v_hat.get_output_port(), "reference": v_ref_leg.get_output_port()}
+    torque_estimate = tau_hat.get_output_port()
+    predictor = None
+    if config.predictor:
+        # τ̂ and q̂̇ carried from the chain's delay to the present (the Δq input is
+        # connected below, once the controller exists).
+        predictor = builder.AddNamedSystem(
+            "delay_predictor",
+            DelayPredictor(
+                controller_model,
+                DelayPredictorConfig(
+                    joints=joints, delay=chain.delay(), inertia=inertia.tolist()
+                ),
+            ),
+        )
+        vdot_hat = select("vdot_estimate_leg")
+        builder.Connect(
+            chain.encoder_filter.GetOutputPort("second_derivative"),
+            vdot_hat.get_input_port(),
+        )
+        for source, target in (
+            (v_hat, "v_estimated"),
+            (vdot_hat, "vdot_estimated"),
+            (tau_hat, "tau_estimated"),
+        ):
+            builder.Connect(source.get_output_port(), predictor.GetInputPort(target))
+        velocity["estimate"] = predictor.GetOutputPort("v_predicted")
+        torque_estimate = predictor.GetOutputPort("tau_predicted")
     builder.Connect(position.get_output_port(), inverse_dynamics.GetInputPort("q"))
     builder.Connect(
-        velocity[config.feedback_velocity].get_output_port(),
-        inverse_dynamics.GetInputPort("v"),
+        velocity[config.feedback_velocity], inverse_dynamics.GetInputPort("v")
     )
     if config.force_frame:
         f_ref = builder.AddNamedSystem(
@@ -422,12 +453,10 @@ def build_torque_control(
         ),
     )
     connect_inverse_dynamics(builder, inverse_dynamics, torque)
-    tau_hat = select("tau_estimate_leg")
-    builder.Connect(chain.estimator.GetOutputPort("tau"), tau_hat.get_input_port())
-    builder.Connect(tau_hat.get_output_port(), torque.GetInputPort("tau_estimated"))
-    builder.Connect(
-        velocity[config.friction_velocity].get_output_port(), torque.GetInputPort("v")
-    )
+    builder.Connect(torque_estimate, torque.GetInputPort("tau_estimated"))
+    builder.Connect(velocity[config.friction_velocity], torque.GetInputPort("v"))
+    if predictor is not None:
+        builder.Connect(torque.GetOutputPort("delta_q"), predictor.GetInputPort("delta_q"))
     builder.Connect(q_enc.get_output_port(), torque.GetInputPort("q_measured"))
     q_ref_leg = builder.GetSubsystemByName("q_ref_leg")
     builder.Connect(q_ref_leg.get_output_port(), torque.GetInputPort("q_ref"))

@@ -1,0 +1,392 @@
+"""DelayPredictor: carries the delayed estimates q̂̇, τ̂, f̂ forward to the present with
+the identified motor model (the paper's future work, Sec. 6: "The state estimation
+algorithm could also exploit [the identified model] to predict the future state and
+so nullify estimation delays").
+
+The estimation chain (Savitzky-Golay filters + RNEA) outputs q̂̇, q̂̈, τ̂ and f̂ that
+describe the robot `delay` seconds ago (41.5 ms for the paper's 80-sample window at
+1 kHz, `EstimationChain.delay()`), but the Δq the controller sent since then is known.
+Per joint, the motor model (eq. 6, without its Coulomb term)
+
+    Δq = K_τ τ + K_v q̇,            τ = m q̈ + τ_rest
+
+(m the joint-space inertia diagonal, τ_rest gravity, coupling, external torque) is a
+first-order system in q̇, time constant T = K_τ m / K_v, driven by Δq:
+
+    K_τ m q̈ + K_v q̇ = Δq − K_τ τ_rest.
+
+The predictor uses it incrementally, anchored at the delayed estimates: over the
+horizon H it takes the motor-model disturbance d = τ̂ − (Δq − K_v q̂̇) / K_τ (what the
+DisturbanceObserver estimates) as constant, and so only the *change* of q̈ is
+predicted by the model,
+
+    q̈(t) = q̂̈ + [(Δq(t) − Δq_0) − K_v (q̇(t) − q̂̇)] / (K_τ m),              (1)
+
+with Δq_0 the Δq acting at the delayed instant. With an exact model (d = 0) this is
+the same as holding τ_rest = τ̂ − m q̂̈ constant; with a model error (a K_τ off by
+20 %) the error scales with the change over the horizon, not with the torque itself
+(holding τ_rest and trusting the model's absolute torque would bias a joint that
+carries 50 N·m of gravity by 8 N·m). Δq is held over each control period, so (1)
+has an exact discretization: per step of length h, with x = q̇ − q̂̇,
+
+    x⁺ = Φ x + Γ (q̂̈ + (Δq_j − Δq_0) / (K_τ m)),   Φ = e^(−h/T),  Γ = T (1 − Φ),
+
+a linear recurrence whose end value over the horizon is one weighted sum of the
+buffered Δq (the weights are precomputed; one vectorized pass of O(M n) per tick):
+
+    q̇_pred = q̂̇ + x_end
+    τ_pred = τ̂ + m (q̈_end − q̂̈) = τ̂ + [(Δq_end − Δq_0) − K_v x_end] / K_τ
+    f_pred = f̂ + H ḟ̂                                    (first-order extrapolation)
+
+Alignment (all times on the controller's clock, ticks t_k = k · period):
+  - the estimates read at tick k describe the robot at t_k − delay (`delay` may be a
+    fraction of a period: the paper's 41.5 ms is 41.5 periods, and the first step of
+    the recurrence is then the fraction);
+  - the Δq read at tick k was computed by the controller at tick k − 1 and acts on
+    the joint over [t_{k−1} + λ, t_k + λ), λ = `command_latency` (whole periods). In
+    a Drake diagram with a discrete plant stepping at the control period λ = one
+    period: the plant's step at t_k reads the Δq that the controller computed at
+    t_{k−1} (the default); on a robot that applies a command as soon as it is sent,
+    λ = 0; a servo's transport latency adds to it;
+  - the prediction is for t_k + λ, the end of the newest known Δq: the horizon is
+    H = delay + λ, covering M = ceil(H / period) buffered Δq. The outputs are discrete
+    state, read by a consumer at t_{k+1}: with λ = one period, exactly when they
+    describe the robot; τ_pred is the torque just before that instant (under the Δq
+    read at tick k, before the next one takes over);
+  - until M Δq have been read the outputs pass the delayed estimates through (and f̂
+    is extrapolated); before the first tick they are zero.
+
+Assumptions and their limits:
+  - d (equivalently τ_rest, for an exact model) is constant over H: a change of
+    gravity torque with the posture, of coupling with the other joints' motion or of
+    an external force within the 40 ms is not predicted (f̂ only by extrapolation);
+  - the inertia is diagonal and constant (m is taken at construction, e.g. at the
+    start pose): the coupling through the off-diagonal terms of M(q) is in d;
+  - the servo obeys eq. 6 exactly: its dead zone, current saturation, direction-
+    dependent friction and any latency not set in `command_latency` are
+    unmodelled. A Coulomb term K_c sign(q̇) of constant sign cancels in (1); a
+    joint that reverses within H gets it wrong by up to 2 K_c / K_τ in τ_pred;
+  - q̂̈ is the noisiest input (a second derivative), and it enters the predicted
+    velocity with a weight of about min(H, T): the predictor trades delay for
+    noise. `max_velocity_correction` and `max_torque_correction` bound what the
+    prediction may add to the delayed estimate.
+"""
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydrake.systems.framework import Context, DiscreteValues, LeafSystem
+
+from hrp2_drake.identification.motor_model import MotorModel
+from hrp2_drake.multibody import check_joint_names
+
+_WHERE = "DelayPredictor"
+# The bookkeeping state: newest ring row, Δq read so far (capped at M), consecutive
+# bad ticks, total bad ticks.
+_NEWEST_ROW, _NUM_SAMPLES, _CONSECUTIVE_BAD, _TOTAL_BAD = range(4)
+# Horizons within this many periods of a whole number are whole (float rounding).
+_WHOLE_TOLERANCE = 1e-9
+
+
+# yaml_load_typed reads the field types at run time: this module must not use
+# `from __future__ import annotations`.
+@dataclass
+class DelayPredictorConfig:
+    """Configuration of the DelayPredictor.
+
+    Args:
+        joints: the predicted joints (the torque-controlled ones), in the order of
+            every joint vector of the predictor; the motor model must have them all.
+        delay: the age of q̂̇, q̂̈, τ̂ (and f̂, ḟ̂) when the predictor reads them (s):
+            the estimation chain's `delay()`; need not be whole periods.
+        inertia: the joint-space inertia diagonal m, one value > 0 per joint (kg·m²),
+            e.g. of the mass matrix at the start pose (rotor inertia included).
+        command_latency: from the controller's update that computes a Δq to the
+            start of the interval over which it acts on the joint (s, rounded to
+            whole periods): one period for a Drake discrete plant stepping at the
+            control period, 0 on a robot that applies a command when it is sent,
+            plus a servo's transport latency. The prediction is for this long after
+            the tick.
+        wrench_size: k, the number of wrench entries (6 per F/T sensor) to
+            extrapolate; 0: no wrench ports.
+        max_velocity_correction: bound on |q̇_pred − q̂̇| (rad/s), one value for every
+            joint or one per joint; .inf: no bound.
+        max_torque_correction: bound on |τ_pred − τ̂| (N·m), one value or one per
+            joint; .inf: no bound.
+        period: the update period (s), the controller's.
+    """
+
+    joints: list[str] = field(default_factory=list)
+    delay: float = 0.0415
+    inertia: list[float] = field(default_factory=list)
+    command_latency: float = 0.001
+    wrench_size: int = 0
+    max_velocity_correction: list[float] = field(default_factory=lambda: [math.inf])
+    max_torque_correction: list[float] = field(default_factory=lambda: [math.inf])
+    period: float = 0.001
+
+    def validate(self) -> None:
+        """Raises ValueError naming the bad field (yaml_load_typed does not call it)."""
+        where = "DelayPredictorConfig"
+        check_joint_names(self.joints, where)
+        n = len(self.joints)
+        if not (math.isfinite(self.period) and self.period > 0):
+            raise ValueError(f"{where}.period={self.period} must be > 0 (s)")
+        if not (math.isfinite(self.delay) and self.delay >= 0):
+            raise ValueError(f"{where}.delay={self.delay} must be >= 0 (s)")
+        if not (math.isfinite(self.command_latency) and self.command_latency >= 0):
+            raise ValueError(
+                f"{where}.command_latency={self.command_latency} must be >= 0 (s)"
+            )
+        inertia = np.asarray(self.inertia, dtype=float)
+        if inertia.shape != (n,) or not np.all(np.isfinite(inertia) & (inertia > 0)):
+            raise ValueError(
+                f"{where}.inertia: {n} finite values > 0 (kg·m², one per joint of "
+                f"{self.joints}), got {self.inertia}"
+            )
+        if isinstance(self.wrench_size, bool) or not (
+            isinstance(self.wrench_size, (int, np.integer)) and self.wrench_size >= 0
+        ):
+            raise ValueError(
+                f"{where}.wrench_size={self.wrench_size!r} must be an integer >= 0"
+            )
+        for name in ("max_velocity_correction", "max_torque_correction"):
+            values = getattr(self, name)
+            if len(values) not in (1, n) or any(not v > 0 for v in values):
+                raise ValueError(f"{where}.{name}: 1 or {n} values > 0, got {values}")
+
+
+class DelayPredictor(LeafSystem):
+    """q̂̇, τ̂, f̂ carried from `delay` ago to the present by the motor model (module
+    docstring).
+
+    .. code-block:: text
+
+                             ┌────────────────┐
+        v_estimated ────────►│                ├──► v_predicted
+        vdot_estimated ─────►│                ├──► tau_predicted
+        tau_estimated ──────►│ DelayPredictor ├──► wrench_predicted (optional)
+        delta_q ────────────►│                ├──► input_fault
+        wrench_estimated ───►│                │
+        wrench_rate ────────►│                │
+                             └────────────────┘
+
+    Inputs (n = len(config.joints), config.joints order; k = config.wrench_size):
+        v_estimated (n): q̂̇ (rad/s), describing the robot `delay` ago.
+        vdot_estimated (n): q̂̈ (rad/s²), as old (the encoder filter's
+            second_derivative).
+        tau_estimated (n): τ̂ (N·m), as old.
+        delta_q (n): the Δq the controller sent (rad), after saturation, e.g.
+            DeltaQTorqueController's `delta_q`: current.
+        wrench_estimated (k, only if k > 0): f̂, the F/T wrenches (N, N·m), as old.
+        wrench_rate (k, only if k > 0): ḟ̂ (N/s, N·m/s), the F/T filter's derivative.
+
+    Outputs (discrete state, updated every period, no direct feedthrough: the system
+    can sit between the estimator and the Δq controller without an algebraic loop):
+        v_predicted (n): q̇ at t + command_latency (rad/s).
+        tau_predicted (n): τ at t + command_latency (N·m).
+        wrench_predicted (k, only if k > 0): f̂ + H ḟ̂.
+        input_fault (1): consecutive ticks with a NaN or infinite input (0 when
+            the last was good).
+
+    Bad input never takes the diagram down: a non-finite q̂̇, q̂̈ or τ̂ holds
+    v_predicted and tau_predicted (a non-finite f̂ or ḟ̂ holds wrench_predicted);
+    a non-finite Δq entry enters the buffer as the previous Δq of that joint (0
+    before any), the prediction goes on with it. Every such tick counts
+    (`bad_input_count`, `input_fault`); the first good one predicts afresh.
+    """
+
+    def __init__(self, motor_model: MotorModel, config: DelayPredictorConfig):
+        super().__init__()
+        config.validate()
+        self._config = config
+        try:
+            model = motor_model.subset(config.joints)
+        except KeyError as error:
+            raise KeyError(f"{_WHERE}: {error.args[0]}") from None
+        for name, bad in (("k_tau", model.k_tau <= 0), ("k_v", model.k_v < 0)):
+            if np.any(bad):
+                joints = [j for j, b in zip(config.joints, bad) if b]
+                raise ValueError(
+                    f"{_WHERE}: motor model {name} must be "
+                    f"{'> 0' if name == 'k_tau' else '>= 0'} for joints {joints}"
+                )
+        n = self._n = len(config.joints)
+        k = self._k = int(config.wrench_size)
+        period = config.period
+        self._k_tau, self._k_v = model.k_tau, model.k_v
+        self._inertia = np.asarray(config.inertia, dtype=float)
+        self._latency_periods = round(config.command_latency / period)
+        horizon_periods = config.delay / period + self._latency_periods
+        whole = math.floor(horizon_periods + _WHOLE_TOLERANCE)
+        fraction = horizon_periods - whole
+        if fraction < _WHOLE_TOLERANCE:
+            fraction = 0.0
+        self._horizon = horizon_periods * period
+        # M buffered Δq; the oldest acts over a fraction of a period when the horizon
+        # is not whole.
+        self._steps = M = whole + (fraction > 0.0)
+        steps = np.full(M, period)
+        if fraction > 0.0:
+            steps[0] = fraction * period
+        self._prediction_weights, self._vdot_weights = self._linear_prediction(steps)
+        # The bounds on the corrections as (lower, upper), None when all infinite.
+        self._velocity_bound = self._bounds(config.max_velocity_correction, n)
+        self._torque_bound = self._bounds(config.max_torque_correction, n)
+        self._ones_n = np.ones(n)
+        self._ones_k = np.ones(k)
+
+        self._v = self.DeclareVectorInputPort("v_estimated", n)
+        self._vdot = self.DeclareVectorInputPort("vdot_estimated", n)
+        self._tau = self.DeclareVectorInputPort("tau_estimated", n)
+        self._delta_q = self.DeclareVectorInputPort("delta_q", n)
+        if k:
+            self._wrench = self.DeclareVectorInputPort("wrench_estimated", k)
+            self._wrench_rate = self.DeclareVectorInputPort("wrench_rate", k)
+        # Plain ints for DiscreteValues.get_mutable_value (the cheapest accessor).
+        v_state = self.DeclareDiscreteState(n)
+        tau_state = self.DeclareDiscreteState(n)
+        self._v_group, self._tau_group = int(v_state), int(tau_state)
+        self.DeclareStateOutputPort("v_predicted", v_state)
+        self.DeclareStateOutputPort("tau_predicted", tau_state)
+        if k:
+            wrench_state = self.DeclareDiscreteState(k)
+            self._wrench_group = int(wrench_state)
+            self.DeclareStateOutputPort("wrench_predicted", wrench_state)
+        fault = self.DeclareDiscreteState(1)
+        self._fault_group = int(fault)
+        self.DeclareStateOutputPort("input_fault", fault)
+        self._counters = int(self.DeclareDiscreteState(4))
+        # The last M Δq read, (2M, n) row-major, each written twice (rows r and r + M)
+        # so that the window, oldest first, is the contiguous rows r + 1 .. r + M.
+        if M:
+            self._ring = int(self.DeclareDiscreteState(2 * M * n))
+        self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
+
+    def _linear_prediction(self, steps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The prediction as weights on the buffered Δq and on q̂̈.
+
+        The recurrence x⁺ = Φ_j x + Γ_j g_j from x = 0 (steps of length h_j, Φ =
+        e^(−a h), Γ = (1 − Φ) / a, = h for a = K_v / (K_τ m) = 0) ends at x_end =
+        Σ_j B_j g_j, B_j = Γ_j Π_{l > j} Φ_l; with g_j = q̂̈ + (Δq_j − Δq_0) / (K_τ m)
+        (eq. (1) of the module docstring) and Δτ = (Δq_end − Δq_0 − K_v x_end) / K_τ,
+
+            [x_end, Δτ] = Σ_j W_j ⊙ Δq_j + C ⊙ q̂̈
+
+        with W (2, M, n) and C (2, n) returned here: one weighted sum per tick.
+        """
+        a = self._k_v / (self._k_tau * self._inertia)  # 1 / T, (n,)
+        z = -np.outer(steps, a)  # −a h_j, (M, n)
+        safe = np.where(z == 0.0, 1.0, z)
+        phi = np.exp(z)
+        gamma = steps[:, None] * np.where(z == 0.0, 1.0, np.expm1(z) / safe)
+        b = np.empty_like(gamma)
+        later = np.ones_like(a)  # Π_{l > j} Φ_l
+        for j in range(len(steps) - 1, -1, -1):
+            b[j] = later * gamma[j]
+            later = later * phi[j]
+        weights = np.zeros((2, *b.shape))
+        if len(steps):
+            weights[0] = b / (self._k_tau * self._inertia)
+            weights[0, 0] -= b.sum(axis=0) / (self._k_tau * self._inertia)  # −Δq_0
+            weights[1] = -self._k_v / self._k_tau * weights[0]
+            weights[1, -1] += 1.0 / self._k_tau  # Δq_end
+            weights[1, 0] -= 1.0 / self._k_tau  # −Δq_0
+        total = b.sum(axis=0)
+        vdot_weights = np.stack([total, -self._k_v / self._k_tau * total])
+        return weights, vdot_weights
+
+    @staticmethod
+    def _bounds(values: list[float], n: int) -> tuple[np.ndarray, np.ndarray] | None:
+        upper = np.broadcast_to(np.asarray(values, float), (n,)).copy()
+        return (-upper, upper) if np.isfinite(upper).any() else None
+
+    def config(self) -> DelayPredictorConfig:
+        return self._config
+
+    def horizon(self) -> float:
+        """H = delay + command_latency (s, the latency in whole periods): how far the
+        estimates are carried forward."""
+        return self._horizon
+
+    def num_buffered(self) -> int:
+        """M, the number of Δq the horizon covers (the buffer's length)."""
+        return self._steps
+
+    def time_constants(self) -> np.ndarray:
+        """T = K_τ m / K_v per joint (s; inf where K_v = 0)."""
+        with np.errstate(divide="ignore"):
+            return self._k_tau * self._inertia / self._k_v
+
+    def is_ready(self, context: Context) -> bool:
+        """True once M Δq have been read (before, the outputs pass the estimates)."""
+        counters = context.get_discrete_state(self._counters).get_value()
+        return counters[_NUM_SAMPLES] >= self._steps
+
+    def bad_input_count(self, context: Context) -> int:
+        """How many ticks had a NaN or infinite input (see the class docstring)."""
+        counters = context.get_discrete_state(self._counters).get_value()
+        return int(counters[_TOTAL_BAD])
+
+    def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
+        # The hot path of every control period: a few pybind calls and one (M, n)
+        # weighted sum. Never raises on bad data (class docstring).
+        M = self._steps
+        delta_q = self._delta_q.Eval(context)
+        v = self._v.Eval(context)
+        vdot = self._vdot.Eval(context)
+        tau = self._tau.Eval(context)
+        counters = discrete_state.get_mutable_value(self._counters)
+        bad = False
+        ready = True
+        if M:
+            ring = discrete_state.get_mutable_value(self._ring)
+            buffer = ring.reshape(2 * M, self._n)  # a view
+            row = int(counters[_NEWEST_ROW])
+            samples = int(counters[_NUM_SAMPLES])
+            if not math.isfinite(delta_q.dot(self._ones_n)):
+                bad = True
+                previous = buffer[row] if samples else 0.0
+                delta_q = np.where(np.isfinite(delta_q), delta_q, previous)
+            row = (row + 1) % M
+            buffer[row] = delta_q
+            buffer[row + M] = delta_q
+            counters[_NEWEST_ROW] = row
+            counters[_NUM_SAMPLES] = samples = min(samples + 1, M)
+            ready = samples >= M
+        elif not math.isfinite(delta_q.dot(self._ones_n)):
+            bad = True  # unused without a horizon, but counted
+        estimates = v.dot(self._ones_n) + vdot.dot(self._ones_n) + tau.dot(self._ones_n)
+        if not math.isfinite(estimates):
+            bad = True  # hold v_predicted and tau_predicted
+        elif ready and M:
+            window = buffer[row + 1 : row + 1 + M]  # oldest first, (M, n)
+            # eq. (1) of the module docstring over the horizon (_linear_prediction):
+            # the corrections [q̇_pred − q̂̇, τ_pred − τ̂], (2, n).
+            correction = np.einsum("kji,ji->ki", self._prediction_weights, window)
+            correction += self._vdot_weights * vdot
+            bounds = (self._velocity_bound, self._torque_bound)
+            for value, bound in zip(correction, bounds):
+                if bound is not None:
+                    np.maximum(value, bound[0], out=value)
+                    np.minimum(value, bound[1], out=value)
+            discrete_state.set_value(self._v_group, v + correction[0])
+            discrete_state.set_value(self._tau_group, tau + correction[1])
+        else:
+            discrete_state.set_value(self._v_group, v)
+            discrete_state.set_value(self._tau_group, tau)
+        if self._k:
+            wrench = self._wrench.Eval(context)
+            rate = self._wrench_rate.Eval(context)
+            if math.isfinite(wrench.dot(self._ones_k) + rate.dot(self._ones_k)):
+                predicted = wrench + self._horizon * rate
+                discrete_state.set_value(self._wrench_group, predicted)
+            else:
+                bad = True  # hold wrench_predicted
+        if bad or counters[_CONSECUTIVE_BAD]:
+            # Count a bad tick, or clear the consecutive count on the first good one.
+            counters[_CONSECUTIVE_BAD] = (counters[_CONSECUTIVE_BAD] + 1.0) * bad
+            counters[_TOTAL_BAD] += bad
+            consecutive = counters[_CONSECUTIVE_BAD:_TOTAL_BAD]
+            discrete_state.set_value(self._fault_group, consecutive)
