@@ -357,70 +357,67 @@ def _feed(system: SavitzkyGolayFilter, samples: np.ndarray, each=None):
     return context
 
 
-def test_per_signal_windows_share_one_evaluation_point():
-    """Each signal is the fit of its own window, all evaluated `delay` samples back:
-    the same numbers as one filter per signal with that window and delay."""
-    windows, delay = [21, 40, 81], 10
+def test_per_signal_windows_are_centred_on_one_instant():
+    """Each signal is the fit of its own window, every window centred on the longest
+    one's centre: signal i equals a filter of its window alone, (N_max − N_i) / 2
+    updates earlier (its own, shorter delay)."""
+    windows = [21, 41, 81]
     samples = np.random.default_rng(3).normal(size=(200, 3))
-    system = SavitzkyGolayFilter(3, windows, 2, PERIOD, delay=delay)
-    assert system.windows() == (21, 40, 81) and system.window() == 81
-    assert system.delay() == pytest.approx(delay * PERIOD)
+    system = SavitzkyGolayFilter(3, windows, 2, PERIOD)
+    assert system.windows() == (21, 41, 81) and system.window() == 81
+    assert system.delay() == pytest.approx(40 * PERIOD)
     together = _run_on_noise(system, samples)
     for i, window in enumerate(windows):
+        earlier = (81 - window) // 2
         alone = _run_on_noise(
-            SavitzkyGolayFilter(1, window, 2, PERIOD, delay=delay), samples[:, [i]]
+            SavitzkyGolayFilter(1, window, 2, PERIOD), samples[: 200 - earlier, [i]]
         )
-        weights = scipy.signal.savgol_coeffs(
-            window, 2, deriv=1, delta=PERIOD, pos=window - 1 - delay, use="dot"
-        )
-        assert together[1][i] == pytest.approx(weights @ samples[-window:, i], rel=1e-9)
         for d in range(3):
-            assert together[d][i] == pytest.approx(alone[d][0], rel=1e-12, abs=1e-12)
+            assert together[d][i] == pytest.approx(alone[d][0], rel=1e-12, abs=1e-9)
 
 
-def test_per_signal_windows_exact_on_polynomials_at_the_common_time():
+@pytest.mark.parametrize("span", [None, 61])
+def test_per_signal_windows_exact_on_polynomials_at_the_common_time(span):
     coefficients = _polynomial(2, 3, seed=5)
     builder = DiagramBuilder()
     source = builder.AddSystem(_PolynomialSource(coefficients))
-    system = builder.AddSystem(SavitzkyGolayFilter(3, [11, 30, 61], 2, PERIOD))
+    system = builder.AddSystem(
+        SavitzkyGolayFilter(3, [11, 31, 41], 2, PERIOD, span=span)
+    )
     builder.Connect(source.get_output_port(), system.get_input_port())
     simulator = Simulator(builder.Build())
     simulator.AdvanceTo(0.1005)
     context = system.GetMyContextFromRoot(simulator.get_context())
-    # "centre" with several windows: the centre of the shortest, 5 samples back.
-    assert system.delay() == pytest.approx(5 * PERIOD)
+    assert system.delay() == pytest.approx(((span or 41) - 1) / 2 * PERIOD)
     expected = _derivatives(coefficients, system.evaluation_time(context))
     for d, output in enumerate(_outputs(system, context)):
         np.testing.assert_allclose(output, expected[d], rtol=1e-7, atol=1e-7)
 
 
-def test_longer_window_at_the_same_delay_is_less_noisy():
-    """Off-centre evaluation of a longer window still averages more samples."""
-    noise = np.random.default_rng(7).normal(size=(4000, 1))
-    short = SavitzkyGolayFilter(1, 21, 2, PERIOD)  # centred: delay 10 samples
-    long = SavitzkyGolayFilter(1, 61, 2, PERIOD, delay=10)
-    spread = []
-    for system in (short, long):
-        out = []
-
-        def record(k, context, system=system, out=out):
-            if k >= 100:
-                out.append(system.GetOutputPort("derivative").Eval(context)[0])
-
-        _feed(system, noise, record)
-        spread.append(np.std(out))
-    assert spread[1] < 0.6 * spread[0], spread  # 0.54 on this noise
+def test_a_shorter_window_centred_in_the_past_keeps_its_derivatives_aligned():
+    """A parabola's fitted q̈ describes the window's centre: centring every window on
+    one instant keeps q̈ aligned on a cubic, where evaluating a short window at that
+    instant from its newest end would not."""
+    coefficients = np.array([[40.0, -3.0, 1.0, 0.5]])  # a cubic: q̈ changes
+    samples = np.array([[np.polyval(coefficients[0], k * PERIOD)] for k in range(300)])
+    short_centred = _run_on_noise(SavitzkyGolayFilter(1, [21], 2, PERIOD, span=81), samples)
+    long = _run_on_noise(SavitzkyGolayFilter(1, 81, 2, PERIOD), samples)
+    t = 299 * PERIOD - 40 * PERIOD
+    truth = np.poly1d(coefficients[0]).deriv(2)(t)
+    assert short_centred[2][0] == pytest.approx(truth, rel=1e-9)
+    assert long[2][0] == pytest.approx(truth, rel=1e-9)
 
 
 @pytest.mark.parametrize(
-    "window, delay, match",
+    "window, evaluation, span, match",
     [
-        ([21, 40], None, "window has 2 values for 3 signals"),
-        ([21, 40, 2], None, "window=2"),
-        ([21, 40, 81], 25, r"delay=25 samples must lie in every window, within \[0, 20\]"),
-        (21, -1, "delay=-1"),
+        ([21, 41], "centre", None, "window has 2 values for 3 signals"),
+        ([21, 41, 2], "centre", None, "window=2"),
+        ([21, 40, 81], "centre", None, r"windows \[40\] differ in parity from the span, 81"),
+        ([21, 41, 81], "end", None, "need evaluation='centre'"),
+        (21, "centre", 11, "span=11 must be an integer >= the longest window, 21"),
     ],
 )
-def test_per_signal_window_errors(window, delay, match):
+def test_per_signal_window_errors(window, evaluation, span, match):
     with pytest.raises(ValueError, match=match):
-        SavitzkyGolayFilter(3, window, 2, PERIOD, delay=delay)
+        SavitzkyGolayFilter(3, window, 2, PERIOD, evaluation, span=span)

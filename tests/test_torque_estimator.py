@@ -763,7 +763,7 @@ def test_add_estimator_needs_the_station_ports(plant):
 
 def test_per_signal_windows_keep_one_delay(plant):
     """config.windows: each encoder, the IMU and each F/T sensor get their own window,
-    every filter evaluated at `window`'s centre (one delay for eq. 2)."""
+    every one centred on the longest's centre (one instant for eq. 2)."""
     config = _config(
         plant, window=21, windows={"RLEG_JOINT3": 61, "imu": 41, "right_foot": 11}
     )
@@ -779,16 +779,18 @@ def test_per_signal_windows_keep_one_delay(plant):
     assert sensor_windows[:6] == (41,) * 6  # accelerometer, gyro
     foot = 6 + 6 * list(config.sensors).index("right_foot")
     assert sensor_windows[foot : foot + 6] == (11,) * 6
-    assert chain.encoder_filter.delay() == chain.sensor_filter.delay() == 0.010
-    assert chain.delay() == pytest.approx(0.012)
+    assert chain.encoder_filter.delay() == chain.sensor_filter.delay() == 0.030
+    assert chain.delay() == pytest.approx(0.032)
 
 
 @pytest.mark.parametrize(
     "windows, match",
     [
-        ({"RLEG_JOINT9": 30}, "windows: 'RLEG_JOINT9' is not a joint, an F/T sensor or 'imu'"),
-        ({"imu": 10}, r"windows\['imu'\]=10 must be an integer >= 11"),
+        ({"RLEG_JOINT9": 31}, "windows: 'RLEG_JOINT9' is not a joint, an F/T sensor or 'imu'"),
+        ({"imu": 2}, r"windows\['imu'\]=2 must be an integer >= 3"),
         ({"left_hand": 40.0}, r"windows\['left_hand'\]=40.0 must be an integer"),
+        ({"imu": 40}, r"window=21: of another parity than the longest window, 40"),
+        ({"imu": 41, "RLEG_JOINT2": 30}, r"windows\['RLEG_JOINT2'\]=30: of another parity"),
     ],
 )
 def test_bad_per_signal_windows(plant, windows, match):

@@ -16,10 +16,12 @@ paper's choice: N = 80 at 1 kHz, i.e. 39.5 ms, which the paper rounds to 40 ms).
 
 Per-signal windows (the paper's future work: "the same delay for all the sensors ...
 there is room for improvement"): `SavitzkyGolayFilter` may fit each signal over its own
-window N_i while evaluating every fit at one common point, `delay` samples before the
-newest sample, so every estimate still refers to the same instant (what eq. 2 needs to
-combine them). A window longer than 2 delay + 1 is evaluated off its centre, towards
-its newest end: more samples, hence less noise, at the same delay.
+window N_i, every window centred on one instant, the centre of the longest, (N_max −
+1) / 2 samples back: a shorter window skips the newest samples. Every estimate then
+refers to the same instant (what eq. 2 needs to combine them). Evaluating a shorter
+window at its own end instead would not align them: a fit's highest derivative (q̈ of
+a parabola, the angular acceleration of a line) is one number for the whole window
+and describes its centre wherever the fit is evaluated.
 """
 
 import math
@@ -113,13 +115,6 @@ def savgol_coefficients(
     return weights / dt ** np.arange(order + 1)[:, np.newaxis]
 
 
-def _delay_weights(window: int, order: int, dt: float, delay: float) -> np.ndarray:
-    """Weights (order + 1, window) of the fit evaluated `delay` samples before the
-    newest sample (fractional sample index window - 1 - delay), per second^d."""
-    weights = _fit_weights(window, order, [window - 1 - delay])[:, 0, :]
-    return weights / dt ** np.arange(order + 1)[:, np.newaxis]
-
-
 @dataclass
 class SavitzkyGolayConfig:
     """Parameters of one Savitzky-Golay filter (the paper, Sec. 5.1: N = 80, p = 2 for
@@ -194,20 +189,21 @@ class SavitzkyGolayFilter(LeafSystem):
         order: int = 2,
         period: float = 1e-3,
         evaluation: str = "centre",
-        delay: float | None = None,
+        span: int | None = None,
     ):
         """
         Args:
             num_signals: k, the size of `signal`.
             window: N, number of samples fitted (>= order + 1); or one window per
-                signal (k values), all evaluated at the same point (`delay`).
+                signal (k values), every one centred on the longest one's centre
+                (module docstring; "centre" evaluation only, and each of the same
+                parity as the longest, so that the centres coincide).
             order: polynomial order p, 1 or 2.
             period: sampling period (s) of the periodic update.
-            evaluation: "centre" or "end" (see savgol_coefficients). With one window
-                per signal, "centre" is the centre of the shortest window.
-            delay: the evaluation point in samples before the newest sample, instead
-                of `evaluation` (0 = "end"); it must lie in every window (delay <=
-                N_i - 1).
+            evaluation: "centre" or "end" (see savgol_coefficients).
+            span: the window whose centre every window shares (default: the
+                longest; >= every window, same parity): give two filters the same span
+                to align them, e.g. the encoders' and the other sensors'.
         """
         super().__init__()
         where = "SavitzkyGolayFilter"
@@ -227,29 +223,41 @@ class SavitzkyGolayFilter(LeafSystem):
             _check_parameters(n, order, evaluation, where)
         _check_period(period, "period", where)
         self._windows = tuple(int(n) for n in windows)
-        self._window = N = max(self._windows)
+        if span is not None and (not _is_integer(span) or span < max(self._windows)):
+            raise ValueError(
+                f"{where}: span={span!r} must be an integer >= the longest window, "
+                f"{max(self._windows)}"
+            )
+        self._window = N = max(self._windows) if span is None else int(span)
         self._order = order
         self._period = float(period)
         self._evaluation = evaluation
-        if delay is None:
-            delay = (min(self._windows) - 1) / 2 if evaluation == "centre" else 0.0
-        if not (isinstance(delay, (int, float)) and 0 <= delay <= min(self._windows) - 1):
-            raise ValueError(
-                f"{where}: delay={delay!r} samples must lie in every window, within "
-                f"[0, {min(self._windows) - 1}] (shortest window "
-                f"{min(self._windows)})"
-            )
-        self._delay_samples = float(delay)
-        self._delay = self._delay_samples * self._period
+        if len(set(self._windows + (N,))) > 1:
+            if evaluation != "centre":
+                raise ValueError(
+                    f"{where}: windows shorter than the span need evaluation='centre' "
+                    f"(every window centred on one instant), got {evaluation!r}"
+                )
+            odd = [n for n in self._windows if (N - n) % 2]
+            if odd:
+                raise ValueError(
+                    f"{where}: windows {sorted(set(odd))} differ in parity from the "
+                    f"span, {N}: their centres cannot coincide with its centre"
+                )
+        self._delay = (N - 1) / 2 * self._period if evaluation == "centre" else 0.0
 
-        # One weight matrix per distinct window, zero-padded to the ring's N rows (the
-        # oldest N - N_i samples get no weight). The newest sample sits at ring row r,
-        # the oldest at r + 1 (mod N): window column j lives at row (r + 1 + j) % N,
-        # hence the roll by r + 1. Signals sharing a window share one product.
+        # One weight matrix per distinct window, placed in the ring's N rows so that its
+        # centre is the longest window's (a shorter window skips the (N - N_i) / 2
+        # newest and oldest samples). The newest sample sits at ring row r, the oldest
+        # at r + 1 (mod N): window column j lives at row (r + 1 + j) % N, hence the
+        # roll by r + 1. Signals sharing a window share one product.
         self._groups = []
         for n in sorted(set(self._windows)):
             padded = np.zeros((order + 1, N))
-            padded[:, N - n :] = _delay_weights(n, order, self._period, self._delay_samples)
+            start = (N - n) // 2
+            padded[:, start : start + n] = savgol_coefficients(
+                n, order, self._period, evaluation
+            )
             rolled = np.stack([np.roll(padded, r + 1, axis=1) for r in range(N)])
             columns = [i for i, w in enumerate(self._windows) if w == n]
             self._groups.append((np.array(columns), rolled))
@@ -292,7 +300,7 @@ class SavitzkyGolayFilter(LeafSystem):
         return self._num_signals
 
     def window(self) -> int:
-        """The longest window (the ring buffer's length)."""
+        """The span: the longest window (unless given), the ring buffer's length."""
         return self._window
 
     def windows(self) -> tuple[int, ...]:
@@ -310,9 +318,9 @@ class SavitzkyGolayFilter(LeafSystem):
         return self._evaluation
 
     def delay(self) -> float:
-        """Seconds the outputs lag the newest sample: (N - 1) / 2 * period for "centre",
-        0 for "end", the `delay` samples if given. (A consumer updating on the same
-        clock reads them one period later.)"""
+        """Seconds the outputs lag the newest sample: (N - 1) / 2 * period for "centre"
+        (N the longest window), 0 for "end". (A consumer updating on the same clock
+        reads them one period later.)"""
         return self._delay
 
     def is_ready(self, context) -> bool:

@@ -182,16 +182,16 @@ class TorqueEstimatorConfig:
             the default leaves 2.5 windows of 80 ms).
         period: the update period (s) of the estimator and of the filters.
         window: number of samples N of the Savitzky-Golay filters of add_estimator
-            (the paper: one window for all); its evaluation point is every filter's,
-            so all estimates refer to the same time.
+            (the paper: one window for all, so all estimates refer to the same time).
         evaluation: Savitzky-Golay evaluation point, "centre" (delay (N - 1) / 2
-            samples of `window`, the paper's choice) or "end".
+            samples, the paper's choice) or "end".
         windows: per-signal windows instead of `window` (the paper's future work:
             "the same delay for all the sensors ... there is room for
             improvement"), by joint name (its encoder), F/T sensor name, or "imu"
-            (accelerometer and gyro). Each is still evaluated at `window`'s point, so
-            eq. 2 combines samples of one instant: a window must reach it (>= (window
-            + 1) / 2 for "centre"); a longer one is evaluated off its centre.
+            (accelerometer and gyro). Every window is centred on the longest one's
+            centre (of `window` and these), so eq. 2 still combines estimates of one
+            instant, delayed by (longest − 1) / 2 samples: a shorter window skips the
+            newest samples. "centre" only; each of the longest one's parity.
     """
 
     joints: list[str] = field(default_factory=list)
@@ -208,9 +208,13 @@ class TorqueEstimatorConfig:
     evaluation: str = "centre"
     windows: dict[str, int] = field(default_factory=dict)
 
+    def span(self) -> int:
+        """The longest window, whose centre every filter's estimates refer to."""
+        return max([self.window, *self.windows.values()])
+
     def delay_samples(self) -> float:
         """The filters' common evaluation point, in samples before the newest."""
-        return (self.window - 1) / 2 if self.evaluation == "centre" else 0.0
+        return (self.span() - 1) / 2 if self.evaluation == "centre" else 0.0
 
     def window_of(self, signal: str) -> int:
         """The window of a joint's encoder, an F/T sensor or the "imu"."""
@@ -261,7 +265,6 @@ class TorqueEstimatorConfig:
                 f"{EVALUATION_POINTS}"
             )
         signals = [*self.joints, *self.sensors, *(["imu"] if self.imu_frame else [])]
-        shortest = max(3, math.floor(self.delay_samples()) + 1)
         for name, window in self.windows.items():
             if name not in signals:
                 raise ValueError(
@@ -269,13 +272,25 @@ class TorqueEstimatorConfig:
                     f"'imu' of this estimator ({len(signals)} signals: e.g. "
                     f"{signals[:3]})"
                 )
-            if isinstance(window, bool) or not isinstance(window, int) or window < shortest:
+            if isinstance(window, bool) or not isinstance(window, int) or window < 3:
                 raise ValueError(
-                    f"{where}.windows['{name}']={window!r} must be an integer >= "
-                    f"{shortest}: every window must reach the common evaluation point, "
-                    f"{self.delay_samples():g} samples back (window {self.window}, "
-                    f"{self.evaluation})"
+                    f"{where}.windows['{name}']={window!r} must be an integer >= 3"
                 )
+        if self.windows and len({self.window, *self.windows.values()}) > 1:
+            if self.evaluation != "centre":
+                raise ValueError(
+                    f"{where}.windows: per-signal windows need evaluation='centre', "
+                    f"got '{self.evaluation}'"
+                )
+            span = self.span()
+            for name, window in [("window", self.window), *self.windows.items()]:
+                if (span - window) % 2:
+                    field_name = name if name == "window" else f"windows['{name}']"
+                    raise ValueError(
+                        f"{where}.{field_name}={window}: of another parity than the "
+                        f"longest window, {span}, so its centre (the instant it "
+                        "estimates) cannot be the longest one's"
+                    )
 
 
 class TorqueEstimate(NamedTuple):
@@ -1320,7 +1335,8 @@ def add_estimator(
             [config.window_of(j) for j in config.joints],
             2,
             config.period,
-            delay=config.delay_samples(),
+            config.evaluation,
+            span=config.span(),
         ),
     )
     builder.Connect(station.GetOutputPort(encoders), encoder_filter.get_input_port())
@@ -1348,7 +1364,8 @@ def add_estimator(
                 + [config.window_of(s) for s in names for _ in range(6)],
                 1,
                 config.period,
-                delay=config.delay_samples(),
+                config.evaluation,
+                span=config.span(),
             ),
         )
         builder.Connect(mux.get_output_port(), sensor_filter.get_input_port())
