@@ -15,6 +15,12 @@ Sections (all by default; pick with --only):
              dynamics and the Δq controller of the right leg, their sum, the safety
              supervisor apart, and a no-op Python LeafSystem tick with the estimator's
              ports; PASS/FAIL against the budget (<= 100 us and <= 10 no-op ticks).
+  closed_loop  real-time factor of the motion experiment's closed loop, the unit of
+             cost of a tuner (goal: >= 3x for torque control): torque control K6 = 0.1
+             and position control, every port logged and only a tuner's, the bare
+             plant, and where the time goes per system (scripts/bench_closed_loop.py;
+             --closed-loop-duration, default the whole motion; --closed-loop-profile,
+             simulated s of the per-system run, default 4).
   lcm        the controller process's tick times over LCM in real time against
              `hrp2-drake sim-robot` in another process, through the tcpq hub on
              127.0.0.1 (scripts/bench_lcm.py; --lcm-duration, default 60 s): median,
@@ -25,6 +31,7 @@ Figures vary from run to run (2 cores, shared): compare rows of the same run.
     python scripts/bench.py [--only sim,sg] [--duration 3] [--json out/bench.json]
     python scripts/bench.py --only tick [--rounds 41]
     python scripts/bench.py --only lcm [--lcm-duration 60]
+    python scripts/bench.py --only closed_loop [--closed-loop-duration 5]
 """
 
 import argparse
@@ -367,11 +374,24 @@ def bench_tick(rounds: int = 41, ticks_per_round: int = 250) -> list[dict]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--only", default="sim,sg,estimator,control,fit,tick,lcm")
+    parser.add_argument(
+        "--only", default="sim,sg,estimator,control,fit,tick,closed_loop,lcm"
+    )
     parser.add_argument("--duration", type=float, default=3.0, help="simulated s")
     parser.add_argument("--json", type=Path, help="also write the rows here")
     parser.add_argument("--rounds", type=int, default=41, help="tick: rounds (median)")
     parser.add_argument("--lcm-duration", type=float, default=60.0, help="lcm: seconds")
+    parser.add_argument(
+        "--closed-loop-duration",
+        type=float,
+        help="closed_loop: simulated s per run (default: the whole motion)",
+    )
+    parser.add_argument(
+        "--closed-loop-profile",
+        type=float,
+        default=4.0,
+        help="closed_loop: simulated s of the per-system breakdown",
+    )
     args = parser.parse_args()
     sections = set(args.only.split(","))
 
@@ -405,6 +425,13 @@ def main() -> int:
     if "tick" in sections:
         print("tick", file=sys.stderr)
         results["tick"] = bench_tick(args.rounds)
+    if "closed_loop" in sections:
+        from bench_closed_loop import bench_closed_loop
+
+        print("closed loop", file=sys.stderr)
+        results["closed_loop"] = bench_closed_loop(
+            args.closed_loop_duration, args.closed_loop_profile
+        )
     if "lcm" in sections:
         from bench_lcm import bench_lcm
 

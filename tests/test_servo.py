@@ -107,6 +107,61 @@ def test_servo_rejects_nan_command(params, plant):
         servo.get_output_port().Eval(context)
 
 
+def test_each_joint_follows_its_own_mechanisms_tick_by_tick(calibrated, plant):
+    """The calibrated servo mixes joints with and without latency and hysteresis; with
+    every third joint's encoder quantization off too, each tick's actuation is the
+    law of each joint's own mechanisms (servo_torque on the command of `latency` ago,
+    the quantized encoder, the Dahl state moved by the last tick's travel), exactly."""
+    from dataclasses import replace
+
+    from hrp2_drake.robot.servo import dahl_step, servo_torque
+
+    names = model.JOINT_NAMES
+    params = type(calibrated)(
+        {
+            name: (
+                replace(calibrated.joints[name], encoder_resolution=0.0)
+                if k % 3 == 0
+                else calibrated.joints[name]
+            )
+            for k, name in enumerate(names)
+        }
+    )
+    p = params.vectors(names)
+    delays = np.rint(p["latency"] / 1e-3).astype(int)
+    dahl = p["hysteresis_width"] > 0
+    assert set(delays) == {0, 1} and 0 < dahl.sum() < len(names)
+    q0 = model.half_sitting()
+    servo = Hrp2ServoEmulation(plant, params, names, 1e-3, q0)
+    context = servo.CreateDefaultContext()
+    indexing = model.hrp2_joint_indexing(plant)
+    x = np.zeros(plant.num_positions() + plant.num_velocities())
+    x[indexing.q] = q0
+    servo.get_input_port(0).FixValue(context, q0)
+    servo.get_input_port(1).FixValue(context, x)
+    servo.ExecuteInitializationEvents(context)
+    rng = np.random.default_rng(3)
+    s, q_last, previous_command = np.zeros(len(names)), q0.copy(), q0.copy()
+    res = p["encoder_resolution"]
+    for _ in range(6):
+        q = q0 + rng.normal(0.0, 2e-3, len(names))
+        v = rng.normal(0.0, 0.3, len(names))
+        q_cmd = q + rng.normal(0.0, 2e-3, len(names))
+        x[indexing.q], x[plant.num_positions() + indexing.v] = q, v
+        servo.get_input_port(0).FixValue(context, q_cmd)
+        servo.get_input_port(1).FixValue(context, x)
+        applied = np.where(delays > 0, previous_command, q_cmd)
+        q_encoder = np.where(res > 0, np.round(q / np.where(res > 0, res, 1)) * res, q)
+        direction = np.where(dahl, s, np.tanh(v / p["v_coulomb"]))
+        expected = np.zeros(plant.num_actuators())
+        expected[indexing.u] = servo_torque(p, applied - q_encoder, v, direction)
+        np.testing.assert_array_equal(servo.get_output_port().Eval(context), expected)
+        context.SetDiscreteState(servo.EvalUniquePeriodicDiscreteUpdate(context))
+        width = np.where(dahl, p["hysteresis_width"], 1.0)
+        s = np.where(dahl, dahl_step(s, q - q_last, width), 0.0)
+        q_last, previous_command = q, q_cmd
+
+
 def test_explicit_torques_are_stable_at_1khz(params, plant):
     """Spectral radius < 1 per joint with the reflected inertia as inertia bound."""
     # Actuators are in joint order (checked by hrp2_joint_indexing).

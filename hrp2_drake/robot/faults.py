@@ -141,14 +141,18 @@ class SensorClock(LeafSystem):
             if f.kind == "freeze"
         ]
         self._stamps = self.DeclareDiscreteState(len(signals))
+        self._stamps_group = int(self._stamps)
         self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
         self.DeclareStateOutputPort("sensor_time", self._stamps)
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
+        # In place on `state`, which holds the current stamps on entry.
         t = context.get_time()
-        stamps = context.get_discrete_state(self._stamps).get_value().copy()
+        stamps = state.get_mutable_value(self._stamps_group)
+        if not self._freezes:
+            stamps[:] = t
+            return
         frozen = {k for k, start, end in self._freezes if start <= t + 1e-9 < end}
         for k in range(len(stamps)):
             if k not in frozen:
                 stamps[k] = t
-        state.set_value(self._stamps, stamps)

@@ -186,6 +186,7 @@ class NoisySampler(LeafSystem):
         self._block_index = -1
         self._block = np.zeros((self._BLOCK, size))
         self._resolution = None if resolution is None else np.asarray(resolution, float)
+        self._ones = np.ones(size)  # finite check: x·1 is finite iff every x_i is
         state = self.DeclareDiscreteState(
             np.zeros(size) if initial is None else np.asarray(initial, float)
         )
@@ -203,7 +204,7 @@ class NoisySampler(LeafSystem):
 
     def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
         signal = self._signal.Eval(context)
-        if not np.all(np.isfinite(signal)):
+        if not math.isfinite(signal.dot(self._ones)):
             raise RuntimeError(
                 f"{self.get_name()}: signal not finite at t={context.get_time():.4f} s "
                 f"(entries {np.flatnonzero(~np.isfinite(signal)).tolist()}): "

@@ -305,8 +305,9 @@ class Hrp2ServoEmulation(LeafSystem):
         actuation: joint torques (N·m) in the plant's actuation order, to be
             connected to the plant's actuation input.
 
-    Discrete state (updated every `period`): the direction state s of each joint and
-    the commands in transit (one row per period of the longest latency). A joint
+    Discrete state (one group, updated every `period`): the direction state s of each
+    joint, its position at the last update, and the commands in transit (one row per
+    period of the longest latency). A joint
     with latency d = k periods acts on the command its board received k periods ago;
     with d = 0 (or "latency" off) on q_cmd directly, as the `ideal` preset does.
 
@@ -359,8 +360,6 @@ class Hrp2ServoEmulation(LeafSystem):
         self._delays = delays
         self._dahl = p["hysteresis_width"] > 0
         self._width = np.where(self._dahl, p["hysteresis_width"], 1.0)
-        self._nq = plant.num_positions()
-        self._num_actuators = plant.num_actuators()
         self._n = n
         self._q_cmd = self.DeclareVectorInputPort("q_cmd", n)
         self._state = self.DeclareVectorInputPort(
@@ -372,15 +371,37 @@ class Hrp2ServoEmulation(LeafSystem):
             raise ValueError(
                 f"Hrp2ServoEmulation: initial_q_cmd has {initial.size} values, expected {n}"
             )
-        # The direction state s, the joint positions of the last update (the travel
-        # that moves s), and the commands in transit, newest first (depth x n).
         self._depth = depth
-        self._xs = self.DeclareDiscreteState(np.zeros(n))
-        self._x_last_q = self.DeclareDiscreteState(np.zeros(n))
-        self._x_transit = self.DeclareDiscreteState(np.tile(initial, depth) if depth else np.zeros(0))
+        # One discrete state group (one read and one write per update): the direction
+        # state s, the joint positions of the last update (the travel that moves s),
+        # and the commands in transit, newest first (depth x n).
+        initial_state = np.concatenate([np.zeros(2 * n), np.tile(initial, depth)])
+        self._x = int(self.DeclareDiscreteState(initial_state))
+        self._s_rows = slice(0, n)
+        self._last_q_rows = slice(n, 2 * n)
+        self._transit_rows = slice(2 * n, None)
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
         self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
         self.DeclareVectorOutputPort("actuation", plant.num_actuators(), self._calc)
+
+        # The servo runs at every plant step: what its law and state need per step is
+        # computed here once (the arithmetic is unchanged, `joint_torques`).
+        self._state_q = self._indexing.q
+        self._state_v = plant.num_positions() + self._indexing.v
+        self._ones = np.ones(n)  # finite check: x·1 is finite iff every x_i is
+        resolution = p["encoder_resolution"]
+        self._quantized = resolution > 0
+        self._all_quantized = bool(self._quantized.all())
+        self._quantum_divisor = np.where(self._quantized, resolution, 1.0)
+        # Applied command of joint j: the transit entry of row delays[j] - 1, or
+        # q_cmd itself (delay 0).
+        self._delayed = delays > 0
+        self._transit_index = 2 * n + np.maximum(delays - 1, 0) * n + np.arange(n)
+        # Joint order -> actuation order (every actuator of the plant is a joint's).
+        self._actuation_order = None
+        if sorted(self._indexing.u) == list(range(plant.num_actuators())):
+            self._actuation_order = np.argsort(self._indexing.u)
+        self._num_actuators = plant.num_actuators()
 
     @property
     def joint_names(self) -> tuple[str, ...]:
@@ -403,8 +424,9 @@ class Hrp2ServoEmulation(LeafSystem):
                 others, which use tanh(q̇ / v_s)); None: tanh for every joint.
         """
         p = self._p
-        res = p["encoder_resolution"]
-        q_encoder = np.where(res > 0, np.round(q / np.where(res > 0, res, 1)) * res, q)
+        q_encoder = np.round(q / self._quantum_divisor) * p["encoder_resolution"]
+        if not self._all_quantized:
+            q_encoder = np.where(self._quantized, q_encoder, q)
         direction = np.tanh(v / p["v_coulomb"])
         if s is not None:
             direction = np.where(self._dahl, s, direction)
@@ -412,45 +434,48 @@ class Hrp2ServoEmulation(LeafSystem):
 
     def _joint_state(self, context: Context) -> tuple[np.ndarray, np.ndarray]:
         x = self._state.Eval(context)
-        return x[self._indexing.q], x[self._nq + self._indexing.v]
+        return x[self._state_q], x[self._state_v]
 
     def _checked_command(self, context: Context) -> np.ndarray:
         q_cmd = self._q_cmd.Eval(context)
-        if not np.all(np.isfinite(q_cmd)):
+        if not math.isfinite(q_cmd.dot(self._ones)):
             bad = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(q_cmd))]
             raise ValueError(f"Hrp2ServoEmulation: q_cmd is not finite for {bad}")
         return q_cmd
 
-    def _applied_command(self, context: Context) -> np.ndarray:
-        q_cmd = self._checked_command(context)
+    def _applied_command(self, q_cmd: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """The command each joint acts on: q_cmd delayed by its latency (x: the
+        discrete state)."""
         if self._depth == 0:
             return q_cmd
-        transit = context.get_discrete_state(self._x_transit).get_value().reshape(
-            self._depth, self._n
-        )
-        rows = np.maximum(self._delays - 1, 0)
-        delayed = transit[rows, np.arange(self._n)]
-        return np.where(self._delays > 0, delayed, q_cmd)
+        return np.where(self._delayed, x[self._transit_index], q_cmd)
 
     def _initialize(self, context: Context, state: DiscreteValues) -> None:
-        state.set_value(self._x_last_q, self._joint_state(context)[0])
+        # (state holds the current discrete state on entry.)
+        q, _ = self._joint_state(context)
+        state.get_mutable_value(self._x)[self._last_q_rows] = q
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
+        # In place on `state`, which holds the current discrete state on entry.
         q, _ = self._joint_state(context)
-        s = context.get_discrete_state(self._xs).get_value()
-        travel = q - context.get_discrete_state(self._x_last_q).get_value()
-        state.set_value(self._xs, np.where(self._dahl, dahl_step(s, travel, self._width), 0.0))
-        state.set_value(self._x_last_q, q)
+        x = state.get_mutable_value(self._x)
+        s = x[self._s_rows]
+        travel = q - x[self._last_q_rows]
+        s[:] = np.where(self._dahl, dahl_step(s, travel, self._width), 0.0)
+        x[self._last_q_rows] = q
         if self._depth:
-            transit = context.get_discrete_state(self._x_transit).get_value()
-            q_cmd = self._checked_command(context)
-            state.set_value(self._x_transit, np.concatenate([q_cmd, transit[: -self._n]]))
+            transit = x[self._transit_rows]
+            transit[self._n :] = transit[: -self._n]  # overlapping: numpy copies first
+            transit[: self._n] = self._checked_command(context)
 
     def _calc(self, context: Context, output: BasicVector) -> None:
-        q_cmd = self._applied_command(context)
+        x = context.get_discrete_state(self._x).get_value()
+        q_cmd = self._applied_command(self._checked_command(context), x)
         q, v = self._joint_state(context)
-        s = context.get_discrete_state(self._xs).get_value()
-        tau = self.joint_torques(q_cmd, q, v, s)
+        tau = self.joint_torques(q_cmd, q, v, x[self._s_rows])
+        if self._actuation_order is not None:
+            output.set_value(tau[self._actuation_order])
+            return
         actuation = np.zeros(self._num_actuators)
         actuation[self._indexing.u] = tau
         output.set_value(actuation)
