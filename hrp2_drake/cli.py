@@ -357,6 +357,37 @@ def _reproduce(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def _tune(args: argparse.Namespace) -> int:
+    from hrp2_drake.experiments.identification import IdentifyConfig
+    from hrp2_drake.experiments.tune import TuneConfig, check_environment, run_tune
+
+    config = _config(TuneConfig, args)
+    if args.quick:
+        config.quick()
+    for name in ("trials", "workers", "scheduler"):
+        if getattr(args, name) is not None:
+            setattr(config, name, getattr(args, name))
+    validate_config(config)
+    check_environment(config)  # optuna, dask, the scheduler: before identifying
+    out = _output_folder(args.out)
+    identify = IdentifyConfig(
+        station=config.station, duration_scale=0.5 if args.quick else 1.0
+    )
+    result = run_tune(config, _motor_model(args, out, config, identify), out)
+    best = result.best
+    print(
+        f"report: {out / 'tune.md'}; tuned: {out / 'tuned.yaml'}; "
+        f"study: {out / 'study.journal'}"
+    )
+    print(
+        f"  best trial {best.number}: cost {best.value:.4f}, worst error ratio vs "
+        f"position control {best.user_attrs.get('worst_ratio', float('nan')):.3f} (goal "
+        f"{'met' if best.user_attrs.get('goal_met') else 'NOT met'}); {result.trials_run} "
+        f"trials in {result.wall_time:.0f} s on {result.executor}"
+    )
+    return 0
+
+
 class _Parser(argparse.ArgumentParser):
     """An ArgumentParser whose errors are one line (and exit code 2), like the
     command's own."""
@@ -592,6 +623,33 @@ def main(argv: list[str] | None = None) -> int:
     rep.add_argument("--quick", action="store_true", help="CI-sized durations")
     rep.add_argument("--no-replays", action="store_true", help="skip Meshcat replays")
     rep.set_defaults(run=_reproduce)
+
+    tune = commands.add_parser(
+        "tune",
+        parents=[debug],
+        help="tune the torque controller (K_p, windows, K_d, observer, predictor) by "
+        "closed-loop simulation of the climbing swing with Optuna: DIR/tuned.yaml, "
+        "DIR/tune.md, plots; a second run resumes the study",
+    )
+    tune.add_argument("--config", help="TuneConfig YAML file")
+    tune.add_argument("--motor-model", help="MotorModel YAML (default: identify one)")
+    tune.add_argument(
+        "--trials",
+        type=_number(int, 1, strict=False),
+        help="trials to run (default 40)",
+    )
+    tune.add_argument(
+        "--workers",
+        type=_number(int, 1, strict=False),
+        help="trials in flight (default: 2 local processes, or the cluster's threads)",
+    )
+    tune.add_argument(
+        "--scheduler",
+        help="a Dask scheduler's address, tcp://host:port (default: local processes)",
+    )
+    tune.add_argument("--quick", action="store_true", help="0.4 s of motion, 4 trials")
+    tune.add_argument("--out", default="out/tune", help="output folder (the study)")
+    tune.set_defaults(run=_tune)
 
     try:
         args = parser.parse_args(argv)
