@@ -67,6 +67,16 @@ def results_section(run: Path) -> str:
     lines += ["", "**K6 = 1 with the estimates where the paper and the authors' code put them** "
               "(maximum error, rad·10³)", ""]
     lines += _extract(motion, "K6 = 1 with the estimates")
+    if "## Beyond the paper" in motion:
+        lines += ["", "**Beyond the paper: K6 = 0.1 with its future work, tuned, and each part "
+                  "alone** (average / maximum error, rad·10³)", ""]
+        lines += _extract(motion, "Beyond the paper")
+        lines += ["", "**The same, on the climbing motion at another speed (not tuned on)**", ""]
+        lines += _extract(motion, "Held out")
+        force = (run / "force" / "force.md").read_text()
+        lines += ["", "**Force tracking (Fig. 5) with the paper's controller and its variants, "
+                  "the motion-tuned one included** (F/T reading; estimate in parentheses)", ""]
+        lines += _extract(force, "variants")
     report = (run / "report.md").read_text()
     lines += ["", "**Predictions beside the paper** (Figure 5, Sec. 5.2)", ""]
     lines += _extract(report, "Predictions beside the paper")

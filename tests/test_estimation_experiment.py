@@ -48,6 +48,15 @@ def test_report_files(report):
         assert f"### {scenario}, paper window (80)" in text
         assert f"### {scenario}, best window" in text
     assert "RLEG_JOINT5 (ankle roll)" in text
+    # The per-signal chain (encoders 17, IMU 41): its own section, one delay for all,
+    # the longest window's centre, which the error-minimising shift confirms (within
+    # 1.5 samples: measured −1.5 hanging, where the uniform windows' shift is −1, see
+    # test_delay_is_the_chains).
+    for scenario in ("hanging", "standing"):
+        assert f"### {scenario}, per-signal windows (encoders 17, imu 41)" in text
+        per_signal = summary["scenarios"][scenario]["per_signal"]
+        assert per_signal["delay_samples"] == pytest.approx(20 + 2)
+        assert abs(per_signal["best_shift_samples"] - 22) <= 1.5, per_signal
 
 
 @pytest.mark.parametrize("scenario", ["hanging", "standing"])
@@ -126,6 +135,8 @@ motions:
         ({"windows": [80, 80]}, "duplicates"),
         ({"calibration_time": 1.0}, "calibration must end"),
         ({"motions": {"hanging": [JointSinusoid("KNEE")]}}, "KNEE"),
+        ({"per_signal_windows": {"imu": 40}}, r"per_signal_windows: .*another parity"),
+        ({"per_signal_windows": {"hip": 41}}, r"per_signal_windows: .*'hip' is not a joint"),
     ]:
         with pytest.raises(ValueError, match=match):
             EstimationConfig(**changes).validate()

@@ -79,11 +79,13 @@ def test_base_configuration_round_trips_through_the_space():
         "windows[imu]": 1.5,
         "kp[RLEG_JOINT2]": 3.0,
         "disturbance_observer_on": True,
-        "disturbance_observer": 20.0,
+        "disturbance_observer": 0.5,  # bandwidth x delay
     }
     tuned = apply_params(base, params, space, LEG)
     assert tuned.windows == {"RLEG_JOINT3": 9, "RLEG_JOINT4": 57}  # imu: 81, implicit
-    assert tuned.kp[2] == 3.0 and tuned.disturbance_observer == 20.0
+    # The window of 81 delays the estimates by 42 ms: a bandwidth of 0.5 / 0.042.
+    assert tuned.kp[2] == 3.0
+    assert tuned.disturbance_observer == pytest.approx(0.5 / 0.042)
     params |= {"window": 80, "windows[RLEG_JOINT3]": 0.5}
     assert apply_params(base, params, space, LEG).windows["RLEG_JOINT3"] == 40
     tuned.validate()

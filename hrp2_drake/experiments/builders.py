@@ -175,11 +175,11 @@ class TorqueControlConfig:
         kp: torque-feedback gain K_p (paper: 2), one value or one per joint.
         damping_ratio: sets K_d from K_s and the joint inertia (see
             `inverse_dynamics_gains_for_k6`).
-        window: Savitzky-Golay window of the estimator (paper: 80 samples); its
-            centre is the estimates' common delay.
+        window: Savitzky-Golay window of the estimator (paper: 80 samples).
         windows: per-joint (and per-sensor: an F/T sensor's name, or "imu") windows
-            instead of `window`, all evaluated at `window`'s point (see
-            TorqueEstimatorConfig.windows): each >= (window + 1) / 2.
+            instead of `window` (TorqueEstimatorConfig.windows): every window centred
+            on the longest one's centre, which sets the estimates' delay; each of
+            its parity.
         evaluation: where the filters evaluate their fit: "centre" (the paper's, delay
             (N − 1)/2 samples) or "end" (causal, no delay, noisier).
         position_source: "encoders" (e_q from the raw encoders, no delay; default) or
