@@ -1,36 +1,88 @@
-"""Simulation helpers every layer may use: loggers for named ports, logs as arrays,
-and a simulation loop that shows progress.
+"""Simulation helpers every layer may use: the base class of this project's Python
+LeafSystems, a logger for named ports, logs as arrays, and a simulation loop that
+shows progress.
 """
 
 import sys
 import time
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import DiagramBuilder, OutputPort
-from pydrake.systems.primitives import VectorLogSink
+from pydrake.systems.framework import DiagramBuilder, LeafSystem, OutputPort
+from pydrake.systems.primitives import Multiplexer, VectorLogSink
+
+
+class WitnessFreeLeafSystem(LeafSystem):
+    """A LeafSystem without witness functions (every system of this project), whose
+    per-step cost in a simulation is what its own events and outputs cost.
+
+    Why: after every unrestricted update (a MultibodyPlant's step is one, so every
+    step) the Simulator asks each system for its witness functions. For a Python
+    LeafSystem pydrake's trampoline looks up a Python override `DoGetWitnessFunctions`;
+    LeafSystem does not bind that name, so the look-up fails with an AttributeError,
+    formatted and discarded, at every step (about 1 us per system and step, measured
+    with scripts/bench_closed_loop.py). pybind11 remembers a method as "not
+    overridden" when the attribute it finds is a C++ function: any C++ function does,
+    and Drake's own GetWitnessFunctions is the natural one. The trampoline then uses
+    Drake's default (no witness functions); it never calls the attribute.
+    A subclass that has witness functions overrides DoGetWitnessFunctions as usual.
+    """
+
+    DoGetWitnessFunctions = LeafSystem.GetWitnessFunctions
+
+
+@dataclass(frozen=True)
+class LoggedPort:
+    """Where the samples of one logged port are: rows of a shared VectorLogSink."""
+
+    sink: VectorLogSink
+    rows: slice
+
+    def data(self, root_context) -> np.ndarray:
+        """The port's samples, (size, samples) like VectorLogSink's log data."""
+        return self.sink.FindLog(root_context).data()[self.rows]
+
+    def sample_times(self, root_context) -> np.ndarray:
+        return self.sink.FindLog(root_context).sample_times()
 
 
 def add_loggers(
     builder: DiagramBuilder, ports: dict[str, OutputPort], period: float
-) -> dict[str, VectorLogSink]:
-    """A VectorLogSink per named port, publishing every `period` seconds."""
-    loggers = {}
-    for name, port in ports.items():
-        logger = builder.AddNamedSystem(f"log_{name}", VectorLogSink(port.size(), period))
-        builder.Connect(port, logger.get_input_port())
-        loggers[name] = logger
+) -> dict[str, LoggedPort]:
+    """Logs the named vector ports every `period` seconds: one VectorLogSink
+    ("log") behind a Multiplexer of all the ports (copies, so the same values as a
+    sink per port). One publish event per period for all the ports: at 1 kHz a sink
+    per port costs several us per simulated ms (scripts/bench_closed_loop.py)."""
+    if not ports:
+        return {}
+    sizes = [port.size() for port in ports.values()]
+    sink = builder.AddNamedSystem("log", VectorLogSink(sum(sizes), period))
+    mux = builder.AddNamedSystem("log_multiplexer", Multiplexer(sizes))
+    builder.Connect(mux.get_output_port(), sink.get_input_port())
+    loggers, start = {}, 0
+    for k, (name, port) in enumerate(ports.items()):
+        builder.Connect(port, mux.get_input_port(k))
+        loggers[name] = LoggedPort(sink, slice(start, start + sizes[k]))
+        start += sizes[k]
     return loggers
 
 
-def logs_to_arrays(loggers: dict[str, VectorLogSink], root_context) -> dict[str, np.ndarray]:
-    """{"t": times, name: (samples, size) array} from the loggers' logs."""
+def logs_to_arrays(
+    loggers: dict[str, LoggedPort | VectorLogSink], root_context
+) -> dict[str, np.ndarray]:
+    """{"t": times, name: (samples, size) array} from `add_loggers`' logs (or from a
+    VectorLogSink per name)."""
     out: dict[str, np.ndarray] = {}
     for name, logger in loggers.items():
-        log = logger.FindLog(root_context)
-        out.setdefault("t", log.sample_times())
-        out[name] = log.data().T
+        if isinstance(logger, LoggedPort):
+            out.setdefault("t", logger.sample_times(root_context))
+            out[name] = logger.data(root_context).T
+        else:
+            log = logger.FindLog(root_context)
+            out.setdefault("t", log.sample_times())
+            out[name] = log.data().T
     return out
 
 

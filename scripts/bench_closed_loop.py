@@ -13,6 +13,9 @@ Rows (one run, so that ratios between rows are meaningful; 2 cores, shared):
 - "position control, ...": the robot's own servo on the same reference (the baseline).
 - "bare hanging plant": the station's MultibodyPlant alone (strings, no servo, no
   sensors; zero actuation: the robot hangs limp), a reference for the plant's step.
+  An upper bound: limp, the legs rest on their joint limits, so SAP solves limit
+  constraints at every step, which the servo-held robot of the other rows never
+  does (there the plant's own step costs about 60% of this row, callgrind).
   Columns: real_time_factor (simulated s per wall-clock s), cpu_real_time_factor (per
   CPU s of this process: less sensitive to other processes on the machine),
   us_per_step (wall clock, per 1 ms step).

@@ -162,6 +162,26 @@ def test_each_joint_follows_its_own_mechanisms_tick_by_tick(calibrated, plant):
         q_last, previous_command = q, q_cmd
 
 
+def test_per_step_law_is_servo_torque_bit_for_bit(calibrated, plant):
+    """The servo's per-step law (array constants, minimum/maximum for clip) gives
+    servo_torque's numbers exactly, in every regime: dead zone, driver saturation,
+    the voltage limit either way and beyond the no-load speed, both directions."""
+    from hrp2_drake.robot.servo import servo_torque
+
+    names = model.JOINT_NAMES
+    p = calibrated.vectors(names)
+    servo = Hrp2ServoEmulation(plant, calibrated, names, 1e-3, model.half_sitting())
+    rng = np.random.default_rng(7)
+    for scale_e, scale_v in [(1e-4, 0.01), (3e-3, 0.5), (0.05, 3.0), (0.2, 8.0)]:
+        for _ in range(200):
+            error = rng.normal(0.0, scale_e, len(names))
+            v = rng.normal(0.0, scale_v, len(names))
+            direction = rng.uniform(-1.0, 1.0, len(names))
+            expected = servo_torque(p, error, v, direction)
+            actual = servo._servo_torque(error, v, direction)
+            assert actual.tobytes() == expected.tobytes()
+
+
 def test_explicit_torques_are_stable_at_1khz(params, plant):
     """Spectral radius < 1 per joint with the reflected inertia as inertia bound."""
     # Actuators are in joint order (checked by hrp2_joint_indexing).

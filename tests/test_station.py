@@ -5,6 +5,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from pydrake.multibody.math import SpatialForce
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
@@ -13,12 +14,22 @@ from pydrake.systems.primitives import ConstantVectorSource
 from hrp2_drake.config import load_config
 from hrp2_drake.experiments.simulate import SimulateConfig, run_simulate
 from hrp2_drake.robot import model
-from hrp2_drake.robot.sensors import ForceTorqueReadout, NoiseConfig, SensorsConfig
+from hrp2_drake.robot.faults import SensorClock, SensorFault
+from hrp2_drake.robot.sensors import (
+    ForceTorqueReadout,
+    NoiseConfig,
+    NoisySampler,
+    SensorSampler,
+    SensorsConfig,
+)
+from hrp2_drake.robot.servo import load_servo_params
 from hrp2_drake.robot.station import (
     GRAVITY,
     StationConfig,
+    force_torque_readouts,
     initial_joint_positions,
     make_station,
+    sensor_sizes,
 )
 
 
@@ -209,3 +220,98 @@ def test_config_errors_say_what_and_where(tmp_path):
         model.add_hrp2(plant)
         plant.Finalize()
         ForceTorqueReadout(plant, [("RLEG_FT", "RLEG_FOOT", "RLEG_FOOT")])
+
+
+def test_sensor_sampler_is_the_separate_sensors_bit_for_bit():
+    """The station's SensorSampler gives, sample for sample and bit for bit, what a
+    NoisySampler per sensor (same seeds), ForceTorqueReadout and SensorClock give
+    (the station before they were fused), across a noise block (4096 samples) and
+    through a "freeze" of one sensor's stamps."""
+    config = StationConfig(scenario="hanging")
+    robot, cfg = config.description(), config.sensors_config()
+    plant = MultibodyPlant(0.001)
+    robot.add_model(plant, weld_base=False)
+    plant.Finalize()
+    names, n = list(robot.joints), len(robot.joints)
+    q0 = initial_joint_positions(config)
+    resolution = load_servo_params().vectors(names)["encoder_resolution"]
+    readouts = force_torque_readouts(plant, robot)
+    faults = [SensorFault("imu_angular_velocity", "freeze", 0.010, 0.005)]
+    fused = SensorSampler(
+        plant,
+        names,
+        cfg,
+        q0,
+        resolution,
+        imu=True,
+        force_torque=[(s, *r) for s, r in zip(robot.sensor_names(), readouts)],
+        faults=faults,
+    )
+    seed = 1000 * cfg.seed
+    ft_noise = [
+        cfg.force_torque_noise(s).vectors(6, "ft") for s in robot.sensor_names()
+    ]
+    separate = {
+        "q_measured": NoisySampler(
+            n, cfg.period, *cfg.encoder.vectors(n, "enc"), seed + 1, resolution, q0
+        ),
+        "imu_linear_acceleration": NoisySampler(
+            3, cfg.period, *cfg.accelerometer.vectors(3, "acc"), seed + 2
+        ),
+        "imu_angular_velocity": NoisySampler(
+            3, cfg.period, *cfg.gyroscope.vectors(3, "gyro"), seed + 3
+        ),
+        "wrenches": NoisySampler(
+            24,
+            cfg.period,
+            np.concatenate([std for std, _ in ft_noise]),
+            np.concatenate([bias for _, bias in ft_noise]),
+            seed + 4,
+        ),
+    }
+    readout = ForceTorqueReadout(plant, readouts)
+    clock = SensorClock(list(sensor_sizes(robot)), faults, cfg.period)
+    contexts = {
+        system: system.CreateDefaultContext()
+        for system in [fused, readout, clock, *separate.values()]
+    }
+    indexing = model.hrp2_joint_indexing(plant)
+    rng = np.random.default_rng(5)
+    for k in (0, 1, 11, 13, 16, 4095, 4096, 4097, 9000):
+        x = rng.normal(0.0, 0.3, plant.num_positions() + plant.num_velocities())
+        acc, gyro = rng.normal(0.0, 5.0, 3), rng.normal(0.0, 0.5, 3)
+        forces = [
+            SpatialForce(rng.normal(0.0, 50.0, 6)) for _ in range(plant.num_joints())
+        ]
+        signals = {
+            "q_measured": x[indexing.q],
+            "imu_linear_acceleration": acc,
+            "imu_angular_velocity": gyro,
+        }
+        for system, context in contexts.items():
+            context.SetTime(k * cfg.period)
+        readout.get_input_port().FixValue(contexts[readout], forces)
+        signals["wrenches"] = readout.get_output_port().Eval(contexts[readout])
+        ports = {"state": x, "linear_acceleration": acc, "angular_velocity": gyro}
+        for name, value in ports.items():
+            fused.GetInputPort(name).FixValue(contexts[fused], value)
+        fused.GetInputPort("reaction_forces").FixValue(contexts[fused], forces)
+        for name, sampler in separate.items():
+            sampler.get_input_port().FixValue(contexts[sampler], signals[name])
+        for system in (fused, clock, *separate.values()):
+            context = contexts[system]
+            context.SetDiscreteState(system.EvalUniquePeriodicDiscreteUpdate(context))
+
+        def read(system, port):
+            return system.GetOutputPort(port).Eval(contexts[system]).tobytes()
+
+        for name in ("q_measured", "imu_linear_acceleration", "imu_angular_velocity"):
+            assert read(fused, name) == read(separate[name], "measurement"), (k, name)
+        wrenches = np.concatenate(
+            [
+                fused.GetOutputPort(f"wrench_{s}").Eval(contexts[fused])
+                for s in robot.sensor_names()
+            ]
+        )
+        assert wrenches.tobytes() == read(separate["wrenches"], "measurement"), k
+        assert read(fused, "sensor_time") == read(clock, "sensor_time"), k

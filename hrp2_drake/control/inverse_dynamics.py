@@ -47,7 +47,7 @@ from pydrake.multibody.tree import (
     RigidBody,
     WeldJoint,
 )
-from pydrake.systems.framework import Context, DiscreteValues, InputPort, LeafSystem
+from pydrake.systems.framework import Context, DiscreteValues, InputPort
 
 from hrp2_drake.multibody import (
     check_joint_names,
@@ -58,6 +58,7 @@ from hrp2_drake.multibody import (
     joint_indexing,
     tree_joints,
 )
+from hrp2_drake.simulation import WitnessFreeLeafSystem
 
 _WHERE = "InverseDynamicsController"
 _logger = logging.getLogger(__name__)
@@ -317,7 +318,7 @@ class JointSpaceModel(NamedTuple):
     jacobian: np.ndarray | None
 
 
-class InverseDynamicsController(LeafSystem):
+class InverseDynamicsController(WitnessFreeLeafSystem):
     """Desired joint torques by inverse dynamics with an optional force task (paper
     eq. 12).
 
@@ -763,11 +764,13 @@ class InverseDynamicsController(LeafSystem):
         if not math.isfinite(self._inputs.dot(self._ones)):
             self._write_nan(context, discrete_state)
             return
-        terms = self._eq12(
-            *self._values,
-            self._read_optional(self._base_orientation, context),
-            self._read_optional(self._base_angular_velocity, context),
-        )
+        base = (None, None)  # a fixed base has no base inputs
+        if self._base_orientation is not None:
+            base = (
+                self._read_optional(self._base_orientation, context),
+                self._read_optional(self._base_angular_velocity, context),
+            )
+        terms = self._eq12(*self._values, *base)
         for group, value in zip(self._groups, terms):
             discrete_state.set_value(group, value)
 

@@ -47,7 +47,9 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-from pydrake.systems.framework import BasicVector, Context, DiscreteValues, LeafSystem
+from pydrake.systems.framework import BasicVector, Context, DiscreteValues
+
+from hrp2_drake.simulation import WitnessFreeLeafSystem
 
 _logger = logging.getLogger(__name__)
 
@@ -139,7 +141,7 @@ class SafetyConfig:
             )
 
 
-class SafetySupervisor(LeafSystem):
+class SafetySupervisor(WitnessFreeLeafSystem):
     """The safety supervisor (module docstring).
 
     Args:
@@ -192,21 +194,28 @@ class SafetySupervisor(LeafSystem):
         self._sensor_limits = np.array(
             [limit for kind in sensors.values() for limit in ranges[kind]]
         )
-        # State.
+        # State: the three outputs, and one group for everything else (one accessor
+        # per update, views on its rows): [clear time, faults since start_time,
+        # torque wanted (ramping up or in torque), e-stop pressed; the e-stop's held
+        # pose (n); q_torque − q_position of the last healthy period (n); the last
+        # samples [q_measured (n); monitored sensors]; how many periods each has
+        # repeated (same layout); q_position when each encoder stopped (n)].
         self._alpha = self.DeclareDiscreteState(1)
         self._fault = self.DeclareDiscreteState(1)
-        self._clear_time = self.DeclareDiscreteState(1)
         self._transition = self.DeclareDiscreteState(2)
-        # q_torque − q_position of the last healthy period.
-        self._last_torque = self.DeclareDiscreteState(n)
-        self._last_encoder = self.DeclareDiscreteState(n)
-        self._encoder_count = self.DeclareDiscreteState(n)
-        self._encoder_anchor = self.DeclareDiscreteState(n)  # q_position when it stopped
-        self._last_sensor = self.DeclareDiscreteState(sensor_size)
-        self._sensor_count = self.DeclareDiscreteState(sensor_size)
-        self._hold = self.DeclareDiscreteState(n + 1)  # [e-stop pose; pressed]
-        self._fault_count = self.DeclareDiscreteState(1)  # faults since start_time
-        self._want_torque = self.DeclareDiscreteState(1)  # ramping up or in torque
+        size = n + sensor_size  # the monitored samples, [q_measured; sensors]
+        (
+            self._clear_row,
+            self._faults_row,
+            self._want_row,
+            self._pressed_row,
+            self._hold_rows,
+            self._last_torque_rows,
+            self._last_rows,
+            self._count_rows,
+            self._anchor_rows,
+        ) = _layout([0, 0, 0, 0, n, n, size, size, n])
+        self._memory = self.DeclareDiscreteState(self._anchor_rows.stop)
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
         self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
         self.DeclareVectorOutputPort(
@@ -221,30 +230,28 @@ class SafetySupervisor(LeafSystem):
         self.DeclareStateOutputPort("mode", self._alpha)
         self.DeclareStateOutputPort("fault", self._fault)
         self.DeclareStateOutputPort("transition", self._transition)
-        # Per period: plain ints for DiscreteValues (its cheapest accessors) and one
-        # buffer for the monitored sensors' samples, in input order.
+        # Per period: plain ints for DiscreteValues (its cheapest accessors), and one
+        # buffer for the monitored samples, [q_measured; sensors in input order].
         self._alpha_group = int(self._alpha)
         self._fault_group = int(self._fault)
-        self._clear_time_group = int(self._clear_time)
         self._transition_group = int(self._transition)
-        self._last_torque_group = int(self._last_torque)
-        self._last_encoder_group = int(self._last_encoder)
-        self._encoder_count_group = int(self._encoder_count)
-        self._encoder_anchor_group = int(self._encoder_anchor)
-        self._last_sensor_group = int(self._last_sensor)
-        self._sensor_count_group = int(self._sensor_count)
-        self._hold_group = int(self._hold)
-        self._fault_count_group = int(self._fault_count)
-        self._want_torque_group = int(self._want_torque)
-        self._sensor_values = np.zeros(sensor_size)
-        ends = np.cumsum([self._KINDS[kind] for kind in sensors.values()])
+        self._memory_group = int(self._memory)
+        self._samples = np.zeros(size)
+        self._q_values = self._samples[:n]
+        self._sensor_values = self._samples[n:]
+        ends = n + np.cumsum([self._KINDS[kind] for kind in sensors.values()])
         self._sensor_rows = [
-            (port, self._sensor_values[end - self._KINDS[kind] : end])
+            (port, self._samples[end - self._KINDS[kind] : end])
             for (_, kind, port), end in zip(self._sensors, ends)
         ]
         self._ones_n = np.ones(n)
         self._ones_sensors = np.ones(sensor_size)
-        self._jump_limit = config.encoder_jump_speed * config.period
+        self._ones_samples = np.ones(size)
+        # The thresholds as arrays (numpy compares two arrays faster than an array
+        # and a Python float).
+        self._jump_limit = np.full(n, config.encoder_jump_speed * config.period)
+        self._stale_count = np.full(sensor_size, config.stale_samples - 1.0)
+        self._stale_time = np.full(num_sensor_stamps, config.stale_time)
 
     def config(self) -> SafetyConfig:
         return self._config
@@ -254,76 +261,85 @@ class SafetySupervisor(LeafSystem):
 
     def emergency_stopped(self, context: Context) -> bool:
         """True once the emergency stop was pressed (it latches)."""
-        return bool(context.get_discrete_state(self._hold).get_value()[-1] > 0)
+        memory = context.get_discrete_state(self._memory).get_value()
+        return bool(memory[self._pressed_row] > 0)
 
     def reset_emergency_stop(self, context: Context) -> None:
         """Releases a latched emergency stop: a deliberate act (the position command
         returns from the held pose to q_position at once); torque control may resume
         after reentry_time."""
-        hold = context.get_mutable_discrete_state(self._hold).get_mutable_value()
-        hold[-1] = 0.0
+        memory = context.get_mutable_discrete_state(self._memory).get_mutable_value()
+        memory[self._pressed_row] = 0.0
 
     # ---------------------------------------------------------------- updates
 
     def _initialize(self, context: Context, state: DiscreteValues) -> None:
-        q = self._q_measured.Eval(context)
-        q_position = self._q_position.Eval(context)
-        state.set_value(self._last_encoder, q)
-        state.set_value(self._encoder_anchor, q_position)
-        sensors = [port.Eval(context) for _, _, port in self._sensors]
-        if sensors:
-            state.set_value(self._last_sensor, np.concatenate(sensors))
+        # (state holds the current discrete state on entry.)
+        memory = state.get_mutable_value(self._memory_group)
+        n = self._n
+        memory[self._last_rows][:n] = self._q_measured.Eval(context)
+        memory[self._anchor_rows] = self._q_position.Eval(context)
+        for port, row in self._sensor_rows:
+            row[:] = port.Eval(context)
+        memory[self._last_rows][n:] = self._sensor_values
 
-    def _health(self, context: Context, state: DiscreteValues) -> int:
-        # (state holds the current discrete state on entry; each group is read before
-        # it is written.)
+    def _health(
+        self, context: Context, memory: np.ndarray, q_position: np.ndarray
+    ) -> int:
+        """The fault bits of this period; updates the sample memory (rows of `memory`,
+        the state being updated, read before they are written)."""
         c = self._config
+        n = self._n
         bits = 0
-        q = self._q_measured.Eval(context)
-        last = state.get_value(self._last_encoder_group)
-        if not math.isfinite(q.dot(self._ones_n)):
-            bits |= 1
+        samples = self._samples
+        self._q_values[:] = self._q_measured.Eval(context)
+        for port, row in self._sensor_rows:
+            row[:] = port.Eval(context)
+        last = memory[self._last_rows]
+        stamped = self._sensor_time is not None and self._sensor_time.HasValue(context)
+        # Which samples to remember: the finite parts ([q; sensors] at once when all
+        # of it is, the usual case).
+        if math.isfinite(samples.dot(self._ones_samples)):
+            rows = slice(None)
         else:
-            if np.count_nonzero(np.abs(q - last) > self._jump_limit):
-                bits |= 8
+            q_finite = math.isfinite(self._q_values.dot(self._ones_n))
+            sensors_finite = math.isfinite(self._sensor_values.dot(self._ones_sensors))
+            bits |= (0 if q_finite else 1) | (0 if sensors_finite else 2)
+            rows = slice(0 if q_finite else n, None if sensors_finite else n)
+        q_finite = not bits & 1
+        if q_finite and np.count_nonzero(
+            np.abs(self._q_values - last[:n]) > self._jump_limit
+        ):
+            bits |= 8
+        # Each sample's count of identical consecutive samples:
+        # count = where(same, count + 1, 0), in place.
+        same = samples[rows] == last[rows]
+        count = memory[self._count_rows][rows]
+        count *= same
+        count += same
+        if q_finite:
             # Frozen encoder: unchanged while the reference moved.
-            q_position = self._q_position.Eval(context)
-            count = state.get_value(self._encoder_count_group)
-            anchor = state.get_value(self._encoder_anchor_group)
-            same = q == last
-            count = np.where(same, count + 1, 0)
-            anchor = np.where(same, anchor, q_position)
+            anchor = memory[self._anchor_rows]
+            anchor[:] = np.where(same[:n], anchor, q_position)
             # Only without the drivers' stamps: a joint starting to move from rest
             # (latency, dead zone, stiction) can stay on its count for several periods
             # while its reference moves away.
-            stamped = self._sensor_time is not None and self._sensor_time.HasValue(context)
             if not stamped and np.count_nonzero(
-                (count >= c.encoder_stale_samples)
+                (memory[self._count_rows][:n] >= c.encoder_stale_samples)
                 & (np.abs(q_position - anchor) > c.encoder_motion)
             ):
                 bits |= 32
-            state.set_value(self._encoder_count_group, count)
-            state.set_value(self._encoder_anchor_group, anchor)
-            state.set_value(self._last_encoder_group, q)
-        if self._sensors:
-            values = self._sensor_values
-            for port, row in self._sensor_rows:
-                row[:] = port.Eval(context)
-            if not math.isfinite(values.dot(self._ones_sensors)):
-                bits |= 2
-            else:
-                if np.count_nonzero(np.abs(values) > self._sensor_limits):
-                    bits |= 4
-                last_sensor = state.get_value(self._last_sensor_group)
-                count = state.get_value(self._sensor_count_group)
-                count = np.where(values == last_sensor, count + 1, 0)
-                if c.stale_samples and np.count_nonzero(count >= c.stale_samples - 1):
-                    bits |= 16
-                state.set_value(self._sensor_count_group, count)
-                state.set_value(self._last_sensor_group, values)
-        if self._sensor_time is not None and self._sensor_time.HasValue(context):
+        if self._sensors and not bits & 2:
+            if np.count_nonzero(np.abs(self._sensor_values) > self._sensor_limits):
+                bits |= 4
+            if c.stale_samples and np.count_nonzero(
+                memory[self._count_rows][n:] >= self._stale_count
+            ):
+                bits |= 16
+        last[rows] = samples[rows]
+        if stamped:
             age = context.get_time() - self._sensor_time.Eval(context)
-            if np.count_nonzero(age > c.stale_time):
+            if np.count_nonzero(age > self._stale_time):
                 bits |= 16
         if self._e_stop.HasValue(context) and self._e_stop.Eval(context)[0] > 0:
             bits |= 64
@@ -332,40 +348,44 @@ class SafetySupervisor(LeafSystem):
             and self._controller_fallback.Eval(context)[0] > 0
         ):
             bits |= 128
-        if not math.isfinite(self._q_torque.Eval(context).dot(self._ones_n)):
-            bits |= 256
         return bits
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
+        # In place on `state`, which holds the current discrete state on entry: each
+        # value is read before it is written.
         c = self._config
         t = context.get_time()
-        # The previous values (state holds the current discrete state on entry).
-        previous_bits = int(state.get_value(self._fault_group)[0])
-        clear = state.get_value(self._clear_time_group)[0]
-        hold = state.get_value(self._hold_group)
-        alpha = state.get_value(self._alpha_group)[0]
-        faults = state.get_value(self._fault_count_group)[0]
-        bits = self._health(context, state)
-        state.get_mutable_value(self._fault_group)[0] = bits
-        clear = clear + c.period if bits == 0 else 0.0
-        state.get_mutable_value(self._clear_time_group)[0] = clear
+        memory = state.get_mutable_value(self._memory_group)
+        fault = state.get_mutable_value(self._fault_group)
+        alpha_value = state.get_mutable_value(self._alpha_group)
+        previous_bits = int(fault[0])
+        alpha = alpha_value[0]
+        faults = memory[self._faults_row]
+        q_position = self._q_position.Eval(context)
+        q_torque = self._q_torque.Eval(context)
+        bits = self._health(context, memory, q_position)
+        torque_finite = math.isfinite(q_torque.dot(self._ones_n))
+        if not torque_finite:
+            bits |= 256
+        fault[0] = bits
+        clear = memory[self._clear_row] + c.period if bits == 0 else 0.0
+        memory[self._clear_row] = clear
         # E-stop (latched): hold the pose measured when it was pressed.
-        held = hold[-1] != 0
+        held = memory[self._pressed_row] != 0
         if bits & 64 and not held:
             q = self._q_measured.Eval(context)
             if not math.isfinite(q.sum()):
-                q = context.get_discrete_state(self._last_encoder).get_value()
-            hold = hold.copy()
-            hold[:-1] = q
-            hold[-1] = 1.0
-            state.set_value(self._hold_group, hold)
+                previous = context.get_discrete_state(self._memory).get_value()
+                q = previous[self._last_rows][: self._n]
+            memory[self._hold_rows] = q
+            memory[self._pressed_row] = 1.0
             held = True
         # Mode: torque from start_time while healthy; after a fault, only once every
         # fault has been clear for reentry_time.
         running = t + 0.5 * c.period >= c.start_time
         if running and bits and not previous_bits:
             faults += 1
-            state.get_mutable_value(self._fault_count_group)[0] = faults
+            memory[self._faults_row] = faults
         want_torque = (
             running
             and bits == 0
@@ -373,15 +393,11 @@ class SafetySupervisor(LeafSystem):
             and faults <= c.max_reentries
             and (faults == 0 or clear >= c.reentry_time)
         )
-        state.get_mutable_value(self._want_torque_group)[0] = float(want_torque)
+        memory[self._want_row] = float(want_torque)
         # The last command of a healthy torque chain in use: what a ramp down starts
         # from (once a fault is seen, the chain's own output is not trusted).
-        if want_torque:
-            q_torque = self._q_torque.Eval(context)
-            if math.isfinite(q_torque.dot(self._ones_n)):
-                state.set_value(
-                    self._last_torque_group, q_torque - self._q_position.Eval(context)
-                )
+        if want_torque and torque_finite:
+            np.subtract(q_torque, q_position, out=memory[self._last_torque_rows])
         step = c.period / c.ramp_time
         new_alpha = min(1.0, alpha + step) if want_torque else max(0.0, alpha - step)
         if bits and not previous_bits:
@@ -392,17 +408,17 @@ class SafetySupervisor(LeafSystem):
             state.set_value(self._transition_group, [t, float(bits)])
         elif want_torque and alpha == 0 and new_alpha > 0:
             state.set_value(self._transition_group, [t, 0.0])
-        state.get_mutable_value(self._alpha_group)[0] = new_alpha
+        alpha_value[0] = new_alpha
 
     # ----------------------------------------------------------------- output
 
     def _calc_q_cmd(self, context: Context, output: BasicVector) -> None:
         xd = context.get_discrete_state()
         alpha = xd.get_value(self._alpha_group)[0]
+        memory = xd.get_value(self._memory_group)
         q_position = self._q_position.Eval(context)
-        hold = xd.get_value(self._hold_group)
-        if hold[-1] > 0:
-            q_position = hold[:-1]
+        if memory[self._pressed_row] > 0:
+            q_position = memory[self._hold_rows]
         if alpha <= 0.0:
             output.set_value(q_position)
             return
@@ -412,14 +428,25 @@ class SafetySupervisor(LeafSystem):
             self._controller_fallback.HasValue(context)
             and self._controller_fallback.Eval(context)[0] > 0
         )
-        wanted = xd.get_value(self._want_torque_group)[0] > 0
-        if fault or fallback or not wanted or not math.isfinite(q_torque.sum()):
+        wanted = memory[self._want_row] > 0
+        torque_finite = math.isfinite(q_torque.dot(self._ones_n))
+        if fault or fallback or not wanted or not torque_finite:
             # The torque chain's last healthy offset from the reference, which the
             # ramp takes to zero: q_cmd moves with the reference, bumplessly.
-            offset = xd.get_value(self._last_torque_group)
+            offset = memory[self._last_torque_rows]
             output.set_value(q_position + alpha * offset)
             return
         output.set_value(alpha * q_torque + (1.0 - alpha) * q_position)
+
+
+def _layout(sizes: Sequence[int]) -> list[int | slice]:
+    """Consecutive rows of a vector: an index for each size 0 (a scalar), a slice of
+    that many rows for the others."""
+    out, start = [], 0
+    for size in sizes:
+        out.append(start if size == 0 else slice(start, start + size))
+        start += max(size, 1)
+    return out
 
 
 def supervisor_sensors(wrenches: Sequence[str], imu: bool = True) -> dict[str, str]:

@@ -32,14 +32,12 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 from pydrake.systems.framework import (
-    BasicVector,
     Context,
     DiagramBuilder,
     DiscreteValues,
     InputPort,
-    LeafSystem,
 )
-from pydrake.systems.primitives import MatrixGain
+from pydrake.systems.primitives import MatrixGain, Selector, SelectorParams
 
 from hrp2_drake.control.inverse_dynamics import (
     TORQUE_COMPONENTS,
@@ -48,6 +46,7 @@ from hrp2_drake.control.inverse_dynamics import (
 )
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import check_joint_names, eval_finite
+from hrp2_drake.simulation import WitnessFreeLeafSystem
 
 _WHERE = "DeltaQTorqueController"
 _logger = logging.getLogger(__name__)
@@ -171,7 +170,7 @@ class TorqueControllerConfig:
         return out
 
 
-class DeltaQTorqueController(LeafSystem):
+class DeltaQTorqueController(WitnessFreeLeafSystem):
     """Joint-torque control by position-servo corrections Δq (paper eq. 10-11), with
     Δq split into the components of Sec. 5.5, saturation and a latching fallback to
     position control.
@@ -374,9 +373,15 @@ class DeltaQTorqueController(LeafSystem):
         # Rows: tau_desired, tau_estimated, v, then the five tau_* inputs (without
         # them, τ_ff = τ_d in row 3 and zeros).
         self._inputs = np.zeros((3 + len(TORQUE_COMPONENTS), n))
+        self._input_rows = tuple(self._inputs)  # views, unpacked each tick
+        self._inputs_flat = self._inputs.reshape(-1)  # a view
         self._ones = np.ones(self._inputs.size)
+        # K_τ τ_ff, K_τ (1 + K_p) τ_Ks, ... (one product per tick into these rows).
+        self._scaled = np.zeros((len(TORQUE_COMPONENTS), n))
+        self._scaled_rows = tuple(self._scaled)
         self._ones_n = np.ones(n)
         self._zero_n = np.zeros(n)
+        self._period_n = np.full(n, self._period)  # an array: faster than a float
         self._zero_1 = np.zeros(1)
         self._one_1 = np.ones(1)
 
@@ -496,8 +501,8 @@ class DeltaQTorqueController(LeafSystem):
             return
 
         inputs = self._read_inputs(context)
-        tau_desired, tau_estimated, v, tau_ff, tau_ks, tau_kd, tau_kf, tau_ef = inputs
-        finite = math.isfinite(inputs.reshape(-1).dot(self._ones))
+        tau_desired, tau_estimated, v, tau_ff, _, _, _, _ = self._input_rows
+        finite = math.isfinite(self._inputs_flat.dot(self._ones))
         if (
             self._sensor_fault.HasValue(context)
             and self._sensor_fault.Eval(context)[0] > 0
@@ -512,7 +517,7 @@ class DeltaQTorqueController(LeafSystem):
         else:
             e_tau = tau_desired - tau_estimated
             integral = (
-                discrete_state.get_value(self._integral_group) + e_tau * self._period
+                discrete_state.get_value(self._integral_group) + e_tau * self._period_n
             )
             if self._clips_integral:  # anti-windup: |∫ e_τ dt| <= integral_limit
                 integral = np.minimum(
@@ -546,10 +551,12 @@ class DeltaQTorqueController(LeafSystem):
         # The components of Δq (class docstring; Sec. 4.2 eqs. 13-14, Sec. 5.5), from
         # K_τ τ_ff, K_τ (1 + K_p) τ_Ks, K_τ (1 + K_p) τ_Kd, K_τ (1 + K_p) τ_Kf and
         # K_τ K_p τ_ef (one product).
-        scaled = self._term_gains * inputs[3:]
-        feedforward_torque, feedback_position, feedback_velocity = scaled[:3]
-        feedback_force = scaled[3] + scaled[4]  # K9 e_f
-        feedback_acceleration = self._k_tau_kp * (tau_ff - tau_estimated) - scaled[4]
+        np.multiply(self._term_gains, inputs[3:], out=self._scaled)
+        feedforward_torque, feedback_position, feedback_velocity, force, error = (
+            self._scaled_rows
+        )
+        feedback_force = force + error  # K9 e_f
+        feedback_acceleration = self._k_tau_kp * (tau_ff - tau_estimated) - error
         set_value = discrete_state.set_value
         set_value(self._q_cmd_group, q_measured + saturated)
         set_value(self._delta_q_group, saturated)
@@ -599,7 +606,7 @@ class DeltaQTorqueController(LeafSystem):
 # --------------------------------------------------------------------- wiring
 
 
-class JointCommandMerger(LeafSystem):
+class JointCommandMerger(Selector):
     """The whole-robot position command: a full reference with the entries of the
     torque-controlled joints replaced by the torque controller's q_cmd.
 
@@ -619,6 +626,9 @@ class JointCommandMerger(LeafSystem):
     Output:
         q_cmd (N): q_ref with the joint_names entries replaced by q_controlled
             (direct feedthrough, no state: it is wiring).
+
+    A Drake Selector (C++, entries copied): wiring that runs at every plant step needs
+    no Python.
     """
 
     def __init__(self, all_joint_names: Sequence[str], joint_names: Sequence[str]):
@@ -631,17 +641,33 @@ class JointCommandMerger(LeafSystem):
             KeyError: a joint of joint_names is not in all_joint_names.
             ValueError: duplicated names.
         """
-        super().__init__()
-        self._rows = _selection_rows(all_joint_names, joint_names, "JointCommandMerger")
+        rows = _selection_rows(all_joint_names, joint_names, "JointCommandMerger")
         N, n = len(all_joint_names), len(joint_names)
-        self._q_ref = self.DeclareVectorInputPort("q_ref", N)
-        self._q_controlled = self.DeclareVectorInputPort("q_controlled", n)
-        self.DeclareVectorOutputPort("q_cmd", N, self._calc)
-
-    def _calc(self, context: Context, output: BasicVector) -> None:
-        q_cmd = self._q_ref.Eval(context).copy()
-        q_cmd[self._rows] = self._q_controlled.Eval(context)
-        output.set_value(q_cmd)
+        # Entry i of q_cmd: q_ref[i], or q_controlled[k] if joint i is controlled
+        # joint k.
+        source = {i: (0, i) for i in range(N)} | {
+            int(row): (1, k) for k, row in enumerate(rows)
+        }
+        Params = SelectorParams
+        super().__init__(
+            Params(
+                inputs=[
+                    Params.InputPortParams(name="q_ref", size=N),
+                    Params.InputPortParams(name="q_controlled", size=n),
+                ],
+                outputs=[
+                    Params.OutputPortParams(
+                        name="q_cmd",
+                        selections=[
+                            Params.OutputSelection(
+                                input_port_index=port, input_offset=k
+                            )
+                            for port, k in (source[i] for i in range(N))
+                        ],
+                    )
+                ],
+            )
+        )
 
 
 def _selection_rows(

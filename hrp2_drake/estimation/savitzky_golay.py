@@ -31,7 +31,7 @@ from typing import Sequence
 import numpy as np
 from scipy.ndimage import correlate1d
 
-from pydrake.systems.framework import LeafSystem
+from hrp2_drake.simulation import WitnessFreeLeafSystem
 
 EVALUATION_POINTS = ("centre", "end")
 ORDERS = (1, 2)
@@ -141,7 +141,7 @@ class SavitzkyGolayConfig:
         )
 
 
-class SavitzkyGolayFilter(LeafSystem):
+class SavitzkyGolayFilter(WitnessFreeLeafSystem):
     """Causal Savitzky-Golay estimation of k signals and their derivatives.
 
     ```
@@ -279,6 +279,7 @@ class SavitzkyGolayFilter(LeafSystem):
         self._time_group = int(self._evaluation_time)
         self._fault_group = int(self._fault)
         self._fit = np.zeros((order + 1, k))
+        self._outputs = list(zip(self._estimate_groups, self._fit))  # (group, row view)
         self._ones = np.ones(k)
         names = ("value", "derivative", "second_derivative")
         for name, group in zip(names, self._estimates):
@@ -386,7 +387,7 @@ class SavitzkyGolayFilter(LeafSystem):
             else:
                 for columns, rolled in self._groups:
                     self._fit[:, columns] = rolled[row] @ samples[:, columns]
-        for group, estimate in zip(self._estimate_groups, self._fit):
+        for group, estimate in self._outputs:
             discrete_state.set_value(group, estimate)
         discrete_state.get_mutable_value(self._time_group)[0] = (
             context.get_time() - self._delay

@@ -101,7 +101,6 @@ from pydrake.systems.framework import (
     Context,
     DiagramBuilder,
     DiscreteValues,
-    LeafSystem,
     OutputPort,
     System,
 )
@@ -118,6 +117,7 @@ from hrp2_drake.multibody import (
     tree_joints,
     tree_parents,
 )
+from hrp2_drake.simulation import WitnessFreeLeafSystem
 
 ANGULAR_ACCELERATION_MODES = ("gyro_derivative", "neglected")
 _WHERE = "FloatingBaseTorqueEstimator"
@@ -328,7 +328,7 @@ class _Sensor:
     rows: np.ndarray | None = None  # its 6 velocities
 
 
-class FloatingBaseTorqueEstimator(LeafSystem):
+class FloatingBaseTorqueEstimator(WitnessFreeLeafSystem):
     """Joint torques, external wrenches and the unknown wrench of a robot, floating-base
     or welded to the world, from encoders, one IMU (optional for a fixed base) and k
     6-axis F/T sensors, possibly nested (paper Sec. 2; method in the module docstring).
@@ -526,6 +526,10 @@ class FloatingBaseTorqueEstimator(LeafSystem):
             )
         for sensor in self._sensors:
             sensor.port = self.DeclareVectorInputPort(f"wrench_{sensor.name}", 6)
+        # (port, row of the readings) per sensor, read every update.
+        self._sensor_inputs = [
+            (s.port, row) for s, row in zip(self._sensors, self._raw)
+        ]
 
         self._tau_state = self.DeclareDiscreteState(n)
         self._unknown_state = self.DeclareDiscreteState(6)
@@ -1049,9 +1053,8 @@ class FloatingBaseTorqueEstimator(LeafSystem):
             if not self._neglect_alpha:
                 vdot[self._root_w] = self._alpha_port.Eval(context)
             vdot[self._root_a] = self._acc_port.Eval(context)
-        raw = self._raw
-        for s, sensor in enumerate(self._sensors):
-            raw[s] = sensor.port.Eval(context)
+        for port, row in self._sensor_inputs:
+            row[:] = port.Eval(context)
         # One check for all (the other entries of the buffer are finite).
         if not math.isfinite(self._buffer.dot(self._ones)):
             ports = [self._q_port, self._v_port, self._vdot_port]

@@ -18,7 +18,9 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
-from pydrake.systems.framework import BasicVector, Context, DiscreteValues, LeafSystem
+from pydrake.systems.framework import BasicVector, Context, DiscreteValues
+
+from hrp2_drake.simulation import WitnessFreeLeafSystem
 
 FAULT_KINDS = ("nan", "zero", "freeze", "bias", "glitch")
 
@@ -68,7 +70,7 @@ class SensorFault:
             )
 
 
-class FaultInjector(LeafSystem):
+class FaultInjector(WitnessFreeLeafSystem):
     """Applies `SensorFault`s to one sensor signal.
 
     .. code-block:: text
@@ -121,7 +123,32 @@ class FaultInjector(LeafSystem):
         output.set_value(value)
 
 
-class SensorClock(LeafSystem):
+def freeze_windows(
+    signals: Sequence[str], faults: Sequence[SensorFault]
+) -> list[tuple[int, float, float]]:
+    """(signal index, start, end) of every "freeze" fault on one of `signals`."""
+    return [
+        (signals.index(f.signal), f.start, f.start + f.duration)
+        for f in faults
+        if f.kind == "freeze"
+    ]
+
+
+def update_stamps(
+    stamps: np.ndarray, t: float, freezes: Sequence[tuple[int, float, float]]
+) -> None:
+    """Sets, in place, the stamp of every signal to t but those a freeze holds at t
+    (`freeze_windows`; a stale driver sends nothing new)."""
+    if not freezes:
+        stamps[:] = t
+        return
+    frozen = {k for k, start, end in freezes if start <= t + 1e-9 < end}
+    for k in range(len(stamps)):
+        if k not in frozen:
+            stamps[k] = t
+
+
+class SensorClock(WitnessFreeLeafSystem):
     """The time stamp of each sensor's latest sample, as a real driver reports it
     (a message time, a sequence counter): updated every `period`, except while a
     "freeze" fault holds that sensor (a stale driver sends nothing new).
@@ -131,15 +158,13 @@ class SensorClock(LeafSystem):
         ┌─────────────┐
         │ SensorClock ├──► sensor_time (one stamp per signal, s)
         └─────────────┘
+
+    (The simulated station's `SensorSampler` keeps the same stamps itself.)
     """
 
     def __init__(self, signals: Sequence[str], faults: Sequence[SensorFault], period: float):
         super().__init__()
-        self._freezes = [
-            (signals.index(f.signal), f.start, f.start + f.duration)
-            for f in faults
-            if f.kind == "freeze"
-        ]
+        self._freezes = freeze_windows(list(signals), faults)
         self._stamps = self.DeclareDiscreteState(len(signals))
         self._stamps_group = int(self._stamps)
         self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
@@ -147,12 +172,5 @@ class SensorClock(LeafSystem):
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
         # In place on `state`, which holds the current stamps on entry.
-        t = context.get_time()
         stamps = state.get_mutable_value(self._stamps_group)
-        if not self._freezes:
-            stamps[:] = t
-            return
-        frozen = {k for k, start, end in self._freezes if start <= t + 1e-9 < end}
-        for k in range(len(stamps)):
-            if k not in frozen:
-                stamps[k] = t
+        update_stamps(stamps, context.get_time(), self._freezes)

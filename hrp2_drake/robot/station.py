@@ -35,7 +35,8 @@ the servo applied over the last plant step (the plant's net actuation, in the
 description's joint order), the same step the accelerometer and F/T readings come from.
 
 The noise of every sensor is a pure function of `SensorsConfig.seed` and the sample
-index (`NoisySampler`), so every run of a config repeats the same noise.
+index (`SampledSignal`), so every run of a config repeats the same noise. One
+`SensorSampler` samples every sensor (robot/sensors.py).
 """
 
 
@@ -54,13 +55,12 @@ from pydrake.multibody.plant import (
 )
 from pydrake.multibody.tree import LinearBushingRollPitchYaw, LinearSpringDamper
 from pydrake.systems.framework import Diagram, DiagramBuilder
-from pydrake.systems.primitives import Demultiplexer, MatrixGain
 from pydrake.systems.sensors import Accelerometer, Gyroscope
 
 from hrp2_drake.description import RobotDescription, load_robot_description
 from hrp2_drake.multibody import JointIndexing, joint_indexing, tree_joints
-from hrp2_drake.robot.faults import FaultInjector, SensorClock, SensorFault
-from hrp2_drake.robot.sensors import ForceTorqueReadout, NoisySampler, SensorsConfig
+from hrp2_drake.robot.faults import FaultInjector, SensorFault
+from hrp2_drake.robot.sensors import SensorSampler, SensorsConfig
 from hrp2_drake.robot.servo import (
     SERVO_MECHANISMS,
     Hrp2ServoEmulation,
@@ -473,7 +473,9 @@ def _add_sensors(
     servo: ServoParams,
     faults: Sequence[SensorFault] = (),
 ) -> None:
-    seeds = iter(range(1000 * cfg.seed + 1, 1000 * cfg.seed + 100))
+    """The sensors: Drake's Accelerometer and Gyroscope on the IMU frame, and one
+    SensorSampler for the whole bus (encoders, IMU, F/T sensors, stamps); each sensor
+    port through a FaultInjector if a fault names it."""
 
     def export(port, name: str) -> None:
         """Exports a sensor port, through a FaultInjector if a fault names it."""
@@ -486,34 +488,28 @@ def _add_sensors(
             port = injector.get_output_port()
         builder.ExportOutput(port, name)
 
-    def sampler(name: str, signal_port, std, bias, resolution=None, initial=None):
-        size = len(std)
-        system = builder.AddNamedSystem(
-            name,
-            NoisySampler(size, cfg.period, std, bias, next(seeds), resolution, initial),
-        )
-        builder.Connect(signal_port, system.get_input_port())
-        return system.get_output_port()
-
-    # Encoders: joint positions from the plant state, quantized.
-    nx = plant.num_positions() + plant.num_velocities()
-    select = np.zeros((indexing.size, nx))
-    select[np.arange(indexing.size), indexing.q] = 1.0
-    positions = builder.AddNamedSystem("joint_positions", MatrixGain(select))
-    builder.Connect(plant.get_state_output_port(), positions.get_input_port())
     resolution = None
     if cfg.encoder_quantization:
         resolution = servo.vectors(indexing.names)["encoder_resolution"]
-    export(
-        sampler(
-            "encoders",
-            positions.get_output_port(),
-            *cfg.encoder.vectors(indexing.size, "sensors.encoder"),
-            resolution,
+    sensors = builder.AddNamedSystem(
+        "sensors",
+        SensorSampler(
+            plant,
+            indexing.names,
+            cfg,
             q0,
+            resolution,
+            imu=robot.has_imu(),
+            force_torque=[
+                (name, *readout)
+                for name, readout in zip(
+                    robot.sensor_names(), force_torque_readouts(plant, robot)
+                )
+            ],
+            faults=faults,
         ),
-        "q_measured",
     )
+    builder.Connect(plant.get_state_output_port(), sensors.GetInputPort("state"))
 
     if robot.has_imu():
         imu = plant.GetFrameByName(robot.imu_frame)
@@ -537,47 +533,20 @@ def _add_sensors(
             plant.get_body_spatial_velocities_output_port(),
             gyro.get_body_velocities_input_port(),
         )
-        export(
-            sampler(
-                "imu_accelerometer",
-                accel.get_measurement_output_port(),
-                *cfg.accelerometer.vectors(3, "sensors.accelerometer"),
-            ),
-            "imu_linear_acceleration",
+        builder.Connect(
+            accel.get_measurement_output_port(),
+            sensors.GetInputPort("linear_acceleration"),
         )
-        export(
-            sampler(
-                "imu_gyroscope",
-                gyro.get_measurement_output_port(),
-                *cfg.gyroscope.vectors(3, "sensors.gyroscope"),
-            ),
-            "imu_angular_velocity",
+        builder.Connect(
+            gyro.get_measurement_output_port(), sensors.GetInputPort("angular_velocity")
+        )
+    if robot.sensor_names():
+        builder.Connect(
+            plant.get_reaction_forces_output_port(),
+            sensors.GetInputPort("reaction_forces"),
         )
 
-    # The F/T sensors: one readout, one sampler, then one port per sensor.
-    names = robot.sensor_names()
-    if names:
-        readout = builder.AddNamedSystem(
-            "force_torque_readout",
-            ForceTorqueReadout(plant, force_torque_readouts(plant, robot)),
-        )
-        builder.Connect(plant.get_reaction_forces_output_port(), readout.get_input_port())
-        stds, biases = zip(
-            *(cfg.force_torque_noise(n).vectors(6, f"sensors.force_torque.{n}") for n in names)
-        )
-        sampled = sampler(
-            "force_torque",
-            readout.get_output_port(),
-            np.concatenate(stds),
-            np.concatenate(biases),
-        )
-        demux = builder.AddNamedSystem("force_torque_demux", Demultiplexer([6] * len(names)))
-        builder.Connect(sampled, demux.get_input_port())
-        for k, name in enumerate(names):
-            export(demux.get_output_port(k), f"wrench_{name}")
-
+    for name in sensor_sizes(robot):  # q_measured, the IMU's, wrench_<sensor> each
+        export(sensors.GetOutputPort(name), name)
     # The time stamp of every sensor's latest sample (sensor_sizes order).
-    clock = builder.AddNamedSystem(
-        "sensor_clock", SensorClock(tuple(sensor_sizes(robot)), faults, cfg.period)
-    )
-    builder.ExportOutput(clock.get_output_port(), "sensor_time")
+    builder.ExportOutput(sensors.GetOutputPort("sensor_time"), "sensor_time")
