@@ -38,7 +38,6 @@ import contextlib
 import copy
 import io
 import json
-import math
 import os
 import socket
 import sys
