@@ -166,15 +166,23 @@ def test_time_scaled_reference_is_the_same_path_slower():
 
 
 def test_improved_plan_shows_each_improvement_alone(tmp_path):
-    from hrp2_drake.experiments.motion import IMPROVED_FILE, improved_plan, load_improved
+    from hrp2_drake.experiments.motion import (
+        IMPROVED_FILE,
+        estimation_delay,
+        improved_plan,
+        load_improved,
+    )
 
     base = MotionConfig().torque_control
     tuned = load_improved(IMPROVED_FILE, base)  # the committed, tuned controller
     assert tuned.k6 == 0.1 and tuned.offset_calibration_time == base.offset_calibration_time
     plan = dict(improved_plan(base, tuned))
     paper = plan["improved K6=0.1: disturbance observer only"]
-    assert paper.disturbance_observer == tuned.disturbance_observer > 0
     assert (paper.kp, paper.window, paper.windows) == ([2.0], 80, {})
+    # The observer alone keeps the tuned bandwidth x estimation delay.
+    assert paper.disturbance_observer * estimation_delay(paper) == pytest.approx(
+        tuned.disturbance_observer * estimation_delay(tuned)
+    )
     alone = plan["improved K6=0.1: per-signal windows only"]
     assert (alone.window, alone.windows) == (tuned.window, tuned.windows)
     assert alone.disturbance_observer == 0.0

@@ -69,6 +69,7 @@ from hrp2_drake.experiments.builders import (
 from hrp2_drake.experiments.motion import (
     IMPROVED_FILE,
     IMPROVEMENTS,
+    improvement_alone,
     load_improved,
     run_controller,
 )
@@ -200,14 +201,18 @@ class ForceConfig:
 
 
 #: The variants of the report: name -> (label, change of the config).
-def _improved(config: ForceConfig, *improvements: str) -> ForceConfig:
+def _improved(config: ForceConfig, improvement: str = "") -> ForceConfig:
     """The force task with the improvements of the tuned K6 = 0.1 motion controller
-    (`motion.IMPROVED_FILE`; all of them if none is named): the tuned fields only, the
-    force task's own (K_f, force frame) kept."""
+    (`motion.IMPROVED_FILE`): all of them, or one alone (`motion.improvement_alone`);
+    the force task's own settings (K_f, force frame) kept."""
     tuned = load_improved(IMPROVED_FILE, config.torque_control)
-    fields = [f for name in (improvements or IMPROVEMENTS) for f in IMPROVEMENTS[name]]
-    changes = {f: getattr(tuned, f) for f in fields}
-    return replace(config, torque_control=replace(config.torque_control, **changes))
+    if improvement:
+        torque = improvement_alone(improvement, config.torque_control, tuned)
+    else:
+        fields = [f for name in IMPROVEMENTS for f in IMPROVEMENTS[name]]
+        changes = {f: getattr(tuned, f) for f in fields}
+        torque = replace(config.torque_control, **changes)
+    return replace(config, torque_control=torque)
 
 
 ABLATIONS: dict[str, tuple[str, Callable[[ForceConfig], ForceConfig]]] = {
@@ -250,7 +255,7 @@ ABLATIONS: dict[str, tuple[str, Callable[[ForceConfig], ForceConfig]]] = {
         _improved,
     ),
     "improved_observer_only": (
-        "disturbance observer alone (the tuned bandwidth)",
+        "disturbance observer alone (the tuned bandwidth × delay)",
         lambda c: _improved(c, "disturbance observer"),
     ),
     # What the calibrated servo's static non-linearities cost (the plant changes: f0

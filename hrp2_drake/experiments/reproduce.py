@@ -333,16 +333,21 @@ def verdicts(results: dict) -> list[tuple[str, str, str]]:
         improved = motion.get("improved")
         if improved:
             goal, held = improved["goal"], improved.get("held_out", {}).get("improved")
-            evidence = "; ".join(goal["misses"]) or "every joint, average and maximum"
-            if held is not None:
-                evidence += "; held-out slower climbing: " + (
-                    "; ".join(held["misses"]) or "every joint, average and maximum"
-                )
             out.append((
-                "Project goal (the paper's future work, tuned): " + goal["claim"],
-                "holds" if goal["holds"] and (held is None or held["holds"]) else "does not hold",
-                evidence,
+                "Project goal (the paper's future work, tuned): " + goal["claim"]
+                + " (the climbing motion)",
+                "holds" if goal["holds"] else "does not hold",
+                "; ".join(goal["misses"]) or "every joint, average and maximum",
             ))
+            if held is not None:
+                out.append((
+                    "Project goal: the same, on a motion it was not tuned on (the climbing "
+                    "motion at another speed)",
+                    "holds" if held["holds"] else (
+                        f"does not hold: {len(held['misses'])} of 10 cells"
+                    ),
+                    "; ".join(held["misses"]) or "every joint, average and maximum",
+                ))
     if estimation.get("ok"):
         at_80 = {
             scenario: a["windows"]["80"]["right_leg_worst_ratio"]
