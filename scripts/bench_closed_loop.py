@@ -10,6 +10,8 @@ Rows (one run, so that ratios between rows are meaningful; 2 cores, shared):
 - "torque control K6=0.1, tuner's ports": the same run logging only what a tuner reads
   (`TUNER_PORTS`: q_ref, q_measured, delta_q, fallback_active, and the supervisor's
   outputs).
+- "torque control K6=0.1 unsupervised, ...": the paper's stack alone (the Δq
+  controller's own latched fallback, no SafetySupervisor): what the supervisor costs.
 - "position control, ...": the robot's own servo on the same reference (the baseline).
 - "bare hanging plant": the station's MultibodyPlant alone (strings, no servo, no
   sensors; zero actuation: the robot hangs limp), a reference for the plant's step.
@@ -95,6 +97,11 @@ def _diagrams(duration: float | None):
     return end, {
         "torque control K6=0.1": lambda: build_torque_control(
             config.station, reference, motor_model, torque
+        ),
+        # The paper's stack alone: the Δq controller's own latched fallback, no
+        # SafetySupervisor (ours, beyond the paper).
+        "torque control K6=0.1 unsupervised": lambda: build_torque_control(
+            config.station, reference, motor_model, replace(torque, supervised=False)
         ),
         "position control": lambda: build_position_control(config.station, reference),
     }
