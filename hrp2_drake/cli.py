@@ -6,6 +6,10 @@
     hrp2-drake estimate [--robot R] --log LOG [--window N] [--out DIR]
     hrp2-drake calibrate [--config FILE] [--out DIR] [--install]
     hrp2-drake experiment NAME | reproduce   (HRP-2, the paper's experiments; see --help)
+    hrp2-drake track [--robot R] [--motor-model M] [--quick]
+    hrp2-drake tune [--config FILE] [--trials N] [--workers W] [--scheduler ADDRESS]
+                    [--motor-model M] [--quick] [--out DIR]
+    hrp2-drake control --lcm URL | sim-robot --lcm URL   (torque control over LCM)
 
 --robot is a robot description (models/<name>/robot.yaml, or its name: hrp2, iiwa14);
 without it, HRP-2.
