@@ -205,13 +205,9 @@ class DelayPredictor(LeafSystem):
             model = motor_model.subset(config.joints)
         except KeyError as error:
             raise KeyError(f"{_WHERE}: {error.args[0]}") from None
-        for name, bad in (("k_tau", model.k_tau <= 0), ("k_v", model.k_v < 0)):
-            if np.any(bad):
-                joints = [j for j, b in zip(config.joints, bad) if b]
-                raise ValueError(
-                    f"{_WHERE}: motor model {name} must be "
-                    f"{'> 0' if name == 'k_tau' else '>= 0'} for joints {joints}"
-                )
+        errors = model.sign_errors()
+        if errors:
+            raise ValueError(f"{_WHERE}: motor model {errors[0]}")
         n = self._n = len(config.joints)
         k = self._k = int(config.wrench_size)
         period = config.period

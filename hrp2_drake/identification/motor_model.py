@@ -112,6 +112,22 @@ class MotorModel:
                 raise ValueError(f"MotorModel: {name} is NaN or inf for joints {bad}")
             setattr(self, name, value)
 
+    def sign_errors(self) -> list[str]:
+        """What makes the model no servo's (k_tau <= 0 or k_v < 0): one text per bad
+        parameter, naming the joints and values; empty for a physical model."""
+        errors = []
+        for name, bad, bound in (
+            ("k_tau", self.k_tau <= 0, "> 0"),
+            ("k_v", self.k_v < 0, ">= 0"),
+        ):
+            if np.any(bad):
+                joints = [j for j, b in zip(self.joint_names, bad) if b]
+                errors.append(
+                    f"{name} must be {bound} for joints {joints} "
+                    f"({getattr(self, name)[bad].tolist()})"
+                )
+        return errors
+
     def __eq__(self, other) -> bool:
         return (
             isinstance(other, MotorModel)
@@ -229,13 +245,9 @@ class MotorModel:
             loaded = MotorModel(**fields)
         except ValueError as error:
             raise MotorModelFileError(f"{path}: {error}") from None
-        for name, bad in (("k_tau", loaded.k_tau <= 0), ("k_v", loaded.k_v < 0)):
-            if np.any(bad):
-                joints = [j for j, b in zip(loaded.joint_names, bad) if b]
-                raise MotorModelFileError(
-                    f"{path}: {name} must be {'> 0' if name == 'k_tau' else '>= 0'}, "
-                    f"not for joints {joints} ({getattr(loaded, name)[bad].tolist()})"
-                )
+        errors = loaded.sign_errors()
+        if errors:
+            raise MotorModelFileError(f"{path}: {errors[0]}")
         return loaded
 
 
