@@ -43,8 +43,6 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from pydrake.math import RigidTransform
-from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantVectorSource
@@ -53,8 +51,11 @@ from hrp2_drake.experiments import hrp2
 from hrp2_drake.experiments import motion
 from hrp2_drake.experiments.builders import build_position_control, build_torque_control
 from hrp2_drake.identification.motor_model import MotorModel
-from hrp2_drake.robot import station as station_module
-from hrp2_drake.robot.station import StationConfig, initial_joint_positions
+from hrp2_drake.robot.station import (
+    StationConfig,
+    add_scenario_plant,
+    initial_joint_positions,
+)
 from hrp2_drake.simulation import add_loggers
 
 #: What a tuner logs of a torque-control run (those the diagram has).
@@ -131,27 +132,13 @@ def _timed(simulator: Simulator, duration: float, reset=None) -> tuple[float, fl
 
 
 def _bare_hanging_plant() -> Simulator:
-    """The hanging station's MultibodyPlant (same config, model and strings, built by
-    the station's own helpers) with zero actuation and nothing else."""
+    """The hanging station's MultibodyPlant (`station.add_scenario_plant`: the same
+    config, model and strings) with zero actuation and nothing else."""
     config = StationConfig(scenario="hanging")
-    robot = config.description()
-    q0 = initial_joint_positions(config)
     builder = DiagramBuilder()
-    plant, _ = AddMultibodyPlant(
-        MultibodyPlantConfig(
-            time_step=config.time_step,
-            discrete_contact_approximation=config.contact_approximation,
-        ),
-        builder,
+    plant, _ = add_scenario_plant(
+        builder, config, config.description(), initial_joint_positions(config)
     )
-    robot.add_model(plant, weld_base=False)
-    height = (
-        -station_module._lowest_sole_height(robot, q0) + config.hanging.feet_clearance
-    )
-    station_module._add_strings(
-        plant, robot, q0, RigidTransform([0, 0, height]), config.hanging
-    )
-    plant.Finalize()
     zero = builder.AddSystem(ConstantVectorSource(np.zeros(plant.num_actuators())))
     builder.Connect(zero.get_output_port(), plant.get_actuation_input_port())
     return Simulator(builder.Build())

@@ -45,7 +45,14 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
-from pydrake.geometry import Box, Meshcat, MeshcatVisualizer, MeshcatVisualizerParams, Role
+from pydrake.geometry import (
+    Box,
+    Meshcat,
+    MeshcatVisualizer,
+    MeshcatVisualizerParams,
+    Role,
+    SceneGraph,
+)
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.multibody.plant import (
     AddMultibodyPlant,
@@ -328,16 +335,16 @@ def _add_block(plant: MultibodyPlant, robot: RobotDescription, q: np.ndarray, he
     _add_box(plant, "block", X_WB, size, [0.6, 0.3, 0.2, 1.0])
 
 
-def make_station(config: StationConfig, meshcat: Meshcat | None = None) -> Diagram:
-    """Builds the station Diagram (module docstring) for `config`.
-
-    The default context of the returned diagram holds the scenario's initial state.
-    If `meshcat` is given, a MeshcatVisualizer publishes the illustration geometry.
-    """
-    config.validate()
-    robot = config.description()
-    q0 = initial_joint_positions(config)
-    builder = DiagramBuilder()
+def add_scenario_plant(
+    builder: DiagramBuilder,
+    config: StationConfig,
+    robot: RobotDescription,
+    q0: np.ndarray,
+) -> tuple[MultibodyPlant, SceneGraph]:
+    """The station's MultibodyPlant alone, added to `builder` and finalized: the robot
+    and its scenario (weld, ground, block, obstacles or strings), the default state the
+    scenario's initial one (joint angles q0, base pose). `make_station` adds the servo
+    and the sensors to it."""
     plant, scene_graph = AddMultibodyPlant(
         MultibodyPlantConfig(
             time_step=config.time_step,
@@ -368,12 +375,25 @@ def make_station(config: StationConfig, meshcat: Meshcat | None = None) -> Diagr
         _add_strings(plant, robot, q0, X_WB0, config.hanging)
     plant.Finalize()
     plant.set_name("plant")
-
-    indexing = joint_indexing(plant, robot.joints)
-    for name, angle in zip(indexing.names, q0):
+    for name, angle in zip(robot.joints, q0):
         plant.GetJointByName(name).set_default_angle(angle)
     if not fixed:
         plant.SetDefaultFloatingBaseBodyPose(base, X_WB0)
+    return plant, scene_graph
+
+
+def make_station(config: StationConfig, meshcat: Meshcat | None = None) -> Diagram:
+    """Builds the station Diagram (module docstring) for `config`.
+
+    The default context of the returned diagram holds the scenario's initial state.
+    If `meshcat` is given, a MeshcatVisualizer publishes the illustration geometry.
+    """
+    config.validate()
+    robot = config.description()
+    q0 = initial_joint_positions(config)
+    builder = DiagramBuilder()
+    plant, scene_graph = add_scenario_plant(builder, config, robot, q0)
+    indexing = joint_indexing(plant, robot.joints)
 
     servo_params = load_servo_params(robot.servo_path(config.servo_file))
     servo = builder.AddNamedSystem(
