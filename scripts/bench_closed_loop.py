@@ -87,7 +87,7 @@ def _diagrams(duration: float | None):
     """(reference duration, {label: factory of a ControlDiagram}) of the motion
     experiment: the whole climbing motion (1 s settle), or its first `duration` s."""
     config = motion.MotionConfig()
-    reference = motion._reference(config)
+    reference = motion.motion_reference(config)
     end = (
         reference.end_time()
         if duration is None

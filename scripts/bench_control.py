@@ -27,7 +27,7 @@ from hrp2_drake.experiments.builders import (
     build_position_control,
     build_torque_control,
 )
-from hrp2_drake.experiments.motion import MotionConfig, _reference
+from hrp2_drake.experiments.motion import MotionConfig, motion_reference
 from hrp2_drake.robot import model
 
 PERIOD = 1e-3
@@ -103,7 +103,7 @@ def bench_controller_stack(ticks: int = 2000) -> list[dict]:
 
 def bench_motion_experiment(duration: float = 2.0) -> list[dict]:
     config = MotionConfig(start=3.0, end=3.0 + duration, settle=0.0)
-    reference = _reference(config)
+    reference = motion_reference(config)
     rows = []
     for label, control in (
         ("motion: position control", build_position_control(config.station, reference)),

@@ -45,7 +45,7 @@ from hrp2_drake.experiments.motion import (
     PAPER_TABLE2,
     PAPER_TABLE3,
     MotionConfig,
-    _reference,
+    motion_reference,
     paper_sample_count,
     run_controller,
 )
@@ -223,7 +223,7 @@ def position_control_errors(
     """
     station = StationConfig(scenario="hanging", servo_file=servo_file, servo_off=list(servo_off))
     config = MotionConfig(station=station, settle=settle, end=end)
-    reference = _reference(config)
+    reference = motion_reference(config)
     control = build_position_control(station, reference)
     signals = run_controller(control, reference.end_time(), "position control", stream=io.StringIO())
     t = signals["t"]

@@ -29,7 +29,7 @@ from hrp2_drake.experiments.builders import (
     build_torque_control,
 )
 from hrp2_drake.experiments.force import ForceConfig, run_force
-from hrp2_drake.experiments.motion import MotionConfig, _reference, run_controller
+from hrp2_drake.experiments.motion import MotionConfig, motion_reference, run_controller
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.robot import model
 from hrp2_drake.robot.faults import SensorFault
@@ -126,7 +126,7 @@ def _motion_run(config: FaultCampaignConfig, case: FaultCase | None, motor_path:
         )
         torque = replace(torque, model_error=case.model_error)
     motion = MotionConfig(station=station, start=config.motion_start, end=config.motion_end, settle=0.7)
-    reference = _reference(motion)
+    reference = motion_reference(motion)
     if position_control:
         control = build_position_control(station, reference)
     else:

@@ -24,6 +24,7 @@ from hrp2_drake.experiments.builders import (
     build_position_control,
     build_torque_control,
 )
+from hrp2_drake.estimation.torque_estimator import TorqueEstimatorConfig
 from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.robot import model
@@ -333,7 +334,7 @@ class MotionConfig:
             raise ValueError(f"MotionConfig.motor_model: no file '{self.motor_model}'")
 
 
-def _reference(config: MotionConfig, time_scale: float = 1.0) -> JointReference:
+def motion_reference(config: MotionConfig, time_scale: float = 1.0) -> JointReference:
     motion = climbing_reference(
         config.smoothing, config.start, None if config.end < 0 else config.end
     )
@@ -351,10 +352,12 @@ def _reference(config: MotionConfig, time_scale: float = 1.0) -> JointReference:
 
 
 def estimation_delay(config: TorqueControlConfig, period: float = 0.001) -> float:
-    """The estimation chain's delay (EstimationChain.delay): the longest window's
-    centre plus two periods."""
-    longest = max([config.window, *config.windows.values()])
-    return (longest - 1) / 2 * period + 2 * period
+    """The delay of the estimation chain `config` builds (EstimationChain.delay): its
+    filters' evaluation point plus two periods."""
+    filters = TorqueEstimatorConfig(
+        window=config.window, windows=dict(config.windows), evaluation=config.evaluation
+    )
+    return (filters.delay_samples() + 2) * period
 
 
 def _time_scaled(motion: JointReference, scale: float) -> JointReference:
@@ -493,7 +496,7 @@ def run_motion(
     config.validate()
     # KeyError before simulating.
     motor_model.subset(config.torque_control.controlled_joints(model.description()))
-    reference = _reference(config)
+    reference = motion_reference(config)
     duration = reference.end_time()
     delay = estimation_delay(config.torque_control)
     runs, signals = [], {}
@@ -512,7 +515,7 @@ def run_motion(
         plan += [(label, 0.1, c) for label, c in improved_plan(config.torque_control, tuned)]
         if config.held_out_time_scale > 0:
             scale = config.held_out_time_scale
-            references[scale] = _reference(config, scale)
+            references[scale] = motion_reference(config, scale)
             tag = f"{HELD_OUT} (climbing x{scale:g} in time)"
             plan.append((f"{tag}: position control", None, None, scale))
             plan.append((f"{tag}: {IMPROVED} (tuned)", 0.1, replace(tuned, k6=0.1), scale))

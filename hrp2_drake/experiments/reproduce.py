@@ -107,10 +107,10 @@ def _motion_replay(config, motor_model, path: Path) -> None:
     from pydrake.systems.analysis import Simulator
 
     from hrp2_drake.experiments.builders import build_torque_control
-    from hrp2_drake.experiments.motion import _reference
+    from hrp2_drake.experiments.motion import motion_reference
 
     meshcat = Meshcat()
-    reference = _reference(config)
+    reference = motion_reference(config)
     control = build_torque_control(
         config.station, reference, motor_model, replace(config.torque_control, k6=1.0),
         meshcat=meshcat,

@@ -484,11 +484,11 @@ _REFERENCES: dict = {}
 
 def _reference(task: TrialTask):
     """The climbing reference of a task (built once per worker process)."""
-    from hrp2_drake.experiments.motion import MotionConfig, _reference as reference
+    from hrp2_drake.experiments.motion import MotionConfig, motion_reference
 
     key = (task.start, task.end, task.settle, task.smoothing)
     if key not in _REFERENCES:
-        _REFERENCES[key] = reference(
+        _REFERENCES[key] = motion_reference(
             MotionConfig(
                 start=task.start,
                 end=task.end,
