@@ -9,6 +9,7 @@ import pytest
 from hrp2_drake.control.disturbance_observer import (
     DisturbanceObserver,
     DisturbanceObserverConfig,
+    DisturbanceObserverStep,
 )
 from hrp2_drake.identification.motor_model import MotorModel
 
@@ -17,10 +18,9 @@ MODEL = MotorModel(JOINTS, [2e-4, 5e-5], [0.013, 0.0066], [0.0, 1e-4])
 PERIOD, DELAY = 0.001, 0.041
 
 
-def _run(disturbance, config: DisturbanceObserverConfig, steps: int = 800, nan_at=()):
-    """Feeds the observer τ̂ and q̂̇ delayed by DELAY, Δq as sent; returns d̂ per step."""
-    observer = DisturbanceObserver(MODEL, config)
-    context = observer.CreateDefaultContext()
+def _signals(disturbance, steps: int, nan_at=()):
+    """Per step: Δq as sent, q̂̇ and τ̂ delayed by DELAY (a NaN τ̂ at `nan_at`); and
+    the disturbance d per step."""
     lag = round(DELAY / PERIOD)
     t = np.arange(steps + lag) * PERIOD
     delta_q = np.column_stack([3e-3 * np.sin(7 * t), 2e-3 * np.cos(5 * t)])
@@ -28,13 +28,22 @@ def _run(disturbance, config: DisturbanceObserverConfig, steps: int = 800, nan_a
     d = np.array([disturbance(x) for x in t])
     # The joint obeys eq. 6 plus the disturbance: τ = (Δq − K_v q̇ − K_c sign q̇)/K_τ + d.
     tau = (delta_q - MODEL.k_v * v - MODEL.k_c * np.sign(v)) / MODEL.k_tau + d
+    old = np.maximum(np.arange(steps) - lag, 0)
+    tau_old = tau[old]
+    tau_old[list(nan_at)] = np.nan
+    return delta_q[:steps], v[old], tau_old, d
+
+
+def _run(disturbance, config: DisturbanceObserverConfig, steps: int = 800, nan_at=()):
+    """Feeds the observer τ̂ and q̂̇ delayed by DELAY, Δq as sent; returns d̂ per step."""
+    observer = DisturbanceObserver(MODEL, config)
+    context = observer.CreateDefaultContext()
+    delta_q, v, tau, d = _signals(disturbance, steps, nan_at)
     out = []
     for k in range(steps):
-        old = max(k - lag, 0)
         observer.get_input_port(0).FixValue(context, delta_q[k])
-        observer.get_input_port(1).FixValue(context, v[old])
-        tau_k = np.full(2, np.nan) if k in nan_at else tau[old]
-        observer.get_input_port(2).FixValue(context, tau_k)
+        observer.get_input_port(1).FixValue(context, v[k])
+        observer.get_input_port(2).FixValue(context, tau[k])
         update = observer.EvalUniquePeriodicDiscreteUpdate(context)
         context.SetDiscreteState(update)
         out.append(observer.get_output_port().Eval(context).copy())
@@ -54,7 +63,8 @@ def test_a_step_disturbance_is_a_first_order_response():
     expected = np.outer(1 - (1 - alpha) ** seen, [5.0, -2.0])
     np.testing.assert_allclose(estimate, expected, atol=1e-9)
     # Time constant 1/bandwidth: 63% after 50 ms.
-    assert estimate[round(step / PERIOD) + lag + 49, 0] == pytest.approx(5 * (1 - 1 / math.e), rel=0.02)
+    settled = estimate[round(step / PERIOD) + lag + 49, 0]
+    assert settled == pytest.approx(5 * (1 - 1 / math.e), rel=0.02)
 
 
 def test_no_disturbance_reads_zero_only_with_the_right_delay():
@@ -68,12 +78,17 @@ def test_no_disturbance_reads_zero_only_with_the_right_delay():
 
 
 def test_nan_input_holds_the_estimate_and_limit_clips():
-    config = DisturbanceObserverConfig(JOINTS, bandwidth=50.0, delay=DELAY, limit=[3.0, 10.0])
-    estimate, _ = _run(lambda t: np.array([5.0, -2.0]), config, steps=400, nan_at=range(300, 320))
+    config = DisturbanceObserverConfig(
+        JOINTS, bandwidth=50.0, delay=DELAY, limit=[3.0, 10.0]
+    )
+    estimate, _ = _run(
+        lambda t: np.array([5.0, -2.0]), config, steps=400, nan_at=range(300, 320)
+    )
     np.testing.assert_array_equal(estimate[300:320], np.tile(estimate[299], (20, 1)))
     assert estimate[-1, 0] == pytest.approx(3.0)  # clipped
     assert estimate[-1, 1] == pytest.approx(-2.0, abs=1e-6)
-    assert not np.any(estimate[:round(DELAY / PERIOD)])  # nothing before Δq is that old
+    # Nothing before Δq is that old.
+    assert not np.any(estimate[: round(DELAY / PERIOD)])
 
 
 @pytest.mark.parametrize(
@@ -91,3 +106,36 @@ def test_bad_config(changes, message):
         DisturbanceObserver(MODEL, config)
     with pytest.raises(KeyError, match="ankle"):
         DisturbanceObserver(MODEL, DisturbanceObserverConfig(["ankle"]))
+
+
+def test_the_step_on_plain_arrays_is_the_system():
+    """The step driven by plain arrays (no Context) gives the LeafSystem's d̂ bit for
+    bit (a NaN τ̂ included), and raw_disturbance into a buffer equals the new-array
+    form."""
+    config = DisturbanceObserverConfig(
+        JOINTS, bandwidth=50.0, delay=DELAY, limit=[3.0, 10.0]
+    )
+    disturbance = lambda t: np.array([5.0, -2.0]) * (t >= 0.1)  # noqa: E731
+    nan_at = range(150, 160)
+    expected, _ = _run(disturbance, config, steps=300, nan_at=nan_at)
+    delta_q, v, tau, _ = _signals(disturbance, 300, nan_at)
+    step = DisturbanceObserverStep(MODEL, config)
+    assert step.delay_periods() == 41
+    out = []
+    for k in range(300):
+        step.step(k * PERIOD, delta_q[k], v[k], tau[k])
+        out.append(step.disturbance.copy())
+    np.testing.assert_array_equal(out, expected)
+    # The step's d̂ after 300 ms: 159 periods of the filter on the step seen at
+    # 141 ms, minus the 10 held ones; joint 0 clipped at 3 N·m.
+    alpha = 1 - math.exp(-50.0 * PERIOD)
+    assert out[-1][0] == 3.0
+    assert out[-1][1] == pytest.approx(-2.0 * (1 - (1 - alpha) ** 149), abs=1e-9)
+    # Aligned samples (Δq sent 41 periods before): d itself.
+    buffer = np.zeros(2)
+    raw = step.raw_disturbance(delta_q[159], v[200], tau[200], out=buffer)
+    assert raw is buffer
+    np.testing.assert_allclose(raw, [5.0, -2.0], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(
+        raw, step.raw_disturbance(delta_q[159], v[200], tau[200])
+    )

@@ -34,6 +34,7 @@ from hrp2_drake.estimation.torque_estimator import (
     FloatingBaseTorqueEstimator,
     ForceTorqueSensorConfig,
     TorqueEstimatorConfig,
+    TorqueEstimatorStep,
     add_estimator,
 )
 
@@ -653,6 +654,46 @@ def test_system_matches_estimate(arm, arm_truth, legs):
             outputs["external"], result.external_wrenches, rtol=0, atol=1e-12
         )
         np.testing.assert_allclose(outputs["tau"], sample["tau"], rtol=0, atol=TOL)
+
+
+def test_step_without_imu_and_with_nested_sensors(arm, arm_truth, legs):
+    """TorqueEstimatorStep on plain arrays: the fixed-base arm without IMU takes None
+    for the imu_* inputs (and for the wrenches without F/T sensor), the nested leg
+    sensors work as in `estimate`, to the bit, and both match the truth."""
+    arm_step = TorqueEstimatorStep(arm, _arm_config())
+    assert not arm_step.has_imu() and not arm_step.reads_angular_acceleration()
+    assert arm_step.sensor_names() == ["wrist"]
+    sample = arm_truth.sample(np.random.default_rng(52), ("tool",))
+    joints = [sample[k] for k in ("q", "v", "vdot")]
+    arm_step.step(0.0, *joints, None, None, None, sample["readings"])
+    np.testing.assert_allclose(arm_step.tau, sample["tau"], rtol=0, atol=TOL)
+    np.testing.assert_allclose(
+        arm_step.external_wrench_wrist, sample["external"][0], rtol=0, atol=TOL
+    )
+    np.testing.assert_allclose(
+        arm_step.unknown_wrench, sample["unknown"], rtol=0, atol=TOL
+    )
+
+    bare = TorqueEstimatorStep(arm, _arm_config(sensors={}))
+    assert bare.num_sensors() == 0 and bare.output_names() == ["tau", "unknown_wrench"]
+    bare.step(0.0, *joints, None, None, None, None)
+    assert np.all(np.isfinite(bare.tau)) and np.any(bare.tau != 0.0)
+
+    leg_step = TorqueEstimatorStep(legs["floating"], _leg_config())
+    assert leg_step.nested_sensors() == {"ankle": "thigh"}
+    truth = _leg_truth(legs["floating"], True)
+    sample = truth.sample(np.random.default_rng(53), ("thigh_lower", "foot"))
+    inputs = [sample[k] for k in ("q", "v", "vdot", *IMU_NAMES, "readings")]
+    leg_step.step(0.0, *inputs)
+    result = leg_step.estimate(*inputs)
+    np.testing.assert_array_equal(leg_step.tau, result.tau)
+    for k, name in enumerate(leg_step.sensor_names()):
+        external = getattr(leg_step, f"external_wrench_{name}")
+        np.testing.assert_array_equal(external, result.external_wrenches[k])
+    np.testing.assert_allclose(leg_step.tau, sample["tau"], rtol=0, atol=TOL)
+    np.testing.assert_allclose(
+        result.external_wrenches, sample["external"], rtol=0, atol=TOL
+    )
 
 
 def _station(q: np.ndarray, readings: dict[str, np.ndarray]):

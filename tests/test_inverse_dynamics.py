@@ -19,6 +19,7 @@ from hrp2_drake.control.inverse_dynamics import (
     TORQUE_COMPONENTS,
     InverseDynamicsConfig,
     InverseDynamicsController,
+    InverseDynamicsStep,
     make_fixed_base_plant,
 )
 from hrp2_drake.multibody import joint_indexing
@@ -353,3 +354,96 @@ def test_bad_inputs(fixed_plant, floating_plant):
     motion_only = InverseDynamicsController(fixed_plant, _config(force_frame=""))
     with pytest.raises(ValueError, match="force_frame"):
         motion_only.compute(**_inputs(0))
+
+
+# --------------------------------------------------------------------- the step
+
+
+def test_step_equals_controller(fixed_plant):
+    """InverseDynamicsStep driven by plain arrays (no systems Context) gives the
+    controller's outputs bit for bit, and eq. 12's numbers."""
+    nominal = _nominal(fixed_plant)
+    controller = InverseDynamicsController(fixed_plant, _config(), nominal)
+    step = InverseDynamicsStep(fixed_plant, _config(), nominal)
+    names = ("tau_desired", *TORQUE_COMPONENTS)
+    assert [name for name, _ in step.layout()] == list(names)
+    assert step.state_size == 6 * 6 and not np.any(step.state)
+    for seed in (0, 1):
+        inputs = _inputs(seed)
+        assert step.step(0.001 * seed, **inputs) is False
+        out = _step(controller, inputs)
+        for row, name in enumerate(names):
+            np.testing.assert_array_equal(getattr(step, name), out[name])
+            np.testing.assert_array_equal(step.outputs[row], out[name])
+        np.testing.assert_array_equal(step.terms, step.outputs[1:])
+    ref = _reference(fixed_plant, nominal, inputs, KS, KD, KF)
+    np.testing.assert_allclose(step.tau_desired, ref["tau"], rtol=1e-10, atol=1e-9)
+    np.testing.assert_allclose(
+        step.tau_position_feedback, KS * (inputs["q_ref"] - inputs["q"]), rtol=1e-14
+    )
+
+    # compute() leaves the state alone and gives the same numbers.
+    before = step.state.copy()
+    terms = step.compute(**_inputs(5))
+    np.testing.assert_array_equal(step.state, before)
+    step.step(0.0, **_inputs(5))
+    np.testing.assert_array_equal(terms.tau_desired, step.tau_desired)
+    np.testing.assert_array_equal(terms.force_error, step.tau_force_error)
+
+    # NaN in, NaN out, reported once (True) while the outputs were finite.
+    bad = dict(_inputs(2), f=np.full(6, np.nan))
+    assert step.step(0.0, **bad) is True
+    assert np.all(np.isnan(step.state))
+    assert step.step(0.0, **bad) is False
+    step.step(0.0, **_inputs(2))
+    assert np.all(np.isfinite(step.state))
+
+    # Bound to a slice of a larger buffer (a fused controller's state): the named
+    # arrays and the views follow.
+    buffer = np.zeros(step.state_size + 3)
+    step.bind(buffer[3:])
+    step.step(0.0, **_inputs(0))
+    np.testing.assert_array_equal(
+        buffer[3:9], _step(controller, _inputs(0))["tau_desired"]
+    )
+    assert np.shares_memory(step.terms, buffer) and np.shares_memory(
+        step.outputs, buffer
+    )
+
+
+def test_step_without_force_task(fixed_plant):
+    """No force task: f_ref, f are ignored; the force terms are zero."""
+    nominal = _nominal(fixed_plant)
+    config = _config(force_frame="")
+    step = InverseDynamicsStep(fixed_plant, config, nominal)
+    controller = InverseDynamicsController(fixed_plant, config, nominal)
+    inputs = _inputs(4, force=False)
+    assert not step.has_force_task()
+    step.step(0.0, **inputs)
+    out = _step(controller, inputs)
+    np.testing.assert_array_equal(step.tau_desired, out["tau_desired"])
+    np.testing.assert_array_equal(step.tau_feedforward, out["tau_feedforward"])
+    assert not np.any(step.tau_force_feedback) and not np.any(step.tau_force_error)
+    np.testing.assert_array_equal(
+        step.tau_desired,
+        step.tau_feedforward + step.tau_position_feedback + step.tau_velocity_feedback,
+    )
+
+
+def test_step_floating_base(floating_plant):
+    nominal = _nominal(floating_plant)
+    config = _config(floating_base=True)
+    step = InverseDynamicsStep(floating_plant, config, nominal)
+    controller = InverseDynamicsController(floating_plant, config, nominal)
+    R_WB = RotationMatrix(RollPitchYaw(0.2, -0.1, 0.4))
+    inputs = dict(
+        _inputs(6),
+        base_orientation=R_WB.ToQuaternion().wxyz(),
+        base_angular_velocity=np.array([0.3, -0.2, 0.1]),
+    )
+    step.step(0.0, **inputs)
+    np.testing.assert_array_equal(
+        step.tau_desired, _step(controller, inputs)["tau_desired"]
+    )
+    with pytest.raises(ValueError, match="base_angular_velocity"):
+        step.step(0.0, **dict(inputs, base_angular_velocity=np.full(3, np.nan)))

@@ -12,7 +12,11 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, MatrixGain
 from scipy.integrate import solve_ivp
 
-from hrp2_drake.control.predictor import DelayPredictor, DelayPredictorConfig
+from hrp2_drake.control.predictor import (
+    DelayPredictor,
+    DelayPredictorConfig,
+    DelayPredictorStep,
+)
 from hrp2_drake.identification.motor_model import MotorModel
 
 JOINTS = ["hip", "knee", "ankle"]
@@ -310,3 +314,42 @@ def test_bad_model():
     bad = MotorModel(JOINTS, [2e-4, 0.0, 1e-4], K_V)
     with pytest.raises(ValueError, match=r"k_tau must be > 0 for joints \['knee'\]"):
         DelayPredictor(bad, _config(0.0415, 0.001))
+
+
+def test_the_step_on_plain_arrays_is_the_system():
+    """The step driven by plain arrays (no Context) gives the LeafSystem's outputs
+    bit for bit, bad input included, and predicts the present of the exact joints."""
+    ticks, delay, latency = 300, 0.0415, 0.001
+    joints = Joints(_excitation(ticks + OFFSET + 5), TAU_REST)
+    inputs, v_now, tau_now = _scenario(joints, delay, latency, ticks)
+    inputs["wrench_estimated"] = np.ones((ticks, 6))
+    inputs["wrench_rate"] = np.tile(np.arange(6.0), (ticks, 1))
+    inputs["tau_estimated"][100:103] = np.nan
+    inputs["delta_q"][150, 1] = np.inf
+    config = _config(delay, latency, wrench_size=6)
+    expected, context = _drive(DelayPredictor(MODEL, config), ticks, inputs)
+    step = DelayPredictorStep(MODEL, config)
+    assert step.num_buffered() == 43 and step.horizon() == pytest.approx(0.0425)
+    names = list(expected)
+    out = {name: [] for name in names}
+    for k in range(ticks):
+        step.step(
+            k * PERIOD,
+            inputs["v_estimated"][k],
+            inputs["vdot_estimated"][k],
+            inputs["tau_estimated"][k],
+            inputs["delta_q"][k],
+            inputs["wrench_estimated"][k],
+            inputs["wrench_rate"][k],
+        )
+        for name in names:
+            out[name].append(getattr(step, name).copy())
+    for name in names:
+        np.testing.assert_array_equal(out[name], expected[name], err_msg=name)
+    assert step.is_ready() and step.bad_input_count() == 4
+    # Numbers: 3 bad ticks in a row, then good; the present before the bad Δq.
+    fault = np.array(out["input_fault"])[:, 0]
+    np.testing.assert_array_equal(fault[99:104], [0, 1, 2, 3, 0])
+    v = np.array(out["v_predicted"])
+    np.testing.assert_allclose(v[50:100], v_now[50:100], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(step.wrench_predicted, 1.0 + 0.0425 * np.arange(6.0))

@@ -4,7 +4,12 @@ latched emergency stop (the closed loop is in tests/test_faults.py)."""
 import numpy as np
 import pytest
 
-from hrp2_drake.control.safety import SafetyConfig, SafetySupervisor, describe_faults
+from hrp2_drake.control.safety import (
+    SafetyConfig,
+    SafetySupervisor,
+    SafetySupervisorStep,
+    describe_faults,
+)
 
 PERIOD = 0.001
 
@@ -71,7 +76,9 @@ def test_ramps_into_torque_control_without_a_step():
         (dict(q_measured=np.array([0.0, 0.05])), 8),  # 50 rad/s in one period
         (dict(q_torque=np.array([np.nan, 0.0])), 256),
     ],
-    ids=["encoder_nan", "sensor_inf", "force_out_of_range", "encoder_jump", "command_nan"],
+    ids=[
+        "encoder_nan", "sensor_inf", "force_out_of_range", "encoder_jump", "command_nan"
+    ],
 )
 def test_each_fault_is_detected_at_the_next_period_and_ramps_down(changes, bit):
     h = _Harness().step(20)
@@ -168,3 +175,84 @@ def test_a_controller_that_keeps_faulting_is_not_retried_forever():
     assert modes == [1.0, 1.0, 0.0]  # resumed twice, then position control stays
     h.step(100)
     assert h.out("mode")[0] == 0.0
+
+
+def _step_and_system(num_stamps: int = 0):
+    """A SafetySupervisorStep and the harness's SafetySupervisor, same arguments."""
+    h = _Harness()
+    sensors = {"imu_linear_acceleration": "acceleration", "wrench_x": "wrench"}
+    h.system = SafetySupervisor(2, sensors, h.system.config(), num_stamps)
+    h.context = h.system.CreateDefaultContext()
+    h.fix(imu_linear_acceleration=np.zeros(3), wrench_x=np.zeros(6))
+    return SafetySupervisorStep(2, sensors, h.system.config(), num_stamps), h
+
+
+def test_the_step_on_plain_arrays_is_the_system():
+    """The step driven by plain arrays (no Context) gives the LeafSystem's outputs,
+    bit for bit, through a ramp up, a NaN encoder, the fallback and re-entry; and it
+    reports a new fault once, when it starts."""
+    step, h = _step_and_system(num_stamps=3)
+    rng = np.random.default_rng(1)
+    h.fix(sensor_time=np.zeros(3))
+    h.system.ExecuteInitializationEvents(h.context)
+    step.initialize(h.inputs["q_measured"], h.inputs["q_position"], np.zeros(9))
+    q_cmd, returned, modes = np.zeros(2), [], []
+    for k in range(80):
+        t = h.context.get_time()
+        q_measured = np.array([np.nan if k == 20 else 1e-4 * k, 0.0])
+        fallback = np.array([1.0 if 40 <= k < 42 else 0.0])
+        sensors = rng.normal(0.0, 0.5, 9)
+        stamps = np.full(3, t - PERIOD)
+        returned.append(
+            step.step(
+                t, h.inputs["q_torque"], h.inputs["q_position"], q_measured, sensors,
+                None, fallback, stamps,
+            )
+        )
+        h.step(
+            noisy=False, q_measured=q_measured, controller_fallback=fallback,
+            imu_linear_acceleration=sensors[:3], wrench_x=sensors[3:],
+            sensor_time=stamps,
+        )
+        step.q_cmd(h.inputs["q_torque"], h.inputs["q_position"], fallback, q_cmd)
+        for name in ("mode", "fault", "transition"):
+            np.testing.assert_array_equal(getattr(step, name), h.out(name))
+        np.testing.assert_array_equal(q_cmd, h.out("q_cmd"))
+        modes.append(step.mode[0])
+    # Up in 10 periods; the NaN at 20 ms and the fallback at 40 ms, each reported
+    # once (bits 1 and 128); back up after reentry_time.
+    assert modes[9] == pytest.approx(1.0) and modes[20] == pytest.approx(0.9)
+    reported = [(k, bits) for k, bits in enumerate(returned) if bits]
+    assert reported == [(20, 1), (40, 128)]
+    # Clear from 42 ms on: the ramp up starts 20 ms later.
+    assert modes[60] == 0.0 and modes[61] == pytest.approx(0.1)
+    assert step.transition == pytest.approx([0.061, 0.0])
+    assert modes[-1] == 1.0
+    np.testing.assert_array_equal(q_cmd, [0.1, 0.2])
+
+
+def test_the_step_runs_on_a_bound_buffer_and_holds_the_e_stop_pose():
+    """A fused controller's use: the state in its buffer, no sensor_time, e_stop and
+    controller_fallback as 1-arrays; q_cmd holds the pose measured at the press."""
+    step, _ = _step_and_system()
+    buffer = np.zeros(step.state_size + 4)
+    step.bind(buffer[2:-2])
+    assert np.shares_memory(step.memory, buffer)
+    q_torque, q_position, q_cmd = np.array([0.1, 0.2]), np.zeros(2), np.zeros(2)
+    sensors = np.zeros(9)
+    e_stop, fallback = np.zeros(1), np.zeros(1)
+    step.initialize(np.zeros(2), q_position, sensors)
+    for k in range(15):
+        sensors[:] = 0.01 * (k + 1)  # a live (changing) sensor
+        q_measured = np.array([0.005, -0.008]) if k >= 12 else np.zeros(2)
+        e_stop[0] = 1.0 if k == 12 else 0.0
+        t = k * PERIOD
+        step.step(t, q_torque, q_position, q_measured, sensors, e_stop, fallback)
+    assert step.emergency_stopped()
+    assert step.mode[0] == pytest.approx(0.7)  # 1.0, then 3 periods down (12-14)
+    assert buffer[2 + step.rows("mode").start] == step.mode[0]
+    # q_cmd: the held pose plus α × the last healthy offset (0.1, 0.2).
+    step.q_cmd(q_torque, q_position, fallback, q_cmd)
+    np.testing.assert_allclose(q_cmd, [0.005 + 0.07, -0.008 + 0.14], rtol=0, atol=1e-15)
+    step.reset_emergency_stop()
+    assert not step.emergency_stopped()

@@ -12,11 +12,13 @@ from pydrake.systems.primitives import ConstantVectorSource, TrajectorySource
 from hrp2_drake.estimation.savitzky_golay import (
     SavitzkyGolayConfig,
     SavitzkyGolayFilter,
+    SavitzkyGolayStep,
     savgol_coefficients,
     savgol_filter_offline,
 )
 
 PERIOD = 1e-3  # s
+_RING = 4  # SavitzkyGolayStep.ring's bookkeeping entries
 
 
 def _polynomial(degree: int, num_signals: int, seed: int = 0) -> np.ndarray:
@@ -421,3 +423,77 @@ def test_a_shorter_window_centred_in_the_past_keeps_its_derivatives_aligned():
 def test_per_signal_window_errors(window, evaluation, span, match):
     with pytest.raises(ValueError, match=match):
         SavitzkyGolayFilter(3, window, 2, PERIOD, evaluation, span=span)
+
+
+# ------------------------------------------------------------------ the step alone
+
+
+@pytest.mark.parametrize(
+    "window, order, span",
+    [(21, 2, None), (21, 1, None), ([11, 5, 21, 21], 2, None), ([7, 3, 9, 9], 1, 13)],
+)
+def test_step_on_plain_arrays_equals_the_filter(window, order, span):
+    """SavitzkyGolayStep driven by arrays (no Drake) gives the filter's outputs to the
+    bit, tick by tick, through start-up and a burst of bad samples."""
+    samples = np.random.default_rng(7).normal(size=(60, 4))
+    samples[30:33, [0, 2]] = math.nan
+    system = SavitzkyGolayFilter(4, window, order, PERIOD, span=span)
+    step = SavitzkyGolayStep(4, window, order, PERIOD, "centre", span)
+    names = step.output_names()
+    assert names == tuple(
+        system.get_output_port(i).get_name() for i in range(system.num_output_ports())
+    )
+    assert step.state_size == _RING + step.window() * 4 + (order + 1) * 4 + 2
+    filtered = []
+    _feed(
+        system,
+        samples,
+        lambda k, context: filtered.append(
+            [system.GetOutputPort(name).Eval(context).copy() for name in names]
+        ),
+    )
+    step.initialize(0.0, samples[0])
+    for k, sample in enumerate(samples):
+        step.step(k * PERIOD, sample)
+        for name, expected in zip(names, filtered[k]):
+            np.testing.assert_array_equal(getattr(step, name), expected)
+    assert step.input_fault[0] == 0.0 and step.bad_sample_count() == 3
+    assert step.is_ready()
+
+
+def test_step_exact_on_a_ramp_and_bound_to_a_buffer():
+    """The step's numbers: a ramp's value and slope at the window's centre once ready;
+    bound to a slice of a larger vector (as a fused controller does) it goes on
+    identically, its named arrays views on that vector."""
+    window = 9
+    step = SavitzkyGolayStep(2, window, 2, PERIOD, "centre")
+    assert step.delay() == pytest.approx(4e-3)
+
+    def ramp(t):
+        return np.array([1.0 + 3.0 * t, -2.0 + 50.0 * t])
+
+    step.initialize(0.0, ramp(0.0))
+    np.testing.assert_array_equal(step.value, [1.0, -2.0])
+    np.testing.assert_array_equal(step.derivative, [0.0, 0.0])
+    assert not step.is_ready()
+    for m in range(window):
+        step.step(m * PERIOD, ramp(m * PERIOD))
+    assert step.is_ready() and step.bad_sample_count() == 0
+    assert step.evaluation_time[0] == pytest.approx(4e-3)
+    np.testing.assert_allclose(step.value, [1.012, -1.8], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(step.derivative, [3.0, 50.0], rtol=1e-9)
+    np.testing.assert_allclose(step.second_derivative, [0.0, 0.0], atol=1e-6)
+
+    alone = SavitzkyGolayStep(2, window, 2, PERIOD, "centre")
+    alone.state[:] = step.state
+    fused = np.full(step.state_size + 3, -1.0)
+    step.bind(fused[2:-1])
+    assert np.shares_memory(step.value, fused)
+    for m in range(window, 2 * window):  # a parabola on signal 1 fills the window
+        sample = ramp(m * PERIOD) + [0.0, 1e-3 * m**2]
+        step.step(m * PERIOD, sample)
+        alone.step(m * PERIOD, sample)
+    np.testing.assert_array_equal(fused[2:-1], alone.state)
+    np.testing.assert_array_equal(fused[[0, 1, -1]], [-1.0, -1.0, -1.0])
+    np.testing.assert_array_equal(step.second_derivative, alone.second_derivative)
+    assert step.second_derivative[1] == pytest.approx(2e-3 / PERIOD**2, rel=1e-9)

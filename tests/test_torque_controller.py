@@ -31,7 +31,9 @@ from hrp2_drake.control.inverse_dynamics import (
 )
 from hrp2_drake.control.torque_controller import (
     DELTA_Q_COMPONENTS,
+    FALLBACK_REASONS,
     DeltaQTorqueController,
+    DeltaQTorqueStep,
     JointCommandMerger,
     TorqueControllerConfig,
     connect_inverse_dynamics,
@@ -468,6 +470,137 @@ def test_composed_controller_is_eqs_13_14(motor, fixed_plant):
     )
     tau_star = tau_d + kp * (tau_d - tau_hat)
     np.testing.assert_allclose(delta_q, K_TAU * tau_star + K_V * v, rtol=1e-12)
+
+
+class _Twins:
+    """A DeltaQTorqueStep driven by plain arrays and a DeltaQTorqueController with
+    the same inputs, ticked together and compared bit for bit."""
+
+    OUTPUTS = (
+        "q_cmd",
+        "delta_q",
+        "delta_q_unsaturated",
+        "tau_commanded",
+        *DELTA_Q_COMPONENTS,
+        "fallback_active",
+    )
+
+    def __init__(self, motor, config, inputs: dict, terms=None, disturbance=None):
+        self.step = DeltaQTorqueStep(motor, config)
+        self.controller = DeltaQTorqueController(motor, config)
+        self.inputs, self.terms, self.disturbance = inputs, terms, disturbance
+        fixed = dict(inputs, sensor_fault=np.zeros(1))
+        if terms is not None:
+            fixed |= dict(zip(TORQUE_COMPONENTS, terms))
+        if disturbance is not None:
+            fixed["tau_disturbance"] = disturbance
+        self.fixture = _Fixture(self.controller, fixed)
+        self.controller.ExecuteInitializationEvents(self.fixture.context)
+        self.step.initialize(0.0, inputs["q_measured"], inputs.get("q_ref"))
+        self.compare()
+
+    def tick(self, **changes) -> int:
+        """One update of both at the fixture's time; the step's return value."""
+        values = dict(self.inputs, **changes)
+        self.fixture.fix(**values)
+        reason = self.step.step(
+            self.fixture.context.get_time(),
+            *(values[k] for k in ("tau_desired", "tau_estimated", "v", "q_measured")),
+            values.get("q_ref"),
+            np.zeros(1),
+            self.terms,
+            self.disturbance,
+        )
+        self.fixture.step()
+        self.compare()
+        return reason
+
+    def reset_fallback(self) -> None:
+        self.step.reset_fallback()
+        self.controller.reset_fallback(self.fixture.context)
+        self.compare()
+
+    def compare(self) -> None:
+        step, context = self.step, self.fixture.context
+        out = self.fixture.outputs()
+        for name in self.OUTPUTS:
+            np.testing.assert_array_equal(getattr(step, name), out[name], name)
+        np.testing.assert_array_equal(
+            step.tau_error_integral, self.controller.tau_error_integral(context)
+        )
+        code = int(step.fallback_reason[0])
+        assert FALLBACK_REASONS[code] == self.controller.fallback_reason(context)
+
+
+def test_step_equals_controller(motor):
+    """DeltaQTorqueStep driven by plain arrays (no systems Context) gives the
+    controller's outputs bit for bit, tick by tick: initialization, torque control
+    with an integral, d̂ and the inverse-dynamics terms, a fallback (reported once,
+    by its code) and its reset."""
+    config = _config(ki=[5.0], integral_limit=[0.01], disturbance_compensation=True)
+    terms = 10.0 * np.random.default_rng(15).standard_normal((5, 6))
+    inputs = _inputs(15)
+    inputs["tau_desired"] = terms[:4].sum(axis=0)
+    inputs["q_ref"] = inputs["q_measured"] + 0.01
+    disturbance = np.array([0.5, -1.0, 0.2, 0.0, 0.3, -0.4])
+    twins = _Twins(motor, config, inputs, terms, disturbance)
+    step = twins.step
+    assert step.unused == ()  # K_i and d̂ both in use
+    np.testing.assert_array_equal(step.q_cmd, inputs["q_ref"])
+    assert [twins.tick() for _ in range(3)] == [0, 0, 0]
+    e_tau = inputs["tau_desired"] - inputs["tau_estimated"]
+    integral = np.clip(3 * PERIOD * e_tau, -0.01, 0.01)
+    np.testing.assert_allclose(step.tau_error_integral, integral, rtol=1e-12)
+    tau_star = inputs["tau_desired"] + 2.0 * e_tau + 5.0 * integral - disturbance
+    np.testing.assert_allclose(step.tau_commanded, tau_star, rtol=1e-12)
+    np.testing.assert_allclose(
+        step.delta_q_unsaturated, K_TAU * tau_star + K_V * inputs["v"], rtol=1e-12
+    )
+    total = sum(getattr(step, name) for name in DELTA_Q_COMPONENTS)
+    np.testing.assert_allclose(total, step.delta_q_unsaturated, atol=1e-16)
+
+    # |τ̂| beyond tau_limit: the fallback starts (code 2, returned once), holds q_ref.
+    big = np.r_[600.0, np.zeros(5)]
+    assert [twins.tick(tau_estimated=big) for _ in range(2)] == [2, 0]
+    np.testing.assert_array_equal(step.q_cmd, inputs["q_ref"])
+    assert step.fallback_active[0] == 1.0 and step.fallback_reason[0] == 2.0
+    # Reset: torque control resumes with a zero integral.
+    twins.reset_fallback()
+    assert twins.tick() == 0 and step.fallback_active[0] == 0.0
+    np.testing.assert_allclose(
+        step.tau_error_integral, np.clip(PERIOD * e_tau, -0.01, 0.01), rtol=1e-12
+    )
+
+
+def test_step_without_terms_and_unlatched(motor):
+    """terms=None stands for the unconnected tau_* inputs (τ_ff = τ_d, zeros);
+    without latching, a fallback lasts while its reason does and is reported when it
+    starts; before start_time the step holds q_ref without reporting."""
+    config = _config(latch_fallback=False, start_time=2 * PERIOD)
+    inputs = _inputs(16)
+    inputs["q_ref"] = inputs["q_measured"] - 0.02
+    twins = _Twins(motor, config, inputs)
+    step = twins.step
+    assert step.unused == ("feedback_torque_integral", "feedback_disturbance")
+    nan = np.full(6, np.nan)
+    reasons = [twins.tick() for _ in range(3)]
+    reasons += [twins.tick(tau_estimated=nan) for _ in range(2)]
+    reasons += [twins.tick() for _ in range(2)]
+    assert reasons == [0, 0, 0, 1, 0, 0, 0]
+    np.testing.assert_allclose(step.delta_q, _eq10_11(inputs)[1], rtol=1e-12)
+    np.testing.assert_allclose(
+        step.feedforward_torque, K_TAU * inputs["tau_desired"], rtol=1e-14
+    )
+    assert not np.any(step.feedback_position) and not np.any(step.feedback_force)
+
+    # NaN encoders: reason 5, Δq 0 where unknown; a NaN q_ref, when used, raises.
+    assert twins.tick(q_measured=nan) == 5
+    np.testing.assert_array_equal(step.delta_q, np.zeros(6))
+    np.testing.assert_array_equal(step.q_cmd, inputs["q_ref"])
+    with pytest.raises(ValueError, match="q_ref"):
+        step.step(
+            0.0, *(inputs[k] for k in ("tau_desired", "tau_estimated")), nan, nan, nan
+        )
 
 
 # --------------------------------------------------------------------- gain mapping

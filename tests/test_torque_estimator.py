@@ -27,6 +27,7 @@ from hrp2_drake.estimation.torque_estimator import (
     FloatingBaseTorqueEstimator,
     ForceTorqueSensorConfig,
     TorqueEstimatorConfig,
+    TorqueEstimatorStep,
     add_estimator,
 )
 from hrp2_drake.robot import model
@@ -392,6 +393,86 @@ def test_imu_below_a_force_sensor_is_an_error(plant):
     sensors = {"chest": ForceTorqueSensorConfig(frame="CHEST_LINK1", body="CHEST_LINK1")}
     with pytest.raises(ValueError, match="IMU frame 'imu' is below an F/T sensor"):
         FloatingBaseTorqueEstimator(plant, _config(plant, sensors=sensors))
+
+
+# ------------------------------------------------------------------ the step alone
+
+
+def _step_inputs(sample: dict) -> tuple:
+    """A sample as TorqueEstimatorStep.step's arguments after t."""
+    return (
+        sample["q"],
+        sample["v"],
+        sample["vdot"],
+        sample["imu_linear_acceleration"],
+        sample["imu_angular_velocity"],
+        sample["imu_angular_acceleration"],
+        np.array(sample["readings"]),
+    )
+
+
+def test_step_on_plain_arrays_equals_the_system(plant, truth):
+    """TorqueEstimatorStep driven by arrays (no systems Context), its state bound in
+    a larger vector, gives the LeafSystem's outputs to the bit, through an offset
+    calibration, and the true torques and wrenches; it tells a fused controller how
+    to wire it."""
+    rng = np.random.default_rng(70)
+    config = _config(plant, offset_calibration_time=0.002, offset_calibration_start=0)
+    step = TorqueEstimatorStep(plant, config)
+    assert step.sensor_names() == SENSORS and step.num_sensors() == 4
+    assert step.num_joints() == 30 and step.has_imu()
+    assert step.reads_angular_acceleration() and step.period() == 1e-3
+    assert step.output_names() == ["tau", "unknown_wrench"] + [
+        f"external_wrench_{s}" for s in SENSORS
+    ]
+    assert (step.tau.shape, step.unknown_wrench.shape) == ((30,), (6,))
+    assert step.calibration.shape == (6 * 4 + 1,)
+    assert step.state_size == 30 + 6 + 6 * 4 + 6 * 4 + 1
+    fused = np.zeros(step.state_size + 2)  # as a fused controller binds it
+    step.bind(fused[1:-1])
+    estimator = FloatingBaseTorqueEstimator(plant, config)
+    context = estimator.CreateDefaultContext()
+    bias = rng.normal(0.0, 2.0, (len(SENSORS), 6))
+    samples = [truth.sample(rng, contact=False) for _ in range(2)]
+    samples.append(truth.sample(rng))
+    for k, sample in enumerate(samples):
+        biased = _biased(sample, bias)
+        _fix(estimator, context, biased)
+        out = _step(estimator, context, 1e-3 * k)
+        step.step(1e-3 * k, *_step_inputs(biased))
+        np.testing.assert_array_equal(step.tau, out["tau"])
+        np.testing.assert_array_equal(step.unknown_wrench, out["unknown"])
+        for name, external in zip(SENSORS, out["external"]):
+            step_external = getattr(step, f"external_wrench_{name}")
+            np.testing.assert_array_equal(step_external, external)
+    assert step.num_calibration_samples() == 2
+    assert np.shares_memory(step.calibration, fused) and fused[0] == fused[-1] == 0
+    np.testing.assert_array_equal(step.offsets(), estimator.offsets(context))
+    np.testing.assert_allclose(step.offsets(), bias, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(step.tau, samples[-1]["tau"], rtol=0, atol=1e-8)
+    for name, applied in zip(SENSORS, samples[-1]["external"]):
+        external = getattr(step, f"external_wrench_{name}")
+        np.testing.assert_allclose(external, applied, rtol=0, atol=1e-8)
+
+
+def test_step_neglecting_alpha_takes_none_and_names_a_bad_input(plant, truth):
+    """With angular_acceleration "neglected" the step takes None for it; a non-finite
+    input raises ValueError naming it, before any output changes."""
+    sample = truth.sample(np.random.default_rng(71))
+    step = TorqueEstimatorStep(plant, _config(plant, angular_acceleration="neglected"))
+    assert not step.reads_angular_acceleration()
+    inputs = list(_step_inputs(sample))
+    inputs[5] = None
+    step.step(0.0, *inputs)
+    reference = _estimate(plant, dict(sample, imu_angular_acceleration=np.zeros(3)))
+    np.testing.assert_allclose(step.tau, reference["tau"], rtol=0, atol=1e-9)
+    before = step.state.copy()
+    inputs[6] = inputs[6].copy()
+    inputs[6][SENSORS.index("left_hand"), 4] = np.inf  # its force along y
+    match = r"input 'wrench_left_hand' is not finite at entries \[4\]"
+    with pytest.raises(ValueError, match=match):
+        step.step(1e-3, *inputs)
+    np.testing.assert_array_equal(step.state, before)
 
 
 # ------------------------------------------------------------------ bad inputs

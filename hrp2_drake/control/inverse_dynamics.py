@@ -52,13 +52,12 @@ from pydrake.systems.framework import Context, DiscreteValues, InputPort
 from hrp2_drake.multibody import (
     check_joint_names,
     check_vector,
-    eval_finite,
     copy_joint,
     get_frame,
     joint_indexing,
     tree_joints,
 )
-from hrp2_drake.simulation import WitnessFreeLeafSystem
+from hrp2_drake.step import Step, StepSystem
 
 _WHERE = "InverseDynamicsController"
 _logger = logging.getLogger(__name__)
@@ -183,6 +182,47 @@ def make_fixed_base_plant(
     return plant
 
 
+class _FrameCopies:
+    """The copies of a plant's frames in a part model (`_moved_part`), each made once:
+    on the copy of its body, or welded to the world where it is in `context` if its
+    body does not move (has no copy)."""
+
+    def __init__(
+        self, model: MultibodyPlant, context: Context, bodies: dict[int, RigidBody]
+    ):
+        self._model, self._context, self._bodies = model, context, bodies
+        self._copies: dict[int, Frame] = {}
+
+    def __call__(self, original: Frame) -> Frame:
+        index = int(original.index())
+        if index not in self._copies:
+            self._copies[index] = self._copy(original)
+        return self._copies[index]
+
+    def _copy(self, original: Frame) -> Frame:
+        model = self._model
+        body = self._bodies.get(int(original.body().index()))
+        if body is None:  # does not move: welded to the world where it is
+            return model.AddFrame(
+                FixedOffsetFrame(
+                    original.name(),
+                    model.world_frame(),
+                    original.CalcPoseInWorld(self._context),
+                    original.model_instance(),
+                )
+            )
+        if original.is_body_frame():
+            return body.body_frame()
+        return model.AddFrame(
+            FixedOffsetFrame(
+                original.name(),
+                body.body_frame(),
+                original.GetFixedPoseInBodyFrame(),
+                original.model_instance(),
+            )
+        )
+
+
 def _moved_part(
     plant: MultibodyPlant,
     context: Context,
@@ -212,7 +252,9 @@ def _moved_part(
     # The joint that holds each body, breadth-first from the world.
     holder = {
         b: joint
-        for b, (_, joint) in tree_joints(plant, plant.world_body().index(), True).items()
+        for b, (_, joint) in tree_joints(
+            plant, plant.world_body().index(), True
+        ).items()
     }
     order = list(holder)
 
@@ -232,35 +274,7 @@ def _moved_part(
                 body.CalcSpatialInertiaInBodyFrame(context),
             )
 
-    frame_copies: dict[int, Frame] = {}
-
-    def copy_frame(original: Frame) -> Frame:
-        index = int(original.index())
-        if index in frame_copies:
-            return frame_copies[index]
-        body = copies.get(int(original.body().index()))
-        if body is None:  # does not move: welded to the world where it is
-            copy = model.AddFrame(
-                FixedOffsetFrame(
-                    original.name(),
-                    model.world_frame(),
-                    original.CalcPoseInWorld(context),
-                    original.model_instance(),
-                )
-            )
-        elif original.is_body_frame():
-            copy = body.body_frame()
-        else:
-            copy = model.AddFrame(
-                FixedOffsetFrame(
-                    original.name(),
-                    body.body_frame(),
-                    original.GetFixedPoseInBodyFrame(),
-                    original.model_instance(),
-                )
-            )
-        frame_copies[index] = copy
-        return copy
+    copy_frame = _FrameCopies(model, context, copies)
 
     indices = {int(j.index()) for j in controlled}
     for b in order:
@@ -318,7 +332,419 @@ class JointSpaceModel(NamedTuple):
     jacobian: np.ndarray | None
 
 
-class InverseDynamicsController(WitnessFreeLeafSystem):
+def _find_base(plant: MultibodyPlant, floating_base: bool) -> RigidBody | None:
+    """The floating base body of `plant` (None with a fixed base), checked against
+    config.floating_base."""
+    bases = sorted(int(b) for b in plant.GetFloatingBaseBodies())
+    names = [plant.get_body(BodyIndex(b)).name() for b in bases]
+    if not floating_base:
+        if bases:
+            raise ValueError(
+                f"{_WHERE}: the plant has the floating base(s) {names}, but the "
+                "controller uses a fixed-base model (paper footnote 3): build it "
+                "with make_fixed_base_plant, or set config.floating_base"
+            )
+        return None
+    if len(bases) != 1:
+        raise ValueError(
+            f"{_WHERE}: config.floating_base needs a plant with exactly one "
+            f"floating base body, it has {names}"
+        )
+    return plant.get_body(BodyIndex(bases[0]))
+
+
+class InverseDynamicsStep(Step):
+    """Eq. 12 for one sample, outside Drake's systems framework: the per-tick
+    arithmetic of InverseDynamicsController (its docstring has the model, the frames,
+    the units and the error semantics), written once for it and for a fused
+    controller.
+
+    State (the outputs; N·m, n each, config.joints order, zero at construction):
+        tau_desired: τ_d of eq. 12.
+        tau_feedforward, tau_position_feedback, tau_velocity_feedback,
+        tau_force_feedback, tau_force_error: its terms (TORQUE_COMPONENTS order).
+    Views on it: `outputs` (6, n), every row above in that order, and `terms` (5, n),
+    the TORQUE_COMPONENTS rows (what `DeltaQTorqueStep.step` takes as `terms`).
+
+    `step` rewrites the whole state every tick; it reads only `tau_desired` (to
+    report a new NaN event): `carried`, what a shell loads before a tick. Its
+    workspace is one private context of the (sub-)model and one MultibodyForces, made
+    here, with every work array; a tick allocates only what Drake's Python bindings
+    return (the inverse dynamics and, with a force task, the Jacobian).
+    """
+
+    #: The state arrays that `step` reads (the rest it rewrites every tick).
+    carried: tuple[str, ...] = ("tau_desired",)
+
+    def __init__(
+        self,
+        plant: MultibodyPlant,
+        config: InverseDynamicsConfig,
+        nominal_positions: np.ndarray | None = None,
+    ):
+        """
+        Args:
+            plant, config, nominal_positions: as InverseDynamicsController's (the
+                plant must outlive the step; it is never modified).
+
+        Raises:
+            ValueError: a bad config, an unfinalized plant, a base that does not
+                match config.floating_base, a force frame on the world.
+            KeyError: an unknown joint or frame.
+        """
+        super().__init__()
+        config.validate()
+        if not plant.is_finalized():
+            raise ValueError(f"{_WHERE}: the plant must be finalized")
+        self._plant = plant
+        self._config = config
+        self._indexing = joint_indexing(plant, config.joints)
+        n = self._n = self._indexing.size
+        self._ks = gain_vector("ks", config.ks, n, "InverseDynamicsConfig")
+        self._kd = gain_vector("kd", config.kd, n, "InverseDynamicsConfig")
+        self._kf = gain_vector("kf", config.kf, 6, "InverseDynamicsConfig")
+        self._base = _find_base(plant, config.floating_base)
+        self._force_frame = None
+        if config.force_frame:
+            self._force_frame = get_frame(plant, config.force_frame, "force frame")
+            if self._force_frame.body().index() == plant.world_body().index():
+                raise ValueError(
+                    f"{_WHERE}: force frame '{config.force_frame}' is on the world"
+                )
+        self._make_model(nominal_positions)
+        self._make_work_arrays()
+        self._declare("tau_desired", np.zeros(n))
+        for name in TORQUE_COMPONENTS:
+            self._declare(name, np.zeros(n))
+        self._finalize()
+
+    def _make_model(self, nominal_positions: np.ndarray | None) -> None:
+        """The model in which eq. 12 is computed (InverseDynamicsController's
+        docstring), one private context of it and one MultibodyForces."""
+        plant, config = self._plant, self._config
+        plant_context = plant.CreateDefaultContext()
+        if nominal_positions is not None:
+            plant.SetPositions(
+                plant_context,
+                check_vector(
+                    "nominal_positions",
+                    nominal_positions,
+                    plant.num_positions(),
+                    _WHERE,
+                ),
+            )
+        moved = None
+        if self._base is None:
+            moved = _moved_part(plant, plant_context, config.joints, self._force_frame)
+        if moved is None:
+            self._model, self._context = plant, plant_context
+            self._model_force_frame = self._force_frame
+        else:
+            self._model, self._model_force_frame = moved
+            self._context = self._model.CreateDefaultContext()
+        model = self._model
+        self._forces = MultibodyForces(model)
+        self._world = model.world_frame()
+        indexing = joint_indexing(model, config.joints)
+        self._jq = indexing.q
+        self._jv = indexing.v
+        nq, nv = model.num_positions(), model.num_velocities()
+        # The controlled joints are the whole model's velocities, in order (a leg's
+        # sub-model): no column or row to select.
+        self._all_v = bool(nv == self._n and np.array_equal(self._jv, np.arange(nv)))
+        # x = [q; v] of the private context; q_full and v_full are views on it.
+        self._x = np.zeros(nq + nv)
+        self._q_full, self._v_full = self._x[:nq], self._x[nq:]
+        self._q_full[:] = model.GetPositions(self._context)
+        self._vdot_full = np.zeros(nv)
+        # Gravity (in ĥ_j) enters the inverse dynamics as the body forces of the
+        # model's gravity field when that is its only force element
+        # (CalcForceElementsContribution; cheaper than CalcGravityGeneralizedForces),
+        # with the joint damping that call adds as generalized forces cleared.
+        self._gravity_only = model.num_force_elements() == 1
+        self._damped = any(
+            np.any(model.get_joint(j).default_damping_vector() != 0.0)
+            for j in model.GetJointIndices()
+        )
+        if self._base is not None:
+            self._base_v = np.arange(6) + self._base.floating_velocities_start_in_v()
+
+    def _make_work_arrays(self) -> None:
+        n = self._n
+        self._zero3 = np.zeros(3)
+        self._zero6 = np.zeros(6)
+        self._identity_quaternion = np.array([1.0, 0.0, 0.0, 0.0])
+        # Per tick: the inputs land in the rows of one work array (one dot product
+        # checks them all for NaN and infinity).
+        force = self._force_frame is not None
+        sizes = [n] * 5 + ([6, 6] if force else [])
+        self._inputs = np.zeros(sum(sizes))
+        self._ones = np.ones(self._inputs.size)
+        ends = np.cumsum(sizes)
+        rows = [self._inputs[end - size : end] for size, end in zip(sizes, ends)]
+        self._input_rows = tuple(rows)
+        # (q_ref, v_ref, vdot_ref, q, v, f_ref, f), zero wrenches without a force task.
+        self._values = tuple(rows if force else rows + [self._zero6, self._zero6])
+        self._tau_model = np.zeros(n)  # M_j q̈_d + ĥ_j
+        self._jt_f = np.zeros(n)  # J_jᵀ f_d
+        self._e_f = np.zeros(6)
+        self._kf_e_f = np.zeros(6)
+
+    def _views_changed(self) -> None:
+        n = self._n
+        self.outputs = self.state[: 6 * n].reshape(6, n)
+        self.terms = self.outputs[1:]
+        self._output_rows = tuple(self.outputs)
+
+    # ----------------------------------------------------------------- accessors
+
+    def plant(self) -> MultibodyPlant:
+        return self._plant
+
+    def config(self) -> InverseDynamicsConfig:
+        return self._config
+
+    def joint_names(self) -> tuple[str, ...]:
+        return self._indexing.names
+
+    def has_force_task(self) -> bool:
+        return self._force_frame is not None
+
+    def has_floating_base(self) -> bool:
+        return self._base is not None
+
+    # ----------------------------------------------------------------- per tick
+
+    def step(
+        self,
+        t: float,
+        q_ref: np.ndarray,
+        v_ref: np.ndarray,
+        vdot_ref: np.ndarray,
+        q: np.ndarray,
+        v: np.ndarray,
+        f_ref: np.ndarray | None = None,
+        f: np.ndarray | None = None,
+        base_orientation: np.ndarray | None = None,
+        base_angular_velocity: np.ndarray | None = None,
+    ) -> bool:
+        """One tick of eq. 12: the state becomes τ_d and its terms.
+
+        Args:
+            t: the time (s); unused (the law is static), for a uniform step call.
+            q_ref, v_ref, vdot_ref: q_d (rad), q̇_d (rad/s), q̈_d (rad/s²), n each.
+            q, v: q̂ (rad), q̂̇ (rad/s), n each.
+            f_ref, f: f_d and f̂ (6 each, [torque; force], N·m and N, force frame),
+                with a force task; None: zero. Ignored without a force task.
+            base_orientation, base_angular_velocity: with config.floating_base, the
+                base's quaternion [w, x, y, z] and ω_WB in the base frame (rad/s);
+                None: identity and zero.
+
+        Returns:
+            True when this tick's q_ref, v_ref, vdot_ref, q, v, f_ref or f is not
+            finite while the previous τ_d was: a new NaN event (the state is then
+            all NaN, as after every tick with a non-finite sample; no exception,
+            so that the Δq controller falls back to position control). Else False.
+
+        Raises:
+            ValueError: a base argument without config.floating_base, a non-finite
+                one, or a quaternion whose norm is off by more than 10 %.
+        """
+        rows = self._input_rows
+        rows[0][:] = q_ref
+        rows[1][:] = v_ref
+        rows[2][:] = vdot_ref
+        rows[3][:] = q
+        rows[4][:] = v
+        if self._force_frame is not None:
+            rows[5][:] = self._zero6 if f_ref is None else f_ref
+            rows[6][:] = self._zero6 if f is None else f
+        if not math.isfinite(self._inputs.dot(self._ones)):
+            # NaN in, NaN out.
+            new = math.isfinite(self.tau_desired.sum())
+            self.outputs.fill(math.nan)
+            return new
+        if base_orientation is not None or base_angular_velocity is not None:
+            base_orientation, base_angular_velocity = self._check_base(
+                base_orientation, base_angular_velocity
+            )
+        self._eq12(
+            self._values, base_orientation, base_angular_velocity, self._output_rows
+        )
+        return False
+
+    def _check_base(self, base_orientation, base_angular_velocity):
+        if self._base is None:
+            raise ValueError(f"{_WHERE}: base arguments need config.floating_base")
+        if base_orientation is not None:
+            base_orientation = check_vector(
+                "base_orientation", base_orientation, 4, _WHERE
+            )
+        if base_angular_velocity is not None:
+            base_angular_velocity = check_vector(
+                "base_angular_velocity", base_angular_velocity, 3, _WHERE
+            )
+        return base_orientation, base_angular_velocity
+
+    def _eq12(
+        self,
+        inputs: tuple[np.ndarray, ...],
+        base_orientation: np.ndarray | None,
+        base_angular_velocity: np.ndarray | None,
+        out: tuple[np.ndarray, ...],
+    ) -> None:
+        """Eq. 12 and its terms into `out`, six arrays of n (τ_d, then the
+        TORQUE_COMPONENTS order), from `inputs` = (q_ref, v_ref, vdot_ref, q, v,
+        f_ref, f), already checked; `out` must not share memory with them."""
+        q_ref, v_ref, vdot_ref, q, v, f_ref, f = inputs
+        tau_desired, feedforward, position, velocity, force_feedback, force_error = out
+        plant, context, forces = self._model, self._context, self._forces
+        self._set_state(q, v, base_orientation, base_angular_velocity)
+        # M_j q̈_d + ĥ_j: one inverse dynamics with the other accelerations at zero
+        # (CalcInverseDynamics returns M v̇ + C v − τ_applied), gravity applied.
+        self._vdot_full[self._jv] = vdot_ref
+        if self._gravity_only:
+            plant.CalcForceElementsContribution(context, forces)
+            if self._damped:
+                forces.mutable_generalized_forces()[:] = 0.0
+        else:  # gravity as an applied generalized force, no body forces
+            forces.mutable_generalized_forces()[:] = plant.CalcGravityGeneralizedForces(
+                context
+            )
+        tau_model = plant.CalcInverseDynamics(context, self._vdot_full, forces)
+        if not self._all_v:
+            tau_model = np.take(tau_model, self._jv, out=self._tau_model)
+        np.multiply(self._ks, np.subtract(q_ref, q, position), position)
+        np.multiply(self._kd, np.subtract(v_ref, v, velocity), velocity)
+        J = self._jacobian()
+        if J is None:
+            # Eq. 12 without a force task: τ_d = M_j q̈_d + ĥ_j + K_s e_q + K_d ė_q.
+            np.add(tau_model, position, tau_desired)
+            np.add(tau_desired, velocity, tau_desired)
+            feedforward[:] = tau_model
+            force_feedback.fill(0.0)
+            force_error.fill(0.0)
+            return
+        e_f = np.subtract(f_ref, f, self._e_f)
+        # M_j q̈_d + ĥ_j − J_jᵀ f_d
+        np.subtract(tau_model, np.matmul(J.T, f_ref, self._jt_f), feedforward)
+        # −J_jᵀ K_f e_f and −J_jᵀ e_f
+        np.multiply(self._kf, e_f, self._kf_e_f)
+        np.matmul(J.T, self._kf_e_f, force_feedback)
+        np.negative(force_feedback, force_feedback)
+        np.negative(np.matmul(J.T, e_f, force_error), force_error)
+        # Eq. 12: τ_d = M_j q̈_d + ĥ_j − J_jᵀ (f_d + K_f e_f) + K_s e_q + K_d ė_q.
+        np.add(feedforward, position, tau_desired)
+        np.add(tau_desired, velocity, tau_desired)
+        np.add(tau_desired, force_feedback, tau_desired)
+
+    def _set_state(self, q, v, base_orientation, base_angular_velocity) -> None:
+        """Sets the private context: controlled joints from q, v, the rest nominal."""
+        plant, context = self._model, self._context
+        self._q_full[self._jq] = q
+        self._v_full[self._jv] = v
+        if self._base is None:
+            plant.SetPositionsAndVelocities(context, self._x)
+            return
+        plant.SetPositions(context, self._q_full)
+        wxyz = (
+            self._identity_quaternion if base_orientation is None else base_orientation
+        )
+        norm = float(np.linalg.norm(wxyz))
+        if not 0.9 <= norm <= 1.1:
+            raise ValueError(
+                f"{_WHERE}: base_orientation {wxyz} is not a unit quaternion "
+                f"(norm {norm:.3g})"
+            )
+        R_WB = RotationMatrix(Quaternion(wxyz / norm))
+        plant.SetFreeBodyPose(context, self._base, RigidTransform(R_WB, self._zero3))
+        w_B = self._zero3 if base_angular_velocity is None else base_angular_velocity
+        self._v_full[self._base_v[:3]] = R_WB.multiply(w_B)  # ω_WB in W
+        self._v_full[self._base_v[3:]] = 0.0
+        plant.SetVelocities(context, self._v_full)
+
+    def _jacobian(self) -> np.ndarray | None:
+        """J_j: the force frame F's J_V_WF_F, controlled joints' columns (6, n)."""
+        frame = self._model_force_frame
+        if frame is None:
+            return None
+        J = self._model.CalcJacobianSpatialVelocity(
+            self._context,
+            JacobianWrtVariable.kV,
+            frame,
+            self._zero3,
+            self._world,
+            frame,
+        )
+        return J if self._all_v else J[:, self._jv]
+
+    # ----------------------------------------------------------------- one sample
+
+    def joint_space_model(
+        self,
+        q: np.ndarray,
+        v: np.ndarray | None = None,
+        base_orientation: np.ndarray | None = None,
+        base_angular_velocity: np.ndarray | None = None,
+    ) -> JointSpaceModel:
+        """InverseDynamicsController.joint_space_model (its docstring)."""
+        n = self._n
+        q = check_vector("q", q, n, _WHERE)
+        v = np.zeros(n) if v is None else check_vector("v", v, n, _WHERE)
+        self._set_state(q, v, base_orientation, base_angular_velocity)
+        plant, context = self._model, self._context
+        mass_matrix = plant.CalcMassMatrix(context)[np.ix_(self._jv, self._jv)]
+        # h = C(q, v) v − τ_g(q): CalcBiasTerm leaves gravity out.
+        h = plant.CalcBiasTerm(context) - plant.CalcGravityGeneralizedForces(context)
+        return JointSpaceModel(mass_matrix, h[self._jv], self._jacobian())
+
+    def compute(
+        self,
+        q_ref: np.ndarray,
+        v_ref: np.ndarray,
+        vdot_ref: np.ndarray,
+        q: np.ndarray,
+        v: np.ndarray,
+        f_ref: np.ndarray | None = None,
+        f: np.ndarray | None = None,
+        base_orientation: np.ndarray | None = None,
+        base_angular_velocity: np.ndarray | None = None,
+    ) -> InverseDynamicsTerms:
+        """InverseDynamicsController.compute (its docstring): eq. 12 for one sample,
+        checked, in new arrays; the state is left alone."""
+        n = self._n
+        if self._force_frame is None and (f_ref is not None or f is not None):
+            raise ValueError(f"{_WHERE}: f_ref and f need config.force_frame")
+        if self._base is None and (
+            base_orientation is not None or base_angular_velocity is not None
+        ):
+            raise ValueError(f"{_WHERE}: base arguments need config.floating_base")
+        args = [
+            check_vector(name, value, n, _WHERE)
+            for name, value in (
+                ("q_ref", q_ref),
+                ("v_ref", v_ref),
+                ("vdot_ref", vdot_ref),
+                ("q", q),
+                ("v", v),
+            )
+        ]
+        f_ref = (
+            self._zero6 if f_ref is None else check_vector("f_ref", f_ref, 6, _WHERE)
+        )
+        f = self._zero6 if f is None else check_vector("f", f, 6, _WHERE)
+        if base_orientation is not None or base_angular_velocity is not None:
+            base_orientation, base_angular_velocity = self._check_base(
+                base_orientation, base_angular_velocity
+            )
+        out = np.zeros((6, n))
+        self._eq12(
+            (*args, f_ref, f), base_orientation, base_angular_velocity, tuple(out)
+        )
+        return InverseDynamicsTerms(*out)
+
+
+class InverseDynamicsController(StepSystem):
     """Desired joint torques by inverse dynamics with an optional force task (paper
     eq. 12).
 
@@ -392,6 +818,9 @@ class InverseDynamicsController(WitnessFreeLeafSystem):
     model's business (eq. 10) and because the torque estimate τ̂ (eq. 2) is a
     rigid-body torque too; Sec. 4.2 needs the same ĥ in both.
 
+    The arithmetic is `InverseDynamicsStep`'s (this system is its shell: ports, state
+    groups, the periodic event and the NaN warning).
+
     Errors: in the periodic update a NaN or infinite sample of q_ref, v_ref, vdot_ref,
     q, v, f_ref or f makes every output NaN (logged once), so that the Δq controller
     falls back to position control instead of the loop stopping; `compute` and the
@@ -419,73 +848,8 @@ class InverseDynamicsController(WitnessFreeLeafSystem):
                 floating base's); default: the plant's default positions.
         """
         super().__init__()
-        config.validate()
-        if not plant.is_finalized():
-            raise ValueError(f"{_WHERE}: the plant must be finalized")
-        self._plant = plant
-        self._config = config
-        self._zero3 = np.zeros(3)
-
-        self._indexing = joint_indexing(plant, config.joints)
-        n = self._n = self._indexing.size
-        self._ks = gain_vector("ks", config.ks, n, "InverseDynamicsConfig")
-        self._kd = gain_vector("kd", config.kd, n, "InverseDynamicsConfig")
-        self._kf = gain_vector("kf", config.kf, 6, "InverseDynamicsConfig")
-        self._base = self._find_base(plant, config.floating_base)
-
-        self._force_frame = None
-        if config.force_frame:
-            self._force_frame = get_frame(plant, config.force_frame, "force frame")
-            if self._force_frame.body().index() == plant.world_body().index():
-                raise ValueError(
-                    f"{_WHERE}: force frame '{config.force_frame}' is on the world"
-                )
-
-        # The model in which eq. 12 is computed (class docstring), one private
-        # context of it and one MultibodyForces.
-        plant_context = plant.CreateDefaultContext()
-        if nominal_positions is not None:
-            plant.SetPositions(
-                plant_context,
-                check_vector(
-                    "nominal_positions",
-                    nominal_positions,
-                    plant.num_positions(),
-                    _WHERE,
-                ),
-            )
-        moved = None
-        if self._base is None:
-            moved = _moved_part(plant, plant_context, config.joints, self._force_frame)
-        if moved is None:
-            self._model, self._context = plant, plant_context
-            self._model_force_frame = self._force_frame
-        else:
-            self._model, self._model_force_frame = moved
-            self._context = self._model.CreateDefaultContext()
-        model = self._model
-        self._forces = MultibodyForces(model)
-        self._world = model.world_frame()
-        indexing = joint_indexing(model, config.joints)
-        self._jq = indexing.q
-        self._jv = indexing.v
-        nq, nv = model.num_positions(), model.num_velocities()
-        # x = [q; v] of the private context; q_full and v_full are views on it.
-        self._x = np.zeros(nq + nv)
-        self._q_full, self._v_full = self._x[:nq], self._x[nq:]
-        self._q_full[:] = model.GetPositions(self._context)
-        self._vdot_full = np.zeros(nv)
-        # Gravity (in ĥ_j) enters the inverse dynamics as the body forces of the
-        # model's gravity field when that is its only force element
-        # (CalcForceElementsContribution; cheaper than CalcGravityGeneralizedForces),
-        # with the joint damping that call adds as generalized forces cleared.
-        self._gravity_only = model.num_force_elements() == 1
-        self._damped = any(
-            np.any(model.get_joint(j).default_damping_vector() != 0.0)
-            for j in model.GetJointIndices()
-        )
-        if self._base is not None:
-            self._base_v = np.arange(6) + self._base.floating_velocities_start_in_v()
+        step = InverseDynamicsStep(plant, config, nominal_positions)
+        n = len(config.joints)
 
         # Ports.
         self._q_ref = self.DeclareVectorInputPort("q_ref", n)
@@ -494,85 +858,43 @@ class InverseDynamicsController(WitnessFreeLeafSystem):
         self._q = self.DeclareVectorInputPort("q", n)
         self._v = self.DeclareVectorInputPort("v", n)
         self._f_ref = self._f = None
-        if self._force_frame is not None:
+        if step.has_force_task():
             self._f_ref = self.DeclareVectorInputPort("f_ref", 6)
             self._f = self.DeclareVectorInputPort("f", 6)
         self._base_orientation = self._base_angular_velocity = None
-        if self._base is not None:
+        if step.has_floating_base():
             self._base_orientation = self.DeclareVectorInputPort("base_orientation", 4)
             self._base_angular_velocity = self.DeclareVectorInputPort(
                 "base_angular_velocity", 3
             )
-
-        self._tau_state = self.DeclareDiscreteState(n)
-        self._component_states = [
-            self.DeclareDiscreteState(n) for _ in TORQUE_COMPONENTS
-        ]
-        self.DeclareStateOutputPort("tau_desired", self._tau_state)
-        for name, state in zip(TORQUE_COMPONENTS, self._component_states):
-            self.DeclareStateOutputPort(name, state)
+        self._declare_step_state(step)
+        for name in ("tau_desired", *TORQUE_COMPONENTS):
+            self._declare_step_output(name)
         self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
-
-        self._zero_n = np.zeros(n)
-        self._zero6 = np.zeros(6)
-        self._identity_quaternion = np.array([1.0, 0.0, 0.0, 0.0])
-        # Per tick: the inputs land in the rows of one work array (one dot product
-        # checks them all for NaN and infinity); plain ints for DiscreteValues.
-        num_inputs = 5 * n + (12 if self._force_frame is not None else 0)
-        self._inputs = np.zeros(num_inputs)
-        self._ones = np.ones(num_inputs)
+        # Per tick, the step's state arrays that it reads (it rewrites the others):
+        # the only ones loaded from the context.
+        self._carried = [
+            (self.step_group(name), step.state[step.rows(name)])
+            for name in step.carried
+        ]
         ports = [self._q_ref, self._v_ref, self._vdot_ref, self._q, self._v]
-        sizes = [n] * 5
-        if self._force_frame is not None:
+        self._sample_ports = ports
+        if self._f is not None:
             ports += [self._f_ref, self._f]
-            sizes += [6, 6]
-        ends = np.cumsum(sizes)
-        self._input_rows = [
-            (port, self._inputs[end - size : end])
-            for port, size, end in zip(ports, sizes, ends)
-        ]
-        self._values = [row for _, row in self._input_rows]
-        if self._force_frame is None:
-            self._values += [self._zero6, self._zero6]  # f_ref, f
-        self._groups = [int(self._tau_state)] + [
-            int(state) for state in self._component_states
-        ]
-        self._nan_n = np.full(n, np.nan)
-
-    # ----------------------------------------------------------------- construction
-
-    @staticmethod
-    def _find_base(plant: MultibodyPlant, floating_base: bool) -> RigidBody | None:
-        bases = sorted(int(b) for b in plant.GetFloatingBaseBodies())
-        names = [plant.get_body(BodyIndex(b)).name() for b in bases]
-        if not floating_base:
-            if bases:
-                raise ValueError(
-                    f"{_WHERE}: the plant has the floating base(s) {names}, but the "
-                    "controller uses a fixed-base model (paper footnote 3): build it "
-                    "with make_fixed_base_plant, or set config.floating_base"
-                )
-            return None
-        if len(bases) != 1:
-            raise ValueError(
-                f"{_WHERE}: config.floating_base needs a plant with exactly one "
-                f"floating base body, it has {names}"
-            )
-        return plant.get_body(BodyIndex(bases[0]))
 
     # ----------------------------------------------------------------- accessors
 
     def plant(self) -> MultibodyPlant:
-        return self._plant
+        return self._step.plant()
 
     def config(self) -> InverseDynamicsConfig:
-        return self._config
+        return self._step.config()
 
     def joint_names(self) -> tuple[str, ...]:
-        return self._indexing.names
+        return self._step.joint_names()
 
     def has_force_task(self) -> bool:
-        return self._force_frame is not None
+        return self._step.has_force_task()
 
     # ----------------------------------------------------------------- computation
 
@@ -588,15 +910,9 @@ class InverseDynamicsController(WitnessFreeLeafSystem):
         same names (floating base only). For the gain mapping of Sec. 4.2 and for
         `inverse_dynamics_gains_for_k6`'s joint inertia.
         """
-        n = self._n
-        q = check_vector("q", q, n, _WHERE)
-        v = self._zero_n if v is None else check_vector("v", v, n, _WHERE)
-        self._set_state(q, v, base_orientation, base_angular_velocity)
-        plant, context = self._model, self._context
-        mass_matrix = plant.CalcMassMatrix(context)[np.ix_(self._jv, self._jv)]
-        # h = C(q, v) v − τ_g(q): CalcBiasTerm leaves gravity out.
-        h = plant.CalcBiasTerm(context) - plant.CalcGravityGeneralizedForces(context)
-        return JointSpaceModel(mass_matrix, h[self._jv], self._jacobian())
+        return self._step.joint_space_model(
+            q, v, base_orientation, base_angular_velocity
+        )
 
     def compute(
         self,
@@ -618,177 +934,63 @@ class InverseDynamicsController(WitnessFreeLeafSystem):
             ValueError: a wrong size or a non-finite value, naming the argument; f_ref
                 or f without a force task, base arguments without a floating base.
         """
-        n = self._n
-        if self._force_frame is None and (f_ref is not None or f is not None):
-            raise ValueError(f"{_WHERE}: f_ref and f need config.force_frame")
-        if self._base is None and (
-            base_orientation is not None or base_angular_velocity is not None
-        ):
-            raise ValueError(f"{_WHERE}: base arguments need config.floating_base")
-        args = [
-            check_vector(name, value, n, _WHERE)
-            for name, value in (
-                ("q_ref", q_ref),
-                ("v_ref", v_ref),
-                ("vdot_ref", vdot_ref),
-                ("q", q),
-                ("v", v),
-            )
-        ]
-        f_ref = (
-            self._zero6 if f_ref is None else check_vector("f_ref", f_ref, 6, _WHERE)
-        )
-        f = self._zero6 if f is None else check_vector("f", f, 6, _WHERE)
-        if base_orientation is not None:
-            base_orientation = check_vector(
-                "base_orientation", base_orientation, 4, _WHERE
-            )
-        if base_angular_velocity is not None:
-            base_angular_velocity = check_vector(
-                "base_angular_velocity", base_angular_velocity, 3, _WHERE
-            )
-        terms = self._eq12(*args, f_ref, f, base_orientation, base_angular_velocity)
-        return InverseDynamicsTerms(*(term.copy() for term in terms))
-
-    def _set_state(self, q, v, base_orientation, base_angular_velocity) -> None:
-        """Sets the private context: controlled joints from q, v, the rest nominal."""
-        plant, context = self._model, self._context
-        self._q_full[self._jq] = q
-        self._v_full[self._jv] = v
-        if self._base is None:
-            plant.SetPositionsAndVelocities(context, self._x)
-            return
-        plant.SetPositions(context, self._q_full)
-        wxyz = (
-            self._identity_quaternion if base_orientation is None else base_orientation
-        )
-        norm = float(np.linalg.norm(wxyz))
-        if not 0.9 <= norm <= 1.1:
-            raise ValueError(
-                f"{_WHERE}: base_orientation {wxyz} is not a unit quaternion "
-                f"(norm {norm:.3g})"
-            )
-        R_WB = RotationMatrix(Quaternion(wxyz / norm))
-        plant.SetFreeBodyPose(context, self._base, RigidTransform(R_WB, self._zero3))
-        w_B = self._zero3 if base_angular_velocity is None else base_angular_velocity
-        self._v_full[self._base_v[:3]] = R_WB.multiply(w_B)  # ω_WB in W
-        self._v_full[self._base_v[3:]] = 0.0
-        plant.SetVelocities(context, self._v_full)
-
-    def _jacobian(self) -> np.ndarray | None:
-        """J_j: the force frame F's J_V_WF_F, controlled joints' columns (6, n)."""
-        frame = self._model_force_frame
-        if frame is None:
-            return None
-        J = self._model.CalcJacobianSpatialVelocity(
-            self._context,
-            JacobianWrtVariable.kV,
-            frame,
-            self._zero3,
-            self._world,
-            frame,
-        )
-        return J[:, self._jv]
-
-    def _eq12(
-        self,
-        q_ref,
-        v_ref,
-        vdot_ref,
-        q,
-        v,
-        f_ref,
-        f,
-        base_orientation,
-        base_angular_velocity,
-    ) -> InverseDynamicsTerms:
-        """Eq. 12 and its terms (views on fresh arrays; inputs already checked)."""
-        plant, context, forces = self._model, self._context, self._forces
-        self._set_state(q, v, base_orientation, base_angular_velocity)
-        # M_j q̈_d + ĥ_j: one inverse dynamics with the other accelerations at zero
-        # (CalcInverseDynamics returns M v̇ + C v − τ_applied), gravity applied.
-        self._vdot_full[self._jv] = vdot_ref
-        if self._gravity_only:
-            plant.CalcForceElementsContribution(context, forces)
-            if self._damped:
-                forces.mutable_generalized_forces()[:] = 0.0
-        else:  # gravity as an applied generalized force, no body forces
-            forces.mutable_generalized_forces()[:] = plant.CalcGravityGeneralizedForces(
-                context
-            )
-        tau_model = plant.CalcInverseDynamics(context, self._vdot_full, forces)[
-            self._jv
-        ]
-        position_feedback = self._ks * (q_ref - q)  # K_s e_q
-        velocity_feedback = self._kd * (v_ref - v)  # K_d ė_q
-        J = self._jacobian()
-        if J is None:
-            # Eq. 12 without a force task: τ_d = M_j q̈_d + ĥ_j + K_s e_q + K_d ė_q.
-            return InverseDynamicsTerms(
-                tau_model + position_feedback + velocity_feedback,
-                tau_model,
-                position_feedback,
-                velocity_feedback,
-                self._zero_n,
-                self._zero_n,
-            )
-        e_f = f_ref - f
-        feedforward = tau_model - J.T @ f_ref  # M_j q̈_d + ĥ_j − J_jᵀ f_d
-        force_feedback = -J.T @ (self._kf * e_f)  # −J_jᵀ K_f e_f
-        force_error = -J.T @ e_f
-        # Eq. 12: τ_d = M_j q̈_d + ĥ_j − J_jᵀ (f_d + K_f e_f) + K_s e_q + K_d ė_q.
-        tau_desired = (
-            feedforward + position_feedback + velocity_feedback + force_feedback
-        )
-        return InverseDynamicsTerms(
-            tau_desired,
-            feedforward,
-            position_feedback,
-            velocity_feedback,
-            force_feedback,
-            force_error,
+        return self._step.compute(
+            q_ref,
+            v_ref,
+            vdot_ref,
+            q,
+            v,
+            f_ref,
+            f,
+            base_orientation,
+            base_angular_velocity,
         )
 
-    def _read(self, port: InputPort, context: Context) -> np.ndarray:
-        return eval_finite(port, context, f"{_WHERE} {self.GetSystemPathname()}")
-
-    def _read_optional(self, port: InputPort | None, context: Context):
+    def _optional(self, port: InputPort | None, context: Context):
         if port is None or not port.HasValue(context):
             return None
-        return self._read(port, context)
+        return port.Eval(context)
 
     def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
         # The hot path of every control period (scripts/bench.py --only tick).
-        for port, row in self._input_rows:
-            row[:] = port.Eval(context)
-        if not math.isfinite(self._inputs.dot(self._ones)):
-            self._write_nan(context, discrete_state)
-            return
+        for group, view in self._carried:
+            view[:] = discrete_state.get_value(group)
+        f_ref = f = None
+        if self._f is not None:
+            f_ref, f = self._f_ref.Eval(context), self._f.Eval(context)
         base = (None, None)  # a fixed base has no base inputs
         if self._base_orientation is not None:
             base = (
-                self._read_optional(self._base_orientation, context),
-                self._read_optional(self._base_angular_velocity, context),
+                self._optional(self._base_orientation, context),
+                self._optional(self._base_angular_velocity, context),
             )
-        terms = self._eq12(*self._values, *base)
-        for group, value in zip(self._groups, terms):
-            discrete_state.set_value(group, value)
+        new_nan = self._step.step(
+            context.get_time(),
+            self._q_ref.Eval(context),
+            self._v_ref.Eval(context),
+            self._vdot_ref.Eval(context),
+            self._q.Eval(context),
+            self._v.Eval(context),
+            f_ref,
+            f,
+            *base,
+        )
+        if new_nan:
+            self._log_nan(context)
+        self._store(discrete_state)
 
-    def _write_nan(self, context: Context, discrete_state: DiscreteValues) -> None:
+    def _log_nan(self, context: Context) -> None:
         # A bad sample must not take the loop down: NaN in, NaN out (the Δq controller
-        # downstream then falls back to position control).
+        # downstream then falls back to position control); logged once.
         bad = [
             port.get_name()
-            for port, row in self._input_rows
-            if not math.isfinite(row.sum())
+            for port in self._sample_ports
+            if not math.isfinite(port.Eval(context).sum())
         ]
-        if math.isfinite(context.get_discrete_state(self._tau_state).get_value().sum()):
-            _logger.warning(
-                "%s %s: input %s not finite at t = %.6g s: outputs NaN",
-                _WHERE,
-                self.GetSystemPathname(),
-                bad,
-                context.get_time(),
-            )
-        for group in self._groups:
-            discrete_state.set_value(group, self._nan_n)
+        _logger.warning(
+            "%s %s: input %s not finite at t = %.6g s: outputs NaN",
+            _WHERE,
+            self.GetSystemPathname(),
+            bad,
+            context.get_time(),
+        )

@@ -76,10 +76,11 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from pydrake.systems.framework import Context, DiscreteValues, LeafSystem
+from pydrake.systems.framework import Context, DiscreteValues
 
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import check_joint_names
+from hrp2_drake.step import Step, StepSystem
 
 _WHERE = "DelayPredictor"
 # The bookkeeping state: newest ring row, Δq read so far (capped at M), consecutive
@@ -157,9 +158,230 @@ class DelayPredictorConfig:
                 raise ValueError(f"{where}.{name}: 1 or {n} values > 0, got {values}")
 
 
-class DelayPredictor(LeafSystem):
+class DelayPredictorStep(Step):
+    """The predictor's per-tick arithmetic (module docstring), without Drake.
+
+    Args:
+        motor_model: the identified motor model (K_τ, K_v; its Coulomb term is not
+            used); it must have every joint of config.joints.
+        config: the DelayPredictorConfig.
+
+    State (`Step`; n = len(config.joints), k = config.wrench_size, M =
+    num_buffered()): `v_predicted` (n, rad/s), `tau_predicted` (n, N·m),
+    `wrench_predicted` (k, N and N·m; only if k > 0), `input_fault` (1: consecutive
+    ticks with a non-finite input), `counters` (4: newest ring row, Δq read so far
+    (at most M), consecutive bad ticks, total bad ticks), and `ring` ((2M, n), rad;
+    only if M > 0): the last M Δq read, each written twice (rows r and r + M) so
+    that the window, oldest first, is the contiguous rows r + 1 .. r + M.
+    """
+
+    def __init__(self, motor_model: MotorModel, config: DelayPredictorConfig):
+        super().__init__()
+        config.validate()
+        self._config = config
+        try:
+            model = motor_model.subset(config.joints)
+        except KeyError as error:
+            raise KeyError(f"{_WHERE}: {error.args[0]}") from None
+        errors = model.sign_errors()
+        if errors:
+            raise ValueError(f"{_WHERE}: motor model {errors[0]}")
+        n = self._n = len(config.joints)
+        k = self._k = int(config.wrench_size)
+        period = config.period
+        self._k_tau, self._k_v = model.k_tau, model.k_v
+        self._inertia = np.asarray(config.inertia, dtype=float)
+        self._latency_periods = round(config.command_latency / period)
+        horizon_periods = config.delay / period + self._latency_periods
+        whole = math.floor(horizon_periods + _WHOLE_TOLERANCE)
+        fraction = horizon_periods - whole
+        if fraction < _WHOLE_TOLERANCE:
+            fraction = 0.0
+        self._horizon = horizon_periods * period
+        # M buffered Δq; the oldest acts over a fraction of a period when the horizon
+        # is not whole.
+        self._steps = M = whole + (fraction > 0.0)
+        steps = np.full(M, period)
+        if fraction > 0.0:
+            steps[0] = fraction * period
+        self._prediction_weights, self._vdot_weights = self._linear_prediction(steps)
+        self._declare("v_predicted", np.zeros(n))
+        self._declare("tau_predicted", np.zeros(n))
+        if k:
+            self._declare("wrench_predicted", np.zeros(k))
+        self._declare("input_fault", 0.0)
+        self._declare("counters", np.zeros(4))
+        if M:
+            self._declare("ring", np.zeros((2 * M, n)))
+        # Per-tick work: the corrections [q̇_pred − q̂̇, τ_pred − τ̂] (2, n), the q̂̈
+        # term, and each bounded correction with its (lower, upper) bounds.
+        self._ones_n = np.ones(n)
+        self._ones_k = np.ones(k)
+        self._correction = np.zeros((2, n))
+        self._correction_v, self._correction_tau = self._correction
+        self._vdot_term = np.zeros((2, n))
+        bounds = (
+            _bounds(config.max_velocity_correction, n),
+            _bounds(config.max_torque_correction, n),
+        )
+        self._bounded = [
+            (value, bound)
+            for value, bound in zip(self._correction, bounds)
+            if bound is not None
+        ]
+        self._finalize()
+
+    def _views_changed(self) -> None:
+        M = self._steps
+        if M:
+            self._rows = list(self.ring)  # a view per ring row
+            # The window of Δq, oldest first, after row r was written: (M, n) views.
+            self._windows = [self.ring[r + 1 : r + 1 + M] for r in range(M)]
+
+    def _linear_prediction(self, steps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The prediction as weights on the buffered Δq and on q̂̈.
+
+        The recurrence x⁺ = Φ_j x + Γ_j g_j from x = 0 (steps of length h_j, Φ =
+        e^(−a h), Γ = (1 − Φ) / a, = h for a = K_v / (K_τ m) = 0) ends at x_end =
+        Σ_j B_j g_j, B_j = Γ_j Π_{l > j} Φ_l; with g_j = q̂̈ + (Δq_j − Δq_0) / (K_τ m)
+        (eq. (1) of the module docstring) and Δτ = (Δq_end − Δq_0 − K_v x_end) / K_τ,
+
+            [x_end, Δτ] = Σ_j W_j ⊙ Δq_j + C ⊙ q̂̈
+
+        with W (2, M, n) and C (2, n) returned here: one weighted sum per tick.
+        """
+        a = self._k_v / (self._k_tau * self._inertia)  # 1 / T, (n,)
+        z = -np.outer(steps, a)  # −a h_j, (M, n)
+        safe = np.where(z == 0.0, 1.0, z)
+        phi = np.exp(z)
+        gamma = steps[:, None] * np.where(z == 0.0, 1.0, np.expm1(z) / safe)
+        b = np.empty_like(gamma)
+        later = np.ones_like(a)  # Π_{l > j} Φ_l
+        for j in range(len(steps) - 1, -1, -1):
+            b[j] = later * gamma[j]
+            later = later * phi[j]
+        weights = np.zeros((2, *b.shape))
+        if len(steps):
+            weights[0] = b / (self._k_tau * self._inertia)
+            weights[0, 0] -= b.sum(axis=0) / (self._k_tau * self._inertia)  # −Δq_0
+            weights[1] = -self._k_v / self._k_tau * weights[0]
+            weights[1, -1] += 1.0 / self._k_tau  # Δq_end
+            weights[1, 0] -= 1.0 / self._k_tau  # −Δq_0
+        total = b.sum(axis=0)
+        vdot_weights = np.stack([total, -self._k_v / self._k_tau * total])
+        return weights, vdot_weights
+
+    def config(self) -> DelayPredictorConfig:
+        return self._config
+
+    def horizon(self) -> float:
+        """H = delay + command_latency (s, the latency in whole periods): how far the
+        estimates are carried forward."""
+        return self._horizon
+
+    def num_buffered(self) -> int:
+        """M, the number of Δq the horizon covers (the buffer's length)."""
+        return self._steps
+
+    def time_constants(self) -> np.ndarray:
+        """T = K_τ m / K_v per joint (s; inf where K_v = 0)."""
+        with np.errstate(divide="ignore"):
+            return self._k_tau * self._inertia / self._k_v
+
+    def is_ready(self) -> bool:
+        """True once M Δq have been read (before, the outputs pass the estimates)."""
+        return bool(self.counters[_NUM_SAMPLES] >= self._steps)
+
+    def bad_input_count(self) -> int:
+        """How many ticks had a NaN or infinite input."""
+        return int(self.counters[_TOTAL_BAD])
+
+    def step(
+        self,
+        t: float,
+        v_estimated: np.ndarray,
+        vdot_estimated: np.ndarray,
+        tau_estimated: np.ndarray,
+        delta_q: np.ndarray,
+        wrench_estimated: np.ndarray | None = None,
+        wrench_rate: np.ndarray | None = None,
+    ) -> None:
+        """One period (t in s, unused): q̂̇ (n, rad/s), q̂̈ (n, rad/s²), τ̂ (n, N·m)
+        from `delay` ago, the Δq just sent (n, rad), and with wrench_size k > 0 f̂
+        (k, N and N·m) and ḟ̂ (k, N/s and N·m/s) as old, carried to the present in
+        place on the state (DelayPredictor's docstring: what bad input does)."""
+        M = self._steps
+        counters = self.counters
+        bad = False
+        ready = True
+        if M:
+            row = int(counters[_NEWEST_ROW])
+            samples = int(counters[_NUM_SAMPLES])
+            if not math.isfinite(delta_q.dot(self._ones_n)):
+                bad = True
+                previous = self._rows[row] if samples else 0.0
+                delta_q = np.where(np.isfinite(delta_q), delta_q, previous)
+            row = (row + 1) % M
+            self._rows[row][:] = delta_q
+            self._rows[row + M][:] = delta_q
+            counters[_NEWEST_ROW] = row
+            counters[_NUM_SAMPLES] = samples = min(samples + 1, M)
+            ready = samples >= M
+        elif not math.isfinite(delta_q.dot(self._ones_n)):
+            bad = True  # unused without a horizon, but counted
+        ones = self._ones_n
+        estimates = (
+            v_estimated.dot(ones) + vdot_estimated.dot(ones) + tau_estimated.dot(ones)
+        )
+        if not math.isfinite(estimates):
+            bad = True  # hold v_predicted and tau_predicted
+        elif ready and M:
+            window = self._windows[row]
+            self._predict(window, v_estimated, vdot_estimated, tau_estimated)
+        else:
+            self.v_predicted[:] = v_estimated
+            self.tau_predicted[:] = tau_estimated
+        if self._k:
+            wrench, rate = wrench_estimated, wrench_rate
+            if math.isfinite(wrench.dot(self._ones_k) + rate.dot(self._ones_k)):
+                predicted = self.wrench_predicted
+                np.multiply(rate, self._horizon, predicted)
+                np.add(predicted, wrench, predicted)  # f̂ + H ḟ̂
+            else:
+                bad = True  # hold wrench_predicted
+        if bad or counters[_CONSECUTIVE_BAD]:
+            # Count a bad tick, or clear the consecutive count on the first good one.
+            counters[_CONSECUTIVE_BAD] = (counters[_CONSECUTIVE_BAD] + 1.0) * bad
+            counters[_TOTAL_BAD] += bad
+            self.input_fault[0] = counters[_CONSECUTIVE_BAD]
+
+    def _predict(
+        self, window: np.ndarray, v: np.ndarray, vdot: np.ndarray, tau: np.ndarray
+    ) -> None:
+        """v_predicted, tau_predicted from the Δq window (M, n, oldest first) and the
+        delayed estimates: eq. (1) of the module docstring over the horizon
+        (_linear_prediction), bounded by the max corrections."""
+        correction = self._correction  # [q̇_pred − q̂̇, τ_pred − τ̂], (2, n)
+        np.einsum("kji,ji->ki", self._prediction_weights, window, out=correction)
+        # (Positional outputs: about twice as fast as `out=` on small arrays.)
+        np.multiply(self._vdot_weights, vdot, self._vdot_term)
+        np.add(correction, self._vdot_term, correction)
+        for value, (lower, upper) in self._bounded:
+            np.maximum(value, lower, out=value)
+            np.minimum(value, upper, out=value)
+        np.add(v, self._correction_v, self.v_predicted)
+        np.add(tau, self._correction_tau, self.tau_predicted)
+
+
+def _bounds(values: list[float], n: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """(lower, upper) bounds on a correction (n each), None when all infinite."""
+    upper = np.broadcast_to(np.asarray(values, float), (n,)).copy()
+    return (-upper, upper) if np.isfinite(upper).any() else None
+
+
+class DelayPredictor(StepSystem):
     """q̂̇, τ̂, f̂ carried from `delay` ago to the present by the motor model (module
-    docstring).
+    docstring): the LeafSystem shell of a `DelayPredictorStep`.
 
     .. code-block:: text
 
@@ -199,126 +421,44 @@ class DelayPredictor(LeafSystem):
 
     def __init__(self, motor_model: MotorModel, config: DelayPredictorConfig):
         super().__init__()
-        config.validate()
-        self._config = config
-        try:
-            model = motor_model.subset(config.joints)
-        except KeyError as error:
-            raise KeyError(f"{_WHERE}: {error.args[0]}") from None
-        errors = model.sign_errors()
-        if errors:
-            raise ValueError(f"{_WHERE}: motor model {errors[0]}")
-        n = self._n = len(config.joints)
-        k = self._k = int(config.wrench_size)
-        period = config.period
-        self._k_tau, self._k_v = model.k_tau, model.k_v
-        self._inertia = np.asarray(config.inertia, dtype=float)
-        self._latency_periods = round(config.command_latency / period)
-        horizon_periods = config.delay / period + self._latency_periods
-        whole = math.floor(horizon_periods + _WHOLE_TOLERANCE)
-        fraction = horizon_periods - whole
-        if fraction < _WHOLE_TOLERANCE:
-            fraction = 0.0
-        self._horizon = horizon_periods * period
-        # M buffered Δq; the oldest acts over a fraction of a period when the horizon
-        # is not whole.
-        self._steps = M = whole + (fraction > 0.0)
-        steps = np.full(M, period)
-        if fraction > 0.0:
-            steps[0] = fraction * period
-        self._prediction_weights, self._vdot_weights = self._linear_prediction(steps)
-        # The bounds on the corrections as (lower, upper), None when all infinite.
-        self._velocity_bound = self._bounds(config.max_velocity_correction, n)
-        self._torque_bound = self._bounds(config.max_torque_correction, n)
-        self._ones_n = np.ones(n)
-        self._ones_k = np.ones(k)
-
+        step = DelayPredictorStep(motor_model, config)
+        n, k = len(config.joints), int(config.wrench_size)
         self._v = self.DeclareVectorInputPort("v_estimated", n)
         self._vdot = self.DeclareVectorInputPort("vdot_estimated", n)
         self._tau = self.DeclareVectorInputPort("tau_estimated", n)
         self._delta_q = self.DeclareVectorInputPort("delta_q", n)
+        self._wrench = self._wrench_rate = None
         if k:
             self._wrench = self.DeclareVectorInputPort("wrench_estimated", k)
             self._wrench_rate = self.DeclareVectorInputPort("wrench_rate", k)
-        # Plain ints for DiscreteValues.get_mutable_value (the cheapest accessor).
-        v_state = self.DeclareDiscreteState(n)
-        tau_state = self.DeclareDiscreteState(n)
-        self._v_group, self._tau_group = int(v_state), int(tau_state)
-        self.DeclareStateOutputPort("v_predicted", v_state)
-        self.DeclareStateOutputPort("tau_predicted", tau_state)
-        if k:
-            wrench_state = self.DeclareDiscreteState(k)
-            self._wrench_group = int(wrench_state)
-            self.DeclareStateOutputPort("wrench_predicted", wrench_state)
-        fault = self.DeclareDiscreteState(1)
-        self._fault_group = int(fault)
-        self.DeclareStateOutputPort("input_fault", fault)
-        self._counters = int(self.DeclareDiscreteState(4))
-        # The last M Δq read, (2M, n) row-major, each written twice (rows r and r + M)
-        # so that the window, oldest first, is the contiguous rows r + 1 .. r + M.
-        if M:
-            self._ring = int(self.DeclareDiscreteState(2 * M * n))
-        self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
-
-    def _linear_prediction(self, steps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The prediction as weights on the buffered Δq and on q̂̈.
-
-        The recurrence x⁺ = Φ_j x + Γ_j g_j from x = 0 (steps of length h_j, Φ =
-        e^(−a h), Γ = (1 − Φ) / a, = h for a = K_v / (K_τ m) = 0) ends at x_end =
-        Σ_j B_j g_j, B_j = Γ_j Π_{l > j} Φ_l; with g_j = q̂̈ + (Δq_j − Δq_0) / (K_τ m)
-        (eq. (1) of the module docstring) and Δτ = (Δq_end − Δq_0 − K_v x_end) / K_τ,
-
-            [x_end, Δτ] = Σ_j W_j ⊙ Δq_j + C ⊙ q̂̈
-
-        with W (2, M, n) and C (2, n) returned here: one weighted sum per tick.
-        """
-        a = self._k_v / (self._k_tau * self._inertia)  # 1 / T, (n,)
-        z = -np.outer(steps, a)  # −a h_j, (M, n)
-        safe = np.where(z == 0.0, 1.0, z)
-        phi = np.exp(z)
-        gamma = steps[:, None] * np.where(z == 0.0, 1.0, np.expm1(z) / safe)
-        b = np.empty_like(gamma)
-        later = np.ones_like(a)  # Π_{l > j} Φ_l
-        for j in range(len(steps) - 1, -1, -1):
-            b[j] = later * gamma[j]
-            later = later * phi[j]
-        weights = np.zeros((2, *b.shape))
-        if len(steps):
-            weights[0] = b / (self._k_tau * self._inertia)
-            weights[0, 0] -= b.sum(axis=0) / (self._k_tau * self._inertia)  # −Δq_0
-            weights[1] = -self._k_v / self._k_tau * weights[0]
-            weights[1, -1] += 1.0 / self._k_tau  # Δq_end
-            weights[1, 0] -= 1.0 / self._k_tau  # −Δq_0
-        total = b.sum(axis=0)
-        vdot_weights = np.stack([total, -self._k_v / self._k_tau * total])
-        return weights, vdot_weights
-
-    @staticmethod
-    def _bounds(values: list[float], n: int) -> tuple[np.ndarray, np.ndarray] | None:
-        upper = np.broadcast_to(np.asarray(values, float), (n,)).copy()
-        return (-upper, upper) if np.isfinite(upper).any() else None
+        self._declare_step_state(step)
+        outputs = ("v_predicted", "tau_predicted", "wrench_predicted", "input_fault")
+        for name in outputs:
+            if k or name != "wrench_predicted":
+                self._declare_step_output(name)
+        self._counters = self.step_group("counters")
+        self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
 
     def config(self) -> DelayPredictorConfig:
-        return self._config
+        return self._step.config()
 
     def horizon(self) -> float:
         """H = delay + command_latency (s, the latency in whole periods): how far the
         estimates are carried forward."""
-        return self._horizon
+        return self._step.horizon()
 
     def num_buffered(self) -> int:
         """M, the number of Δq the horizon covers (the buffer's length)."""
-        return self._steps
+        return self._step.num_buffered()
 
     def time_constants(self) -> np.ndarray:
         """T = K_τ m / K_v per joint (s; inf where K_v = 0)."""
-        with np.errstate(divide="ignore"):
-            return self._k_tau * self._inertia / self._k_v
+        return self._step.time_constants()
 
     def is_ready(self, context: Context) -> bool:
         """True once M Δq have been read (before, the outputs pass the estimates)."""
         counters = context.get_discrete_state(self._counters).get_value()
-        return counters[_NUM_SAMPLES] >= self._steps
+        return counters[_NUM_SAMPLES] >= self._step.num_buffered()
 
     def bad_input_count(self, context: Context) -> int:
         """How many ticks had a NaN or infinite input (see the class docstring)."""
@@ -326,63 +466,20 @@ class DelayPredictor(LeafSystem):
         return int(counters[_TOTAL_BAD])
 
     def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
-        # The hot path of every control period: a few pybind calls and one (M, n)
-        # weighted sum. Never raises on bad data (class docstring).
-        M = self._steps
-        delta_q = self._delta_q.Eval(context)
-        v = self._v.Eval(context)
-        vdot = self._vdot.Eval(context)
-        tau = self._tau.Eval(context)
-        counters = discrete_state.get_mutable_value(self._counters)
-        bad = False
-        ready = True
-        if M:
-            ring = discrete_state.get_mutable_value(self._ring)
-            buffer = ring.reshape(2 * M, self._n)  # a view
-            row = int(counters[_NEWEST_ROW])
-            samples = int(counters[_NUM_SAMPLES])
-            if not math.isfinite(delta_q.dot(self._ones_n)):
-                bad = True
-                previous = buffer[row] if samples else 0.0
-                delta_q = np.where(np.isfinite(delta_q), delta_q, previous)
-            row = (row + 1) % M
-            buffer[row] = delta_q
-            buffer[row + M] = delta_q
-            counters[_NEWEST_ROW] = row
-            counters[_NUM_SAMPLES] = samples = min(samples + 1, M)
-            ready = samples >= M
-        elif not math.isfinite(delta_q.dot(self._ones_n)):
-            bad = True  # unused without a horizon, but counted
-        estimates = v.dot(self._ones_n) + vdot.dot(self._ones_n) + tau.dot(self._ones_n)
-        if not math.isfinite(estimates):
-            bad = True  # hold v_predicted and tau_predicted
-        elif ready and M:
-            window = buffer[row + 1 : row + 1 + M]  # oldest first, (M, n)
-            # eq. (1) of the module docstring over the horizon (_linear_prediction):
-            # the corrections [q̇_pred − q̂̇, τ_pred − τ̂], (2, n).
-            correction = np.einsum("kji,ji->ki", self._prediction_weights, window)
-            correction += self._vdot_weights * vdot
-            bounds = (self._velocity_bound, self._torque_bound)
-            for value, bound in zip(correction, bounds):
-                if bound is not None:
-                    np.maximum(value, bound[0], out=value)
-                    np.minimum(value, bound[1], out=value)
-            discrete_state.set_value(self._v_group, v + correction[0])
-            discrete_state.set_value(self._tau_group, tau + correction[1])
-        else:
-            discrete_state.set_value(self._v_group, v)
-            discrete_state.set_value(self._tau_group, tau)
-        if self._k:
+        # (discrete_state holds the current discrete state on entry.) Never raises
+        # on bad data (class docstring).
+        self._load(discrete_state)
+        wrench = rate = None
+        if self._wrench is not None:
             wrench = self._wrench.Eval(context)
             rate = self._wrench_rate.Eval(context)
-            if math.isfinite(wrench.dot(self._ones_k) + rate.dot(self._ones_k)):
-                predicted = wrench + self._horizon * rate
-                discrete_state.set_value(self._wrench_group, predicted)
-            else:
-                bad = True  # hold wrench_predicted
-        if bad or counters[_CONSECUTIVE_BAD]:
-            # Count a bad tick, or clear the consecutive count on the first good one.
-            counters[_CONSECUTIVE_BAD] = (counters[_CONSECUTIVE_BAD] + 1.0) * bad
-            counters[_TOTAL_BAD] += bad
-            consecutive = counters[_CONSECUTIVE_BAD:_TOTAL_BAD]
-            discrete_state.set_value(self._fault_group, consecutive)
+        self._step.step(
+            context.get_time(),
+            self._v.Eval(context),
+            self._vdot.Eval(context),
+            self._tau.Eval(context),
+            self._delta_q.Eval(context),
+            wrench,
+            rate,
+        )
+        self._store(discrete_state)

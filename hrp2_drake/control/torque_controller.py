@@ -46,7 +46,7 @@ from hrp2_drake.control.inverse_dynamics import (
 )
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import check_joint_names, eval_finite
-from hrp2_drake.simulation import WitnessFreeLeafSystem
+from hrp2_drake.step import Step, StepSystem
 
 _WHERE = "DeltaQTorqueController"
 _logger = logging.getLogger(__name__)
@@ -170,7 +170,348 @@ class TorqueControllerConfig:
         return out
 
 
-class DeltaQTorqueController(WitnessFreeLeafSystem):
+class DeltaQTorqueStep(Step):
+    """Eq. 10-11 for one sample, with the Δq components of Sec. 5.5, the saturation
+    and the fallback to position control, outside Drake's systems framework: the
+    per-tick arithmetic of DeltaQTorqueController (its docstring has the law, the
+    components and the safety rules), written once for it and for a fused
+    controller.
+
+    State (n = len(config.joints), config.joints order):
+        q_cmd (n, rad), delta_q (n, rad), delta_q_unsaturated (n, rad),
+        tau_commanded (n, N·m), one array of n (rad) per DELTA_Q_COMPONENTS name,
+        fallback_active (1: 1.0 in fallback, else 0.0): the controller's outputs;
+        fallback_reason (1): the FALLBACK_REASONS code of the last fallback (0 if
+        none);
+        tau_error_integral (n, N·m·s): ∫ e_τ dt of eq. 11.
+    All zero at construction; `initialize` sets the first command.
+
+    `step` reads `q_cmd` (the command it holds), `fallback_active` and
+    `tau_error_integral` and keeps `fallback_reason` between fallbacks: `carried`,
+    what a shell must load before a tick. It rewrites the others every tick, except
+    `unused`: feedback_torque_integral without K_i, feedback_disturbance without
+    config.disturbance_compensation, zero for ever (a shell need neither load nor
+    store them). A tick allocates nothing but numpy scalars.
+    """
+
+    #: The state arrays that `step` reads or keeps between ticks.
+    carried: tuple[str, ...] = (
+        "q_cmd",
+        "fallback_active",
+        "fallback_reason",
+        "tau_error_integral",
+    )
+
+    #: The state arrays that reset_fallback sets (to zero).
+    RESET_STATE: tuple[str, ...] = (
+        "fallback_active",
+        "fallback_reason",
+        "tau_error_integral",
+    )
+
+    def __init__(self, motor_model: MotorModel, config: TorqueControllerConfig):
+        """
+        Args:
+            motor_model, config: as DeltaQTorqueController's (validated here).
+
+        Raises:
+            ValueError: a bad config, or K_τ <= 0 for a joint.
+            KeyError: a joint of config.joints that the motor model does not have.
+        """
+        super().__init__()
+        config.validate()
+        self._config = config
+        self._motor = motor_model.subset(list(config.joints))  # KeyError if missing
+        if not np.all(self._motor.k_tau > 0):
+            bad = [j for j, k in zip(config.joints, self._motor.k_tau) if not k > 0]
+            raise ValueError(f"{_WHERE}: the motor model's k_tau is <= 0 for {bad}")
+        n = self._n = len(config.joints)
+        self._make_gains()
+        self._make_work_arrays()
+        for name in ("q_cmd", "delta_q", "delta_q_unsaturated", "tau_commanded"):
+            self._declare(name, np.zeros(n))
+        for name in DELTA_Q_COMPONENTS:
+            self._declare(name, np.zeros(n))
+        self._declare("fallback_active", np.zeros(1))
+        self._declare("fallback_reason", np.zeros(1))
+        self._declare("tau_error_integral", np.zeros(n))
+        self._finalize()
+        #: The state arrays that stay zero under this config.
+        self.unused: tuple[str, ...] = ()
+        if not self._integrates:
+            self.unused += ("feedback_torque_integral",)
+        if not config.disturbance_compensation:
+            self.unused += ("feedback_disturbance",)
+
+    def _make_gains(self) -> None:
+        """The gains, bounds and their products, formed once."""
+        config, n = self._config, self._n
+        vectors = config.vectors()
+        self._kp = vectors["kp"]
+        self._ki = vectors["ki"]
+        self._integral_limit = vectors["integral_limit"]
+        self._delta_q_limit = vectors["delta_q_limit"]
+        self._fallback_limit = vectors["delta_q_fallback_limit"]
+        self._tau_limit = vectors["tau_limit"]
+        self._k_tau = self._motor.k_tau
+        self._minus_k_tau = -self._k_tau
+        self._k_v = self._motor.k_v
+        self._k_c = self._motor.k_c if config.coulomb_compensation else np.zeros(n)
+        self._coulomb = config.coulomb_compensation
+        self._coulomb_velocity = config.coulomb_velocity
+        self._period_n = np.full(n, config.period)  # an array: faster than a float
+        self._half_period = 0.5 * config.period
+        self._start_time = config.start_time
+        self._latch_fallback = config.latch_fallback
+        self._compensates = config.disturbance_compensation
+        k_tau_one_plus_kp = self._k_tau * (1.0 + self._kp)
+        self._k_tau_kp = self._k_tau * self._kp
+        self._k_tau_ki = self._k_tau * self._ki
+        # The gains of τ_ff, τ_Ks, τ_Kd, τ_Kf, τ_ef in the components of Δq.
+        self._term_gains = np.stack(
+            [self._k_tau] + [k_tau_one_plus_kp] * 3 + [self._k_tau_kp]
+        )
+        self._integrates = bool(np.any(self._ki != 0.0))  # else ∫ e_τ dt is unused
+        self._clips_integral = bool(np.any(np.isfinite(self._integral_limit)))
+        self._minus_integral_limit = -self._integral_limit
+        self._minus_delta_q_limit = -self._delta_q_limit
+
+    def _make_work_arrays(self) -> None:
+        n, k = self._n, len(TORQUE_COMPONENTS)
+        self._ones_n = np.ones(n)
+        # The terms without the inverse dynamics's: τ_ff = τ_d (row 0), zeros.
+        self._no_terms = np.zeros((k, n))
+        self._no_terms_ff = self._no_terms[0]
+        # K_τ τ_ff, K_τ (1 + K_p) τ_Ks, ... (one product per tick into these rows).
+        self._scaled = np.zeros((k, n))
+        self._scaled_rows = tuple(self._scaled)
+        self._scaled_flat = self._scaled.reshape(-1)  # a view
+        self._ones_scaled = np.ones(self._scaled.size)
+        self._e_tau = np.zeros(n)
+        self._integral = np.zeros(n)  # the next ∫ e_τ dt, kept if no fallback
+        self._work = np.zeros(n)
+        self._exceeds = np.zeros(n, dtype=bool)
+
+    def _views_changed(self) -> None:
+        # delta_q_unsaturated .. the last component: contiguous rows of the state,
+        # zero outside torque control.
+        first = self.rows("delta_q_unsaturated").start
+        self._zero_outside_torque_control = self.state[
+            first : self.rows(DELTA_Q_COMPONENTS[-1]).stop
+        ]
+
+    # ----------------------------------------------------------------- accessors
+
+    def config(self) -> TorqueControllerConfig:
+        return self._config
+
+    def motor_model(self) -> MotorModel:
+        """The motor model of the controlled joints (config.joints order)."""
+        return self._motor
+
+    def joint_names(self) -> tuple[str, ...]:
+        return tuple(self._config.joints)
+
+    def reset_fallback(self) -> None:
+        """Leaves the fallback: torque control resumes at the next tick (with a zero
+        torque-error integral)."""
+        for name in self.RESET_STATE:
+            getattr(self, name).fill(0.0)
+
+    # ----------------------------------------------------------------- per tick
+
+    def initialize(
+        self, t: float, q_measured: np.ndarray, q_ref: np.ndarray | None = None
+    ) -> None:
+        """The first command, before the first tick: q_cmd = q_ref if given, else
+        q_measured (Δq = 0), so that the servo holds the robot from the start.
+
+        Args:
+            t: the time (s), for the error message.
+            q_measured: the encoders (rad), n.
+            q_ref: the position reference (rad), n, or None.
+
+        Raises:
+            ValueError: q_measured or q_ref is not finite.
+        """
+        _check_finite("q_measured", q_measured, t)
+        self._hold(t, q_measured, q_measured if q_ref is None else q_ref, False)
+
+    def step(
+        self,
+        t: float,
+        tau_desired: np.ndarray,
+        tau_estimated: np.ndarray,
+        v: np.ndarray,
+        q_measured: np.ndarray,
+        q_ref: np.ndarray | None = None,
+        sensor_fault: np.ndarray | None = None,
+        terms: np.ndarray | None = None,
+        tau_disturbance: np.ndarray | None = None,
+    ) -> int:
+        """One tick: eq. 10-11 and the components of Δq, or position control
+        (DeltaQTorqueController's docstring, "Safety").
+
+        Args:
+            t: the time (s) (config.start_time starts torque control).
+            tau_desired: τ_d (N·m), n.
+            tau_estimated: τ̂ (N·m), n.
+            v: q̂̇ (rad/s), n.
+            q_measured: the encoders (rad), n.
+            q_ref: the position reference of the fallback (rad), n; None: hold the
+                last q_cmd.
+            sensor_fault: a 1-array, > 0 while the estimation filters hold a bad
+                sample (then fallback, reason 6); None: no fault.
+            terms: (5, n), the rows τ_ff, τ_Ks, τ_Kd, τ_Kf, τ_ef of the inverse
+                dynamics (TORQUE_COMPONENTS order, e.g. InverseDynamicsStep.terms),
+                N·m; None: τ_ff = τ_d and zeros.
+            tau_disturbance: d̂ (N·m), n, with config.disturbance_compensation
+                (required then; ignored otherwise).
+
+        Returns:
+            The FALLBACK_REASONS code of a fallback that starts at this tick (the
+            previous tick was not in fallback), else 0: what the controller logs
+            once, and what a fused controller counts.
+
+        Raises:
+            ValueError: q_ref, when it is used (position control), is not finite;
+                tau_disturbance is None with config.disturbance_compensation.
+        """
+        if not math.isfinite(q_measured.dot(self._ones_n)):
+            # No torque command is safe without the encoders: hand back to the servo.
+            return self._latch(t, q_measured, q_ref, 5)
+        if t + self._half_period < self._start_time:
+            self._hold(t, q_measured, q_ref, False)
+            return 0
+        fallback = self.fallback_active[0]
+        if fallback and self._latch_fallback:
+            self._hold(t, q_measured, q_ref, True)
+            return 0
+        if terms is None:
+            self._no_terms_ff[:] = tau_desired
+            terms = self._no_terms
+        # K_τ τ_ff, K_τ (1 + K_p) τ_Ks, K_τ (1 + K_p) τ_Kd, K_τ (1 + K_p) τ_Kf,
+        # K_τ K_p τ_ef: one product, finite exactly when the terms are (finite,
+        # non-negative gains).
+        np.multiply(self._term_gains, terms, self._scaled)
+        reason = self._input_fault(tau_desired, tau_estimated, v, sensor_fault)
+        if not reason:
+            reason = self._eq10_11(tau_desired, tau_estimated, v, tau_disturbance)
+        if reason:
+            return self._latch(t, q_measured, q_ref, reason)
+        self._torque_control(tau_estimated, q_measured, terms, tau_disturbance)
+        if fallback:  # not latched: torque control resumes
+            self.fallback_active[0] = 0.0
+        return 0
+
+    def _input_fault(self, tau_desired, tau_estimated, v, sensor_fault) -> int:
+        """The FALLBACK_REASONS code of a bad input (0, 1, 2, 3 or 6); the terms
+        are checked through their products in `_scaled`."""
+        if sensor_fault is not None and sensor_fault[0] > 0:
+            return 6
+        ones = self._ones_n
+        if not math.isfinite(tau_estimated.dot(ones)):
+            return 1
+        magnitude = np.abs(tau_estimated, self._work)
+        if np.count_nonzero(np.greater(magnitude, self._tau_limit, self._exceeds)):
+            return 2
+        scaled = self._scaled_flat.dot(self._ones_scaled)
+        if not math.isfinite(tau_desired.dot(ones) + v.dot(ones) + scaled):
+            return 3
+        return 0
+
+    def _eq10_11(self, tau_desired, tau_estimated, v, tau_disturbance) -> int:
+        """Eq. 11 into tau_commanded (and the next integral), eq. 10 into
+        delta_q_unsaturated, the friction feedforward into feedforward_friction;
+        returns the FALLBACK_REASONS code this finds (0, 3: d̂ not finite, 4: Δq
+        beyond delta_q_fallback_limit)."""
+        e_tau = np.subtract(tau_desired, tau_estimated, self._e_tau)
+        integral = np.multiply(e_tau, self._period_n, self._integral)
+        np.add(self.tau_error_integral, integral, integral)
+        if self._clips_integral:  # anti-windup: |∫ e_τ dt| <= integral_limit
+            np.maximum(integral, self._minus_integral_limit, out=integral)
+            np.minimum(integral, self._integral_limit, out=integral)
+        # Eq. 11: τ* = τ_d + K_p e_τ + K_i ∫ e_τ dt [− d̂].
+        tau_star = np.multiply(self._kp, e_tau, self.tau_commanded)
+        np.add(tau_desired, tau_star, tau_star)
+        work = self._work
+        if self._integrates:
+            np.add(tau_star, np.multiply(self._ki, integral, work), tau_star)
+        if self._compensates:
+            if tau_disturbance is None:
+                raise ValueError(f"{_WHERE}: disturbance_compensation needs d̂")
+            if not math.isfinite(tau_disturbance.dot(self._ones_n)):
+                return 3
+            np.subtract(tau_star, tau_disturbance, tau_star)
+        friction = np.multiply(self._k_v, v, self.feedforward_friction)
+        if self._coulomb:  # + K_c tanh(q̂̇ / v_s)
+            np.tanh(np.divide(v, self._coulomb_velocity, work), work)
+            np.add(friction, np.multiply(self._k_c, work, work), friction)
+        # Eq. 10: Δq = K_τ τ* + K_v q̂̇.
+        delta_q = np.multiply(self._k_tau, tau_star, self.delta_q_unsaturated)
+        np.add(delta_q, friction, delta_q)
+        too_large = np.greater(
+            np.abs(delta_q, work), self._fallback_limit, self._exceeds
+        )
+        return 4 if np.count_nonzero(too_large) else 0
+
+    def _torque_control(self, tau_estimated, q_measured, terms, tau_disturbance):
+        """After `_eq10_11` without a fallback: the saturated Δq, q_cmd, the
+        components of Δq and the integral."""
+        saturated = np.maximum(
+            self.delta_q_unsaturated, self._minus_delta_q_limit, out=self.delta_q
+        )
+        np.minimum(saturated, self._delta_q_limit, out=saturated)
+        np.add(q_measured, saturated, self.q_cmd)
+        # The components of Δq (DeltaQTorqueController's docstring; Sec. 4.2 eqs.
+        # 13-14, Sec. 5.5), from the products in `_scaled` (`step`).
+        feedforward, position, velocity, force, error = self._scaled_rows
+        self.feedforward_torque[:] = feedforward
+        self.feedback_position[:] = position  # K6 e_q
+        self.feedback_velocity[:] = velocity  # K7 ė_q
+        np.add(force, error, self.feedback_force)  # K9 e_f
+        # K_τ K_p (τ_ff − τ̂) − K_τ K_p τ_ef
+        acceleration = np.subtract(terms[0], tau_estimated, self.feedback_acceleration)
+        np.multiply(self._k_tau_kp, acceleration, acceleration)
+        np.subtract(acceleration, error, acceleration)
+        if self._integrates:  # (else feedback_torque_integral stays zero)
+            np.multiply(self._k_tau_ki, self._integral, self.feedback_torque_integral)
+        if self._compensates:
+            np.multiply(self._minus_k_tau, tau_disturbance, self.feedback_disturbance)
+        self.tau_error_integral[:] = self._integral
+
+    def _hold(self, t, q_measured, q_ref, fallback: bool) -> None:
+        """Position control: q_cmd = q_ref (None: the q_cmd held), Δq = q_cmd −
+        q_measured (0 where not finite), the torque-control arrays zero, and
+        fallback_active."""
+        if q_ref is not None:
+            _check_finite("q_ref", q_ref, t)
+            self.q_cmd[:] = q_ref
+        delta_q = np.subtract(self.q_cmd, q_measured, self.delta_q)
+        if not math.isfinite(delta_q.dot(self._ones_n)):
+            delta_q[~np.isfinite(delta_q)] = 0.0
+        self._zero_outside_torque_control.fill(0.0)
+        self.fallback_active[0] = 1.0 if fallback else 0.0
+
+    def _latch(self, t, q_measured, q_ref, reason: int) -> int:
+        """Fallback to position control for `reason`; returns `reason` if the
+        fallback starts now, else 0."""
+        new = 0 if self.fallback_active[0] else reason
+        self._hold(t, q_measured, q_ref, True)
+        self.fallback_reason[0] = reason
+        return new
+
+
+def _check_finite(name: str, value: np.ndarray, t: float) -> None:
+    if not math.isfinite(np.sum(value)):
+        bad = np.flatnonzero(~np.isfinite(value))
+        raise ValueError(
+            f"{_WHERE}: input port '{name}' is not finite at t = {t:.6g} s, at "
+            f"indices {bad.tolist()}"
+        )
+
+
+class DeltaQTorqueController(StepSystem):
     """Joint-torque control by position-servo corrections Δq (paper eq. 10-11), with
     Δq split into the components of Sec. 5.5, saturation and a latching fallback to
     position control.
@@ -266,6 +607,10 @@ class DeltaQTorqueController(WitnessFreeLeafSystem):
       - An initialization event sets q_cmd = q_ref if connected, else q_measured
         (Δq = 0), so the servo holds the robot from the first step.
 
+    The arithmetic is `DeltaQTorqueStep`'s (this system is its shell: ports, state
+    groups, events, the fallback's log line, and the check that the tau_* inputs are
+    connected all or none).
+
     Stability of the torque loop (a property of eq. 10-11, not of this code): the
     servo turns Δq into torque within one period, so if τ̂ followed the applied
     torque immediately (an ideal joint-torque sensor, or the simulator's ground
@@ -284,26 +629,8 @@ class DeltaQTorqueController(WitnessFreeLeafSystem):
             config: joints, gains, limits (validated here).
         """
         super().__init__()
-        config.validate()
-        self._config = config
-        self._motor = motor_model.subset(list(config.joints))  # KeyError if missing
-        if not np.all(self._motor.k_tau > 0):
-            bad = [j for j, k in zip(config.joints, self._motor.k_tau) if not k > 0]
-            raise ValueError(f"{_WHERE}: the motor model's k_tau is <= 0 for {bad}")
-        n = self._n = len(config.joints)
-        vectors = config.vectors()
-        self._kp = vectors["kp"]
-        self._ki = vectors["ki"]
-        self._integral_limit = vectors["integral_limit"]
-        self._delta_q_limit = vectors["delta_q_limit"]
-        self._fallback_limit = vectors["delta_q_fallback_limit"]
-        self._tau_limit = vectors["tau_limit"]
-        self._k_tau = self._motor.k_tau
-        self._k_v = self._motor.k_v
-        self._k_c = self._motor.k_c if config.coulomb_compensation else np.zeros(n)
-        self._coulomb_velocity = config.coulomb_velocity
-        self._period = config.period
-        self._start_time = config.start_time
+        step = DeltaQTorqueStep(motor_model, config)
+        n = len(config.joints)
 
         # Ports.
         self._tau_desired = self.DeclareVectorInputPort("tau_desired", n)
@@ -320,120 +647,83 @@ class DeltaQTorqueController(WitnessFreeLeafSystem):
             if config.disturbance_compensation
             else None
         )
-
-        self._q_cmd_state = self.DeclareDiscreteState(n)
-        self._delta_q_state = self.DeclareDiscreteState(n)
-        self._unsaturated_state = self.DeclareDiscreteState(n)
-        self._tau_commanded_state = self.DeclareDiscreteState(n)
-        self._component_states = [
-            self.DeclareDiscreteState(n) for _ in DELTA_Q_COMPONENTS
-        ]
-        self._fallback_state = self.DeclareDiscreteState(1)
-        self._reason_state = self.DeclareDiscreteState(1)
-        self._integral_state = self.DeclareDiscreteState(n)
-        self.DeclareStateOutputPort("q_cmd", self._q_cmd_state)
-        self.DeclareStateOutputPort("delta_q", self._delta_q_state)
-        self.DeclareStateOutputPort("delta_q_unsaturated", self._unsaturated_state)
-        self.DeclareStateOutputPort("tau_commanded", self._tau_commanded_state)
-        for name, state in zip(DELTA_Q_COMPONENTS, self._component_states):
-            self.DeclareStateOutputPort(name, state)
-        self.DeclareStateOutputPort("fallback_active", self._fallback_state)
+        self._declare_step_state(step)
+        for name in (
+            "q_cmd",
+            "delta_q",
+            "delta_q_unsaturated",
+            "tau_commanded",
+            *DELTA_Q_COMPONENTS,
+            "fallback_active",
+        ):
+            self._declare_step_output(name)
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
         self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
 
-        # Per tick: plain ints for DiscreteValues.set_value (its cheapest accessor),
-        # the gains' products formed once, and one work array whose rows receive the
-        # inputs (one dot product checks them all for NaN and infinity).
-        self._q_cmd_group = int(self._q_cmd_state)
-        self._delta_q_group = int(self._delta_q_state)
-        self._unsaturated_group = int(self._unsaturated_state)
-        self._tau_commanded_group = int(self._tau_commanded_state)
-        self._component_groups = [int(state) for state in self._component_states]
-        components = dict(zip(DELTA_Q_COMPONENTS, self._component_groups))
-        self._integral_component_group = components["feedback_torque_integral"]
-        self._disturbance_group = components["feedback_disturbance"]
-        self._fallback_group = int(self._fallback_state)
-        self._integral_group = int(self._integral_state)
-        self._position_groups = [  # zero outside torque control
-            self._unsaturated_group,
-            self._tau_commanded_group,
-            *self._component_groups,
+        # Per tick: the step's state arrays that it reads or keeps are the only ones
+        # loaded from the context, those it may change the only ones stored (the
+        # context's discrete update starts from the current state); the tau_* inputs
+        # land in the rows of one work array.
+        views = {name: step.state[rows] for name, rows in step.layout()}
+        self._carried = [(self.step_group(name), views[name]) for name in step.carried]
+        self._written = [
+            (self.step_group(name), view)
+            for name, view in views.items()
+            if name not in step.unused
         ]
-        k_tau_one_plus_kp = self._k_tau * (1.0 + self._kp)
-        self._k_tau_kp = self._k_tau * self._kp
-        self._k_tau_ki = self._k_tau * self._ki
-        # The gains of τ_ff, τ_Ks, τ_Kd, τ_Kf, τ_ef in the components of Δq.
-        self._term_gains = np.stack(
-            [self._k_tau] + [k_tau_one_plus_kp] * 3 + [self._k_tau_kp]
-        )
-        self._integrates = bool(np.any(self._ki != 0.0))  # else ∫ e_τ dt is unused
-        self._clips_integral = bool(np.any(np.isfinite(self._integral_limit)))
-        self._minus_integral_limit = -self._integral_limit
-        self._minus_delta_q_limit = -self._delta_q_limit
-        # Rows: tau_desired, tau_estimated, v, then the five tau_* inputs (without
-        # them, τ_ff = τ_d in row 3 and zeros).
-        self._inputs = np.zeros((3 + len(TORQUE_COMPONENTS), n))
-        self._input_rows = tuple(self._inputs)  # views, unpacked each tick
-        self._inputs_flat = self._inputs.reshape(-1)  # a view
-        self._ones = np.ones(self._inputs.size)
-        # K_τ τ_ff, K_τ (1 + K_p) τ_Ks, ... (one product per tick into these rows).
-        self._scaled = np.zeros((len(TORQUE_COMPONENTS), n))
-        self._scaled_rows = tuple(self._scaled)
-        self._ones_n = np.ones(n)
-        self._zero_n = np.zeros(n)
-        self._period_n = np.full(n, self._period)  # an array: faster than a float
-        self._zero_1 = np.zeros(1)
-        self._one_1 = np.ones(1)
+        self._terms = np.zeros((len(TORQUE_COMPONENTS), n))
+        self._term_rows = list(zip(self._terms, self._tau_terms))
 
     # ----------------------------------------------------------------- accessors
 
     def config(self) -> TorqueControllerConfig:
-        return self._config
+        return self._step.config()
 
     def motor_model(self) -> MotorModel:
         """The motor model of the controlled joints (config.joints order)."""
-        return self._motor
+        return self._step.motor_model()
 
     def joint_names(self) -> tuple[str, ...]:
-        return tuple(self._config.joints)
+        return self._step.joint_names()
+
+    def _value(self, context: Context, name: str) -> np.ndarray:
+        return context.get_discrete_state(self.step_group(name)).get_value()
 
     def fallback_active(self, context: Context) -> bool:
-        return bool(context.get_discrete_state(self._fallback_state).get_value()[0])
+        return bool(self._value(context, "fallback_active")[0])
 
     def fallback_reason(self, context: Context) -> str:
         """Why the fallback latched ("" when it did not), see FALLBACK_REASONS."""
-        code = int(context.get_discrete_state(self._reason_state).get_value()[0])
-        return FALLBACK_REASONS[code]
+        return FALLBACK_REASONS[int(self._value(context, "fallback_reason")[0])]
 
     def tau_error_integral(self, context: Context) -> np.ndarray:
         """∫ e_τ dt (N·m·s) of eq. 11."""
-        return context.get_discrete_state(self._integral_state).get_value().copy()
+        return self._value(context, "tau_error_integral").copy()
 
     def reset_fallback(self, context: Context) -> None:
         """Leaves the fallback: torque control resumes at the next update (with a
         zero torque-error integral)."""
-        context.get_mutable_discrete_state(self._fallback_state).set_value([0.0])
-        context.get_mutable_discrete_state(self._reason_state).set_value([0.0])
-        context.get_mutable_discrete_state(self._integral_state).set_value(self._zero_n)
+        step = self._step
+        step.reset_fallback()
+        for name in step.RESET_STATE:
+            context.get_mutable_discrete_state(self.step_group(name)).set_value(
+                getattr(step, name)
+            )
 
     # ----------------------------------------------------------------- computation
 
     def _read_finite(self, port: InputPort, context: Context) -> np.ndarray:
         return eval_finite(port, context, f"{_WHERE} {self.GetSystemPathname()}")
 
-    def _read_inputs(self, context: Context) -> np.ndarray:
-        """The rows τ_d, τ̂, q̂̇, τ_ff, τ_Ks, τ_Kd, τ_Kf, τ_ef from the inputs (without
-        the tau_* inputs: τ_ff = τ_d and zeros), in the work array it returns."""
-        inputs = self._inputs
-        inputs[0] = self._tau_desired.Eval(context)
-        inputs[1] = self._tau_estimated.Eval(context)
-        inputs[2] = self._v.Eval(context)
+    def _read_terms(self, context: Context) -> np.ndarray | None:
+        """The rows τ_ff, τ_Ks, τ_Kd, τ_Kf, τ_ef from the tau_* inputs in the work
+        array it returns, or None if they are not connected."""
         terms = self._tau_terms
         if terms[0].HasValue(context):  # then all of them, or Eval raises
             try:
-                for row, port in enumerate(terms, start=3):
-                    inputs[row] = port.Eval(context)
-                return inputs
+                for row, port in self._term_rows:
+                    row[:] = port.Eval(context)
+                return self._terms
             except RuntimeError:
                 if all(port.HasValue(context) for port in terms):
                     raise  # not a missing connection
@@ -443,153 +733,41 @@ class DeltaQTorqueController(WitnessFreeLeafSystem):
                 f"{_WHERE} {self.GetSystemPathname()}: connect all of "
                 f"{list(TORQUE_COMPONENTS)} or none; unconnected: {missing}"
             )
-        inputs[3] = inputs[0]
-        inputs[4:] = 0.0
-        return inputs
-
-    def _position_command(self, context: Context) -> np.ndarray:
-        """q_ref if connected, else the q_cmd held in the state."""
-        if self._q_ref.HasValue(context):
-            return self._read_finite(self._q_ref, context).copy()
-        return context.get_discrete_state(self._q_cmd_state).get_value().copy()
-
-    def _write_position_control(
-        self,
-        discrete_state: DiscreteValues,
-        q_cmd: np.ndarray,
-        q_measured: np.ndarray,
-        fallback: bool,
-    ) -> None:
-        discrete_state.set_value(self._q_cmd_group, q_cmd)
-        delta_q = q_cmd - q_measured
-        discrete_state.set_value(
-            self._delta_q_group, np.where(np.isfinite(delta_q), delta_q, 0.0)
-        )
-        for group in self._position_groups:
-            discrete_state.set_value(group, self._zero_n)
-        discrete_state.set_value(
-            self._fallback_group, self._one_1 if fallback else self._zero_1
-        )
+        return None
 
     def _initialize(self, context: Context, discrete_state: DiscreteValues) -> None:
+        self._load(discrete_state)
         q_measured = self._read_finite(self._q_measured, context)
+        q_ref = None
         if self._q_ref.HasValue(context):
-            q_cmd = self._read_finite(self._q_ref, context).copy()
-        else:
-            q_cmd = q_measured.copy()
-        self._write_position_control(discrete_state, q_cmd, q_measured, False)
+            q_ref = self._read_finite(self._q_ref, context)
+        self._step.initialize(context.get_time(), q_measured, q_ref)
+        self._store(discrete_state)
 
     def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
-        # The hot path of every control period: one Eval per input, whole-vector
-        # numpy and one set_value per output (scripts/bench.py --only tick).
-        q_measured = self._q_measured.Eval(context)
-        if not math.isfinite(q_measured.dot(self._ones_n)):
-            # No torque command is safe without the encoders: hand back to the servo.
-            self._latch(context, discrete_state, q_measured, 5)
-            return
-        if context.get_time() + 0.5 * self._period < self._start_time:
-            self._write_position_control(
-                discrete_state, self._position_command(context), q_measured, False
-            )
-            return
-        # (discrete_state holds the current state on entry.)
-        fallback = discrete_state.get_value(self._fallback_group)[0]
-        if fallback and self._config.latch_fallback:
-            self._write_position_control(
-                discrete_state, self._position_command(context), q_measured, True
-            )
-            return
-
-        inputs = self._read_inputs(context)
-        tau_desired, tau_estimated, v, tau_ff, _, _, _, _ = self._input_rows
-        finite = math.isfinite(self._inputs_flat.dot(self._ones))
-        if (
-            self._sensor_fault.HasValue(context)
-            and self._sensor_fault.Eval(context)[0] > 0
-        ):
-            reason = 6
-        elif not (finite or math.isfinite(tau_estimated.dot(self._ones_n))):
-            reason = 1
-        elif np.count_nonzero(np.abs(tau_estimated) > self._tau_limit):
-            reason = 2
-        elif not finite:
-            reason = 3
-        else:
-            e_tau = tau_desired - tau_estimated
-            integral = (
-                discrete_state.get_value(self._integral_group) + e_tau * self._period_n
-            )
-            if self._clips_integral:  # anti-windup: |∫ e_τ dt| <= integral_limit
-                integral = np.minimum(
-                    np.maximum(integral, self._minus_integral_limit),
-                    self._integral_limit,
-                )
-            # Eq. 11: τ* = τ_d + K_p e_τ + K_i ∫ e_τ dt.
-            tau_star = tau_desired + self._kp * e_tau
-            if self._integrates:
-                tau_star += self._ki * integral
-            if self._tau_disturbance is not None:
-                disturbance = self._tau_disturbance.Eval(context)
-                if not math.isfinite(disturbance.dot(self._ones_n)):
-                    self._latch(context, discrete_state, q_measured, 3)
-                    return
-                tau_star = tau_star - disturbance
-            friction = self._k_v * v
-            if self._config.coulomb_compensation:
-                friction = friction + self._k_c * np.tanh(v / self._coulomb_velocity)
-            # Eq. 10: Δq = K_τ τ* + K_v q̂̇.
-            delta_q = self._k_tau * tau_star + friction
-            too_large = np.abs(delta_q) > self._fallback_limit
-            reason = 4 if np.count_nonzero(too_large) else 0
-        if reason:
-            self._latch(context, discrete_state, q_measured, reason)
-            return
-
-        saturated = np.minimum(
-            np.maximum(delta_q, self._minus_delta_q_limit), self._delta_q_limit
-        )
-        # The components of Δq (class docstring; Sec. 4.2 eqs. 13-14, Sec. 5.5), from
-        # K_τ τ_ff, K_τ (1 + K_p) τ_Ks, K_τ (1 + K_p) τ_Kd, K_τ (1 + K_p) τ_Kf and
-        # K_τ K_p τ_ef (one product).
-        np.multiply(self._term_gains, inputs[3:], out=self._scaled)
-        feedforward_torque, feedback_position, feedback_velocity, force, error = (
-            self._scaled_rows
-        )
-        feedback_force = force + error  # K9 e_f
-        feedback_acceleration = self._k_tau_kp * (tau_ff - tau_estimated) - error
-        set_value = discrete_state.set_value
-        set_value(self._q_cmd_group, q_measured + saturated)
-        set_value(self._delta_q_group, saturated)
-        set_value(self._unsaturated_group, delta_q)
-        set_value(self._tau_commanded_group, tau_star)
-        for group, value in zip(
-            self._component_groups,
-            (
-                feedforward_torque,
-                friction,  # feedforward_friction
-                feedback_position,  # K6 e_q
-                feedback_velocity,  # K7 ė_q
-                feedback_acceleration,
-                feedback_force,
-            ),
-        ):
-            set_value(group, value)
-        if self._integrates:  # (else feedback_torque_integral stays zero)
-            set_value(self._integral_component_group, self._k_tau_ki * integral)
+        # The hot path of every control period: one Eval per input, the step, one
+        # set_value per state group (scripts/bench.py --only tick).
+        for group, view in self._carried:
+            view[:] = discrete_state.get_value(group)
+        q_ref = sensor_fault = disturbance = None
+        if self._q_ref.HasValue(context):
+            q_ref = self._q_ref.Eval(context)
+        if self._sensor_fault.HasValue(context):
+            sensor_fault = self._sensor_fault.Eval(context)
         if self._tau_disturbance is not None:
-            set_value(self._disturbance_group, -self._k_tau * disturbance)
-        set_value(self._integral_group, integral)
-        if fallback:  # not latched: torque control resumes
-            set_value(self._fallback_group, self._zero_1)
-
-    def _latch(
-        self,
-        context: Context,
-        discrete_state: DiscreteValues,
-        q_measured: np.ndarray,
-        reason: int,
-    ) -> None:
-        if not self.fallback_active(context):
+            disturbance = self._tau_disturbance.Eval(context)
+        reason = self._step.step(
+            context.get_time(),
+            self._tau_desired.Eval(context),
+            self._tau_estimated.Eval(context),
+            self._v.Eval(context),
+            self._q_measured.Eval(context),
+            q_ref,
+            sensor_fault,
+            self._read_terms(context),
+            disturbance,
+        )
+        if reason:
             _logger.warning(
                 "%s %s: falling back to position control at t = %.6g s: %s",
                 _WHERE,
@@ -597,10 +775,8 @@ class DeltaQTorqueController(WitnessFreeLeafSystem):
                 context.get_time(),
                 FALLBACK_REASONS[reason],
             )
-        self._write_position_control(
-            discrete_state, self._position_command(context), q_measured, True
-        )
-        discrete_state.get_mutable_vector(self._reason_state).set_value([float(reason)])
+        for group, view in self._written:
+            discrete_state.set_value(group, view)
 
 
 # --------------------------------------------------------------------- wiring

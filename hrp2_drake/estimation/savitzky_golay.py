@@ -6,7 +6,8 @@ With a constant sampling period the least-squares pseudo-inverse is a constant m
 each estimate is one weighted sum of the window's samples (paper Sec. 2.1).
 
 - `savgol_coefficients` gives those weights.
-- `SavitzkyGolayFilter` is the causal, 1 kHz LeafSystem used in the controller's diagram.
+- `SavitzkyGolayFilter` is the causal, 1 kHz LeafSystem used in the controller's diagram;
+  `SavitzkyGolayStep` is its per-tick arithmetic on plain arrays (hrp2_drake.step).
 - `savgol_filter_offline` applies the same weights to whole logged arrays, centred on
   every sample (the non-causal estimation used for identification, paper Sec. 3.4.3).
 
@@ -31,12 +32,14 @@ from typing import Sequence
 import numpy as np
 from scipy.ndimage import correlate1d
 
-from hrp2_drake.simulation import WitnessFreeLeafSystem
+from hrp2_drake.step import Step, StepSystem
 
 EVALUATION_POINTS = ("centre", "end")
 ORDERS = (1, 2)
-# SavitzkyGolayFilter's ring-buffer state: bookkeeping, then the samples.
+# SavitzkyGolayStep's ring-buffer state: bookkeeping, then the samples.
 _NEWEST_ROW, _NUM_SAMPLES, _CONSECUTIVE_BAD, _TOTAL_BAD, _RING_START = range(5)
+_ESTIMATES = ("value", "derivative", "second_derivative")  # state and port names
+_FILTER = "SavitzkyGolayFilter"  # the name in error messages
 
 
 def _check_parameters(window: int, order: int, evaluation: str, where: str) -> None:
@@ -61,6 +64,54 @@ def _is_integer(value) -> bool:
 def _check_period(dt: float, name: str, where: str) -> None:
     if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0.0):
         raise ValueError(f"{where}: {name}={dt!r} must be a finite number > 0 (s)")
+
+
+def _check_filter(
+    num_signals: int,
+    window: int | Sequence[int],
+    order: int,
+    period: float,
+    evaluation: str,
+    span: int | None,
+) -> tuple[int, tuple[int, ...], int]:
+    """Checks SavitzkyGolayFilter's arguments; returns (k, the window of each signal,
+    the span N). Raises ValueError naming the bad argument."""
+    where = _FILTER
+    if not _is_integer(num_signals) or num_signals < 1:
+        raise ValueError(
+            f"{where}: num_signals={num_signals!r} must be an integer >= 1"
+        )
+    k = int(num_signals)
+    per_signal = isinstance(window, (list, tuple, np.ndarray))
+    windows = list(window) if per_signal else [window] * k
+    if len(windows) != k:
+        raise ValueError(
+            f"{where}: window has {len(windows)} values for {k} signals "
+            "(give one window, or one per signal)"
+        )
+    for n in windows:
+        _check_parameters(n, order, evaluation, where)
+    _check_period(period, "period", where)
+    windows = tuple(int(n) for n in windows)
+    if span is not None and (not _is_integer(span) or span < max(windows)):
+        raise ValueError(
+            f"{where}: span={span!r} must be an integer >= the longest window, "
+            f"{max(windows)}"
+        )
+    N = max(windows) if span is None else int(span)
+    if len(set(windows + (N,))) > 1:
+        if evaluation != "centre":
+            raise ValueError(
+                f"{where}: windows shorter than the span need evaluation='centre' "
+                f"(every window centred on one instant), got {evaluation!r}"
+            )
+        odd = [n for n in windows if (N - n) % 2]
+        if odd:
+            raise ValueError(
+                f"{where}: windows {sorted(set(odd))} differ in parity from the "
+                f"span, {N}: their centres cannot coincide with its centre"
+            )
+    return k, windows, N
 
 
 def _fit_weights(window: int, order: int, positions: np.ndarray) -> np.ndarray:
@@ -141,7 +192,196 @@ class SavitzkyGolayConfig:
         )
 
 
-class SavitzkyGolayFilter(WitnessFreeLeafSystem):
+class SavitzkyGolayStep(Step):
+    """The per-tick arithmetic of `SavitzkyGolayFilter` (its docstring: start-up, bad
+    samples, per-signal windows), on plain arrays: `initialize(t, signal)` and
+    `step(t, signal)` update the state in place.
+
+    Named state arrays (`Step`), the outputs named like the filter's ports:
+        ring (4 + N k): bookkeeping [newest row, number of samples (<= N),
+            consecutive bad samples, total bad samples], then the last N samples
+            (N, k), row-major (N = window(), the span).
+        value, derivative (k each), second_derivative (k, order 2 only): the fitted
+            polynomial and its time derivatives at the evaluation point (signal
+            units, /s, /s²).
+        evaluation_time (1): the time (s) they refer to, t − delay().
+        input_fault (1): consecutive bad (NaN or infinite) samples, held.
+
+    Per step: one dot product checks the sample, then one (order + 1, N) x (N, k)
+    product per distinct window writes the estimates into the state (weights kept
+    rolled to the ring's position: no refit, no shift, no allocation).
+    """
+
+    def __init__(
+        self,
+        num_signals: int,
+        window: int | Sequence[int],
+        order: int,
+        period: float,
+        evaluation: str,
+        span: int | None = None,
+    ):
+        """
+        Args: those of `SavitzkyGolayFilter` (same checks and messages).
+
+        Raises:
+            ValueError: a bad argument, named.
+        """
+        super().__init__()
+        k, windows, N = _check_filter(
+            num_signals, window, order, period, evaluation, span
+        )
+        self._num_signals = k
+        self._windows = windows
+        self._window = N
+        self._order = order
+        self._period = float(period)
+        self._evaluation = evaluation
+        self._delay = (N - 1) / 2 * self._period if evaluation == "centre" else 0.0
+        self._make_weights()
+        self._ones = np.ones(k)
+        self._finite = np.zeros(k, dtype=bool)  # work arrays of a bad sample
+        self._held = np.zeros(k)
+        self._declare("ring", np.zeros(_RING_START + N * k))
+        for name in _ESTIMATES[: order + 1]:
+            self._declare(name, np.zeros(k))
+        self._declare("evaluation_time", np.zeros(1))
+        self._declare("input_fault", np.zeros(1))
+        self._finalize()
+
+    def _make_weights(self) -> None:
+        """One weight matrix per distinct window, placed in the ring's N rows so that
+        its centre is the span's (a shorter window skips the (N − N_i) / 2 newest and
+        oldest samples). The newest sample sits at ring row r, the oldest at r + 1
+        (mod N): window column j lives at row (r + 1 + j) % N, hence the roll by
+        r + 1, one matrix per r. Signals sharing a window share one product."""
+        N, order = self._window, self._order
+        self._groups = []
+        for n in sorted(set(self._windows)):
+            padded = np.zeros((order + 1, N))
+            start = (N - n) // 2
+            padded[:, start : start + n] = savgol_coefficients(
+                n, order, self._period, self._evaluation
+            )
+            rolled = np.stack([np.roll(padded, r + 1, axis=1) for r in range(N)])
+            columns = np.array([i for i, w in enumerate(self._windows) if w == n])
+            # (columns, weights, its samples (N, m), its estimates (order + 1, m)). The
+            # samples in Fortran order, the layout of samples[:, columns]: the
+            # product takes the same BLAS path, to the bit.
+            m = len(columns)
+            work = (np.zeros((m, N)).T, np.zeros((order + 1, m)))
+            self._groups.append((columns, rolled, *work))
+        self._single_window = len(self._groups) == 1
+        self._rolled_weights = self._groups[0][1]
+
+    def _views_changed(self) -> None:
+        k = self._num_signals
+        self._samples = self.ring[_RING_START:].reshape(self._window, k)
+        # The estimates, contiguous in the state: one (order + 1, k) product target.
+        first, last = self.rows("value"), self.rows(_ESTIMATES[self._order])
+        self._fit = self.state[first.start : last.stop].reshape(self._order + 1, k)
+
+    # ----------------------------------------------------------------- accessors
+
+    def num_signals(self) -> int:
+        return self._num_signals
+
+    def window(self) -> int:
+        """The span: the longest window (unless given), the ring buffer's length."""
+        return self._window
+
+    def windows(self) -> tuple[int, ...]:
+        """The window of each signal."""
+        return self._windows
+
+    def order(self) -> int:
+        return self._order
+
+    def period(self) -> float:
+        """Sampling period (s)."""
+        return self._period
+
+    def evaluation(self) -> str:
+        return self._evaluation
+
+    def delay(self) -> float:
+        """Seconds the outputs lag the newest sample: (N - 1) / 2 * period for "centre"
+        (N the span), 0 for "end"."""
+        return self._delay
+
+    def output_names(self) -> tuple[str, ...]:
+        """The named state arrays that are outputs, in the filter's port order."""
+        return (*_ESTIMATES[: self._order + 1], "evaluation_time", "input_fault")
+
+    def is_ready(self) -> bool:
+        """True once the window holds N real samples."""
+        return bool(self.ring[_NUM_SAMPLES] >= self._window)
+
+    def bad_sample_count(self) -> int:
+        """How many samples had NaN or infinite entries (held)."""
+        return int(self.ring[_TOTAL_BAD])
+
+    # ----------------------------------------------------------------- per tick
+
+    def initialize(self, t: float, signal: np.ndarray) -> None:
+        """Fills the window with `signal` (k) taken at t (s), then forgets it was a
+        sample: the first `step` (usually at the same time) fills it again."""
+        self.step(t, signal)
+        ring = self.ring
+        ring[_NEWEST_ROW] = ring[_NUM_SAMPLES] = 0.0
+
+    def step(self, t: float, signal: np.ndarray) -> None:
+        """Takes the sample `signal` (k floats, signal units) taken at t (s) and updates
+        the estimates, in place."""
+        ring, samples = self.ring, self._samples
+        N = self._window
+        num_samples = int(ring[_NUM_SAMPLES])
+        u = signal
+        if math.isfinite(u.dot(self._ones)):
+            if ring[_CONSECUTIVE_BAD]:
+                ring[_CONSECUTIVE_BAD] = 0.0
+                self.input_fault[0] = 0.0
+        else:
+            u = self._hold(signal, num_samples)
+            ring[_CONSECUTIVE_BAD] += 1.0
+            ring[_TOTAL_BAD] += 1.0
+            self.input_fault[0] = ring[_CONSECUTIVE_BAD]
+        row = (int(ring[_NEWEST_ROW]) + 1) % N if num_samples > 0 else N - 1
+        ring[_NEWEST_ROW] = row
+        ring[_NUM_SAMPLES] = min(num_samples + 1, N)
+        fit = self._fit
+        if num_samples == 0:
+            # Start-up: the window is the first sample N times, whose fit is a constant.
+            samples[:] = u
+            fit[0] = u
+            fit[1:] = 0.0
+        else:
+            samples[row] = u
+            # All estimates at once: (order + 1, N) weights times the (N, k) ring;
+            # with several windows, one product per window.
+            if self._single_window:
+                np.dot(self._rolled_weights[row], samples, out=fit)
+            else:
+                for columns, rolled, taken, estimates in self._groups:
+                    samples.take(columns, axis=1, out=taken, mode="clip")
+                    np.matmul(rolled[row], taken, out=estimates)
+                    fit[:, columns] = estimates
+        self.evaluation_time[0] = t - self._delay
+
+    def _hold(self, signal: np.ndarray, num_samples: int) -> np.ndarray:
+        """The sample with each bad entry replaced by its previous value (0 before
+        any sample)."""
+        held = self._held
+        if num_samples > 0:
+            held[:] = self._samples[int(self.ring[_NEWEST_ROW])]
+        else:
+            held[:] = 0.0
+        np.isfinite(signal, out=self._finite)
+        np.copyto(held, signal, where=self._finite)
+        return held
+
+
+class SavitzkyGolayFilter(StepSystem):
     """Causal Savitzky-Golay estimation of k signals and their derivatives.
 
     ```
@@ -162,8 +402,10 @@ class SavitzkyGolayFilter(WitnessFreeLeafSystem):
     Every `period` seconds (offset 0) a discrete update reads `signal`, stores it in a
     ring buffer of the last N samples and computes the outputs with one precomputed
     weight matrix (savgol_coefficients, kept rolled to the ring's position, so a step
-    neither refits nor shifts nor allocates the buffer). The outputs (and `input_fault`) are discrete state:
-    no direct feedthrough, the one-sample delay of a real controller.
+    neither refits nor shifts nor allocates the buffer). The outputs (and
+    `input_fault`) are discrete state: no direct feedthrough, the one-sample delay of a
+    real controller. The arithmetic is `SavitzkyGolayStep`'s (its `initialize` and
+    `step`), which this system runs on its context's state.
 
     Start-up: at the first sample the whole window is filled with that sample, so value =
     first sample and derivatives = 0. An initialization event does the same with the
@@ -206,87 +448,12 @@ class SavitzkyGolayFilter(WitnessFreeLeafSystem):
                 to align them, e.g. the encoders' and the other sensors'.
         """
         super().__init__()
-        where = "SavitzkyGolayFilter"
-        if not _is_integer(num_signals) or num_signals < 1:
-            raise ValueError(
-                f"{where}: num_signals={num_signals!r} must be an integer >= 1"
-            )
-        self._num_signals = k = int(num_signals)
-        per_signal = isinstance(window, (list, tuple, np.ndarray))
-        windows = list(window) if per_signal else [window] * k
-        if len(windows) != k:
-            raise ValueError(
-                f"{where}: window has {len(windows)} values for {k} signals "
-                "(give one window, or one per signal)"
-            )
-        for n in windows:
-            _check_parameters(n, order, evaluation, where)
-        _check_period(period, "period", where)
-        self._windows = tuple(int(n) for n in windows)
-        if span is not None and (not _is_integer(span) or span < max(self._windows)):
-            raise ValueError(
-                f"{where}: span={span!r} must be an integer >= the longest window, "
-                f"{max(self._windows)}"
-            )
-        self._window = N = max(self._windows) if span is None else int(span)
-        self._order = order
-        self._period = float(period)
-        self._evaluation = evaluation
-        if len(set(self._windows + (N,))) > 1:
-            if evaluation != "centre":
-                raise ValueError(
-                    f"{where}: windows shorter than the span need evaluation='centre' "
-                    f"(every window centred on one instant), got {evaluation!r}"
-                )
-            odd = [n for n in self._windows if (N - n) % 2]
-            if odd:
-                raise ValueError(
-                    f"{where}: windows {sorted(set(odd))} differ in parity from the "
-                    f"span, {N}: their centres cannot coincide with its centre"
-                )
-        self._delay = (N - 1) / 2 * self._period if evaluation == "centre" else 0.0
-
-        # One weight matrix per distinct window, placed in the ring's N rows so that its
-        # centre is the longest window's (a shorter window skips the (N - N_i) / 2
-        # newest and oldest samples). The newest sample sits at ring row r, the oldest
-        # at r + 1 (mod N): window column j lives at row (r + 1 + j) % N, hence the
-        # roll by r + 1. Signals sharing a window share one product.
-        self._groups = []
-        for n in sorted(set(self._windows)):
-            padded = np.zeros((order + 1, N))
-            start = (N - n) // 2
-            padded[:, start : start + n] = savgol_coefficients(
-                n, order, self._period, evaluation
-            )
-            rolled = np.stack([np.roll(padded, r + 1, axis=1) for r in range(N)])
-            columns = [i for i, w in enumerate(self._windows) if w == n]
-            self._groups.append((np.array(columns), rolled))
-        self._single_window = len(self._groups) == 1
-        self._rolled_weights = self._groups[0][1]
-
-        self._signal = self.DeclareVectorInputPort("signal", k)
-        # The ring buffer: [newest row, number of samples, consecutive bad samples,
-        # total bad samples], then the last N samples (N, k), row-major: one group,
-        # that a step reaches with one accessor.
-        self._ring_state = self.DeclareDiscreteState(_RING_START + N * k)
-        self._estimates = [self.DeclareDiscreteState(k) for _ in range(order + 1)]
-        self._evaluation_time = self.DeclareDiscreteState(1)
-        self._fault = self.DeclareDiscreteState(1)  # consecutive bad samples
-        # Plain ints for DiscreteValues.get_mutable_value/set_value (the cheapest
-        # accessors per tick), and the (order + 1, k) result of one matrix product.
-        self._ring_group = int(self._ring_state)
-        self._estimate_groups = [int(group) for group in self._estimates]
-        self._time_group = int(self._evaluation_time)
-        self._fault_group = int(self._fault)
-        self._fit = np.zeros((order + 1, k))
-        self._outputs = list(zip(self._estimate_groups, self._fit))  # (group, row view)
-        self._ones = np.ones(k)
-        names = ("value", "derivative", "second_derivative")
-        for name, group in zip(names, self._estimates):
-            self.DeclareStateOutputPort(name, group)
-        self.DeclareStateOutputPort("evaluation_time", self._evaluation_time)
-        self.DeclareStateOutputPort("input_fault", self._fault)
-        self.DeclarePeriodicDiscreteUpdateEvent(self._period, 0.0, self._update)
+        step = SavitzkyGolayStep(num_signals, window, order, period, evaluation, span)
+        self._signal = self.DeclareVectorInputPort("signal", step.num_signals())
+        self._declare_step_state(step)
+        for name in step.output_names():
+            self._declare_step_output(name)
+        self.DeclarePeriodicDiscreteUpdateEvent(step.period(), 0.0, self._update)
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
 
     @classmethod
@@ -298,100 +465,57 @@ class SavitzkyGolayFilter(WitnessFreeLeafSystem):
         return cls(num_signals, config.window, config.order, period, config.evaluation)
 
     def num_signals(self) -> int:
-        return self._num_signals
+        return self._step.num_signals()
 
     def window(self) -> int:
         """The span: the longest window (unless given), the ring buffer's length."""
-        return self._window
+        return self._step.window()
 
     def windows(self) -> tuple[int, ...]:
         """The window of each signal."""
-        return self._windows
+        return self._step.windows()
 
     def order(self) -> int:
-        return self._order
+        return self._step.order()
 
     def period(self) -> float:
         """Sampling period (s)."""
-        return self._period
+        return self._step.period()
 
     def evaluation(self) -> str:
-        return self._evaluation
+        return self._step.evaluation()
 
     def delay(self) -> float:
         """Seconds the outputs lag the newest sample: (N - 1) / 2 * period for "centre"
         (N the longest window), 0 for "end". (A consumer updating on the same clock
         reads them one period later.)"""
-        return self._delay
+        return self._step.delay()
 
     def is_ready(self, context) -> bool:
         """True once the window holds N real samples (see the class docstring)."""
-        ring = context.get_discrete_state(self._ring_state).get_value()
-        return ring[_NUM_SAMPLES] >= self._window
+        self._load_context(context)
+        return self._step.is_ready()
 
     def evaluation_time(self, context) -> float:
         """The time (s) the outputs refer to (same as the evaluation_time port)."""
-        return context.get_discrete_state(self._evaluation_time).get_value()[0]
+        group = self.step_group("evaluation_time")
+        return context.get_discrete_state(group).get_value()[0]
 
     def bad_sample_count(self, context) -> int:
         """How many samples had NaN or infinite entries (held, see the class docstring)."""
-        ring = context.get_discrete_state(self._ring_state).get_value()
-        return int(ring[_TOTAL_BAD])
+        self._load_context(context)
+        return self._step.bad_sample_count()
 
     def _initialize(self, context, discrete_state):
-        # Fill the window with the input at initialization, then forget it was a sample:
-        # the first periodic update (usually at the same time) fills it again.
-        self._update(context, discrete_state)
-        ring = discrete_state.get_mutable_value(self._ring_group)
-        ring[_NEWEST_ROW] = ring[_NUM_SAMPLES] = 0.0
+        self._load(discrete_state)
+        self._step.initialize(context.get_time(), self._signal.Eval(context))
+        self._store(discrete_state)
 
     def _update(self, context, discrete_state):
-        # The hot path of every control period: a handful of pybind calls and one
-        # matrix product (scripts/bench.py --only tick).
-        u = self._signal.Eval(context)
-        N = self._window
-        ring = discrete_state.get_mutable_value(self._ring_group)
-        samples = ring[_RING_START:].reshape(N, self._num_signals)  # a view
-        num_samples = int(ring[_NUM_SAMPLES])
-        if math.isfinite(u.dot(self._ones)):
-            if ring[_CONSECUTIVE_BAD]:
-                ring[_CONSECUTIVE_BAD] = 0.0
-                discrete_state.set_value(
-                    self._fault_group, ring[_CONSECUTIVE_BAD:_TOTAL_BAD]
-                )
-        else:
-            # Hold the previous sample's value of each bad entry (0 before any).
-            previous = (
-                samples[int(ring[_NEWEST_ROW])] if num_samples > 0 else np.zeros_like(u)
-            )
-            u = np.where(np.isfinite(u), u, previous)
-            ring[_CONSECUTIVE_BAD] += 1.0
-            ring[_TOTAL_BAD] += 1.0
-            discrete_state.set_value(
-                self._fault_group, ring[_CONSECUTIVE_BAD:_TOTAL_BAD]
-            )
-        row = (int(ring[_NEWEST_ROW]) + 1) % N if num_samples > 0 else N - 1
-        ring[_NEWEST_ROW] = row
-        ring[_NUM_SAMPLES] = min(num_samples + 1, N)
-        if num_samples == 0:
-            # Start-up: the window is the first sample N times, whose fit is a constant.
-            samples[:] = u
-            self._fit[0] = u
-            self._fit[1:] = 0.0
-        else:
-            samples[row] = u
-            # All estimates at once: (order + 1, N) weights times the (N, k) ring;
-            # with several windows, one product per window.
-            if self._single_window:
-                np.dot(self._rolled_weights[row], samples, out=self._fit)
-            else:
-                for columns, rolled in self._groups:
-                    self._fit[:, columns] = rolled[row] @ samples[:, columns]
-        for group, estimate in self._outputs:
-            discrete_state.set_value(group, estimate)
-        discrete_state.get_mutable_value(self._time_group)[0] = (
-            context.get_time() - self._delay
-        )
+        # The hot path of every control period (scripts/bench.py --only tick).
+        self._load(discrete_state)
+        self._step.step(context.get_time(), self._signal.Eval(context))
+        self._store(discrete_state)
 
 
 def savgol_filter_offline(

@@ -1,7 +1,8 @@
 """FloatingBaseTorqueEstimator: joint torques of a robot, floating-base or welded to the
 world, from encoders, one IMU (optional for a fixed base) and 6-axis F/T sensors (paper
 Sec. 2), and `add_estimator`, which wires the whole estimation chain (Savitzky-Golay
-filters + estimator) to a robot diagram.
+filters + estimator) to a robot diagram. `TorqueEstimatorStep` is the estimator's
+per-tick arithmetic on plain arrays (hrp2_drake.step), which the LeafSystem runs.
 
 The method (paper Sec. 2.2-2.4), on a private model of the robot built from the given
 plant (the "internal model", see below):
@@ -117,7 +118,7 @@ from hrp2_drake.multibody import (
     tree_joints,
     tree_parents,
 )
-from hrp2_drake.simulation import WitnessFreeLeafSystem
+from hrp2_drake.step import Step, StepSystem
 
 ANGULAR_ACCELERATION_MODES = ("gyro_derivative", "neglected")
 _WHERE = "FloatingBaseTorqueEstimator"
@@ -328,102 +329,35 @@ class _Sensor:
     rows: np.ndarray | None = None  # its 6 velocities
 
 
-class FloatingBaseTorqueEstimator(WitnessFreeLeafSystem):
-    """Joint torques, external wrenches and the unknown wrench of a robot, floating-base
-    or welded to the world, from encoders, one IMU (optional for a fixed base) and k
-    6-axis F/T sensors, possibly nested (paper Sec. 2; method in the module docstring).
+class TorqueEstimatorStep(Step):
+    """The per-tick arithmetic of `FloatingBaseTorqueEstimator` (its docstring:
+    inputs, outputs, units, offset calibration, errors; the method in the module
+    docstring), on plain arrays, with everything it precomputes: the internal model,
+    one context of it (a computation workspace), two MultibodyForces, the sensors.
 
-    .. code-block:: text
-
-                                   ┌─────────────────────────────┐
-        q ────────────────────────►│                             ├──► tau
-        v ────────────────────────►│                             ├──► unknown_wrench
-        vdot ─────────────────────►│ FloatingBaseTorqueEstimator ├──► external_wrench_<s>
-        imu_linear_acceleration ──►│                             │    (one per sensor s)
-        imu_angular_velocity ─────►│ (imu_*: only with an IMU)   │
-        imu_angular_acceleration ─►│                             │
-        wrench_<s> ───────────────►│ (one per sensor s)          │
-                                   └─────────────────────────────┘
-
-    Inputs:
-        q, v, vdot (n each): joint positions (rad), velocities (rad/s), accelerations
-            (rad/s²), config.joints order (e.g. Savitzky-Golay estimates from encoders).
-        imu_linear_acceleration (3): proper acceleration (acceleration minus gravity,
-            m/s²) of the IMU frame origin, in the IMU frame: at rest it reads +g upward.
-        imu_angular_velocity (3): angular velocity of the IMU body (rad/s), IMU frame.
-        imu_angular_acceleration (3): its angular acceleration (rad/s², IMU frame, the
-            time derivative of imu_angular_velocity). Not read when
-            config.angular_acceleration is "neglected" (it may stay unconnected).
-        wrench_<sensor> (6): the sensor reading [torque; force] (N·m, N): the wrench
-            the bodies below the sensor exert on the body above it, about the sensor
-            origin, in the sensor frame.
-        The three imu_* ports exist only with an IMU (config.imu_frame not empty); a
-        robot welded to the world may have none (`has_imu()`).
-
-    Outputs (discrete state, updated every config.period; zero before the first update):
+    `step(t, q, v, vdot, imu_linear_acceleration, imu_angular_velocity,
+    imu_angular_acceleration, wrenches)` updates the state in place. Named state
+    arrays (`Step`), the outputs named like the estimator's ports:
         tau (n): estimated joint torques τ̂ (N·m), config.joints order.
-        unknown_wrench (6): the unknown wrench f_u [torque; force] (N·m, N) on the
-            unknown-wrench link u (config.unknown_wrench_body, default the base), about
-            u's origin, expressed in u's frame: the wrench that the environment exerts
-            on the robot and no F/T sensor measures (e.g. a push or a string), assumed
-            on u; gravity excluded (the weight is not part of it). Close to zero when
-            every contact is measured (monitoring, paper Sec. 2.4). For a fixed base
-            and u = the base, it is the wrench the mounting (the weld to the world)
-            exerts on the base, plus any unmeasured wrench on the bodies welded to the
-            base: it holds the robot, so at rest without contact its force is the
-            robot's weight, upward.
-        external_wrench_<sensor> (6): the compensated external wrench [torque; force]
-            the environment exerts on the bodies below that sensor, about the sensor
-            origin, in the sensor frame (standing still, a foot's is +z ground
-            reaction). For a sensor A with sensors nested below it: on A's segment
-            only, the bodies between A and those sensors (module docstring, step 2).
-            τ̂ assumes it acts on the body right below the sensor.
+        unknown_wrench (6): [torque; force] (N·m, N) on the unknown-wrench link.
+        external_wrench_<sensor> (6 each, config.sensors order): the compensated
+            external wrench [torque; force] (N·m, N), about So, in S.
+        calibration (6 k + 1): the F/T offsets in use (k, 6) (N·m, N), then the
+            number of calibration samples averaged.
 
-    Offset calibration (config.offset_calibration_time = T > 0, starting at
-    t0 = config.offset_calibration_start): F/T sensors drift, so their offsets are
-    measured at start-up. Procedure: start the robot (or the simulation) with nothing
-    touching the bodies below the sensors (robot hanging, or held with its feet and
-    hands free; it may move, slow motions are compensated); wait t0 for the filters'
-    windows to fill (default 0.2 s, 2.5 windows of 80 ms), then keep contact-free for
-    T more seconds (e.g. 0.5 s). At every update with t0 <= t < t0 + T the estimator
-    averages the compensated wrench S + ΣḢ of each sensor (Ḣ of every body below it,
-    nested sensors' included), which is the offset of its reading when nothing
-    touches, and uses the running average as the offset (so the external wrenches read
-    ≈ 0 while calibrating); afterwards the average is frozen and subtracted from every
-    reading (before the nested sensors' wrenches are taken out of the outer one's, so
-    an offset stays with its sensor). Before t0 the offsets are zero. The offsets and
-    the number of samples averaged are discrete state (`offsets(context)`,
-    `num_calibration_samples(context)`); with T = 0 the offsets stay zero, or at the
-    values given to `set_offsets` (e.g. calibrated in an earlier run, lifted).
-
-    Errors: a NaN or infinite input raises ValueError naming the port; an unknown
-    frame, body or joint name raises KeyError naming it; ValueError for a model whose
-    degrees of freedom are not the base's plus config.joints, a joint that is neither
-    revolute, prismatic nor a weld, a floating base without IMU, an IMU below an F/T
-    sensor, an F/T sensor body that is the base, not rigidly attached to its frame or
-    above it, two sensors on one body.
-
-    Allocated once at construction: the internal model (module docstring), one context
-    of it and two MultibodyForces; nothing per update but small numpy temporaries. Per
-    update: one SetPositionsAndVelocities, two inverse dynamics on the same kinematics
-    (F/T compensation, then τ̂), one relative pose per nested sensor, and a Jacobian of
-    the unknown-wrench link unless it is rigidly attached to the IMU (or the fixed base
-    without IMU) (scripts/bench_estimator.py measures it).
-    `plant`'s default parameters (masses, inertias, rotor inertias, gear ratios) and,
-    for a fixed base without IMU, its gravity and the base's default pose are read at
-    construction. `plant` must be a finalized model of the robot alone: a floating
-    base, or a base welded to the world (directly or through welds), only revolute,
-    prismatic and weld joints besides; its force elements are ignored.
+    Per step: one dot product checks the inputs, one SetPositionsAndVelocities, two
+    inverse dynamics, one relative pose per nested sensor and, unless the
+    unknown-wrench link is rigidly attached to the model's root, one Jacobian. Drake
+    returns each inverse dynamics as a new array and takes each external wrench as a
+    SpatialForce (k per step): those are the per-step allocations.
     """
 
     def __init__(self, plant: MultibodyPlant, config: TorqueEstimatorConfig):
         """
-        Args:
-            plant: a finalized MultibodyPlant holding only the robot, with a floating
-                base (for HRP-2: MultibodyPlant(0.0), add_hrp2, Finalize) or welded to
-                the world (a fixed base; then config.imu_frame may be empty). It must
-                outlive the estimator; it is never modified.
-            config: joint, frame and sensor names and options (validated here).
+        Args: those of `FloatingBaseTorqueEstimator` (same checks and messages).
+
+        Raises:
+            ValueError, KeyError: see FloatingBaseTorqueEstimator.
         """
         super().__init__()
         config.validate()
@@ -433,10 +367,49 @@ class FloatingBaseTorqueEstimator(WitnessFreeLeafSystem):
         self._config = copy.deepcopy(config)
         plant_context = plant.CreateDefaultContext()
         self._zero3 = np.zeros(3)
+        imu, unknown_frame, nesting = self._check_robot(plant, plant_context, config)
+        # The internal model, in which everything is computed (module docstring). Its
+        # root is the IMU frame, or the fixed base's frame without IMU.
+        root_frame = imu if self._has_imu else self._base.body_frame()
+        model, frames = _internal_model(plant, plant_context, root_frame, self._sensors)
+        self._model = model
+        self._context = model.CreateDefaultContext()
+        self._make_work_arrays(plant, plant_context, config)
+        # (outer, inner, S_outer, S_inner) for every sensor directly below another.
+        self._nesting = [
+            (a, b, self._sensors[a].model_frame, self._sensors[b].model_frame)
+            for a, b in nesting
+        ]
+        self._forces = MultibodyForces(model)
+        self._no_forces = MultibodyForces(model)  # stays zero
+        # Per sensor: how its external wrench is applied (see _dynamics).
+        self._external_forces = [
+            (s.model_body.AddInForce, s.p_BoSo_S, s.model_frame) for s in self._sensors
+        ]
+        self._world = model.world_frame()
+        u = frames[int((unknown_frame or self._base.body_frame()).index())]
+        self._check_rank(model, u)
+        self._unknown_frame, self._unknown_map = self._unknown_wrench_map(model, u)
+        self._set_options(config)
 
+        k = len(self._sensors)
+        self._declare("tau", np.zeros(self._n))
+        self._declare("unknown_wrench", np.zeros(6))
+        for sensor in self._sensors:
+            self._declare(f"external_wrench_{sensor.name}", np.zeros(6))
+        # F/T offsets (6 per sensor) then the number of calibration samples.
+        self._declare("calibration", np.zeros(6 * k + 1))
+        self._finalize()
+
+    def _check_robot(
+        self, plant: MultibodyPlant, plant_context: Context, config
+    ) -> tuple[object, object, list[tuple[int, int]]]:
+        """Finds and checks the base, the joints, the IMU, the sensors (their nesting)
+        and the unknown-wrench link; returns (IMU frame or None, unknown-wrench frame
+        or None for the base, the nested (outer, inner) sensor pairs)."""
         self._base, self._fixed_base = self._find_base(plant, config)
         self._indexing = joint_indexing(plant, config.joints)
-        n = self._n = self._indexing.size
+        self._n = self._indexing.size
         self._parent = tree_parents(plant, self._base.index())
         self._check_dofs(plant)
         if not self._fixed_base:
@@ -457,27 +430,27 @@ class FloatingBaseTorqueEstimator(WitnessFreeLeafSystem):
             raise ValueError(
                 f"{_WHERE}: IMU frame '{config.imu_frame}' is below an F/T sensor"
             )
+        return imu, unknown_frame, nesting
 
-        # The internal model, in which everything is computed (module docstring). Its
-        # root is the IMU frame, or the fixed base's frame without IMU.
-        root_frame = imu if self._has_imu else self._base.body_frame()
-        model, frames = _internal_model(plant, plant_context, root_frame, self._sensors)
-        self._model = model
-        self._context = model.CreateDefaultContext()
+    def _make_work_arrays(
+        self, plant: MultibodyPlant, plant_context: Context, config
+    ) -> None:
+        """The work arrays and where the inputs go in them (index arrays: the model's
+        order is not the joints'): views on one buffer, x = [q; v] of the model, v̇,
+        the F/T readings (k, 6), which one dot product checks for finiteness."""
+        model = self._model
         root = model.GetBodyByName(_ROOT, model.GetModelInstanceByName(_ROOT))
         start = root.floating_velocities_start_in_v()
         nq, nv = model.num_positions(), model.num_velocities()
         indexing = joint_indexing(model, config.joints)
-        # Work arrays, views on one buffer: x = [q; v] of the model, v̇, the F/T
-        # readings (k, 6); one sum checks that every input is finite.
         k = len(self._sensors)
         self._buffer = np.zeros(nq + 2 * nv + 6 * k)
         self._x = self._buffer[: nq + nv]
         self._vdot = self._buffer[nq + nv : nq + 2 * nv]
         self._raw = self._buffer[nq + 2 * nv :].reshape(k, 6)
+        self._ones = np.ones(self._buffer.size)  # buffer · ones: one finiteness check
         model.SetFreeBodyPose(self._context, root, RigidTransform())
         self._x[:nq] = model.GetPositions(self._context)  # the identities, for ever
-        # Where the inputs go (index arrays: the model's order is not the joints').
         self._jq = indexing.q
         self._jv = indexing.v
         self._x_jv = nq + indexing.v
@@ -496,57 +469,12 @@ class FloatingBaseTorqueEstimator(WitnessFreeLeafSystem):
             if self._sensors
             else np.zeros(0, dtype=int)
         )
-        # (outer, inner, S_outer, S_inner) for every sensor directly below another.
-        self._nesting = [
-            (a, b, self._sensors[a].model_frame, self._sensors[b].model_frame)
-            for a, b in nesting
-        ]
-        self._forces = MultibodyForces(model)
-        self._no_forces = MultibodyForces(model)  # stays zero
-        self._ones = np.ones(self._buffer.size)  # buffer · ones: one finiteness check
-        # Per sensor: how its external wrench is applied (see _dynamics).
-        self._external_forces = [
-            (s.model_body.AddInForce, s.p_BoSo_S, s.model_frame) for s in self._sensors
-        ]
-        self._world = model.world_frame()
-        u = frames[int((unknown_frame or self._base.body_frame()).index())]
-        self._check_rank(model, u)
-        self._unknown_frame, self._unknown_map = self._unknown_wrench_map(model, u)
+        self._total = np.zeros((k, 6))  # F_total of each sensor, then minus offsets
+        self._total_flat = self._total.reshape(-1)  # a view
+        self._mean_step = np.zeros((k, 6))  # a calibration step
+        self._rotor = np.zeros(self._n)  # ρ² I_r q̈
 
-        # Ports.
-        self._q_port = self.DeclareVectorInputPort("q", n)
-        self._v_port = self.DeclareVectorInputPort("v", n)
-        self._vdot_port = self.DeclareVectorInputPort("vdot", n)
-        self._acc_port = self._gyro_port = self._alpha_port = None
-        if self._has_imu:
-            self._acc_port = self.DeclareVectorInputPort("imu_linear_acceleration", 3)
-            self._gyro_port = self.DeclareVectorInputPort("imu_angular_velocity", 3)
-            self._alpha_port = self.DeclareVectorInputPort(
-                "imu_angular_acceleration", 3
-            )
-        for sensor in self._sensors:
-            sensor.port = self.DeclareVectorInputPort(f"wrench_{sensor.name}", 6)
-        # (port, row of the readings) per sensor, read every update.
-        self._sensor_inputs = [
-            (s.port, row) for s, row in zip(self._sensors, self._raw)
-        ]
-
-        self._tau_state = self.DeclareDiscreteState(n)
-        self._unknown_state = self.DeclareDiscreteState(6)
-        self._external_states = [self.DeclareDiscreteState(6) for _ in range(k)]
-        # F/T offsets (6 per sensor) then the number of calibration samples.
-        self._calibration_state = self.DeclareDiscreteState(6 * k + 1)
-        self.DeclareStateOutputPort("tau", self._tau_state)
-        self.DeclareStateOutputPort("unknown_wrench", self._unknown_state)
-        for sensor, state in zip(self._sensors, self._external_states):
-            self.DeclareStateOutputPort(f"external_wrench_{sensor.name}", state)
-        self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
-        # Plain ints: the cheapest DiscreteValues accessors per tick.
-        self._tau_group = int(self._tau_state)
-        self._unknown_group = int(self._unknown_state)
-        self._external_groups = [int(state) for state in self._external_states]
-        self._calibration_group = int(self._calibration_state)
-
+    def _set_options(self, config: TorqueEstimatorConfig) -> None:
         self._neglect_alpha = config.angular_acceleration == "neglected"
         self._read_alpha = self._has_imu and not self._neglect_alpha
         self._calibrates = config.offset_calibration_time > 0
@@ -558,6 +486,17 @@ class FloatingBaseTorqueEstimator(WitnessFreeLeafSystem):
             - 0.5 * config.period
         )
         self._subtract_rotor = not config.include_rotor_inertia
+
+    def _views_changed(self) -> None:
+        k = len(self._sensors)
+        self._offsets = self.calibration[:-1].reshape(k, 6)
+        if k:  # the external wrenches, contiguous in the state: one (k, 6) block
+            first = self.rows(f"external_wrench_{self._sensors[0].name}")
+            last = self.rows(f"external_wrench_{self._sensors[-1].name}")
+            self._external = self.state[first.start : last.stop].reshape(k, 6)
+        else:
+            self._external = np.zeros((0, 6))
+
 
     # ----------------------------------------------------------------- construction
 
@@ -829,6 +768,7 @@ class FloatingBaseTorqueEstimator(WitnessFreeLeafSystem):
                 f"wrench on '{frame.body().name()}' and the torques are not identifiable"
             )
 
+
     # ----------------------------------------------------------------- accessors
 
     def plant(self) -> MultibodyPlant:
@@ -837,8 +777,21 @@ class FloatingBaseTorqueEstimator(WitnessFreeLeafSystem):
     def config(self) -> TorqueEstimatorConfig:
         return self._config
 
+    def num_joints(self) -> int:
+        """n, the size of q, v, vdot and tau."""
+        return self._n
+
+    def num_sensors(self) -> int:
+        """k, the number of F/T sensors (rows of `wrenches`)."""
+        return len(self._sensors)
+
     def sensor_names(self) -> list[str]:
+        """The F/T sensors, in the order of `wrenches`' rows (config.sensors')."""
         return [s.name for s in self._sensors]
+
+    def period(self) -> float:
+        """The update period (s), config.period."""
+        return self._config.period
 
     def base_body(self) -> RigidBody:
         """The robot's base (of `plant`): its floating base or its body welded to the
@@ -850,8 +803,14 @@ class FloatingBaseTorqueEstimator(WitnessFreeLeafSystem):
         return self._fixed_base
 
     def has_imu(self) -> bool:
-        """False for a fixed base without IMU (no imu_* ports)."""
+        """False for a fixed base without IMU (`step` takes None for the imu_*
+        inputs)."""
         return self._has_imu
+
+    def reads_angular_acceleration(self) -> bool:
+        """False without IMU or with angular_acceleration "neglected": `step` does not
+        read imu_angular_acceleration (may be None)."""
+        return self._read_alpha
 
     def nested_sensors(self) -> dict[str, str]:
         """Each sensor nested below another: {inner name: the outer sensor's name}."""
@@ -863,23 +822,27 @@ class FloatingBaseTorqueEstimator(WitnessFreeLeafSystem):
         """ρ² I_r of each joint (kg·m²), config.joints order (0 without actuator)."""
         return self._reflected_inertia.copy()
 
-    def offsets(self, context: Context) -> np.ndarray:
-        """(k, 6) F/T offsets in use (sensor frame, N·m and N), config.sensors order."""
-        value = context.get_discrete_state(self._calibration_state).get_value()
-        return value[:-1].reshape(-1, 6).copy()
+    def output_names(self) -> list[str]:
+        """The named state arrays that are outputs, in the estimator's port order."""
+        return [
+            "tau",
+            "unknown_wrench",
+            *(f"external_wrench_{s.name}" for s in self._sensors),
+        ]
 
-    def num_calibration_samples(self, context: Context) -> int:
-        return int(context.get_discrete_state(self._calibration_state).get_value()[-1])
+    def offsets(self) -> np.ndarray:
+        """(k, 6) F/T offsets in use (sensor frame, N·m and N), a copy."""
+        return self._offsets.copy()
 
-    def set_offsets(self, context: Context, offsets: np.ndarray) -> None:
-        """Sets the F/T offsets in use (k, 6), config.sensors order, sensor frames (N·m,
-        N): e.g. offsets calibrated earlier with nothing touching the sensors (robot
-        lifted) for a run that starts in contact. A calibration period
-        (config.offset_calibration_time > 0) that has not started yet replaces them."""
+    def num_calibration_samples(self) -> int:
+        return int(self.calibration[-1])
+
+    def set_offsets(self, offsets: np.ndarray) -> None:
+        """Sets the F/T offsets in use, (k, 6) in config.sensors order, sensor frames
+        (N·m, N); see FloatingBaseTorqueEstimator.set_offsets."""
         k = len(self._sensors)
         value = check_vector("offsets", np.ravel(offsets), 6 * k, _WHERE)
-        state = context.get_mutable_discrete_state(self._calibration_state)
-        state.get_mutable_value()[:-1] = value
+        self.calibration[:-1] = value
 
     # ----------------------------------------------------------------- computation
 
@@ -902,6 +865,400 @@ class FloatingBaseTorqueEstimator(WitnessFreeLeafSystem):
             return frame, None
         return None, np.linalg.inv(J_u[:, self._root_v]).T
 
+    def step(
+        self,
+        t: float,
+        q: np.ndarray,
+        v: np.ndarray,
+        vdot: np.ndarray,
+        imu_linear_acceleration: np.ndarray | None,
+        imu_angular_velocity: np.ndarray | None,
+        imu_angular_acceleration: np.ndarray | None,
+        wrenches: np.ndarray | None,
+    ) -> None:
+        """One update at time t (s), in place on the state. Units and frames of the
+        estimator's ports: q, v, vdot (n each; rad, rad/s, rad/s²); the imu_* (3 each;
+        m/s², rad/s, rad/s²), None without IMU, and imu_angular_acceleration not read
+        (may be None) unless `reads_angular_acceleration()`; wrenches (k, 6), rows in
+        `sensor_names()` order, each sensor's reading [torque; force] (N·m, N), None
+        for k = 0. During the calibration window (config) the offsets are averaged.
+
+        Raises:
+            ValueError: an input read is not finite (named).
+        """
+        x, model_vdot = self._x, self._vdot
+        x[self._jq] = q
+        x[self._x_jv] = v
+        model_vdot[self._jv] = vdot
+        if self._has_imu:
+            x[self._x_w] = imu_angular_velocity
+            if self._read_alpha:
+                model_vdot[self._root_w] = imu_angular_acceleration
+            model_vdot[self._root_a] = imu_linear_acceleration
+        if wrenches is not None:
+            self._raw[:] = wrenches
+        # One check for all (the other entries of the buffer are finite).
+        if not math.isfinite(self._buffer.dot(self._ones)):
+            self._raise_non_finite(
+                q,
+                v,
+                vdot,
+                imu_linear_acceleration,
+                imu_angular_velocity,
+                imu_angular_acceleration,
+                wrenches,
+            )
+        # Step 1: the root (the IMU frame) at the identity, with the gyro's angular
+        # velocity and the IMU's proper acceleration; or the fixed base at rest with
+        # its constant proper acceleration (set at construction).
+        self._model.SetPositionsAndVelocities(self._context, x)
+        total = self._compensate()
+        if self._calibrates and self._calibration_begin <= t < self._calibration_end:
+            calibration, offsets = self.calibration, self._offsets
+            count = calibration[-1] + 1.0
+            # The running mean: offsets += (total − offsets) / count.
+            mean_step = np.subtract(total, offsets, out=self._mean_step)
+            mean_step /= count
+            offsets += mean_step
+            calibration[-1] = count
+        total -= self._offsets
+        self._segments(total, self._external)
+        self._dynamics(self._external, self.tau, self.unknown_wrench)
+
+    def _raise_non_finite(self, q, v, vdot, acc, gyro, alpha, wrenches) -> None:
+        """Raises ValueError naming the first input read (in port order) that is not
+        finite, with its entries."""
+        inputs = [("q", q), ("v", v), ("vdot", vdot)]
+        if self._has_imu:
+            inputs += [("imu_linear_acceleration", acc), ("imu_angular_velocity", gyro)]
+        if self._read_alpha:
+            inputs.append(("imu_angular_acceleration", alpha))
+        for sensor, row in zip(self._sensors, self._raw):
+            inputs.append((f"wrench_{sensor.name}", row))
+        for name, value in inputs:
+            bad = np.flatnonzero(~np.isfinite(value))
+            if bad.size:
+                raise ValueError(
+                    f"{_WHERE}: input '{name}' is not finite at entries {bad.tolist()}"
+                )
+        raise ValueError(f"{_WHERE}: the inputs sum to a non-finite number")
+
+    def estimate(
+        self,
+        q: np.ndarray,
+        v: np.ndarray,
+        vdot: np.ndarray,
+        imu_linear_acceleration: np.ndarray | None,
+        imu_angular_velocity: np.ndarray | None,
+        imu_angular_acceleration: np.ndarray | None,
+        wrenches: np.ndarray,
+        offsets: np.ndarray | None = None,
+    ) -> TorqueEstimate:
+        """The estimate of one sample, checked and in new arrays, leaving the state
+        alone: see FloatingBaseTorqueEstimator.estimate."""
+        n, k = self._n, len(self._sensors)
+        q = check_vector("q", q, n, _WHERE)
+        v = check_vector("v", v, n, _WHERE)
+        vdot = check_vector("vdot", vdot, n, _WHERE)
+        imu = self._check_imu(
+            imu_linear_acceleration, imu_angular_velocity, imu_angular_acceleration
+        )
+        raw = check_vector("wrenches", np.ravel(wrenches), 6 * k, _WHERE).reshape(k, 6)
+        off = (
+            np.zeros((k, 6))
+            if offsets is None
+            else check_vector("offsets", np.ravel(offsets), 6 * k, _WHERE).reshape(k, 6)
+        )
+        x, model_vdot = self._x, self._vdot
+        x[self._jq] = q
+        x[self._x_jv] = v
+        model_vdot[self._jv] = vdot
+        if imu is not None:
+            x[self._x_w], model_vdot[self._root_w], model_vdot[self._root_a] = imu
+        self._raw[:] = raw
+        self._model.SetPositionsAndVelocities(self._context, x)
+        total = self._compensate()
+        total -= off
+        result = TorqueEstimate(np.zeros(n), np.zeros(6), np.zeros((k, 6)))
+        self._segments(total, result.external_wrenches)
+        self._dynamics(result.external_wrenches, result.tau, result.unknown_wrench)
+        return result
+
+    def _check_imu(self, acc, gyro, alpha) -> tuple | None:
+        """estimate's IMU arguments, checked: (gyro, α, accelerometer), α zero if
+        neglected; None without IMU."""
+        imu = {
+            "imu_linear_acceleration": acc,
+            "imu_angular_velocity": gyro,
+            "imu_angular_acceleration": alpha,
+        }
+        if not self._has_imu:
+            given = [name for name, value in imu.items() if value is not None]
+            if given:
+                raise ValueError(
+                    f"{_WHERE}: {given} given, but the estimator has no IMU "
+                    "(TorqueEstimatorConfig.imu_frame is empty): pass None"
+                )
+            return None
+        needed = list(imu)[:2] if self._neglect_alpha else list(imu)
+        absent = [name for name in needed if imu[name] is None]
+        if absent:
+            raise ValueError(
+                f"{_WHERE}: {absent} are None, but the estimator has an IMU "
+                f"('{self._config.imu_frame}')"
+            )
+        acc = check_vector("imu_linear_acceleration", acc, 3, _WHERE)
+        gyro = check_vector("imu_angular_velocity", gyro, 3, _WHERE)
+        alpha = (
+            self._zero3
+            if self._neglect_alpha
+            else check_vector("imu_angular_acceleration", alpha, 3, _WHERE)
+        )
+        return gyro, alpha, acc
+
+    def _compensate(self) -> np.ndarray:
+        """Step 2 without the offsets: F_total = S_s + Σ_b Ḣ_b (about So, in S) of every
+        sensor, (k, 6) in self._total, b over all the bodies below it (nested
+        sensors' included), from the readings in self._raw and the model's context.
+        Σ_b Ḣ_b of every sensor at once: the generalized forces of the sensor joints
+        in one inverse dynamics without external wrenches."""
+        G = self._model.CalcInverseDynamics(self._context, self._vdot, self._no_forces)
+        # ndarray.take, not np.take: the same copy without np.take's ~1 us wrapper.
+        G.take(self._sensor_rows, out=self._total_flat, mode="clip")
+        return np.add(self._raw, self._total, out=self._total)
+
+    def _segments(self, total: np.ndarray, external: np.ndarray) -> None:
+        """Step 2, nested sensors (paper Sec. 2.2): the external wrench of each sensor
+        A on its segment, F_A = F_A,total − Σ_B X*_AB F_B,total over the sensors B
+        directly below A, into `external` (k, 6), from the total wrenches (k, 6)
+        (offsets removed). X*_AB moves a wrench about So_B in S_B to about So_A in
+        S_A: with X_AB = (R, p) the pose of S_B in S_A from the model's kinematics,
+        f_A = R f_B and τ_A = R τ_B + p × f_A."""
+        external[:] = total
+        for a, b, S_a, S_b in self._nesting:
+            X_AB = self._model.CalcRelativeTransform(self._context, S_a, S_b)
+            R = X_AB.rotation().matrix()
+            force = R @ total[b, 3:]
+            external[a, :3] -= R @ total[b, :3] + np.cross(X_AB.translation(), force)
+            external[a, 3:] -= force
+
+    def _dynamics(
+        self, external: np.ndarray, tau: np.ndarray, unknown: np.ndarray
+    ) -> None:
+        """Steps 3 and 4: tau (n) and the unknown wrench (6), in place, from the
+        external wrenches (k, 6)."""
+        model, context, forces = self._model, self._context, self._forces
+        forces.SetZero()
+        # Each sensor's external wrench on the body B right below it, at So, in S.
+        for (add_in_force, p_BoSo_S, frame_S), wrench in zip(
+            self._external_forces, external
+        ):
+            add_in_force(context, p_BoSo_S, SpatialForce(wrench), frame_S, forces)
+        # G = M v̇ + h − J_mᵀ f_m, without gravity (proper accelerations carry it).
+        G = model.CalcInverseDynamics(context, self._vdot, forces)
+        G.take(self._jv, out=tau, mode="clip")
+        G_root = G[self._root_v]
+        if self._unknown_map is not None:
+            # u welded to the root: f_u = J_u,rootᵀ⁻¹ G_root, J_u,joints = 0.
+            np.matmul(self._unknown_map, G_root, out=unknown)
+        else:
+            frame = self._unknown_frame
+            J_u = model.CalcJacobianSpatialVelocity(
+                context, JacobianWrtVariable.kV, frame, self._zero3, self._world, frame
+            )
+            # [J_uᵀ Sᵀ] [f_u; τ] = G (Sec. 2.4): root rows first. Expressed in u, with
+            # the root at the identity pose, J_u,root = [R 0; −R[p]× R] (R = R_uW, p =
+            # p_WUo), whose inverse transpose is [R −R[p]×; 0 R]: no 6x6 solve.
+            J_root = J_u[:, self._root_v]
+            R = J_root[:3, :3]
+            unknown[:3] = R @ G_root[:3] + J_root[3:, :3] @ G_root[3:]
+            unknown[3:] = R @ G_root[3:]
+            tau -= J_u[:, self._jv].T @ unknown
+        if self._subtract_rotor:
+            rotor = self._vdot.take(self._jv, out=self._rotor, mode="clip")
+            rotor *= self._reflected_inertia
+            tau -= rotor
+
+
+class FloatingBaseTorqueEstimator(StepSystem):
+    """Joint torques, external wrenches and the unknown wrench of a robot, floating-base
+    or welded to the world, from encoders, one IMU (optional for a fixed base) and k
+    6-axis F/T sensors, possibly nested (paper Sec. 2; method in the module docstring).
+
+    .. code-block:: text
+
+                                   ┌─────────────────────────────┐
+        q ────────────────────────►│                             ├──► tau
+        v ────────────────────────►│                             ├──► unknown_wrench
+        vdot ─────────────────────►│ FloatingBaseTorqueEstimator ├──► external_wrench_<s>
+        imu_linear_acceleration ──►│                             │    (one per sensor s)
+        imu_angular_velocity ─────►│ (imu_*: only with an IMU)   │
+        imu_angular_acceleration ─►│                             │
+        wrench_<s> ───────────────►│ (one per sensor s)          │
+                                   └─────────────────────────────┘
+
+    Inputs:
+        q, v, vdot (n each): joint positions (rad), velocities (rad/s), accelerations
+            (rad/s²), config.joints order (e.g. Savitzky-Golay estimates from encoders).
+        imu_linear_acceleration (3): proper acceleration (acceleration minus gravity,
+            m/s²) of the IMU frame origin, in the IMU frame: at rest it reads +g upward.
+        imu_angular_velocity (3): angular velocity of the IMU body (rad/s), IMU frame.
+        imu_angular_acceleration (3): its angular acceleration (rad/s², IMU frame, the
+            time derivative of imu_angular_velocity). Not read when
+            config.angular_acceleration is "neglected" (it may stay unconnected).
+        wrench_<sensor> (6): the sensor reading [torque; force] (N·m, N): the wrench
+            the bodies below the sensor exert on the body above it, about the sensor
+            origin, in the sensor frame.
+        The three imu_* ports exist only with an IMU (config.imu_frame not empty); a
+        robot welded to the world may have none (`has_imu()`).
+
+    Outputs (discrete state, updated every config.period; zero before the first update):
+        tau (n): estimated joint torques τ̂ (N·m), config.joints order.
+        unknown_wrench (6): the unknown wrench f_u [torque; force] (N·m, N) on the
+            unknown-wrench link u (config.unknown_wrench_body, default the base), about
+            u's origin, expressed in u's frame: the wrench that the environment exerts
+            on the robot and no F/T sensor measures (e.g. a push or a string), assumed
+            on u; gravity excluded (the weight is not part of it). Close to zero when
+            every contact is measured (monitoring, paper Sec. 2.4). For a fixed base
+            and u = the base, it is the wrench the mounting (the weld to the world)
+            exerts on the base, plus any unmeasured wrench on the bodies welded to the
+            base: it holds the robot, so at rest without contact its force is the
+            robot's weight, upward.
+        external_wrench_<sensor> (6): the compensated external wrench [torque; force]
+            the environment exerts on the bodies below that sensor, about the sensor
+            origin, in the sensor frame (standing still, a foot's is +z ground
+            reaction). For a sensor A with sensors nested below it: on A's segment
+            only, the bodies between A and those sensors (module docstring, step 2).
+            τ̂ assumes it acts on the body right below the sensor.
+
+    Offset calibration (config.offset_calibration_time = T > 0, starting at
+    t0 = config.offset_calibration_start): F/T sensors drift, so their offsets are
+    measured at start-up. Procedure: start the robot (or the simulation) with nothing
+    touching the bodies below the sensors (robot hanging, or held with its feet and
+    hands free; it may move, slow motions are compensated); wait t0 for the filters'
+    windows to fill (default 0.2 s, 2.5 windows of 80 ms), then keep contact-free for
+    T more seconds (e.g. 0.5 s). At every update with t0 <= t < t0 + T the estimator
+    averages the compensated wrench S + ΣḢ of each sensor (Ḣ of every body below it,
+    nested sensors' included), which is the offset of its reading when nothing
+    touches, and uses the running average as the offset (so the external wrenches read
+    ≈ 0 while calibrating); afterwards the average is frozen and subtracted from every
+    reading (before the nested sensors' wrenches are taken out of the outer one's, so
+    an offset stays with its sensor). Before t0 the offsets are zero. The offsets and
+    the number of samples averaged are discrete state (`offsets(context)`,
+    `num_calibration_samples(context)`); with T = 0 the offsets stay zero, or at the
+    values given to `set_offsets` (e.g. calibrated in an earlier run, lifted).
+
+    Errors: a NaN or infinite input raises ValueError naming the port; an unknown
+    frame, body or joint name raises KeyError naming it; ValueError for a model whose
+    degrees of freedom are not the base's plus config.joints, a joint that is neither
+    revolute, prismatic nor a weld, a floating base without IMU, an IMU below an F/T
+    sensor, an F/T sensor body that is the base, not rigidly attached to its frame or
+    above it, two sensors on one body.
+
+    The arithmetic is `TorqueEstimatorStep`'s, which this system runs on its
+    context's state (a fused controller runs the same step without Drake). Allocated
+    once at construction: the internal model (module docstring), one context of it and
+    two MultibodyForces; per update only Drake's two inverse dynamics results and one
+    SpatialForce per sensor. Per update: one SetPositionsAndVelocities, two inverse
+    dynamics on the same kinematics (F/T compensation, then τ̂), one relative pose per
+    nested sensor, and a Jacobian of the unknown-wrench link unless it is rigidly
+    attached to the IMU (or the fixed base without IMU) (scripts/bench_estimator.py
+    measures it).
+    `plant`'s default parameters (masses, inertias, rotor inertias, gear ratios) and,
+    for a fixed base without IMU, its gravity and the base's default pose are read at
+    construction. `plant` must be a finalized model of the robot alone: a floating
+    base, or a base welded to the world (directly or through welds), only revolute,
+    prismatic and weld joints besides; its force elements are ignored.
+    """
+
+
+    def __init__(self, plant: MultibodyPlant, config: TorqueEstimatorConfig):
+        """
+        Args:
+            plant: a finalized MultibodyPlant holding only the robot, with a floating
+                base (for HRP-2: MultibodyPlant(0.0), add_hrp2, Finalize) or welded to
+                the world (a fixed base; then config.imu_frame may be empty). It must
+                outlive the estimator; it is never modified.
+            config: joint, frame and sensor names and options (validated here).
+        """
+        super().__init__()
+        step = TorqueEstimatorStep(plant, config)
+        n, names = step.num_joints(), step.sensor_names()
+        self._q_port = self.DeclareVectorInputPort("q", n)
+        self._v_port = self.DeclareVectorInputPort("v", n)
+        self._vdot_port = self.DeclareVectorInputPort("vdot", n)
+        self._acc_port = self._gyro_port = self._alpha_port = None
+        if step.has_imu():
+            self._acc_port = self.DeclareVectorInputPort("imu_linear_acceleration", 3)
+            self._gyro_port = self.DeclareVectorInputPort("imu_angular_velocity", 3)
+            self._alpha_port = self.DeclareVectorInputPort(
+                "imu_angular_acceleration", 3
+            )
+        self._wrench_ports = [
+            self.DeclareVectorInputPort(f"wrench_{name}", 6) for name in names
+        ]
+        # The readings (k, 6), rows in sensor order, that the step takes.
+        self._wrenches = np.zeros((len(names), 6)) if names else None
+        self._sensor_inputs = (
+            list(zip(self._wrench_ports, self._wrenches)) if names else []
+        )
+        self._read_alpha = step.reads_angular_acceleration()
+        self._declare_step_state(step)
+        for name in step.output_names():
+            self._declare_step_output(name)
+        self.DeclarePeriodicDiscreteUpdateEvent(step.period(), 0.0, self._update)
+
+    # ----------------------------------------------------------------- accessors
+
+    def plant(self) -> MultibodyPlant:
+        return self._step.plant()
+
+    def config(self) -> TorqueEstimatorConfig:
+        return self._step.config()
+
+    def sensor_names(self) -> list[str]:
+        return self._step.sensor_names()
+
+    def base_body(self) -> RigidBody:
+        """The robot's base (of `plant`): its floating base or its body welded to the
+        world (`is_fixed_base()`)."""
+        return self._step.base_body()
+
+    def is_fixed_base(self) -> bool:
+        """True if the base is welded to the world (directly or through welds)."""
+        return self._step.is_fixed_base()
+
+    def has_imu(self) -> bool:
+        """False for a fixed base without IMU (no imu_* ports)."""
+        return self._step.has_imu()
+
+    def nested_sensors(self) -> dict[str, str]:
+        """Each sensor nested below another: {inner name: the outer sensor's name}."""
+        return self._step.nested_sensors()
+
+    def reflected_inertia(self) -> np.ndarray:
+        """ρ² I_r of each joint (kg·m²), config.joints order (0 without actuator)."""
+        return self._step.reflected_inertia()
+
+    def offsets(self, context: Context) -> np.ndarray:
+        """(k, 6) F/T offsets in use (sensor frame, N·m and N), config.sensors order."""
+        self._load_context(context)
+        return self._step.offsets()
+
+    def num_calibration_samples(self, context: Context) -> int:
+        self._load_context(context)
+        return self._step.num_calibration_samples()
+
+    def set_offsets(self, context: Context, offsets: np.ndarray) -> None:
+        """Sets the F/T offsets in use (k, 6), config.sensors order, sensor frames (N·m,
+        N): e.g. offsets calibrated earlier with nothing touching the sensors (robot
+        lifted) for a run that starts in contact. A calibration period
+        (config.offset_calibration_time > 0) that has not started yet replaces them."""
+        self._load_context(context)
+        self._step.set_offsets(offsets)
+        group = self.step_group("calibration")
+        context.get_mutable_discrete_state(group).SetFromVector(self._step.calibration)
+
     def estimate(
         self,
         q: np.ndarray,
@@ -923,175 +1280,50 @@ class FloatingBaseTorqueEstimator(WitnessFreeLeafSystem):
             ValueError: a wrong size or a non-finite value, naming the argument; an
                 imu_* argument None with an IMU, or given without.
         """
-        n, k = self._n, len(self._sensors)
-        q = check_vector("q", q, n, _WHERE)
-        v = check_vector("v", v, n, _WHERE)
-        vdot = check_vector("vdot", vdot, n, _WHERE)
-        imu = {
-            "imu_linear_acceleration": imu_linear_acceleration,
-            "imu_angular_velocity": imu_angular_velocity,
-            "imu_angular_acceleration": imu_angular_acceleration,
-        }
-        if self._has_imu:
-            needed = list(imu)[:2] if self._neglect_alpha else list(imu)
-            absent = [name for name in needed if imu[name] is None]
-            if absent:
-                raise ValueError(
-                    f"{_WHERE}: {absent} are None, but the estimator has an IMU "
-                    f"('{self._config.imu_frame}')"
-                )
-            acc = check_vector(
-                "imu_linear_acceleration", imu_linear_acceleration, 3, _WHERE
-            )
-            gyro = check_vector("imu_angular_velocity", imu_angular_velocity, 3, _WHERE)
-            alpha = (
-                self._zero3
-                if self._neglect_alpha
-                else check_vector(
-                    "imu_angular_acceleration", imu_angular_acceleration, 3, _WHERE
-                )
-            )
-        else:
-            given = [name for name, value in imu.items() if value is not None]
-            if given:
-                raise ValueError(
-                    f"{_WHERE}: {given} given, but the estimator has no IMU "
-                    "(TorqueEstimatorConfig.imu_frame is empty): pass None"
-                )
-        raw = check_vector("wrenches", np.ravel(wrenches), 6 * k, _WHERE).reshape(k, 6)
-        off = (
-            np.zeros((k, 6))
-            if offsets is None
-            else check_vector("offsets", np.ravel(offsets), 6 * k, _WHERE).reshape(k, 6)
+        return self._step.estimate(
+            q,
+            v,
+            vdot,
+            imu_linear_acceleration,
+            imu_angular_velocity,
+            imu_angular_acceleration,
+            wrenches,
+            offsets,
         )
-        x, model_vdot = self._x, self._vdot
-        x[self._jq] = q
-        x[self._x_jv] = v
-        model_vdot[self._jv] = vdot
-        if self._has_imu:
-            x[self._x_w] = gyro
-            model_vdot[self._root_w] = alpha
-            model_vdot[self._root_a] = acc
-        self._raw[:] = raw
-        self._model.SetPositionsAndVelocities(self._context, x)
-        total = self._compensate()
-        total -= off
-        external = self._segments(total)
-        tau, unknown = self._dynamics(external)
-        return TorqueEstimate(tau, unknown, external)
 
-    def _compensate(self) -> np.ndarray:
-        """Step 2 without the offsets: F_total = S_s + Σ_b Ḣ_b (about So, in S) of every
-        sensor, (k, 6), b over all the bodies below it (nested sensors' included),
-        from the readings in self._raw and the model's context. Σ_b Ḣ_b of every
-        sensor at once: the generalized forces of the sensor joints in one inverse
-        dynamics without external wrenches."""
-        G = self._model.CalcInverseDynamics(self._context, self._vdot, self._no_forces)
-        return self._raw + G[self._sensor_rows].reshape(self._raw.shape)
-
-    def _segments(self, total: np.ndarray) -> np.ndarray:
-        """Step 2, nested sensors (paper Sec. 2.2): the external wrench of each sensor
-        A on its segment, F_A = F_A,total − Σ_B X*_AB F_B,total over the sensors B
-        directly below A, from the total wrenches (k, 6) (offsets removed). X*_AB
-        moves a wrench about So_B in S_B to about So_A in S_A: with X_AB = (R, p) the
-        pose of S_B in S_A from the model's kinematics, f_A = R f_B and
-        τ_A = R τ_B + p × f_A."""
-        if not self._nesting:
-            return total
-        external = total.copy()
-        for a, b, S_a, S_b in self._nesting:
-            X_AB = self._model.CalcRelativeTransform(self._context, S_a, S_b)
-            R = X_AB.rotation().matrix()
-            force = R @ total[b, 3:]
-            external[a, :3] -= R @ total[b, :3] + np.cross(X_AB.translation(), force)
-            external[a, 3:] -= force
-        return external
-
-    def _dynamics(self, external: np.ndarray):
-        """Steps 3 and 4: (tau, unknown wrench) from the external wrenches (k, 6)."""
-        model, context, forces = self._model, self._context, self._forces
-        forces.SetZero()
-        # Each sensor's external wrench on the body B right below it, at So, in S.
-        for (add_in_force, p_BoSo_S, frame_S), wrench in zip(
-            self._external_forces, external
-        ):
-            add_in_force(context, p_BoSo_S, SpatialForce(wrench), frame_S, forces)
-        # G = M v̇ + h − J_mᵀ f_m, without gravity (proper accelerations carry it).
-        G = model.CalcInverseDynamics(context, self._vdot, forces)
-        tau = G[self._jv]
-        G_root = G[self._root_v]
-        if self._unknown_map is not None:
-            # u welded to the root: f_u = J_u,rootᵀ⁻¹ G_root, J_u,joints = 0.
-            unknown = self._unknown_map @ G_root
-        else:
-            frame = self._unknown_frame
-            J_u = model.CalcJacobianSpatialVelocity(
-                context, JacobianWrtVariable.kV, frame, self._zero3, self._world, frame
-            )
-            # [J_uᵀ Sᵀ] [f_u; τ] = G (Sec. 2.4): root rows first. Expressed in u, with
-            # the root at the identity pose, J_u,root = [R 0; −R[p]× R] (R = R_uW, p =
-            # p_WUo), whose inverse transpose is [R −R[p]×; 0 R]: no 6x6 solve.
-            J_root = J_u[:, self._root_v]
-            R = J_root[:3, :3]
-            unknown = np.empty(6)
-            unknown[:3] = R @ G_root[:3] + J_root[3:, :3] @ G_root[3:]
-            unknown[3:] = R @ G_root[3:]
-            tau -= J_u[:, self._jv].T @ unknown
-        if self._subtract_rotor:
-            tau -= self._reflected_inertia * self._vdot[self._jv]
-        return tau, unknown
-
-    def _read_all(self, context: Context) -> None:
-        """Reads every input into the work arrays; ValueError naming the first port
-        (in port order) that is not finite."""
-        x, vdot = self._x, self._vdot
-        x[self._jq] = self._q_port.Eval(context)
-        x[self._x_jv] = self._v_port.Eval(context)
-        vdot[self._jv] = self._vdot_port.Eval(context)
-        if self._has_imu:
-            x[self._x_w] = self._gyro_port.Eval(context)
-            if not self._neglect_alpha:
-                vdot[self._root_w] = self._alpha_port.Eval(context)
-            vdot[self._root_a] = self._acc_port.Eval(context)
-        for port, row in self._sensor_inputs:
-            row[:] = port.Eval(context)
-        # One check for all (the other entries of the buffer are finite).
-        if not math.isfinite(self._buffer.dot(self._ones)):
-            ports = [self._q_port, self._v_port, self._vdot_port]
-            if self._has_imu:
-                ports += [self._acc_port, self._gyro_port]
-            if self._read_alpha:
-                ports.append(self._alpha_port)
-            for port in ports + [sensor.port for sensor in self._sensors]:
-                self._read(port, context)
-            raise AssertionError(f"{_WHERE}: non-finite work array")  # unreachable
-
-    def _read(self, port, context: Context) -> np.ndarray:
-        return eval_finite(port, context, f"{_WHERE} {self.GetSystemPathname()}")
+    # ----------------------------------------------------------------- per tick
 
     def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
-        self._read_all(context)
-        # Step 1: the root (the IMU frame) at the identity, with the gyro's angular
-        # velocity and the IMU's proper acceleration (set by _read_all); or the fixed
-        # base at rest with its constant proper acceleration (set at construction).
-        self._model.SetPositionsAndVelocities(self._context, self._x)
-        total = self._compensate()
-        calibration = discrete_state.get_mutable_value(self._calibration_group)
-        offsets = calibration[:-1].reshape(-1, 6)  # a view on the state
-        if (
-            self._calibrates
-            and self._calibration_begin <= context.get_time() < self._calibration_end
-        ):
-            count = calibration[-1] + 1.0
-            offsets += (total - offsets) / count  # running mean
-            calibration[-1] = count
-        total -= offsets
-        external = self._segments(total)
-        tau, unknown = self._dynamics(external)
-        discrete_state.set_value(self._tau_group, tau)
-        discrete_state.set_value(self._unknown_group, unknown)
-        for group, wrench in zip(self._external_groups, external):
-            discrete_state.set_value(group, wrench)
+        self._load(discrete_state)
+        for port, row in self._sensor_inputs:
+            row[:] = port.Eval(context)
+        imu = self._acc_port is not None
+        try:
+            self._step.step(
+                context.get_time(),
+                self._q_port.Eval(context),
+                self._v_port.Eval(context),
+                self._vdot_port.Eval(context),
+                self._acc_port.Eval(context) if imu else None,
+                self._gyro_port.Eval(context) if imu else None,
+                self._alpha_port.Eval(context) if self._read_alpha else None,
+                self._wrenches,
+            )
+        except ValueError:
+            self._check_ports(context)  # raises naming the port, if one is not finite
+            raise
+        self._store(discrete_state)
+
+    def _check_ports(self, context: Context) -> None:
+        """ValueError naming the first port (in port order) that is read and not
+        finite (eval_finite's message: port, time, entries)."""
+        ports = [self._q_port, self._v_port, self._vdot_port]
+        if self._acc_port is not None:
+            ports += [self._acc_port, self._gyro_port]
+        if self._read_alpha:
+            ports.append(self._alpha_port)
+        for port in ports + self._wrench_ports:
+            eval_finite(port, context, f"{_WHERE} {self.GetSystemPathname()}")
 
 
 def _internal_model(
@@ -1261,6 +1493,16 @@ class EstimationChain:
         return self.encoder_filter.delay() + 2 * self.encoder_filter.period()
 
 
+def filter_windows(config: TorqueEstimatorConfig) -> tuple[list[int], list[int]]:
+    """The windows of the two filters of the chain (`add_estimator`, the fused
+    controller): one per encoder (config.joints order), and one per entry of the
+    sensor filter's signal, [accelerometer (3), gyro (3) (with an IMU); each F/T
+    sensor (6, config.sensors order)]."""
+    encoders = [config.window_of(j) for j in config.joints]
+    imu = [config.window_of("imu")] * (6 if config.imu_frame else 0)
+    return encoders, imu + [config.window_of(s) for s in config.sensors for _ in range(6)]
+
+
 def add_estimator(
     builder: DiagramBuilder,
     station: System,
@@ -1331,11 +1573,12 @@ def add_estimator(
             f"{station.GetOutputPort(encoders).size()} entries, config.joints has {n}"
         )
     estimator = builder.AddNamedSystem(name, FloatingBaseTorqueEstimator(plant, config))
+    encoder_windows, sensor_windows = filter_windows(config)
     encoder_filter = builder.AddNamedSystem(
         f"{name}_encoder_filter",
         SavitzkyGolayFilter(
             n,
-            [config.window_of(j) for j in config.joints],
+            encoder_windows,
             2,
             config.period,
             config.evaluation,
@@ -1363,8 +1606,7 @@ def add_estimator(
             f"{name}_sensor_filter",
             SavitzkyGolayFilter(
                 sum(sizes),
-                [config.window_of("imu")] * (6 if has_imu else 0)
-                + [config.window_of(s) for s in names for _ in range(6)],
+                sensor_windows,
                 1,
                 config.period,
                 config.evaluation,

@@ -1,0 +1,154 @@
+"""Per-tick steps: the arithmetic of one discrete system, written once, outside Drake.
+
+A `Step` holds its state as named float64 arrays packed in one flat vector
+(`Step.state`), and its `step(...)` maps input arrays to that state in place. Its
+outputs are named state arrays (what a LeafSystem exposes with
+`DeclareStateOutputPort`): a consumer reads them one tick later, the one-sample delay of
+a real controller. A step holds no systems Context (a MultibodyPlant context as a
+computation workspace is fine), allocates nothing per tick, and never logs: it counts
+events in its state and its shell reports them.
+
+Two shells run the same steps:
+
+- the step's LeafSystem (`StepSystem`): one discrete state group per named array,
+  copied into the step before each update and back after it, so that Drake's Context
+  stays the state's owner (several contexts, simulator resets, `FixValue` in tests);
+- the fused controller (`hrp2_drake.control.fused`): every step's state in one flat
+  vector (`Step.bind`), the steps run in sequence in one update, or in a hardware loop
+  with no Drake at all.
+"""
+
+from typing import Iterator
+
+import numpy as np
+from pydrake.systems.framework import DiscreteValues
+
+from hrp2_drake.simulation import WitnessFreeLeafSystem
+
+
+class Step:
+    """Base of a per-tick step (module docstring).
+
+    A subclass declares its state in `__init__` with `_declare(name, initial)` and then
+    calls `_finalize()`; each named array is then the attribute `name`, a view on
+    `state` (reshaped to `initial`'s shape). Keep the views' names: `bind` re-points
+    them.
+    """
+
+    def __init__(self) -> None:
+        self._layout: list[tuple[str, slice, tuple[int, ...]]] = []
+        self._initial: list[np.ndarray] = []
+        self._size = 0
+        self._state = np.zeros(0)
+
+    def _declare(self, name: str, initial) -> None:
+        """Declares the state array `name` with its initial value (any shape)."""
+        if any(name == entry[0] for entry in self._layout) or name.startswith("_state"):
+            raise ValueError(f"{type(self).__name__}: state '{name}' declared twice")
+        value = np.array(initial, dtype=float)
+        shape = value.shape if value.ndim else (1,)
+        size = int(np.prod(shape))
+        self._layout.append((name, slice(self._size, self._size + size), shape))
+        self._initial.append(value.reshape(-1) if value.ndim else value.reshape(1))
+        self._size += size
+
+    def _finalize(self) -> None:
+        """Allocates the state at its initial values and makes the views."""
+        state = np.zeros(self._size)
+        for (_, rows, _), value in zip(self._layout, self._initial):
+            state[rows] = value
+        self._state = state
+        self._make_views()
+
+    def _make_views(self) -> None:
+        for name, rows, shape in self._layout:
+            setattr(self, name, self._state[rows].reshape(shape))
+        self._views_changed()
+
+    def _views_changed(self) -> None:
+        """Called whenever the named arrays became new views (after `_finalize` and
+        `bind`): a subclass that keeps derived views (a list of rows, a reshaped
+        block) rebuilds them here."""
+
+    @property
+    def state(self) -> np.ndarray:
+        """The whole state, one flat float64 vector (the named arrays are views)."""
+        return self._state
+
+    @property
+    def state_size(self) -> int:
+        return self._size
+
+    def initial_state(self) -> np.ndarray:
+        """The state at construction (a new array)."""
+        state = np.zeros(self._size)
+        for (_, rows, _), value in zip(self._layout, self._initial):
+            state[rows] = value
+        return state
+
+    def layout(self) -> Iterator[tuple[str, slice]]:
+        """(name, rows of `state`) of each named array, in declaration order."""
+        return ((name, rows) for name, rows, _ in self._layout)
+
+    def rows(self, name: str) -> slice:
+        """The rows of `state` that hold the named array."""
+        for entry, rows, _ in self._layout:
+            if entry == name:
+                return rows
+        raise KeyError(f"{type(self).__name__} has no state '{name}'")
+
+    def bind(self, buffer: np.ndarray) -> None:
+        """Moves the state into `buffer` (a flat float64 array of `state_size`, e.g. a
+        slice of a fused controller's state): its current values are copied there and
+        every named array becomes a view on it."""
+        if buffer.shape != (self._size,) or buffer.dtype != np.float64:
+            raise ValueError(
+                f"{type(self).__name__}.bind: a float64 vector of {self._size} entries "
+                f"is needed, got {buffer.dtype} {buffer.shape}"
+            )
+        buffer[:] = self._state
+        self._state = buffer
+        self._make_views()
+
+    def reset(self) -> None:
+        """Back to the initial state (in place)."""
+        self._state[:] = self.initial_state()
+
+
+class StepSystem(WitnessFreeLeafSystem):
+    """A LeafSystem shell around one `Step`: one discrete state group per named state
+    array (so each output is a state output port), copied into the step before its
+    update (`_load`) and back after it (`_store`)."""
+
+    def _declare_step_state(self, step: Step) -> None:
+        """Declares the step's state groups (call once, in `__init__`)."""
+        self._step = step
+        self._step_groups: list[tuple[int, np.ndarray]] = []
+        self._group_of: dict[str, int] = {}
+        for name, rows in step.layout():
+            group = int(self.DeclareDiscreteState(step.state[rows].copy()))
+            self._step_groups.append((group, step.state[rows]))
+            self._group_of[name] = group
+
+    def _declare_step_output(self, port_name: str, state_name: str = ""):
+        """A state output port of the named step array (default: the port's name)."""
+        from pydrake.systems.framework import DiscreteStateIndex
+
+        group = self._group_of[state_name or port_name]
+        return self.DeclareStateOutputPort(port_name, DiscreteStateIndex(group))
+
+    def step_group(self, name: str) -> int:
+        """The discrete state group of the named step array."""
+        return self._group_of[name]
+
+    def _load(self, state: DiscreteValues) -> None:
+        for group, view in self._step_groups:
+            view[:] = state.get_value(group)
+
+    def _store(self, state: DiscreteValues) -> None:
+        for group, view in self._step_groups:
+            state.set_value(group, view)
+
+    def _load_context(self, context) -> None:
+        """The step's state from a context (to evaluate something outside an update)."""
+        self._load(context.get_discrete_state())
