@@ -174,7 +174,7 @@ def _track(args: argparse.Namespace) -> int:
 
 
 def _control(args: argparse.Namespace) -> int:
-    from hrp2_drake.experiments.lcm_control import LcmControlConfig, run_control
+    from hrp2_drake.experiments.lcm_control import LcmControlConfig, _ending, run_control
 
     config = _config(LcmControlConfig, args)
     _use_robot(config.station, args)
@@ -182,17 +182,20 @@ def _control(args: argparse.Namespace) -> int:
         config.duration = args.duration
     if args.motion:
         config.motion = args.motion
-    if args.realtime_rate is not None:
-        config.realtime_rate = args.realtime_rate
     validate_config(config)
     out = _output_folder(args.out)
     summary = run_control(config, _motor_model(args, out, config), args.lcm, out)
-    t = summary["timing"]
+    lat = summary["latency_us"]
     print(
-        f"report: {out / 'control.md'}; {t['ticks']} ticks, median {t['tick_us']['median']:.0f} "
-        f"µs, p99 {t['tick_us']['p99']:.0f} µs, {t['overruns']} over the period; maximum "
-        f"error {max(summary['max_error_mrad']):.2f} mrad"
+        f"report: {out / 'control.md'}; {summary['ticks']} ticks, latency p50 "
+        f"{lat['p50']:.0f} µs, p99 {lat['p99']:.0f} µs, {summary['overruns']} over the "
+        f"period; torque control {summary['torque_share'] * 100:.1f}% of the run after "
+        f"start-up, {len(summary['events'])} fallbacks"
+        + (", gave up for good" if summary["gave_up"] else "")
     )
+    if summary["fault"]:
+        print(f"control: stopped: {_ending(summary)}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -207,7 +210,14 @@ def _sim_robot(args: argparse.Namespace) -> int:
     validate_config(station)
     out = _output_folder(args.out) if args.out else None
     summary = run_sim_robot(station, args.lcm, args.duration, out, rate=args.realtime_rate)
-    print(f"sim-robot: {summary['simulated']:.2f} s simulated")
+    print(
+        f"sim-robot: {summary['simulated']:.2f} s simulated; command watchdog tripped "
+        f"{summary['watchdog_trips']} times"
+        + (", holding the measured pose at the end" if summary["holding"] else "")
+    )
+    if summary["fault"]:
+        print(f"sim-robot: stopped: {summary['fault']}; held the measured pose", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -533,8 +543,8 @@ def main(argv: list[str] | None = None) -> int:
     ctl = commands.add_parser(
         "control",
         parents=[debug],
-        help="torque control of a robot over LCM (the robot's bridge or sim-robot), "
-        "paced in real time, with per-tick timing",
+        help="torque control of a robot over LCM (the robot's bridge or sim-robot): "
+        "the fused controller, one tick per encoder message, with per-tick timing",
     )
     ctl.add_argument("--robot", help=robot_help)
     ctl.add_argument("--lcm", required=True, help=lcm_help)
@@ -543,7 +553,6 @@ def main(argv: list[str] | None = None) -> int:
     ctl.add_argument("--duration", type=_number(float, 0.0), help="seconds (default 5)")
     ctl.add_argument("--motion", choices=("sinusoid", "hold"), help="default: sinusoid")
     rate_help = "target real-time rate (default 1; < 1 slows the robot's clock, for tests)"
-    ctl.add_argument("--realtime-rate", type=_number(float, 0.0), help=rate_help)
     ctl.add_argument("--out", default="out/control", help="output folder")
     ctl.set_defaults(run=_control, scenario=None)
 

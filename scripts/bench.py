@@ -21,15 +21,21 @@ Sections (all by default; pick with --only):
              plant, and where the time goes per system (scripts/bench_closed_loop.py;
              --closed-loop-duration, default the whole motion; --closed-loop-profile,
              simulated s of the per-system run, default 4).
-  lcm        the controller process's tick times over LCM in real time against
-             `hrp2-drake sim-robot` in another process, through the tcpq hub on
-             127.0.0.1 (scripts/bench_lcm.py; --lcm-duration, default 60 s): median,
-             p99 (goal <= 500 us), maximum, overruns of the 1 ms period.
+  fused      the fused controller's tick on HRP-2 in closed loop (30 joints, IMU, 4 F/T,
+             right leg, observer, supervisor), p50/p99, and its ratio to Drake's
+             CalcInverseDynamics on the full HRP-2 in the same run (goal <= 5;
+             scripts/bench_fused.py).
+  lcm        the controller over LCM in real time (fused controller, message-driven
+             loop) against `hrp2-drake sim-robot` in another process, through the tcpq
+             hub on 127.0.0.1 (scripts/bench_lcm.py; --lcm-duration, default 60 s):
+             receive-to-publish latency p50/p99/p99.9/max (goal p99 <= 250 us),
+             overruns of the 1 ms period, torque-control share, fallbacks.
 
 Figures vary from run to run (2 cores, shared): compare rows of the same run.
 
     python scripts/bench.py [--only sim,sg] [--duration 3] [--json out/bench.json]
     python scripts/bench.py --only tick [--rounds 41]
+    python scripts/bench.py --only fused
     python scripts/bench.py --only lcm [--lcm-duration 60]
     python scripts/bench.py --only closed_loop [--closed-loop-duration 5]
 """
@@ -375,7 +381,7 @@ def bench_tick(rounds: int = 41, ticks_per_round: int = 250) -> list[dict]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
-        "--only", default="sim,sg,estimator,control,fit,tick,closed_loop,lcm"
+        "--only", default="sim,sg,estimator,control,fit,tick,fused,closed_loop,lcm"
     )
     parser.add_argument("--duration", type=float, default=3.0, help="simulated s")
     parser.add_argument("--json", type=Path, help="also write the rows here")
@@ -425,6 +431,11 @@ def main() -> int:
     if "tick" in sections:
         print("tick", file=sys.stderr)
         results["tick"] = bench_tick(args.rounds)
+    if "fused" in sections:
+        from bench_fused import bench_fused_tick
+
+        print("fused", file=sys.stderr)
+        results["fused"] = bench_fused_tick()
     if "closed_loop" in sections:
         from bench_closed_loop import bench_closed_loop
 

@@ -34,6 +34,7 @@ from hrp2_drake.control.disturbance_observer import (
     DisturbanceObserver,
     DisturbanceObserverConfig,
 )
+from hrp2_drake.control.fused import FusedTorqueController, TorqueChainParts
 from hrp2_drake.control.predictor import DelayPredictor, DelayPredictorConfig
 from hrp2_drake.control.safety import SafetyConfig, SafetySupervisor, supervisor_sensors
 from hrp2_drake.control.torque_controller import (
@@ -307,22 +308,15 @@ def _joint_inertia(plant, all_joints: list[str], joints: list[str], q: np.ndarra
     return np.diag(plant.CalcMassMatrix(context))[rows]
 
 
-def build_torque_control(
-    station_config: StationConfig,
+def torque_chain_parts(
+    robot: RobotDescription,
     reference: JointReference,
     motor_model: MotorModel,
     config: TorqueControlConfig,
-    meshcat=None,
-    force_reference: PiecewisePolynomial | None = None,
-    station: Diagram | None = None,
-) -> ControlDiagram:
-    """Station + estimation chain + inverse dynamics + Δq torque controller (paper Sec.
-    4) on `config.joints`, the other joints in position control on the reference.
-    `station`: a station Diagram with the simulated station's ports to use instead of
-    simulating `station_config` (e.g. `hardware.make_lcm_station`: the same
-    controller on hardware; the config still names the robot)."""
+) -> TorqueChainParts:
+    """The models and configs of the torque-control chain of `config` on `robot`: what
+    both the separate systems and the fused controller are built from."""
     config.validate()
-    robot = station_config.description()
     joints = config.controlled_joints(robot)
     unknown = [j for j in joints if j not in robot.joints]
     if unknown:
@@ -335,29 +329,15 @@ def build_torque_control(
             "joints (give one, or one per joint)"
         )
     all_joints = list(robot.joints)
-    builder = DiagramBuilder()
-    station = _add_station(builder, station_config, meshcat, station)
-    blocks = _add_reference(builder, reference, len(all_joints))
     # The controllers' model of the robot (with errors, if asked: a fault).
     errors = dict(model_error=config.model_error, seed=config.model_error_seed)
-
-    chain = add_estimator(
-        builder,
-        station,
-        robot.make_plant(**errors),
-        robot.estimator_config(
-            config.window,
-            windows=dict(config.windows),
-            evaluation=config.evaluation,
-            offset_calibration_time=config.offset_calibration_time,
-            offset_calibration_start=0.2,
-        ),
+    estimator_config = robot.estimator_config(
+        config.window,
+        windows=dict(config.windows),
+        evaluation=config.evaluation,
+        offset_calibration_time=config.offset_calibration_time,
+        offset_calibration_start=0.2,
     )
-
-    def select(name: str):
-        """A selector of the controlled joints from a vector of all joints."""
-        return builder.AddNamedSystem(name, make_joint_selector(all_joints, joints))
-
     # Inverse dynamics on the fixed-base model (paper footnote 3): a floating robot's
     # base welded upright at the origin, a fixed robot as it is mounted.
     if robot.base == "fixed":
@@ -378,39 +358,152 @@ def build_torque_control(
         force_frame=config.force_frame,
         kf=list(config.kf) if config.force_frame else [0.0],
     )
-    inverse_dynamics = builder.AddNamedSystem(
-        "inverse_dynamics", InverseDynamicsController(fixed, id_config)
+    controller_config = TorqueControllerConfig(
+        joints=joints,
+        kp=list(config.kp),
+        delta_q_limit=[config.delta_q_limit],
+        start_time=config.start_time,
+        latch_fallback=not config.supervised,
+        disturbance_compensation=config.disturbance_observer > 0,
     )
-    for name in ("q_ref", "v_ref", "vdot_ref"):
-        sel = select(f"{name}_leg")
-        builder.Connect(blocks[name], sel.get_input_port())
-        builder.Connect(sel.get_output_port(), inverse_dynamics.GetInputPort(name))
-    q_enc = select("q_measured_leg")
-    builder.Connect(station.GetOutputPort("q_measured"), q_enc.get_input_port())
-    q_hat = select("q_estimate_leg")
-    builder.Connect(chain.encoder_filter.GetOutputPort("value"), q_hat.get_input_port())
-    v_hat = select("v_estimate_leg")
-    builder.Connect(chain.encoder_filter.GetOutputPort("derivative"), v_hat.get_input_port())
-    v_ref_leg = builder.GetSubsystemByName("v_ref_leg")
-    tau_hat = select("tau_estimate_leg")
-    builder.Connect(chain.estimator.GetOutputPort("tau"), tau_hat.get_input_port())
-    position = q_enc if config.position_source == "encoders" else q_hat
-    velocity = {"estimate": v_hat.get_output_port(), "reference": v_ref_leg.get_output_port()}
-    torque_estimate = tau_hat.get_output_port()
+    delay = (estimator_config.delay_samples() + 2) * estimator_config.period
+    observer = None
+    if config.disturbance_observer > 0:
+        # The observer inverts the controller's own model: no Coulomb term (the
+        # controller sends none), so what friction the model misses is d̂'s.
+        observer = (
+            MotorModel(
+                joints, controller_model.k_tau, controller_model.k_v, np.zeros(len(joints))
+            ),
+            DisturbanceObserverConfig(
+                joints=joints, bandwidth=config.disturbance_observer, delay=delay
+            ),
+        )
     predictor = None
     if config.predictor:
+        predictor = DelayPredictorConfig(
+            joints=joints, delay=delay, inertia=inertia.tolist()
+        )
+    supervisor = None
+    if config.supervised:
+        supervisor = (
+            supervisor_sensors(robot.sensor_names(), imu=robot.has_imu()),
+            replace(config.safety, start_time=config.start_time),
+            len(sensor_sizes(robot)),
+        )
+    return TorqueChainParts(
+        all_joints=all_joints,
+        joints=joints,
+        estimator_plant=robot.make_plant(**errors),
+        estimator_config=estimator_config,
+        id_plant=fixed,
+        id_config=id_config,
+        controller_model=controller_model,
+        controller_config=controller_config,
+        observer=observer,
+        predictor=predictor,
+        supervisor=supervisor,
+        position_source=config.position_source,
+        feedback_velocity=config.feedback_velocity,
+        friction_velocity=config.friction_velocity,
+        force_sensor=robot.sensor_of_body(config.force_frame) if config.force_frame else "",
+        period=estimator_config.period,
+    )
+
+
+def build_torque_control(
+    station_config: StationConfig,
+    reference: JointReference,
+    motor_model: MotorModel,
+    config: TorqueControlConfig,
+    meshcat=None,
+    force_reference: PiecewisePolynomial | None = None,
+    station: Diagram | None = None,
+    fused: bool = False,
+) -> ControlDiagram:
+    """Station + estimation chain + inverse dynamics + Δq torque controller (paper Sec.
+    4) on `config.joints`, the other joints in position control on the reference.
+    `station`: a station Diagram with the simulated station's ports to use instead of
+    simulating `station_config` (e.g. `hardware.make_lcm_station`: the same
+    controller on hardware; the config still names the robot).
+    `fused`: the whole chain as one `FusedTorqueController` (the real-time path; the
+    same signals to 1e-12) instead of its separate systems."""
+    robot = station_config.description()
+    parts = torque_chain_parts(robot, reference, motor_model, config)
+    builder = DiagramBuilder()
+    station = _add_station(builder, station_config, meshcat, station)
+    blocks = _add_reference(builder, reference, len(parts.all_joints))
+    f_ref = None
+    if config.force_frame:
+        f_ref = builder.AddNamedSystem(
+            "force_reference", TrajectorySource(force_reference)
+        ).get_output_port()
+    build = _add_fused_chain if fused else _add_separate_chain
+    ports = build(builder, station, robot, parts, blocks, f_ref)
+    builder.Connect(ports["q_cmd"], station.GetInputPort("q_cmd"))
+    ports = _station_ports(station, robot) | ports | {"q_ref": blocks["q_ref"]}
+    return _build(builder, station, ports)
+
+
+def _add_fused_chain(builder, station, robot, parts, blocks, f_ref) -> dict[str, OutputPort]:
+    fused = builder.AddNamedSystem("fused_controller", FusedTorqueController(parts))
+    for k in range(fused.num_input_ports()):
+        port = fused.get_input_port(k)
+        name = port.get_name()
+        if name in blocks:
+            builder.Connect(blocks[name], port)
+        elif name == "f_ref":
+            builder.Connect(f_ref, port)
+        else:
+            builder.Connect(station.GetOutputPort(name), port)
+    names = ["q_cmd", "tau_estimated", "tau_desired", "delta_q", "fallback_active",
+             "sensor_fault", *COMPONENTS]
+    if parts.supervisor is not None:
+        names += [f"supervisor_{name}" for name in ("mode", "fault", "transition")]
+    if robot.force_sensor:
+        names.append(f"external_wrench_{robot.force_sensor}")
+    return {name: fused.GetOutputPort(name) for name in names}
+
+
+def _add_separate_chain(builder, station, robot, parts, blocks, f_ref) -> dict[str, OutputPort]:
+    """The chain as its separate LeafSystems (the design card's diagram)."""
+    all_joints, joints = parts.all_joints, parts.joints
+    chain = add_estimator(builder, station, parts.estimator_plant, parts.estimator_config)
+
+    def select(name: str):
+        """A selector of the controlled joints from a vector of all joints."""
+        return builder.AddNamedSystem(name, make_joint_selector(all_joints, joints))
+
+    inverse_dynamics = builder.AddNamedSystem(
+        "inverse_dynamics", InverseDynamicsController(parts.id_plant, parts.id_config)
+    )
+    selected = {}
+    for name in ("q_ref", "v_ref", "vdot_ref"):
+        selected[name] = sel = select(f"{name}_controlled")
+        builder.Connect(blocks[name], sel.get_input_port())
+        builder.Connect(sel.get_output_port(), inverse_dynamics.GetInputPort(name))
+    q_enc = select("q_measured_controlled")
+    builder.Connect(station.GetOutputPort("q_measured"), q_enc.get_input_port())
+    q_hat = select("q_estimate_controlled")
+    builder.Connect(chain.encoder_filter.GetOutputPort("value"), q_hat.get_input_port())
+    v_hat = select("v_estimate_controlled")
+    builder.Connect(chain.encoder_filter.GetOutputPort("derivative"), v_hat.get_input_port())
+    tau_hat = select("tau_estimate_controlled")
+    builder.Connect(chain.estimator.GetOutputPort("tau"), tau_hat.get_input_port())
+    position = q_enc if parts.position_source == "encoders" else q_hat
+    velocity = {
+        "estimate": v_hat.get_output_port(),
+        "reference": selected["v_ref"].get_output_port(),
+    }
+    torque_estimate = tau_hat.get_output_port()
+    predictor = None
+    if parts.predictor is not None:
         # τ̂ and q̂̇ carried from the chain's delay to the present (the Δq input is
         # connected below, once the controller exists).
         predictor = builder.AddNamedSystem(
-            "delay_predictor",
-            DelayPredictor(
-                controller_model,
-                DelayPredictorConfig(
-                    joints=joints, delay=chain.delay(), inertia=inertia.tolist()
-                ),
-            ),
+            "delay_predictor", DelayPredictor(parts.controller_model, parts.predictor)
         )
-        vdot_hat = select("vdot_estimate_leg")
+        vdot_hat = select("vdot_estimate_controlled")
         builder.Connect(
             chain.encoder_filter.GetOutputPort("second_derivative"),
             vdot_hat.get_input_port(),
@@ -424,81 +517,45 @@ def build_torque_control(
         velocity["estimate"] = predictor.GetOutputPort("v_predicted")
         torque_estimate = predictor.GetOutputPort("tau_predicted")
     builder.Connect(position.get_output_port(), inverse_dynamics.GetInputPort("q"))
-    builder.Connect(
-        velocity[config.feedback_velocity], inverse_dynamics.GetInputPort("v")
-    )
-    if config.force_frame:
-        f_ref = builder.AddNamedSystem(
-            "force_reference", TrajectorySource(force_reference)
-        )
-        builder.Connect(f_ref.get_output_port(), inverse_dynamics.GetInputPort("f_ref"))
-        sensor = robot.sensor_of_body(config.force_frame)
+    builder.Connect(velocity[parts.feedback_velocity], inverse_dynamics.GetInputPort("v"))
+    if parts.force_sensor:
+        builder.Connect(f_ref, inverse_dynamics.GetInputPort("f_ref"))
         builder.Connect(
-            chain.estimator.GetOutputPort(f"external_wrench_{sensor}"),
+            chain.estimator.GetOutputPort(f"external_wrench_{parts.force_sensor}"),
             inverse_dynamics.GetInputPort("f"),
         )
 
     torque = builder.AddNamedSystem(
         "torque_controller",
-        DeltaQTorqueController(
-            controller_model,
-            TorqueControllerConfig(
-                joints=joints,
-                kp=list(config.kp),
-                delta_q_limit=[config.delta_q_limit],
-                start_time=config.start_time,
-                latch_fallback=not config.supervised,
-                disturbance_compensation=config.disturbance_observer > 0,
-            ),
-        ),
+        DeltaQTorqueController(parts.controller_model, parts.controller_config),
     )
     connect_inverse_dynamics(builder, inverse_dynamics, torque)
     builder.Connect(torque_estimate, torque.GetInputPort("tau_estimated"))
-    builder.Connect(velocity[config.friction_velocity], torque.GetInputPort("v"))
+    builder.Connect(velocity[parts.friction_velocity], torque.GetInputPort("v"))
     if predictor is not None:
         builder.Connect(torque.GetOutputPort("delta_q"), predictor.GetInputPort("delta_q"))
     builder.Connect(q_enc.get_output_port(), torque.GetInputPort("q_measured"))
-    q_ref_leg = builder.GetSubsystemByName("q_ref_leg")
-    builder.Connect(q_ref_leg.get_output_port(), torque.GetInputPort("q_ref"))
+    builder.Connect(selected["q_ref"].get_output_port(), torque.GetInputPort("q_ref"))
     builder.Connect(chain.input_fault, torque.GetInputPort("sensor_fault"))
-    if config.disturbance_observer > 0:
-        # The observer inverts the controller's own model: no Coulomb term (the
-        # controller sends none), so what friction the model misses is d̂'s.
-        observed = MotorModel(
-            joints, controller_model.k_tau, controller_model.k_v, np.zeros(len(joints))
-        )
+    if parts.observer is not None:
         observer = builder.AddNamedSystem(
-            "disturbance_observer",
-            DisturbanceObserver(
-                observed,
-                DisturbanceObserverConfig(
-                    joints=joints, bandwidth=config.disturbance_observer, delay=chain.delay()
-                ),
-            ),
+            "disturbance_observer", DisturbanceObserver(*parts.observer)
         )
         builder.Connect(torque.GetOutputPort("delta_q"), observer.GetInputPort("delta_q"))
         builder.Connect(v_hat.get_output_port(), observer.GetInputPort("v"))
         builder.Connect(tau_hat.get_output_port(), observer.GetInputPort("tau_estimated"))
-        builder.Connect(
-            observer.get_output_port(), torque.GetInputPort("tau_disturbance")
-        )
+        builder.Connect(observer.get_output_port(), torque.GetInputPort("tau_disturbance"))
 
     merger = builder.AddNamedSystem("merger", JointCommandMerger(all_joints, joints))
     builder.Connect(blocks["q_ref"], merger.GetInputPort("q_ref"))
     builder.Connect(torque.GetOutputPort("q_cmd"), merger.GetInputPort("q_controlled"))
     q_cmd = merger.get_output_port()
     supervisor_ports = {}
-    if config.supervised:
-        safety = replace(config.safety, start_time=config.start_time)
-        monitored = supervisor_sensors(robot.sensor_names(), imu=robot.has_imu())
+    if parts.supervisor is not None:
+        monitored, safety, num_stamps = parts.supervisor
         supervisor = builder.AddNamedSystem(
             "safety_supervisor",
-            SafetySupervisor(
-                len(all_joints),
-                monitored,
-                safety,
-                num_sensor_stamps=len(sensor_sizes(robot)),
-            ),
+            SafetySupervisor(len(all_joints), monitored, safety, num_sensor_stamps=num_stamps),
         )
         builder.Connect(q_cmd, supervisor.GetInputPort("q_torque"))
         builder.Connect(blocks["q_ref"], supervisor.GetInputPort("q_position"))
@@ -516,10 +573,7 @@ def build_torque_control(
             f"supervisor_{name}": supervisor.GetOutputPort(name)
             for name in ("mode", "fault", "transition")
         }
-    builder.Connect(q_cmd, station.GetInputPort("q_cmd"))
-
-    ports = _station_ports(station, robot) | supervisor_ports | {
-        "q_ref": blocks["q_ref"],
+    ports = supervisor_ports | {
         "q_cmd": q_cmd,
         "tau_estimated": chain.estimator.GetOutputPort("tau"),
         "tau_desired": inverse_dynamics.GetOutputPort("tau_desired"),
@@ -530,5 +584,4 @@ def build_torque_control(
     if robot.force_sensor:
         name = f"external_wrench_{robot.force_sensor}"
         ports[name] = chain.estimator.GetOutputPort(name)
-    ports |= {name: torque.GetOutputPort(name) for name in COMPONENTS}
-    return _build(builder, station, ports)
+    return ports | {name: torque.GetOutputPort(name) for name in COMPONENTS}

@@ -86,7 +86,7 @@ class LcmTcpqHub:
             for key, _ in self._selector.select(timeout=0.05):
                 if key.fileobj is self._listener:
                     self._accept()
-                else:
+                elif key.fileobj in self._clients:  # not dropped by an earlier key
                     self._receive(key.fileobj)
 
     def _accept(self) -> None:
@@ -100,8 +100,9 @@ class LcmTcpqHub:
         self._selector.register(sock, selectors.EVENT_READ)
 
     def _drop(self, sock: socket.socket) -> None:
+        if self._clients.pop(sock, None) is None:
+            return  # dropped already (a failed send to it, earlier in this pass)
         self._selector.unregister(sock)
-        self._clients.pop(sock, None)
         sock.close()
 
     def _receive(self, sock: socket.socket) -> None:

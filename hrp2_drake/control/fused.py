@@ -1,0 +1,539 @@
+"""The fused torque controller: every step of the torque-control chain in one update.
+
+The chain of paper Sec. 2 and 4 (Savitzky-Golay filters, floating-base torque
+estimator, inverse dynamics, Δq torque controller, and this project's disturbance
+observer, delay predictor and safety supervisor) runs in simulation as separate
+LeafSystems. Each of them is a shell around a plain step (`hrp2_drake.step`); this
+module runs the same step objects in sequence:
+
+- `FusedController`: no Drake at all; `tick(t, ...)` is one control period. It is
+  what the hardware loop (`hrp2_drake.hardware.control_loop`) calls when the robot's
+  encoder message arrives.
+- `FusedTorqueController`: the same as one LeafSystem (one discrete update per period,
+  one state vector), `build_torque_control(..., fused=True)`.
+
+Timing is the diagram's, exactly: there every system's outputs are its discrete state,
+so a system reads what its upstream systems computed one period earlier. Here each
+tick first copies the whole state (`_previous`) and every step reads its upstream
+steps' outputs from that copy, while the station's signals and the reference are read
+as they are now. The two shells give the same signals to 1e-12 (tests/test_fused.py).
+
+.. code-block:: text
+
+    q_measured ─► SG order 2 ─► q̂, q̂̇, q̂̈ ──────────────┐
+    imu, wrenches ─► SG order 1 ─► values, gyro rate ──► estimator ─► τ̂, f̂
+    q_ref, v_ref, vdot_ref, f_ref ─► inverse dynamics (eq. 12) ─► τ_d ─┐
+                        τ̂ (or predicted), q̂̇ ─► Δq controller (eq. 10-11) ─► q_cmd
+                              observer d̂ ─┘           │
+                                supervisor (faults, ramps) ◄──┘ ─► q_cmd to the servo
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydrake.multibody.plant import MultibodyPlant
+from pydrake.systems.framework import BasicVector, Context, DiscreteValues
+
+from hrp2_drake.control.disturbance_observer import (
+    DisturbanceObserverConfig,
+    DisturbanceObserverStep,
+)
+from hrp2_drake.control.inverse_dynamics import (
+    TORQUE_COMPONENTS,
+    InverseDynamicsConfig,
+    InverseDynamicsStep,
+)
+from hrp2_drake.control.predictor import DelayPredictorConfig, DelayPredictorStep
+from hrp2_drake.control.safety import SafetyConfig, SafetySupervisorStep
+from hrp2_drake.control.torque_controller import (
+    DELTA_Q_COMPONENTS,
+    DeltaQTorqueStep,
+    TorqueControllerConfig,
+)
+from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayStep
+from hrp2_drake.estimation.torque_estimator import (
+    TorqueEstimatorConfig,
+    TorqueEstimatorStep,
+    filter_windows,
+)
+from hrp2_drake.identification.motor_model import MotorModel
+from hrp2_drake.simulation import WitnessFreeLeafSystem
+from hrp2_drake.step import Step
+
+#: What the fused controller records of a tick's events (`FusedController.events`).
+EVENT_CONTROLLER_FALLBACK, EVENT_SUPERVISOR_FAULT = 1, 2
+
+
+@dataclass
+class TorqueChainParts:
+    """Everything the torque-control chain is made of, as data: the models and configs
+    that the separate LeafSystems and the fused controller are both built from
+    (`hrp2_drake.experiments.builders.torque_chain_parts` makes it).
+
+    Args:
+        all_joints: the robot's joints (every joint vector of the station).
+        joints: the torque-controlled joints (a subset, any order).
+        estimator_plant, estimator_config: the floating-base estimator's model.
+        id_plant, id_config: the inverse dynamics' fixed-base model and gains.
+        controller_model, controller_config: the Δq controller (eq. 10-11).
+        observer: the disturbance observer's model and config, or None.
+        predictor: the delay predictor's config (model: controller_model), or None.
+        supervisor: (monitored sensors {port: kind}, SafetyConfig, number of sensor
+            stamps), or None: the Δq controller's latched fallback alone.
+        position_source: "encoders" or "estimate" (q of eq. 12).
+        feedback_velocity, friction_velocity: "estimate" or "reference".
+        force_sensor: the F/T sensor whose f̂ feeds the force task ("" = none).
+    """
+
+    all_joints: list[str]
+    joints: list[str]
+    estimator_plant: MultibodyPlant
+    estimator_config: TorqueEstimatorConfig
+    id_plant: MultibodyPlant
+    id_config: InverseDynamicsConfig
+    controller_model: MotorModel
+    controller_config: TorqueControllerConfig
+    observer: tuple[MotorModel, DisturbanceObserverConfig] | None = None
+    predictor: DelayPredictorConfig | None = None
+    supervisor: tuple[dict[str, str], SafetyConfig, int] | None = None
+    position_source: str = "encoders"
+    feedback_velocity: str = "reference"
+    friction_velocity: str = "reference"
+    force_sensor: str = ""
+    period: float = field(default=0.001)
+
+    def chain_delay(self) -> float:
+        """Seconds between the instant the estimates describe and their output: the
+        filters' evaluation point plus two periods (EstimationChain.delay)."""
+        config = self.estimator_config
+        return (config.delay_samples() + 2) * config.period
+
+
+class FusedController:
+    """The whole torque-control chain as one plain object (module docstring).
+
+    Inputs of a tick (arrays, SI units, the robot description's joint order):
+    `sensors` = [q_measured (N); imu_linear_acceleration (3); imu_angular_velocity (3);
+    wrench_<s> (6 each)] as the station outputs them (the IMU only if the robot has
+    one); `sensor_time` (the time of each sensor signal's latest sample, station order);
+    the reference q_ref, v_ref, vdot_ref (N each) at t, and f_ref (6) with a force
+    task. Write them into `inputs` views (`sensor_buffer`, ...) or pass arrays.
+
+    After a tick, `command(q_ref, out)` is the position command for the servo, and the
+    steps' state arrays hold every signal the diagram logs (`signal(name)`).
+    """
+
+    def __init__(self, parts: TorqueChainParts):
+        self.parts = parts
+        self._period = parts.period
+        all_joints, joints = parts.all_joints, parts.joints
+        self._N = N = len(all_joints)
+        self._n = n = len(joints)
+        self._index = np.array([all_joints.index(j) for j in joints])
+        econfig = parts.estimator_config
+        if list(econfig.joints) != list(all_joints):
+            raise ValueError(
+                "FusedController: the estimator's joints must be the robot's joints, "
+                "in its order"
+            )
+        self._has_imu = bool(econfig.imu_frame)
+        self._sensor_names = list(econfig.sensors)
+        k = len(self._sensor_names)
+        self._num_sensor_values = (6 if self._has_imu else 0) + 6 * k
+
+        encoder_windows, sensor_windows = filter_windows(econfig)
+        self.encoder_filter = SavitzkyGolayStep(
+            N, encoder_windows, 2, econfig.period, econfig.evaluation, span=econfig.span()
+        )
+        self.sensor_filter = (
+            SavitzkyGolayStep(
+                self._num_sensor_values,
+                sensor_windows,
+                1,
+                econfig.period,
+                econfig.evaluation,
+                span=econfig.span(),
+            )
+            if self._num_sensor_values
+            else None
+        )
+        self.estimator = TorqueEstimatorStep(parts.estimator_plant, econfig)
+        self.inverse_dynamics = InverseDynamicsStep(parts.id_plant, parts.id_config)
+        self.torque = DeltaQTorqueStep(parts.controller_model, parts.controller_config)
+        self.observer = (
+            DisturbanceObserverStep(*parts.observer) if parts.observer else None
+        )
+        self.predictor = (
+            DelayPredictorStep(parts.controller_model, parts.predictor)
+            if parts.predictor
+            else None
+        )
+        self.supervisor = (
+            SafetySupervisorStep(N, parts.supervisor[0], parts.supervisor[1],
+                                 parts.supervisor[2])
+            if parts.supervisor
+            else None
+        )
+        self._num_stamps = parts.supervisor[2] if parts.supervisor else 0
+        steps = [
+            ("encoder_filter", self.encoder_filter),
+            ("sensor_filter", self.sensor_filter),
+            ("estimator", self.estimator),
+            ("inverse_dynamics", self.inverse_dynamics),
+            ("torque", self.torque),
+            ("observer", self.observer),
+            ("predictor", self.predictor),
+            ("supervisor", self.supervisor),
+        ]
+        self._steps: dict[str, Step] = {name: s for name, s in steps if s is not None}
+        # One state vector for all steps, and its copy at the start of each tick.
+        self._offsets: dict[str, int] = {}
+        size = 0
+        for name, step in self._steps.items():
+            self._offsets[name] = size
+            size += step.state_size
+        self.state = np.zeros(size)
+        for name, step in self._steps.items():
+            start = self._offsets[name]
+            step.bind(self.state[start : start + step.state_size])
+        self._initial_state = self.state.copy()
+        self._previous = np.zeros(size)
+        self._make_buffers()
+        self._wire()
+        # Events: (t, kind, code) rows, a ring of the latest ones, and counts.
+        self.events = np.zeros((256, 3))
+        self.num_events = 0
+        self.event_counts = {EVENT_CONTROLLER_FALLBACK: 0, EVENT_SUPERVISOR_FAULT: 0}
+
+    # ------------------------------------------------------------------ wiring
+
+    def _make_buffers(self) -> None:
+        N, n = self._N, self._n
+        m = self._num_sensor_values
+        # The station's signals as one buffer: [q_measured; imu; wrenches; stamps].
+        self.sensor_buffer = np.zeros(N + m + self._num_stamps)
+        self.q_measured = self.sensor_buffer[:N]
+        self.sensor_values = self.sensor_buffer[N : N + m]
+        self.sensor_time = self.sensor_buffer[N + m :]
+        self.q_ref = np.zeros(N)
+        self.v_ref = np.zeros(N)
+        self.vdot_ref = np.zeros(N)
+        self.f_ref = np.zeros(6)
+        # Selections of the controlled joints (np.take(..., out=)): now and previous.
+        names = ("q_measured", "q_ref", "v_ref", "vdot_ref", "q_hat", "v_hat",
+                 "vdot_hat", "tau_hat")
+        self._selected = {name: np.zeros(n) for name in names}
+        self._merged = np.zeros(N)
+        self._fault = np.zeros(1)
+
+    def _previous_view(self, step_name: str, array_name: str) -> np.ndarray:
+        """The named array of a step as it was at the start of the tick."""
+        step = self._steps[step_name]
+        rows = step.rows(array_name)
+        start = self._offsets[step_name]
+        return self._previous[start + rows.start : start + rows.stop]
+
+    def _wire(self) -> None:
+        p = self._previous_view
+        self._p_q_hat = p("encoder_filter", "value")
+        self._p_v_hat = p("encoder_filter", "derivative")
+        self._p_vdot_hat = p("encoder_filter", "second_derivative")
+        self._p_faults = [p("encoder_filter", "input_fault")]
+        if self.sensor_filter is not None:
+            values = p("sensor_filter", "value")
+            rates = p("sensor_filter", "derivative")
+            self._p_faults.append(p("sensor_filter", "input_fault"))
+            imu = 6 if self._has_imu else 0
+            self._p_acc = values[0:3] if imu else None
+            self._p_gyro = values[3:6] if imu else None
+            self._p_alpha = rates[3:6] if imu else None
+            k = len(self._sensor_names)
+            self._p_wrenches = values[imu:].reshape(k, 6) if k else None
+        else:
+            self._p_acc = self._p_gyro = self._p_alpha = self._p_wrenches = None
+        self._p_tau = p("estimator", "tau")
+        self._p_force = (
+            p("estimator", f"external_wrench_{self.parts.force_sensor}")
+            if self.parts.force_sensor
+            else None
+        )
+        self._p_tau_desired = p("inverse_dynamics", "tau_desired")
+        rows = [self.inverse_dynamics.rows(name) for name in TORQUE_COMPONENTS]
+        start = self._offsets["inverse_dynamics"]
+        contiguous = all(a.stop == b.start for a, b in zip(rows, rows[1:]))
+        if not contiguous:
+            raise ValueError("InverseDynamicsStep: the torque terms must be contiguous")
+        self._p_terms = self._previous[
+            start + rows[0].start : start + rows[-1].stop
+        ].reshape(len(TORQUE_COMPONENTS), self._n)
+        self._p_q_cmd_controlled = p("torque", "q_cmd")
+        self._p_delta_q = p("torque", "delta_q")
+        self._p_fallback = p("torque", "fallback_active")
+        self._p_disturbance = p("observer", "disturbance") if self.observer else None
+        if self.predictor is not None:
+            self._p_v_predicted = p("predictor", "v_predicted")
+            self._p_tau_predicted = p("predictor", "tau_predicted")
+
+    # ------------------------------------------------------------------ ticks
+
+    def reset(self) -> None:
+        """Every step back to its initial state (before `initialize`)."""
+        self.state[:] = self._initial_state
+        self.num_events = 0
+        for kind in self.event_counts:
+            self.event_counts[kind] = 0
+
+    def initialize(self, t: float) -> None:
+        """The initialization events of the chain's systems, from the current
+        `sensor_buffer` and reference (the station's first sample)."""
+        sel = self._selected
+        self.q_measured.take(self._index, out=sel["q_measured"], mode="clip")
+        self.q_ref.take(self._index, out=sel["q_ref"], mode="clip")
+        self.encoder_filter.initialize(t, self.q_measured)
+        if self.sensor_filter is not None:
+            self.sensor_filter.initialize(t, self.sensor_values)
+        self.torque.initialize(t, sel["q_measured"], sel["q_ref"])
+        if self.supervisor is not None:
+            self.supervisor.initialize(self.q_measured, self.q_ref, self.sensor_values)
+
+    def tick(self, t: float) -> None:
+        """One control period at time t (s) from the current `sensor_buffer` and
+        reference buffers (q_ref, v_ref, vdot_ref, f_ref)."""
+        np.copyto(self._previous, self.state)
+        sel = self._selected
+        index = self._index
+        self.q_measured.take(index, out=sel["q_measured"], mode="clip")
+        self.q_ref.take(index, out=sel["q_ref"], mode="clip")
+        self.v_ref.take(index, out=sel["v_ref"], mode="clip")
+        self.vdot_ref.take(index, out=sel["vdot_ref"], mode="clip")
+        self._p_q_hat.take(index, out=sel["q_hat"], mode="clip")
+        self._p_v_hat.take(index, out=sel["v_hat"], mode="clip")
+        self._p_tau.take(index, out=sel["tau_hat"], mode="clip")
+        # Filters and estimator (paper Sec. 2).
+        self.encoder_filter.step(t, self.q_measured)
+        if self.sensor_filter is not None:
+            self.sensor_filter.step(t, self.sensor_values)
+        self.estimator.step(
+            t, self._p_q_hat, self._p_v_hat, self._p_vdot_hat,
+            self._p_acc, self._p_gyro, self._p_alpha, self._p_wrenches,
+        )
+        # Velocities and torque as the controllers read them.
+        parts = self.parts
+        if self.predictor is not None:
+            v_estimate, tau_estimate = self._p_v_predicted, self._p_tau_predicted
+        else:
+            v_estimate, tau_estimate = sel["v_hat"], sel["tau_hat"]
+        velocity = {"estimate": v_estimate, "reference": sel["v_ref"]}
+        position = sel["q_measured"] if parts.position_source == "encoders" else sel["q_hat"]
+        self.inverse_dynamics.step(
+            t, sel["q_ref"], sel["v_ref"], sel["vdot_ref"], position,
+            velocity[parts.feedback_velocity],
+            self.f_ref if self._p_force is not None else None, self._p_force,
+        )
+        fault = self._fault
+        fault[0] = sum(f[0] for f in self._p_faults)
+        reason = self.torque.step(
+            t, self._p_tau_desired, tau_estimate, velocity[parts.friction_velocity],
+            sel["q_measured"], sel["q_ref"], fault, self._p_terms, self._p_disturbance,
+        )
+        if reason:
+            self._record(t, EVENT_CONTROLLER_FALLBACK, reason)
+        if self.observer is not None:
+            self.observer.step(t, self._p_delta_q, sel["v_hat"], sel["tau_hat"])
+        if self.predictor is not None:
+            self._p_vdot_hat.take(index, out=sel["vdot_hat"], mode="clip")
+            self.predictor.step(
+                t, sel["v_hat"], sel["vdot_hat"], sel["tau_hat"], self._p_delta_q
+            )
+        if self.supervisor is not None:
+            merged = self._merged
+            merged[:] = self.q_ref
+            merged[index] = self._p_q_cmd_controlled
+            bits = self.supervisor.step(
+                t, merged, self.q_ref, self.q_measured, self.sensor_values,
+                None, self._p_fallback, self.sensor_time,
+            )
+            if bits:
+                self._record(t, EVENT_SUPERVISOR_FAULT, bits)
+
+    def command(self, q_ref: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """The position command for the servo (all joints) after a tick, with the
+        reference q_ref of the moment it is sent (the diagram's q_cmd output)."""
+        merged = self._merged
+        merged[:] = q_ref
+        merged[self._index] = self.torque.q_cmd
+        if self.supervisor is None:
+            out[:] = merged
+        else:
+            self.supervisor.q_cmd(merged, q_ref, self.torque.fallback_active, out)
+        return out
+
+    def _record(self, t: float, kind: int, code: int) -> None:
+        row = self.events[self.num_events % len(self.events)]
+        row[0], row[1], row[2] = t, kind, code
+        self.num_events += 1
+        self.event_counts[kind] += 1
+
+    def recorded_events(self) -> list[tuple[float, int, int]]:
+        """The latest events (t, kind, code), oldest first (at most 256)."""
+        count = min(self.num_events, len(self.events))
+        start = self.num_events - count
+        rows = [self.events[(start + i) % len(self.events)] for i in range(count)]
+        return [(float(r[0]), int(r[1]), int(r[2])) for r in rows]
+
+    # ------------------------------------------------------------------ signals
+
+    def torque_active(self) -> float:
+        """How much torque control drives the robot now: the supervisor's ramp α in
+        [0, 1], or 1/0 for the controller alone (its fallback)."""
+        if self.supervisor is not None:
+            return float(self.supervisor.mode[0])
+        return 0.0 if self.torque.fallback_active[0] else 1.0
+
+    def signals(self) -> dict[str, np.ndarray]:
+        """The logged signals (views on the state): the names of
+        `build_torque_control`'s output ports."""
+        out = {
+            "tau_estimated": self.estimator.tau,
+            "tau_desired": self.inverse_dynamics.tau_desired,
+            "delta_q": self.torque.delta_q,
+            "fallback_active": self.torque.fallback_active,
+        }
+        for name in self._sensor_names:
+            out[f"external_wrench_{name}"] = getattr(self.estimator, f"external_wrench_{name}")
+        for name in DELTA_Q_COMPONENTS[:6]:
+            out[name] = getattr(self.torque, name)
+        if self.supervisor is not None:
+            for name in ("mode", "fault", "transition"):
+                out[f"supervisor_{name}"] = getattr(self.supervisor, name)
+        return out
+
+    def sensor_fault(self) -> float:
+        """The filters' count of consecutive held (non-finite) samples."""
+        fault = self.encoder_filter.input_fault[0]
+        if self.sensor_filter is not None:
+            fault += self.sensor_filter.input_fault[0]
+        return float(fault)
+
+
+class FusedTorqueController(WitnessFreeLeafSystem):
+    """The fused controller as one LeafSystem (`build_torque_control(..., fused=True)`).
+
+    .. code-block:: text
+
+                                 ┌───────────────────────┐
+        q_measured ─────────────►│                       ├──► q_cmd
+        imu_linear_acceleration ►│                       ├──► tau_estimated, tau_desired
+        imu_angular_velocity ───►│                       ├──► delta_q, fallback_active
+        wrench_<s> (each) ──────►│ FusedTorqueController ├──► sensor_fault
+        sensor_time ────────────►│                       ├──► external_wrench_<s>
+        q_ref, v_ref, vdot_ref ─►│                       ├──► the six Δq components
+        f_ref (force task) ─────►│                       ├──► supervisor_mode, _fault,
+                                 └───────────────────────┘    _transition (supervised)
+
+    One discrete state vector (`FusedController.state`) and one periodic update that
+    runs every step; the outputs are slices of that state (no direct feedthrough),
+    except q_cmd, which blends the state with the current q_ref as the supervisor's
+    (or the merger's) output does.
+    """
+
+    def __init__(self, parts: TorqueChainParts):
+        super().__init__()
+        self._fused = fused = FusedController(parts)
+        N = len(parts.all_joints)
+        self._sensor_ports = [self.DeclareVectorInputPort("q_measured", N)]
+        if fused._has_imu:
+            self._sensor_ports += [
+                self.DeclareVectorInputPort("imu_linear_acceleration", 3),
+                self.DeclareVectorInputPort("imu_angular_velocity", 3),
+            ]
+        for name in fused._sensor_names:
+            self._sensor_ports.append(self.DeclareVectorInputPort(f"wrench_{name}", 6))
+        self._stamp_port = (
+            self.DeclareVectorInputPort("sensor_time", fused._num_stamps)
+            if fused._num_stamps
+            else None
+        )
+        sizes = [port.size() for port in self._sensor_ports]
+        ends = np.cumsum(sizes)
+        self._sensor_rows = [
+            fused.sensor_buffer[end - size : end] for size, end in zip(sizes, ends)
+        ]
+        self._reference_ports = [
+            (self.DeclareVectorInputPort(name, N), getattr(fused, name))
+            for name in ("q_ref", "v_ref", "vdot_ref")
+        ]
+        self._f_ref = (
+            self.DeclareVectorInputPort("f_ref", 6) if parts.force_sensor else None
+        )
+        self._group = int(self.DeclareDiscreteState(fused.state.copy()))
+        self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
+        self.DeclarePeriodicDiscreteUpdateEvent(parts.period, 0.0, self._update)
+        state_only = {self.xd_ticket()}
+        q_ref_port = self._reference_ports[0][0]
+        self._q_cmd_out = np.zeros(N)
+        self.DeclareVectorOutputPort(
+            "q_cmd", N, self._calc_q_cmd,
+            prerequisites_of_calc={self.xd_ticket(), q_ref_port.ticket()},
+        )
+        for name, view in fused.signals().items():
+            rows = self._rows_of(view)
+            self.DeclareVectorOutputPort(
+                name, len(view),
+                lambda context, output, rows=rows: output.SetFromVector(
+                    context.get_discrete_state(self._group).get_value()[rows]
+                ),
+                prerequisites_of_calc=state_only,
+            )
+        fault_rows = [self._rows_of(fused.encoder_filter.input_fault)]
+        if fused.sensor_filter is not None:
+            fault_rows.append(self._rows_of(fused.sensor_filter.input_fault))
+        self.DeclareVectorOutputPort(
+            "sensor_fault", 1,
+            lambda context, output: output.SetFromVector(
+                [sum(context.get_discrete_state(self._group).get_value()[r][0]
+                     for r in fault_rows)]
+            ),
+            prerequisites_of_calc=state_only,
+        )
+
+    def _rows_of(self, view: np.ndarray) -> slice:
+        """The rows of the fused state that a state view covers."""
+        state = self._fused.state
+        start = (view.__array_interface__["data"][0]
+                 - state.__array_interface__["data"][0]) // state.itemsize
+        return slice(start, start + view.size)
+
+    def fused_controller(self) -> FusedController:
+        return self._fused
+
+    def _read_inputs(self, context: Context) -> None:
+        for port, row in zip(self._sensor_ports, self._sensor_rows):
+            row[:] = port.Eval(context)
+        fused = self._fused
+        if self._stamp_port is not None:
+            fused.sensor_time[:] = self._stamp_port.Eval(context)
+        for port, buffer in self._reference_ports:
+            buffer[:] = port.Eval(context)
+        if self._f_ref is not None:
+            fused.f_ref[:] = self._f_ref.Eval(context)
+
+    def _initialize(self, context: Context, state: DiscreteValues) -> None:
+        fused = self._fused
+        fused.state[:] = state.get_value(self._group)
+        self._read_inputs(context)
+        fused.initialize(context.get_time())
+        state.set_value(self._group, fused.state)
+
+    def _update(self, context: Context, state: DiscreteValues) -> None:
+        fused = self._fused
+        fused.state[:] = state.get_value(self._group)
+        self._read_inputs(context)
+        fused.tick(context.get_time())
+        state.set_value(self._group, fused.state)
+
+    def _calc_q_cmd(self, context: Context, output: BasicVector) -> None:
+        fused = self._fused
+        fused.state[:] = context.get_discrete_state(self._group).get_value()
+        q_ref = self._reference_ports[0][0].Eval(context)
+        output.SetFromVector(fused.command(q_ref, self._q_cmd_out))

@@ -1,0 +1,247 @@
+"""The message-driven loops fail safe (hardware/control_loop.py, transport.py): the hub,
+the robot (`sim-robot`) and the controller (`control`) as separate processes on
+127.0.0.1, and each fault a robot's operator meets: the hub killed, a malformed or a
+replayed encoder message, the robot killed, the controller killed, a listener that is
+not a hub. Each ends with a ramp (where the robot can still be reached), a clean exit,
+one line, and a report that names the fault and its time."""
+
+import json
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from hrp2_drake.hardware.messages import SignalCodec
+from hrp2_drake.hardware.transport import TcpqTransport, check_url, open_transport
+
+ROBOT = "iiwa14"
+CLI = [sys.executable, "-m", "hrp2_drake.cli"]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class _Process:
+    """A child process whose stderr is collected by a thread."""
+
+    def __init__(self, argv):
+        self.popen = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                      text=True)
+        self.lines: list[str] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self):
+        for line in self.popen.stderr:
+            self.lines.append(line.rstrip())
+
+    def wait_for(self, text: str, timeout: float = 60.0) -> None:
+        deadline = time.monotonic() + timeout
+        while not any(text in line for line in self.lines):
+            if self.popen.poll() is not None or time.monotonic() > deadline:
+                raise AssertionError(f"no '{text}' in {self.lines}")
+            time.sleep(0.05)
+
+    def finish(self, timeout: float = 30.0) -> int:
+        code = self.popen.wait(timeout)
+        self._reader.join(5)
+        return code
+
+    def kill(self):
+        if self.popen.poll() is None:
+            self.popen.kill()
+            self.popen.wait(10)
+
+
+@pytest.fixture
+def rig(tmp_path):
+    """Starts the hub and the robot; `control(...)` starts the controller."""
+    port = _free_port()
+    url = f"tcpq://127.0.0.1:{port}"
+    from hrp2_drake.description import load_robot_description
+    from hrp2_drake.experiments.ground_truth import true_motor_model
+
+    model = tmp_path / "motor_model.yaml"
+    true_motor_model(load_robot_description(ROBOT)).save(model)
+    hub = subprocess.Popen([sys.executable, "-m", "hrp2_drake.hardware.tcpq_hub",
+                            "--port", str(port)], stdout=subprocess.PIPE, text=True)
+    assert "hub on" in hub.stdout.readline()
+    processes = {"hub": hub}
+
+    class Rig:
+        def __init__(self):
+            self.url, self.out = url, tmp_path
+
+        def robot(self, duration=30.0):
+            robot = _Process(CLI + ["sim-robot", "--robot", ROBOT, "--lcm", url,
+                                    "--duration", str(duration), "--out", str(tmp_path / "robot")])
+            processes["robot"] = robot
+            robot.wait_for("sim-robot: iiwa14 on")
+            return robot
+
+        def control(self, duration=3.0):
+            config = tmp_path / "control.yaml"
+            config.write_text("wait_timeout: 20.0\n")
+            control = _Process(CLI + ["control", "--robot", ROBOT, "--lcm", url,
+                                      "--motor-model", str(model), "--config", str(config),
+                                      "--duration", str(duration), "--out", str(tmp_path / "control")])
+            processes["control"] = control
+            control.wait_for("control: running")
+            return control
+
+        def kill_hub(self):
+            hub.kill()
+            hub.wait(10)
+
+        def report(self):
+            return json.loads((tmp_path / "control" / "control.json").read_text())
+
+        def robot_report(self):
+            return json.loads((tmp_path / "robot" / "sim_robot.json").read_text())
+
+    yield Rig()
+    for process in processes.values():
+        if isinstance(process, _Process):
+            process.kill()
+        elif process.poll() is None:
+            process.kill()
+            process.wait(10)
+
+
+def _publish_from_a_third_client(url: str, channel: str, data: bytes) -> None:
+    _, _, address = url.partition("://")
+    host, port = address.split(":")
+    client = TcpqTransport(host, int(port))
+    client.publish(channel, data)
+    time.sleep(0.2)
+    client.close()
+
+
+@pytest.mark.slow
+def test_a_run_ends_with_a_ramp_and_a_report(rig):
+    robot = rig.robot()
+    control = rig.control(duration=2.0)
+    assert control.finish() == 0, control.lines
+    report = rig.report()
+    assert report["fault"] == "" and report["ramped"]
+    assert report["ticks"] >= 1900 and report["torque_share"] == 1.0
+    assert (rig.out / "control" / "latency.png").stat().st_size > 1000
+    assert "How the run ended:** its duration" in (rig.out / "control" / "control.md").read_text()
+    robot.popen.send_signal(signal.SIGTERM)
+    assert robot.finish() == 0
+    # The robot's watchdog held the pose once the controller had gone (a loaded
+    # machine may trip it during the run too: it counts wall time).
+    summary = rig.robot_report()
+    assert summary["watchdog_trips"] >= 1 and summary["holding"]
+
+
+@pytest.mark.slow
+def test_the_hub_killed(rig):
+    robot = rig.robot()
+    control = rig.control(duration=10.0)
+    time.sleep(1.0)
+    rig.kill_hub()
+    start = time.monotonic()
+    assert control.finish() == 1, control.lines  # not SIGABRT (-6)
+    assert robot.finish() == 1, robot.lines
+    assert time.monotonic() - start < 5.0
+    assert "the transport is gone" in control.lines[-1]
+    assert "the transport is gone" in robot.lines[-1]
+    report = rig.report()
+    assert "the transport is gone" in report["fault"] and report["fault_time"] > 0.5
+    assert "watchdog holds its pose" in (rig.out / "control" / "control.md").read_text()
+    assert rig.robot_report()["holding"]
+
+
+@pytest.mark.slow
+def test_a_replayed_sample_is_refused_and_a_malformed_stream_ramps_out(rig):
+    robot = rig.robot()
+    control = rig.control(duration=10.0)
+    time.sleep(1.5)
+    joints = ["iiwa_joint_%d" % k for k in range(1, 8)]
+    old = SignalCodec(joints, "IIWA14_Q_MEASURED").encode(np.zeros(7), 0.0005)
+    _publish_from_a_third_client(rig.url, "IIWA14_Q_MEASURED", old)
+    time.sleep(0.3)
+    other = SignalCodec([f"other_{k}" for k in range(7)], "IIWA14_Q_MEASURED")
+    _publish_from_a_third_client(rig.url, "IIWA14_Q_MEASURED", other.encode(np.zeros(7), 1e6))
+    assert control.finish() == 1, control.lines
+    report = rig.report()
+    assert report["refused_samples"] >= 1
+    assert "coordinates" in report["fault"] and report["ramped"]
+    assert "coordinates" in control.lines[-1]
+    # Until the malformed message, the old sample did not disturb torque control.
+    assert report["events"] == [] and report["torque_share"] == 1.0
+    robot.popen.send_signal(signal.SIGTERM)
+    robot.finish()
+
+
+@pytest.mark.slow
+def test_the_robot_killed(rig):
+    robot = rig.robot()
+    control = rig.control(duration=10.0)
+    time.sleep(1.0)
+    robot.kill()
+    start = time.monotonic()
+    assert control.finish() == 1, control.lines
+    assert time.monotonic() - start < 3.0
+    report = rig.report()
+    assert "the robot went silent" in report["fault"] and report["ramped"]
+    assert "went silent" in control.lines[-1]
+    # The report's tracking stops at the last real sample (no frozen encoders in it).
+    text = (rig.out / "control" / "control.md").read_text()
+    assert "the robot went silent" in text and f"t = {report['fault_time']:.3f} s" in text
+
+
+@pytest.mark.slow
+def test_the_controller_killed_the_robot_holds(rig):
+    robot = rig.robot()
+    control = rig.control(duration=10.0)
+    time.sleep(1.0)
+    control.kill()
+    time.sleep(0.5)
+    robot.popen.send_signal(signal.SIGTERM)
+    assert robot.finish() == 0
+    summary = rig.robot_report()
+    assert summary["watchdog_trips"] >= 1 and summary["holding"]
+    data = np.load(rig.out / "robot" / "sim_robot.npz")
+    held = data["holding"] > 0
+    # Holding: the command is the pose measured when the watchdog tripped, kept.
+    assert held[-1] and np.ptp(data["q_cmd"][held], axis=0).max() == 0.0
+
+
+def test_a_listener_that_is_not_a_hub(tmp_path):
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        port = server.getsockname()[1]
+        start = time.monotonic()
+        with pytest.raises(ConnectionError, match="did not answer as an LCM tcpq hub"):
+            open_transport(f"tcpq://127.0.0.1:{port}", timeout=0.3)
+        assert time.monotonic() - start < 2.0
+
+
+@pytest.mark.parametrize(
+    "url, words",
+    [
+        ("bogus://x", "unknown scheme 'bogus'"),
+        ("udpm://300.1.1.1:7667", "'300.1.1.1' is not an IP address"),
+        ("udpm://10.0.0.1:7667", "is not a multicast group"),
+        ("tcpq://127.0.0.1", "a port in 1-65535"),
+        ("tcpq://127.0.0.1:99999", "Port out of range"),
+    ],
+)
+def test_bad_urls_get_one_line(url, words):
+    with pytest.raises(ValueError, match=words):
+        check_url(url)
+
+
+def test_no_hub_is_one_line():
+    port = _free_port()
+    with pytest.raises(ConnectionError, match="cannot connect"):
+        open_transport(f"tcpq://127.0.0.1:{port}")

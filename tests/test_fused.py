@@ -1,0 +1,142 @@
+"""The fused controller (hrp2_drake/control/fused.py) against the diagram of separate
+systems, and the message-driven loop (hardware/control_loop.py) over memq:// against
+the fused controller in process: the same steps, the same signals."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from pydrake.common.yaml import yaml_load_typed
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.trajectories import PiecewisePolynomial
+
+from hrp2_drake.control.fused import FusedController
+from hrp2_drake.experiments.builders import (
+    TorqueControlConfig,
+    build_torque_control,
+    torque_chain_parts,
+)
+from hrp2_drake.experiments.ground_truth import true_motor_model
+from hrp2_drake.experiments.lcm_control import LcmControlConfig, control_reference
+from hrp2_drake.hardware.control_loop import (
+    ControlLoop,
+    LoopConfig,
+    RobotBridge,
+    run_in_process,
+)
+from hrp2_drake.hardware.lcm_station import LcmChannels
+from hrp2_drake.hardware.transport import DrakeLcmTransport
+from hrp2_drake.robot.station import StationConfig
+from hrp2_drake.simulation import add_loggers, logs_to_arrays
+
+HRP2 = StationConfig()
+IIWA = StationConfig(robot="iiwa14", scenario="fixed_base")
+
+
+def _tuned() -> TorqueControlConfig:
+    config = yaml_load_typed(
+        schema=TorqueControlConfig,
+        filename=str(HRP2.description().path("torque_control_k6_0.1.yaml")),
+        defaults=TorqueControlConfig(),
+    )
+    return replace(config, start_time=0.5)
+
+
+CASES = {
+    # The tuned controller: per-signal windows, observer, supervisor, IMU, 4 F/T.
+    "hrp2": (HRP2, _tuned, 2.0, None),
+    # A force task at the iiwa's wrist sensor, the observer, the supervisor.
+    "iiwa_force": (
+        IIWA,
+        lambda: TorqueControlConfig(
+            k6=0.3, window=41, force_frame="ft_sensor_link", kf=[0.5], start_time=0.5,
+            disturbance_observer=20.0,
+        ),
+        2.0,
+        PiecewisePolynomial(np.array([0, 0, 0, 0, 0, 5.0]).reshape(6, 1)),
+    ),
+    # The predictor and the latched fallback, e_q from the filtered q̂.
+    "hrp2_predictor": (
+        HRP2,
+        lambda: TorqueControlConfig(
+            k6=1.0, window=41, predictor=True, supervised=False, start_time=0.5,
+            position_source="estimate",
+        ),
+        0.8,
+        None,
+    ),
+}
+
+
+def _run(case: str, fused: bool) -> dict[str, np.ndarray]:
+    station, make, duration, force = CASES[case]
+    config = LcmControlConfig(station=station, duration=duration)
+    reference = control_reference(config)
+    extra = {"force_reference": force} if force is not None else {}
+    control = build_torque_control(
+        station, reference, true_motor_model(station.description()), make(),
+        fused=fused, **extra,
+    )
+    builder = DiagramBuilder()
+    diagram = builder.AddSystem(control.diagram)
+    loggers = add_loggers(
+        builder, {n: diagram.GetOutputPort(n) for n in control.output_names()}, 0.001
+    )
+    simulator = Simulator(builder.Build())
+    simulator.AdvanceTo(duration)
+    return logs_to_arrays(loggers, simulator.get_context())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", list(CASES))
+def test_fused_controller_equals_the_separate_systems(case):
+    separate, fused = _run(case, fused=False), _run(case, fused=True)
+    assert sorted(separate) == sorted(fused)
+    for name in separate:
+        np.testing.assert_allclose(fused[name], separate[name], rtol=0, atol=1e-12,
+                                   err_msg=name)
+    # Not a trivial run: torque control drove the controlled joints.
+    assert np.abs(separate["delta_q"]).max() > 1e-4
+    assert np.abs(separate["tau_estimated"]).max() > 1.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("station_config", [IIWA, HRP2], ids=["iiwa", "hrp2"])
+def test_message_driven_loop_over_memq_equals_the_fused_controller(station_config):
+    config = LcmControlConfig(station=station_config, duration=1.0)
+    robot = station_config.description()
+    reference = control_reference(config)
+    motor_model = true_motor_model(robot)
+
+    def parts():
+        return torque_chain_parts(robot, reference, motor_model, config.torque_control)
+
+    ticks = 900
+    direct = run_in_process(station_config, FusedController(parts()), reference, ticks)
+
+    # The robot's bridge and the controller's loop on one memq:// LCM, in lock step.
+    transport = DrakeLcmTransport("memq://")
+    bridge = RobotBridge(station_config, transport)
+    loop = ControlLoop(FusedController(parts()), robot, transport, LcmChannels(),
+                       reference, config=LoopConfig(duration=1.0))
+
+    def pump():
+        while transport.handle(0.0):
+            pass
+
+    bridge.step()  # the robot's first messages, which the controller waits for
+    pump()
+    loop.wait_for_robot()
+    for _ in range(ticks):
+        bridge.step()
+        pump()
+    assert loop.ticks == ticks and loop.refused == 0
+    signals = loop.signals()
+    for k in range(ticks):
+        np.testing.assert_allclose(signals["q_cmd"][k], direct[k][0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(loop.controller.estimator.tau, direct[-1][1], rtol=0, atol=1e-12)
+    # The robot applied each command in the period it answered.
+    np.testing.assert_array_equal(bridge.signals()["q_cmd"][2:], signals["q_cmd"][: ticks - 1])
+    # Torque control took over (the supervisor's ramp completed).
+    assert loop.controller.torque_active() == 1.0
