@@ -10,6 +10,9 @@ Rows (one run, so that ratios between rows are meaningful; 2 cores, shared):
 - "torque control K6=0.1, tuner's ports": the same run logging only what a tuner reads
   (`TUNER_PORTS`: q_ref, q_measured, delta_q, fallback_active, and the supervisor's
   outputs).
+- "torque control K6=0.1 fused, ...": the same chain as one FusedTorqueController
+  (`build_torque_control(fused=True)`, the same signals): what `tune` runs (goal of
+  issue 21: >= 4x real time).
 - "torque control K6=0.1 unsupervised, ...": the paper's stack alone (the Δq
   controller's own latched fallback, no SafetySupervisor): what the supervisor costs.
 - "position control, ...": the robot's own servo on the same reference (the baseline).
@@ -98,6 +101,11 @@ def _diagrams(duration: float | None):
     return end, {
         "torque control K6=0.1": lambda: build_torque_control(
             config.station, reference, motor_model, torque
+        ),
+        # The same chain as one FusedTorqueController (the same signals; what `tune`
+        # and the hardware loop run).
+        "torque control K6=0.1 fused": lambda: build_torque_control(
+            config.station, reference, motor_model, torque, fused=True
         ),
         # The paper's stack alone: the Δq controller's own latched fallback, no
         # SafetySupervisor (ours, beyond the paper).

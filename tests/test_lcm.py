@@ -168,9 +168,10 @@ def test_hub_relays_between_processes_on_the_loopback():
 
 def test_control_and_sim_robot_across_processes(tmp_path, motor_model):
     """`hrp2-drake sim-robot` and `hrp2-drake control` in two processes, through the
-    tcpq hub on 127.0.0.1: the same motion closes the loop over TCP. Both run at half
-    real time, so that a loaded 2-core CI machine keeps their 1 ms ticks (the
-    real-time figures are measured in scripts/bench_lcm.py)."""
+    tcpq hub on 127.0.0.1: the same motion closes the loop over TCP. The robot runs
+    at half real time, so that a loaded 2-core CI machine keeps its clock; the
+    controller ticks on its messages, whatever their rate (the real-time figures are
+    measured in scripts/bench_lcm.py)."""
     port = _free_port()
     url = f"tcpq://127.0.0.1:{port}"
     cli = [sys.executable, "-m", "hrp2_drake.cli"]
@@ -190,7 +191,7 @@ def test_control_and_sim_robot_across_processes(tmp_path, motor_model):
         motor_model.save(path)
         done = subprocess.run(
             cli + ["control", "--robot", "iiwa14", "--lcm", url, "--motor-model", str(path),
-                   "--duration", "3", "--realtime-rate", "0.5", "--out", str(tmp_path / "control")],
+                   "--duration", "3", "--out", str(tmp_path / "control")],
             capture_output=True, text=True, timeout=120,
         )
         assert done.returncode == 0, done.stderr[-2000:]
@@ -201,7 +202,8 @@ def test_control_and_sim_robot_across_processes(tmp_path, motor_model):
             if process is not None and process.poll() is None:
                 process.kill()
     summary = json.loads((tmp_path / "control" / "control.json").read_text())
-    assert 2990 <= summary["timing"]["ticks"] <= 3000
+    assert 3000 <= summary["ticks"] <= 3001 and summary["fault"] == ""
+    assert summary["torque_share"] == 1.0 and summary["events"] == []
     # Measured: 1.3-2.1 mrad (in one process over memq: 0.9-1.2; the position servo:
     # 7-10): the two clocks run free against each other and a tick may start late.
     assert max(summary["max_error_mrad"]) < 4.0, summary
