@@ -245,3 +245,15 @@ def test_no_hub_is_one_line():
     port = _free_port()
     with pytest.raises(ConnectionError, match="cannot connect"):
         open_transport(f"tcpq://127.0.0.1:{port}")
+
+
+def test_the_hub_with_a_bad_or_busy_port_is_one_line():
+    hub = [sys.executable, "-m", "hrp2_drake.hardware.tcpq_hub", "--port"]
+    done = subprocess.run(hub + ["99999"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "a TCP port is 0-65535" in done.stderr
+    assert "Traceback" not in done.stderr
+    with socket.create_server(("127.0.0.1", 0)) as busy:
+        port = busy.getsockname()[1]
+        done = subprocess.run(hub + [str(port)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "cannot listen on 127.0.0.1" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1

@@ -26,6 +26,7 @@ import re
 import selectors
 import socket
 import struct
+import sys
 import threading
 
 MAGIC_SERVER = 0x287617FA
@@ -167,7 +168,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--port", type=int, default=7700, help="TCP port on 127.0.0.1")
     args = parser.parse_args()
-    hub = LcmTcpqHub(args.port)
+    if not 0 <= args.port <= 65535:
+        parser.error(f"--port {args.port}: a TCP port is 0-65535 (0: any free port)")
+    try:
+        hub = LcmTcpqHub(args.port)
+    except OSError as error:
+        print(f"tcpq_hub: error: cannot listen on 127.0.0.1:{args.port}: "
+              f"{error.strerror or error}", file=sys.stderr)
+        sys.exit(2)
     print(f"LCM tcpq hub on {hub.url}", flush=True)
     try:
         threading.Event().wait()
