@@ -39,13 +39,26 @@ from hrp2_drake.control.fused import (
 from hrp2_drake.control.safety import describe_faults
 from hrp2_drake.control.torque_controller import FALLBACK_REASONS
 from hrp2_drake.description import RobotDescription
-from hrp2_drake.hardware.lcm_station import LcmChannels
+from hrp2_drake.hardware.lcm_station import IMU_COORDS, LcmChannels
 from hrp2_drake.hardware.messages import SignalCodec, WrenchCodec
 from hrp2_drake.hardware.transport import Transport, TransportClosed
 
 
 class LoopFault(RuntimeError):
     """What ended a loop early (the message names it)."""
+
+
+@dataclass
+class _SensorChannel:
+    """An IMU or F/T channel of the controller: its codec, the rows of the fused
+    controller's sensor values and stamps it writes, the stamp's unit (s), and the
+    latest stamp (-1: none yet)."""
+
+    codec: object
+    values: np.ndarray
+    stamp_rows: np.ndarray
+    unit: float
+    last_stamp: int = -1
 
 
 @dataclass
@@ -143,22 +156,21 @@ class ControlLoop:
         self._N = N
         self._q_codec = SignalCodec(robot.joints, channels.q_measured)
         self._cmd_codec = SignalCodec(robot.joints, channels.q_cmd)
-        # The other sensor channels: (codec, rows of the controller's sensor values,
-        # rows of its sensor_time, µs per stamp unit).
+        # The other sensor channels, each writing into the controller's buffers.
         values = controller.sensor_values
         stamps = controller.sensor_time
-        self._others = []
+        self._others: list[_SensorChannel] = []
         row, stamp_row = 0, 1
         if robot.has_imu():
-            codec = SignalCodec(("acc_x", "acc_y", "acc_z", "gyro_x", "gyro_y", "gyro_z"),
-                                channels.imu)
-            self._others.append([codec, values[0:6], stamps[1:3], 1e-6, -1])
+            codec = SignalCodec(IMU_COORDS, channels.imu)
+            # The IMU's one message stamps its two signals (accelerometer, gyro).
+            self._others.append(_SensorChannel(codec, values[0:6], stamps[1:3], 1e-6))
             row, stamp_row = 6, 3
         for name in robot.sensor_names():
             codec = WrenchCodec(channels.wrench(name))
-            self._others.append(
-                [codec, values[row : row + 6], stamps[stamp_row : stamp_row + 1], 1e-3, -1]
-            )
+            self._others.append(_SensorChannel(
+                codec, values[row : row + 6], stamps[stamp_row : stamp_row + 1], 1e-3
+            ))
             row, stamp_row = row + 6, stamp_row + 1
         self._q_cmd = np.zeros(N)
         self._q_hold = np.zeros(N)
@@ -181,25 +193,26 @@ class ControlLoop:
         self.ramped = False
         self._seen: set[str] = set()
         transport.subscribe(channels.q_measured, self._on_q_measured)
-        for entry in self._others:
-            transport.subscribe(entry[0].channel, lambda data, e=entry: self._on_sensor(e, data))
+        for other in self._others:
+            transport.subscribe(
+                other.codec.channel, lambda data, c=other: self._on_sensor(c, data)
+            )
 
     # ---------------------------------------------------------------- messages
 
-    def _on_sensor(self, entry: list, data: bytes) -> None:
-        codec, rows, stamp_rows, unit, last = entry
-        self._seen.add(codec.channel)
-        stamp = codec.timestamp(data)
-        if stamp <= last:
+    def _on_sensor(self, channel: "_SensorChannel", data: bytes) -> None:
+        self._seen.add(channel.codec.channel)
+        stamp = channel.codec.timestamp(data)
+        if stamp <= channel.last_stamp:
             self.refused += 1
             return
         try:
-            rows[:] = codec.values(data)
+            channel.values[:] = channel.codec.values(data)
         except ValueError as error:
             raise LoopFault(str(error)) from None
-        entry[4] = stamp
+        channel.last_stamp = stamp
         if self._first_stamp >= 0:
-            stamp_rows[:] = stamp * unit - self._first_stamp * 1e-6
+            channel.stamp_rows[:] = stamp * channel.unit - self._first_stamp * 1e-6
 
     def _on_q_measured(self, data: bytes) -> None:
         received = time.perf_counter_ns()
@@ -218,8 +231,8 @@ class ControlLoop:
         first = self._first_stamp < 0
         if first:
             self._first_stamp = stamp
-            for codec, _, stamp_rows, unit, last in self._others:
-                stamp_rows[:] = last * unit - stamp * 1e-6
+            for other in self._others:
+                other.stamp_rows[:] = other.last_stamp * other.unit - stamp * 1e-6
         self._last_stamp = stamp
         t = self.t = (stamp - self._first_stamp) * 1e-6
         controller.sensor_time[0] = t
@@ -258,10 +271,13 @@ class ControlLoop:
     def wait_for_robot(self) -> None:
         """Waits up to wait_timeout for a message on every sensor channel (without
         ticking); a TimeoutError naming the silent ones otherwise."""
-        channels = [self.channels.q_measured] + [e[0].channel for e in self._others]
+        channels = [self.channels.q_measured] + [c.codec.channel for c in self._others]
         deadline = time.monotonic() + self.config.wait_timeout
-        while len(self._seen) < len(channels) and time.monotonic() < deadline:
-            self.transport.handle(max(min(0.05, deadline - time.monotonic()), 0.0))
+        try:
+            while len(self._seen) < len(channels) and time.monotonic() < deadline:
+                self.transport.handle(max(min(0.05, deadline - time.monotonic()), 0.0))
+        except LoopFault as error:
+            raise ValueError(f"the robot's first messages: {error}") from None
         silent = [channel for channel in channels if channel not in self._seen]
         if silent:
             raise TimeoutError(
