@@ -98,11 +98,13 @@ class DisturbanceObserverStep(Step):
         self._delay = round(config.delay / config.period)
         self._limit = np.broadcast_to(np.asarray(config.limit, float), (n,)).copy()
         self._lower = -self._limit
+        self._clips = bool(np.any(np.isfinite(self._limit)))  # else no clip at all
+        self._coulomb = bool(np.any(self._k_c != 0.0))  # else K_c sign(q̇) = 0
+        self._ones = np.ones(n)
         self._declare("disturbance", np.zeros(n))
         self._declare("ring", np.zeros((max(self._delay, 1), n)))
         self._declare("counters", np.zeros(2))
-        # Per-tick work: the Δq of `delay` ago, the raw d, K_c sign(q̂̇).
-        self._old = np.zeros(n)
+        # Per-tick work: the raw d, K_c sign(q̂̇).
         self._raw = np.zeros(n)
         self._friction = np.zeros(n)
         self._finalize()
@@ -135,11 +137,12 @@ class DisturbanceObserverStep(Step):
         else:
             friction = self._friction
         # (Positional outputs: about twice as fast as `out=` on small arrays.)
-        np.sign(v, friction)
-        np.multiply(friction, self._k_c, friction)  # K_c sign(q̇)
         np.multiply(self._k_v, v, out)
         np.subtract(delta_q, out, out)
-        np.subtract(out, friction, out)
+        if self._coulomb:  # (K_c = 0: nothing to subtract)
+            np.sign(v, friction)
+            np.multiply(friction, self._k_c, friction)  # K_c sign(q̇)
+            np.subtract(out, friction, out)
         np.divide(out, self._k_tau, out)
         np.subtract(tau, out, out)
         return out
@@ -151,27 +154,27 @@ class DisturbanceObserverStep(Step):
         (n, rad/s) and τ̂ (n, N·m), as old as `delay`, d̂ moves towards the raw d of
         the Δq sent `delay` ago (held on a non-finite input or before the ring
         covers `delay`)."""
-        counters = self.counters
+        counters, ones = self.counters, self._ones
         slot, count = int(counters[0]), int(counters[1])
-        delta_q_sum = delta_q.sum()
-        finite = math.isfinite(delta_q_sum + v.sum() + tau_estimated.sum())
-        old = delta_q
+        delta_q_sum = delta_q.dot(ones)
+        finite = math.isfinite(delta_q_sum + v.dot(ones) + tau_estimated.dot(ones))
+        old = self._slots[slot] if self._delay else delta_q  # sent `delay` ago
+        raw = None  # hold d̂ on a bad sample, or while no Δq is that old yet
+        if finite and count >= self._delay:
+            raw = self.raw_disturbance(old, v, tau_estimated, out=self._raw)
         if self._delay:
-            row = self._slots[slot]
-            old = self._old
-            old[:] = row  # sent `delay` periods ago
-            row[:] = delta_q if math.isfinite(delta_q_sum) else 0.0
+            old[:] = delta_q if math.isfinite(delta_q_sum) else 0.0  # its slot, reused
             counters[0] = (slot + 1) % self._delay
         counters[1] = count + 1
-        if not finite or count < self._delay:
-            return  # hold d̂: a bad sample, or no Δq that old yet
+        if raw is None:
+            return
         estimate = self.disturbance
-        raw = self.raw_disturbance(old, v, tau_estimated, out=self._raw)
         np.subtract(raw, estimate, raw)
         np.multiply(raw, self._alpha, raw)
         np.add(estimate, raw, estimate)
-        np.maximum(estimate, self._lower, out=estimate)  # clipped to ±limit
-        np.minimum(estimate, self._limit, out=estimate)
+        if self._clips:  # clipped to ±limit
+            np.maximum(estimate, self._lower, out=estimate)
+            np.minimum(estimate, self._limit, out=estimate)
 
 
 class DisturbanceObserver(StepSystem):

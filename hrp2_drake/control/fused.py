@@ -197,9 +197,9 @@ class FusedController:
             start = self._offsets[name]
             step.bind(self.state[start : start + step.state_size])
         self._initial_state = self.state.copy()
-        self._previous = np.zeros(size)
         self._make_buffers()
         self._wire()
+        self._make_gathers()
         # Events: (t, kind, code) rows, a ring of the latest ones, and counts.
         self.events = np.zeros((256, 3))
         self.num_events = 0
@@ -210,21 +210,30 @@ class FusedController:
     def _make_buffers(self) -> None:
         N, n = self._N, self._n
         m = self._num_sensor_values
-        # The station's signals as one buffer: [q_measured; imu; wrenches; stamps].
-        self.sensor_buffer = np.zeros(N + m + self._num_stamps)
+        # Everything a tick reads, in one buffer (`_sources`): the state at the start
+        # of the tick (`_previous`), the station's signals [q_measured; imu;
+        # wrenches; stamps] (`sensor_buffer`), q_ref, v_ref, vdot_ref, f_ref, and six
+        # zeros (no force reading), so that `take`s with precomputed rows select the
+        # controlled joints' inputs (`_make_gathers`).
+        sizes = [self.state.size, N + m + self._num_stamps, N, N, N, 6, 6]
+        self._sources = np.zeros(sum(sizes))
+        ends = np.cumsum(sizes)
+        (self._previous, self.sensor_buffer, self.q_ref, self.v_ref, self.vdot_ref,
+         self.f_ref, self._no_force) = (
+            self._sources[end - size : end] for size, end in zip(sizes, ends)
+        )
         self.q_measured = self.sensor_buffer[:N]
         self.sensor_values = self.sensor_buffer[N : N + m]
         self.sensor_time = self.sensor_buffer[N + m :]
-        self.q_ref = np.zeros(N)
-        self.v_ref = np.zeros(N)
-        self.vdot_ref = np.zeros(N)
-        self.f_ref = np.zeros(6)
-        # Selections of the controlled joints (np.take(..., out=)): now and previous.
-        names = ("q_measured", "q_ref", "v_ref", "vdot_ref", "q_hat", "v_hat",
-                 "vdot_hat", "tau_hat")
-        self._selected = {name: np.zeros(n) for name in names}
+        # Selections of the controlled joints, previous and now (`_make_gathers`).
+        names = ("q_measured", "q_hat", "v_hat", "vdot_hat", "tau_hat")
+        self._gathered = np.zeros(len(names) * n)
+        self._selected = {
+            name: self._gathered[i * n : (i + 1) * n] for i, name in enumerate(names)
+        }
         self._merged = np.zeros(N)
         self._fault = np.zeros(1)
+        self._no_fault = np.zeros(1)  # the sensor filter's fault without one
 
     def _previous_view(self, step_name: str, array_name: str) -> np.ndarray:
         """The named array of a step as it was at the start of the tick."""
@@ -238,11 +247,12 @@ class FusedController:
         self._p_q_hat = p("encoder_filter", "value")
         self._p_v_hat = p("encoder_filter", "derivative")
         self._p_vdot_hat = p("encoder_filter", "second_derivative")
-        self._p_faults = [p("encoder_filter", "input_fault")]
+        self._p_encoder_fault = p("encoder_filter", "input_fault")
+        self._p_sensor_fault = self._no_fault
         if self.sensor_filter is not None:
             values = p("sensor_filter", "value")
             rates = p("sensor_filter", "derivative")
-            self._p_faults.append(p("sensor_filter", "input_fault"))
+            self._p_sensor_fault = p("sensor_filter", "input_fault")
             imu = 6 if self._has_imu else 0
             self._p_acc = values[0:3] if imu else None
             self._p_gyro = values[3:6] if imu else None
@@ -274,6 +284,55 @@ class FusedController:
             self._p_v_predicted = p("predictor", "v_predicted")
             self._p_tau_predicted = p("predictor", "tau_predicted")
 
+    def _source_rows(self, view: np.ndarray) -> np.ndarray:
+        """The rows of `_sources` that a view on it covers."""
+        sources = self._sources
+        start = (view.__array_interface__["data"][0]
+                 - sources.__array_interface__["data"][0]) // sources.itemsize
+        return np.arange(start, start + view.size)
+
+    def _make_gathers(self) -> None:
+        """The two selections of a tick, as row indices into `_sources`: the inverse
+        dynamics' inputs, straight into its `inputs` ([q_ref; v_ref; vdot_ref;
+        position; velocity (; f_ref; f̂)], controlled joints), and `_gathered`
+        ([q_measured; q̂; q̂̇; q̂̈; τ̂], controlled joints); and the views the steps
+        read them from."""
+        rows, index, sel = self._source_rows, self._index, self._selected
+        parts = self.parts
+        if self.predictor is not None:
+            v_estimate, tau_estimate = self._p_v_predicted, self._p_tau_predicted
+            v_estimate_rows = rows(v_estimate)
+        else:
+            v_estimate, tau_estimate = sel["v_hat"], sel["tau_hat"]
+            v_estimate_rows = rows(self._p_v_hat)[index]
+        velocity = {"estimate": v_estimate_rows, "reference": rows(self.v_ref)[index]}
+        encoders = parts.position_source == "encoders"
+        position = self.q_measured if encoders else self._p_q_hat
+        id_rows = [
+            rows(self.q_ref)[index],
+            rows(self.v_ref)[index],
+            rows(self.vdot_ref)[index],
+            rows(position)[index],
+            velocity[parts.feedback_velocity],
+        ]
+        if self.inverse_dynamics.has_force_task():  # f_d and f̂, or zeros
+            if self._p_force is not None:
+                id_rows += [rows(self.f_ref), rows(self._p_force)]
+            else:
+                id_rows += [rows(self._no_force)] * 2
+        self._id_gather = np.concatenate(id_rows)
+        self._id_inputs = self.inverse_dynamics.inputs
+        self._id_rows = self.inverse_dynamics.input_rows
+        # In the order of `_gathered`'s names (`_make_buffers`).
+        gathered = [self.q_measured, self._p_q_hat, self._p_v_hat, self._p_vdot_hat,
+                    self._p_tau]
+        self._gather = np.concatenate([rows(view)[index] for view in gathered])
+        # What the Δq controller reads besides: q_ref, τ̂ and the friction's q̂̇.
+        self._q_ref_controlled = self._id_rows[0]
+        self._tau_estimate = tau_estimate
+        friction = {"estimate": v_estimate, "reference": self._id_rows[1]}
+        self._v_friction = friction[parts.friction_velocity]
+
     # ------------------------------------------------------------------ ticks
 
     def reset(self) -> None:
@@ -286,13 +345,13 @@ class FusedController:
     def initialize(self, t: float) -> None:
         """The initialization events of the chain's systems, from the current
         `sensor_buffer` and reference (the station's first sample)."""
-        sel = self._selected
-        self.q_measured.take(self._index, out=sel["q_measured"], mode="clip")
-        self.q_ref.take(self._index, out=sel["q_ref"], mode="clip")
+        q_measured, q_ref = self._selected["q_measured"], self._q_ref_controlled
+        self.q_measured.take(self._index, out=q_measured, mode="clip")
+        self.q_ref.take(self._index, out=q_ref, mode="clip")
         self.encoder_filter.initialize(t, self.q_measured)
         if self.sensor_filter is not None:
             self.sensor_filter.initialize(t, self.sensor_values)
-        self.torque.initialize(t, sel["q_measured"], sel["q_ref"])
+        self.torque.initialize(t, q_measured, q_ref)
         if self.supervisor is not None:
             self.supervisor.initialize(self.q_measured, self.q_ref, self.sensor_values)
 
@@ -300,15 +359,12 @@ class FusedController:
         """One control period at time t (s) from the current `sensor_buffer` and
         reference buffers (q_ref, v_ref, vdot_ref, f_ref)."""
         np.copyto(self._previous, self.state)
+        # Every selection of the controlled joints, now and previous: two takes.
+        sources = self._sources
+        sources.take(self._id_gather, 0, self._id_inputs, "clip")
+        sources.take(self._gather, 0, self._gathered, "clip")
         sel = self._selected
-        index = self._index
-        self.q_measured.take(index, out=sel["q_measured"], mode="clip")
-        self.q_ref.take(index, out=sel["q_ref"], mode="clip")
-        self.v_ref.take(index, out=sel["v_ref"], mode="clip")
-        self.vdot_ref.take(index, out=sel["vdot_ref"], mode="clip")
-        self._p_q_hat.take(index, out=sel["q_hat"], mode="clip")
-        self._p_v_hat.take(index, out=sel["v_hat"], mode="clip")
-        self._p_tau.take(index, out=sel["tau_hat"], mode="clip")
+        q_measured, v_hat, tau_hat = sel["q_measured"], sel["v_hat"], sel["tau_hat"]
         # Filters and estimator (paper Sec. 2).
         self.encoder_filter.step(t, self.q_measured)
         if self.sensor_filter is not None:
@@ -317,38 +373,25 @@ class FusedController:
             t, self._p_q_hat, self._p_v_hat, self._p_vdot_hat,
             self._p_acc, self._p_gyro, self._p_alpha, self._p_wrenches,
         )
-        # Velocities and torque as the controllers read them.
-        parts = self.parts
-        if self.predictor is not None:
-            v_estimate, tau_estimate = self._p_v_predicted, self._p_tau_predicted
-        else:
-            v_estimate, tau_estimate = sel["v_hat"], sel["tau_hat"]
-        velocity = {"estimate": v_estimate, "reference": sel["v_ref"]}
-        position = sel["q_measured"] if parts.position_source == "encoders" else sel["q_hat"]
-        self.inverse_dynamics.step(
-            t, sel["q_ref"], sel["v_ref"], sel["vdot_ref"], position,
-            velocity[parts.feedback_velocity],
-            self.f_ref if self._p_force is not None else None, self._p_force,
-        )
+        # Eq. 12 from its input rows, filled in place by the take above.
+        self.inverse_dynamics.step(t, *self._id_rows)
         fault = self._fault
-        fault[0] = sum(f[0] for f in self._p_faults)
+        fault[0] = self._p_encoder_fault[0] + self._p_sensor_fault[0]
+        q_ref = self._q_ref_controlled
         reason = self.torque.step(
-            t, self._p_tau_desired, tau_estimate, velocity[parts.friction_velocity],
-            sel["q_measured"], sel["q_ref"], fault, self._p_terms, self._p_disturbance,
+            t, self._p_tau_desired, self._tau_estimate, self._v_friction,
+            q_measured, q_ref, fault, self._p_terms, self._p_disturbance,
         )
         if reason:
             self._record(t, EVENT_CONTROLLER_FALLBACK, reason)
         if self.observer is not None:
-            self.observer.step(t, self._p_delta_q, sel["v_hat"], sel["tau_hat"])
+            self.observer.step(t, self._p_delta_q, v_hat, tau_hat)
         if self.predictor is not None:
-            self._p_vdot_hat.take(index, out=sel["vdot_hat"], mode="clip")
-            self.predictor.step(
-                t, sel["v_hat"], sel["vdot_hat"], sel["tau_hat"], self._p_delta_q
-            )
+            self.predictor.step(t, v_hat, sel["vdot_hat"], tau_hat, self._p_delta_q)
         if self.supervisor is not None:
             merged = self._merged
             merged[:] = self.q_ref
-            merged[index] = self._p_q_cmd_controlled
+            merged[self._index] = self._p_q_cmd_controlled
             bits = self.supervisor.step(
                 t, merged, self.q_ref, self.q_measured, self.sensor_values,
                 None, self._p_fallback, self.sensor_time,

@@ -332,6 +332,27 @@ class JointSpaceModel(NamedTuple):
     jacobian: np.ndarray | None
 
 
+class _Inputs(NamedTuple):
+    """Views on a work array of eq. 12's inputs (`InverseDynamicsStep._inputs_of`)."""
+
+    rows: tuple[np.ndarray, ...]  # q_ref, v_ref, vdot_ref, q, v, f_ref, f
+    references: np.ndarray  # (2, n): [q_ref; v_ref]
+    estimates: np.ndarray  # (2, n): [q; v]
+    state: np.ndarray  # (2 n): [q; v]
+
+
+class _Outputs(NamedTuple):
+    """Views on a (6, n) array of eq. 12's outputs (τ_d, then TORQUE_COMPONENTS)."""
+
+    rows: tuple[np.ndarray, ...]  # the six rows
+    feedback: np.ndarray  # (2, n): tau_position_feedback, tau_velocity_feedback
+    force: np.ndarray  # (2, n): tau_force_feedback, tau_force_error
+
+    @staticmethod
+    def of(out: np.ndarray) -> "_Outputs":
+        return _Outputs(tuple(out), out[2:4], out[4:6])
+
+
 def _find_base(plant: MultibodyPlant, floating_base: bool) -> RigidBody | None:
     """The floating base body of `plant` (None with a fixed base), checked against
     config.floating_base."""
@@ -452,6 +473,13 @@ class InverseDynamicsStep(Step):
         # The controlled joints are the whole model's velocities, in order (a leg's
         # sub-model): no column or row to select.
         self._all_v = bool(nv == self._n and np.array_equal(self._jv, np.arange(nv)))
+        # ... and its positions too (no base): x = [q; v], in the joints' order.
+        self._x_is_qv = bool(
+            self._all_v
+            and self._base is None
+            and nq == self._n
+            and np.array_equal(self._jq, np.arange(nq))
+        )
         # x = [q; v] of the private context; q_full and v_full are views on it.
         self._x = np.zeros(nq + nv)
         self._q_full, self._v_full = self._x[:nq], self._x[nq:]
@@ -476,15 +504,17 @@ class InverseDynamicsStep(Step):
         self._identity_quaternion = np.array([1.0, 0.0, 0.0, 0.0])
         # Per tick: the inputs land in the rows of one work array (one dot product
         # checks them all for NaN and infinity).
-        force = self._force_frame is not None
-        sizes = [n] * 5 + ([6, 6] if force else [])
-        self._inputs = np.zeros(sum(sizes))
-        self._ones = np.ones(self._inputs.size)
-        ends = np.cumsum(sizes)
-        rows = [self._inputs[end - size : end] for size, end in zip(sizes, ends)]
-        self._input_rows = tuple(rows)
-        # (q_ref, v_ref, vdot_ref, q, v, f_ref, f), zero wrenches without a force task.
-        self._values = tuple(rows if force else rows + [self._zero6, self._zero6])
+        #: The work array [q_ref; v_ref; vdot_ref; q; v (; f_ref; f)] (`_new_inputs`)
+        #: and its rows, `input_rows`: a caller may fill them in place and pass the
+        #: rows to `step` (which copies an argument only if it is not its row).
+        self.inputs = self._new_inputs()
+        self._ones = np.ones(self.inputs.size)
+        self._input_views = self._inputs_of(self.inputs)
+        self.input_rows: tuple[np.ndarray, ...] = self._input_views.rows[
+            : 7 if self._force_frame is not None else 5
+        ]
+        # [K_s; K_d]: e_q and ė_q are rows 2 and 3 of the outputs, one product.
+        self._feedback_gains = np.stack([self._ks, self._kd])
         self._tau_model = np.zeros(n)  # M_j q̈_d + ĥ_j
         self._jt_f = np.zeros(n)  # J_jᵀ f_d
         self._e_f = np.zeros(6)
@@ -494,7 +524,24 @@ class InverseDynamicsStep(Step):
         n = self._n
         self.outputs = self.state[: 6 * n].reshape(6, n)
         self.terms = self.outputs[1:]
-        self._output_rows = tuple(self.outputs)
+        self._output_views = _Outputs.of(self.outputs)
+
+    def _new_inputs(self) -> np.ndarray:
+        """A work array for the inputs: [q_ref; v_ref; vdot_ref; q; v] (n each), then
+        [f_ref; f] (6 each) with a force task."""
+        return np.zeros(5 * self._n + (12 if self._force_frame is not None else 0))
+
+    def _inputs_of(self, inputs: np.ndarray) -> "_Inputs":
+        """The views on a work array of `_new_inputs` that `_eq12` reads."""
+        n = self._n
+        rows = [inputs[i * n : (i + 1) * n] for i in range(5)]
+        if self._force_frame is not None:
+            rows += [inputs[5 * n : 5 * n + 6], inputs[5 * n + 6 :]]
+        else:  # zero wrenches without a force task
+            rows += [self._zero6, self._zero6]
+        references = inputs[: 2 * n].reshape(2, n)  # [q_ref; v_ref]
+        estimates = inputs[3 * n : 5 * n]  # [q; v]
+        return _Inputs(tuple(rows), references, estimates.reshape(2, n), estimates)
 
     # ----------------------------------------------------------------- accessors
 
@@ -550,16 +597,16 @@ class InverseDynamicsStep(Step):
             ValueError: a base argument without config.floating_base, a non-finite
                 one, or a quaternion whose norm is off by more than 10 %.
         """
-        rows = self._input_rows
-        rows[0][:] = q_ref
-        rows[1][:] = v_ref
-        rows[2][:] = vdot_ref
-        rows[3][:] = q
-        rows[4][:] = v
+        rows = self.input_rows
+        for row, value in zip(rows, (q_ref, v_ref, vdot_ref, q, v)):
+            if value is not row:
+                row[:] = value
         if self._force_frame is not None:
-            rows[5][:] = self._zero6 if f_ref is None else f_ref
-            rows[6][:] = self._zero6 if f is None else f
-        if not math.isfinite(self._inputs.dot(self._ones)):
+            if f_ref is not rows[5]:
+                rows[5][:] = self._zero6 if f_ref is None else f_ref
+            if f is not rows[6]:
+                rows[6][:] = self._zero6 if f is None else f
+        if not math.isfinite(self.inputs.dot(self._ones)):
             # NaN in, NaN out.
             new = math.isfinite(self.tau_desired.sum())
             self.outputs.fill(math.nan)
@@ -569,7 +616,10 @@ class InverseDynamicsStep(Step):
                 base_orientation, base_angular_velocity
             )
         self._eq12(
-            self._values, base_orientation, base_angular_velocity, self._output_rows
+            self._input_views,
+            base_orientation,
+            base_angular_velocity,
+            self._output_views,
         )
         return False
 
@@ -588,21 +638,32 @@ class InverseDynamicsStep(Step):
 
     def _eq12(
         self,
-        inputs: tuple[np.ndarray, ...],
+        inputs: "_Inputs",
         base_orientation: np.ndarray | None,
         base_angular_velocity: np.ndarray | None,
-        out: tuple[np.ndarray, ...],
+        out: "_Outputs",
     ) -> None:
-        """Eq. 12 and its terms into `out`, six arrays of n (τ_d, then the
-        TORQUE_COMPONENTS order), from `inputs` = (q_ref, v_ref, vdot_ref, q, v,
-        f_ref, f), already checked; `out` must not share memory with them."""
-        q_ref, v_ref, vdot_ref, q, v, f_ref, f = inputs
-        tau_desired, feedforward, position, velocity, force_feedback, force_error = out
+        """Eq. 12 and its terms into `out` (views on a (6, n) array: τ_d, then the
+        TORQUE_COMPONENTS order) from `inputs` (views on a work array of
+        `_new_inputs`: q_ref, v_ref, vdot_ref, q, v, f_ref, f), already checked; `out`
+        must not share memory with them."""
+        q_ref, v_ref, vdot_ref, q, v, f_ref, f = inputs.rows
+        tau_desired, feedforward, position, velocity, force_feedback, force_error = (
+            out.rows
+        )
         plant, context, forces = self._model, self._context, self._forces
-        self._set_state(q, v, base_orientation, base_angular_velocity)
+        if self._x_is_qv and base_orientation is None and base_angular_velocity is None:
+            # The model is the controlled joints, in order: x = [q; v] as it is.
+            plant.SetPositionsAndVelocities(context, inputs.state)
+        else:
+            self._set_state(q, v, base_orientation, base_angular_velocity)
         # M_j q̈_d + ĥ_j: one inverse dynamics with the other accelerations at zero
         # (CalcInverseDynamics returns M v̇ + C v − τ_applied), gravity applied.
-        self._vdot_full[self._jv] = vdot_ref
+        if self._all_v:
+            vdot_full = vdot_ref  # the model's v̇ is q̈_d itself
+        else:
+            vdot_full = self._vdot_full
+            vdot_full[self._jv] = vdot_ref
         if self._gravity_only:
             plant.CalcForceElementsContribution(context, forces)
             if self._damped:
@@ -611,19 +672,19 @@ class InverseDynamicsStep(Step):
             forces.mutable_generalized_forces()[:] = plant.CalcGravityGeneralizedForces(
                 context
             )
-        tau_model = plant.CalcInverseDynamics(context, self._vdot_full, forces)
+        tau_model = plant.CalcInverseDynamics(context, vdot_full, forces)
         if not self._all_v:
-            tau_model = np.take(tau_model, self._jv, out=self._tau_model)
-        np.multiply(self._ks, np.subtract(q_ref, q, position), position)
-        np.multiply(self._kd, np.subtract(v_ref, v, velocity), velocity)
+            tau_model = tau_model.take(self._jv, 0, self._tau_model, "clip")
+        # K_s e_q and K_d ė_q: rows 2 and 3 of the outputs at once.
+        np.subtract(inputs.references, inputs.estimates, out.feedback)
+        np.multiply(self._feedback_gains, out.feedback, out.feedback)
         J = self._jacobian()
         if J is None:
             # Eq. 12 without a force task: τ_d = M_j q̈_d + ĥ_j + K_s e_q + K_d ė_q.
             np.add(tau_model, position, tau_desired)
             np.add(tau_desired, velocity, tau_desired)
             feedforward[:] = tau_model
-            force_feedback.fill(0.0)
-            force_error.fill(0.0)
+            out.force.fill(0.0)  # tau_force_feedback, tau_force_error
             return
         e_f = np.subtract(f_ref, f, self._e_f)
         # M_j q̈_d + ĥ_j − J_jᵀ f_d
@@ -737,10 +798,13 @@ class InverseDynamicsStep(Step):
             base_orientation, base_angular_velocity = self._check_base(
                 base_orientation, base_angular_velocity
             )
+        inputs = self._new_inputs()
+        views = self._inputs_of(inputs)
+        for row, value in zip(views.rows, (*args, f_ref, f)):
+            if row is not self._zero6:
+                row[:] = value
         out = np.zeros((6, n))
-        self._eq12(
-            (*args, f_ref, f), base_orientation, base_angular_velocity, tuple(out)
-        )
+        self._eq12(views, base_orientation, base_angular_velocity, _Outputs.of(out))
         return InverseDynamicsTerms(*out)
 
 

@@ -285,6 +285,7 @@ class DeltaQTorqueStep(Step):
         # K_τ τ_ff, K_τ (1 + K_p) τ_Ks, ... (one product per tick into these rows).
         self._scaled = np.zeros((k, n))
         self._scaled_rows = tuple(self._scaled)
+        self._scaled_pv = self._scaled[1:3]  # K_τ (1 + K_p) [τ_Ks; τ_Kd]
         self._scaled_flat = self._scaled.reshape(-1)  # a view
         self._ones_scaled = np.ones(self._scaled.size)
         self._e_tau = np.zeros(n)
@@ -299,6 +300,9 @@ class DeltaQTorqueStep(Step):
         self._zero_outside_torque_control = self.state[
             first : self.rows(DELTA_Q_COMPONENTS[-1]).stop
         ]
+        # feedback_position, feedback_velocity: contiguous, one (2, n) copy.
+        rows = self.rows("feedback_position").start, self.rows("feedback_velocity").stop
+        self._feedback_pv = self.state[rows[0] : rows[1]].reshape(2, self._n)
 
     # ----------------------------------------------------------------- accessors
 
@@ -465,10 +469,9 @@ class DeltaQTorqueStep(Step):
         np.add(q_measured, saturated, self.q_cmd)
         # The components of Δq (DeltaQTorqueController's docstring; Sec. 4.2 eqs.
         # 13-14, Sec. 5.5), from the products in `_scaled` (`step`).
-        feedforward, position, velocity, force, error = self._scaled_rows
+        feedforward, _, _, force, error = self._scaled_rows
         self.feedforward_torque[:] = feedforward
-        self.feedback_position[:] = position  # K6 e_q
-        self.feedback_velocity[:] = velocity  # K7 ė_q
+        self._feedback_pv[:] = self._scaled_pv  # K6 e_q, K7 ė_q
         np.add(force, error, self.feedback_force)  # K9 e_f
         # K_τ K_p (τ_ff − τ̂) − K_τ K_p τ_ef
         acceleration = np.subtract(terms[0], tau_estimated, self.feedback_acceleration)

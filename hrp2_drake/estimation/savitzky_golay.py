@@ -207,8 +207,9 @@ class SavitzkyGolayStep(Step):
         evaluation_time (1): the time (s) they refer to, t − delay().
         input_fault (1): consecutive bad (NaN or infinite) samples, held.
 
-    Per step: one dot product checks the sample, then one (order + 1, N) x (N, k)
-    product per distinct window writes the estimates into the state (weights kept
+    Per step: one dot product checks the sample, then the estimates are written into
+    the state by one (order + 1, N) x (N, k) product with one window, or by at most
+    four calls with several (`_make_weights`), whatever their number (weights kept
     rolled to the ring's position: no refit, no shift, no allocation).
     """
 
@@ -254,25 +255,65 @@ class SavitzkyGolayStep(Step):
         its centre is the span's (a shorter window skips the (N − N_i) / 2 newest and
         oldest samples). The newest sample sits at ring row r, the oldest at r + 1
         (mod N): window column j lives at row (r + 1 + j) % N, hence the roll by
-        r + 1, one matrix per r. Signals sharing a window share one product."""
+        r + 1, one matrix per r (`_rolled`).
+
+        With one window, one (order + 1, N) x (N, k) product per step. With several
+        (`_make_products`), the windows shared by several signals are stacked into
+        one product with every signal, and the windows of a single signal into one
+        batched matrix-vector product: four calls whatever the number of windows.
+        They take the BLAS routines (gemm, gemv) of one product per window, each
+        estimate a sum over the N rows in the same order: the same estimates as
+        one product per window, to the bit (with numpy's OpenBLAS)."""
         N, order = self._window, self._order
-        self._groups = []
-        for n in sorted(set(self._windows)):
+        windows = sorted(set(self._windows))
+        rolled = {}
+        for n in windows:
             padded = np.zeros((order + 1, N))
             start = (N - n) // 2
             padded[:, start : start + n] = savgol_coefficients(
                 n, order, self._period, self._evaluation
             )
-            rolled = np.stack([np.roll(padded, r + 1, axis=1) for r in range(N)])
-            columns = np.array([i for i, w in enumerate(self._windows) if w == n])
-            # (columns, weights, its samples (N, m), its estimates (order + 1, m)). The
-            # samples in Fortran order, the layout of samples[:, columns]: the
-            # product takes the same BLAS path, to the bit.
-            m = len(columns)
-            work = (np.zeros((m, N)).T, np.zeros((order + 1, m)))
-            self._groups.append((columns, rolled, *work))
-        self._single_window = len(self._groups) == 1
-        self._rolled_weights = self._groups[0][1]
+            rolled[n] = np.stack([np.roll(padded, r + 1, axis=1) for r in range(N)])
+        self._single_window = len(windows) == 1
+        if self._single_window:
+            self._rolled = list(rolled[windows[0]])  # a (order + 1, N) view per row
+        else:
+            self._make_products(rolled)
+
+    def _make_products(self, rolled: dict[int, np.ndarray]) -> None:
+        """The several-window products (`_make_weights`). Per ring row r:
+        `_stacked[r]` ((order + 1) G, N), the G windows of several signals, times the
+        whole (N, k) ring; `_vector_weights[r]` (V, order + 1, N), the V windows of
+        one signal, times `_vector_samples` (V, N, 1), those signals' columns. Both
+        products land in `_products`; `_gather` picks each estimate from it."""
+        N, k, d = self._window, self._num_signals, self._order + 1
+        windows = self._windows
+        signals = {n: [i for i, w in enumerate(windows) if w == n] for n in rolled}
+        shared = [n for n in rolled if len(signals[n]) > 1]
+        single = [n for n in rolled if len(signals[n]) == 1]
+        # (order + 1) G k stacked estimates, then (order + 1) V matrix-vector ones.
+        self._products = np.zeros(d * len(shared) * k + d * len(single))
+        self._gather = np.zeros((d, k), dtype=np.intp)
+        self._stacked = self._stacked_out = None
+        if shared:
+            stacked = np.concatenate([rolled[n] for n in shared], axis=1)
+            self._stacked = list(stacked)
+            self._stacked_out = self._products[: d * len(shared) * k].reshape(-1, k)
+            for g, n in enumerate(shared):
+                for i in signals[n]:
+                    self._gather[:, i] = (g * d + np.arange(d)) * k + i
+        self._vector_weights = self._vector_columns = None
+        if single:
+            start = d * len(shared) * k
+            # Batched (order + 1, N) x (N, 1) products: gemv, like a window's own.
+            self._vector_weights = list(np.stack([rolled[n] for n in single], axis=1))
+            self._vector_columns = np.array([signals[n][0] for n in single])
+            self._vector_samples = np.zeros((len(single), N, 1))
+            self._vector_rows = self._vector_samples.reshape(len(single), N)
+            self._vector_out = self._products[start:].reshape(len(single), d, 1)
+            for v, n in enumerate(single):
+                self._gather[:, signals[n][0]] = start + v * d + np.arange(d)
+        self._gather = self._gather.reshape(-1)
 
     def _views_changed(self) -> None:
         k = self._num_signals
@@ -280,6 +321,9 @@ class SavitzkyGolayStep(Step):
         # The estimates, contiguous in the state: one (order + 1, k) product target.
         first, last = self.rows("value"), self.rows(_ESTIMATES[self._order])
         self._fit = self.state[first.start : last.stop].reshape(self._order + 1, k)
+        self._fit_flat = self._fit.reshape(-1)  # a view
+        # The ring transposed (k, N), a view: the columns of single-window signals.
+        self._samples_t = self._samples.T
 
     # ----------------------------------------------------------------- accessors
 
@@ -358,15 +402,24 @@ class SavitzkyGolayStep(Step):
         else:
             samples[row] = u
             # All estimates at once: (order + 1, N) weights times the (N, k) ring;
-            # with several windows, one product per window.
+            # with several windows, the products of `_make_products`.
             if self._single_window:
-                np.dot(self._rolled_weights[row], samples, out=fit)
+                np.dot(self._rolled[row], samples, fit)
             else:
-                for columns, rolled, taken, estimates in self._groups:
-                    samples.take(columns, axis=1, out=taken, mode="clip")
-                    np.matmul(rolled[row], taken, out=estimates)
-                    fit[:, columns] = estimates
+                self._products_step(row, samples)
         self.evaluation_time[0] = t - self._delay
+
+    def _products_step(self, row: int, samples: np.ndarray) -> None:
+        """The estimates with several windows (`_make_products`), ring row `row`
+        holding the newest sample."""
+        if self._stacked is not None:
+            np.matmul(self._stacked[row], samples, self._stacked_out)
+        if self._vector_weights is not None:
+            self._samples_t.take(
+                self._vector_columns, 0, self._vector_rows, mode="clip"
+            )
+            np.matmul(self._vector_weights[row], self._vector_samples, self._vector_out)
+        self._products.take(self._gather, 0, self._fit_flat, mode="clip")
 
     def _hold(self, signal: np.ndarray, num_samples: int) -> np.ndarray:
         """The sample with each bad entry replaced by its previous value (0 before

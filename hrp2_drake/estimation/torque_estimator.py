@@ -496,6 +496,7 @@ class TorqueEstimatorStep(Step):
             self._external = self.state[first.start : last.stop].reshape(k, 6)
         else:
             self._external = np.zeros((0, 6))
+        self._external_rows = list(self._external)  # a view per sensor
 
 
     # ----------------------------------------------------------------- construction
@@ -921,9 +922,12 @@ class TorqueEstimatorStep(Step):
             mean_step /= count
             offsets += mean_step
             calibration[-1] = count
-        total -= self._offsets
-        self._segments(total, self._external)
-        self._dynamics(self._external, self.tau, self.unknown_wrench)
+        if self._nesting:
+            np.subtract(total, self._offsets, total)
+            self._segments(total, self._external)
+        else:  # each sensor's external wrench is its total (step 2), in place
+            np.subtract(total, self._offsets, self._external)
+        self._dynamics(self._external_rows, self.tau, self.unknown_wrench)
 
     def _raise_non_finite(self, q, v, vdot, acc, gyro, alpha, wrenches) -> None:
         """Raises ValueError naming the first input read (in port order) that is not
@@ -981,7 +985,9 @@ class TorqueEstimatorStep(Step):
         total -= off
         result = TorqueEstimate(np.zeros(n), np.zeros(6), np.zeros((k, 6)))
         self._segments(total, result.external_wrenches)
-        self._dynamics(result.external_wrenches, result.tau, result.unknown_wrench)
+        self._dynamics(
+            list(result.external_wrenches), result.tau, result.unknown_wrench
+        )
         return result
 
     def _check_imu(self, acc, gyro, alpha) -> tuple | None:
@@ -1043,10 +1049,10 @@ class TorqueEstimatorStep(Step):
             external[a, 3:] -= force
 
     def _dynamics(
-        self, external: np.ndarray, tau: np.ndarray, unknown: np.ndarray
+        self, external: list[np.ndarray], tau: np.ndarray, unknown: np.ndarray
     ) -> None:
         """Steps 3 and 4: tau (n) and the unknown wrench (6), in place, from the
-        external wrenches (k, 6)."""
+        external wrenches (k rows of 6)."""
         model, context, forces = self._model, self._context, self._forces
         forces.SetZero()
         # Each sensor's external wrench on the body B right below it, at So, in S.
@@ -1060,7 +1066,7 @@ class TorqueEstimatorStep(Step):
         G_root = G[self._root_v]
         if self._unknown_map is not None:
             # u welded to the root: f_u = J_u,rootᵀ⁻¹ G_root, J_u,joints = 0.
-            np.matmul(self._unknown_map, G_root, out=unknown)
+            np.matmul(self._unknown_map, G_root, unknown)
         else:
             frame = self._unknown_frame
             J_u = model.CalcJacobianSpatialVelocity(
