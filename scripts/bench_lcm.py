@@ -64,7 +64,11 @@ def in_process_errors(robot_name: str, duration: float, config_path: Path,
 
     config = yaml_load_typed(schema=LcmControlConfig, filename=str(config_path),
                              defaults=LcmControlConfig())
-    config.station = StationConfig(robot=robot_name, scenario=config.station.scenario)
+    # The robot's scenario as `sim-robot` runs it (hanging; a fixed robot: fixed_base).
+    station = StationConfig(robot=robot_name)
+    if station.description().base == "fixed":
+        station.scenario = "fixed_base"
+    config.station = station
     config.duration = duration
     robot = config.station.description()
     reference = control_reference(config)

@@ -49,6 +49,10 @@ class Transport(Protocol):
 
     def publish(self, channel: str, data: bytes) -> None: ...
 
+    def publish_many(self, messages: list[tuple[str, bytes]]) -> None:
+        """Publishes the messages in order (one send where the transport can)."""
+        ...
+
     def handle(self, timeout: float) -> int:
         """Dispatches the messages that arrive within `timeout` s (returns once at least
         one was handled, or at the timeout): how many. TransportClosed if it is gone."""
@@ -151,10 +155,16 @@ class TcpqTransport:
         self._send(struct.pack(">II", SUBSCRIBE, len(name)) + name)
 
     def publish(self, channel: str, data: bytes) -> None:
+        self._send(self._packet(channel, data))
+
+    def publish_many(self, messages: list[tuple[str, bytes]]) -> None:
+        """One send for all: on this loopback each send costs tens of µs."""
+        self._send(b"".join(self._packet(channel, data) for channel, data in messages))
+
+    @staticmethod
+    def _packet(channel: str, data: bytes) -> bytes:
         name = channel.encode()
-        self._send(
-            struct.pack(">II", PUBLISH, len(name)) + name + struct.pack(">I", len(data)) + data
-        )
+        return struct.pack(">II", PUBLISH, len(name)) + name + struct.pack(">I", len(data)) + data
 
     def _send(self, packet: bytes) -> None:
         if self._closed:
@@ -242,6 +252,10 @@ class DrakeLcmTransport:
 
     def publish(self, channel: str, data: bytes) -> None:
         self._lcm.Publish(channel, data)
+
+    def publish_many(self, messages: list[tuple[str, bytes]]) -> None:
+        for channel, data in messages:
+            self._lcm.Publish(channel, data)
 
     def handle(self, timeout: float) -> int:
         return self._lcm.HandleSubscriptions(int(timeout * 1000))
