@@ -150,6 +150,8 @@ def bench_lcm(robot_name: str, duration: float, out: Path, motor_model: str = ""
         "ticks": summary["ticks"],
         "overruns": summary["overruns"],
         "overruns_per_10k": per_10k,
+        "longest_overrun_run": summary["longest_overrun_run"],
+        "overruns_followed_by_a_fallback": summary["overruns_followed_by_a_fallback"],
         "torque_share": summary["torque_share"],
         "fallbacks": len(summary["events"]),
         "max_error_mrad": max(summary["max_error_mrad"]),

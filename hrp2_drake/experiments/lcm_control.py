@@ -203,7 +203,9 @@ def _markdown(robot, config: LcmControlConfig, summary: dict) -> str:
         "",
         f"{summary['ticks']} ticks; receive → publish latency: p50 {lat['p50']:.0f} µs, "
         f"p99 {lat['p99']:.0f} µs, p99.9 {lat['p99.9']:.0f} µs, max {lat['max']:.0f} µs; "
-        f"{summary['overruns']} ticks over the period; {summary['refused_samples']} "
+        f"{summary['overruns']} ticks over the period (the longest run of consecutive "
+        f"ones: {summary['longest_overrun_run']}; followed by a fallback within 50 ms: "
+        f"{summary['overruns_followed_by_a_fallback']}); {summary['refused_samples']} "
         "samples refused (timestamp not advancing).",
         f"Operating system: CPU {rt.get('cpu')}, scheduler {rt.get('scheduler')}"
         + (f" ({rt['error'].strip('; ')})" if rt.get("error") else "") + "; garbage "

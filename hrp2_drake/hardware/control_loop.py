@@ -387,6 +387,18 @@ class ControlLoop:
                 events.append({"t": t, "what": "supervisor fault",
                                "reason": describe_faults(code)})
         overruns = np.flatnonzero(latency > period_us)
+        # Each overrun alone (a stall), or in runs (a tick that cannot keep up)?
+        longest_run = 0
+        if len(overruns):
+            breaks = np.flatnonzero(np.diff(overruns) > 1)
+            starts = np.concatenate([[0], breaks + 1])
+            ends = np.concatenate([breaks, [len(overruns) - 1]])
+            longest_run = int((ends - starts).max() + 1)
+        fault_times = np.array([t for t, kind, _ in controller.recorded_events()])
+        followed = sum(
+            bool(np.any((fault_times >= self.log_t[i]) & (fault_times < self.log_t[i] + 0.05)))
+            for i in overruns
+        ) if len(fault_times) else 0
         gave_up = False
         if controller.supervisor is not None:
             cfg = controller.parts.supervisor[1]
@@ -401,6 +413,8 @@ class ControlLoop:
             },
             "overruns": int(len(overruns)),
             "overrun_times": [float(self.log_t[i]) for i in overruns[:50]],
+            "longest_overrun_run": longest_run,
+            "overruns_followed_by_a_fallback": int(followed),
             "torque_share": share,
             "events": events,
             "event_counts": {"controller_fallback": controller.event_counts[EVENT_CONTROLLER_FALLBACK],
