@@ -142,8 +142,10 @@ def _estimate(args: argparse.Namespace) -> int:
 
     robot = load_robot_description(args.robot or None)
     out = _output_folder(args.out)
-    summary = run_estimate(robot, Path(args.log), out, args.window)
+    summary = run_estimate(robot, Path(args.log), out, args.window, args.calibrate_offsets)
     print(f"report: {out / 'estimate.md'}; arrays: {out / 'estimate.npz'}")
+    for warning in summary["bias_warnings"]:
+        print(f"  warning: {warning}")
     for joint, rms in summary.get("rms_error_vs_truth", {}).items():
         print(f"  {joint}: RMS error vs truth {rms:.4f} N·m")
     return 0
@@ -519,6 +521,13 @@ def main(argv: list[str] | None = None) -> int:
     est.add_argument("--log", required=True, help="the log (.npz, see README)")
     est.add_argument(
         "--window", type=_number(int, 3), default=81, help="Savitzky-Golay window (odd)"
+    )
+    est.add_argument(
+        "--calibrate-offsets",
+        metavar="START:END",
+        default="",
+        help="estimate the F/T sensors' offsets from this still segment of the log "
+        "(s; nothing touching the sensors) and subtract them",
     )
     est.add_argument("--out", default="out/estimate", help="output folder")
     est.set_defaults(run=_estimate)

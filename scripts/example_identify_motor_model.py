@@ -2,7 +2,7 @@
 collected on its simulated station, composing the library's pieces by hand.
 
     python scripts/example_identify_motor_model.py [--robot iiwa14|hrp2|FILE]
-        [--duration-scale 0.25] [--out motor_model.yaml]
+        [--duration-scale 0.25] [--out out/examples/motor_model.yaml]
 
 Steps: the description's excitation (pushes + increasing sinusoids) run on the station
 (`collect`), non-causal estimates of q̇ and τ̂ (`noncausal_estimates`: centred
@@ -12,6 +12,7 @@ start from `noncausal_estimates`.
 """
 
 import argparse
+from pathlib import Path
 
 from hrp2_drake.description import load_robot_description
 from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
@@ -26,7 +27,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--robot", default="iiwa14", help="robot description")
     parser.add_argument("--duration-scale", type=float, default=0.25)
-    parser.add_argument("--out", default="motor_model.yaml", help="where to write the model")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("out/examples/motor_model.yaml"),
+        help="where to write the model (its folder is created)",
+    )
     args = parser.parse_args()
 
     robot = load_robot_description(args.robot)
@@ -50,6 +56,7 @@ def main() -> None:
         fits[name] = fit_asymmetric(tau, v, delta_q, w=100.0, joint_name=name)
         check_identified(fits[name], tau, v, delta_q, min_explained=None)
         print(f"  {name}: Kτ = {fits[name].k_tau[0]:.3e} rad/(N·m), Kv = {fits[name].k_v[0]:.4f} s")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     MotorModel.from_joints(fits).save(args.out)
     print(f"motor model: {args.out}")
 

@@ -1,7 +1,7 @@
 """Example: torque-control a robot's joints with the paper's controller (Sec. 4) and
 compare its tracking with the robot's own position servo.
 
-    python scripts/example_torque_control.py --motor-model motor_model.yaml
+    python scripts/example_torque_control.py --motor-model out/examples/motor_model.yaml
         [--robot iiwa14|hrp2|FILE] [--k6 1.0] [--duration 3]
 
 `build_torque_control` composes the diagram: the station, the estimation chain, the

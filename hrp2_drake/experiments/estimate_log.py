@@ -9,8 +9,13 @@ N], sensor frame) per F/T sensor. `hrp2-drake simulate` and `identify` write suc
 a real robot's logger writes the same arrays. If the log holds `joint_torque_true`
 (simulation), the report compares τ̂ with it (evaluation only).
 
-Outputs, in the output folder: `estimate.npz` (t, tau, unknown_wrench,
-external_wrench_<sensor>), `estimate.md`, and `estimate_torques.png`.
+F/T sensors carry a bias. `--calibrate-offsets START:END` estimates it from a still
+stretch of the log where nothing touches them (the mean compensated reading, as the
+online chain's start-up calibration does) and subtracts it; without it, the report
+warns when a sensor reads a wrench while the robot is still.
+
+Outputs, in the output folder: `estimate.npz` (t, v, tau, unknown_wrench,
+external_wrench_<sensor>), `estimate.md`, `estimate.json` and `estimate_torques.png`.
 """
 
 import json
@@ -62,19 +67,27 @@ def read_estimation_log(path: str | Path, robot: RobotDescription) -> tuple[dict
 
 
 def estimate_log(
-    robot: RobotDescription, log: dict, names: list[str], window: int = 81
+    robot: RobotDescription,
+    log: dict,
+    names: list[str],
+    window: int = 81,
+    offsets: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """τ̂, the compensated external wrenches and the unknown wrench at every sample,
     from centred (non-causal) Savitzky-Golay estimates of the log's signals (the same
-    path as identification's, `dataset.noncausal_torques`)."""
+    path as identification's, `dataset.noncausal_torques`), and q̂̇ ("v"). `offsets`
+    (k, 6): the F/T sensors' biases (`calibrate_offsets`)."""
     if window % 2 == 0 or window < 3:
         raise ValueError(f"--window must be odd and >= 3, got {window}")
     t = np.asarray(log["t"], float)
     estimator = FloatingBaseTorqueEstimator(robot.make_plant(), robot.estimator_config())
     columns = log_columns(names, robot.joints)
-    estimates, _ = noncausal_torques(log, columns, estimator, window, np.arange(len(t)))
+    estimates, (_, v, _) = noncausal_torques(
+        log, columns, estimator, window, np.arange(len(t)), offsets
+    )
     out = {
         "t": t,
+        "v": v,
         "tau": np.array([e.tau for e in estimates]),
         "unknown_wrench": np.array([e.unknown_wrench for e in estimates]),
     }
@@ -83,22 +96,109 @@ def estimate_log(
     return out
 
 
+def parse_segment(text: str, log: dict, where: str = "--calibrate-offsets") -> slice:
+    """'START:END' (s, log time) as the log's sample indices; a ValueError naming
+    `where` if it is malformed, empty, or outside the log."""
+    try:
+        start, end = (float(x) for x in text.split(":"))
+    except ValueError:
+        raise ValueError(f"{where} '{text}': expected START:END in seconds, e.g. 0.2:0.5") from None
+    t = np.asarray(log["t"], float)
+    if not (np.isfinite(start) and np.isfinite(end) and start < end):
+        raise ValueError(f"{where} '{text}': START must be < END, both finite")
+    if start < t[0] or end > t[-1]:
+        raise ValueError(
+            f"{where} '{text}': outside the log ({t[0]:g} to {t[-1]:g} s)"
+        )
+    rows = np.flatnonzero((t >= start) & (t < end))
+    if len(rows) < 10:
+        raise ValueError(f"{where} '{text}': {len(rows)} samples, fewer than 10")
+    return slice(rows[0], rows[-1] + 1)
+
+
+def calibrate_offsets(robot: RobotDescription, result: dict, segment: slice) -> np.ndarray:
+    """The F/T sensors' biases (k, 6, sensor frame, [N·m; N]): the mean compensated
+    reading over `segment`, a still stretch of the log where nothing touches the
+    sensors (what the online chain's start-up calibration does)."""
+    nested = FloatingBaseTorqueEstimator(
+        robot.make_plant(), robot.estimator_config()
+    ).nested_sensors()
+    if nested:
+        raise ValueError(
+            f"--calibrate-offsets: robot '{robot.name}' has nested F/T sensors "
+            f"{sorted(nested)}: their readings are not separable offline; calibrate "
+            "them online (TorqueControlConfig.offset_calibration_time)"
+        )
+    return np.array([
+        result[f"external_wrench_{name}"][segment].mean(axis=0)
+        for name in robot.sensor_names()
+    ])
+
+
+#: A still robot: every joint's q̂̇ below this (rad/s) for at least STILL_TIME (s).
+STILL_SPEED, STILL_TIME = 0.01, 0.1
+#: A bias shows when a still sensor reads more than this (N, N·m).
+BIAS_FORCE, BIAS_TORQUE = 1.0, 0.1
+
+
+def bias_warnings(robot: RobotDescription, result: dict, margin: int) -> list[str]:
+    """Sensors that read a wrench while the robot is still (its first still stretch
+    after `margin` samples): a bias, or a contact. One sentence each."""
+    t, v = result["t"], result["v"]
+    still = np.max(np.abs(v), axis=1) < STILL_SPEED
+    still[:margin] = still[len(t) - margin :] = False
+    dt = float(np.median(np.diff(t)))
+    needed = max(int(STILL_TIME / dt), 2)
+    run = np.convolve(still, np.ones(needed, int), "valid") == needed
+    if not np.any(run):
+        return []
+    start = int(np.argmax(run))
+    rows = slice(start, start + needed)
+    warnings = []
+    for name in robot.sensor_names():
+        mean = result[f"external_wrench_{name}"][rows].mean(axis=0)
+        torque, force = np.linalg.norm(mean[:3]), np.linalg.norm(mean[3:])
+        if force > BIAS_FORCE or torque > BIAS_TORQUE:
+            warnings.append(
+                f"sensor '{name}' reads {force:.2f} N and {torque:.3f} N·m while the "
+                f"robot is still ({t[rows.start]:.2f} to {t[rows.stop - 1]:.2f} s): a "
+                "bias, or a contact. If nothing touched it then, `--calibrate-offsets "
+                f"{t[rows.start]:.2f}:{t[rows.stop - 1]:.2f}` removes the bias"
+            )
+    return warnings
+
+
 def run_estimate(
-    robot: RobotDescription, log_path: Path, out: Path, window: int = 81
+    robot: RobotDescription,
+    log_path: Path,
+    out: Path,
+    window: int = 81,
+    calibrate: str = "",
 ) -> dict:
-    """The whole `hrp2-drake estimate`: read, estimate, write the arrays, the report
+    """The whole `hrp2-drake estimate`: read, estimate (with the F/T offsets of the
+    still segment `calibrate`, 'START:END', if given), write the arrays, the report
     and the plot; returns the summary."""
     log, names = read_estimation_log(log_path, robot)
+    segment = parse_segment(calibrate, log) if calibrate else None
     result = estimate_log(robot, log, names, window)
+    offsets = None
+    if segment is not None:
+        offsets = calibrate_offsets(robot, result, segment)
+        result = estimate_log(robot, log, names, window, offsets)
     np.savez_compressed(out / "estimate.npz", joint_names=np.array(robot.joints), **result)
+    margin = window  # the ends are fitted, not centred
     summary = {
         "robot": robot.name,
         "log": str(log_path),
         "samples": int(len(result["t"])),
         "window": window,
         "peak_torque": dict(zip(robot.joints, np.abs(result["tau"]).max(axis=0).tolist())),
+        "offsets": None if offsets is None else {
+            name: row.tolist() for name, row in zip(robot.sensor_names(), offsets)
+        },
+        "calibration_segment": calibrate or None,
+        "bias_warnings": [] if offsets is not None else bias_warnings(robot, result, margin),
     }
-    margin = window  # the ends are fitted, not centred
     inside = slice(margin, len(result["t"]) - margin)
     if "joint_torque_true" in log:
         columns = [names.index(j) for j in robot.joints]
@@ -154,4 +254,10 @@ def _markdown(robot: RobotDescription, summary: dict) -> str:
         if "rms_error_vs_truth" in summary:
             row += f" {summary['rms_error_vs_truth'][joint]:.3f} |"
         lines.append(row)
+    if summary["offsets"]:
+        lines += ["", f"F/T offsets calibrated over {summary['calibration_segment']} s "
+                  "(mean compensated reading, [τ (N·m); f (N)], sensor frame), subtracted:", ""]
+        lines += [f"- {name}: {np.round(row, 3).tolist()}" for name, row in summary["offsets"].items()]
+    for warning in summary["bias_warnings"]:
+        lines += ["", f"**Warning:** {warning}."]
     return "\n".join(lines) + "\n"

@@ -129,11 +129,13 @@ def noncausal_torques(
     estimator: FloatingBaseTorqueEstimator,
     window: int,
     samples: np.ndarray,
+    offsets: np.ndarray | None = None,
 ) -> tuple[list, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The estimator's `TorqueEstimate` at each of `samples` (indices), from centred
     Savitzky-Golay estimates of the log's encoders (`columns`: the estimator's joints,
     order 2), IMU (if the estimator has one) and F/T sensors (order 1); also
-    (q, q̇, q̈) at those samples.
+    (q, q̇, q̈) at those samples. `offsets` (k, 6): the F/T sensors' biases, subtracted
+    from their compensated readings (as the online calibration does).
 
     Raises:
         ValueError: the log is shorter than the window, or lacks a signal the
@@ -162,6 +164,7 @@ def noncausal_torques(
             q[k], dq[k], ddq[k],
             *((acc[k], gyro[k], alpha[k]) if imu else (None, None, None)),
             wrenches[k],
+            offsets,
         )
         for k in samples
     ]
