@@ -94,6 +94,11 @@ def parse_yaml(text: str, source: str) -> Any:
         ) from None
     except yaml.YAMLError as error:
         raise ValueError(f"{source}: invalid YAML: {one_line(error)}") from None
+    except RecursionError:  # PyYAML composes nested nodes recursively
+        raise ValueError(
+            f"{source}: invalid YAML: lists or mappings nested more deeply than the "
+            "YAML reader can follow"
+        ) from None
 
 
 def _optional(schema: Any) -> Any:
@@ -104,8 +109,9 @@ def _optional(schema: Any) -> Any:
     return schema
 
 
-def _unknown_keys(schema: Any, data: Any, path: str) -> list[str]:
-    """Paths of keys in `data` that `schema` (a dataclass type) does not have."""
+def _unknown_keys(schema: Any, data: Any, path: str) -> list[tuple[str, list[str]]]:
+    """(path, the keys known there) of each key in `data` that `schema` (a dataclass
+    type) does not have."""
     schema = _optional(schema)
     origin, args = typing.get_origin(schema), typing.get_args(schema)
     if origin is list and isinstance(data, list):
@@ -125,7 +131,7 @@ def _unknown_keys(schema: Any, data: Any, path: str) -> list[str]:
         if key == "_tag":
             continue
         if key not in hints:
-            out.append(where)
+            out.append((where, sorted(hints)))
         else:
             out += _unknown_keys(hints[key], value, where)
     return out
@@ -272,6 +278,7 @@ def load_config(
     filename: str | Path | None = None,
     data: str | None = None,
     defaults: T | None = None,
+    validate: bool = True,
 ) -> T:
     """Reads a YAML file (or string) into the dataclass `schema` and validates it.
 
@@ -280,6 +287,9 @@ def load_config(
         filename: a YAML file; or
         data: YAML text.
         defaults: values for the keys the YAML leaves out (default: `schema()`).
+        validate: run `validate_config` (False: the caller changes the config first,
+            e.g. from command-line options, then calls `validate_config` with
+            `filename` as the source).
 
     Raises:
         FileNotFoundError, IsADirectoryError: `filename` is not a file.
@@ -301,9 +311,11 @@ def load_config(
         )
     unknown = _unknown_keys(schema, raw or {}, "")
     if unknown:
+        where, known = unknown[0]
+        there = f" in {where.rpartition('.')[0]}" if "." in where else ""
         raise ValueError(
-            f"{source}: unknown key(s) {unknown} for {schema.__name__} "
-            f"(known: {sorted(typing.get_type_hints(schema))})"
+            f"{source}: unknown key(s) {[path for path, _ in unknown]} for "
+            f"{schema.__name__} (known{there}: {known})"
         )
     wrong = _type_errors(schema, raw or {}, "")
     if wrong:
@@ -320,5 +332,6 @@ def load_config(
             yaml.YAMLError,
         ) as error:
             raise ValueError(f"{source}: {one_line(error)}") from error
-    validate_config(config, source if filename is not None else None)
+    if validate:
+        validate_config(config, source if filename is not None else None)
     return config

@@ -503,6 +503,40 @@ class RobotDescription:
                 )
 
 
+@functools.lru_cache(maxsize=8)
+def _joint_limits(source_file: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    robot = load_robot_description(source_file)
+    plant = robot.make_plant()
+    joints = [plant.GetJointByName(name) for name in robot.joints]
+    lower = np.array([j.position_lower_limits()[0] for j in joints])
+    upper = np.array([j.position_upper_limits()[0] for j in joints])
+    speed = np.array([j.velocity_upper_limits()[0] for j in joints])
+    return lower, upper, speed
+
+
+def joint_limits(robot: RobotDescription) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(lower, upper) position limits (rad) and the velocity limits (rad/s) of the
+    robot's joints, in its joint order, as the MultibodyPlant reads them from the
+    model (inf where the model gives none)."""
+    return _joint_limits(robot.source_file)
+
+
+def check_joint_positions(
+    q: np.ndarray, where: str, robot: RobotDescription, tolerance: float = 1e-9
+) -> None:
+    """Raises ValueError naming `where`, the first offending joint and row unless every
+    row of q (m, n) lies within the robot's joint position limits."""
+    lower, upper, _ = joint_limits(robot)
+    outside = (q < lower - tolerance) | (q > upper + tolerance)
+    if np.any(outside):
+        row, j = np.argwhere(outside)[0]
+        raise ValueError(
+            f"{where}: {robot.joints[j]} = {q[row, j]:.6g} rad (row {row}) is "
+            f"outside its position limits [{lower[j]:.6g}, {upper[j]:.6g}] rad "
+            f"({np.count_nonzero(np.any(outside, axis=1))} rows out of limits)"
+        )
+
+
 def _perturbed_urdf(text: str, error: float, seed: int) -> str:
     """URDF text with every link's mass and COM scaled by its own random factor in
     [1 - error, 1 + error] (rotational inertias scale with the mass)."""

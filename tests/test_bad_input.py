@@ -1,6 +1,10 @@
 """Bad input to `hrp2-drake`: one line naming the culprit, exit code 2, no traceback,
 and nothing simulated (the simulations are replaced by a failure in these tests)."""
 
+import io
+import zipfile
+from functools import partial
+
 import numpy as np
 import pytest
 
@@ -15,12 +19,23 @@ def simulated(*args, **kwargs):
 
 @pytest.fixture(autouse=True)
 def no_simulation(monkeypatch):
-    """Any simulation fails the test: bad input must be refused before one starts."""
-    from hrp2_drake.experiments import identification, motion, simulate
+    """Any simulation (or estimation, or robot connection) fails the test: bad input
+    must be refused before one starts."""
+    from hrp2_drake.experiments import (
+        estimate_log,
+        faults,
+        identification,
+        lcm_control,
+        motion,
+        simulate,
+    )
 
     monkeypatch.setattr(simulate, "run_simulate", simulated)
     monkeypatch.setattr(motion, "run_motion", simulated)
     monkeypatch.setattr(identification, "collect_log", simulated)
+    monkeypatch.setattr(estimate_log, "estimate_log", simulated)
+    monkeypatch.setattr(lcm_control, "run_control", simulated)
+    monkeypatch.setattr(faults, "run_fault_campaign", simulated)
 
 
 def refused(capsys, argv: list[str], *culprits: str, last_line: bool = False) -> str:
@@ -302,6 +317,143 @@ def test_motor_model_file_errors(tmp_path, capsys, text, culprit):
     path.write_text(text)
     argv = ["experiment", "motion", "--motor-model", str(path), "--end", "3.0"]
     refused(capsys, argv + ["--out", str(tmp_path / "out")], "model.yaml", culprit)
+
+
+# ------------------------------------------ every case of issue 20, one row each
+def log_with_entry(path):
+    """A log with an extra entry that is not an array."""
+    identification_log(path)
+    with zipfile.ZipFile(path, "a") as archive:
+        archive.writestr("notes.txt", "recorded on the robot")
+
+
+def log_with_forged_header(path):
+    """A log whose q_measured header declares 10^12 rows (of 30 joints)."""
+    identification_log(path)
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        header, dict(descr="<f8", fortran_order=False, shape=(10**12, 30))
+    )
+    with zipfile.ZipFile(path) as archive:
+        entries = {name: archive.read(name) for name in archive.namelist()}
+    entries["q_measured.npy"] = header.getvalue() + np.zeros(30).tobytes()
+    with zipfile.ZipFile(path, "w") as archive:
+        for name, data in entries.items():
+            archive.writestr(name, data)
+
+
+def write_case_files(folder, files: dict) -> None:
+    """Each file of a case: text (with {d} the folder), bytes, a function of the path,
+    or None for a folder."""
+    for name, content in files.items():
+        path = folder / name
+        if content is None:
+            path.mkdir()
+        elif isinstance(content, str):
+            path.write_text(content.replace("{d}", str(folder)))
+        elif isinstance(content, bytes):
+            path.write_bytes(content)
+        else:
+            content(path)
+
+
+MOTOR = {"motor.yaml": motor_model_text()}
+CONTROL = ["control", "--lcm", "memq://", "--motor-model", "{d}/motor.yaml"]
+CONTROL += ["--config", "{d}/control.yaml"]
+FAULTS = ["experiment", "faults", "--motor-model", "{d}/motor.yaml"]
+FAULTS += ["--config", "{d}/faults.yaml"]
+SIMULATE = ["simulate", "--config", "{d}/simulate.yaml"]
+ESTIMATE = ["estimate", "--log", "{d}/log.npz"]
+IDENTIFY = ["identify", "--log", "{d}/log.npz"]
+SERVO = "station: {servo_file: {d}/servo.yaml}\n"
+NAN_POSE = "station: {initial_positions: [" + ", ".join([".nan"] * 30) + "]}\n"
+NARROW = np.zeros((3000, 5))  # 5 columns
+SERVO_K7 = "joints:\n  RLEG_JOINT0: {k7: 1}\n"
+DEEP = "duration: " + "[" * 20000 + "]" * 20000 + "\n"
+
+
+def case(name, argv, files, *culprits):
+    return pytest.param(argv, files, culprits, id=name)
+
+
+@pytest.mark.parametrize(
+    "argv, files, culprits",
+    [
+        # Silently accepted.
+        case("sensor period below the plant step", SIMULATE,
+             {"simulate.yaml": "station: {sensors: {period: 1.0e-7}}\n"},
+             "simulate.yaml", "sensors.period", "time step"),
+        case("log period longer than the run", SIMULATE,
+             {"simulate.yaml": "duration: 0.2\nlog_period: 10.0\n"},
+             "simulate.yaml", "log_period", "longer than the run"),
+        case("control: kf NaN", CONTROL,
+             MOTOR | {"control.yaml": "torque_control: {kf: [.nan]}\n"},
+             "control.yaml", "kf[0]", "finite"),
+        case("control: safety.period 1 ns", CONTROL,
+             MOTOR | {"control.yaml": "torque_control: {safety: {period: 1.0e-9}}\n"},
+             "control.yaml", "safety.period", "control period"),
+        case("control: safety.period 50 ms", CONTROL,
+             MOTOR | {"control.yaml": "torque_control: {safety: {period: 0.05}}\n"},
+             "control.yaml", "safety.period", "control period"),
+        case("control: negative frequency", CONTROL,
+             MOTOR | {"control.yaml": "frequency: -0.4\n"},
+             "control.yaml", "frequency", "> 0"),
+        case("control: frequency 2 kHz", CONTROL,
+             MOTOR | {"control.yaml": "frequency: 2000\n"},
+             "control.yaml", "frequency", "velocity limit"),
+        case("control: amplitude 50 rad", CONTROL,
+             MOTOR | {"control.yaml": "amplitude: 50\n"},
+             "control.yaml", "amplitude", "position limits"),
+        case("control: negative settle", CONTROL,
+             MOTOR | {"control.yaml": "settle: -2\n"}, "control.yaml", "settle"),
+        case("faults: negative k6", FAULTS, MOTOR | {"faults.yaml": "k6: -1\n"},
+             "faults.yaml", "k6"),
+        case("faults: fault before the run", FAULTS,
+             MOTOR | {"faults.yaml": "motion_fault_time: -5\n"},
+             "faults.yaml", "motion_fault_time"),
+        # Unclear or internal.
+        case("20 000-deep YAML", SIMULATE, {"simulate.yaml": DEEP},
+             "simulate.yaml", "nested"),
+        case("servo file: unknown field", SIMULATE,
+             {"simulate.yaml": SERVO, "servo.yaml": SERVO_K7},
+             "servo_file", "servo.yaml", "k7"),
+        case("servo file: empty", SIMULATE, {"simulate.yaml": SERVO, "servo.yaml": ""},
+             "servo_file", "servo.yaml", "joints"),
+        case("log header of 10^12 rows", ESTIMATE, {"log.npz": log_with_forged_header},
+             "log.npz", "'q_measured'", "header"),
+        case("log with an entry that is no array", IDENTIFY,
+             {"log.npz": log_with_entry}, "log.npz", "notes.txt", "not an array"),
+        case("joint_torque_true of the wrong width", ESTIMATE,
+             {"log.npz": partial(identification_log, joint_torque_true=NARROW)},
+             "log.npz", "'joint_torque_true'", "(3000, 30)"),
+        case("unknown contact approximation", SIMULATE,
+             {"simulate.yaml": "station: {contact_approximation: magic}\n"},
+             "simulate.yaml", "contact_approximation", "'magic'", "'sap'"),
+        case("faults: no worker", FAULTS, MOTOR | {"faults.yaml": "jobs: 0\n"},
+             "faults.yaml", "jobs"),
+        case("F/T array of 5 columns", ESTIMATE,
+             {"log.npz": partial(identification_log, wrench_right_foot=NARROW)},
+             "log.npz", "'wrench_right_foot'", "(3000, 6)"),
+        case("log that is no zip", ESTIMATE, {"log.npz": b"PK\x03\x04" + b"\x00" * 40},
+             "log.npz", "zip"),
+        case("negative extra_command_latency", SIMULATE,
+             {"simulate.yaml": "station: {extra_command_latency: -1}\n"},
+             "simulate.yaml", "extra_command_latency"),
+        case("NaN initial_positions", SIMULATE, {"simulate.yaml": NAN_POSE},
+             "simulate.yaml", "initial_positions", "RLEG_JOINT0"),
+        case("missing servo file of the iiwa", SIMULATE + ["--robot", "iiwa14"],
+             {"simulate.yaml": SERVO}, "servo.yaml", "not found", "'iiwa14'"),
+        case("a folder as the log", ESTIMATE, {"log.npz": None},
+             "log.npz", "is a folder"),
+        case("a text file as the log", ESTIMATE, {"log.npz": "t q\n0 1\n"},
+             "log.npz", "text file", "expected an .npz"),
+    ],
+)
+def test_every_bad_input_is_one_line(tmp_path, capsys, argv, files, culprits):
+    write_case_files(tmp_path, files)
+    argv = [a.replace("{d}", str(tmp_path)) for a in argv]
+    line = refused(capsys, argv + ["--out", str(tmp_path / "out")], *culprits)
+    assert "internal error" not in line and "pickled" not in line
 
 
 # -------------------------------------------------------------- --debug, and bugs

@@ -46,6 +46,7 @@ from hrp2_drake.control.torque_controller import (
     inverse_dynamics_gains_for_k6,
     make_joint_selector,
 )
+from hrp2_drake.config import check_finite
 from hrp2_drake.description import RobotDescription
 from hrp2_drake.estimation.torque_estimator import add_estimator
 from hrp2_drake.identification.motor_model import MotorModel
@@ -180,7 +181,18 @@ class TorqueControlConfig:
         windows: per-joint (and per-sensor: an F/T sensor's name, or "imu") windows
             instead of `window` (TorqueEstimatorConfig.windows): every window centred
             on the longest one's centre, which sets the estimates' delay; each of
-            its parity.
+            its parity. Short windows do not work with the paper's K_p = 2: the
+            tuned windows (4-16 samples) alone on the paper's K6 = 0.1 controller
+            track up to 9x worse than its 80-sample window (the motion experiment's
+            "per-signal windows only" row: ankle roll 7x the average and 9x the
+            maximum error, hips and ankle pitch 3-4x). A short window smooths τ̂
+            less, and the torque loop with K_p = 2 oscillates: Δq at 43 Hz on the
+            ankle roll and 200 Hz on the hip yaw, all of its power above 5 Hz
+            against a quarter of it with the 80-sample window (3.0-3.5 s of the
+            climbing motion). K_p ≤ 1 keeps the short-window loop stable: with K_p
+            = 1 the same windows track as well as the paper's controller (3-4 s of
+            the climbing motion, maximum errors 15/38/53/31/15 mrad against
+            16/40/53/39/17), which is why `hrp2-drake tune` bounds K_p to 1.
         evaluation: where the filters evaluate their fit: "centre" (the paper's, delay
             (N − 1)/2 samples) or "end" (causal, no delay, noisier).
         position_source: "encoders" (e_q from the raw encoders, no delay; default) or
@@ -213,6 +225,23 @@ class TorqueControlConfig:
             with the motor model, the joint inertia at the start pose and the Δq
             already sent. The disturbance observer keeps the delayed, aligned
             estimates. (f̂ of a force task is not predicted.)
+            It does not work on HRP-2 with K_p near 1 or above: on the calibrated
+            servo the controller falls back to position control within 0.1 s of
+            the start of torque control (measured on the climbing motion: 13 ms
+            after it with the paper's K6 = 0.1, K_p = 2; 0.19 s with K_p = 1; 0.08 s
+            with the tuned controller, K_p 0.13-0.98), so the motion experiment's
+            "predictor only" and "all (tuned) + predictor" rows are position
+            control's. The reason, measured: it inverts the motor model, so each
+            change ΔΔq of the Δq sent within its horizon adds ΔΔq/K_τ to the
+            predicted τ̂ at once (K_τ = 0.03-0.24 mrad/(N·m) on the leg: 4-33 N·m
+            per mrad of Δq), without the estimator's smoothing; the Δq controller answers two ticks later with
+            −K_p ΔΔq, so the loop through the predictor oscillates with a 4 ms period
+            and grows by √K_p per tick for K_p > 1 (the hip pitch's Δq reached ±98 mrad
+            within 12 ms) until |τ̂| passes tau_limit (500 N·m, fallback reason
+            "|tau_estimated| exceeds tau_limit"). The servo does not produce those
+            torques (the estimator's τ̂ stays smooth), and it is not the cause: the
+            `ideal` servo, without latency or voltage limit, falls back after the
+            same 11-13 ms. With K_p = 0.5 the 0.6 s measured ran without a fallback.
         force_frame: frame of the force task ("" = motion control only); its wrench
             is the estimate of the F/T sensor whose body it is (or the
             description's force_sensor).
@@ -291,6 +320,38 @@ class TorqueControlConfig:
                 f"TorqueControlConfig.disturbance_observer: {self.disturbance_observer} "
                 "must be a bandwidth >= 0 (rad/s; 0 = none)"
             )
+        self._validate_gains()
+
+    def _validate_gains(self) -> None:
+        """K6, K_f and the Δq limit: finite, and of a sign a controller can use."""
+        check_finite(self.k6, "TorqueControlConfig.k6", 0.0, strict=False)
+        check_finite(self.delta_q_limit, "TorqueControlConfig.delta_q_limit", 0.0)
+        check_finite(self.start_time, "TorqueControlConfig.start_time", 0.0, False)
+        if isinstance(self.kf, (int, float)):  # a plain number from Python code
+            self.kf = [float(self.kf)]
+        if len(self.kf) not in (1, 6):
+            raise ValueError(
+                f"TorqueControlConfig.kf: {len(self.kf)} values, expected one or 6 "
+                "(one per axis of the wrench)"
+            )
+        for k, gain in enumerate(self.kf):
+            check_finite(gain, f"TorqueControlConfig.kf[{k}]", 0.0, strict=False)
+
+
+def check_control_period(
+    config: TorqueControlConfig, station: StationConfig, where: str = ""
+) -> None:
+    """Raises ValueError unless `config.safety.period` is the control period: the
+    station's sensor period (s), one supervisor update per controller tick. `where`:
+    the path of `config` in the user's file (e.g. "LcmControlConfig.torque_control")."""
+    period, safety = station.sensors_config().period, config.safety.period
+    if not math.isclose(safety, period, rel_tol=1e-9):
+        raise ValueError(
+            f"{where or 'TorqueControlConfig'}.safety.period: {safety:g} s, but the "
+            "control period (the robot's sensor period, station.sensors.period) is "
+            f"{period:g} s: the supervisor runs once per control tick; leave "
+            f"safety.period out or set it to {period:g}"
+        )
 
 
 def _joint_inertia(plant, all_joints: list[str], joints: list[str], q: np.ndarray) -> np.ndarray:
@@ -429,6 +490,7 @@ def build_torque_control(
     `fused`: the whole chain as one `FusedTorqueController` (the real-time path; the
     same signals to 1e-12) instead of its separate systems."""
     robot = station_config.description()
+    check_control_period(config, station_config)
     parts = torque_chain_parts(robot, reference, motor_model, config)
     builder = DiagramBuilder()
     station = _add_station(builder, station_config, meshcat, station)

@@ -25,20 +25,19 @@ import numpy as np
 
 from hrp2_drake.description import RobotDescription
 from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
-from hrp2_drake.identification.dataset import check_log, log_columns, noncausal_torques
+from hrp2_drake.identification.dataset import (
+    check_log,
+    log_columns,
+    noncausal_torques,
+    read_npz,
+)
 
 
 def read_estimation_log(path: str | Path, robot: RobotDescription) -> tuple[dict, list[str]]:
     """The log's arrays and its joint names (the description's if it names none); one
     ValueError naming the file and the array for anything the estimator cannot use."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"log '{path}' not found")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            log = {key: data[key] for key in data.files}
-    except (OSError, ValueError, EOFError) as error:
-        raise ValueError(f"{path}: not a readable .npz log: {error}") from None
+    log = read_npz(path, "log")
     names = [str(n) for n in log.pop("joint_names", robot.joints)]
     needed = ["t", "q_measured"]
     if robot.has_imu():
@@ -229,7 +228,7 @@ def _plot(robot: RobotDescription, result: dict, log: dict, names: list[str], pa
                     color="0.6", lw=2, label="true (simulation)")
         ax.plot(result["t"], result["tau"][:, j], lw=1, label="τ̂")
         ax.set_ylabel(f"{labels.get(joint, joint)}\n(N·m)")
-    axes[0].legend(loc="upper right", fontsize=8)
+    axes[0].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0, fontsize=8)  # beside the data
     axes[-1].set_xlabel("t (s)")
     fig.suptitle(f"{robot.name}: estimated joint torques")
     fig.tight_layout()

@@ -18,6 +18,6 @@ def true_motor_model(
     robot's controlled joints). `servo_file` as `StationConfig.servo_file` (empty:
     the description's servo_file)."""
     joints = list(joint_names or robot.controlled_joints)
-    params = load_servo_params(robot.servo_path(servo_file))
+    params = load_servo_params(servo_file, robot.source_file)
     eff = effective_motor_parameters(params, joints, direction)
     return MotorModel(joints, eff["k_tau"], eff["k_v"], eff["k_c"])

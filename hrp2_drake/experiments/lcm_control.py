@@ -23,9 +23,10 @@ from hrp2_drake.control.safety import SafetyConfig
 from hrp2_drake.experiments.builders import (
     JointReference,
     TorqueControlConfig,
+    check_control_period,
     torque_chain_parts,
 )
-from hrp2_drake.experiments.track import TrackConfig, sinusoid_reference
+from hrp2_drake.experiments.track import TrackConfig, check_sinusoid, sinusoid_reference
 from hrp2_drake.hardware.control_loop import (
     BridgeConfig,
     ControlLoop,
@@ -80,10 +81,20 @@ class LcmControlConfig:
     channels: LcmChannels = field(default_factory=LcmChannels)
 
     def validate(self) -> None:
+        """Raises ValueError naming the bad field: the robot, the controller (its gains,
+        its supervisor's period against the robot's), the motion against the joints'
+        limits, the loop's timing."""
         self.station.validate()
         self.torque_control.validate()
+        where = "LcmControlConfig"
+        check_control_period(
+            self.torque_control, self.station, f"{where}.torque_control"
+        )
         if self.motion not in ("sinusoid", "hold"):
-            raise ValueError(f"LcmControlConfig.motion: '{self.motion}', expected sinusoid or hold")
+            raise ValueError(
+                f"{where}.motion: '{self.motion}', expected sinusoid or hold"
+            )
+        check_sinusoid(self.station, self.amplitude, self.frequency, self.settle, where)
         self.loop_config().validate()
 
     def loop_config(self) -> LoopConfig:
@@ -162,7 +173,7 @@ def _latency_histogram(latency_us: np.ndarray, period: float, path: Path) -> Non
     ax.axvline(period * 1e6, color="tab:red", linestyle="--", label=f"period {period * 1e6:.0f} µs")
     ax.set_xlabel("receive → publish latency (µs)")
     ax.set_ylabel("ticks")
-    ax.legend(loc="upper right")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)  # beside the histogram
     ax.set_title("Controller ticks over LCM")
     fig.tight_layout()
     fig.savefig(path, dpi=110)

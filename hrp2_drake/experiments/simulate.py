@@ -5,7 +5,6 @@ Also the building blocks the other experiments reuse: a joint-reference source f
 sampled waypoints, loggers for named ports, and a simulation loop with progress.
 """
 
-import functools
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,7 +16,7 @@ from pydrake.systems.primitives import ConstantVectorSource, TrajectorySource, V
 from pydrake.trajectories import PiecewisePolynomial
 
 from hrp2_drake.config import check_finite
-from hrp2_drake.description import RobotDescription
+from hrp2_drake.description import RobotDescription, check_joint_positions, joint_limits
 from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
 from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
 
@@ -53,34 +52,27 @@ class SimulateConfig:
             ("log_period", 0.0, True),
         ):
             check_finite(getattr(self, name), f"SimulateConfig.{name}", low, strict)
-        robot = self.station.description()
-        if self.station.initial_positions:
-            check_joint_limits(
-                np.array(self.station.initial_positions, float)[np.newaxis],
-                "SimulateConfig.station.initial_positions",
-                robot,
+        if self.log_period > self.duration:
+            raise ValueError(
+                f"SimulateConfig.log_period: {self.log_period:g} s is longer than the "
+                f"run (duration {self.duration:g} s): the log would hold one sample"
             )
+        if self.log_period < self.station.time_step * (1 - 1e-9):
+            raise ValueError(
+                f"SimulateConfig.log_period: {self.log_period:g} s is shorter than the "
+                f"plant's time step ({self.station.time_step:g} s): samples would "
+                "repeat"
+            )
+        robot = self.station.description()
         if self.trajectory:
             load_joint_trajectory(self.trajectory, robot)
-
-
-@functools.lru_cache(maxsize=8)
-def _limits(source_file: str) -> tuple[np.ndarray, np.ndarray]:
-    from hrp2_drake.description import load_robot_description
-
-    robot = load_robot_description(source_file)
-    plant = robot.make_plant()
-    joints = [plant.GetJointByName(name) for name in robot.joints]
-    lower = np.array([j.position_lower_limits()[0] for j in joints])
-    upper = np.array([j.position_upper_limits()[0] for j in joints])
-    return lower, upper
 
 
 def joint_position_limits(robot: RobotDescription | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(lower, upper) position limits (rad) of the robot's joints (default: HRP-2), in
     its joint order, as the MultibodyPlant reads them from the model."""
-    robot = robot or StationConfig().description()
-    return _limits(robot.source_file)
+    lower, upper, _ = joint_limits(robot or StationConfig().description())
+    return lower, upper
 
 
 def check_joint_limits(
@@ -88,16 +80,7 @@ def check_joint_limits(
 ) -> None:
     """Raises ValueError naming `where`, the first offending joint and row unless every
     row of q (m, n) lies within the robot's joint position limits (default: HRP-2)."""
-    robot = robot or StationConfig().description()
-    lower, upper = joint_position_limits(robot)
-    outside = (q < lower - tolerance) | (q > upper + tolerance)
-    if np.any(outside):
-        row, j = np.argwhere(outside)[0]
-        raise ValueError(
-            f"{where}: {robot.joints[j]} = {q[row, j]:.6g} rad (row {row}) is "
-            f"outside its position limits [{lower[j]:.6g}, {upper[j]:.6g}] rad "
-            f"({np.count_nonzero(np.any(outside, axis=1))} rows out of limits)"
-        )
+    check_joint_positions(q, where, robot or StationConfig().description(), tolerance)
 
 
 def joint_reference(

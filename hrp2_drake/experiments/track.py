@@ -30,12 +30,14 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Context, DiagramBuilder, LeafSystem
 from pydrake.trajectories import PiecewisePolynomial
 
-from hrp2_drake.description import RobotDescription
+from hrp2_drake.config import check_finite
+from hrp2_drake.description import RobotDescription, joint_limits
 from hrp2_drake.experiments.builders import (
     JointReference,
     TorqueControlConfig,
     build_position_control,
     build_torque_control,
+    check_control_period,
 )
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import is_strictly_below, joint_indexing, tree_parents
@@ -91,17 +93,62 @@ class TrackConfig:
     def validate(self) -> None:
         self.station.validate()
         self.torque_control.validate()
-        if not self.k6 or any(not k > 0 for k in self.k6):
-            raise ValueError(f"TrackConfig.k6: positive gains, got {self.k6}")
+        where = "TrackConfig"
+        if not self.k6:
+            raise ValueError(f"{where}.k6: positive gains, got {self.k6}")
+        for k, gain in enumerate(self.k6):
+            check_finite(gain, f"{where}.k6[{k}]", 0.0)
         for name in ("duration", "settle", "frequency", "force_k6", "ramp",
                      "force_frequency", "force_duration"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"TrackConfig.{name} must be > 0, got {getattr(self, name)}")
+            check_finite(getattr(self, name), f"{where}.{name}", 0.0)
+        for name in ("kf", "press", "force_amplitude", "gap"):
+            check_finite(getattr(self, name), f"{where}.{name}", 0.0, strict=False)
+        check_sinusoid(self.station, self.amplitude, self.frequency, self.settle, where)
+        control = f"{where}.torque_control"
+        check_control_period(self.torque_control, self.station, control)
         robot = self.station.description()
         if self.force_task and robot.base == "fixed" and not (robot.tool_frame and robot.force_sensor):
             raise ValueError(
                 f"TrackConfig.force_task: robot '{robot.name}' has no tool_frame and "
                 "force_sensor in its description"
+            )
+
+
+def check_sinusoid(
+    station: StationConfig,
+    amplitude: float,
+    frequency: float,
+    settle: float,
+    where: str,
+) -> None:
+    """Raises ValueError naming `where`.<field> unless the sinusoids of
+    `sinusoid_reference` fit the robot: settle >= 0 s, frequency > 0 Hz, and every
+    controlled joint within its position limits (home ± amplitude, with its phase) and
+    its velocity limit (amplitude · 2π · frequency, rad/s)."""
+    check_finite(settle, f"{where}.settle", 0.0, strict=False)
+    check_finite(frequency, f"{where}.frequency", 0.0)
+    check_finite(amplitude, f"{where}.amplitude", 0.0, strict=False)
+    robot = station.description()
+    q0 = initial_joint_positions(station)
+    lower, upper, speed = joint_limits(robot)
+    controlled = robot.controlled_joints
+    for k, name in enumerate(controlled):
+        j = robot.joints.index(name)
+        # q = q0 + A (sin(ωs + φ) - sin φ): q0 - A (1 + sin φ) to q0 + A (1 - sin φ).
+        shift = np.sin(2 * np.pi * k / len(controlled))
+        low, high = q0[j] - amplitude * (1 + shift), q0[j] + amplitude * (1 - shift)
+        if low < lower[j] - 1e-9 or high > upper[j] + 1e-9:
+            raise ValueError(
+                f"{where}.amplitude: {amplitude:g} rad moves {name} from {low:.3g} to "
+                f"{high:.3g} rad, beyond its position limits [{lower[j]:.3g}, "
+                f"{upper[j]:.3g}] rad"
+            )
+        peak = amplitude * 2 * np.pi * frequency
+        if peak > speed[j]:
+            raise ValueError(
+                f"{where}.frequency: {frequency:g} Hz at amplitude {amplitude:g} rad "
+                f"moves {name} at up to {peak:.3g} rad/s, beyond its velocity limit "
+                f"{speed[j]:.3g} rad/s"
             )
 
 
@@ -369,7 +416,7 @@ def _plot_force(t, desired, achieved, estimate, config: TrackConfig, path: Path)
     ax.axvline(config.settle, color="0.7", lw=0.8)
     ax.set_xlabel("t (s)")
     ax.set_ylabel("force on the table (N)")
-    ax.legend(loc="lower right", fontsize=8)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0, fontsize=8)  # beside the data
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -404,7 +451,7 @@ def _plot_tracking(robot: RobotDescription, runs: dict, path: Path) -> None:
         ax.bar(x + k * width, np.array(errors["maximum"]) * 1e3, width, label=name)
     ax.set_xticks(x + 0.4 - width / 2, labels)
     ax.set_ylabel("maximum tracking error (mrad)")
-    ax.legend(fontsize=8)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0, fontsize=8)  # beside the bars
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

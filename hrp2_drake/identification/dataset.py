@@ -6,7 +6,13 @@ readings, and Δq all refer to the same instant. τ̂ then comes from the same
 floating-base estimator as online (`FloatingBaseTorqueEstimator.estimate`).
 """
 
+import codecs
+import math
+import os
+import zipfile
+import zlib
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -46,9 +52,140 @@ class IdentificationData:
         return self.tau[mask, j], self.dq[mask, j], self.delta_q[mask, j]
 
 
+#: Arrays of a log with a known number of columns (and what they are).
+_LOG_WIDTHS = {
+    "imu_linear_acceleration": (3, "axes"),
+    "imu_angular_velocity": (3, "axes"),
+}
+
 #: Largest relative deviation of a log's sampling period from its median: the
 #: Savitzky-Golay filters assume a constant period.
 MAX_PERIOD_JITTER = 0.1
+
+
+def read_npz(
+    path: str | Path, what: str = "log", scalars: bool = False
+) -> dict[str, np.ndarray]:
+    """The arrays of an .npz archive (numpy.savez), read without pickle. Every problem
+    of the file is one error naming it and, where one is to blame, the array: not
+    found, a folder, not an .npz archive (text, a lone .npy, a truncated zip), an
+    entry that is not an array, an array whose header declares more data than the
+    archive holds (or than this machine's memory), Python objects, damaged data.
+
+    Args:
+        what: what the file is, for the messages ("log", "identification log").
+        scalars: accept 0-d arrays (a log's arrays hold one value per sample: no).
+
+    Raises:
+        FileNotFoundError, IsADirectoryError, ValueError.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{what} '{path}' is a folder, expected an .npz file")
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} '{path}' not found")
+    if not zipfile.is_zipfile(path):
+        raise ValueError(
+            f"{path}: {_not_npz(path)}, expected an .npz archive (numpy.savez)"
+        )
+    arrays = {}
+    damaged = (OSError, EOFError, zipfile.BadZipFile, zlib.error)
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for info in archive.infolist():
+                _check_npz_entry(path, archive, info)
+        with np.load(path, allow_pickle=False) as data:
+            for key in data.files:
+                try:
+                    arrays[key] = data[key]
+                except (ValueError, *damaged) as error:
+                    raise ValueError(f"{path}: array '{key}' cannot be read: {error}")
+    except damaged as error:
+        raise ValueError(f"{path}: a damaged .npz archive: {error}") from None
+    single = [key for key, value in arrays.items() if value.ndim == 0]
+    if single and not scalars:
+        raise ValueError(
+            f"{path}: array '{single[0]}' is a scalar, expected one value per sample"
+        )
+    return arrays
+
+
+def _not_npz(path: Path) -> str:
+    """What a file that is no zip archive seems to be."""
+    with open(path, "rb") as file:
+        head = file.read(512)
+    if head.startswith(b"\x93NUMPY"):
+        return "a single .npy array"
+    if head.startswith(b"PK"):
+        return "a truncated or damaged zip file"
+    if not head:
+        return "an empty file"
+    try:
+        codecs.getincrementaldecoder("utf-8")().decode(head)  # may end mid-character
+    except UnicodeDecodeError:
+        return "not a zip file"
+    return "not a zip file" if b"\0" in head else "a text file"
+
+
+def _check_npz_entry(
+    path: Path, archive: zipfile.ZipFile, info: zipfile.ZipInfo
+) -> None:
+    """Raises ValueError unless the archive entry is a .npy array of numbers whose
+    header agrees with the bytes the archive holds (and fits in memory)."""
+    name = info.filename
+    if info.is_dir() or not name.endswith(".npy"):
+        raise ValueError(
+            f"{path}: entry '{name}' is not an array (.npy): an .npz log holds "
+            "arrays only"
+        )
+    key = name[: -len(".npy")]
+    with archive.open(info) as entry:
+        try:
+            version = np.lib.format.read_magic(entry)
+            read_header = (
+                np.lib.format.read_array_header_1_0
+                if version == (1, 0)
+                else np.lib.format.read_array_header_2_0
+            )
+            shape, _, dtype = read_header(entry)
+            header_bytes = entry.tell()
+        except ValueError as error:
+            raise ValueError(
+                f"{path}: array '{key}' is not a .npy array: {error}"
+            ) from None
+    if dtype.hasobject:
+        raise ValueError(
+            f"{path}: array '{key}' holds Python objects (pickled data), expected "
+            "numbers"
+        )
+    declared = math.prod(shape) * dtype.itemsize
+    held = info.file_size - header_bytes
+    if declared != held:
+        raise ValueError(
+            f"{path}: array '{key}': its header declares shape {shape} "
+            f"({_bytes(declared)}), the archive holds {_bytes(held)} of it"
+        )
+    memory = _physical_memory()
+    if memory and declared > memory:
+        raise ValueError(
+            f"{path}: array '{key}' of shape {shape} needs {_bytes(declared)}, more "
+            f"than this machine's memory ({_bytes(memory)})"
+        )
+
+
+def _bytes(n: int) -> str:
+    for unit in ("bytes", "kB", "MB", "GB", "TB"):
+        if abs(n) < 1000 or unit == "TB":
+            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.3g} {unit}"
+        n /= 1000
+    return f"{n} TB"
+
+
+def _physical_memory() -> int | None:
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        return None
 
 
 def check_log(
@@ -61,8 +198,9 @@ def check_log(
 
     Every array must hold finite numbers (not text or objects); "t" must be 1-D and
     strictly increasing on a constant grid (each period within MAX_PERIOD_JITTER of
-    the median); "q_cmd" and "q_measured" must be (samples, joints); `joints` must
-    all be among `log_joint_names`.
+    the median); "q_cmd", "q_measured" and "joint_torque_true" must be (samples,
+    joints), the IMU's arrays (samples, 3), each "wrench_<sensor>" (samples, 6);
+    `joints` must all be among `log_joint_names`.
     """
     for key, value in log.items():
         array = np.asarray(value)
@@ -99,11 +237,17 @@ def check_log(
             f"({np.count_nonzero(jitter)} steps off by more than "
             f"{MAX_PERIOD_JITTER:.0%})"
         )
-    for key in ("q_cmd", "q_measured"):
-        if key in log and np.shape(log[key]) != (t.size, len(log_joint_names)):
+    n = len(log_joint_names)
+    for key, value in log.items():
+        width, what = _LOG_WIDTHS.get(key, (None, ""))
+        if key in ("q_cmd", "q_measured", "joint_torque_true"):
+            width, what = n, "joints"
+        elif key.startswith("wrench_"):
+            width, what = 6, "[torque; force]"
+        if width is not None and np.shape(value) != (t.size, width):
             raise ValueError(
-                f"{source}: array '{key}' has shape {np.shape(log[key])}, expected "
-                f"({t.size}, {len(log_joint_names)}) (samples, joints)"
+                f"{source}: array '{key}' has shape {np.shape(value)}, expected "
+                f"({t.size}, {width}) (samples, {what})"
             )
     missing = [j for j in joints if j not in log_joint_names]
     if missing:

@@ -359,10 +359,13 @@ def load_log(path: str | Path) -> tuple[dict[str, np.ndarray], list[str]]:
     """Reads a log written by `save_log` or by a real robot in the same format.
 
     Raises:
-        ValueError: a required signal is missing, or sizes disagree.
+        FileNotFoundError, IsADirectoryError: `path` is not a file.
+        ValueError: not a readable .npz archive (`dataset.read_npz`), a required
+            signal is missing, or sizes disagree.
     """
-    with np.load(path, allow_pickle=False) as data:
-        log = {key: data[key] for key in data.files}
+    from hrp2_drake.identification.dataset import read_npz
+
+    log = read_npz(path, "identification log")
     required = ("t", "joint_names", *IDENTIFICATION_LOG_SIGNALS)
     missing = [key for key in required if key not in log]
     if missing:

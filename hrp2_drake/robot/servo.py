@@ -41,16 +41,18 @@ discrete closed loop; tests/test_servo.py checks it and a closed-loop run.
 """
 
 
+import copy
+import functools
 import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-from pydrake.common.yaml import yaml_load_typed
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.framework import BasicVector, Context, DiscreteValues
 
+from hrp2_drake.config import load_config
 from hrp2_drake.multibody import JointIndexing, joint_indexing
 from hrp2_drake.simulation import WitnessFreeLeafSystem
 
@@ -137,9 +139,16 @@ class ServoParams:
         keys = ServoJointParams.__dataclass_fields__.keys()
         return {k: np.array([getattr(self.joints[n], k) for n in names]) for k in keys}
 
-    def validate(self, source: str = "servo parameters") -> None:
+    def validate(self, source: str = "") -> None:
+        """Raises ValueError naming the joint and parameter (after `source`: a file)."""
+        prefix = f"{source}: " if source else ""
+        if not self.joints:
+            raise ValueError(
+                f"{prefix}joints: none, expected the servo parameters of every joint "
+                "(an empty file?)"
+            )
         for name, joint in self.joints.items():
-            joint.validate(f"{source}: joints.{name}")
+            joint.validate(f"{prefix}joints.{name}")
 
 
 def servo_file_path(path: str | Path | None = None, robot: str | Path | None = None) -> Path:
@@ -155,20 +164,32 @@ def load_servo_params(
     path: str | Path | None = None, robot: str | Path | None = None
 ) -> ServoParams:
     """Loads a servo data file: a path, a preset name ("ideal", "calibrated"), or None
-    (the robot's calibrated servo); see `servo_file_path`."""
+    (the robot's calibrated servo); see `servo_file_path`.
+
+    Raises:
+        FileNotFoundError, IsADirectoryError: no such file (naming the robot's presets).
+        ValueError: naming the file and the key: a YAML error, an unknown or mistyped
+            key, no joints, a parameter out of its range.
+    """
     from hrp2_drake.description import load_robot_description
 
-    filename = servo_file_path(path, robot)
+    description = load_robot_description(robot, check=False)
+    filename = description.servo_path(str(path or ""))
     if not filename.is_file():
-        description = load_robot_description(robot, check=False)
         presets = ["calibrated", *description.servo_presets]
-        raise FileNotFoundError(
-            f"servo file {filename} not found (give a path or one of {presets} of robot "
+        what = "is a folder" if filename.is_dir() else "not found"
+        error = IsADirectoryError if filename.is_dir() else FileNotFoundError
+        raise error(
+            f"servo file {filename} {what} (give a path or one of {presets} of robot "
             f"'{description.name}')"
         )
-    params = yaml_load_typed(schema=ServoParams, filename=str(filename))
-    params.validate(str(filename))
-    return params
+    return copy.deepcopy(_read_servo_file(str(filename), filename.stat().st_mtime_ns))
+
+
+@functools.lru_cache(maxsize=16)
+def _read_servo_file(filename: str, mtime_ns: int) -> ServoParams:
+    """The servo file, read once per version (`mtime_ns`): callers get copies."""
+    return load_config(ServoParams, filename=filename)
 
 
 def save_servo_params(params: ServoParams, path: str | Path, header: Sequence[str]) -> None:

@@ -64,7 +64,12 @@ from pydrake.multibody.tree import LinearBushingRollPitchYaw, LinearSpringDamper
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.sensors import Accelerometer, Gyroscope
 
-from hrp2_drake.description import RobotDescription, load_robot_description
+from hrp2_drake.config import check_finite
+from hrp2_drake.description import (
+    RobotDescription,
+    check_joint_positions,
+    load_robot_description,
+)
 from hrp2_drake.multibody import JointIndexing, joint_indexing, tree_joints
 from hrp2_drake.robot.faults import FaultInjector, SensorFault
 from hrp2_drake.robot.sensors import SensorSampler, SensorsConfig
@@ -76,6 +81,10 @@ from hrp2_drake.robot.servo import (
 )
 
 SCENARIOS = ("fixed_base", "hanging", "standing", "standing_on_block")
+#: Drake's discrete contact approximations (MultibodyPlantConfig).
+CONTACT_APPROXIMATIONS = ("tamsi", "sap", "similar", "lagged")
+#: The smallest plant time step accepted (s): 1% of HRP-2's 1 ms.
+MIN_TIME_STEP = 1e-5
 GRAVITY = 9.81
 
 
@@ -181,8 +190,46 @@ class StationConfig:
         """The sensors: `sensors`, or the description's."""
         return self.sensors if self.sensors is not None else self.description().sensors
 
-    def validate(self) -> None:
+    def servo_params(self) -> ServoParams:
+        """The servo parameters of `servo_file`, checked to cover every joint."""
         robot = self.description()
+        try:
+            params = load_servo_params(self.servo_file, robot.source_file)
+        except (OSError, ValueError) as error:
+            raise ValueError(f"StationConfig.servo_file: {error}") from None
+        missing = [name for name in robot.joints if name not in params.joints]
+        if missing:
+            shown = ", ".join(missing[:3]) + (", ..." if len(missing) > 3 else "")
+            raise ValueError(
+                f"StationConfig.servo_file: {robot.servo_path(self.servo_file)}: "
+                f"joints: no servo parameters for {len(missing)} joints of robot "
+                f"'{robot.name}' ({shown})"
+            )
+        return params
+
+    def validate(self) -> None:
+        """Raises ValueError naming the bad field: each value against its meaning (the
+        robot's scenarios, joints and limits, the plant's step, the servo file)."""
+        robot = self.description()
+        self._validate_scenario(robot)
+        self._validate_timing()
+        self._validate_joints(robot)
+        for k, fault in enumerate(self.faults):
+            fault.validate(f"StationConfig.faults[{k}]", sensor_sizes(robot))
+        self.sensors_config().validate(len(robot.joints), robot.sensor_names())
+        self.servo_params()
+        for k, box in enumerate(self.obstacles):
+            if len(box.size) != 3 or not all(v > 0 for v in box.size):
+                raise ValueError(
+                    f"StationConfig.obstacles[{k}].size: 3 lengths > 0, got {box.size}"
+                )
+            if len(box.pose) != 6 or not np.all(np.isfinite(box.pose)):
+                raise ValueError(
+                    f"StationConfig.obstacles[{k}].pose: [x, y, z, roll, pitch, yaw], "
+                    f"got {box.pose}"
+                )
+
+    def _validate_scenario(self, robot: RobotDescription) -> None:
         if self.scenario not in SCENARIOS:
             raise ValueError(
                 f"StationConfig.scenario: unknown scenario '{self.scenario}', "
@@ -203,38 +250,55 @@ class StationConfig:
                 f"StationConfig.scenario: '{self.scenario}' needs the robot description's "
                 f"scenarios section, which robot '{robot.name}' does not fill"
             )
+        if len(self.hanging.sway_damping) != 2:
+            raise ValueError(
+                "StationConfig.hanging.sway_damping: expected [rotational, "
+                f"translational], got {self.hanging.sway_damping}"
+            )
+        if self.contact_approximation not in CONTACT_APPROXIMATIONS:
+            raise ValueError(
+                "StationConfig.contact_approximation: unknown discrete contact "
+                f"approximation '{self.contact_approximation}', expected one of "
+                f"{CONTACT_APPROXIMATIONS} (Drake's MultibodyPlantConfig)"
+            )
+
+    def _validate_timing(self) -> None:
+        """The plant's step, the sensors' period and the command latency, in s."""
+        check_finite(self.time_step, "StationConfig.time_step", MIN_TIME_STEP, False)
+        period = self.sensors_config().period
+        check_finite(period, "StationConfig.sensors.period", 0.0)
+        if period < self.time_step * (1 - 1e-9):
+            raise ValueError(
+                f"StationConfig.sensors.period: {period:g} s is shorter than the "
+                f"plant's time step ({self.time_step:g} s): the sensors cannot sample "
+                "faster than the plant steps"
+            )
+        latency = self.extra_command_latency
+        check_finite(latency, "StationConfig.extra_command_latency", 0.0, False)
+
+    def _validate_joints(self, robot: RobotDescription) -> None:
         n = len(robot.joints)
         if len(self.initial_positions) not in (0, n):
             raise ValueError(
                 f"StationConfig.initial_positions: {len(self.initial_positions)} values, "
                 f"expected {n} (or none for the home pose)"
             )
+        if self.initial_positions:
+            q = np.array(self.initial_positions, float)
+            if not np.all(np.isfinite(q)):
+                j = int(np.flatnonzero(~np.isfinite(q))[0])
+                raise ValueError(
+                    f"StationConfig.initial_positions[{j}]: {robot.joints[j]} = "
+                    f"{q[j]}, expected a finite angle (rad)"
+                )
+            where = "StationConfig.initial_positions"
+            check_joint_positions(q[np.newaxis], where, robot)
         unknown = sorted(set(self.servo_off) - set(SERVO_MECHANISMS))
         if unknown:
             raise ValueError(
                 f"StationConfig.servo_off: unknown servo mechanism(s) {unknown}, "
                 f"expected some of {list(SERVO_MECHANISMS)}"
             )
-        for k, fault in enumerate(self.faults):
-            fault.validate(f"StationConfig.faults[{k}]", sensor_sizes(robot))
-        if len(self.hanging.sway_damping) != 2:
-            raise ValueError(
-                "StationConfig.hanging.sway_damping: expected [rotational, translational]"
-                f", got {self.hanging.sway_damping}"
-            )
-        if not self.time_step > 0:
-            raise ValueError(f"StationConfig.time_step must be > 0, got {self.time_step}")
-        self.sensors_config().validate(n, robot.sensor_names())
-        for k, box in enumerate(self.obstacles):
-            if len(box.size) != 3 or not all(v > 0 for v in box.size):
-                raise ValueError(
-                    f"StationConfig.obstacles[{k}].size: 3 lengths > 0, got {box.size}"
-                )
-            if len(box.pose) != 6 or not np.all(np.isfinite(box.pose)):
-                raise ValueError(
-                    f"StationConfig.obstacles[{k}].pose: [x, y, z, roll, pitch, yaw], "
-                    f"got {box.pose}"
-                )
 
 
 def initial_joint_positions(config: StationConfig) -> np.ndarray:
@@ -395,7 +459,7 @@ def make_station(config: StationConfig, meshcat: Meshcat | None = None) -> Diagr
     plant, scene_graph = add_scenario_plant(builder, config, robot, q0)
     indexing = joint_indexing(plant, robot.joints)
 
-    servo_params = load_servo_params(robot.servo_path(config.servo_file))
+    servo_params = config.servo_params()
     servo = builder.AddNamedSystem(
         "servo",
         Hrp2ServoEmulation(
