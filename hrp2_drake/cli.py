@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from hrp2_drake import console
 from hrp2_drake.config import load_config, one_line, validate_config
 from hrp2_drake.robot.station import SCENARIOS
 
@@ -46,8 +47,16 @@ USER_ERRORS = (
 
 
 def _config(schema, args: argparse.Namespace):
-    """The --config YAML file read into `schema` (and validated), or its defaults."""
-    return load_config(schema, filename=args.config) if args.config else schema()
+    """The --config YAML file read into `schema`, or its defaults: not validated yet,
+    the command's options change it first (`_validate`)."""
+    if not args.config:
+        return schema()
+    return load_config(schema, filename=args.config, validate=False)
+
+
+def _validate(config, args: argparse.Namespace) -> None:
+    """`validate_config` once the options are applied; errors name the --config file."""
+    validate_config(config, args.config or None)
 
 
 def _output_folder(path: str) -> Path:
@@ -93,7 +102,7 @@ def _simulate(args: argparse.Namespace) -> int:
         config.station.sensors = dataclasses.replace(
             config.station.sensors_config(), seed=args.seed
         )
-    validate_config(config)
+    _validate(config, args)
     out = _output_folder(args.out)
 
     result = run_simulate(config, html=args.html)
@@ -120,7 +129,7 @@ def _identify(args: argparse.Namespace) -> int:
     _use_robot(config.station, args)
     if args.duration_scale is not None:
         config.duration_scale = args.duration_scale
-    validate_config(config)
+    _validate(config, args)
     out = _output_folder(args.out)
     summary = run_identify(config, out, Path(args.log) if args.log else None)
     print(f"report: {out / 'identification.md'}; model: {out / 'motor_model.yaml'}")
@@ -161,7 +170,7 @@ def _track(args: argparse.Namespace) -> int:
             config.station.scenario = "hanging"
     if args.quick:
         config.duration, config.force_duration, config.k6 = 2.5, 2.0, config.k6[:1]
-    validate_config(config)
+    _validate(config, args)
     out = _output_folder(args.out)
     from hrp2_drake.experiments.identification import IdentifyConfig
 
@@ -184,7 +193,7 @@ def _control(args: argparse.Namespace) -> int:
         config.duration = args.duration
     if args.motion:
         config.motion = args.motion
-    validate_config(config)
+    _validate(config, args)
     out = _output_folder(args.out)
     summary = run_control(config, _motor_model(args, out, config), args.lcm, out)
     lat = summary["latency_us"]
@@ -247,7 +256,7 @@ def _motor_model(args: argparse.Namespace, out: Path, config=None, identify=None
         return loaded
     from hrp2_drake.experiments.identification import IdentifyConfig, run_identify
 
-    print("no --motor-model: identifying one first (hrp2-drake identify)", file=sys.stderr)
+    console.say("no --motor-model: identifying one first (hrp2-drake identify)")
     run_identify(identify or IdentifyConfig(), out / "identify")
     return MotorModel.load(out / "identify" / "motor_model.yaml")
 
@@ -263,7 +272,7 @@ def _experiment(args: argparse.Namespace) -> int:
         config = _config(MotionConfig, args)
         if args.end is not None:
             config.end = args.end
-        validate_config(config)
+        _validate(config, args)
         out = _output_folder(args.out)
         model = _motor_model(args, out, config)
         summary = write_motion_report(run_motion(config, model), out)
@@ -281,7 +290,7 @@ def _experiment(args: argparse.Namespace) -> int:
         )
 
         config = _config(EstimationConfig, args)
-        validate_config(config)
+        _validate(config, args)
         out = _output_folder(args.out)
         summary = run_estimation_experiment(config, out)
         print(f"report: {out / 'estimation.md'}")
@@ -297,7 +306,7 @@ def _experiment(args: argparse.Namespace) -> int:
         from hrp2_drake.experiments.force import ForceConfig, run_force_experiment
 
         config = _config(ForceConfig, args)
-        validate_config(config)
+        _validate(config, args)
         out = _output_folder(args.out)
         summary = run_force_experiment(config, _motor_model(args, out, config), out)
         m = summary["baseline"]["metrics"]["ft_reading"]
@@ -311,7 +320,7 @@ def _experiment(args: argparse.Namespace) -> int:
         from hrp2_drake.identification.motor_model import MotorModel
 
         config = _config(StabilityConfig, args)
-        validate_config(config)
+        _validate(config, args)
         out = _output_folder(args.out)
         asymmetric = _motor_model(args, out, config)
         path = Path(args.motor_model or out / "identify" / "motor_model.yaml")
@@ -329,7 +338,7 @@ def _experiment(args: argparse.Namespace) -> int:
         from hrp2_drake.experiments.faults import FaultCampaignConfig, run_fault_campaign
 
         config = _config(FaultCampaignConfig, args)
-        validate_config(config)
+        _validate(config, args)
         out = _output_folder(args.out)
         _motor_model(args, out)  # checks --motor-model, or identifies one first
         path = Path(args.motor_model or out / "identify" / "motor_model.yaml")
@@ -338,7 +347,11 @@ def _experiment(args: argparse.Namespace) -> int:
         for key, value in summary["verdict"].items():
             if isinstance(value, bool):
                 print(f"  {key.replace('_', ' ')}: {'yes' if value else 'no'}")
-        return 0
+        raised = summary["verdict"]["raised"]
+        if raised:  # the campaign could not judge these: not a pass
+            runs = ", ".join(raised)
+            print(f"faults: {len(raised)} runs raised: {runs}", file=sys.stderr)
+        return 1 if raised else 0
     raise ValueError(f"unknown experiment '{args.name}'")
 
 
@@ -350,7 +363,7 @@ def _calibrate(args: argparse.Namespace) -> int:
         config.max_iterations = args.max_iterations
     if args.jobs is not None:
         config.jobs = args.jobs
-    validate_config(config)
+    _validate(config, args)
     summary = calibrate(config, _output_folder(args.out), install=args.install)
     for label, ratio_max, ratio_avg in zip(
         ("hip roll", "hip pitch", "knee", "ankle pitch", "ankle roll"),
@@ -367,8 +380,9 @@ def _reproduce(args: argparse.Namespace) -> int:
     config = ReproduceConfig(jobs=args.jobs, quick=args.quick, replays=not args.no_replays)
     validate_config(config)
     results = run_reproduce(config, _output_folder(args.out))
-    for claim, verdict, evidence in verdicts(results):
-        print(f"  [{verdict}] {claim}: {evidence}")
+    for row in verdicts(results):  # the paper's claims, then this project's goals
+        kind = "paper" if row.kind == "paper" else "project goal"
+        print(f"  [{row.verdict}] {kind}: {row.claim} ({row.threshold}): {row.evidence}")
     failed = [s for s, r in results.items() if isinstance(r, dict) and r.get("ok") is False]
     return 1 if failed else 0
 
@@ -383,7 +397,7 @@ def _tune(args: argparse.Namespace) -> int:
     for name in ("trials", "workers", "scheduler"):
         if getattr(args, name) is not None:
             setattr(config, name, getattr(args, name))
-    validate_config(config)
+    _validate(config, args)
     check_environment(config)  # optuna, dask, the scheduler: before identifying
     out = _output_folder(args.out)
     identify = IdentifyConfig(
@@ -678,11 +692,13 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exit:  # --help (0), or a bad option (2), already printed
         code = exit.code
         return code if isinstance(code, int) else 0 if code is None else 2
-    if getattr(args, "debug", False):
-        return args.run(args)
     prog = f"hrp2-drake {args.command}"
+    if getattr(args, "debug", False):
+        with console.session(prog):
+            return args.run(args)
     try:
-        return args.run(args)
+        with console.session(prog):  # one log format; repeated warnings counted
+            return args.run(args)
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130

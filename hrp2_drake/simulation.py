@@ -13,6 +13,8 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem, OutputPort
 from pydrake.systems.primitives import Multiplexer, VectorLogSink
 
+from hrp2_drake import console
+
 
 class WitnessFreeLeafSystem(LeafSystem):
     """A LeafSystem without witness functions (every system of this project), whose
@@ -95,8 +97,8 @@ def run_with_progress(
     on_step: Callable[[float], None] | None = None,
 ) -> float:
     """Advances `simulator` by `duration`, printing progress (one updating line on a
-    terminal, a line per step otherwise); returns the real-time factor (simulated
-    seconds per wall-clock second)."""
+    terminal, a line per step otherwise, in the console's format: `console.line`);
+    returns the real-time factor (simulated seconds per wall-clock second)."""
     stream = stream or sys.stderr
     t0 = simulator.get_context().get_time()
     wall0 = time.perf_counter()
@@ -106,13 +108,13 @@ def run_with_progress(
     for k in range(1, steps + 1):
         simulator.AdvanceTo(t0 + duration * k / steps)
         wall = time.perf_counter() - wall0
-        print(
-            f"{prefix}{label}: {duration * k / steps:6.2f}/{duration:.2f} s "
-            f"simulated, {duration * k / steps / max(wall, 1e-9):5.2f}x real time",
-            end="" if tty and k < steps else "\n",
-            file=stream,
-            flush=True,
+        message = (
+            f"{label}: {duration * k / steps:6.2f}/{duration:.2f} s simulated, "
+            f"{duration * k / steps / max(wall, 1e-9):5.2f}x real time"
         )
+        # One write per line: whole lines when processes share the stream.
+        stream.write(prefix + console.line(message) + ("" if tty and k < steps else "\n"))
+        stream.flush()
         if on_step is not None:
             on_step(simulator.get_context().get_time())
     return duration / max(time.perf_counter() - wall0, 1e-9)

@@ -36,7 +36,7 @@ def _extract(markdown: str, heading: str) -> list[str]:
 
 def results_section(run: Path) -> str:
     from hrp2_drake.experiments.motion import paper_sample_count
-    from hrp2_drake.experiments.reproduce import verdicts
+    from hrp2_drake.experiments.reproduce import verdict_tables
 
     results = json.loads((run / "results.json").read_text())
     lines = [
@@ -45,10 +45,8 @@ def results_section(run: Path) -> str:
         f"From one run of `hrp2-drake reproduce` ({results['total_seconds'] / 60:.1f} min on a",
         "2-core machine). Its `report.md` has every table and figure.",
         "",
-        "| claim of the paper | verdict | evidence |",
-        "| --- | --- | --- |",
     ]
-    lines += [f"| {c} | {v} | {e} |" for c, v, e in verdicts(results)]
+    lines += verdict_tables(results)
     identification = (run / "identify" / "identification.md").read_text()
     motion = (run / "motion" / "motion.md").read_text()
     lines += ["", "**Table 1** (10³ Kτ, 10³ Kv; identified beside the emulator and the paper)", ""]

@@ -68,6 +68,20 @@ def test_fault_config_errors_name_the_field():
         StationConfig(faults=[SensorFault("imu_angular_velocity", indices=[3])]).validate()
 
 
+def test_a_campaign_whose_runs_raised_has_no_yes_verdict():
+    """Runs that raised are not judged: every check names them, none holds."""
+    from hrp2_drake.experiments.faults import _verdict
+
+    raised = "ValueError: k6 must be > 0"
+    results = [
+        {"experiment": "motion", "case": case, "raised": raised}
+        for case in ("no fault", "position control", "F/T NaN burst (5 ms)")
+    ]
+    verdict = _verdict(results)
+    assert not any(value for value in verdict.values() if isinstance(value, bool))
+    assert "motion: F/T NaN burst (5 ms) (raised, not judged)" in verdict["detected_late"]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "fault",

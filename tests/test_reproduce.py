@@ -9,11 +9,25 @@ from hrp2_drake.cli import main
 
 
 @pytest.mark.slow
-def test_reproduce_quick_writes_the_report_and_numbers(tmp_path, capsys):
+def test_reproduce_quick_writes_the_report_and_numbers(tmp_path, capfd):
     out = tmp_path / "reproduce"
     code = main(["reproduce", "--quick", "--no-replays", "--out", str(out)])
-    assert code == 0, capsys.readouterr().err[-3000:]
+    err = capfd.readouterr().err  # the worker processes' lines too
+    assert code == 0, err[-3000:]
     results = json.loads((out / "results.json").read_text())
+    # The console: progress and a few dozen lines besides, every line in one format;
+    # each repeated warning printed once, its count at the end of the run.
+    lines = err.splitlines()
+    assert all(line.startswith("hrp2-drake reproduce: ") for line in lines), [
+        line for line in lines if not line.startswith("hrp2-drake reproduce: ")
+    ][:5]
+    besides = [line for line in lines if " s simulated, " not in line]
+    assert len(besides) <= 60, besides
+    for step in ("estimation", "motion", "force", "stability", "faults"):
+        for key, count in results[step]["repeated_warnings"].items():
+            level, template = key.split(": ", 1)
+            summary = f"hrp2-drake reproduce: {step}: {level}: repeated {count} more times: "
+            assert summary + template in lines, (step, key)
     for step in ("identify", "estimation", "motion", "force", "stability", "components"):
         assert results[step].get("ok", True), (step, results[step].get("error"))
     assert len(results["identify"]["joints"]) == 6
@@ -25,6 +39,8 @@ def test_reproduce_quick_writes_the_report_and_numbers(tmp_path, capsys):
     assert "baseline" in results["force"]
     report = (out / "report.md").read_text()
     assert "## Verdicts" in report and report.count("| holds") >= 5
+    assert "**The paper's claims, as written**" in report
+    assert "**This project's goals**" in report
     for figure in (
         "identify/figure1_torque_vs_delta_q.png",
         "identify/figure3_friction_fit.png",
@@ -37,3 +53,51 @@ def test_reproduce_quick_writes_the_report_and_numbers(tmp_path, capsys):
         assert (out / figure).stat().st_size > 10000, figure
         assert f"({figure})" in report, figure
     assert results["total_seconds"] > 0
+
+
+def test_paper_claims_and_project_goals_are_judged_apart_by_one_rule():
+    """The report's two kinds of row, each with the threshold it is judged by, and
+    one rule for partial results: one missed cell of ten reads the same for a claim
+    of the paper and for a goal of this project."""
+    from hrp2_drake.experiments.motion import judge_claim, partial_verdict
+    from hrp2_drake.experiments.reproduce import verdict_tables, verdicts
+
+    position = [1.0] * 5
+    torque = [2.0, 2.0, 1.1, 2.0, 2.0]  # K6 = 0.1: the knee's average is higher
+    claim = judge_claim(0.1, torque, [2.0, 2.0, 0.9, 2.0, 2.0], position, position)
+    results = {
+        "identify": {"joints": {
+            f"RLEG_JOINT{j}": {
+                "relative_error_asymmetric": {"k_tau": 0.18 if j == 0 else 0.02, "k_v": 0.01},
+                "validation": {"asymmetric": {"overestimation": 0.01},
+                               "least_squares": {"overestimation": 0.08}},
+            } for j in range(6)
+        }},
+        "motion": {"ok": True, "verdicts": {"torque control K6=0.1": {"claim": claim}},
+                   "improved": {
+                       "goal": {"claim": "K6 = 0.1 torque control at least as accurate as "
+                                "position control"},
+                       "rows": [{"label": "improved K6=0.1: all (tuned)", "fallback_time": None,
+                                 "misses": ["ankle roll maximum 4.71 > 4.52 mrad"]}],
+                   }},
+    }
+    rows = verdicts(results)
+    assert [r.kind for r in rows] == ["paper", "paper", "goal", "goal"]  # claims first
+    by_claim = {r.claim.split(":")[0]: r for r in rows}
+    assert claim["verdict"] == "holds except 1 of 10 cells"
+    assert by_claim["K6 = 0.1"].verdict == claim["verdict"]
+    assert by_claim["The paper's future work, tuned"].verdict == "holds except 1 of 10 cells"
+    identification = next(r for r in rows if r.claim.startswith("Identification"))
+    assert identification.kind == "goal" and "within 10%" in identification.threshold
+    assert identification.verdict == "holds except 1 of 12 values"
+    assert all(r.threshold for r in rows)
+    # The rule itself: at most a fifth of the cells and at most two miss.
+    assert partial_verdict(0, 10) == "holds"
+    assert partial_verdict(2, 10) == "holds except 2 of 10 cells"
+    assert partial_verdict(3, 10) == "does not hold (3 of 10 cells missed)"
+    assert partial_verdict(1, 4, "criteria") == "does not hold (1 of 4 criteria missed)"
+    assert partial_verdict(1, 1) == "does not hold"
+    tables = "\n".join(verdict_tables(results))
+    assert "**The paper's claims, as written**" in tables
+    assert "**This project's goals**" in tables
+    assert "claim of the paper" not in tables.split("**This project's goals**")[1]

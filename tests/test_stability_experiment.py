@@ -128,3 +128,51 @@ def test_stability_report(short_stability, tmp_path):
     data = json.loads((tmp_path / "stability.json").read_text())
     assert len(data["runs"]) == 4 and data["joint"] == JOINT
     assert "is reproduced" in (tmp_path / "stability.md").read_text()
+
+
+def _run(model_name: str, v0: float, final: float, limit_time=None, accelerates=None):
+    from hrp2_drake.experiments.stability import StabilityRun
+
+    return StabilityRun(
+        model_name, 1e-4, 7e-3, 0.001, v0, v0, max(v0, final), final, limit_time,
+        final > 1.05 * v0 if accelerates is None else accelerates, None,
+    )
+
+
+def test_a_run_that_reached_its_limit_is_never_called_stable(tmp_path):
+    """Three outcomes: accelerates away, reached the limit (still moving when the
+    observation stopped there: not shown stable), stable; the summary, the report
+    and the verdict of Sec. 5.2 keep them apart."""
+    from hrp2_drake.experiments.reproduce import _push_outcome
+    from hrp2_drake.experiments.stability import StabilityResult, contrast, summarize
+
+    config = StabilityConfig(push_velocities=[1.0, 2.0], command_delay_compensation=[0.001])
+    runs = [
+        _run("least_squares", 1.0, 0.2),
+        _run("least_squares", 2.0, 3.1, limit_time=0.4),  # faster, up to its limit
+        _run("asymmetric", 1.0, 0.1),
+        _run("asymmetric", 2.0, 1.6, limit_time=0.55),  # slower, but hit its limit
+    ]
+    assert [r.outcome for r in runs] == [
+        "stable", "accelerates away", "stable", "reached the limit"
+    ]
+    t = np.linspace(0.0, 2.0, 50)
+    traces = {
+        (r.model, 0.001, r.push_velocity): {"t": t, "q": t, "v": t, "delta_q": t}
+        for r in runs
+    }
+    result = StabilityResult(config, runs, traces, {})
+    summary = summarize(result)
+    asym = summary["verdicts"]["1 ms"]["asymmetric"]
+    assert asym == {"accelerates_at": [], "stable_at": [1.0], "limit_at": [2.0]}
+    # The paper's contrast needs the asymmetric run stable where least squares
+    # accelerates: at 2 rad/s it reached its limit.
+    assert contrast(result) == {"1 ms": False}
+    assert "stable" in summary["stable_means"] and "never as stable" in summary["stable_means"]
+    outcome = _push_outcome(asym)
+    assert "reached its position limit without speeding up after the pushes at 2 rad/s (not stable)" in outcome
+    assert not outcome.startswith("stable after every push")
+    write_stability_report(result, tmp_path)
+    table = (tmp_path / "stability.md").read_text()
+    row = next(line for line in table.splitlines() if line.startswith("| asymmetric") and "| 2 |" in line)
+    assert row.endswith("| 0.55 s | reached the limit |")

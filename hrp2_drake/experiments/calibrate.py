@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hrp2_drake import console
 from hrp2_drake.experiments.builders import build_position_control
 from hrp2_drake.experiments.motion import (
     MOVING_JOINTS,
@@ -314,11 +315,10 @@ def run_calibration(config: CalibrationConfig, work: Path, stream=None) -> Calib
     wall0 = time.perf_counter()
     sample_count = paper_sample_count()
     n = sample_count["n"]
-    print(
-        f"calibrate: Table 2's N = {n:.0f} samples (a {sample_count['log_duration']:.1f} s log "
+    console.say(
+        f"Table 2's N = {n:.0f} samples (a {sample_count['log_duration']:.1f} s log "
         "at 1 kHz), derived from the paper's own tables",
-        file=stream,
-        flush=True,
+        stream,
     )
     lo, hi = np.log(config.no_load_speed_bounds)
     prior = np.clip(
@@ -327,7 +327,10 @@ def run_calibration(config: CalibrationConfig, work: Path, stream=None) -> Calib
     step = 0.04  # finite-difference step of log(ω0)
     history: list[Evaluation] = []
     cache: dict[tuple, dict] = {}
-    pool = ProcessPoolExecutor(max_workers=config.jobs, mp_context=get_context("spawn"))
+    pool = ProcessPoolExecutor(
+        max_workers=config.jobs, mp_context=get_context("spawn"),
+        initializer=console.start_worker, initargs=(console.program(), ""),
+    )
     counter = iter(range(10**6))
 
     def submit(x: np.ndarray):
@@ -351,12 +354,11 @@ def run_calibration(config: CalibrationConfig, work: Path, stream=None) -> Calib
             )
         )
         ratios = np.asarray(result["max"]) / PAPER_POSITION_MAX
-        print(
-            f"calibrate: simulation {len(history):2d} ({time.perf_counter() - wall0:5.0f} s): "
-            f"ω0 {np.array2string(np.exp(x), precision=2)} rad/s -> max error / paper "
-            f"{np.array2string(ratios, precision=2)}, cost {0.5 * r @ r:.4f}",
-            file=stream,
-            flush=True,
+        console.say(
+            f"simulation {len(history):2d} ({time.perf_counter() - wall0:5.0f} s): "
+            f"ω0 {np.array2string(np.exp(x), precision=2)} rad/s -> max error / "
+            f"paper {np.array2string(ratios, precision=2)}, cost {0.5 * r @ r:.4f}",
+            stream,
         )
         return r
 
@@ -414,7 +416,7 @@ def run_calibration(config: CalibrationConfig, work: Path, stream=None) -> Calib
             "function_evaluations": int(solution.nfev),
             "cost": float(solution.cost),
         }
-        print(f"calibrate: {solution.message}", file=stream, flush=True)
+        console.say(solution.message, stream)
         # The calibrated servo, the ideal preset and each mechanism off, in parallel.
         final_path = work / "servo.yaml"
         save_servo_params(build_servo(config, speeds), final_path, ["calibrated"])
@@ -429,7 +431,7 @@ def run_calibration(config: CalibrationConfig, work: Path, stream=None) -> Calib
         measured = {}
         for label, future in futures.items():
             measured[label] = future.result()
-            print(f"calibrate: measured {label}", file=stream, flush=True)
+            console.say(f"measured {label}", stream)
     finally:
         pool.shutdown()
     for path in work.glob("candidate_*.yaml"):
@@ -581,7 +583,7 @@ def plot_calibration(result: CalibrationResult, out: Path) -> list[str]:
 
     names = []
     # 1. Convergence: each simulation's max-error ratios and cost.
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4))
+    fig, axes = plt.subplots(1, 2, figsize=(15, 4))
     ratios = np.array([np.asarray(e.max_error) / PAPER_POSITION_MAX for e in result.history])
     costs = np.array([e.cost for e in result.history])
     iterate = np.array([e.kind == "iterate" for e in result.history])
@@ -593,10 +595,10 @@ def plot_calibration(result: CalibrationResult, out: Path) -> list[str]:
     axes[0].set_xlabel("simulation (o: the optimizer's points, x: finite-difference steps)")
     axes[0].set_ylabel("max error / paper (Table 3)")
     axes[0].set_yscale("log")
-    axes[0].legend(fontsize=8)
+    axes[0].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)  # beside the data
     axes[1].semilogy(index[iterate], costs[iterate], "ko-", ms=3, label="optimizer's points")
     axes[1].semilogy(index[~iterate], costs[~iterate], "kx", alpha=0.5, label="finite-difference steps")
-    axes[1].legend(fontsize=8)
+    axes[1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     axes[1].set_xlabel("simulation")
     axes[1].set_ylabel("cost ½‖r‖² (log ratios)")
     for ax in axes:
@@ -620,7 +622,7 @@ def plot_calibration(result: CalibrationResult, out: Path) -> list[str]:
         ax.set_ylabel("rad·10³")
         ax.set_title(title)
         ax.grid(True, axis="y", alpha=0.3)
-    axes[0].legend(fontsize=8)
+    axes[1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)  # beside the bars
     fig.suptitle("Position control on the climbing swing")
     fig.tight_layout()
     names.append("calibration_fit.png")
@@ -636,7 +638,7 @@ def plot_calibration(result: CalibrationResult, out: Path) -> list[str]:
     ax.axhline(-PAPER_POSITION_MAX[2] * 1e3, color="k", ls="--", lw=0.8)
     ax.set_xlabel("t (s)")
     ax.set_ylabel("knee tracking error (mrad)")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)  # beside the data
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
     names.append("calibration_knee_error.png")
@@ -668,7 +670,7 @@ def calibrate(config: CalibrationConfig, out: Path, install: bool = False, strea
     save_servo_params(servo, out / "servo.yaml", header)
     if install:
         save_servo_params(servo, models_dir() / SERVO_FILE, header)
-        print(f"calibrate: wrote {models_dir() / SERVO_FILE}", file=stream, flush=True)
+        console.say(f"wrote {models_dir() / SERVO_FILE}", stream)
     summary = write_calibration_report(result, config, out)
-    print(f"calibrate: wrote {out / 'calibration.md'} ({result.wall_time / 60:.1f} min)", file=stream)
+    console.say(f"wrote {out / 'calibration.md'} ({result.wall_time / 60:.1f} min)", stream)
     return summary

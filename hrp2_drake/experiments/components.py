@@ -369,14 +369,14 @@ def plot_figure6(
     force_start: float | None = None,
 ) -> str:
     """Fig. 6: the components of Δq over time (mrad) in the six panels, each
-    legend with the component's RMS share."""
+    legend, beside its panel (off the data), with the component's RMS share."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     colors = dict(zip(COMPONENTS, plt.rcParams["axes.prop_cycle"].by_key()["color"]))
-    fig, axes = plt.subplots(3, 2, figsize=(13, 10))
+    fig, axes = plt.subplots(3, 2, figsize=(17, 10), layout="constrained")
     for ax, panel in zip(axes.ravel(), PANELS):
         if panel.experiment == "motion":
             signals = motion_signals[runs[panel.k6]]
@@ -405,11 +405,10 @@ def plot_figure6(
         ax.set_title(panel.title, fontsize=10)
         ax.set_ylabel("Δq component (mrad)")
         ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=7, loc="best")
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     for ax in axes[-1]:
         ax.set_xlabel("t (s)")
     fig.suptitle("Figure 6: components of Δq (share of the RMS in the legend)")
-    fig.tight_layout()
     name = "figure6_components.png"
     fig.savefig(out / name, dpi=110)
     plt.close(fig)

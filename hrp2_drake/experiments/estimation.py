@@ -25,7 +25,6 @@ real robot lifted before putting it down.
 import dataclasses
 import json
 import math
-import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -34,6 +33,7 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import TrajectorySource
 
+from hrp2_drake import console
 from hrp2_drake.estimation.torque_estimator import add_estimator
 from hrp2_drake.experiments import hrp2
 from hrp2_drake.experiments.simulate import joint_reference
@@ -491,7 +491,9 @@ def plot_torque(run: dict, analysis: dict, config: EstimationConfig, path: Path)
     j = model.JOINT_NAMES.index(PLOT_JOINT)
     shown = t >= max(config.settle, t[-1] - config.plot_seconds)
     best = analysis["best_window"]
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    fig, (top, bottom) = plt.subplots(
+        2, 1, figsize=(9, 6.5), sharex=True, layout="constrained"
+    )
     top.plot(t[shown], true[shown, j], "k", lw=1.0, label="true τ (joint_torque_true)")
     for window, style in ((PAPER_WINDOW, "C0"), (best, "C1--")):
         delay = run["delay"][window]
@@ -508,12 +510,11 @@ def plot_torque(run: dict, analysis: dict, config: EstimationConfig, path: Path)
         if best == PAPER_WINDOW:
             break
     top.set_ylabel(f"{PLOT_JOINT} torque (N·m)")
-    top.legend(loc="upper right", fontsize=8)
     top.set_title(f"{PLOT_JOINT} (right knee), {path.stem.split('_')[-1]}")
     bottom.set_ylabel("τ̂ − delayed true τ (N·m)")
     bottom.set_xlabel("time the estimate refers to (s)")
-    bottom.legend(loc="upper right", fontsize=8)
-    fig.tight_layout()
+    # One legend below the panels (off the data); the errors below share the styles.
+    fig.legend(*top.get_legend_handles_labels(), loc="outside lower center", ncol=2, fontsize=8)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -661,19 +662,19 @@ def run_estimation_experiment(config: EstimationConfig, out: Path) -> dict:
         plot_torque(run, analysis, config, out / f"estimation_tau_{scenario}.png")
         results[scenario] = analysis
         best = analysis["best_window"]
-        print(
+        per_signal = analysis.get("per_signal")
+        message = (
             f"{scenario}: best window {best}, worst right-leg RMS/peak "
             f"{100 * analysis['windows'][best]['right_leg_worst_ratio']:.2f} % "
             f"(window {PAPER_WINDOW}: "
             f"{100 * analysis['windows'][PAPER_WINDOW]['right_leg_worst_ratio']:.2f} %"
             + (
-                f"; per-signal windows: "
-                f"{100 * analysis['per_signal']['right_leg_worst_ratio']:.2f} %)"
-                if analysis.get("per_signal")
+                f"; per-signal windows: {100 * per_signal['right_leg_worst_ratio']:.2f} %)"
+                if per_signal
                 else ")"
-            ),
-            file=sys.stderr,
+            )
         )
+        console.say(message)
     summary = {
         "joints": list(model.JOINT_NAMES),
         "right_leg": list(model.RIGHT_LEG),

@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hrp2_drake import console
+from hrp2_drake.config import check_finite
 from hrp2_drake.control.safety import describe_faults
 from hrp2_drake.experiments import hrp2
 from hrp2_drake.experiments.builders import (
@@ -39,6 +41,8 @@ from hrp2_drake.robot.station import StationConfig
 #: mode switch may step q_cmd by at most this beyond the reference's motion (rad).
 TRACKING_MARGIN = 0.005
 STEP_BOUND = 0.002
+#: Position control at the motion's first pose before it starts (s).
+SETTLE = 0.7
 
 
 @dataclass
@@ -109,6 +113,36 @@ class FaultCampaignConfig:
             )
         if not self.motion_start < self.motion_end:
             raise ValueError("FaultCampaignConfig: motion_end must be after motion_start")
+        check_finite(self.k6, "FaultCampaignConfig.k6", 0.0)
+        if self.jobs < 1:
+            raise ValueError(
+                f"FaultCampaignConfig.jobs: {self.jobs}, expected 1 or more"
+            )
+        # Faults start once torque control runs, and before the run ends.
+        torque_start = TorqueControlConfig().start_time
+        motion = MotionConfig(
+            start=self.motion_start, end=self.motion_end, settle=SETTLE
+        )
+        try:  # the part of the climbing motion: within it
+            motion.validate()
+        except ValueError as error:
+            raise ValueError(
+                f"FaultCampaignConfig.motion_start, motion_end: {error}"
+            ) from None
+        runs = {
+            "motion_fault_time": (self.motion_fault_time, torque_start,
+                                  SETTLE + self.motion_end - self.motion_start),
+            "force_fault_time": (self.force_fault_time, ForceConfig().settle,
+                                 ForceConfig().duration),
+        }
+        for name, (value, start, end) in runs.items():
+            check_finite(value, f"FaultCampaignConfig.{name}")
+            if not start <= value < end:
+                raise ValueError(
+                    f"FaultCampaignConfig.{name}: {value:g} s, expected from "
+                    f"{start:g} s (torque control starts) to before {end:g} s (the "
+                    "run ends)"
+                )
 
 
 def _shifted(case: FaultCase, t0: float) -> list[SensorFault]:
@@ -125,7 +159,9 @@ def _motion_run(config: FaultCampaignConfig, case: FaultCase | None, motor_path:
             station, faults=_shifted(case, t_fault), extra_command_latency=case.extra_command_latency
         )
         torque = replace(torque, model_error=case.model_error)
-    motion = MotionConfig(station=station, start=config.motion_start, end=config.motion_end, settle=0.7)
+    motion = MotionConfig(
+        station=station, start=config.motion_start, end=config.motion_end, settle=SETTLE
+    )
     reference = motion_reference(motion)
     if position_control:
         control = build_position_control(station, reference)
@@ -252,17 +288,19 @@ def run_fault_campaign(config: FaultCampaignConfig, motor_model_path: Path, out:
     def collect(done) -> None:
         for result in done:
             results.append(result)
-            print(
-                f"faults: {len(results)}/{len(jobs)} {result['experiment']}: "
+            console.say(
+                f"fault run {len(results)}/{len(jobs)}: {result['experiment']}: "
                 f"{result['case']} ({result['seconds']:.0f} s)",
-                file=stream,
-                flush=True,
+                stream,
             )
 
     if config.jobs == 1:  # in this process (e.g. inside reproduce's own workers)
         collect(_job(job) for job in jobs)
     else:
-        with ProcessPoolExecutor(config.jobs, mp_context=get_context("spawn")) as pool:
+        with ProcessPoolExecutor(
+            config.jobs, mp_context=get_context("spawn"),
+            initializer=console.start_worker, initargs=(console.program(), "faults"),
+        ) as pool:  # the workers' lines in the console's format, repeats counted
             collect(pool.map(_job, jobs))
     summary = {
         "results": results,
@@ -282,22 +320,34 @@ def run_fault_campaign(config: FaultCampaignConfig, motor_model_path: Path, out:
 
 def _plot(results: list[dict], out: Path) -> str:
     """Per experiment: the supervisor's mode and the knee's tracking error around the
-    fault, one line per fault."""
+    fault, one line per fault, each case in a style of its own (up to 11 curves a
+    panel); one legend below the panels, off the data."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     kinds = sorted({r["experiment"] for r in results})
-    fig, axes = plt.subplots(2, len(kinds), figsize=(7 * len(kinds), 7), squeeze=False)
+    cases = list(dict.fromkeys(r["case"] for r in results))
+    colours = [f"C{k}" for k in range(10) if k != 7]  # C7 is the grey of position control
+    styles, k = {}, 0
+    for case in cases:
+        if case == "no fault":
+            styles[case] = dict(lw=1.6, color="k")
+        elif case == "position control":
+            styles[case] = dict(lw=1.2, color="0.5", ls="--")
+        else:
+            styles[case] = dict(lw=0.9, color=colours[k % 9], ls=("-", "-.", ":")[k // 9 % 3])
+            k += 1
+    fig, axes = plt.subplots(
+        2, len(kinds), figsize=(7 * len(kinds), 8), squeeze=False, layout="constrained"
+    )
     for col, kind in enumerate(kinds):
         for r in results:
             trace = r.get("trace")
             if r["experiment"] != kind or not trace:
                 continue
-            style = dict(lw=1.6, color="k") if r["case"] == "no fault" else dict(lw=0.9)
-            if r["case"] == "position control":
-                style = dict(lw=1.2, color="0.5", ls="--")
+            style = styles[r["case"]]
             if "mode" in trace:
                 axes[0, col].plot(trace["t"], trace["mode"], label=r["case"], **style)
             axes[1, col].plot(
@@ -309,8 +359,11 @@ def _plot(results: list[dict], out: Path) -> str:
             ax.axvline(0.0, color="r", lw=0.8)
             ax.set_xlabel("time from the fault (s)")
             ax.grid(True, alpha=0.3)
-    axes[1, 0].legend(fontsize=7, loc="best")
-    fig.tight_layout()
+    handles = {}
+    for ax in axes.ravel():
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(label, handle)
+    fig.legend(handles.values(), handles.keys(), loc="outside lower center", ncol=4, fontsize=8)
     name = "faults.png"
     fig.savefig(out / name, dpi=100)
     plt.close(fig)
@@ -331,7 +384,8 @@ def _verdict(results: list[dict]) -> dict:
     worse = []
     for r in faulty:
         ref = position.get(r["experiment"])
-        if ref and r.get("max_error_after") is not None:
+        judged = ref and not ref.get("raised") and not r.get("raised")
+        if judged:
             if r["max_error_after"] > ref["max_error"] + TRACKING_MARGIN:
                 worse.append(f"{r['experiment']}: {r['case']}")
     steps = [
@@ -339,6 +393,12 @@ def _verdict(results: list[dict]) -> dict:
         for r in results
         if r.get("max_switch_step", 0.0) > STEP_BOUND
     ]
+    # A run that raised was not judged: no check can hold for it.
+    unjudged = [
+        f"{r['experiment']}: {r['case']} (raised, not judged)"
+        for r in results if r.get("raised")
+    ]
+    slow, steps, worse = slow + unjudged, steps + unjudged, worse + unjudged
     return {
         "nothing_raised": not raised,
         "raised": raised,

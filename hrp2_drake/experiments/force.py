@@ -828,10 +828,16 @@ def _markdown(result: ForceResult, summary: dict, figure: str) -> str:
     return "\n".join(lines)
 
 
+#: Variants per panel of Fig. 5's variant panels: with the paper's settings and the
+#: reference, at most 8 curves, each of its own colour.
+VARIANTS_PER_PANEL = 6
+
+
 def plot_figure5(result: ForceResult, out: Path) -> str:
     """The paper's Fig. 5: reference and measured f_z and f_x of the right foot
     (estimate and smoothed F/T reading, each shifted to the controller's f0), plus
-    f_z of the variants."""
+    f_z of the variants, VARIANTS_PER_PANEL per panel beside the paper's settings
+    (at most 8 curves a panel); every legend beside its panel, off the data."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -845,9 +851,13 @@ def plot_figure5(result: ForceResult, out: Path) -> str:
     smoothing = max(1, int(round(c.smoothing / (t[1] - t[0]))))
     reading = moving_average(s[SIGNALS["ft_reading"]], smoothing)
     reading = reading - base.static_reading + base.static_wrench
-    rows = 3 if result.variants else 2
+    groups = [
+        result.variants[k : k + VARIANTS_PER_PANEL]
+        for k in range(0, len(result.variants), VARIANTS_PER_PANEL)
+    ]
+    rows = 2 + len(groups)
     fig, axes = plt.subplots(
-        rows, 1, figsize=(10, 3.2 * rows + (0.8 if rows == 3 else 0)), sharex=True
+        rows, 1, figsize=(13, 3.2 * rows), sharex=True, layout="constrained"
     )
     for ax, axis, name in ((axes[0], FZ, "f_z"), (axes[1], FX, "f_x")):
         ax.plot(t[keep], s["f_ref"][keep, axis], "k--", lw=1.2, label="reference")
@@ -861,12 +871,11 @@ def plot_figure5(result: ForceResult, out: Path) -> str:
             t[keep],
             reading[keep, axis],
             lw=1,
-            label="F/T reading (smoothed, shifted to f0)",
+            label="F/T reading (smoothed,\nshifted to f0)",
         )
         ax.set_ylabel(f"{name} (N)")
         ax.grid(True, alpha=0.3)
         ax.axvline(c.settle, color="grey", lw=0.8, ls=":")
-    axes[0].legend(fontsize=8, loc="upper right")
     m = base.metrics["ft_reading"]
     axes[0].set_title(
         f"right foot, K6 = {c.torque_control.k6:g}, K_f = {c.torque_control.kf[0]:g}: "
@@ -874,8 +883,7 @@ def plot_figure5(result: ForceResult, out: Path) -> str:
         f"{m['coupling_x']:.1%} (F/T reading)",
         fontsize=10,
     )
-    if result.variants:
-        ax = axes[2]
+    for k, (ax, group) in enumerate(zip(axes[2:], groups)):
         ax.plot(
             t[keep],
             s["f_ref"][keep, FZ] - base.static_wrench[FZ],
@@ -883,22 +891,35 @@ def plot_figure5(result: ForceResult, out: Path) -> str:
             lw=1.2,
             label="reference",
         )
-        for run in [base] + result.variants:
+        for i, run in enumerate([base] + group):
             rt = run.signals["t"]
             keep_v = rt >= c.settle - 0.2
             smooth = moving_average(run.signals[SIGNALS["ft_reading"]], smoothing)
             ax.plot(
                 rt[keep_v],
                 smooth[keep_v, FZ] - run.static_reading[FZ],
-                lw=0.9,
-                label=run.label,
+                color="0.35" if run is base else f"C{i - 1}",
+                lw=1.4 if run is base else 0.9,
+                label="the paper's settings" if run is base else _wrapped(run.label),
             )
         ax.set_ylabel("f_z − f0,z (N), F/T")
+        ax.set_title(
+            f"variants {k * VARIANTS_PER_PANEL + 1}-{k * VARIANTS_PER_PANEL + len(group)} "
+            f"of {len(result.variants)} beside the paper's settings",
+            fontsize=10,
+        )
         ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.22), ncol=3)
+    for ax in axes:
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     axes[-1].set_xlabel("t (s)")
-    fig.tight_layout()
     name = "figure5_force_tracking.png"
     fig.savefig(out / name, dpi=110)
     plt.close(fig)
     return name
+
+
+def _wrapped(label: str, width: int = 42) -> str:
+    """A legend label on lines of at most `width` characters."""
+    import textwrap
+
+    return "\n".join(textwrap.wrap(label, width))

@@ -7,9 +7,8 @@ the Table 1 analogue, the validation table and Figures 1 and 3.
 """
 
 import json
-import sys
-import zipfile
-import zlib
+import logging
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -45,6 +44,8 @@ from hrp2_drake.experiments.ground_truth import true_motor_model
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.robot import model
 from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
+
+_logger = logging.getLogger(__name__)
 
 #: The paper's Table 1 (10³ Kτ, 10³ Kv), right leg.
 PAPER_TABLE1 = {
@@ -257,13 +258,49 @@ def identify(
 
 
 def _fit_piecewise(samples, name: str):
-    """The piecewise-linear fit from the first initial guess that works, or None."""
+    """The piecewise-linear fit from the first initial guess that works, or None.
+
+    The piecewise-linear model is the one the paper tried and abandoned (Sec. 3.2),
+    fitted for comparison only; its algorithm needs a good initial guess (the
+    paper's words), so a guess that fails is expected, not an error: one
+    information line per joint says which guesses failed and what came of it."""
+    failed = []
     for guess in PIECEWISE_INITIAL_BREAKPOINTS:
         try:
-            return fit_piecewise_linear(*samples, initial_breakpoints=guess, joint_name=name)
+            fitted = fit_piecewise_linear(*samples, initial_breakpoints=guess, joint_name=name)
         except ValueError as error:
-            print(f"piecewise-linear fit of {name} from {guess}: {error}", file=sys.stderr)
+            failed.append((guess, _reason(error)))
+            continue
+        if failed:
+            _logger.info(
+                "%s: piecewise-linear model (Sec. 3.2, abandoned by the paper; for "
+                "comparison only) fitted from the initial breakpoints %s N·m; %s",
+                name, _breakpoints(guess), _failures(failed),
+            )
+        return fitted
+    _logger.info(
+        "%s: no piecewise-linear model (Sec. 3.2, abandoned by the paper; for comparison "
+        "only; its column of the report says 'failed'): %s", name, _failures(failed),
+    )
     return None
+
+
+def _reason(error: ValueError) -> str:
+    """Why a piecewise-linear fit failed, short: "the lines no longer intersect in
+    order" (no joint, branch, breakpoints, iteration nor advice)."""
+    text = str(error).split(";")[0].rsplit(": ", 1)[-1]
+    return re.sub(r" \(breakpoints \[[^\]]*\] at iteration \d+\)", "", text)
+
+
+def _breakpoints(guess: tuple[float, float]) -> str:
+    return f"({guess[0]:g}, {guess[1]:g})"
+
+
+def _failures(failed: list[tuple[tuple[float, float], str]]) -> str:
+    """"from (-0.5, 0.5) and (-2, 2) it did not converge (<reasons>)"."""
+    guesses = " and ".join(_breakpoints(g) for g, _ in failed)
+    reasons = "; ".join(dict.fromkeys(why for _, why in failed))
+    return f"from {guesses} it did not converge ({reasons})"
 
 
 # ------------------------------------------------------------------------- report
@@ -477,7 +514,7 @@ def run_identify(config: IdentifyConfig, out: Path, log_path: Path | None = None
     else:
         log, names = read_log(log_path, config.station.description())
         simulated = "joint_torque_true" in log
-    print("estimating and fitting ...", file=sys.stderr)
+    _logger.info("estimating and fitting ...")
     try:
         result = identify(config, log, names)
     except (ValueError, KeyError) as error:
@@ -491,55 +528,10 @@ def run_identify(config: IdentifyConfig, out: Path, log_path: Path | None = None
 def read_log(
     path: str | Path, robot: RobotDescription | None = None
 ) -> tuple[dict, list[str]]:
-    """`load_log` with every problem of the file as one error naming it: missing, a
-    folder, not a (complete) .npz archive, a missing or misshapen array, text or NaN
-    in an array, time not increasing on a constant grid (`check_log`), or no column
-    for a joint of the estimator."""
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"identification log '{path}' not found")
-    if path.is_dir():
-        raise IsADirectoryError(
-            f"identification log '{path}' is a folder, expected .npz"
-        )
-    try:
-        log, names = load_log(path)
-    except ValueError as error:
-        if str(error).startswith(f"{path}:"):
-            raise
-        detail = _npz_problem(path) or str(error)
-        raise ValueError(
-            f"{path}: not a valid identification log (.npz): {detail}"
-        ) from None
-    except (
-        OSError,
-        EOFError,
-        IndexError,
-        KeyError,
-        TypeError,
-        zipfile.BadZipFile,
-        zlib.error,
-    ) as error:
-        detail = _npz_problem(path) or str(error) or type(error).__name__
-        raise ValueError(
-            f"{path}: not a readable identification log (.npz archive): {detail}"
-        ) from None
+    """`load_log` with every problem of the file as one error naming it (missing, a
+    folder, not a readable .npz archive: `dataset.read_npz`; a missing or misshapen
+    array), then `check_log`: text or NaN in an array, time not increasing on a
+    constant grid, arrays of the wrong width, no column for a joint of the estimator."""
+    log, names = load_log(path)
     check_log(log, names, str(path), (robot or model.description()).joints)
     return log, names
-
-
-def _npz_problem(path: Path) -> str | None:
-    """The first array of an .npz file that cannot be read or is a scalar, as
-    "array 'name': problem" (None if none: the archive itself is the problem)."""
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            for key in data.files:
-                try:
-                    value = data[key]
-                except Exception as error:  # each array on its own: name the bad one
-                    return f"array '{key}': {error}"
-                if value.ndim == 0:
-                    return f"array '{key}' is a scalar, expected one value per sample"
-    except Exception:
-        return None
-    return None

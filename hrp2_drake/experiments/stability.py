@@ -42,10 +42,17 @@ Two things of the loop around the servo matter as much as the fit, and are repor
   least-squares run pushed at 1.5 rad/s reaches 2.0 rad/s with N = 80, 3.4 rad/s
   with N = 20). The window is a config field.
 
-A run "accelerates away" when the joint's speed (ground truth, from the plant state)
-at the end of the observation, or when the joint reaches its position limit if it
-does, exceeds (1 + `growth_margin`) times its speed at the release; otherwise it is
-stable (it slows down).
+Each run gets one of three outcomes (`StabilityRun.outcome`), from the joint's speed
+(ground truth, from the plant state):
+
+- "accelerates away": its speed at the end of the observation, or when it reaches
+  its position limit if it does, exceeds (1 + `growth_margin`) times its speed at
+  the release;
+- "reached the limit": it did not speed up, but it was still moving when it came
+  within `limit_margin` of its position limit: the observation ended there, and a
+  joint stopped by its limit is not shown to be stable;
+- "stable": it slowed down and stayed clear of its position limit for the whole
+  observation.
 """
 
 import json
@@ -261,7 +268,7 @@ class StabilityRun:
             reached (rad/s).
         limit_time: when the joint came within limit_margin of its position limit
             (s after the release), or None.
-        accelerates: the verdict (see the module docstring).
+        accelerates: whether its speed grew (see the module docstring).
         fallback_time: when the controller fell back to position control, or None.
     """
 
@@ -276,6 +283,26 @@ class StabilityRun:
     limit_time: float | None
     accelerates: bool
     fallback_time: float | None
+
+    @property
+    def outcome(self) -> str:
+        """"accelerates away", "reached the limit" or "stable" (module docstring)."""
+        if self.accelerates:
+            return "accelerates away"
+        return "stable" if self.limit_time is None else "reached the limit"
+
+
+def stable_definition(config: StabilityConfig) -> str:
+    """What the outcomes, "stable" above all, mean, in the words of the reports
+    (stability.md, stability.json, the reproduce report's verdict of Sec. 5.2)."""
+    return (
+        f"a run accelerates away when the joint's speed at the end of the observation "
+        f"(or at its position limit) exceeds {1 + config.growth_margin:g}x its speed at "
+        f"the release; it is stable when it slows down and stays more than "
+        f"{config.limit_margin:g} rad from its position limit for the {config.observe:g} "
+        "s observed; a run that reaches its limit without speeding up is reported as "
+        "such, never as stable"
+    )
 
 
 @dataclass
@@ -458,7 +485,10 @@ def summarize(result: StabilityResult) -> dict:
         verdicts[f"{delay * 1e3:g} ms"] = {
             name: {
                 "accelerates_at": [r.push_velocity for r in runs if r.accelerates],
-                "stable_at": [r.push_velocity for r in runs if not r.accelerates],
+                "stable_at": [r.push_velocity for r in runs if r.outcome == "stable"],
+                "limit_at": [
+                    r.push_velocity for r in runs if r.outcome == "reached the limit"
+                ],
             }
             for name, runs in by_model.items()
         }
@@ -468,25 +498,29 @@ def summarize(result: StabilityResult) -> dict:
         "direction": c.direction,
         "window": c.window,
         "release_time": c.release_time,
-        "runs": [asdict(r) for r in result.runs],
+        "runs": [asdict(r) | {"outcome": r.outcome} for r in result.runs],
         "predicted_threshold": result.predicted_threshold,
         "emulator": emulator_parameters(c.joint, c.station.servo_file),
         "verdicts": verdicts,
+        "stable_means": stable_definition(c),
         "contrast": contrast(result),
     }
 
 
 def contrast(result: StabilityResult) -> dict[str, bool]:
     """Per delay compensation: does the least-squares controller accelerate away at
-    some push velocity where the asymmetric one is stable (the paper's finding)?"""
+    some push velocity where the asymmetric one is stable (the paper's finding; a run
+    that reached its position limit is not stable)?"""
     out = {}
     for delay in result.config.command_delay_compensation:
         runs = [r for r in result.runs if r.delay_compensation == delay]
         ls = {
             r.push_velocity: r.accelerates for r in runs if r.model == "least_squares"
         }
-        asym = {r.push_velocity: r.accelerates for r in runs if r.model == "asymmetric"}
-        out[f"{delay * 1e3:g} ms"] = any(ls.get(v) and asym.get(v) is False for v in ls)
+        asym = {
+            r.push_velocity: r.outcome == "stable" for r in runs if r.model == "asymmetric"
+        }
+        out[f"{delay * 1e3:g} ms"] = any(ls.get(v) and asym.get(v) for v in ls)
     return out
 
 
@@ -521,12 +555,11 @@ def _markdown(result: StabilityResult, summary: dict, figure: str) -> str:
         f"'{c.station.scenario}'. The joint is pushed in position control in the "
         f"{sign} direction from {c.start_position:g} rad to a velocity v0, then "
         f"released into torque control at t = {c.release_time:.2f} s and observed for "
-        f"{c.observe:g} s (or until it reaches its position limit). A run accelerates "
-        f"away when its final speed exceeds {1 + c.growth_margin:g}x its release "
-        "speed.",
+        f"{c.observe:g} s (or until it reaches its position limit). The outcome of a "
+        f"run: {stable_definition(c)}.",
         "",
         "| fit | 10³ K̂_τ | 10³ K̂_v | δc (ms) | v0 (rad/s) | release speed "
-        "| peak speed | final speed | reached the limit after | verdict |",
+        "| peak speed | final speed | reached the limit after | outcome |",
         "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
     ]
     for r in result.runs:
@@ -535,7 +568,7 @@ def _markdown(result: StabilityResult, summary: dict, figure: str) -> str:
             f"{r.delay_compensation * 1e3:g} | {r.push_velocity:g} | "
             f"{r.release_speed:.2f} | {r.peak_speed:.2f} | {r.final_speed:.2f} | "
             + (f"{r.limit_time:.2f} s" if r.limit_time is not None else "-")
-            + f" | {'**accelerates away**' if r.accelerates else 'stable'} |"
+            + f" | {'**accelerates away**' if r.accelerates else r.outcome} |"
         )
     lines += [
         "",
@@ -577,6 +610,7 @@ def _markdown(result: StabilityResult, summary: dict, figure: str) -> str:
         parts = [
             f"{name}: accelerates at {runs['accelerates_at'] or 'no v0'}, stable at "
             f"{runs['stable_at'] or 'no v0'}"
+            + (f", reached the limit at {runs['limit_at']}" if runs["limit_at"] else "")
             for name, runs in v.items()
         ]
         lines.append(
@@ -592,8 +626,8 @@ def _markdown(result: StabilityResult, summary: dict, figure: str) -> str:
 
 def plot_stability(result: StabilityResult, out: Path) -> str:
     """Joint speed after the release, one panel per delay compensation: the
-    least-squares runs in reds, the asymmetric runs in blues, one curve per push
-    velocity."""
+    least-squares runs in solid reds, the asymmetric runs in dashed blues, one
+    curve per push velocity (darker: faster); the legend below the panels."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -605,6 +639,7 @@ def plot_stability(result: StabilityResult, out: Path) -> str:
         1, len(delays), figsize=(6.5 * len(delays), 5.2), squeeze=False
     )
     maps = {"least_squares": plt.cm.Reds, "asymmetric": plt.cm.Blues}
+    dashes = {"least_squares": "-", "asymmetric": "--"}
     velocities = sorted(c.push_velocities)
     runs = {(r.model, r.delay_compensation, r.push_velocity): r for r in result.runs}
     for ax, delay in zip(axes[0], delays):
@@ -622,6 +657,7 @@ def plot_stability(result: StabilityResult, out: Path) -> str:
                     t[keep],
                     np.abs(trace["v"][keep]),
                     color=cmap(shade),
+                    ls=dashes.get(name, ":"),
                     lw=1.2,
                     label=f"{name.replace('_', ' ')}, v0 = {velocity:g} rad/s",
                 )

@@ -40,7 +40,6 @@ import io
 import json
 import os
 import socket
-import sys
 import time
 import typing
 import warnings
@@ -50,6 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hrp2_drake import console
 from hrp2_drake.config import check_finite, one_line
 from hrp2_drake.experiments.builders import TorqueControlConfig
 from hrp2_drake.experiments.motion import estimation_delay
@@ -501,15 +501,18 @@ def _reference(task: TrialTask):
 
 @contextlib.contextmanager
 def _quiet(name: str):
-    """No log lines of the logger `name` (which has no handler of its own, so
-    Python's last-resort handler would print its warnings on stderr)."""
+    """No log lines of the logger `name`: neither Python's last-resort handler nor
+    a console session's (`hrp2_drake.console`) prints them."""
     import logging
 
     logger, handler = logging.getLogger(name), logging.NullHandler()
+    propagate = logger.propagate
     logger.addHandler(handler)
+    logger.propagate = False
     try:
         yield
     finally:
+        logger.propagate = propagate
         logger.removeHandler(handler)
 
 
@@ -796,7 +799,7 @@ def run_tune(
     from optuna.trial import TrialState
     from pydrake.common.yaml import yaml_dump_typed
 
-    log = log or (lambda line: print(line, file=sys.stderr, flush=True))
+    log = log or console.say
     config.validate()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
