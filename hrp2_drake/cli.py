@@ -205,7 +205,7 @@ def _control(args: argparse.Namespace) -> int:
         + (", gave up for good" if summary["gave_up"] else "")
     )
     if summary["fault"]:
-        print(f"control: stopped: {_ending(summary)}", file=sys.stderr)
+        console.say(f"stopped: {_ending(summary)}")
         return 1
     return 0
 
@@ -227,7 +227,7 @@ def _sim_robot(args: argparse.Namespace) -> int:
         + (", holding the measured pose at the end" if summary["holding"] else "")
     )
     if summary["fault"]:
-        print(f"sim-robot: stopped: {summary['fault']}; held the measured pose", file=sys.stderr)
+        console.say(f"stopped: {summary['fault']}; held the measured pose")
         return 1
     return 0
 

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from hrp2_drake.console import say
 from hrp2_drake.control.fused import FusedController
 from hrp2_drake.control.safety import SafetyConfig
 from hrp2_drake.experiments.builders import (
@@ -136,9 +137,9 @@ def run_control(
     try:
         loop = ControlLoop(controller, robot, transport, config.channels, reference,
                            config=config.loop_config())
-        print(f"control: waiting for {robot.name} on {lcm_url} ...", file=sys.stderr, flush=True)
+        say(f"waiting for {robot.name} on {lcm_url} ...")
         loop.wait_for_robot()
-        print(f"control: running {config.duration} s", file=sys.stderr, flush=True)
+        say(f"running {config.duration} s")
         summary = loop.run()
     finally:
         transport.close()
@@ -262,7 +263,7 @@ def run_sim_robot(config: StationConfig, lcm_url: str, duration: float, out: Pat
     transport = open_transport(lcm_url)
     try:
         bridge = RobotBridge(config, transport, channels, bridge_config)
-        print(f"sim-robot: {bridge.robot.name} on {lcm_url}", file=sys.stderr, flush=True)
+        say(f"{bridge.robot.name} on {lcm_url}")
         summary = bridge.run()
     finally:
         transport.close()
