@@ -451,13 +451,6 @@ class FusedController:
                 out[f"supervisor_{name}"] = getattr(self.supervisor, name)
         return out
 
-    def sensor_fault(self) -> float:
-        """The filters' count of consecutive held (non-finite) samples."""
-        fault = self.encoder_filter.input_fault[0]
-        if self.sensor_filter is not None:
-            fault += self.sensor_filter.input_fault[0]
-        return float(fault)
-
 
 class FusedTorqueController(WitnessFreeLeafSystem):
     """The fused controller as one LeafSystem (`build_torque_control(..., fused=True)`).

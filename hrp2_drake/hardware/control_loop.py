@@ -173,7 +173,6 @@ class ControlLoop:
             ))
             row, stamp_row = row + 6, stamp_row + 1
         self._q_cmd = np.zeros(N)
-        self._q_hold = np.zeros(N)
         self._last_stamp = -1
         self._first_stamp = -1
         self.t = 0.0
@@ -347,7 +346,6 @@ class ControlLoop:
         if not np.all(np.isfinite(q_hold)):
             q_hold = q_from
         steps = max(1, int(round(self.config.ramp_time / self.config.period)))
-        self._q_hold[:] = q_hold
         start = time.perf_counter()
         try:
             for k in range(1, steps + 1):
@@ -429,6 +427,7 @@ class ControlLoop:
     def signals(self) -> dict[str, np.ndarray]:
         k = min(self.ticks, len(self.latency_ns))
         out = {"t": self.log_t[:k].copy(), "latency_us": self.latency_ns[:k] * 1e-3,
+               "receive_gap_us": self.receive_gap_ns[:k] * 1e-3,
                "torque_active": self.log_mode[:k].copy()}
         return out | {name: log[:k].copy() for name, log in self.log.items()}
 
