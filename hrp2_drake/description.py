@@ -35,6 +35,7 @@ from hrp2_drake.estimation.torque_estimator import (
     TorqueEstimatorConfig,
 )
 from hrp2_drake.identification.excitation import CollectionConfig
+from hrp2_drake.identification.logs import LogFormat
 from hrp2_drake.robot.sensors import SensorsConfig
 
 BASES = ("floating", "fixed")
@@ -105,6 +106,44 @@ class ScenariosDescription:
 
 
 @dataclass
+class PositionLoopDescription:
+    """The servo's position loop as its maker documents it (public facts of the
+    firmware, not the emulator's hidden parameters): its output (a PWM duty cycle, a
+    current command) is gain · output_per_gain · (q_cmd − q), limited to
+    ±output_limit. Identification uses it to find the samples where the output
+    saturates; a rollout of a motor model clamps Δq there.
+
+    Args:
+        output_per_gain: the loop's output per rad of error and per unit of gain
+            (the servo's own gain units); 0: not documented (no saturation found).
+        output_limit: the saturation of the output.
+        gain: the servo's gain when a log states none (its own units); 0: unknown.
+    """
+
+    output_per_gain: float = 0.0
+    output_limit: float = math.inf
+    gain: float = 0.0
+
+    def validate(self) -> None:
+        for name in ("output_per_gain", "gain"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"position_loop.{name}: must be finite and >= 0, got {value}")
+        if not self.output_limit > 0:
+            raise ValueError(
+                f"position_loop.output_limit: must be > 0, got {self.output_limit}"
+            )
+
+    def saturation_error(self, gain: float | None) -> float:
+        """|q_cmd − q| (rad) at which the output saturates with `gain`; inf if the
+        loop is not documented or the gain unknown."""
+        gain = gain or self.gain
+        if not (self.output_per_gain > 0 and gain and math.isfinite(self.output_limit)):
+            return math.inf
+        return self.output_limit / (gain * self.output_per_gain)
+
+
+@dataclass
 class RobotDescription:
     """A robot, as the framework needs to know it (load with `load_robot_description`).
 
@@ -142,6 +181,9 @@ class RobotDescription:
         identification: the excitation of `hrp2-drake identify` (pushes on a body
             and one increasing sinusoid per controlled joint); empty sinusoids: one
             per controlled joint from its limits (`default_collection`).
+        logs: how the robot's own logs are read (`identification.logs.LogFormat`):
+            format, columns, units, servo gain, the grid they are resampled to.
+        position_loop: the servo's documented position loop (saturation, gain).
     """
 
     name: str = ""
@@ -166,6 +208,8 @@ class RobotDescription:
     trajectory_file: str = ""
     scenarios: ScenariosDescription = field(default_factory=ScenariosDescription)
     identification: CollectionConfig = field(default_factory=CollectionConfig)
+    logs: LogFormat = field(default_factory=LogFormat)
+    position_loop: PositionLoopDescription = field(default_factory=PositionLoopDescription)
     #: The description file (set by the loader; paths are relative to its folder).
     source_file: str = ""
 
@@ -245,6 +289,8 @@ class RobotDescription:
                 f"got {block.joints}"
             )
         self.sensors.validate(len(self.joints), list(self.force_torque_sensors))
+        self.logs.validate(len(self.joints))
+        self.position_loop.validate()
 
     # ------------------------------------------------------------ files
 

@@ -6,11 +6,15 @@ fit of the paper per joint on training blocks, validates on held-out blocks, and
 the Table 1 analogue, the validation table and Figures 1 and 3.
 """
 
+import dataclasses
+import functools
 import json
 import logging
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -18,8 +22,9 @@ from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
 from hrp2_drake.config import check_finite
 from hrp2_drake.identification.dataset import (
     IdentificationData,
+    LogSegment,
     check_log,
-    noncausal_estimates,
+    estimate_segments,
     split_blocks,
 )
 from hrp2_drake.identification.excitation import (
@@ -41,6 +46,7 @@ from hrp2_drake.identification.fitting import (
 )
 from hrp2_drake.description import RobotDescription
 from hrp2_drake.experiments.ground_truth import true_motor_model
+from hrp2_drake.identification.logs import describe, read_robot_log
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.robot import model
 from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
@@ -57,6 +63,18 @@ PAPER_TABLE1 = {
     "RLEG_JOINT5": (0.240, 6.0),
 }
 LINEAR_METHODS = ("asymmetric", "least_squares", "two_stage")
+#: The fits `IdentifyConfig.fit` may pick for motor_model.yaml, and what each is for.
+FITS = ("asymmetric", "least_squares", "coulomb", "two_stage")
+FIT_PURPOSE = {
+    "asymmetric": "conservative (rarely over-estimates |Δq|): for the torque controller's "
+    "feedforward, as the paper uses it",
+    "least_squares": "the smallest prediction error: for prediction, rollouts and simulation",
+    "coulomb": "least squares with a Coulomb term Kc sign(q̇): prediction where dry "
+    "friction shows",
+    "two_stage": "Kτ from near-zero-velocity samples, then Kv (Sec. 3.3.1)",
+}
+#: Longest filter window or stride (s): a longer one is a sample count in an old config.
+MAX_WINDOW = 2.0
 #: Initial breakpoints (N·m) of the piecewise-linear fit: the paper's, then wider ones
 #: (Sec. 3.2.3: "it requires the user to provide an initial guess").
 PIECEWISE_INITIAL_BREAKPOINTS = ((-0.5, 0.5), (-2.0, 2.0), (-5.0, 5.0))
@@ -73,8 +91,19 @@ class IdentifyConfig:
             sinusoid per right-leg joint).
         duration_scale: shortens the default collection (1 = about 90 s of data).
         joints: the joints to identify; empty: the robot's controlled joints.
-        window: Savitzky-Golay window of the non-causal estimates (odd).
-        stride: keep every stride-th sample of the log.
+        window: Savitzky-Golay window of the non-causal estimates (s): the odd
+            number of samples nearest to it at the log's rate (81 at 1 kHz).
+        stride: keep one sample per `stride` seconds of the log.
+        fit: the fit `motor_model.yaml` holds (`FITS`): "asymmetric" (eq. 8: rarely
+            over-estimates |Δq|, conservative, what the paper's controller uses),
+            "least_squares" (eq. 7: the smallest error, for prediction and
+            simulation), "coulomb" (least squares with the Coulomb term), "two_stage"
+            (Sec. 3.3.1).
+        saturation_margin: a sample is left out of the fits where the servo's
+            documented output (robot description's `position_loop`) exceeds this
+            share of its limit anywhere in its filter window: in saturation Δq no
+            longer sets the torque, and the driver's effective voltage already
+            drops near full output.
         w: weight of over-estimation in the asymmetric penalty. The paper used 100;
             on our emulated servo (direction-dependent gain, dead zone) 100 leaves
             up to ~10% of held-out samples over-estimated by a hair (tenths of a
@@ -91,8 +120,10 @@ class IdentifyConfig:
     collection: CollectionConfig = field(default_factory=CollectionConfig)
     duration_scale: float = 1.0
     joints: list[str] = field(default_factory=list)
-    window: int = 81
-    stride: int = 5
+    window: float = 0.081
+    stride: float = 0.005
+    fit: str = "asymmetric"
+    saturation_margin: float = 0.9
     w: float = 1000.0
     w_sweep: list[float] = field(default_factory=lambda: [1.0, 10.0, 100.0, 1000.0, 10000.0])
     zero_velocity_threshold: float = 0.05
@@ -113,12 +144,17 @@ class IdentifyConfig:
             raise ValueError(
                 f"IdentifyConfig.joints: duplicated joints in {self.joints}"
             )
-        if self.window % 2 == 0 or self.window < 3:
-            raise ValueError(
-                f"IdentifyConfig.window must be odd and >= 3, got {self.window}"
-            )
-        if self.stride < 1:
-            raise ValueError(f"IdentifyConfig.stride must be >= 1, got {self.stride}")
+        for name, longest in (("window", MAX_WINDOW), ("stride", MAX_WINDOW)):
+            value = getattr(self, name)
+            check_finite(value, f"IdentifyConfig.{name}", 0.0)
+            if value > longest:
+                raise ValueError(
+                    f"IdentifyConfig.{name}: {value:g} s, longer than {longest:g} s: "
+                    f"{name}s are in seconds (81 samples at 1 kHz: 0.081)"
+                )
+        if self.fit not in FITS:
+            raise ValueError(f"IdentifyConfig.fit: '{self.fit}', expected one of {FITS}")
+        check_finite(self.saturation_margin, "IdentifyConfig.saturation_margin", 0.0)
         if self.held_out_every < 2:
             raise ValueError(
                 f"IdentifyConfig.held_out_every must be >= 2, got {self.held_out_every}"
@@ -155,6 +191,9 @@ class JointResult:
     validation: dict[str, dict[str, float]]  # method -> {"rms", "overestimation"}
     samples: dict[str, int]
     w_sweep: dict[float, dict[str, float]]  # w -> k_tau, k_v, rms, overestimation
+    #: per gain (logs of several gains): method -> {"k_tau", "k_v", "k_c"} times gain
+    per_gain: dict[float, dict[str, dict[str, float]]] = field(default_factory=dict)
+    piecewise_note: str = ""  # how the piecewise-linear fit went (report)
 
 
 @dataclass
@@ -164,9 +203,14 @@ class IdentificationResult:
     held_out: np.ndarray
     train: np.ndarray
     config: IdentifyConfig
-    identified: MotorModel  # the asymmetric fit: what the controller reads
+    identified: MotorModel  # the fit of config.fit: what motor_model.yaml holds
     estimation_rms: np.ndarray | None = None  # τ̂ vs truth (N·m), if the log has truth
     estimation_peak: np.ndarray | None = None
+    #: the servo gain the models hold at (logs that state one), else 0
+    gain: float = 0.0
+    #: samples left out: servo off or filter edges, output saturated
+    excluded: dict[str, int] = field(default_factory=dict)
+    logs: list[dict] = field(default_factory=list)  # one row per log (real logs)
 
 
 def collect_log(config: IdentifyConfig, progress: bool = True) -> tuple[dict, list[str]]:
@@ -189,100 +233,180 @@ def collect_log(config: IdentifyConfig, progress: bool = True) -> tuple[dict, li
 def identify(
     config: IdentifyConfig, log: dict, log_joint_names: list[str]
 ) -> IdentificationResult:
-    """Non-causal estimation, then every fit per joint, validated on held-out blocks."""
+    """`identify_segments` of one log."""
+    return identify_segments(config, [LogSegment(log, list(log_joint_names))])
+
+
+def identify_segments(
+    config: IdentifyConfig, segments: Sequence[LogSegment]
+) -> IdentificationResult:
+    """Non-causal estimation of each log, then every fit per joint on the pooled
+    training samples, validated on held-out blocks of every log.
+
+    Logs that state the servo's gain pool into one gain-aware model: each sample's Δq
+    is brought to the reference gain (the smallest of the logs) by Δq · gain /
+    reference (a P-controlled servo's output is gain · Δq), and the models hold at that
+    gain (`MotorModel.gain`). Samples where the servo is off, or its output near its
+    documented limit, are left out.
+    """
     config.validate()
     robot = config.station.description()
-    estimator = FloatingBaseTorqueEstimator(robot.make_plant(), robot.estimator_config())
-    data = noncausal_estimates(log, log_joint_names, estimator, config.window, config.stride)
-    log_period = float(np.median(np.diff(log["t"])))
-    margin = config.window * log_period  # the filters' edges: fitted, not centred
-    inside = (data.t > data.t[0] + margin) & (data.t < data.t[-1] - margin)
-    usable = inside & (data.phase != PHASE_TRANSITION)
-    held = split_blocks(data.t, config.held_out_block, config.held_out_every)
-    train, test = usable & ~held, usable & held
-    columns = {name: i for i, name in enumerate(estimator.config().joints)}
-    labelled = bool(np.any(data.phase >= 0))
-    results = []
-    for name in config.identified_joints():
-        j = columns[name]
-        tau, dq, dlt = data.joint(j, train)
-        models = {
-            "least_squares": fit_least_squares(tau, dq, dlt, joint_name=name),
-            "asymmetric": fit_asymmetric(tau, dq, dlt, config.w, joint_name=name),
-        }
-        # Refuse data that identify no motor (noise, too little excitation): the
-        # two models written to files must be positive and explain the data.
-        check_identified(models["least_squares"], tau, dq, dlt)
-        check_identified(models["asymmetric"], tau, dq, dlt, min_explained=None)
-        models["two_stage"] = fit_two_stage(
-            tau, dq, dlt, config.zero_velocity_threshold, config.w, joint_name=name
+    gains = [s.gain for s in segments]
+    if len(set(gains)) > 1 and None in gains:
+        missing = segments[gains.index(None)].source
+        raise ValueError(
+            f"{missing}: states no servo gain (the robot description's logs.gain), "
+            "but pooling it with logs of other gains needs each log's gain"
         )
-        # The piecewise-linear model of Sec. 3.2 has no velocity term: the paper fitted
-        # it to the static high-torque data (Fig. 1), and so do we (an unlabelled log:
-        # its near-zero-velocity samples).
-        static = np.abs(data.dq[:, j]) < config.zero_velocity_threshold
-        pushes = train & (data.phase == PHASE_HIGH_TORQUE if labelled else static)
-        piecewise = _fit_piecewise(data.joint(j, pushes), name)
-        tau_h, dq_h, dlt_h = data.joint(j, test)
-        validation = {}
-        static_h = test & (data.phase == PHASE_HIGH_TORQUE if labelled else static)
-        for method, fitted in list(models.items()) + [("piecewise_linear", piecewise)]:
-            if fitted is None:
-                continue
-            samples = (tau_h, dq_h, dlt_h)
-            if method == "piecewise_linear":
-                samples = data.joint(j, static_h)
-            residual = fitted.predict(*samples[:2]) - samples[2]
-            validation[method] = {
-                "rms": float(np.sqrt(np.mean(residual**2))),
-                "overestimation": overestimation_share(fitted, *samples),
-            }
-        sweep = {}
-        for w in config.w_sweep:
-            fitted = fit_asymmetric(tau, dq, dlt, w, joint_name=name)
-            sweep[w] = {
-                "k_tau": float(fitted.k_tau[0]),
-                "k_v": float(fitted.k_v[0]),
-                "rms": float(np.sqrt(np.mean((fitted.predict(tau_h, dq_h) - dlt_h) ** 2))),
-                "overestimation": overestimation_share(fitted, tau_h, dq_h, dlt_h),
-            }
-        samples = {"train": int(train.sum()), "held_out": int(test.sum())}
-        results.append(JointResult(name, models, piecewise, validation, samples, sweep))
-    identified = MotorModel.from_joints({r.joint: r.models["asymmetric"] for r in results})
+    reference = min(gains) if gains[0] is not None else 0.0
+    estimator = FloatingBaseTorqueEstimator(robot.make_plant(), robot.estimator_config())
+    data = estimate_segments(
+        segments, estimator, config.window, config.stride,
+        robot.position_loop.saturation_error, config.saturation_margin,
+    )
+    if reference:
+        data.delta_q = data.delta_q * (data.gain / reference)[:, None]
+    held = np.zeros(len(data.t), bool)
+    for k in range(len(segments)):
+        rows = data.segment == k
+        held[rows] = split_blocks(data.t[rows], config.held_out_block, config.held_out_every)
+    usable = data.usable & (data.phase != PHASE_TRANSITION)
+    columns = {name: i for i, name in enumerate(estimator.config().joints)}
+    results = [
+        _identify_joint(config, data, usable & ~data.saturated[:, columns[name]], held,
+                        columns[name], name, reference)
+        for name in config.identified_joints()
+    ]
+    chosen = MotorModel.from_joints({r.joint: r.models[config.fit] for r in results})
     rms = peak = None
     if data.tau_true is not None:
-        err = data.tau[inside] - data.tau_true[inside]
+        err = data.tau[data.usable] - data.tau_true[data.usable]
         rms = np.sqrt(np.mean(err**2, axis=0))
-        peak = np.abs(data.tau_true[inside]).max(axis=0)
-    return IdentificationResult(results, data, held, train, config, identified, rms, peak)
+        peak = np.abs(data.tau_true[data.usable]).max(axis=0)
+    excluded = {
+        "servo off or filter edges": int(np.count_nonzero(~data.usable)),
+        "output saturated": int(np.count_nonzero(data.usable & data.saturated.any(axis=1))),
+    }
+    return IdentificationResult(
+        results, data, held, usable & ~held, config, chosen, rms, peak,
+        reference, excluded,
+    )
+
+
+def _identify_joint(
+    config: IdentifyConfig,
+    data: IdentificationData,
+    usable: np.ndarray,
+    held: np.ndarray,
+    j: int,
+    name: str,
+    gain: float,
+) -> JointResult:
+    """Every fit of one joint on its training samples, validated on held-out ones."""
+    train, test = usable & ~held, usable & held
+    if not np.any(train):
+        raise ValueError(
+            f"joint {name!r}: no sample to identify from: every sample has the servo "
+            "off, its output saturated, or lies within a filter window of a log's edge"
+        )
+    tau, dq, dlt = data.joint(j, train)
+    models = _fits(config, tau, dq, dlt, name, gain)
+    # Refuse data that identify no motor (noise, too little excitation): the
+    # two models the controller and a prediction read must be positive and explain
+    # the data.
+    check_identified(models["least_squares"], tau, dq, dlt)
+    check_identified(models["asymmetric"], tau, dq, dlt, min_explained=None)
+    # The piecewise-linear model of Sec. 3.2 has no velocity term: the paper fitted
+    # it to the static high-torque data (Fig. 1), and so do we (an unlabelled log:
+    # its near-zero-velocity samples).
+    labelled = bool(np.any(data.phase >= 0))
+    static = np.abs(data.dq[:, j]) < config.zero_velocity_threshold
+    pushes = train & (data.phase == PHASE_HIGH_TORQUE if labelled else static)
+    piecewise, piecewise_note = _fit_piecewise(data.joint(j, pushes), name)
+    tau_h, dq_h, dlt_h = data.joint(j, test)
+    validation = {}
+    static_h = test & (data.phase == PHASE_HIGH_TORQUE if labelled else static)
+    for method, fitted in list(models.items()) + [("piecewise_linear", piecewise)]:
+        samples = data.joint(j, static_h) if method == "piecewise_linear" else (tau_h, dq_h, dlt_h)
+        if fitted is None or samples[0].size == 0:
+            continue
+        residual = fitted.predict(*samples[:2]) - samples[2]
+        validation[method] = {
+            "rms": float(np.sqrt(np.mean(residual**2))),
+            "overestimation": overestimation_share(fitted, *samples),
+        }
+    sweep = {}
+    for w in config.w_sweep:
+        fitted = fit_asymmetric(tau, dq, dlt, w, joint_name=name)
+        sweep[w] = {
+            "k_tau": float(fitted.k_tau[0]),
+            "k_v": float(fitted.k_v[0]),
+            "rms": _rms(fitted, tau_h, dq_h, dlt_h),
+            "overestimation": overestimation_share(fitted, tau_h, dq_h, dlt_h),
+        }
+    per_gain = {}
+    log_gains = np.unique(data.gain[train]) if gain else []
+    for g in log_gains if len(log_gains) > 1 else []:
+        rows = train & (data.gain == g)
+        tau_g, dq_g, dlt_g = data.joint(j, rows)
+        fitted = _fits(config, tau_g, dq_g, dlt_g * gain / g, name, g)
+        per_gain[float(g)] = {
+            m: {p: float(getattr(f, p)[0] * g) for p in ("k_tau", "k_v", "k_c")}
+            for m, f in fitted.items()
+        }
+    samples = {"train": int(train.sum()), "held_out": int(test.sum())}
+    return JointResult(
+        name, models, piecewise, validation, samples, sweep, per_gain, piecewise_note
+    )
+
+
+def _fits(config, tau, dq, dlt, name: str, gain: float) -> dict[str, MotorModel]:
+    """Every linear fit of `FITS`, each model holding at `gain` and naming its fit."""
+    models = {
+        "least_squares": fit_least_squares(tau, dq, dlt, joint_name=name),
+        "asymmetric": fit_asymmetric(tau, dq, dlt, config.w, joint_name=name),
+        "coulomb": fit_least_squares(tau, dq, dlt, coulomb=True, joint_name=name),
+        "two_stage": fit_two_stage(
+            tau, dq, dlt, config.zero_velocity_threshold, config.w, joint_name=name
+        ),
+    }
+    return {
+        method: dataclasses.replace(model, gain=float(gain), fit=method)
+        for method, model in models.items()
+    }
+
+
+def _rms(model: MotorModel, tau, dq, dlt) -> float:
+    return float(np.sqrt(np.mean((model.predict(tau, dq) - dlt) ** 2))) if tau.size else math.nan
 
 
 def _fit_piecewise(samples, name: str):
-    """The piecewise-linear fit from the first initial guess that works, or None.
+    """The piecewise-linear fit from the first initial guess that works, and a note
+    for the report (why there is none, or which guesses failed first).
 
     The piecewise-linear model is the one the paper tried and abandoned (Sec. 3.2),
     fitted for comparison only; its algorithm needs a good initial guess (the
-    paper's words), so a guess that fails is expected, not an error: one
-    information line per joint says which guesses failed and what came of it."""
+    paper's words): the paper's breakpoints in N·m, then ones at 10% and 30% of the
+    joint's peak static torque (a small servo). A guess that fails is expected, not an
+    error: the report says so, the console only in debug."""
+    tau = samples[0]
+    peak = float(np.percentile(np.abs(tau), 95)) if tau.size else 0.0
+    guesses = PIECEWISE_INITIAL_BREAKPOINTS + tuple(
+        (-f * peak, f * peak) for f in (0.1, 0.3) if f * peak < PIECEWISE_INITIAL_BREAKPOINTS[0][1]
+    )
     failed = []
-    for guess in PIECEWISE_INITIAL_BREAKPOINTS:
+    for guess in guesses:
         try:
             fitted = fit_piecewise_linear(*samples, initial_breakpoints=guess, joint_name=name)
         except ValueError as error:
             failed.append((guess, _reason(error)))
             continue
-        if failed:
-            _logger.info(
-                "%s: piecewise-linear model (Sec. 3.2, abandoned by the paper; for "
-                "comparison only) fitted from the initial breakpoints %s N·m; %s",
-                name, _breakpoints(guess), _failures(failed),
-            )
-        return fitted
-    _logger.info(
-        "%s: no piecewise-linear model (Sec. 3.2, abandoned by the paper; for comparison "
-        "only; its column of the report says 'failed'): %s", name, _failures(failed),
-    )
-    return None
+        note = f"from {_breakpoints(guess)} N·m" + (f"; {_failures(failed)}" if failed else "")
+        _logger.debug("%s: piecewise-linear model (for comparison only) %s", name, note)
+        return fitted, note
+    note = f"not fitted: {_failures(failed)}"
+    _logger.debug("%s: piecewise-linear model (for comparison only) %s", name, note)
+    return None, note
 
 
 def _reason(error: ValueError) -> str:
@@ -305,8 +429,9 @@ def _failures(failed: list[tuple[tuple[float, float], str]]) -> str:
 
 # ------------------------------------------------------------------------- report
 def write_report(result: IdentificationResult, out: Path, log_is_simulated: bool) -> dict:
-    """Writes report.md, results.json, motor_model.yaml and the figures; returns the
-    results as a dict."""
+    """Writes identification.md, identification.json, motor_model.yaml (the fit of
+    `IdentifyConfig.fit`), motor_model_<fit>.yaml for every fit, and the figures;
+    returns the results as a dict."""
     out.mkdir(parents=True, exist_ok=True)
     robot = result.config.station.description()
     joints = result.config.identified_joints()
@@ -317,11 +442,14 @@ def write_report(result: IdentificationResult, out: Path, log_is_simulated: bool
     )
     rows = {}
     for k, r in enumerate(result.joints):
-        row = {m: {"k_tau": float(r.models[m].k_tau[0]), "k_v": float(r.models[m].k_v[0])}
-               for m in LINEAR_METHODS}
+        row = {m: {"k_tau": float(r.models[m].k_tau[0]), "k_v": float(r.models[m].k_v[0]),
+                   "k_c": float(r.models[m].k_c[0])}
+               for m in FITS}
         row["validation"] = r.validation
         row["samples"] = r.samples
         row["w_sweep"] = {f"{w:g}": v for w, v in r.w_sweep.items()}
+        if r.per_gain:
+            row["per_gain"] = {f"{g:g}": v for g, v in r.per_gain.items()}
         if r.joint in PAPER_TABLE1:
             row["paper"] = {"k_tau": PAPER_TABLE1[r.joint][0] * 1e-3,
                             "k_v": PAPER_TABLE1[r.joint][1] * 1e-3}
@@ -331,7 +459,10 @@ def write_report(result: IdentificationResult, out: Path, log_is_simulated: bool
                 p: row["asymmetric"][p] / row["emulator"][p] - 1 for p in ("k_tau", "k_v")
             }
         rows[r.joint] = row
-    summary = {"joints": rows}
+    summary = {"joints": rows, "fit": result.config.fit, "gain": result.gain,
+               "excluded_samples": result.excluded}
+    if result.logs:
+        summary["logs"] = result.logs
     if result.estimation_rms is not None:
         cols = [robot.joints.index(j) for j in joints]
         summary["torque_estimation"] = {
@@ -340,10 +471,10 @@ def write_report(result: IdentificationResult, out: Path, log_is_simulated: bool
         }
     (out / "identification.json").write_text(json.dumps(summary, indent=2))
     result.identified.save(out / "motor_model.yaml")
-    # The symmetric fit too: the open-loop stability experiment contrasts the two.
-    MotorModel.from_joints(
-        {r.joint: r.models["least_squares"] for r in result.joints}
-    ).save(out / "motor_model_least_squares.yaml")
+    for method in FITS:
+        MotorModel.from_joints(
+            {r.joint: r.models[method] for r in result.joints}
+        ).save(out / f"motor_model_{method}.yaml")
     figures = plot_figures(result, out)
     (out / "identification.md").write_text(_markdown(result, summary, figures))
     return summary
@@ -356,86 +487,176 @@ def _label(joint: str, robot: RobotDescription | None = None) -> str:
     return joint
 
 
+def _table(header: list[str], rows: list[list[str]], align: str = "---:") -> list[str]:
+    """A markdown table: the first column left-aligned, the others `align`."""
+    return [
+        "| " + " | ".join(header) + " |",
+        "| --- |" + f" {align} |" * (len(header) - 1),
+        *("| " + " | ".join(row) + " |" for row in rows),
+    ]
+
+
 def _markdown(result: IdentificationResult, summary: dict, figures: list[str]) -> str:
+    config = result.config
+    robot = config.station.description()
+    label = functools.partial(_label, robot=robot)
+    joints = summary["joints"]
+    at_gain = f" at servo gain {result.gain:g}" if result.gain else ""
     lines = [
-        "# Motor identification (paper Sec. 3, Table 1, Figures 1 and 3)",
+        f"# Motor identification of {robot.name} (paper Sec. 3, Table 1, Figures 1 and 3)",
         "",
         f"Samples: {int(result.train.sum())} training, "
         f"{int((~result.train & result.held_out).sum())} held out "
-        f"(one {result.config.held_out_block:g} s block in "
-        f"{result.config.held_out_every}), window "
-        f"{result.config.window}, w = {result.config.w:g}.",
+        f"(one {config.held_out_block:g} s block in {config.held_out_every}), window "
+        f"{config.window * 1e3:g} ms, w = {config.w:g}. Left out: "
+        + ", ".join(f"{n} {what}" for what, n in result.excluded.items()) + ".",
         "",
-        "## Table 1: identified motor parameters (10³ Kτ in rad/(N·m), 10³ Kv in s)",
+        f"`motor_model.yaml` holds the **{config.fit.replace('_', ' ')}** fit{at_gain}; "
+        "every fit is also written as `motor_model_<fit>.yaml`. What each is for:",
         "",
-        "| joint | asymmetric Kτ | Kv | least squares Kτ | Kv | two-stage Kτ | Kv "  # LINEAR_METHODS
-        "| emulator Kτ | Kv | error Kτ, Kv (asym.) | paper Kτ | Kv |",
-        "| --- |" + " ---: |" * 11,
+        *(f"- {m.replace('_', ' ')}: {FIT_PURPOSE[m]}." for m in FITS),
     ]
-    for joint, row in summary["joints"].items():
-        cells = []
-        for m in LINEAR_METHODS:
-            cells += [f"{row[m]['k_tau'] * 1e3:.4f}", f"{row[m]['k_v'] * 1e3:.3f}"]
-        if "emulator" in row:
-            e = row["relative_error_asymmetric"]
-            cells += [f"{row['emulator']['k_tau'] * 1e3:.4f}", f"{row['emulator']['k_v'] * 1e3:.3f}",
-                      f"{e['k_tau'] * 100:+.1f}%, {e['k_v'] * 100:+.1f}%"]
-        else:
-            cells += ["–", "–", "–"]
-        paper = row.get("paper")
-        cells += [f"{paper['k_tau'] * 1e3:.3f}", f"{paper['k_v'] * 1e3:.3f}"] if paper else ["–", "–"]
-        lines.append(f"| {_label(joint, result.config.station.description())} | " + " | ".join(cells) + " |")
+    if result.logs:
+        lines += ["", "## Logs", "", *_table(
+            ["log", "raw rate (Hz)", "duration (s)", "gain", "servo on", "longest gap (ms)"],
+            [[r["log"], f"{r['raw_rate_hz']:g}", f"{r['duration_s']:g}",
+              "–" if r["gain"] is None else f"{r['gain']:g}",
+              f"{r['valid_share'] * 100:.0f}%", f"{r['longest_gap_s'] * 1e3:.1f}"]
+             for r in result.logs])]
+    lines += _parameter_table(result, joints, label)
+    lines += _gain_table(result, joints, label)
     lines += [
         "",
         "## Validation on held-out samples",
         "",
         "RMS of Δq̂ − Δq (mrad) / share of samples where |Δq| is over-estimated.",
         "",
-        "| joint | asymmetric | least squares | two-stage | piecewise-linear (pushes only) |",
-        "| --- | --- | --- | --- | --- |",
     ]
-    for joint, row in summary["joints"].items():
-        cells = []
-        for m in LINEAR_METHODS + ("piecewise_linear",):
-            v = row["validation"].get(m)
-            cells.append(f"{v['rms'] * 1e3:.3f} / {v['overestimation'] * 100:.1f}%" if v else "failed")
-        lines.append(f"| {_label(joint, result.config.station.description())} | " + " | ".join(cells) + " |")
-    lines += [
+    methods = FITS + ("piecewise_linear",)
+    lines += _table(
+        ["joint", *(m.replace("_", " ") for m in methods[:-1]),
+         "piecewise-linear (static samples only)"],
+        [[label(joint)] + [
+            f"{v['rms'] * 1e3:.3f} / {v['overestimation'] * 100:.1f}%" if v else "not fitted"
+            for v in (row["validation"].get(m) for m in methods)
+        ] for joint, row in joints.items()],
+        align="---",
+    )
+    notes = [f"- {label(r.joint)}: {r.piecewise_note}" for r in result.joints if r.piecewise_note]
+    if notes:
+        lines += ["", "The piecewise-linear model (Sec. 3.2, abandoned by the paper; for "
+                  "comparison only) needs an initial guess of its breakpoints:", "", *notes]
+    lines += _sweep_table(result, joints, label)
+    if "torque_estimation" in summary:
+        lines += ["", "## Non-causal torque estimate vs ground truth", "", *_table(
+            ["joint", "RMS error (N·m)", "peak |τ| (N·m)", "RMS / peak"],
+            [[label(j), f"{v['rms']:.3f}", f"{v['peak']:.1f}", f"{v['rms'] / v['peak'] * 100:.2f}%"]
+             for j, v in summary["torque_estimation"].items()])]
+    lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures]
+    return "\n".join(lines) + "\n"
+
+
+def _parameter_table(result, joints: dict, label) -> list[str]:
+    """Table 1: every fit's parameters; the emulator's and the paper's columns only
+    where there is something to compare."""
+    truth = truth_in({"joints": joints})
+    paper = any("paper" in row for row in joints.values())
+    scale = f" (servo gain {result.gain:g})" if result.gain else ""
+    header = ["joint"]
+    for m in FITS:
+        header += [f"{m.replace('_', ' ')} Kτ", "Kv"] + (["Kc"] if m == "coulomb" else [])
+    header += ["emulator Kτ", "Kv", "error Kτ, Kv (asym.)"] if truth else []
+    header += ["paper Kτ", "Kv"] if paper else []
+    rows = []
+    for joint, row in joints.items():
+        cells = [label(joint)]
+        for m in FITS:
+            cells += [f"{row[m]['k_tau'] * 1e3:.4f}", f"{row[m]['k_v'] * 1e3:.3f}"]
+            cells += [f"{row[m]['k_c'] * 1e3:.3f}"] if m == "coulomb" else []
+        if truth:
+            e = row.get("relative_error_asymmetric")
+            cells += [f"{row['emulator']['k_tau'] * 1e3:.4f}", f"{row['emulator']['k_v'] * 1e3:.3f}",
+                      f"{e['k_tau'] * 100:+.1f}%, {e['k_v'] * 100:+.1f}%"] if e else ["–"] * 3
+        if paper:
+            p = row.get("paper")
+            cells += [f"{p['k_tau'] * 1e3:.3f}", f"{p['k_v'] * 1e3:.3f}"] if p else ["–", "–"]
+        rows.append(cells)
+    return ["", f"## Table 1: identified motor parameters{scale} (10³ Kτ in rad/(N·m), "
+            "10³ Kv in s, 10³ Kc in rad)", "", *_table(header, rows)]
+
+
+def _gain_table(result, joints: dict, label) -> list[str]:
+    """Gain consistency: each fit's Kτ·gain and Kv·gain fitted on each gain's logs
+    alone, and their spread (max / min; 1 for a servo whose output is gain · Δq)."""
+    if not any("per_gain" in row for row in joints.values()):
+        return []
+    lines = ["", "## Gain consistency", "",
+             "Each fit on the logs of one servo gain at a time: Kτ·gain (rad/(N·m) · gain) "
+             "and Kv·gain (s · gain), and their spread (max/min) across the gains. A "
+             "P-controlled servo's output is gain · Δq, so a spread of 1 means the model "
+             "transfers from one gain to another; the pooled model above assumes it.", ""]
+    for joint, row in joints.items():
+        gains = list(row.get("per_gain", {}))
+        if not gains:
+            continue
+        body = []
+        for m in FITS:
+            per = [row["per_gain"][g][m] for g in gains]
+            cells = [m.replace("_", " ")]
+            for p in ("k_tau", "k_v"):
+                values = [v[p] for v in per]
+                cells += [f"{v:.4g}" for v in values]
+                cells.append(f"{max(values) / min(values):.3f}" if min(values) > 0 else "–")
+            body.append(cells)
+        header = (["fit (" + label(joint) + ")"] + [f"Kτ·gain at {g}" for g in gains]
+                  + ["Kτ spread"] + [f"Kv·gain at {g}" for g in gains] + ["Kv spread"])
+        lines += _table(header, body) + [""]
+    return lines[:-1]
+
+
+def _sweep_table(result, joints: dict, label) -> list[str]:
+    config = result.config
+    lines = [
         "",
         "## The asymmetric penalty's weight w",
         "",
         "Held-out share of over-estimated |Δq|"
-        + (" / error of Kτ, Kv against the emulator" if truth_in(summary) else "")
+        + (" / error of Kτ, Kv against the emulator" if truth_in({"joints": joints}) else "")
         + " (the paper used w = 100).",
         "",
-        "| joint | " + " | ".join(f"w = {w:g}" for w in result.config.w_sweep) + " |",
-        "| --- |" + " --- |" * len(result.config.w_sweep),
     ]
-    for joint, row in summary["joints"].items():
-        cells = []
-        for w, v in row["w_sweep"].items():
+    rows = []
+    for joint, row in joints.items():
+        cells = [label(joint)]
+        for v in row["w_sweep"].values():
             cell = f"{v['overestimation'] * 100:.1f}%"
             if "emulator" in row:
                 e = row["emulator"]
                 cell += f" / {(v['k_tau'] / e['k_tau'] - 1) * 100:+.1f}%, {(v['k_v'] / e['k_v'] - 1) * 100:+.1f}%"
             cells.append(cell)
-        lines.append(f"| {_label(joint, result.config.station.description())} | " + " | ".join(cells) + " |")
-    if "torque_estimation" in summary:
-        lines += ["", "## Non-causal torque estimate vs ground truth", "",
-                  "| joint | RMS error (N·m) | peak |τ| (N·m) | RMS / peak |", "| --- | ---: | ---: | ---: |"]
-        for joint, v in summary["torque_estimation"].items():
-            lines.append(f"| {_label(joint, result.config.station.description())} | {v['rms']:.3f} | {v['peak']:.1f} | {v['rms'] / v['peak'] * 100:.2f}% |")
-    lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures]
-    return "\n".join(lines) + "\n"
+        rows.append(cells)
+    return lines + _table(["joint"] + [f"w = {w:g}" for w in config.w_sweep], rows, align="---")
 
 
 def truth_in(summary: dict) -> bool:
     return any("emulator" in row for row in summary["joints"].values())
 
 
+#: The joints of the paper's Figures 1 (knee, hip pitch) and 3 (ankle pitch, hip roll).
+FIGURE1_JOINTS = ("RLEG_JOINT3", "RLEG_JOINT2")
+FIGURE3_JOINTS = ("RLEG_JOINT4", "RLEG_JOINT1")
+
+
+def _figure_joints(identified: Sequence[str], paper: Sequence[str]) -> list[str]:
+    """The paper's joints of a figure if they were identified, else the robot's first
+    two identified joints."""
+    return [j for j in paper if j in identified] or list(identified)[:2]
+
+
 def plot_figures(result: IdentificationResult, out: Path) -> list[str]:
-    """Figure 1 (τ vs Δq at near-zero velocity, knee and hip pitch, with the fits) and
-    Figure 3 (friction part vs q̇, symmetric vs asymmetric, ankle pitch and hip roll)."""
+    """Figure 1 (τ vs Δq at near-zero velocity with the fits; HRP-2: knee and hip
+    pitch) and Figure 3 (friction part vs q̇, symmetric vs asymmetric; HRP-2: ankle
+    pitch and hip roll); another robot: its first two identified joints."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -446,7 +667,7 @@ def plot_figures(result: IdentificationResult, out: Path) -> list[str]:
     column = {name: i for i, name in enumerate(cfg.station.description().joints)}
     names = []
 
-    fig1 = [j for j in ("RLEG_JOINT3", "RLEG_JOINT2") if j in by_joint]
+    fig1 = _figure_joints(by_joint, FIGURE1_JOINTS)
     if fig1:
         fig, axes = plt.subplots(1, len(fig1), figsize=(6 * len(fig1), 4.5), squeeze=False)
         for ax, joint in zip(axes[0], fig1):
@@ -464,7 +685,7 @@ def plot_figures(result: IdentificationResult, out: Path) -> list[str]:
                 ax.plot(grid, r.piecewise.negative(grid) * 1e3, "m:", label="piecewise, q̇ < 0")
             ax.set_xlabel("τ̂ (N·m)")
             ax.set_ylabel("Δq (mrad)")
-            ax.set_title(f"right {_label(joint, cfg.station.description())}, |q̇| < {cfg.zero_velocity_threshold} rad/s")
+            ax.set_title(f"{_label(joint, cfg.station.description())}, |q̇| < {cfg.zero_velocity_threshold} rad/s")
             ax.grid(True, alpha=0.3)
             ax.legend(fontsize=7)
         fig.suptitle("Figure 1: torque vs position error at near-zero velocity")
@@ -473,7 +694,7 @@ def plot_figures(result: IdentificationResult, out: Path) -> list[str]:
         plt.close(fig)
         names.append("figure1_torque_vs_delta_q.png")
 
-    fig3 = [j for j in ("RLEG_JOINT4", "RLEG_JOINT1") if j in by_joint]
+    fig3 = _figure_joints(by_joint, FIGURE3_JOINTS)
     if fig3:
         fig, axes = plt.subplots(len(fig3), 2, figsize=(11, 4 * len(fig3)), squeeze=False)
         for row, joint in zip(axes, fig3):
@@ -488,7 +709,7 @@ def plot_figures(result: IdentificationResult, out: Path) -> list[str]:
                 share = overestimation_share(fitted, tau, dq, dlt)
                 kind = "symmetric, eq. 7" if method == "least_squares" else f"asymmetric, w={cfg.w:g}"
                 ax.set_title(
-                    f"right {_label(joint, cfg.station.description())}, {kind}: over-estimates {share * 100:.1f}%",
+                    f"{_label(joint, cfg.station.description())}, {kind}: over-estimates {share * 100:.1f}%",
                     fontsize=10,
                 )
                 ax.set_xlabel("q̇ (rad/s)")
@@ -503,26 +724,58 @@ def plot_figures(result: IdentificationResult, out: Path) -> list[str]:
     return names
 
 
-def run_identify(config: IdentifyConfig, out: Path, log_path: Path | None = None) -> dict:
-    """The whole `hrp2-drake identify`: collect (or load), identify, report."""
+def run_identify(
+    config: IdentifyConfig, out: Path, log_paths: Sequence[Path] | Path | None = None
+) -> dict:
+    """The whole `hrp2-drake identify`: collect (or load the logs), identify, report."""
     config.validate()
     out.mkdir(parents=True, exist_ok=True)
-    if log_path is None:
+    if isinstance(log_paths, (str, Path)):
+        log_paths = [Path(log_paths)]
+    if not log_paths:
         log, names = collect_log(config)
         save_log(out / "identification_log.npz", log, names)
-        simulated = True
+        segments = [LogSegment(log, names, source="the collected log")]
+        simulated, rows = True, []
     else:
-        log, names = read_log(log_path, config.station.description())
-        simulated = "joint_torque_true" in log
+        segments, rows = read_segments(log_paths, config.station.description())
+        simulated = all("joint_torque_true" in s.log for s in segments)
     _logger.info("estimating and fitting ...")
     try:
-        result = identify(config, log, names)
+        result = identify_segments(config, segments)
     except (ValueError, KeyError) as error:
-        if log_path is None:
+        if not log_paths:
             raise
-        message = error.args[0] if isinstance(error, KeyError) and error.args else error
-        raise ValueError(f"{log_path}: {message}; no motor model written") from error
+        message = error.args[0] if isinstance(error, KeyError) and error.args else str(error)
+        where = "" if any(message.startswith(str(p)) for p in log_paths) else f"{log_paths[0]}: "
+        raise ValueError(f"{where}{message}; no motor model written") from error
+    result.logs = rows
     return write_report(result, out, simulated)
+
+
+def read_segments(
+    paths: Sequence[Path], robot: RobotDescription
+) -> tuple[list[LogSegment], list[dict]]:
+    """Each log file as one segment: this project's .npz logs as they are (`read_log`),
+    any other through the robot description's log format (`logs.read_robot_log`:
+    resampled to its grid). Also one report row per log that was resampled."""
+    segments, rows = [], []
+    for path in paths:
+        path = Path(path)
+        if path.suffix.lower() == ".npz" or robot.logs.format == "npz":
+            log, names = read_log(path, robot)
+            gain = log.pop("gain", None)
+            segments.append(LogSegment(
+                log, names, float(np.ravel(gain)[0]) if gain is not None else None, str(path)
+            ))
+            continue
+        robot_log = read_robot_log(path, robot.logs, robot.joints)
+        segments.append(LogSegment(
+            robot_log.arrays(), robot_log.joint_names, robot_log.gain, str(path),
+            robot_log.longest_gap,
+        ))
+        rows += describe([robot_log])
+    return segments, rows
 
 
 def read_log(

@@ -7,13 +7,14 @@ floating-base estimator as online (`FloatingBaseTorqueEstimator.estimate`).
 """
 
 import codecs
+import dataclasses
 import math
 import os
 import zipfile
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -34,6 +35,10 @@ class IdentificationData:
         phase, excited_joint: the log's labels (see excitation.py), (m,); -1 where
             the log has none.
         tau_true: ground-truth joint torques if the log has them (simulation), else None.
+        segment: the index of the log each sample comes from (`estimate_segments`).
+        gain: the servo gain of each sample's log (NaN: the log states none).
+        usable: inside its log's filter edges with its whole window valid (servo on).
+        saturated: (m, n), the servo's output near its limit within the window.
     """
 
     t: np.ndarray
@@ -45,6 +50,10 @@ class IdentificationData:
     phase: np.ndarray
     excited_joint: np.ndarray
     tau_true: np.ndarray | None = None
+    segment: np.ndarray | None = None
+    gain: np.ndarray | None = None
+    usable: np.ndarray | None = None
+    saturated: np.ndarray | None = None
 
     def joint(self, j: int, mask: np.ndarray | None = None):
         """(τ̂, q̇, Δq) of joint j (1-D arrays), the samples of `mask` only."""
@@ -359,6 +368,107 @@ def noncausal_estimates(
         t[keep], q, dq, ddq, tau, delta_q[keep],
         labels["phase"], labels["excited_joint"], tau_true,
     )
+
+
+@dataclass
+class LogSegment:
+    """One log of an identification: nothing filters across two segments.
+
+    Attributes:
+        log: the log's arrays ("t", "q_cmd", "q_measured", optional "valid", the
+            sensors the estimator needs, optional labels and truth).
+        joint_names: the joints of its columns.
+        gain: the servo gain it was recorded at (its own units), or None.
+        source: the file, for messages.
+        longest_gap: the longest interval between two raw samples (s) and where it
+            starts (s): a gap longer than the filter window cannot be filtered.
+    """
+
+    log: dict[str, np.ndarray]
+    joint_names: list[str]
+    gain: float | None = None
+    source: str = "the log"
+    longest_gap: tuple[float, float] = (0.0, 0.0)
+
+
+def estimate_segments(
+    segments: Sequence[LogSegment],
+    estimator: FloatingBaseTorqueEstimator,
+    window: float,
+    stride: float,
+    saturation_error: Callable[[float | None], float] = lambda gain: math.inf,
+    saturation_margin: float = 1.0,
+) -> IdentificationData:
+    """`noncausal_estimates` of each log, concatenated, with the masks a fit needs.
+
+    Args:
+        window, stride: in seconds: the odd number of samples nearest to `window`
+            at each log's own period, one sample every `stride` seconds.
+        saturation_error: |q_cmd − q| (rad) at which the servo's output saturates at a
+            gain (inf: never); a sample is `saturated` where any raw sample of its
+            window exceeds `saturation_margin` times it.
+
+    Raises:
+        ValueError: naming the log: a gap between raw samples longer than the window,
+            a log shorter than the window, and `noncausal_estimates`' errors.
+    """
+    from hrp2_drake.identification.logs import window_samples
+
+    parts = []
+    joints = estimator.config().joints
+    for k, segment in enumerate(segments):
+        log = segment.log
+        gap, where = segment.longest_gap
+        if gap > window:
+            raise ValueError(
+                f"{segment.source}: a gap of {gap:.3g} s between samples at t = "
+                f"{where:.3f} s, longer than the filter window {window:g} s "
+                "(IdentifyConfig.window): split the log there or widen the window"
+            )
+        t = np.asarray(log["t"], float)
+        period = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+        n_window = window_samples(window, period, f"{segment.source}: window")
+        n_stride = max(1, int(round(stride / period)))
+        try:
+            data = noncausal_estimates(log, segment.joint_names, estimator, n_window, n_stride)
+        except ValueError as error:
+            raise ValueError(f"{segment.source}: {error}") from None
+        keep = np.arange(0, len(t), n_stride)
+        cols = log_columns(segment.joint_names, joints)
+        invalid = np.asarray(log.get("valid", np.ones(len(t))))[:] == 0
+        margin = n_window * period  # the filters' edges: fitted, not centred
+        inside = (data.t > data.t[0] + margin) & (data.t < data.t[-1] - margin)
+        error = np.abs(log["q_cmd"][:, cols] - log["q_measured"][:, cols])
+        limit = saturation_margin * saturation_error(segment.gain)
+        data.segment = np.full(len(keep), k)
+        data.gain = np.full(len(keep), math.nan if segment.gain is None else segment.gain)
+        data.usable = inside & ~_within_window(invalid, n_window)[keep]
+        data.saturated = _within_window(error >= limit, n_window)[keep]
+        parts.append(data)
+    return _concatenate(parts)
+
+
+def _within_window(mask: np.ndarray, window: int) -> np.ndarray:
+    """True where any sample of the centred window of `window` samples is in `mask`
+    ((m,) or (m, n), per column)."""
+    kernel = np.ones(window)
+    columns = mask.reshape(len(mask), -1).astype(float)
+    spread = np.column_stack(
+        [np.convolve(c, kernel, mode="same") > 0.5 for c in columns.T]
+    )
+    return spread.reshape(mask.shape)
+
+
+def _concatenate(parts: Sequence[IdentificationData]) -> IdentificationData:
+    """One IdentificationData of several logs' (their samples one after another)."""
+    if len(parts) == 1:
+        return parts[0]
+    names = [f.name for f in dataclasses.fields(IdentificationData)]
+    joined = {}
+    for name in names:
+        values = [getattr(p, name) for p in parts]
+        joined[name] = None if any(v is None for v in values) else np.concatenate(values)
+    return IdentificationData(**joined)
 
 
 def split_blocks(t: np.ndarray, block: float = 1.0, held_out_every: int = 3) -> np.ndarray:

@@ -14,6 +14,7 @@ and abandoned (its torque control was unstable); it is kept to reproduce that re
 """
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping, NamedTuple
@@ -69,6 +70,8 @@ class MotorModelFile:
     k_tau: list[float] = field(default_factory=list)
     k_v: list[float] = field(default_factory=list)
     k_c: list[float] = field(default_factory=list)
+    gain: float = 0.0
+    fit: str = ""
 
 
 @dataclass
@@ -80,6 +83,11 @@ class MotorModel:
         k_tau: Torque gains, rad/(N·m), shape (n,).
         k_v: Velocity gains, rad/(rad/s) = s, shape (n,).
         k_c: Coulomb offsets, rad, shape (n,); zeros when None.
+        gain: the servo's position gain (its own units, e.g. a Dynamixel's kp) at
+            which the parameters hold; 0: a model of one fixed servo. A P-controlled
+            servo's output is proportional to its gain times Δq, so every term of
+            eq. 6 scales as 1/gain: `at_gain` gives the model at another gain.
+        fit: the fit that made it ("least_squares", "asymmetric", ...); "" unknown.
         reports: Fit diagnostics by joint name (not saved to YAML, not compared).
     """
 
@@ -90,6 +98,8 @@ class MotorModel:
     reports: dict[str, FitReport] = field(
         default_factory=dict, compare=False, repr=False
     )
+    gain: float = 0.0
+    fit: str = ""
 
     def __post_init__(self):
         self.joint_names = [str(name) for name in self.joint_names]
@@ -111,6 +121,33 @@ class MotorModel:
                 bad = [j for j, v in zip(self.joint_names, value) if not np.isfinite(v)]
                 raise ValueError(f"MotorModel: {name} is NaN or inf for joints {bad}")
             setattr(self, name, value)
+        if not (math.isfinite(self.gain) and self.gain >= 0):
+            raise ValueError(f"MotorModel: gain must be finite and >= 0, got {self.gain}")
+        self.gain = float(self.gain)
+
+    def at_gain(self, gain: float | None) -> "MotorModel":
+        """The model at servo gain `gain`: every parameter times self.gain / gain.
+        None, or a model without gain, is returned as is.
+
+        Raises:
+            ValueError: `gain` is not finite and > 0.
+        """
+        if gain is None or not self.gain:
+            return self
+        if not (math.isfinite(gain) and gain > 0):
+            raise ValueError(f"MotorModel.at_gain: gain must be finite and > 0, got {gain}")
+        scale = self.gain / gain
+        return dataclasses.replace(
+            self, k_tau=self.k_tau * scale, k_v=self.k_v * scale, k_c=self.k_c * scale,
+            gain=float(gain),
+        )
+
+    def torque(self, delta_q: np.ndarray, dq: np.ndarray) -> np.ndarray:
+        """The torque (N·m) a servo obeying the model gives at position error Δq and
+        velocity q̇: eq. 6 solved for τ, τ = (Δq − k_v q̇ − k_c sign(q̇)) / k_tau."""
+        return (
+            np.asarray(delta_q, float) - self.k_v * dq - self.k_c * np.sign(dq)
+        ) / self.k_tau
 
     def sign_errors(self) -> list[str]:
         """What makes the model no servo's (k_tau <= 0 or k_v < 0): one text per bad
@@ -132,6 +169,7 @@ class MotorModel:
         return (
             isinstance(other, MotorModel)
             and self.joint_names == other.joint_names
+            and self.gain == other.gain
             and all(
                 np.array_equal(getattr(self, name), getattr(other, name))
                 for name in ("k_tau", "k_v", "k_c")
@@ -190,6 +228,8 @@ class MotorModel:
             reports={
                 name: self.reports[name] for name in joint_names if name in self.reports
             },
+            gain=self.gain,
+            fit=self.fit,
         )
 
     @staticmethod
@@ -206,12 +246,18 @@ class MotorModel:
             for name, model in models.items()
             if model.joint_names[0] in model.reports
         }
+        gains = {m.gain for m in models.values()}
+        if len(gains) > 1:
+            raise ValueError(f"from_joints: the joints' models hold at different gains {sorted(gains)}")
+        fits = {m.fit for m in models.values()}
         return MotorModel(
             joint_names=list(models),
             k_tau=np.concatenate([m.k_tau for m in models.values()]),
             k_v=np.concatenate([m.k_v for m in models.values()]),
             k_c=np.concatenate([m.k_c for m in models.values()]),
             reports=reports,
+            gain=gains.pop(),
+            fit=fits.pop() if len(fits) == 1 else "",
         )
 
     def save(self, path: str | Path) -> None:
@@ -221,6 +267,8 @@ class MotorModel:
             k_tau=self.k_tau.tolist(),
             k_v=self.k_v.tolist(),
             k_c=self.k_c.tolist(),
+            gain=self.gain,
+            fit=self.fit,
         )
         yaml_dump_typed(data, filename=str(path))
 
