@@ -13,6 +13,10 @@ the source of every mechanism and number):
     s        = direction state in [-1, 1] (Dahl: ds/dq = (1 - s sign(q̇)) / δ)
     τ        = K1 (1 + a s) i - K2 q̇ - K3 s                      joint actuation
 
+With the servo switched off (its "enabled" input 0: a real servo's torque_enable
+false) the driver is off: i = 0 (no drive, no dead zone, no back-EMF braking) and
+only the mechanical friction acts, τ = -K2 q̇ - K3 s.
+
 Mechanisms (each switchable off, `SERVO_MECHANISMS`):
   - "latency": the command reaches the servo board d = `latency` seconds after the
     controller sent it (whole control periods).
@@ -86,6 +90,9 @@ class ServoJointParams:
         hysteresis_width: joint travel after a reversal over which the direction
             state switches (rad; Dahl presliding, gear lost motion); 0: the state is
             tanh(q̇ / v_coulomb), switching exactly with the sign of q̇.
+        gain: the servo's own position gain (its firmware units, e.g. a Dynamixel's
+            kp) at which k4 holds; a P-controlled servo's k4 is proportional to it
+            (`ServoParams.at_gain`). 0: a servo without a settable gain.
     """
 
     k1: float = 1.0
@@ -102,6 +109,7 @@ class ServoJointParams:
     stall_current: float = float("inf")
     no_load_speed: float = float("inf")
     hysteresis_width: float = 0.0
+    gain: float = 0.0
 
     def validate(self, where: str) -> None:
         positive = ("k1", "k4", "i_max", "v_coulomb", "stall_current", "no_load_speed")
@@ -110,7 +118,8 @@ class ServoJointParams:
             if not value > 0:
                 raise ValueError(f"{where}.{name}: must be > 0, got {value}")
         non_negative = (
-            "k2", "k3", "k5", "i_deadzone", "encoder_resolution", "latency", "hysteresis_width"
+            "k2", "k3", "k5", "i_deadzone", "encoder_resolution", "latency",
+            "hysteresis_width", "gain",
         )
         for name in non_negative:
             value = getattr(self, name)
@@ -138,6 +147,24 @@ class ServoParams:
             raise KeyError(f"servo parameters missing for joints {missing}")
         keys = ServoJointParams.__dataclass_fields__.keys()
         return {k: np.array([getattr(self.joints[n], k) for n in names]) for k in keys}
+
+    def at_gain(self, gain: float) -> "ServoParams":
+        """The servo run at position gain `gain` (the servo's own units): k4 of each
+        joint that states its `gain` scaled by gain / that gain (a P-controlled
+        servo's current command, or voltage, is proportional to its gain); the other
+        joints unchanged.
+
+        Raises:
+            ValueError: `gain` is not finite and > 0.
+        """
+        if not (math.isfinite(gain) and gain > 0):
+            raise ValueError(f"servo gain: must be finite and > 0, got {gain}")
+        scaled = copy.deepcopy(self)
+        for joint in scaled.joints.values():
+            if joint.gain > 0:
+                joint.k4 *= gain / joint.gain
+                joint.gain = gain
+        return scaled
 
     def validate(self, source: str = "") -> None:
         """Raises ValueError naming the joint and parameter (after `source`: a file)."""
@@ -285,12 +312,17 @@ def explicit_stability_margin(
 
 
 def servo_torque(
-    p: dict[str, np.ndarray], error: np.ndarray, v: np.ndarray, direction: np.ndarray
+    p: dict[str, np.ndarray],
+    error: np.ndarray,
+    v: np.ndarray,
+    direction: np.ndarray,
+    enabled: np.ndarray | None = None,
 ) -> np.ndarray:
     """The servo law (module docstring), N·m: joint torque for the position error
     e = q_cmd − q_encoder (rad) the board sees, the joint velocity v (rad/s) and the
     direction state (tanh(q̇ / v_s) without hysteresis). `p`: `ServoParams.vectors`
-    (arrays over the joints, or one joint's scalars)."""
+    (arrays over the joints, or one joint's scalars). `enabled`: per joint, > 0.5 on,
+    otherwise off (current 0, friction only); None: on."""
     u = p["k4"] * error - p["k5"] * v
     current = np.sign(u) * np.maximum(np.abs(u) - p["i_deadzone"], 0.0)
     # Driver limit and the voltage limit |R i + k_e ρ q̇| <= V (v / inf = 0: no limit).
@@ -298,6 +330,8 @@ def servo_torque(
     upper = np.minimum(p["i_max"], p["stall_current"] * (1.0 - back_emf))
     lower = np.maximum(-p["i_max"], -p["stall_current"] * (1.0 + back_emf))
     current = np.clip(current, lower, upper)
+    if enabled is not None:
+        current = np.where(enabled > 0.5, current, 0.0)  # torque_enable off: no drive
     k1 = p["k1"] * (1.0 + p["k1_asymmetry"] * direction)
     return k1 * current - p["k2"] * v - p["k3"] * direction
 
@@ -317,13 +351,17 @@ class Hrp2ServoEmulation(WitnessFreeLeafSystem):
 
                    ┌─────────────────────┐
         q_cmd ────►│                     │
-                   │ Hrp2ServoEmulation  ├──► actuation
-        state ────►│                     │
-                   └─────────────────────┘
+        state ────►│ Hrp2ServoEmulation  ├──► actuation
+      enabled ────►│                     │
+     (optional)    └─────────────────────┘
 
     Ports:
         q_cmd: commanded joint positions (rad), n = len(joint_names), joint order.
         state: the plant's state [q; v].
+        enabled: (only with `enable_port=True`) per joint, 1 on, 0 off: a real
+            servo's torque_enable. Off, the joint's current is 0 and only its
+            friction acts (module docstring); its latency buffer and direction state
+            keep running.
         actuation: joint torques (N·m) in the plant's actuation order, to be
             connected to the plant's actuation input.
 
@@ -347,6 +385,7 @@ class Hrp2ServoEmulation(WitnessFreeLeafSystem):
         initial_q_cmd: Sequence[float] | None = None,
         off: Sequence[str] = (),
         extra_latency: float = 0.0,
+        enable_port: bool = False,
     ):
         super().__init__()
         unknown = sorted(set(off) - set(SERVO_MECHANISMS))
@@ -387,6 +426,9 @@ class Hrp2ServoEmulation(WitnessFreeLeafSystem):
         self._state = self.DeclareVectorInputPort(
             "state", plant.num_positions() + plant.num_velocities()
         )
+        self._enabled = None
+        if enable_port:
+            self._enabled = self.DeclareVectorInputPort("enabled", n)
         depth = int(delays.max())
         initial = np.zeros(n) if initial_q_cmd is None else np.asarray(initial_q_cmd, float)
         if initial.shape != (n,):
@@ -444,7 +486,12 @@ class Hrp2ServoEmulation(WitnessFreeLeafSystem):
         return self._delays.copy()
 
     def joint_torques(
-        self, q_cmd: np.ndarray, q: np.ndarray, v: np.ndarray, s: np.ndarray | None = None
+        self,
+        q_cmd: np.ndarray,
+        q: np.ndarray,
+        v: np.ndarray,
+        s: np.ndarray | None = None,
+        enabled: np.ndarray | None = None,
     ) -> np.ndarray:
         """The servo law (module docstring) on joint vectors; N·m.
 
@@ -453,6 +500,7 @@ class Hrp2ServoEmulation(WitnessFreeLeafSystem):
             q, v: joint positions (rad) and velocities (rad/s).
             s: the direction state of the joints with hysteresis (ignored for the
                 others, which use tanh(q̇ / v_s)); None: tanh for every joint.
+            enabled: per joint, > 0.5 on, otherwise off (friction only); None: on.
         """
         p = self._p
         # np.round(x) is np.rint(x) (half to even), without np.round's Python layer.
@@ -461,10 +509,14 @@ class Hrp2ServoEmulation(WitnessFreeLeafSystem):
         direction = np.tanh(v / p["v_coulomb"])
         if s is not None:
             direction[self._dahl_joints] = s[self._dahl_joints]
-        return self._servo_torque(q_cmd - q_encoder, v, direction)
+        return self._servo_torque(q_cmd - q_encoder, v, direction, enabled)
 
     def _servo_torque(
-        self, error: np.ndarray, v: np.ndarray, direction: np.ndarray
+        self,
+        error: np.ndarray,
+        v: np.ndarray,
+        direction: np.ndarray,
+        enabled: np.ndarray | None = None,
     ) -> np.ndarray:
         """servo_torque(self's parameters, error, v, direction): the same operations
         on the same numbers, with array constants. np.clip(x, lo, hi) is written
@@ -479,6 +531,8 @@ class Hrp2ServoEmulation(WitnessFreeLeafSystem):
             self._minus_i_max, self._minus_stall_current * (one + back_emf)
         )
         current = np.minimum(upper, np.maximum(lower, current))
+        if enabled is not None:
+            current = np.where(enabled > 0.5, current, self._zeros)
         k1 = p["k1"] * (one + p["k1_asymmetry"] * direction)
         return k1 * current - p["k2"] * v - p["k3"] * direction
 
@@ -525,7 +579,8 @@ class Hrp2ServoEmulation(WitnessFreeLeafSystem):
         x = context.get_discrete_state(self._x).get_value()
         q_cmd = self._applied_command(self._checked_command(context), x)
         q, v = self._joint_state(context)
-        tau = self.joint_torques(q_cmd, q, v, x[self._s_rows])
+        enabled = None if self._enabled is None else self._enabled.Eval(context)
+        tau = self.joint_torques(q_cmd, q, v, x[self._s_rows], enabled)
         if self._actuation_order is not None:
             output.set_value(tau[self._actuation_order])
             return

@@ -41,6 +41,7 @@ index (`SampledSignal`), so every run of a config repeats the same noise. One
 
 
 import functools
+import math
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -162,6 +163,9 @@ class StationConfig:
             ports read; the ground truth is untouched.
         extra_command_latency: latency added to every joint's command (s, whole
             periods): a fault, on top of the servo's own.
+        servo_gain: the servo's position gain (its own units, e.g. a Dynamixel's kp)
+            for a servo file that states the gain its k4 holds at
+            (`ServoParams.at_gain`); 0: the file's.
         servo_off: servo mechanisms to switch off (`SERVO_MECHANISMS`: "latency",
             "voltage_limit", "hysteresis", "deadzone").
         contact_approximation: Drake's discrete contact approximation.
@@ -176,6 +180,7 @@ class StationConfig:
     hanging: HangingConfig = field(default_factory=HangingConfig)
     block_height: float = 0.05
     servo_file: str = ""
+    servo_gain: float = 0.0
     servo_off: list[str] = field(default_factory=list)
     faults: list[SensorFault] = field(default_factory=list)
     extra_command_latency: float = 0.0
@@ -205,6 +210,13 @@ class StationConfig:
                 f"joints: no servo parameters for {len(missing)} joints of robot "
                 f"'{robot.name}' ({shown})"
             )
+        if self.servo_gain:
+            if not (math.isfinite(self.servo_gain) and self.servo_gain > 0):
+                raise ValueError(
+                    f"StationConfig.servo_gain: must be finite and > 0 (0: the servo "
+                    f"file's gain), got {self.servo_gain}"
+                )
+            params = params.at_gain(self.servo_gain)
         return params
 
     def validate(self) -> None:

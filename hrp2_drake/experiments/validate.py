@@ -1,0 +1,272 @@
+"""`hrp2-drake validate --robot R --motor-model M.yaml --log L [L ...]`: an identified
+motor model judged by rollout on real logs (issue 18, item 3).
+
+For each log, the servo that obeys the model at the log's gain (`MotorModel.at_gain`,
+`rollout.MotorModelServo`, saturated where the robot's position loop saturates)
+replays the logged command open loop from the logged initial position
+(`rollout.rollout`); the simulated position is compared with the measured one: MAE
+and maximum |error| (mrad) over the whole log and over its servo-on samples (where
+the servo is off the model has nothing to say: the joint falls freely, with no
+friction). The way BAM and PACE report an actuator model.
+
+Outputs, in the output folder: `validate_<log>.png` (per log: measured and
+simulated position, the command, servo-off stretches shaded), `validate.md` (a
+table, one row per log and joint, and the mean) and `validate.json`.
+
+Everything is read and checked before the first rollout: a motor model that is
+missing or malformed, one without every joint of the robot, a log that does not
+import, a model that holds at a gain with a log that states none: one ValueError
+(or OSError) each, which the command reports on one line.
+"""
+
+import json
+import time
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from hrp2_drake import console
+from hrp2_drake.description import RobotDescription
+from hrp2_drake.identification.logs import RobotLog, read_robot_log
+from hrp2_drake.identification.motor_model import MotorModel
+from hrp2_drake.robot.rollout import (
+    RolloutErrors,
+    RolloutResult,
+    model_servo,
+    rollout,
+    rollout_errors,
+)
+
+
+def load_validation_inputs(
+    robot: RobotDescription, model_path: str | Path, log_paths: Sequence[str | Path]
+) -> tuple[MotorModel, list[RobotLog]]:
+    """The motor model (the robot's joints, in its order) and the logs, checked.
+
+    Raises:
+        FileNotFoundError, IsADirectoryError: a file is missing.
+        ValueError: naming the file: a malformed model or log, a model without
+            every joint of the robot, a model with a gain and a log without.
+    """
+    model_path = Path(model_path)
+    model = MotorModel.load(model_path)
+    missing = [j for j in robot.joints if j not in model.joint_names]
+    if missing:
+        raise ValueError(
+            f"motor model {model_path}: has no joints {missing} of robot "
+            f"'{robot.name}' (it models {model.joint_names}; a rollout needs every "
+            f"joint of {list(robot.joints)})"
+        )
+    model = model.subset(list(robot.joints))
+    if not log_paths:
+        raise ValueError("--log: no log given")
+    logs = [read_robot_log(path, robot.logs, robot.joints) for path in log_paths]
+    for log in logs:
+        if model.gain and log.gain is None:
+            raise ValueError(
+                f"log {log.source}: states no servo gain, but motor model {model_path} "
+                f"holds at gain {model.gain:g}: its parameters at the log's gain are "
+                f"unknown (robot '{robot.name}' logs.gain names where a log states it)"
+            )
+    return model, logs
+
+
+def run_validate(
+    robot: RobotDescription,
+    model_path: str | Path,
+    log_paths: Sequence[str | Path],
+    out: Path,
+    time_step: float = 0.001,
+) -> dict:
+    """The whole `hrp2-drake validate` (module docstring); returns the summary that
+    validate.json holds (errors in mrad, wall times in s)."""
+    model, logs = load_validation_inputs(robot, model_path, log_paths)
+    names = _file_names([log.name for log in logs])
+    rows = []
+    for k, (log, name) in enumerate(zip(logs, names), start=1):
+        console.say(
+            f"rollout {k}/{len(logs)}: {log.name} ({log.t[-1]:.2f} s, gain "
+            f"{'none' if log.gain is None else f'{log.gain:g}'})"
+        )
+        start = time.perf_counter()
+        result = rollout(robot, log, model_servo(robot, model, log.gain), time_step)
+        errors = rollout_errors(log, result.q_sim)
+        figure = out / f"validate_{name}.png"
+        _plot(robot, result, errors, figure)
+        rows.append(_row(log, result, errors, figure, time.perf_counter() - start))
+        console.say(
+            f"rollout {k}/{len(logs)}: MAE {_joined(rows[-1], 'mae_mrad')} mrad, "
+            f"servo on {_joined(rows[-1], 'mae_servo_on_mrad')} mrad "
+            f"({result.wall_time:.2f} s)"
+        )
+    summary = {
+        "robot": robot.name,
+        "motor_model": str(model_path),
+        "model_gain": model.gain or None,
+        "joints": list(robot.joints),
+        "time_step": time_step,
+        "logs": rows,
+        "mean": {
+            key: {
+                joint: _mean([row[key][joint] for row in rows])
+                for joint in robot.joints
+            }
+            for key in (
+                "mae_mrad",
+                "max_error_mrad",
+                "mae_servo_on_mrad",
+                "max_error_servo_on_mrad",
+            )
+        },
+        "mean_rollout_wall_time_s": float(
+            np.mean([row["rollout_wall_time_s"] for row in rows])
+        ),
+    }
+    (out / "validate.json").write_text(json.dumps(summary, indent=2))
+    (out / "validate.md").write_text(_markdown(robot, model, summary))
+    return summary
+
+
+def _mean(values: list[float | None]) -> float | None:
+    """The mean of the values that exist (None: a log without servo-on samples)."""
+    present = [v for v in values if v is not None]
+    return float(np.mean(present)) if present else None
+
+
+def _file_names(names: list[str]) -> list[str]:
+    """The logs' names for file names, made unique (two logs of the same name from two
+    folders get _2, _3, ...)."""
+    seen: dict[str, int] = {}
+    unique = []
+    for name in names:
+        seen[name] = seen.get(name, 0) + 1
+        unique.append(name if seen[name] == 1 else f"{name}_{seen[name]}")
+    return unique
+
+
+def _row(
+    log: RobotLog,
+    result: RolloutResult,
+    errors: RolloutErrors,
+    figure: Path,
+    wall: float,
+) -> dict:
+    def per_joint(values: np.ndarray) -> dict[str, float | None]:
+        return {
+            j: None if np.isnan(v) else float(v * 1e3)
+            for j, v in zip(log.joint_names, values)
+        }
+
+    return {
+        "log": log.name,
+        "source": log.source,
+        "gain": log.gain,
+        "duration_s": float(log.t[-1]),
+        "samples": int(len(log.t)),
+        "servo_on_share": float(np.mean(log.valid)),
+        "mae_mrad": per_joint(errors.mae),
+        "max_error_mrad": per_joint(errors.max_error),
+        "mae_servo_on_mrad": per_joint(errors.mae_servo_on),
+        "max_error_servo_on_mrad": per_joint(errors.max_error_servo_on),
+        "rollout_wall_time_s": result.wall_time,
+        "total_wall_time_s": wall,
+        "figure": figure.name,
+    }
+
+
+def _joined(row: dict, key: str) -> str:
+    values = row[key].values()
+    return ", ".join("n/a" if v is None else f"{v:.1f}" for v in values)
+
+
+def _servo_off_stretches(t: np.ndarray, valid: np.ndarray) -> list[tuple[float, float]]:
+    """[(start, end)] (s) of the runs of samples where the servo is off."""
+    off = np.concatenate([[False], ~valid, [False]]).astype(np.int8)
+    starts = np.flatnonzero(np.diff(off) == 1)
+    ends = np.flatnonzero(np.diff(off) == -1) - 1
+    return [(float(t[a]), float(t[b])) for a, b in zip(starts, ends)]
+
+
+def _plot(
+    robot: RobotDescription, result: RolloutResult, errors: RolloutErrors, path: Path
+):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    log = result.log
+    n = len(log.joint_names)
+    fig, axes = plt.subplots(n, 1, figsize=(9, 2.6 * n), sharex=True, squeeze=False)
+    labels = dict(zip(robot.controlled_joints, robot.labels()))
+    stretches = _servo_off_stretches(log.t, log.valid)
+    for j, (ax, joint) in enumerate(zip(axes[:, 0], log.joint_names)):
+        for k, (a, b) in enumerate(stretches):
+            ax.axvspan(a, b, color="0.9", lw=0, label="servo off" if k == 0 else None)
+        ax.plot(log.t, log.q_cmd[:, j], "--", color="0.4", lw=1, label="command")
+        ax.plot(log.t, log.q_measured[:, j], color="C0", lw=1.5, label="measured")
+        ax.plot(log.t, result.q_sim[:, j], color="C1", lw=1, label="simulated (model)")
+        ax.set_ylabel(f"{labels.get(joint, joint)}\n(rad)")
+        ax.set_title(
+            f"MAE {errors.mae[j] * 1e3:.1f} mrad, max {errors.max_error[j] * 1e3:.1f} "
+            f"mrad; servo on: MAE {errors.mae_servo_on[j] * 1e3:.1f}, max "
+            f"{errors.max_error_servo_on[j] * 1e3:.1f} mrad",
+            fontsize=9,
+        )
+    axes[0, 0].legend(
+        loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0, fontsize=8
+    )
+    axes[-1, 0].set_xlabel("t (s)")
+    gain = "" if log.gain is None else f", gain {log.gain:g}"
+    fig.suptitle(f"{robot.name}: rollout of the motor model on {log.name}{gain}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _markdown(robot: RobotDescription, model: MotorModel, summary: dict) -> str:
+    def cell(value: float | None) -> str:
+        return "n/a" if value is None or np.isnan(value) else f"{value:.1f}"
+
+    gain = (
+        f" (at servo gain {model.gain:g}, rescaled to each log's)" if model.gain else ""
+    )
+    lines = [
+        f"# Rollout validation: {robot.name}",
+        "",
+        f"Motor model `{summary['motor_model']}`{gain}, eq. 6 solved for the torque, "
+        "Δq clamped where the servo's output saturates; each log's command replayed "
+        f"open loop from its first measured position at rest (plant step "
+        f"{summary['time_step'] * 1e3:g} ms). Errors: |q_sim − q_measured| in mrad, "
+        "over the whole log and over its servo-on samples (servo off, the model's joint "
+        "is free: no friction).",
+        "",
+        "| log | joint | gain | s | servo on | MAE | max | MAE servo on | max servo on | wall (s) |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for row in summary["logs"]:
+        for joint in summary["joints"]:
+            log_gain = "—" if row["gain"] is None else f"{row['gain']:g}"
+            lines.append(
+                f"| {row['log']} | {joint} | {log_gain} | "
+                f"{row['duration_s']:.2f} | {row['servo_on_share'] * 100:.0f}% | "
+                f"{cell(row['mae_mrad'][joint])} | {cell(row['max_error_mrad'][joint])} | "
+                f"{cell(row['mae_servo_on_mrad'][joint])} | "
+                f"{cell(row['max_error_servo_on_mrad'][joint])} | "
+                f"{row['rollout_wall_time_s']:.2f} |"
+            )
+    mean = summary["mean"]
+    for joint in summary["joints"]:
+        lines.append(
+            f"| **mean of {len(summary['logs'])}** | {joint} | | | | "
+            f"{cell(mean['mae_mrad'][joint])} | {cell(mean['max_error_mrad'][joint])} | "
+            f"{cell(mean['mae_servo_on_mrad'][joint])} | "
+            f"{cell(mean['max_error_servo_on_mrad'][joint])} | "
+            f"{summary['mean_rollout_wall_time_s']:.2f} |"
+        )
+    lines += [
+        "",
+        "Figures: " + ", ".join(f"`{row['figure']}`" for row in summary["logs"]),
+    ]
+    return "\n".join(lines) + "\n"
