@@ -4,6 +4,7 @@
                         [--trajectory default|FILE] [--config FILE] [--out DIR] [--html]
     hrp2-drake identify [--robot R] [--log LOG] [--config FILE] [--out DIR]
     hrp2-drake estimate [--robot R] --log LOG [--window N] [--out DIR]
+    hrp2-drake validate [--robot R] --motor-model M --log LOG [LOG ...] [--out DIR]
     hrp2-drake calibrate [--config FILE] [--out DIR] [--install]
     hrp2-drake experiment NAME | reproduce   (HRP-2, the paper's experiments; see --help)
     hrp2-drake track [--robot R] [--motor-model M] [--quick]
@@ -129,14 +130,21 @@ def _identify(args: argparse.Namespace) -> int:
     _use_robot(config.station, args)
     if args.duration_scale is not None:
         config.duration_scale = args.duration_scale
+    if args.fit is not None:
+        config.fit = args.fit.replace("-", "_")
     _validate(config, args)
     out = _output_folder(args.out)
-    summary = run_identify(config, out, Path(args.log) if args.log else None)
-    print(f"report: {out / 'identification.md'}; model: {out / 'motor_model.yaml'}")
+    summary = run_identify(config, out, [Path(p) for p in args.log or []])
+    gain = f" at servo gain {summary['gain']:g}" if summary["gain"] else ""
+    print(
+        f"report: {out / 'identification.md'}; model ({config.fit.replace('_', ' ')} "
+        f"fit{gain}): {out / 'motor_model.yaml'}"
+    )
     for joint, row in summary["joints"].items():
+        fitted = row[config.fit]
         line = (
-            f"  {joint}: Kτ = {row['asymmetric']['k_tau'] * 1e3:.4f}e-3, "
-            f"Kv = {row['asymmetric']['k_v'] * 1e3:.3f}e-3"
+            f"  {joint}: Kτ = {fitted['k_tau'] * 1e3:.4f}e-3, "
+            f"Kv = {fitted['k_v'] * 1e3:.3f}e-3"
         )
         if "relative_error_asymmetric" in row:
             e = row["relative_error_asymmetric"]
@@ -157,6 +165,27 @@ def _estimate(args: argparse.Namespace) -> int:
         print(f"  warning: {warning}")
     for joint, rms in summary.get("rms_error_vs_truth", {}).items():
         print(f"  {joint}: RMS error vs truth {rms:.4f} N·m")
+    return 0
+
+
+def _validate_logs(args: argparse.Namespace) -> int:
+    from hrp2_drake.description import load_robot_description
+    from hrp2_drake.experiments.validate import run_validate
+
+    robot = load_robot_description(args.robot or None)
+    out = _output_folder(args.out)
+    summary = run_validate(robot, Path(args.motor_model), args.log, out)
+    print(f"report: {out / 'validate.md'}; summary: {out / 'validate.json'}")
+    for joint in summary["joints"]:
+        mean = {
+            key: "n/a" if values[joint] is None else f"{values[joint]:.1f}"
+            for key, values in summary["mean"].items()
+        }
+        print(
+            f"  {joint}: mean over {len(summary['logs'])} logs: MAE {mean['mae_mrad']} "
+            f"mrad, max {mean['max_error_mrad']} mrad; servo on: MAE "
+            f"{mean['mae_servo_on_mrad']}, max {mean['max_error_servo_on_mrad']} mrad"
+        )
     return 0
 
 
@@ -358,6 +387,10 @@ def _experiment(args: argparse.Namespace) -> int:
 def _calibrate(args: argparse.Namespace) -> int:
     from hrp2_drake.experiments.calibrate import CalibrationConfig, calibrate
 
+    from hrp2_drake.description import load_robot_description
+
+    if args.log or (args.robot and load_robot_description(args.robot).name != "hrp2"):
+        return _calibrate_from_logs(args)
     config = _config(CalibrationConfig, args)
     if args.max_iterations is not None:
         config.max_iterations = args.max_iterations
@@ -371,6 +404,46 @@ def _calibrate(args: argparse.Namespace) -> int:
         np.divide(summary["average_error"], summary["paper_average_error"]),
     ):
         print(f"  {label}: max error {ratio_max:.2f}x paper, average {ratio_avg:.2f}x")
+    return 0
+
+
+def _calibrate_from_logs(args: argparse.Namespace) -> int:
+    """`calibrate --robot R --log ...`: any robot's twin from its logs."""
+    from hrp2_drake.description import load_robot_description
+    from hrp2_drake.experiments.twin import TwinConfig, run_calibrate_logs
+
+    robot = load_robot_description(args.robot)
+    if not args.log:
+        raise ValueError(
+            f"calibrate --robot {args.robot}: give its logs with --log (only HRP-2 is "
+            "calibrated to the paper's tables without logs)"
+        )
+    if args.config:
+        raise ValueError("calibrate --log: --config is HRP-2's CalibrationConfig; not used with --log")
+    config = TwinConfig()
+    if args.max_iterations is not None:
+        config.max_evaluations = args.max_iterations
+    if args.jobs is not None:
+        config.workers = args.jobs
+    out = _output_folder(args.out)
+    summary = run_calibrate_logs(robot, args.log, out, config, install=args.install)
+    fit = summary["fit"]
+    print(
+        f"report: {out / 'calibrate.md'}; twin: {out / 'servo.yaml'}"
+        + (f" (installed as {robot.servo_path('')})" if args.install else "")
+    )
+    print(
+        f"  {fit['rollouts']} rollouts of every log: RMS error {fit['rms_error_start_mrad']:.1f} "
+        f"-> {fit['rms_error_end_mrad']:.1f} mrad"
+    )
+    cross = summary.get("cross_gain")
+    if cross:
+        print(
+            f"  cross-gain mean MAE: twin {cross['twin_mean_mae_mrad']:.1f} mrad, least-squares "
+            f"model {cross['least_squares_mean_mae_mrad']:.1f} mrad "
+            f"({cross['twin_below_least_squares']:.0%} below; goal {cross['goal']:.0%}: "
+            f"{'met' if cross['goal_met'] else 'NOT met'})"
+        )
     return 0
 
 
@@ -517,7 +590,17 @@ def main(argv: list[str] | None = None) -> int:
     ident.add_argument("--robot", help=robot_help)
     ident.add_argument("--config", help="IdentifyConfig YAML file")
     ident.add_argument(
-        "--log", help="an identification log (.npz, see README) instead of simulating"
+        "--log",
+        nargs="+",
+        help="identification logs instead of simulating: this project's .npz (see "
+        "README), or logs in the robot description's format (`logs`, e.g. BAM's JSON "
+        "for xl330_pendulum), at any rate; each log is its own segment",
+    )
+    ident.add_argument(
+        "--fit",
+        choices=("asymmetric", "least-squares", "coulomb", "two-stage"),
+        help="the fit motor_model.yaml holds (default asymmetric: conservative, for "
+        "the controller; least-squares: for prediction and simulation)",
     )
     ident.add_argument(
         "--duration-scale", type=_number(float, 0.0), help="shorten the collection"
@@ -545,6 +628,20 @@ def main(argv: list[str] | None = None) -> int:
     )
     est.add_argument("--out", default="out/estimate", help="output folder")
     est.set_defaults(run=_estimate)
+
+    val = commands.add_parser(
+        "validate",
+        parents=[debug],
+        help="judge a motor model by rollout on real logs: the model's servo replays "
+        "each logged command; position MAE and max error (mrad), plots, validate.md",
+    )
+    val.add_argument("--robot", help=robot_help)
+    val.add_argument("--motor-model", required=True, help="MotorModel YAML")
+    val.add_argument(
+        "--log", required=True, nargs="+", help="the robot's logs (its logs format)"
+    )
+    val.add_argument("--out", default="out/validate", help="output folder")
+    val.set_defaults(run=_validate_logs)
 
     track = commands.add_parser(
         "track",
@@ -620,16 +717,23 @@ def main(argv: list[str] | None = None) -> int:
     cal = commands.add_parser(
         "calibrate",
         parents=[debug],
-        help="fit the emulated servo's hidden parameters to the paper's measurements "
-        "of the real HRP-2 (Table 1, position control in Tables 2 and 3): servo.yaml "
-        "and a report with plots",
+        help="fit the emulated servo's parameters to what the real robot did: HRP-2 to "
+        "the paper's measurements (Table 1, position control in Tables 2 and 3); any "
+        "robot to its logs by rollout (--robot R --log ...): servo.yaml and a report",
     )
-    cal.add_argument("--config", help="CalibrationConfig YAML file")
+    cal.add_argument("--robot", help=robot_help)
+    cal.add_argument(
+        "--log",
+        nargs="+",
+        help="the robot's logs (its description's log format): fit its twin to them by "
+        "rollout, cross-validated across their servo gains",
+    )
+    cal.add_argument("--config", help="CalibrationConfig YAML file (HRP-2, no --log)")
     cal.add_argument("--out", default="out/calibrate", help="output folder")
     cal.add_argument(
         "--max-iterations",
         type=_number(int, 1, strict=False),
-        help="optimizer evaluations",
+        help="optimizer evaluations (with --log: rollouts of every log, default 150)",
     )
     cal.add_argument(
         "--jobs",
@@ -639,7 +743,8 @@ def main(argv: list[str] | None = None) -> int:
     cal.add_argument(
         "--install",
         action="store_true",
-        help="also write models/hrp2/servo.yaml (the simulated robot's servo)",
+        help="also write the robot's servo file (models/<robot>/servo.yaml: the "
+        "simulated robot's servo)",
     )
     cal.set_defaults(run=_calibrate)
 

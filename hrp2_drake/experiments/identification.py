@@ -250,14 +250,9 @@ def identify_segments(
     documented limit, are left out.
     """
     config.validate()
+    check_segments(config, segments)
     robot = config.station.description()
     gains = [s.gain for s in segments]
-    if len(set(gains)) > 1 and None in gains:
-        missing = segments[gains.index(None)].source
-        raise ValueError(
-            f"{missing}: states no servo gain (the robot description's logs.gain), "
-            "but pooling it with logs of other gains needs each log's gain"
-        )
     reference = min(gains) if gains[0] is not None else 0.0
     estimator = FloatingBaseTorqueEstimator(robot.make_plant(), robot.estimator_config())
     data = estimate_segments(
@@ -287,10 +282,31 @@ def identify_segments(
         "servo off or filter edges": int(np.count_nonzero(~data.usable)),
         "output saturated": int(np.count_nonzero(data.usable & data.saturated.any(axis=1))),
     }
+    train = usable & ~held & ~data.saturated.any(axis=1)  # of every joint
     return IdentificationResult(
-        results, data, held, usable & ~held, config, chosen, rms, peak,
-        reference, excluded,
+        results, data, held, train, config, chosen, rms, peak, reference, excluded
     )
+
+
+def check_segments(config: IdentifyConfig, segments: Sequence[LogSegment]) -> None:
+    """Raises ValueError naming the log that cannot join the identification: one that
+    states no servo gain among logs that do (pooling needs each gain), or one with a
+    gap between samples longer than the filter window."""
+    gains = [s.gain for s in segments]
+    if len(set(gains)) > 1 and None in gains:
+        missing = segments[gains.index(None)].source
+        raise ValueError(
+            f"{missing}: states no servo gain (the robot description's logs.gain), "
+            "but pooling it with logs of other gains needs each log's gain"
+        )
+    for segment in segments:
+        gap, where = segment.longest_gap
+        if gap > config.window:
+            raise ValueError(
+                f"{segment.source}: a gap of {gap:.3g} s between samples at t = "
+                f"{where:.3f} s, longer than the filter window {config.window:g} s "
+                "(IdentifyConfig.window): split the log there or widen the window"
+            )
 
 
 def _identify_joint(
@@ -740,6 +756,7 @@ def run_identify(
     else:
         segments, rows = read_segments(log_paths, config.station.description())
         simulated = all("joint_torque_true" in s.log for s in segments)
+        check_segments(config, segments)
     _logger.info("estimating and fitting ...")
     try:
         result = identify_segments(config, segments)

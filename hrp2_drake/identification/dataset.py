@@ -409,8 +409,8 @@ def estimate_segments(
             window exceeds `saturation_margin` times it.
 
     Raises:
-        ValueError: naming the log: a gap between raw samples longer than the window,
-            a log shorter than the window, and `noncausal_estimates`' errors.
+        ValueError: naming the log: a log shorter than the window, and
+            `noncausal_estimates`' errors.
     """
     from hrp2_drake.identification.logs import window_samples
 
@@ -418,13 +418,6 @@ def estimate_segments(
     joints = estimator.config().joints
     for k, segment in enumerate(segments):
         log = segment.log
-        gap, where = segment.longest_gap
-        if gap > window:
-            raise ValueError(
-                f"{segment.source}: a gap of {gap:.3g} s between samples at t = "
-                f"{where:.3f} s, longer than the filter window {window:g} s "
-                "(IdentifyConfig.window): split the log there or widen the window"
-            )
         t = np.asarray(log["t"], float)
         period = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
         n_window = window_samples(window, period, f"{segment.source}: window")

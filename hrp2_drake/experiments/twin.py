@@ -1,0 +1,505 @@
+"""`hrp2-drake calibrate --robot R --log ...`: a robot's digital twin from its logs.
+
+The emulated servo (`hrp2_drake.robot.servo`) stands for the real robot, so its
+parameters come from what the real robot did: each evaluation replays every log open
+loop (`robot.rollout.rollout`: the logged command in, the robot's MultibodyPlant driven
+by the emulated servo at the log's gain) and compares the simulated position with the
+measured one. A real optimizer, scipy's `least_squares` (trust-region reflective,
+within physical bounds), moves the servo's parameters to minimize the position error
+of all the logs together (each log weighs the same).
+
+The parameters it fits, per joint (`TWIN_PARAMETERS`), one per mechanism:
+
+- stiffness `k4` (current per rad at the servo file's gain; the gain scales it),
+- voltage limit `stall_current` and back-EMF `no_load_speed`, with k5 tied to them
+  (k5 = stall_current / no_load_speed: a voltage-driven DC servo's current is
+  (V·duty − k_e q̇) / R, so its back-EMF damping and its torque-speed line are one
+  mechanism),
+- viscous `k2` and Coulomb `k3` friction,
+- dead zone `i_deadzone`,
+- direction-dependent efficiency `k1_asymmetry` (load-dependent gear friction) and
+  hysteresis `hysteresis_width`,
+- `latency` of the command.
+
+`k1` stays the prior's (only k1 · current is observable), and so do the encoder's
+resolution and the gain the file states. The prior is the robot's servo file.
+
+Cross-validation: `cross_validate` fits on the logs of each gain and reports the
+rollout MAE on the logs of the others, for the twin and for the least-squares motor
+model identified on the same logs (`identify --fit least-squares`).
+"""
+
+import copy
+import json
+import dataclasses
+import math
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import scipy.optimize
+
+from hrp2_drake import console
+from hrp2_drake.description import RobotDescription, load_robot_description
+from hrp2_drake.identification.logs import RobotLog, read_robot_log
+from hrp2_drake.robot.rollout import emulated_servo, rollout, rollout_errors
+from hrp2_drake.robot.servo import ServoParams, load_servo_params, save_servo_params
+
+#: The fitted parameters: name -> (lower, upper, scale): "log" parameters move by
+#: factors of the prior within [prior / bound, prior * bound]; "linear" ones within
+#: [lower, upper].
+TWIN_PARAMETERS = {
+    "k4": ("log", 10.0),
+    "stall_current": ("log", 10.0),
+    "no_load_speed": ("log", 10.0),
+    "k2": ("linear", (0.0, 0.05)),
+    "k3": ("linear", (0.0, 0.1)),
+    "i_deadzone": ("linear", (0.0, 0.2)),
+    "k1_asymmetry": ("linear", (0.0, 0.8)),
+    "hysteresis_width": ("linear", (0.0, 0.05)),
+    "latency": ("linear", (0.0, 0.02)),
+}
+#: What `calibrate --log` fits by default: every mechanism the issue names (stiffness,
+#: back-EMF and voltage limit, friction, dead zone, hysteresis, latency).
+DEFAULT_PARAMETERS = (
+    "k4", "stall_current", "no_load_speed", "k2", "k3", "i_deadzone",
+    "hysteresis_width", "latency",
+)
+#: The residuals' sampling: one error every `RESIDUAL_PERIOD` seconds of each log.
+RESIDUAL_PERIOD = 0.01
+
+
+@dataclass
+class TwinConfig:
+    """Configuration of a calibration from logs.
+
+    Args:
+        parameters: the servo parameters to fit (`TWIN_PARAMETERS`).
+        max_evaluations: rollouts of all the logs at most, finite differences
+            included; the best parameters met are kept.
+        workers: processes for the rollouts (1: in this process).
+        diff_step: finite-difference step, as a share of each parameter's range
+            (linear) or of its log-range (log): large enough to step over the
+            encoder's quantization and the latency's whole periods.
+    """
+
+    parameters: list[str] = field(default_factory=lambda: list(DEFAULT_PARAMETERS))
+    max_evaluations: int = 150
+    workers: int = 2
+    diff_step: float = 0.05
+
+    def validate(self) -> None:
+        unknown = [p for p in self.parameters if p not in TWIN_PARAMETERS]
+        if unknown or not self.parameters:
+            raise ValueError(
+                f"TwinConfig.parameters: unknown {unknown}, expected some of "
+                f"{list(TWIN_PARAMETERS)}"
+            )
+        if self.max_evaluations < 1 or self.workers < 1:
+            raise ValueError("TwinConfig: max_evaluations and workers must be >= 1")
+        if not 0 < self.diff_step < 1:
+            raise ValueError(f"TwinConfig.diff_step: in (0, 1), got {self.diff_step}")
+
+
+@dataclass
+class TwinFit:
+    """A calibrated twin and how it got there."""
+
+    params: ServoParams
+    logs: list[str]
+    mae: dict[str, float]  # per log, rad (first joint's... mean over joints)
+    evaluations: int
+    wall_time: float
+    cost_start: float
+    cost_end: float
+    message: str
+
+
+class _BudgetSpent(Exception):
+    """The optimizer asked for more rollouts than `TwinConfig.max_evaluations`."""
+
+
+class _Space:
+    """The map between the fitted parameters of every joint and the unit-scaled
+    vector the optimizer moves."""
+
+    def __init__(self, prior: ServoParams, joints: Sequence[str], names: Sequence[str]):
+        self.prior = prior
+        self.entries = [(j, n) for j in joints for n in names]
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        lower = [-1.0 if TWIN_PARAMETERS[n][0] == "log" else 0.0 for _, n in self.entries]
+        return np.array(lower), np.ones(len(self.entries))
+
+    def start(self) -> np.ndarray:
+        x = []
+        for joint, name in self.entries:
+            kind, bound = TWIN_PARAMETERS[name]
+            value = getattr(self.prior.joints[joint], name)
+            if kind == "log":
+                x.append(0.0)  # the prior itself
+            else:
+                lo, hi = bound
+                x.append(min(max((value - lo) / (hi - lo), 0.0), 1.0))
+        return np.array(x)
+
+    def params(self, x: np.ndarray) -> ServoParams:
+        params = copy.deepcopy(self.prior)
+        for (joint, name), value in zip(self.entries, x):
+            kind, bound = TWIN_PARAMETERS[name]
+            if kind == "log":
+                prior = getattr(self.prior.joints[joint], name)
+                setattr(params.joints[joint], name, prior * bound ** float(value))
+            else:
+                lo, hi = bound
+                setattr(params.joints[joint], name, lo + (hi - lo) * float(value))
+        for joint in params.joints.values():
+            # One mechanism: k5 = i_s / ω0 (module docstring).
+            joint.k5 = joint.stall_current / joint.no_load_speed
+        return params
+
+
+# ---------------------------------------------------------------- rollouts
+_WORKER: dict = {}
+
+
+def _init_worker(program: str, robot_file: str, logs: Sequence[RobotLog]) -> None:
+    console.start_worker(program, "rollouts")
+    _WORKER["robot"] = load_robot_description(robot_file)
+    _WORKER["logs"] = list(logs)
+
+
+def _rollout_error(args: tuple) -> np.ndarray:
+    """`_position_error` of log k, in a worker."""
+    params, k = args
+    return _position_error(_WORKER["robot"], _WORKER["logs"][k], params)
+
+
+def _position_error(robot: RobotDescription, log: RobotLog, params: ServoParams) -> np.ndarray:
+    """q_sim − q_measured of one rollout (rad), one row every RESIDUAL_PERIOD."""
+    q_sim = rollout(robot, log, emulated_servo(params, log.gain, initial_q_cmd=log.q_cmd[0])).q_sim
+    every = max(1, int(round(RESIDUAL_PERIOD / log.period)))
+    return (q_sim - log.q_measured)[::every]
+
+
+class Rollouts:
+    """Rollouts of the emulated servo on a set of logs, in worker processes that
+    hold the robot and the logs for their life (one log per task)."""
+
+    def __init__(self, robot: RobotDescription, logs: Sequence[RobotLog], workers: int):
+        self.robot = robot
+        self.logs = list(logs)
+        self._pool = None
+        if workers > 1 and len(self.logs) > 1:
+            self._pool = ProcessPoolExecutor(
+                max_workers=min(workers, len(self.logs)), mp_context=get_context("spawn"),
+                initializer=_init_worker, initargs=(console.program(), robot.source_file, self.logs),
+            )
+
+    def errors(self, params: ServoParams) -> list[np.ndarray]:
+        if self._pool is None:
+            return [_position_error(self.robot, log, params) for log in self.logs]
+        tasks = [(params, k) for k in range(len(self.logs))]
+        return list(self._pool.map(_rollout_error, tasks))
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown()
+
+
+def fit_twin(
+    robot: RobotDescription,
+    logs: Sequence[RobotLog],
+    prior: ServoParams,
+    config: TwinConfig = TwinConfig(),
+    label: str = "twin",
+) -> TwinFit:
+    """Fits the emulated servo's parameters to `logs` by rollout (module docstring)."""
+    config.validate()
+    space = _Space(prior, robot.joints, config.parameters)
+    rollouts = Rollouts(robot, logs, config.workers)
+    evaluations = [0]
+    best = {"cost": math.inf, "x": space.start()}
+    start = time.perf_counter()
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        if evaluations[0] >= config.max_evaluations:
+            raise _BudgetSpent
+        errors = rollouts.errors(space.params(x))
+        r = np.concatenate([e.ravel() / math.sqrt(e.size) for e in errors])
+        evaluations[0] += 1
+        cost = float(r @ r)
+        if cost < best["cost"]:
+            best.update(cost=cost, x=x.copy())
+        if evaluations[0] % 10 == 1:
+            console.say(
+                f"{label}: rollout {evaluations[0]} of at most {config.max_evaluations}, "
+                f"best RMS error {math.sqrt(best['cost'] / len(logs)) * 1e3:.1f} mrad"
+            )
+        return r
+
+    try:
+        r0 = residuals(space.start())
+        result = scipy.optimize.least_squares(
+            residuals, space.start(), bounds=space.bounds(), method="trf",
+            diff_step=config.diff_step, x_scale=1.0,
+        )
+        message = result.message
+    except _BudgetSpent:
+        message = f"stopped after {config.max_evaluations} rollouts of every log (the budget)"
+    finally:
+        rollouts.close()
+    params = space.params(best["x"])
+    return TwinFit(
+        params=params,
+        logs=[log.name for log in logs],
+        mae={},
+        evaluations=evaluations[0],
+        wall_time=time.perf_counter() - start,
+        cost_start=float(r0 @ r0),
+        cost_end=best["cost"],
+        message=str(message),
+    )
+
+
+def twin_errors(
+    robot: RobotDescription, logs: Sequence[RobotLog], params: ServoParams
+) -> dict[str, dict[str, float]]:
+    """Rollout MAE and maximum error (rad, mean over joints) of the twin per log."""
+    out = {}
+    for log in logs:
+        q = rollout(robot, log, emulated_servo(params, log.gain, initial_q_cmd=log.q_cmd[0])).q_sim
+        e = rollout_errors(log, q)
+        out[log.name] = {"mae": float(np.mean(e.mae)), "max": float(np.mean(e.max_error)),
+                         "mae_servo_on": float(np.mean(e.mae_servo_on))}
+    return out
+
+
+def model_errors(
+    robot: RobotDescription, logs: Sequence[RobotLog], model
+) -> dict[str, dict[str, float]]:
+    """`twin_errors` of a servo that obeys an identified motor model instead
+    (`rollout.model_servo`, at each log's gain)."""
+    from hrp2_drake.robot.rollout import model_servo
+
+    out = {}
+    for log in logs:
+        q = rollout(robot, log, model_servo(robot, model, log.gain)).q_sim
+        e = rollout_errors(log, q)
+        out[log.name] = {"mae": float(np.mean(e.mae)), "max": float(np.mean(e.max_error)),
+                         "mae_servo_on": float(np.mean(e.mae_servo_on))}
+    return out
+
+
+def least_squares_model(robot: RobotDescription, logs: Sequence[RobotLog]):
+    """The least-squares motor model (`identify --fit least-squares`) of `logs`."""
+    from hrp2_drake.experiments.identification import IdentifyConfig, identify_segments
+    from hrp2_drake.identification.dataset import LogSegment
+    from hrp2_drake.robot.station import StationConfig
+
+    scenario = "fixed_base" if robot.base == "fixed" else "hanging"
+    config = IdentifyConfig(
+        station=StationConfig(robot=robot.source_file, scenario=scenario), fit="least_squares"
+    )
+    segments = [
+        LogSegment(log.arrays(), log.joint_names, log.gain, log.source, log.longest_gap)
+        for log in logs
+    ]
+    return identify_segments(config, segments).identified
+
+
+@dataclass
+class CrossValidation:
+    """Fit on the logs of one gain, rollout MAE on the others (rad, per log)."""
+
+    train_gain: float
+    twin: TwinFit
+    twin_errors: dict[str, dict[str, float]]
+    model_errors: dict[str, dict[str, float]]
+
+
+def cross_validate(
+    robot: RobotDescription, logs: Sequence[RobotLog], prior: ServoParams, config: TwinConfig
+) -> list[CrossValidation]:
+    """For each gain of the logs: the twin and the least-squares motor model fitted
+    on that gain's logs, rolled out on the logs of the other gains."""
+    gains = sorted({log.gain for log in logs if log.gain is not None})
+    results = []
+    for gain in gains:
+        train = [log for log in logs if log.gain == gain]
+        test = [log for log in logs if log.gain != gain]
+        twin = fit_twin(robot, train, prior, config, label=f"twin on gain {gain:g}")
+        model = least_squares_model(robot, train)
+        results.append(CrossValidation(
+            gain, twin, twin_errors(robot, test, twin.params), model_errors(robot, test, model)
+        ))
+    return results
+
+
+# ------------------------------------------------------------------ the command
+#: The project's goal for a twin (issue 18): its cross-gain mean rollout MAE at least
+#: this much below the least-squares motor model's on the same logs.
+TWIN_GOAL = 0.20
+
+
+def run_calibrate_logs(
+    robot: RobotDescription,
+    log_paths: Sequence[str | Path],
+    out: Path,
+    config: TwinConfig = TwinConfig(),
+    install: bool = False,
+) -> dict:
+    """The whole `hrp2-drake calibrate --robot R --log ...`: cross-validation across
+    the logs' gains (if they have several), then the twin fitted on every log, written
+    as out/servo.yaml (and the robot's servo file with `install`), with
+    calibrate.md, calibrate.json and a figure per gain."""
+    config.validate()
+    if not log_paths:
+        raise ValueError("--log: no log given")
+    logs = [read_robot_log(path, robot.logs, robot.joints) for path in log_paths]
+    prior = load_servo_params("", robot.source_file)
+    out.mkdir(parents=True, exist_ok=True)
+    cross = cross_validate(robot, logs, prior, config) if _gains(logs) > 1 else []
+    final = fit_twin(robot, logs, prior, config, label="twin on every log")
+    final.mae = {k: v["mae"] for k, v in twin_errors(robot, logs, final.params).items()}
+    header = [
+        f"{robot.name}'s emulated servo: a digital twin calibrated to {len(logs)} real "
+        f"logs by rollout (hrp2-drake calibrate --log; {final.evaluations} rollouts of "
+        f"every log, scipy least_squares). Logs: {', '.join(final.logs)}.",
+        f"Prior: the servo file before ({robot.servo_path('')}). k5 = stall_current / "
+        "no_load_speed (one mechanism: a voltage-driven DC servo).",
+    ]
+    save_servo_params(final.params, out / "servo.yaml", header)
+    if install:
+        save_servo_params(final.params, robot.servo_path(""), header)
+    summary = _summary(robot, logs, prior, final, cross)
+    (out / "calibrate.json").write_text(json.dumps(summary, indent=2))
+    figures = _plot(robot, logs, final, out)
+    (out / "calibrate.md").write_text(_markdown(robot, summary, figures, install))
+    return summary
+
+
+def _gains(logs: Sequence[RobotLog]) -> int:
+    return len({log.gain for log in logs if log.gain is not None})
+
+
+def _summary(robot, logs, prior, final: TwinFit, cross: list[CrossValidation]) -> dict:
+    fitted = {
+        joint: {name: getattr(final.params.joints[joint], name)
+                for name in list(TWIN_PARAMETERS) + ["k5"]}
+        for joint in robot.joints
+    }
+    before = {
+        joint: {name: getattr(prior.joints[joint], name)
+                for name in list(TWIN_PARAMETERS) + ["k5"]}
+        for joint in robot.joints
+    }
+    summary = {
+        "robot": robot.name,
+        "logs": [log.name for log in logs],
+        "fit": {"rollouts": final.evaluations, "wall_time_s": final.wall_time,
+                "rms_error_start_mrad": math.sqrt(final.cost_start / len(logs)) * 1e3,
+                "rms_error_end_mrad": math.sqrt(final.cost_end / len(logs)) * 1e3,
+                "message": final.message},
+        "parameters": fitted,
+        "prior": before,
+        "mae_on_fitted_logs_mrad": {k: v * 1e3 for k, v in final.mae.items()},
+    }
+    if cross:
+        rows = []
+        for c in cross:
+            for name in c.twin_errors:
+                rows.append({"train_gain": c.train_gain, "log": name,
+                             "twin_mae_mrad": c.twin_errors[name]["mae"] * 1e3,
+                             "model_mae_mrad": c.model_errors[name]["mae"] * 1e3,
+                             "twin_max_mrad": c.twin_errors[name]["max"] * 1e3,
+                             "model_max_mrad": c.model_errors[name]["max"] * 1e3})
+        twin = float(np.mean([r["twin_mae_mrad"] for r in rows]))
+        model = float(np.mean([r["model_mae_mrad"] for r in rows]))
+        summary["cross_gain"] = {
+            "rows": rows,
+            "twin_mean_mae_mrad": twin,
+            "least_squares_mean_mae_mrad": model,
+            "twin_below_least_squares": 1.0 - twin / model,
+            "goal": TWIN_GOAL,
+            "goal_met": bool(1.0 - twin / model >= TWIN_GOAL),
+        }
+    return summary
+
+
+def _markdown(robot, summary: dict, figures: list[str], install: bool) -> str:
+    fit = summary["fit"]
+    lines = [
+        f"# A digital twin of {robot.name} from its logs",
+        "",
+        f"The emulated servo's parameters fitted by rollout to {len(summary['logs'])} "
+        f"logs: {fit['rollouts']} rollouts of every log in {fit['wall_time_s']:.0f} s; "
+        f"RMS position error {fit['rms_error_start_mrad']:.1f} mrad with the prior, "
+        f"{fit['rms_error_end_mrad']:.1f} mrad after ({fit['message']}). "
+        + ("Installed as the robot's servo file." if install else
+           "Written to servo.yaml here (`--install` makes it the robot's)."),
+        "",
+    ]
+    cross = summary.get("cross_gain")
+    if cross:
+        verdict = "met" if cross["goal_met"] else "NOT met"
+        lines += [
+            "## Cross-gain validation",
+            "",
+            "Fitted on the logs of one gain, rolled out on the logs of the other: the "
+            "twin, and the least-squares motor model (`identify --fit least-squares`) "
+            "identified on the same logs. Position MAE / maximum error (mrad), whole log.",
+            "",
+            "| fitted on gain | log | twin MAE | twin max | least squares MAE | least squares max |",
+            "| ---: | --- | ---: | ---: | ---: | ---: |",
+            *(f"| {r['train_gain']:g} | {r['log']} | {r['twin_mae_mrad']:.1f} | "
+              f"{r['twin_max_mrad']:.1f} | {r['model_mae_mrad']:.1f} | {r['model_max_mrad']:.1f} |"
+              for r in cross["rows"]),
+            f"| | **mean** | **{cross['twin_mean_mae_mrad']:.1f}** | | "
+            f"**{cross['least_squares_mean_mae_mrad']:.1f}** | |",
+            "",
+            f"Project goal (not the paper's): the twin's cross-gain mean MAE at least "
+            f"{TWIN_GOAL:.0%} below the least-squares model's: "
+            f"{cross['twin_below_least_squares']:.1%} below, **{verdict}**.",
+            "",
+        ]
+    lines += ["## Parameters (prior → twin)", "",
+              "| joint | parameter | prior | twin |", "| --- | --- | ---: | ---: |"]
+    for joint, values in summary["parameters"].items():
+        for name, value in values.items():
+            lines.append(f"| {joint} | {name} | {summary['prior'][joint][name]:.4g} | {value:.4g} |")
+    lines += ["", "## Rollout MAE of the twin on the logs it was fitted on (mrad)", "",
+              "| log | MAE |", "| --- | ---: |",
+              *(f"| {k} | {v:.1f} |" for k, v in summary["mae_on_fitted_logs_mrad"].items())]
+    lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures]
+    return "\n".join(lines) + "\n"
+
+
+def _plot(robot, logs: Sequence[RobotLog], final: TwinFit, out: Path) -> list[str]:
+    """Measured vs twin position on the first log of each gain (first joint)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    chosen = list({log.gain: log for log in reversed(logs)}.values())[::-1]
+    fig, axes = plt.subplots(len(chosen), 1, figsize=(9, 3.2 * len(chosen)), squeeze=False)
+    for ax, log in zip(axes[:, 0], chosen):
+        q = rollout(robot, log, emulated_servo(final.params, log.gain, initial_q_cmd=log.q_cmd[0])).q_sim
+        ax.plot(log.t, log.q_cmd[:, 0], color="0.6", lw=1, label="command")
+        ax.plot(log.t, log.q_measured[:, 0], "k", lw=1.4, label="measured")
+        ax.plot(log.t, q[:, 0], "tab:red", lw=1.2, ls="--", label="twin (rollout)")
+        ax.set_title(f"{log.name} (gain {log.gain:g})" if log.gain else log.name, fontsize=10)
+        ax.set_xlabel("t (s)")
+        ax.set_ylabel(f"{robot.joints[0]} (rad)")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    fig.tight_layout()
+    name = "calibrate_rollouts.png"
+    fig.savefig(out / name, dpi=110)
+    plt.close(fig)
+    return [name]
