@@ -55,6 +55,14 @@ def _config(schema, args: argparse.Namespace):
     return load_config(schema, filename=args.config, validate=False)
 
 
+def _config_sets(args: argparse.Namespace, key: str) -> bool:
+    """Whether the --config file sets the top-level `key` (else: the default holds)."""
+    if not args.config:
+        return False
+    raw = yaml.safe_load(Path(args.config).read_text())
+    return isinstance(raw, dict) and key in raw
+
+
 def _validate(config, args: argparse.Namespace) -> None:
     """`validate_config` once the options are applied; errors name the --config file."""
     validate_config(config, args.config or None)
@@ -190,13 +198,17 @@ def _validate_logs(args: argparse.Namespace) -> int:
 
 
 def _track(args: argparse.Namespace) -> int:
-    from hrp2_drake.experiments.track import TrackConfig, run_track
+    from hrp2_drake.experiments.track import TrackConfig, can_press, run_track
 
     config = _config(TrackConfig, args)
     if args.robot:
         config.station.robot = args.robot
         if config.station.description().base == "floating":
             config.station.scenario = "hanging"
+    robot = config.station.description()
+    if robot.base == "fixed" and not can_press(robot):
+        # Nothing to press with (no tool_frame and force_sensor): unless asked for.
+        config.force_task = config.force_task and _config_sets(args, "force_task")
     if args.quick:
         config.duration, config.force_duration, config.k6 = 2.5, 2.0, config.k6[:1]
     _validate(config, args)

@@ -751,7 +751,9 @@ def run_identify(
     if not log_paths:
         log, names = collect_log(config)
         save_log(out / "identification_log.npz", log, names)
-        segments = [LogSegment(log, names, source="the collected log")]
+        # The simulated servo ran at the station's gain: the model holds at it.
+        gain = config.station.servo_gain_in_use()
+        segments = [LogSegment(log, names, gain, source="the collected log")]
         simulated, rows = True, []
     else:
         segments, rows = read_segments(log_paths, config.station.description())

@@ -15,6 +15,10 @@ Two runs per controller, from the description alone:
    the sensor frame, eq. 12). Ground truth is the contact force on the robot
    (Drake's contact results), for evaluation only.
 
+The motor model is used at the gain the station's servo runs at
+(`motor_model_at_station_gain`): a model identified from logs that state the servo's
+gain holds at that gain, not necessarily the simulated servo's.
+
 Writes track.md, track.json and plots. Nothing here knows a robot's names.
 """
 
@@ -59,7 +63,9 @@ class TrackConfig:
         settle: position control at the home pose before torque control starts (s).
         amplitude: of each controlled joint's sinusoid (rad).
         frequency: of the sinusoids (Hz); joint k is phase-shifted by k/n of a period.
-        force_task: run the force task (fixed-base robots with a tool_frame).
+        force_task: run the force task (fixed-base robots with a tool_frame and a
+            force_sensor; `hrp2-drake track` turns it off for a fixed robot
+            without them unless its --config sets it).
         force_k6: K6 of the force task.
         kf: force gain K_f of the force task.
         press: the mean force of the tool on the table (N).
@@ -107,11 +113,40 @@ class TrackConfig:
         control = f"{where}.torque_control"
         check_control_period(self.torque_control, self.station, control)
         robot = self.station.description()
-        if self.force_task and robot.base == "fixed" and not (robot.tool_frame and robot.force_sensor):
+        if self.force_task and robot.base == "fixed" and not can_press(robot):
             raise ValueError(
                 f"TrackConfig.force_task: robot '{robot.name}' has no tool_frame and "
                 "force_sensor in its description"
             )
+
+
+def can_press(robot: RobotDescription) -> bool:
+    """Whether the force task can run on `robot`: fixed base, with a `tool_frame` and
+    a `force_sensor` in its description."""
+    return robot.base == "fixed" and bool(robot.tool_frame and robot.force_sensor)
+
+
+def motor_model_at_station_gain(
+    model: MotorModel, station: StationConfig
+) -> MotorModel:
+    """`model` at the gain the station's servo runs at (`MotorModel.at_gain`,
+    `StationConfig.servo_gain_in_use`): a model identified from logs that state the
+    servo's gain holds at `model.gain`, the simulated servo runs at its servo file's
+    gain unless `StationConfig.servo_gain`. A model without gain is returned as is.
+
+    Raises:
+        ValueError: the model holds at a gain and the station's servo states none.
+    """
+    if not model.gain:
+        return model
+    gain = station.servo_gain_in_use()
+    if gain is None:
+        raise ValueError(
+            f"the motor model holds at servo gain {model.gain:g}, but the servo file "
+            f"of robot '{station.description().name}' states no gain: set "
+            "StationConfig.servo_gain"
+        )
+    return model.at_gain(gain)
 
 
 def check_sinusoid(
@@ -427,9 +462,12 @@ def run_track(config: TrackConfig, motor_model: MotorModel, out: Path) -> dict:
     config.validate()
     robot = config.station.description()
     out.mkdir(parents=True, exist_ok=True)
-    summary = {"robot": robot.name, "joints": list(robot.controlled_joints)}
+    # The one place where track reads the motor model: at the station's servo gain.
+    motor_model = motor_model_at_station_gain(motor_model, config.station)
+    summary = {"robot": robot.name, "joints": list(robot.controlled_joints),
+               "motor_model_gain": motor_model.gain}
     summary["tracking"] = run_tracking(config, motor_model)
-    if config.force_task and robot.base == "fixed":
+    if config.force_task and can_press(robot):
         summary["force_task"] = run_force_task(config, motor_model, out)
     (out / "track.json").write_text(json.dumps(summary, indent=2))
     _plot_tracking(robot, summary["tracking"], out / "track_errors.png")
@@ -459,13 +497,17 @@ def _plot_tracking(robot: RobotDescription, runs: dict, path: Path) -> None:
 
 def _markdown(robot: RobotDescription, config: TrackConfig, summary: dict) -> str:
     labels = robot.labels()
+    spread = len(robot.controlled_joints) > 1
+    phases = " (phases spread over the joints)" if spread else ""
+    gain = summary.get("motor_model_gain")
+    model = f" The motor model at servo gain {gain:g}." if gain else ""
     lines = [
         f"# Torque control of {robot.name} against its position servo",
         "",
         f"Every controlled joint follows a sinusoid of {config.amplitude} rad at "
-        f"{config.frequency} Hz around the home pose for {config.duration} s (phases "
-        "spread over the joints), after a settle at home. Errors of the true joint "
-        "angles (mrad), from the end of the settle. Plot: `track_errors.png`.",
+        f"{config.frequency} Hz around the home pose for {config.duration} s{phases}, "
+        "after a settle at home. Errors of the true joint angles (mrad), from the end "
+        f"of the settle. Plot: `track_errors.png`.{model}",
         "",
         "| controller | " + " | ".join(labels) + " |",
         "| --- |" + " ---: |" * len(labels),

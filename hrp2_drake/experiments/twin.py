@@ -15,7 +15,8 @@ The parameters it fits, per joint (`TWIN_PARAMETERS`), one per mechanism:
   (k5 = stall_current / no_load_speed: a voltage-driven DC servo's current is
   (V·duty − k_e q̇) / R, so its back-EMF damping and its torque-speed line are one
   mechanism),
-- viscous `k2` and Coulomb `k3` friction,
+- viscous `k2`, Coulomb `k3` and load-dependent `load_friction` (gear efficiency)
+  friction,
 - dead zone `i_deadzone`,
 - direction-dependent efficiency `k1_asymmetry` (load-dependent gear friction) and
   hysteresis `hysteresis_width`,
@@ -59,14 +60,15 @@ TWIN_PARAMETERS = {
     "k2": ("linear", (0.0, 0.05)),
     "k3": ("linear", (0.0, 0.1)),
     "i_deadzone": ("linear", (0.0, 0.2)),
+    "load_friction": ("linear", (0.0, 0.6)),
     "k1_asymmetry": ("linear", (0.0, 0.8)),
     "hysteresis_width": ("linear", (0.0, 0.05)),
     "latency": ("linear", (0.0, 0.02)),
 }
-#: What `calibrate --log` fits by default: every mechanism the issue names (stiffness,
-#: back-EMF and voltage limit, friction, dead zone, hysteresis, latency).
+#: What `calibrate --log` fits by default: stiffness, back-EMF and voltage limit,
+#: friction (viscous, Coulomb, load-dependent), dead zone, hysteresis, latency.
 DEFAULT_PARAMETERS = (
-    "k4", "stall_current", "no_load_speed", "k2", "k3", "i_deadzone",
+    "k4", "stall_current", "no_load_speed", "k2", "k3", "load_friction", "i_deadzone",
     "hysteresis_width", "latency",
 )
 #: The residuals' sampling: one error every `RESIDUAL_PERIOD` seconds of each log.

@@ -11,7 +11,7 @@ the source of every mechanism and number):
     i_hi     = min(i_max,  i_s (1 - q̇ / ω0))                     voltage limit
     i_lo     = max(-i_max, -i_s (1 + q̇ / ω0))                    (back-EMF)
     s        = direction state in [-1, 1] (Dahl: ds/dq = (1 - s sign(q̇)) / δ)
-    τ        = K1 (1 + a s) i - K2 q̇ - K3 s                      joint actuation
+    τ        = K1 (1 + a s) i - K2 q̇ - (K3 + μ |K1 (1 + a s) i|) s   joint actuation
 
 With the servo switched off (its "enabled" input 0: a real servo's torque_enable
 false) the driver is off: i = 0 (no drive, no dead zone, no back-EMF braking) and
@@ -90,6 +90,9 @@ class ServoJointParams:
         hysteresis_width: joint travel after a reversal over which the direction
             state switches (rad; Dahl presliding, gear lost motion); 0: the state is
             tanh(q̇ / v_coulomb), switching exactly with the sign of q̇.
+        load_friction: gear friction that grows with the load: a share μ of the
+            motor's torque |k1 (1 + a s) i| added to the Coulomb friction k3 (a
+            gearbox's efficiency; BAM's "load friction" of small servos). 0: none.
         gain: the servo's own position gain (its firmware units, e.g. a Dynamixel's
             kp) at which k4 holds; a P-controlled servo's k4 is proportional to it
             (`ServoParams.at_gain`). 0: a servo without a settable gain.
@@ -109,6 +112,7 @@ class ServoJointParams:
     stall_current: float = float("inf")
     no_load_speed: float = float("inf")
     hysteresis_width: float = 0.0
+    load_friction: float = 0.0
     gain: float = 0.0
 
     def validate(self, where: str) -> None:
@@ -130,6 +134,8 @@ class ServoJointParams:
                 f"{where}: stall_current and no_load_speed set the voltage limit together "
                 f"(both finite, or both .inf), got {self.stall_current}, {self.no_load_speed}"
             )
+        if not 0 <= self.load_friction < 1:
+            raise ValueError(f"{where}.load_friction: must be in [0, 1), got {self.load_friction}")
         if not 0 <= self.k1_asymmetry < 1:
             raise ValueError(f"{where}.k1_asymmetry: must be in [0, 1), got {self.k1_asymmetry}")
 
@@ -332,8 +338,9 @@ def servo_torque(
     current = np.clip(current, lower, upper)
     if enabled is not None:
         current = np.where(enabled > 0.5, current, 0.0)  # torque_enable off: no drive
-    k1 = p["k1"] * (1.0 + p["k1_asymmetry"] * direction)
-    return k1 * current - p["k2"] * v - p["k3"] * direction
+    drive = p["k1"] * (1.0 + p["k1_asymmetry"] * direction) * current
+    coulomb = p["k3"] + p["load_friction"] * np.abs(drive)
+    return drive - p["k2"] * v - coulomb * direction
 
 
 def dahl_step(s: np.ndarray, dq: np.ndarray, width: np.ndarray) -> np.ndarray:
@@ -533,8 +540,9 @@ class Hrp2ServoEmulation(WitnessFreeLeafSystem):
         current = np.minimum(upper, np.maximum(lower, current))
         if enabled is not None:
             current = np.where(enabled > 0.5, current, self._zeros)
-        k1 = p["k1"] * (one + p["k1_asymmetry"] * direction)
-        return k1 * current - p["k2"] * v - p["k3"] * direction
+        drive = p["k1"] * (one + p["k1_asymmetry"] * direction) * current
+        coulomb = p["k3"] + p["load_friction"] * np.abs(drive)
+        return drive - p["k2"] * v - coulomb * direction
 
     def _joint_state(self, context: Context) -> tuple[np.ndarray, np.ndarray]:
         x = self._state.Eval(context)

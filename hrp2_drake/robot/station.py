@@ -219,6 +219,25 @@ class StationConfig:
             params = params.at_gain(self.servo_gain)
         return params
 
+    def servo_gain_in_use(self) -> float | None:
+        """The position gain the station's servo runs at (the servo's own units):
+        `servo_gain`, else the gain the servo file's joints state; None for a servo
+        file that states none (a servo without a settable gain).
+
+        Raises:
+            ValueError: the servo file's joints state different gains (a motor model
+                holds at one; set `servo_gain`).
+        """
+        if self.servo_gain:
+            return float(self.servo_gain)
+        gains = {j.gain for j in self.servo_params().joints.values() if j.gain > 0}
+        if len(gains) > 1:
+            raise ValueError(
+                f"StationConfig.servo_gain: 0, and the servo file's joints state "
+                f"different gains {sorted(gains)}: set one"
+            )
+        return float(gains.pop()) if gains else None
+
     def validate(self) -> None:
         """Raises ValueError naming the bad field: each value against its meaning (the
         robot's scenarios, joints and limits, the plant's step, the servo file)."""
