@@ -372,7 +372,7 @@ def run_calibrate_logs(
         f"{robot.name}'s emulated servo: a digital twin calibrated to {len(logs)} real "
         f"logs by rollout (hrp2-drake calibrate --log; {final.evaluations} rollouts of "
         f"every log, scipy least_squares). Logs: {', '.join(final.logs)}.",
-        f"Prior: the servo file before ({robot.servo_path('')}). k5 = stall_current / "
+        f"Prior: the servo file before ({robot.servo_path('').name}). k5 = stall_current / "
         "no_load_speed (one mechanism: a voltage-driven DC servo).",
     ]
     save_servo_params(final.params, out / "servo.yaml", header)
