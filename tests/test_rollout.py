@@ -27,7 +27,6 @@ from hrp2_drake.robot.servo import (
     SERVO_MECHANISMS,
     Hrp2ServoEmulation,
     effective_motor_parameters,
-    load_servo_params,
     servo_torque,
 )
 
@@ -45,9 +44,10 @@ def robot():
 
 
 @pytest.fixture(scope="module")
-def prior():
-    """The XL330's servo before calibration (BAM's m1, at kp 400)."""
-    return load_servo_params(robot=ROBOT)
+def prior(xl330_prior):
+    """The XL330's servo before calibration (BAM's m1, at kp 400): fixed, whatever
+    the shipped servo.yaml holds."""
+    return xl330_prior
 
 
 @pytest.fixture(scope="module")

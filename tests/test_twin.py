@@ -13,7 +13,6 @@ from hrp2_drake.description import load_robot_description
 from hrp2_drake.experiments.twin import TwinConfig, fit_twin
 from hrp2_drake.identification.logs import read_robot_log
 from hrp2_drake.robot.rollout import emulated_servo, rollout
-from hrp2_drake.robot.servo import load_servo_params
 
 ROBOT = "xl330_pendulum"
 LOGS = Path(__file__).resolve().parents[1] / "models" / ROBOT / "logs"
@@ -32,9 +31,9 @@ def _known_servo_log(robot, prior, name: str, seconds: float):
     return dataclasses.replace(log, q_measured=q), truth
 
 
-def test_calibration_recovers_a_known_servo():
+def test_calibration_recovers_a_known_servo(xl330_prior):
     robot = load_robot_description(ROBOT)
-    prior = load_servo_params("", robot.source_file)
+    prior = xl330_prior
     logs, truth = zip(*(
         _known_servo_log(robot, prior, name, 2.0)
         for name in ("xl330_kp400_sin_time_square.json", "xl330_kp100_sin_sin.json")
