@@ -2,7 +2,6 @@
 one clear line for every bad log. Small slices of the real XL330 logs of
 models/xl330_pendulum/logs (Rhoban's BAM, Apache-2.0)."""
 
-import copy
 import dataclasses
 import json
 from pathlib import Path

@@ -5,10 +5,8 @@ import copy
 import dataclasses
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from hrp2_drake.cli import main
 from hrp2_drake.description import load_robot_description
 from hrp2_drake.experiments.twin import TwinConfig, fit_twin
 from hrp2_drake.identification.logs import read_robot_log

@@ -32,7 +32,6 @@ model identified on the same logs (`identify --fit least-squares`).
 
 import copy
 import json
-import dataclasses
 import math
 import time
 from concurrent.futures import ProcessPoolExecutor
