@@ -75,16 +75,20 @@ def logs_to_arrays(
     loggers: dict[str, LoggedPort | VectorLogSink], root_context
 ) -> dict[str, np.ndarray]:
     """{"t": times, name: (samples, size) array} from `add_loggers`' logs (or from a
-    VectorLogSink per name)."""
+    VectorLogSink per name).
+
+    The arrays are copies: a view of a log would keep the whole simulation (log,
+    context, Simulator) alive as long as the arrays live."""
     out: dict[str, np.ndarray] = {}
     for name, logger in loggers.items():
         if isinstance(logger, LoggedPort):
-            out.setdefault("t", logger.sample_times(root_context))
-            out[name] = logger.data(root_context).T
+            times, data = logger.sample_times(root_context), logger.data(root_context)
         else:
             log = logger.FindLog(root_context)
-            out.setdefault("t", log.sample_times())
-            out[name] = log.data().T
+            times, data = log.sample_times(), log.data()
+        if "t" not in out:
+            out["t"] = times.copy()
+        out[name] = data.T.copy()
     return out
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from hrp2_drake.cli import main
-from hrp2_drake.experiments.builders import TorqueControlConfig
+from hrp2_drake.experiments.builders import JointReference, TorqueControlConfig
 from hrp2_drake.experiments.motion import (
     PAPER_K6,
     PAPER_TABLE2,
@@ -151,11 +151,21 @@ def test_table2_sample_count_from_the_papers_own_numbers():
     np.testing.assert_allclose(ratio, PAPER_TABLE3[:, 0] / PAPER_TABLE2[:, 0], rtol=1e-12)
 
 
+def test_table2_sample_count_is_that_of_the_whole_reference():
+    """paper_sample_count reads the moving joints' speeds alone: what the whole
+    climbing reference (90 rows) gives, to the last bit."""
+    reference = climbing_reference()
+    columns = [model.JOINT_NAMES.index(j) for j in model.RIGHT_LEG[1:]]
+    t = np.arange(0.0, reference.end_time(), 0.001)
+    speeds = np.array([reference.at(x)[1][columns] for x in t])
+    assert paper_sample_count() == derive_sample_count(speeds, 0.001)
+
+
 def test_time_scaled_reference_is_the_same_path_slower():
     from hrp2_drake.experiments.motion import _time_scaled
 
     motion = climbing_reference(end=3.0)
-    slow = _time_scaled(motion, 1.25)
+    slow = JointReference.from_samples(*_time_scaled(motion, 1.25))
     assert slow.end_time() == pytest.approx(1.25 * motion.end_time(), abs=1e-3)
     for t in (0.5, 1.7, 2.9):
         q, v, a = motion.at(t)
@@ -224,3 +234,98 @@ def test_improved_runs_and_report(identified_model, tmp_path):
     assert tables.count("| improved K6=0.1: all (tuned) |") == 2
     assert "only" not in tables
     assert set(summary["verdicts"]) == {"torque control K6=0.1"}
+
+
+def test_a_borrowed_reference_gives_a_trajectory_source_the_same_values():
+    """`builders.borrowed`: a TrajectorySource on it outputs what one on the
+    PiecewisePolynomial itself (a copy) outputs, bit for bit, at breaks, between
+    them and past the end; it does not keep the reference alive (a ControlDiagram
+    does), and says so once the reference is gone."""
+    import gc
+
+    from pydrake.systems.primitives import TrajectorySource
+
+    from hrp2_drake.experiments.builders import JointReference, borrowed
+
+    t = np.arange(0.0, 0.5 + 5e-4, 0.001)
+    q = np.sin(np.outer(t, np.arange(1.0, 4.0)))
+    reference = JointReference.from_samples(t, q, np.cos(q), -q)
+    copied = TrajectorySource(reference.trajectory)
+    shared = TrajectorySource(borrowed(reference.trajectory))
+    contexts = copied.CreateDefaultContext(), shared.CreateDefaultContext()
+    for time in (0.0, 0.001, 0.0123456, 0.25, 0.4995, 0.5, 0.7):
+        values = []
+        for source, context in zip((copied, shared), contexts):
+            context.SetTime(time)
+            values.append(source.get_output_port().Eval(context))
+        assert values[0].tobytes() == values[1].tobytes(), time
+    del reference
+    gc.collect()
+    contexts[1].SetTime(0.1)
+    with pytest.raises(RuntimeError, match="keep its ControlDiagram"):
+        shared.get_output_port().Eval(contexts[1])
+
+
+def test_first_order_hold_in_pieces_is_the_whole_one():
+    """`builders.first_order_hold`: the breaks and values of FirstOrderHold of all
+    the samples, shifted, appended to a hold, bit for bit (pieces of HOLD_PIECE
+    segments; here 2.5 of them)."""
+    from pydrake.trajectories import PiecewisePolynomial
+
+    from hrp2_drake.experiments.builders import HOLD_PIECE, first_order_hold
+
+    rng = np.random.default_rng(4)
+    t = np.cumsum(rng.uniform(0.5e-3, 1.5e-3, int(2.5 * HOLD_PIECE) + 1))
+    samples = rng.standard_normal((5, len(t)))
+    for shift, hold in ((0.0, None), (0.7, [t[0] + 0.7 - 0.3, t[0] + 0.7])):
+        expected = PiecewisePolynomial.FirstOrderHold(t, samples)
+        expected.shiftRight(shift)
+        after = None
+        if hold is not None:
+            after = PiecewisePolynomial.FirstOrderHold(hold, samples[:, [0, 0]])
+            expected_after = after.Clone()
+            expected_after.ConcatenateInTime(expected)
+            expected = expected_after
+        built = first_order_hold(t, samples, shift, after)
+        assert built.get_segment_times() == expected.get_segment_times()
+        times = np.concatenate(
+            [expected.get_segment_times(), rng.uniform(-1.0, t[-1] + 2.0, 5000)]
+        )
+        assert built.vector_values(times).tobytes() == expected.vector_values(times).tobytes()
+
+
+@pytest.mark.parametrize("time_scale", [1.0, 1.25])
+def test_motion_reference_is_what_it_was_built_whole(time_scale):
+    """motion_reference, built from the samples in pieces: the settle hold, then
+    the climbing reference (or its time-scaled samples) built whole, shifted and
+    concatenated, bit for bit."""
+    from pydrake.trajectories import PiecewisePolynomial
+
+    from hrp2_drake.experiments.motion import _climbing_samples, motion_reference
+
+    config = MotionConfig(start=3.0, end=5.5, settle=0.7)
+    reference = motion_reference(config, time_scale)
+
+    def whole(t, q, v, a):
+        return PiecewisePolynomial.FirstOrderHold(t, np.hstack([q, v, a]).T)
+
+    motion = whole(*_climbing_samples(config.smoothing, 3.0, 5.5))
+    if time_scale != 1.0:
+        n = motion.rows() // 3
+        grid = np.arange(0.0, motion.end_time() * time_scale + 5e-4, 0.001)
+        values = motion.vector_values(np.minimum(grid / time_scale, motion.end_time())).T
+        motion = whole(
+            grid, values[:, :n], values[:, n : 2 * n] / time_scale,
+            values[:, 2 * n :] / time_scale**2,
+        )
+    first = motion.value(0.0)
+    motion.shiftRight(0.7)
+    expected = PiecewisePolynomial.FirstOrderHold([0.0, 0.7], np.hstack([first, first]))
+    expected.ConcatenateInTime(motion)
+    assert reference.trajectory.get_segment_times() == expected.get_segment_times()
+    times = np.concatenate(
+        [expected.get_segment_times(), np.linspace(-0.5, expected.end_time() + 0.5, 4001)]
+    )
+    assert reference.trajectory.vector_values(times).tobytes() == (
+        expected.vector_values(times).tobytes()
+    )

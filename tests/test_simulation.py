@@ -64,3 +64,23 @@ def test_witness_free_systems_have_no_witness_and_subclasses_may_add_theirs():
     builder.AddSystem(_OneWitness())
     diagram = builder.Build()
     assert len(diagram.GetWitnessFunctions(diagram.CreateDefaultContext())) == 1
+
+
+def test_logged_arrays_are_copies_that_do_not_keep_the_simulation_alive():
+    import gc
+    import weakref
+
+    builder = DiagramBuilder()
+    sine = builder.AddSystem(Sine([1.0, 2.0], [3.0, 5.0], [0.1, 0.2]))
+    loggers = add_loggers(builder, {"a": sine.get_output_port(0)}, 0.001)
+    simulator = Simulator(builder.Build())
+    simulator.AdvanceTo(0.05)
+    arrays = logs_to_arrays(loggers, simulator.get_context())
+    assert all(a.flags.owndata for a in arrays.values())
+    # Views of the log kept the log, its context and the Simulator alive as long as
+    # the arrays lived (a diagram of C++ systems only: pydrake frees it).
+    alive = weakref.ref(simulator)
+    del simulator, loggers
+    gc.collect()
+    assert alive() is None
+    assert arrays["a"].shape == (51, 2)

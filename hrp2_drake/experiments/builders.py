@@ -18,12 +18,17 @@ logs as a named output port (`LOGGED`), and its station.
 
 import functools
 import math
+import weakref
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort, PortDataType
 from pydrake.systems.primitives import MatrixGain, TrajectorySource
-from pydrake.trajectories import PiecewisePolynomial
+from pydrake.trajectories import (
+    FunctionHandleTrajectory,
+    PiecewisePolynomial,
+    Trajectory,
+)
 
 from hrp2_drake.control.inverse_dynamics import (
     InverseDynamicsConfig,
@@ -58,6 +63,40 @@ from hrp2_drake.robot.station import StationConfig, make_station, sensor_sizes
 COMPONENTS = DELTA_Q_COMPONENTS[:6]
 
 
+#: Segments per piece of `first_order_hold`.
+HOLD_PIECE = 1000
+
+
+def first_order_hold(
+    breaks: np.ndarray,
+    samples: np.ndarray,
+    shift: float = 0.0,
+    after: PiecewisePolynomial | None = None,
+) -> PiecewisePolynomial:
+    """`PiecewisePolynomial.FirstOrderHold(breaks, samples)` (samples: one column a
+    break) shifted right by `shift` (s) and appended to `after` if given (then
+    returned), built `HOLD_PIECE` segments at a time.
+
+    The same polynomials at the same breaks as FirstOrderHold, shiftRight and
+    ConcatenateInTime of the whole (a segment depends on its two samples alone, and
+    the pieces meet exactly), without their copies: FirstOrderHold takes twice the
+    memory of its result while it builds it, ConcatenateInTime copies its argument,
+    and a 1 kHz reference is large (the climbing motion, 16 001 segments x 90 rows,
+    is a 210 MB PiecewisePolynomial: 440 MB while FirstOrderHold builds it whole).
+    """
+    trajectory = after
+    for k in range(0, max(len(breaks) - 1, 1), HOLD_PIECE):
+        piece = PiecewisePolynomial.FirstOrderHold(
+            breaks[k : k + HOLD_PIECE + 1], samples[:, k : k + HOLD_PIECE + 1]
+        )
+        piece.shiftRight(shift)
+        if trajectory is None:
+            trajectory = piece
+        else:
+            trajectory.ConcatenateInTime(piece)
+    return trajectory
+
+
 @dataclass
 class JointReference:
     """A joint-space reference for all n joints of a robot: positions, velocities,
@@ -67,9 +106,9 @@ class JointReference:
 
     @staticmethod
     def from_samples(t: np.ndarray, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> "JointReference":
-        """Linear interpolation between dense samples (e.g. 1 kHz)."""
-        stacked = np.hstack([q, v, a]).T
-        return JointReference(PiecewisePolynomial.FirstOrderHold(t, stacked))
+        """Linear interpolation between dense samples (e.g. 1 kHz), by
+        `first_order_hold`."""
+        return JointReference(first_order_hold(t, np.hstack([q, v, a]).T))
 
     @staticmethod
     def hold(q: np.ndarray, duration: float) -> "JointReference":
@@ -88,13 +127,48 @@ class JointReference:
         return self.trajectory.end_time()
 
 
+def borrowed(trajectory: Trajectory) -> FunctionHandleTrajectory:
+    """`trajectory` for a `TrajectorySource`, neither copied nor kept alive by it:
+    the source evaluates `trajectory` itself (the same values) as long as the
+    caller keeps it alive (a `ControlDiagram` keeps its own).
+
+    Why: TrajectorySource keeps a copy of its trajectory, a 1 kHz reference is large
+    (the climbing motion, a PiecewisePolynomial of 16 001 segments x 90 rows, takes
+    210 MB), and pydrake 1.51.1 on Python 3.11 never frees a Diagram holding a
+    Python LeafSystem (every control diagram here: such a system's tp_traverse
+    visits its __dict__ twice, so the garbage collector takes the cycles through it
+    for reachable). A copy per diagram stayed for the life of the process.
+    """
+    owner = weakref.ref(trajectory)
+
+    def value(t: float) -> np.ndarray:
+        alive = owner()
+        if alive is None:
+            raise RuntimeError(
+                "the trajectory of this TrajectorySource was freed: keep its "
+                "ControlDiagram while simulating the diagram"
+            )
+        return alive.value(t)
+
+    return FunctionHandleTrajectory(
+        value,
+        trajectory.rows(),
+        trajectory.cols(),
+        trajectory.start_time(),
+        trajectory.end_time(),
+    )
+
+
 @dataclass
 class ControlDiagram:
     """A built control experiment: the diagram (its output ports are the logged
-    signals) and its station."""
+    signals), its station, and the trajectories its diagram reads (kept alive here,
+    not by the diagram: `borrowed`)."""
 
     diagram: Diagram
     station: Diagram
+    reference: JointReference
+    force_reference: PiecewisePolynomial | None = None
 
     def output_names(self) -> list[str]:
         """The logged signals: every vector output (not `contact_results`)."""
@@ -105,12 +179,18 @@ class ControlDiagram:
         ]
 
 
-def _build(builder: DiagramBuilder, station: Diagram, ports: dict[str, OutputPort]):
+def _build(
+    builder: DiagramBuilder,
+    station: Diagram,
+    ports: dict[str, OutputPort],
+    reference: JointReference,
+    force_reference: PiecewisePolynomial | None = None,
+) -> ControlDiagram:
     if station.HasOutputPort("contact_results"):
         ports = ports | {"contact_results": station.GetOutputPort("contact_results")}
     for name, port in ports.items():
         builder.ExportOutput(port, name)
-    return ControlDiagram(builder.Build(), station)
+    return ControlDiagram(builder.Build(), station, reference, force_reference)
 
 
 def _add_reference(builder: DiagramBuilder, reference: JointReference, n: int):
@@ -119,7 +199,9 @@ def _add_reference(builder: DiagramBuilder, reference: JointReference, n: int):
             f"the joint reference has {reference.trajectory.rows()} rows, expected "
             f"3 x {n} joints"
         )
-    source = builder.AddNamedSystem("reference", TrajectorySource(reference.trajectory))
+    source = builder.AddNamedSystem(
+        "reference", TrajectorySource(borrowed(reference.trajectory))
+    )
     blocks = {}
     for k, name in enumerate(("q_ref", "v_ref", "vdot_ref")):
         select = np.zeros((n, 3 * n))
@@ -161,7 +243,7 @@ def build_position_control(
         "q_ref": blocks["q_ref"],
         "q_cmd": blocks["q_ref"],
     }
-    return _build(builder, station, ports)
+    return _build(builder, station, ports, reference)
 
 
 @dataclass
@@ -498,13 +580,13 @@ def build_torque_control(
     f_ref = None
     if config.force_frame:
         f_ref = builder.AddNamedSystem(
-            "force_reference", TrajectorySource(force_reference)
+            "force_reference", TrajectorySource(borrowed(force_reference))
         ).get_output_port()
     build = _add_fused_chain if fused else _add_separate_chain
     ports = build(builder, station, robot, parts, blocks, f_ref)
     builder.Connect(ports["q_cmd"], station.GetInputPort("q_cmd"))
     ports = _station_ports(station, robot) | ports | {"q_ref": blocks["q_ref"]}
-    return _build(builder, station, ports)
+    return _build(builder, station, ports, reference, force_reference)
 
 
 def _add_fused_chain(builder, station, robot, parts, blocks, f_ref) -> dict[str, OutputPort]:

@@ -11,6 +11,7 @@ import functools
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from pydrake.systems.analysis import Simulator
@@ -23,6 +24,7 @@ from hrp2_drake.experiments.builders import (
     TorqueControlConfig,
     build_position_control,
     build_torque_control,
+    first_order_hold,
 )
 from hrp2_drake.estimation.torque_estimator import TorqueEstimatorConfig
 from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
@@ -66,6 +68,8 @@ IMPROVEMENTS: dict[str, tuple[str, ...]] = {
     "tuned gains": ("kp", "damping_ratio", "feedback_velocity", "friction_velocity"),
 }
 IMPROVED = "improved K6=0.1"  # label prefix of the improved runs
+#: The runs Figure 4 plots (`plot_figure4`).
+FIGURE4_RUNS = ("position control", "torque control K6=1", "torque control K6=0.25")
 HELD_OUT = "held-out"  # label prefix of the time-scaled runs
 
 
@@ -125,6 +129,14 @@ def climbing_reference(
     acceleration spikes (finite differences up to 190 rad/s² on the knee, an
     interpolating spline 330): lam = 1e-8 keeps the positions within 0.6 mrad and the
     knee's acceleration under 175 rad/s²."""
+    return JointReference.from_samples(*_climbing_samples(smoothing, start, end, dt))
+
+
+def _climbing_samples(
+    smoothing: float, start: float, end: float | None, dt: float = 0.001
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The samples of `climbing_reference`: t (s, from 0), q, q̇, q̈ (samples x
+    joints)."""
     from scipy.interpolate import make_smoothing_spline
 
     t, q = model.load_trajectory()
@@ -132,7 +144,7 @@ def climbing_reference(
     grid = np.arange(start, end + dt / 2, dt)
     splines = [make_smoothing_spline(t, q[:, j], lam=smoothing) for j in range(q.shape[1])]
     stack = [np.column_stack([s(grid, nu) for s in splines]) for nu in (0, 1, 2)]
-    return JointReference.from_samples(grid - start, *stack)
+    return grid - start, *stack
 
 
 def average_error(error: np.ndarray, n_samples: float | None = None) -> np.ndarray:
@@ -181,10 +193,12 @@ def derive_sample_count(reference_speed: np.ndarray, dt: float = 0.001) -> dict:
 @functools.cache
 def paper_sample_count() -> dict:
     """`derive_sample_count` on the climbing reference (1 kHz): the paper's N."""
-    reference = climbing_reference()
+    # The speeds of the moving joints in `climbing_reference()`: its rows of them
+    # alone (the same values at the same breaks, 18 times smaller than all 90 rows).
+    t, _, v, _ = _climbing_samples(1e-8, 0.0, None)
     columns = [model.JOINT_NAMES.index(j) for j in MOVING_JOINTS]
-    t = np.arange(0.0, reference.end_time(), 0.001)
-    speeds = np.array([reference.at(x)[1][columns] for x in t])
+    speed = PiecewisePolynomial.FirstOrderHold(t, v[:, columns].T)
+    speeds = speed.vector_values(np.arange(0.0, speed.end_time(), 0.001)).T
     return derive_sample_count(speeds, 0.001)
 
 
@@ -353,20 +367,24 @@ class MotionConfig:
 
 
 def motion_reference(config: MotionConfig, time_scale: float = 1.0) -> JointReference:
-    motion = climbing_reference(
-        config.smoothing, config.start, None if config.end < 0 else config.end
-    )
+    """The climbing reference of `config` (its part of the motion, `settle` s holding
+    its first pose first), `time_scale` times slower (< 1: faster).
+
+    Built from the samples (`first_order_hold`), never copied whole: a 1 kHz
+    reference is large (210 MB for the whole motion, a PiecewisePolynomial of
+    16 001 segments x 90 rows)."""
+    end = None if config.end < 0 else config.end
+    t, q, v, a = _climbing_samples(config.smoothing, config.start, end)
     if time_scale != 1.0:
-        motion = _time_scaled(motion, time_scale)
+        t, q, v, a = _time_scaled(JointReference.from_samples(t, q, v, a), time_scale)
+    samples = np.hstack([q, v, a]).T
     if config.settle <= 0:
-        return motion
-    # Hold the first pose for `settle` seconds, then the motion.
-    traj = motion.trajectory.Clone()
-    traj.shiftRight(config.settle)
-    first = motion.trajectory.value(0.0)
+        return JointReference(first_order_hold(t, samples))
+    # Hold the first pose (the motion's value at 0) for `settle` seconds, then the
+    # motion shifted right by `settle`.
+    first = first_order_hold(t[:2], samples[:, :2]).value(0.0)
     hold = PiecewisePolynomial.FirstOrderHold([0.0, config.settle], np.hstack([first, first]))
-    hold.ConcatenateInTime(traj)
-    return JointReference(hold)
+    return JointReference(first_order_hold(t, samples, shift=config.settle, after=hold))
 
 
 def estimation_delay(config: TorqueControlConfig, period: float = 0.001) -> float:
@@ -378,14 +396,17 @@ def estimation_delay(config: TorqueControlConfig, period: float = 0.001) -> floa
     return (filters.delay_samples() + 2) * period
 
 
-def _time_scaled(motion: JointReference, scale: float) -> JointReference:
-    """The same path in `scale` times the time: q(t / scale), its derivatives scaled."""
+def _time_scaled(
+    motion: JointReference, scale: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The samples (t, q, q̇, q̈ at 1 kHz) of the same path in `scale` times the time:
+    q(t / scale), its derivatives scaled (`JointReference.from_samples` of them)."""
     traj = motion.trajectory  # rows [q; q̇; q̈]
     n = traj.rows() // 3
     grid = np.arange(0.0, traj.end_time() * scale + 5e-4, 0.001)
     values = traj.vector_values(np.minimum(grid / scale, traj.end_time())).T
     q, v, a = values[:, :n], values[:, n : 2 * n], values[:, 2 * n :]
-    return JointReference.from_samples(grid, q, v / scale, a / scale**2)
+    return grid, q, v / scale, a / scale**2
 
 
 def run_controller(
@@ -507,8 +528,14 @@ def run_motion(
     motor_model: MotorModel,
     include_variants: bool = True,
     meshcat=None,
+    keep_signals: Callable[[str], bool] | None = None,
 ) -> MotionResult:
-    """Runs position control and every K6 of torque control on the climbing motion."""
+    """Runs position control and every K6 of torque control on the climbing motion.
+
+    `keep_signals(label)`: whether `MotionResult.signals` keeps the logged signals
+    of the run `label` (default: every run's; each run logs about 40 MB: 290
+    signals at 1 kHz for 17 s). The errors of every run are computed either way.
+    """
     from dataclasses import replace
 
     config.validate()
@@ -527,27 +554,44 @@ def run_motion(
         k6_1 = replace(config.torque_control, k6=1.0)
         plan.append(("torque control K6=1, paper-literal eq. 13", 1.0, _paper_literal(k6_1)))
         plan.append(("torque control K6=1, authors' code", 1.0, _authors_code(k6_1)))
-    references = {1.0: reference}
     if config.improved:
         tuned = load_improved(config.improved, config.torque_control)
         plan += [(label, 0.1, c) for label, c in improved_plan(config.torque_control, tuned)]
         if config.held_out_time_scale > 0:
             scale = config.held_out_time_scale
-            references[scale] = motion_reference(config, scale)
             tag = f"{HELD_OUT} (climbing x{scale:g} in time)"
             plan.append((f"{tag}: position control", None, None, scale))
             plan.append((f"{tag}: {IMPROVED} (tuned)", 0.1, replace(tuned, k6=0.1), scale))
+    # One reference at a time (a 1 kHz reference is large): built when the time
+    # scale changes, the last one freed first.
+    reference_scale = 1.0
     for label, k6, torque_config, *scaled in plan:
-        ref = references[scaled[0] if scaled else 1.0]
-        if torque_config is None:
-            control = build_position_control(config.station, ref)
-        else:
-            control = build_torque_control(config.station, ref, motor_model, torque_config)
-        logged = run_controller(control, ref.end_time(), label)
-        signals[label] = logged
+        scale = scaled[0] if scaled else 1.0
+        if scale != reference_scale:
+            reference = None
+            reference, reference_scale = motion_reference(config, scale), scale
+        logged = _run(config.station, reference, motor_model, torque_config, label)
+        if keep_signals is None or keep_signals(label):
+            signals[label] = logged
         chain_delay = estimation_delay(torque_config) if torque_config else delay
         runs.append(evaluate(label, k6, logged, config.settle, chain_delay))
     return MotionResult(runs, signals, duration)
+
+
+def _run(
+    station: StationConfig,
+    reference: JointReference,
+    motor_model: MotorModel,
+    torque_config: TorqueControlConfig | None,
+    label: str,
+) -> dict[str, np.ndarray]:
+    """One run of `run_motion`: position control (`torque_config` None) or torque
+    control on `reference`; its logged signals."""
+    if torque_config is None:
+        control = build_position_control(station, reference)
+    else:
+        control = build_torque_control(station, reference, motor_model, torque_config)
+    return run_controller(control, reference.end_time(), label)
 
 
 def _table(rows: list[list[str]], header: list[str]) -> list[str]:
@@ -798,8 +842,7 @@ def plot_figure4(result: MotionResult, out: Path) -> str:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    wanted = ["position control", "torque control K6=1", "torque control K6=0.25"]
-    labels = [l for l in wanted if l in result.signals]
+    labels = [l for l in FIGURE4_RUNS if l in result.signals]
     fig, axes = plt.subplots(2, 2, figsize=(12, 7.5), sharex=True, layout="constrained")
     for col, joint in enumerate(("RLEG_JOINT1", "RLEG_JOINT4")):
         j = model.JOINT_NAMES.index(joint)

@@ -86,8 +86,8 @@ def step_motion(out: Path, model_path: Path, quick: bool, replays: bool) -> dict
     from dataclasses import replace
 
     from hrp2_drake.experiments.motion import (
+        FIGURE4_RUNS,
         MotionConfig,
-        is_beyond_paper,
         run_motion,
         write_motion_report,
     )
@@ -96,16 +96,32 @@ def step_motion(out: Path, model_path: Path, quick: bool, replays: bool) -> dict
     config = MotionConfig(end=16.0)
     if quick:
         config = replace(config, start=3.0, end=4.0, settle=0.7)
-    result = run_motion(config, MotorModel.load(model_path))
+
+    def kept(label: str) -> bool:
+        """The runs the report plots and the components step reads: their signals
+        (of the others, their errors alone; about 40 MB of signals a run)."""
+        return label in FIGURE4_RUNS or label in _component_runs([label])
+
+    result = run_motion(config, MotorModel.load(model_path), keep_signals=kept)
     summary = write_motion_report(result, out)
-    paper = [label for label in result.signals if not is_beyond_paper(label)]
-    keep = [label for label in paper if "K6=1" in label and "," not in label]
-    keep += [label for label in paper if "K6=0.1" in label or label == "position control"]
+    keep = _component_runs(result.signals)
     _save_signals(out / "motion_signals.npz", {k: result.signals[k] for k in keep})
     if replays:
         _motion_replay(config, MotorModel.load(model_path), out / "motion_replay.html")
         summary["replay"] = "motion_replay.html"
     return summary
+
+
+def _component_runs(labels) -> list[str]:
+    """The motion runs among `labels` whose signals the components step reads
+    (motion_signals.npz): the paper's torque control at K6 = 1 and 0.1, and
+    position control."""
+    from hrp2_drake.experiments.motion import is_beyond_paper
+
+    paper = [label for label in labels if not is_beyond_paper(label)]
+    keep = [label for label in paper if "K6=1" in label and "," not in label]
+    keep += [label for label in paper if "K6=0.1" in label or label == "position control"]
+    return keep
 
 
 def _motion_replay(config, motor_model, path: Path) -> None:
