@@ -251,6 +251,7 @@ def identify_segments(
     """
     config.validate()
     check_segments(config, segments)
+    _logger.info("estimating and fitting ...")
     robot = config.station.description()
     gains = [s.gain for s in segments]
     reference = min(gains) if gains[0] is not None else 0.0
@@ -758,8 +759,6 @@ def run_identify(
     else:
         segments, rows = read_segments(log_paths, config.station.description())
         simulated = all("joint_torque_true" in s.log for s in segments)
-        check_segments(config, segments)
-    _logger.info("estimating and fitting ...")
     try:
         result = identify_segments(config, segments)
     except (ValueError, KeyError) as error:

@@ -46,7 +46,7 @@ import scipy.optimize
 from hrp2_drake import console
 from hrp2_drake.description import RobotDescription, load_robot_description
 from hrp2_drake.identification.logs import RobotLog, read_robot_log
-from hrp2_drake.robot.rollout import emulated_servo, rollout, rollout_errors
+from hrp2_drake.robot.rollout import emulated_servo, model_servo, rollout, rollout_errors
 from hrp2_drake.robot.servo import ServoParams, load_servo_params, save_servo_params
 
 #: The fitted parameters: name -> (lower, upper, scale): "log" parameters move by
@@ -112,7 +112,6 @@ class TwinFit:
 
     params: ServoParams
     logs: list[str]
-    mae: dict[str, float]  # per log, rad (first joint's... mean over joints)
     evaluations: int
     wall_time: float
     cost_start: float
@@ -180,9 +179,15 @@ def _rollout_error(args: tuple) -> np.ndarray:
     return _position_error(_WORKER["robot"], _WORKER["logs"][k], params)
 
 
+def twin_servo(params: ServoParams, log: RobotLog):
+    """The servo factory of the twin replaying `log`: the emulated servo at the log's
+    gain, its latency buffer holding the log's first command."""
+    return emulated_servo(params, log.gain, initial_q_cmd=log.q_cmd[0])
+
+
 def _position_error(robot: RobotDescription, log: RobotLog, params: ServoParams) -> np.ndarray:
     """q_sim − q_measured of one rollout (rad), one row every RESIDUAL_PERIOD."""
-    q_sim = rollout(robot, log, emulated_servo(params, log.gain, initial_q_cmd=log.q_cmd[0])).q_sim
+    q_sim = rollout(robot, log, twin_servo(params, log)).q_sim
     every = max(1, int(round(RESIDUAL_PERIOD / log.period)))
     return (q_sim - log.q_measured)[::every]
 
@@ -258,7 +263,6 @@ def fit_twin(
     return TwinFit(
         params=params,
         logs=[log.name for log in logs],
-        mae={},
         evaluations=evaluations[0],
         wall_time=time.perf_counter() - start,
         cost_start=float(r0 @ r0),
@@ -267,33 +271,32 @@ def fit_twin(
     )
 
 
-def twin_errors(
-    robot: RobotDescription, logs: Sequence[RobotLog], params: ServoParams
+def rollout_table(
+    robot: RobotDescription, logs: Sequence[RobotLog], servo_of_log
 ) -> dict[str, dict[str, float]]:
-    """Rollout MAE and maximum error (rad, mean over joints) of the twin per log."""
+    """Rollout MAE, maximum error and MAE with the servo on (rad, mean over joints)
+    per log; `servo_of_log(log)`: the servo factory replaying it."""
     out = {}
     for log in logs:
-        q = rollout(robot, log, emulated_servo(params, log.gain, initial_q_cmd=log.q_cmd[0])).q_sim
-        e = rollout_errors(log, q)
+        e = rollout_errors(log, rollout(robot, log, servo_of_log(log)).q_sim)
         out[log.name] = {"mae": float(np.mean(e.mae)), "max": float(np.mean(e.max_error)),
                          "mae_servo_on": float(np.mean(e.mae_servo_on))}
     return out
+
+
+def twin_errors(
+    robot: RobotDescription, logs: Sequence[RobotLog], params: ServoParams
+) -> dict[str, dict[str, float]]:
+    """`rollout_table` of the twin with `params`."""
+    return rollout_table(robot, logs, lambda log: twin_servo(params, log))
 
 
 def model_errors(
     robot: RobotDescription, logs: Sequence[RobotLog], model
 ) -> dict[str, dict[str, float]]:
-    """`twin_errors` of a servo that obeys an identified motor model instead
+    """`rollout_table` of a servo that obeys an identified motor model instead
     (`rollout.model_servo`, at each log's gain)."""
-    from hrp2_drake.robot.rollout import model_servo
-
-    out = {}
-    for log in logs:
-        q = rollout(robot, log, model_servo(robot, model, log.gain)).q_sim
-        e = rollout_errors(log, q)
-        out[log.name] = {"mae": float(np.mean(e.mae)), "max": float(np.mean(e.max_error)),
-                         "mae_servo_on": float(np.mean(e.mae_servo_on))}
-    return out
+    return rollout_table(robot, logs, lambda log: model_servo(robot, model, log.gain))
 
 
 def least_squares_model(robot: RobotDescription, logs: Sequence[RobotLog]):
@@ -366,7 +369,7 @@ def run_calibrate_logs(
     out.mkdir(parents=True, exist_ok=True)
     cross = cross_validate(robot, logs, prior, config) if _gains(logs) > 1 else []
     final = fit_twin(robot, logs, prior, config, label="twin on every log")
-    final.mae = {k: v["mae"] for k, v in twin_errors(robot, logs, final.params).items()}
+    fitted_mae = {k: v["mae"] for k, v in twin_errors(robot, logs, final.params).items()}
     header = [
         f"{robot.name}'s emulated servo: a digital twin calibrated to {len(logs)} real "
         f"logs by rollout (hrp2-drake calibrate --log; {final.evaluations} rollouts of "
@@ -377,7 +380,7 @@ def run_calibrate_logs(
     save_servo_params(final.params, out / "servo.yaml", header)
     if install:
         save_servo_params(final.params, robot.servo_path(""), header)
-    summary = _summary(robot, logs, prior, final, cross)
+    summary = _summary(robot, logs, prior, final, fitted_mae, cross)
     (out / "calibrate.json").write_text(json.dumps(summary, indent=2))
     figures = _plot(robot, logs, final, out)
     (out / "calibrate.md").write_text(_markdown(robot, summary, figures, install))
@@ -388,17 +391,17 @@ def _gains(logs: Sequence[RobotLog]) -> int:
     return len({log.gain for log in logs if log.gain is not None})
 
 
-def _summary(robot, logs, prior, final: TwinFit, cross: list[CrossValidation]) -> dict:
-    fitted = {
-        joint: {name: getattr(final.params.joints[joint], name)
-                for name in list(TWIN_PARAMETERS) + ["k5"]}
-        for joint in robot.joints
-    }
-    before = {
-        joint: {name: getattr(prior.joints[joint], name)
-                for name in list(TWIN_PARAMETERS) + ["k5"]}
-        for joint in robot.joints
-    }
+def _summary(
+    robot, logs, prior, final: TwinFit, fitted_mae: dict[str, float],
+    cross: list[CrossValidation],
+) -> dict:
+    def values(params: ServoParams) -> dict[str, dict[str, float]]:
+        return {
+            joint: {name: getattr(params.joints[joint], name)
+                    for name in list(TWIN_PARAMETERS) + ["k5"]}
+            for joint in robot.joints
+        }
+
     summary = {
         "robot": robot.name,
         "logs": [log.name for log in logs],
@@ -406,9 +409,9 @@ def _summary(robot, logs, prior, final: TwinFit, cross: list[CrossValidation]) -
                 "rms_error_start_mrad": math.sqrt(final.cost_start / len(logs)) * 1e3,
                 "rms_error_end_mrad": math.sqrt(final.cost_end / len(logs)) * 1e3,
                 "message": final.message},
-        "parameters": fitted,
-        "prior": before,
-        "mae_on_fitted_logs_mrad": {k: v * 1e3 for k, v in final.mae.items()},
+        "parameters": values(final.params),
+        "prior": values(prior),
+        "mae_on_fitted_logs_mrad": {k: v * 1e3 for k, v in fitted_mae.items()},
     }
     if cross:
         rows = []
@@ -490,7 +493,7 @@ def _plot(robot, logs: Sequence[RobotLog], final: TwinFit, out: Path) -> list[st
     chosen = list({log.gain: log for log in reversed(logs)}.values())[::-1]
     fig, axes = plt.subplots(len(chosen), 1, figsize=(9, 3.2 * len(chosen)), squeeze=False)
     for ax, log in zip(axes[:, 0], chosen):
-        q = rollout(robot, log, emulated_servo(final.params, log.gain, initial_q_cmd=log.q_cmd[0])).q_sim
+        q = rollout(robot, log, twin_servo(final.params, log)).q_sim
         ax.plot(log.t, log.q_cmd[:, 0], color="0.6", lw=1, label="command")
         ax.plot(log.t, log.q_measured[:, 0], "k", lw=1.4, label="measured")
         ax.plot(log.t, q[:, 0], "tab:red", lw=1.2, ls="--", label="twin (rollout)")

@@ -20,6 +20,7 @@ import numpy as np
 
 from hrp2_drake.estimation.savitzky_golay import savgol_filter_offline
 from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
+from hrp2_drake.identification.logs import window_samples
 
 
 @dataclass
@@ -412,8 +413,6 @@ def estimate_segments(
         ValueError: naming the log: a log shorter than the window, and
             `noncausal_estimates`' errors.
     """
-    from hrp2_drake.identification.logs import window_samples
-
     parts = []
     joints = estimator.config().joints
     for k, segment in enumerate(segments):

@@ -251,8 +251,9 @@ IMPORTERS: dict[str, Callable[[Path, LogFormat], RawLog]] = {
 
 
 def _numbers(path: Path, key: str, values: Sequence) -> np.ndarray:
-    """A column as float64; booleans become 0/1; text or a missing value: None
-    markers are kept as NaN only where the column is not numeric at all."""
+    """A column as float64: numbers as they are, booleans (and "true"/"false") as
+    1/0, numeric text parsed; anything else (other text, null, a list) becomes NaN,
+    which `_column` reports with its count and first sample if the column is used."""
     converted = []
     for value in values:
         if isinstance(value, bool):
