@@ -97,7 +97,7 @@ def _use_robot(station, args: argparse.Namespace) -> None:
 
 
 def _simulate(args: argparse.Namespace) -> int:
-    from hrp2_drake.experiments.simulate import SimulateConfig, run_simulate, summarize
+    from hrp2_drake.tools.simulate import SimulateConfig, run_simulate, summarize
 
     config = _config(SimulateConfig, args)
     _use_robot(config.station, args)
@@ -132,7 +132,7 @@ def _simulate(args: argparse.Namespace) -> int:
 
 
 def _identify(args: argparse.Namespace) -> int:
-    from hrp2_drake.experiments.identification import IdentifyConfig, run_identify
+    from hrp2_drake.tools.identify import IdentifyConfig, run_identify
 
     config = _config(IdentifyConfig, args)
     _use_robot(config.station, args)
@@ -163,7 +163,7 @@ def _identify(args: argparse.Namespace) -> int:
 
 def _estimate(args: argparse.Namespace) -> int:
     from hrp2_drake.description import load_robot_description
-    from hrp2_drake.experiments.estimate_log import run_estimate
+    from hrp2_drake.tools.estimate import run_estimate
 
     robot = load_robot_description(args.robot or None)
     out = _output_folder(args.out)
@@ -178,7 +178,7 @@ def _estimate(args: argparse.Namespace) -> int:
 
 def _validate_logs(args: argparse.Namespace) -> int:
     from hrp2_drake.description import load_robot_description
-    from hrp2_drake.experiments.validate import run_validate
+    from hrp2_drake.tools.validate import run_validate
 
     robot = load_robot_description(args.robot or None)
     out = _output_folder(args.out)
@@ -198,7 +198,7 @@ def _validate_logs(args: argparse.Namespace) -> int:
 
 
 def _track(args: argparse.Namespace) -> int:
-    from hrp2_drake.experiments.track import TrackConfig, can_press, run_track
+    from hrp2_drake.tools.track import TrackConfig, can_press, run_track
 
     config = _config(TrackConfig, args)
     if args.robot:
@@ -213,7 +213,7 @@ def _track(args: argparse.Namespace) -> int:
         config.duration, config.force_duration, config.k6 = 2.5, 2.0, config.k6[:1]
     _validate(config, args)
     out = _output_folder(args.out)
-    from hrp2_drake.experiments.identification import IdentifyConfig
+    from hrp2_drake.tools.identify import IdentifyConfig
 
     identify = IdentifyConfig(station=config.station, duration_scale=0.5 if args.quick else 1.0)
     summary = run_track(config, _motor_model(args, out, config, identify), out)
@@ -226,7 +226,7 @@ def _track(args: argparse.Namespace) -> int:
 
 
 def _control(args: argparse.Namespace) -> int:
-    from hrp2_drake.experiments.lcm_control import LcmControlConfig, _ending, run_control
+    from hrp2_drake.tools.control import LcmControlConfig, _ending, run_control
 
     config = _config(LcmControlConfig, args)
     _use_robot(config.station, args)
@@ -252,7 +252,7 @@ def _control(args: argparse.Namespace) -> int:
 
 
 def _sim_robot(args: argparse.Namespace) -> int:
-    from hrp2_drake.experiments.lcm_control import run_sim_robot
+    from hrp2_drake.tools.control import run_sim_robot
     from hrp2_drake.robot.station import StationConfig
 
     station = StationConfig()
@@ -295,7 +295,7 @@ def _motor_model(args: argparse.Namespace, out: Path, config=None, identify=None
                 f"{loaded.joint_names}), which the experiment torque-controls"
             )
         return loaded
-    from hrp2_drake.experiments.identification import IdentifyConfig, run_identify
+    from hrp2_drake.tools.identify import IdentifyConfig, run_identify
 
     console.say("no --motor-model: identifying one first (hrp2-drake identify)")
     run_identify(identify or IdentifyConfig(), out / "identify")
@@ -308,7 +308,7 @@ def _experiment(args: argparse.Namespace) -> int:
             f"--end: only the motion experiment has an end, not {args.name}"
         )
     if args.name == "motion":
-        from hrp2_drake.experiments.motion import MotionConfig, run_motion, write_motion_report
+        from hrp2_drake.paper.motion import MotionConfig, run_motion, write_motion_report
 
         config = _config(MotionConfig, args)
         if args.end is not None:
@@ -325,7 +325,7 @@ def _experiment(args: argparse.Namespace) -> int:
             )
         return 0
     if args.name == "estimation":
-        from hrp2_drake.experiments.estimation import (
+        from hrp2_drake.paper.estimation import (
             EstimationConfig,
             run_estimation_experiment,
         )
@@ -344,7 +344,7 @@ def _experiment(args: argparse.Namespace) -> int:
             )
         return 0
     if args.name == "force":
-        from hrp2_drake.experiments.force import ForceConfig, run_force_experiment
+        from hrp2_drake.paper.force import ForceConfig, run_force_experiment
 
         config = _config(ForceConfig, args)
         _validate(config, args)
@@ -357,7 +357,7 @@ def _experiment(args: argparse.Namespace) -> int:
         )
         return 0
     if args.name == "stability":
-        from hrp2_drake.experiments.stability import StabilityConfig, run_stability_experiment
+        from hrp2_drake.paper.stability import StabilityConfig, run_stability_experiment
         from hrp2_drake.identification.motor_model import MotorModel
 
         config = _config(StabilityConfig, args)
@@ -376,7 +376,7 @@ def _experiment(args: argparse.Namespace) -> int:
         print(f"report: {out / 'stability.md'}; contrast shown: {summary['contrast']}")
         return 0
     if args.name == "faults":
-        from hrp2_drake.experiments.faults import FaultCampaignConfig, run_fault_campaign
+        from hrp2_drake.paper.faults import FaultCampaignConfig, run_fault_campaign
 
         config = _config(FaultCampaignConfig, args)
         _validate(config, args)
@@ -397,7 +397,7 @@ def _experiment(args: argparse.Namespace) -> int:
 
 
 def _calibrate(args: argparse.Namespace) -> int:
-    from hrp2_drake.experiments.calibrate import CalibrationConfig, calibrate
+    from hrp2_drake.paper.calibrate import CalibrationConfig, calibrate
 
     from hrp2_drake.description import load_robot_description
 
@@ -422,7 +422,7 @@ def _calibrate(args: argparse.Namespace) -> int:
 def _calibrate_from_logs(args: argparse.Namespace) -> int:
     """`calibrate --robot R --log ...`: any robot's twin from its logs."""
     from hrp2_drake.description import load_robot_description
-    from hrp2_drake.experiments.twin import TwinConfig, run_calibrate_logs
+    from hrp2_drake.tools.twin import TwinConfig, run_calibrate_logs
 
     robot = load_robot_description(args.robot)
     if not args.log:
@@ -460,7 +460,7 @@ def _calibrate_from_logs(args: argparse.Namespace) -> int:
 
 
 def _reproduce(args: argparse.Namespace) -> int:
-    from hrp2_drake.experiments.reproduce import ReproduceConfig, run_reproduce, verdicts
+    from hrp2_drake.paper.reproduce import ReproduceConfig, run_reproduce, verdicts
 
     config = ReproduceConfig(jobs=args.jobs, quick=args.quick, replays=not args.no_replays)
     validate_config(config)
@@ -473,8 +473,8 @@ def _reproduce(args: argparse.Namespace) -> int:
 
 
 def _tune(args: argparse.Namespace) -> int:
-    from hrp2_drake.experiments.identification import IdentifyConfig
-    from hrp2_drake.experiments.tune import TuneConfig, check_environment, run_tune
+    from hrp2_drake.tools.identify import IdentifyConfig
+    from hrp2_drake.paper.tune import TuneConfig, check_environment, run_tune
 
     config = _config(TuneConfig, args)
     if args.quick:

@@ -53,7 +53,7 @@ from pydrake.systems.primitives import ConstantVectorSource
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from hrp2_drake.robot import model  # noqa: E402
+from hrp2_drake.paper import hrp2  # noqa: E402
 from hrp2_drake.robot.station import (  # noqa: E402
     StationConfig,
     initial_joint_positions,
@@ -90,8 +90,8 @@ def bench_simulation(duration: float) -> list[dict]:
         MultibodyPlantConfig(time_step=1e-3, discrete_contact_approximation="sap"),
         builder,
     )
-    model.add_hrp2(plant)
-    plant.WeldFrames(plant.world_frame(), plant.GetFrameByName(model.BASE_BODY))
+    hrp2.add_hrp2(plant)
+    plant.WeldFrames(plant.world_frame(), plant.GetFrameByName(hrp2.BASE_BODY))
     plant.Finalize()
     torque = builder.AddSystem(ConstantVectorSource(np.zeros(plant.num_actuators())))
     builder.Connect(torque.get_output_port(), plant.get_actuation_input_port())
@@ -192,11 +192,11 @@ def _tick_systems() -> dict[str, _Ticker]:
     )
     from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayFilter
     from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
-    from hrp2_drake.experiments import hrp2
+    from hrp2_drake.paper import hrp2
 
     config = hrp2.estimator_config()
     sensors = list(config.sensors)
-    n_all = model.NUM_JOINTS
+    n_all = hrp2.NUM_JOINTS
     inputs = _inputs(len(sensors))
     systems = {}
 
@@ -229,12 +229,12 @@ def _tick_systems() -> dict[str, _Ticker]:
     _fix(estimator, context, inputs, sensors)
     systems["estimator (30 joints, IMU, 4 F/T)"] = _Ticker(estimator, context)
 
-    joints = list(model.RIGHT_LEG)
+    joints = list(hrp2.RIGHT_LEG)
     n = len(joints)
-    leg = [list(model.JOINT_NAMES).index(j) for j in joints]
-    q = model.half_sitting()[leg]
+    leg = [list(hrp2.JOINT_NAMES).index(j) for j in joints]
+    q = hrp2.half_sitting()[leg]
     inverse_dynamics = InverseDynamicsController(
-        make_fixed_base_plant(model.add_hrp2, model.BASE_BODY),
+        make_fixed_base_plant(hrp2.add_hrp2, hrp2.BASE_BODY),
         InverseDynamicsConfig(joints=joints, ks=[3000.0], kd=[50.0]),
     )
     context = inverse_dynamics.CreateDefaultContext()
@@ -276,7 +276,7 @@ def _tick_systems() -> dict[str, _Ticker]:
         n_all, monitored, SafetyConfig(start_time=0.0), num_sensor_stamps=7
     )
     context = supervisor.CreateDefaultContext()
-    q30 = model.half_sitting()
+    q30 = hrp2.half_sitting()
     for name, value in (
         ("q_torque", q30 + 1e-3),
         ("q_position", q30),

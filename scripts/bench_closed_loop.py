@@ -50,9 +50,9 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantVectorSource
 
-from hrp2_drake.experiments import hrp2
-from hrp2_drake.experiments import motion
-from hrp2_drake.experiments.builders import build_position_control, build_torque_control
+from hrp2_drake.paper import hrp2
+from hrp2_drake.paper import motion
+from hrp2_drake.assembly.builders import build_position_control, build_torque_control
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.robot.station import (
     StationConfig,

@@ -21,14 +21,13 @@ from hrp2_drake.control.torque_controller import (
     DeltaQTorqueController,
     TorqueControllerConfig,
 )
-from hrp2_drake.experiments import hrp2
-from hrp2_drake.experiments.builders import (
+from hrp2_drake.paper import hrp2
+from hrp2_drake.assembly.builders import (
     TorqueControlConfig,
     build_position_control,
     build_torque_control,
 )
-from hrp2_drake.experiments.motion import MotionConfig, motion_reference
-from hrp2_drake.robot import model
+from hrp2_drake.paper.motion import MotionConfig, motion_reference
 
 PERIOD = 1e-3
 
@@ -42,11 +41,11 @@ def _us_per_update(system, context, ticks: int) -> float:
 
 
 def bench_controller_stack(ticks: int = 2000) -> list[dict]:
-    joints = list(model.RIGHT_LEG)
+    joints = list(hrp2.RIGHT_LEG)
     n = len(joints)
-    q = model.half_sitting()[:n]
+    q = hrp2.half_sitting()[:n]
     inverse_dynamics = InverseDynamicsController(
-        make_fixed_base_plant(model.add_hrp2, model.BASE_BODY),
+        make_fixed_base_plant(hrp2.add_hrp2, hrp2.BASE_BODY),
         InverseDynamicsConfig(joints=joints, ks=[3000.0], kd=[50.0]),
     )
     context = inverse_dynamics.CreateDefaultContext()
@@ -66,13 +65,13 @@ def bench_controller_stack(ticks: int = 2000) -> list[dict]:
 
     # The safety supervisor of the 30 joints with HRP-2's sensors (stamps included):
     # its update, and its q_cmd output (computed from live inputs every period).
-    sensors = supervisor_sensors(list(model.FT_SENSORS))
+    sensors = supervisor_sensors(list(hrp2.FT_SENSORS))
     supervisor = SafetySupervisor(
-        model.NUM_JOINTS, sensors, SafetyConfig(start_time=0.0), num_sensor_stamps=7
+        hrp2.NUM_JOINTS, sensors, SafetyConfig(start_time=0.0), num_sensor_stamps=7
     )
     context = supervisor.CreateDefaultContext()
     rng = np.random.default_rng(0)
-    q30 = model.half_sitting()
+    q30 = hrp2.half_sitting()
     for name, value in (("q_torque", q30 + 1e-3), ("q_position", q30), ("q_measured", q30)):
         supervisor.GetInputPort(name).FixValue(context, value)
     sizes = {name: 6 if kind == "wrench" else 3 for name, kind in sensors.items()}

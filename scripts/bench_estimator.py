@@ -38,8 +38,7 @@ from hrp2_drake.estimation.torque_estimator import (
 )
 from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayFilter
 from hrp2_drake.estimation.torque_estimator import add_estimator
-from hrp2_drake.experiments import hrp2
-from hrp2_drake.robot import model
+from hrp2_drake.paper import hrp2
 
 PERIOD = 1e-3  # s
 
@@ -49,21 +48,21 @@ def hrp2_estimator_config(plant: MultibodyPlant) -> TorqueEstimatorConfig:
     sensors = {
         name: ForceTorqueSensorConfig(
             frame=plant.GetJointByName(joint).frame_on_child().name(),
-            body=model.FT_SENSOR_BODIES[name],
+            body=hrp2.FT_SENSOR_BODIES[name],
         )
-        for name, joint in model.FT_SENSORS.items()
+        for name, joint in hrp2.FT_SENSORS.items()
     }
     return TorqueEstimatorConfig(
-        joints=list(model.JOINT_NAMES), imu_frame=model.IMU_FRAME, sensors=sensors
+        joints=list(hrp2.JOINT_NAMES), imu_frame=hrp2.IMU_FRAME, sensors=sensors
     )
 
 
 def _inputs(num_sensors: int) -> dict:
     rng = np.random.default_rng(0)
-    n = model.NUM_JOINTS
+    n = hrp2.NUM_JOINTS
     standing = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 280.0])
     return {
-        "q": model.half_sitting(),
+        "q": hrp2.half_sitting(),
         "v": rng.normal(0.0, 0.1, n),
         "vdot": rng.normal(0.0, 1.0, n),
         "imu_linear_acceleration": np.array([0.1, -0.2, 9.81]),
@@ -117,7 +116,7 @@ def bench_estimator(num_ticks: int = 2000) -> list[dict]:
     (bench_estimation_stage). Returns rows {"name", "us_per_tick"} (and {"name",
     "blocks_per_tick"} for the allocation row)."""
     plant = MultibodyPlant(0.0)
-    model.add_hrp2(plant)
+    hrp2.add_hrp2(plant)
     plant.Finalize()
     base_config = hrp2_estimator_config(plant)
     sensors = list(base_config.sensors)
@@ -165,7 +164,7 @@ def bench_estimator(num_ticks: int = 2000) -> list[dict]:
         }
     )
 
-    noop = _NoopEstimator(model.NUM_JOINTS, sensors)
+    noop = _NoopEstimator(hrp2.NUM_JOINTS, sensors)
     context = noop.CreateDefaultContext()
     _fix(noop, context, inputs, sensors)
     rows.append(
@@ -194,11 +193,11 @@ def _sensor_signals() -> dict[str, np.ndarray]:
     """Constant station-like outputs: half-sitting, at rest, standing wrenches."""
     standing = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 280.0])
     signals = {
-        "q_measured": model.half_sitting(),
+        "q_measured": hrp2.half_sitting(),
         "imu_linear_acceleration": np.array([0.1, -0.2, 9.81]),
         "imu_angular_velocity": np.array([0.01, -0.02, 0.005]),
     }
-    for name in model.FT_SENSORS:
+    for name in hrp2.FT_SENSORS:
         signals[f"wrench_{name}"] = standing if "foot" in name else np.zeros(6)
     return signals
 
@@ -215,7 +214,7 @@ def bench_estimation_stage(num_ticks: int = 2000) -> list[dict]:
     """The per-tick cost of the SG stage and the estimator for the 30-joint HRP-2 as
     add_estimator wires them (module docstring). Rows {"name", "us_per_tick"}."""
     config = hrp2.estimator_config()
-    n, k = model.NUM_JOINTS, 3 + 3 + 6 * len(config.sensors)
+    n, k = hrp2.NUM_JOINTS, 3 + 3 + 6 * len(config.sensors)
     encoder = _filter_us_per_update(
         SavitzkyGolayFilter(n, config.window, 2, config.period), num_ticks
     )

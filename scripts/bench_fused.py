@@ -29,7 +29,7 @@ def tuned_config(station):
     from pydrake.common.yaml import yaml_load_typed
 
     from hrp2_drake.control.safety import SafetyConfig
-    from hrp2_drake.experiments.builders import TorqueControlConfig
+    from hrp2_drake.assembly.builders import TorqueControlConfig
 
     config = yaml_load_typed(
         schema=TorqueControlConfig,
@@ -43,9 +43,9 @@ def bench_fused_tick(duration: float = 3.0) -> list[dict]:
     from pydrake.multibody.tree import MultibodyForces
 
     from hrp2_drake.control.fused import FusedController
-    from hrp2_drake.experiments.builders import torque_chain_parts
-    from hrp2_drake.experiments.ground_truth import true_motor_model
-    from hrp2_drake.experiments.lcm_control import LcmControlConfig, control_reference
+    from hrp2_drake.assembly.builders import torque_chain_parts
+    from hrp2_drake.tools.ground_truth import true_motor_model
+    from hrp2_drake.tools.control import LcmControlConfig, control_reference
     from hrp2_drake.hardware.control_loop import run_in_process
     from hrp2_drake.robot.station import StationConfig
 

@@ -56,8 +56,8 @@ def in_process_errors(robot_name: str, duration: float, config_path: Path,
     from pydrake.common.yaml import yaml_load_typed
 
     from hrp2_drake.control.fused import FusedController
-    from hrp2_drake.experiments.builders import torque_chain_parts
-    from hrp2_drake.experiments.lcm_control import LcmControlConfig, control_reference
+    from hrp2_drake.assembly.builders import torque_chain_parts
+    from hrp2_drake.tools.control import LcmControlConfig, control_reference
     from hrp2_drake.hardware.control_loop import run_in_process
     from hrp2_drake.identification.motor_model import MotorModel
     from hrp2_drake.robot.station import StationConfig
@@ -93,7 +93,7 @@ def in_process_errors(robot_name: str, duration: float, config_path: Path,
 def bench_lcm(robot_name: str, duration: float, out: Path, motor_model: str = "") -> dict:
     """Runs the hub, `sim-robot` and `control`; returns the controller's figures."""
     from hrp2_drake.description import load_robot_description
-    from hrp2_drake.experiments.ground_truth import true_motor_model
+    from hrp2_drake.tools.ground_truth import true_motor_model
 
     out.mkdir(parents=True, exist_ok=True)
     robot = load_robot_description(robot_name)

@@ -12,7 +12,7 @@ def short_identification():
     shared by the tests that need data or an identified motor model.
 
     Returns (config, log, joint_names, result)."""
-    from hrp2_drake.experiments.identification import (
+    from hrp2_drake.tools.identify import (
         IdentifyConfig,
         collect_log,
         identify,

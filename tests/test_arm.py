@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hrp2_drake.experiments.identification import IdentifyConfig, run_identify
-from hrp2_drake.experiments.track import TrackConfig, run_track
+from hrp2_drake.tools.identify import IdentifyConfig, run_identify
+from hrp2_drake.tools.track import TrackConfig, run_track
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.robot.station import StationConfig
 

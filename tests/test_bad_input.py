@@ -10,7 +10,7 @@ import pytest
 
 from hrp2_drake.cli import main
 from hrp2_drake.identification.fitting import check_identified, fit_least_squares
-from hrp2_drake.robot import model
+from hrp2_drake.paper import hrp2
 
 
 def simulated(*args, **kwargs):
@@ -21,20 +21,14 @@ def simulated(*args, **kwargs):
 def no_simulation(monkeypatch):
     """Any simulation (or estimation, or robot connection) fails the test: bad input
     must be refused before one starts."""
-    from hrp2_drake.experiments import (
-        estimate_log,
-        faults,
-        identification,
-        lcm_control,
-        motion,
-        simulate,
-    )
+    from hrp2_drake.paper import faults, motion
+    from hrp2_drake.tools import control, estimate, identify, simulate
 
     monkeypatch.setattr(simulate, "run_simulate", simulated)
     monkeypatch.setattr(motion, "run_motion", simulated)
-    monkeypatch.setattr(identification, "collect_log", simulated)
-    monkeypatch.setattr(estimate_log, "estimate_log", simulated)
-    monkeypatch.setattr(lcm_control, "run_control", simulated)
+    monkeypatch.setattr(identify, "collect_log", simulated)
+    monkeypatch.setattr(estimate, "estimate_log", simulated)
+    monkeypatch.setattr(control, "run_control", simulated)
     monkeypatch.setattr(faults, "run_fault_campaign", simulated)
 
 
@@ -55,7 +49,7 @@ def refused(capsys, argv: list[str], *culprits: str, last_line: bool = False) ->
 
 
 def trajectory_file(path, times=(0.0, 1.0), extra_columns=0, change=None):
-    rows = np.array([np.concatenate([[t], model.half_sitting()]) for t in times])
+    rows = np.array([np.concatenate([[t], hrp2.half_sitting()]) for t in times])
     rows = np.hstack([rows, np.ones((len(rows), extra_columns))])
     if change is not None:
         rows[change[0], change[1]] = change[2]
@@ -63,7 +57,7 @@ def trajectory_file(path, times=(0.0, 1.0), extra_columns=0, change=None):
     return str(path)
 
 
-def motor_model_text(k_tau="1e-4", joints=model.RIGHT_LEG, extra=""):
+def motor_model_text(k_tau="1e-4", joints=hrp2.RIGHT_LEG, extra=""):
     n = len(joints)
     return (
         f"joint_names: [{', '.join(joints)}]\n"
@@ -77,18 +71,18 @@ def identification_log(path, rng_seed=0, **replace):
     error Δq = q_cmd - q that is pure noise."""
     m = 3000
     t = np.arange(m) * 1e-3
-    q = np.tile(model.half_sitting(), (m, 1))
+    q = np.tile(hrp2.half_sitting(), (m, 1))
     for j in range(6):
         q[:, j] += 0.1 * np.sin(2 * np.pi * (1 + 0.3 * j) * t) * (t > 1.5)
     noise = 1e-4 * np.random.default_rng(rng_seed).standard_normal(q.shape)
     log = dict(
         t=t,
-        joint_names=np.array(model.JOINT_NAMES),
+        joint_names=np.array(hrp2.JOINT_NAMES),
         q_measured=q,
         q_cmd=q + noise,
         imu_linear_acceleration=np.tile([0.0, 0.0, 9.81], (m, 1)),
         imu_angular_velocity=np.zeros((m, 3)),
-        **{f"wrench_{name}": np.zeros((m, 6)) for name in model.FT_SENSORS},
+        **{f"wrench_{name}": np.zeros((m, 6)) for name in hrp2.FT_SENSORS},
     )
     log.update(replace)
     np.savez(path, **{k: v for k, v in log.items() if v is not None})
@@ -467,7 +461,7 @@ def test_debug_lets_the_exception_through(tmp_path):
 
 
 def test_an_internal_error_is_one_line_too(monkeypatch, tmp_path, capsys):
-    from hrp2_drake.experiments import simulate
+    from hrp2_drake.tools import simulate
 
     def bug(*args, **kwargs):
         raise RuntimeError("something\nbroke")

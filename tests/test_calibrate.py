@@ -7,21 +7,21 @@ import numpy as np
 import pytest
 
 from hrp2_drake.cli import main
-from hrp2_drake.experiments.calibrate import (
+from hrp2_drake.paper.calibrate import (
     PWL_FITS,
     CalibrationConfig,
     build_servo,
     pwl_priors,
 )
-from hrp2_drake.experiments.identification import PAPER_TABLE1
-from hrp2_drake.robot import model
+from hrp2_drake.tools.identify import PAPER_TABLE1
+from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.servo import (
     effective_motor_parameters,
     load_servo_params,
     save_servo_params,
 )
 
-TABLE1_K_TAU, TABLE1_K_V = np.array([PAPER_TABLE1[j] for j in model.RIGHT_LEG]).T * 1e-3
+TABLE1_K_TAU, TABLE1_K_V = np.array([PAPER_TABLE1[j] for j in hrp2.RIGHT_LEG]).T * 1e-3
 
 
 def test_pwl_priors_are_the_central_segments_of_the_authors_fits():
@@ -33,23 +33,23 @@ def test_pwl_priors_are_the_central_segments_of_the_authors_fits():
     centres = [(2.521347 + 2.827010) / 2, (-8.327572 - 7.158899) / 2]
     assert coulomb == pytest.approx((centres[0] - centres[1]) / 2, rel=1e-6)
     # Every leg joint has a fit; the left hip yaw's + branch did not converge.
-    assert set(PWL_FITS) == set(model.JOINT_NAMES[:12])
+    assert set(PWL_FITS) == set(hrp2.JOINT_NAMES[:12])
     assert pwl_priors("LLEG_JOINT0")[1] is None
 
 
 def test_build_servo_keeps_table1_and_adds_the_mechanisms():
     config = CalibrationConfig()
-    speeds = {j: 5.0 + k for k, j in enumerate(model.RIGHT_LEG[1:])}
+    speeds = {j: 5.0 + k for k, j in enumerate(hrp2.RIGHT_LEG[1:])}
     servo = build_servo(config, speeds)
-    eff = effective_motor_parameters(servo, model.RIGHT_LEG)
+    eff = effective_motor_parameters(servo, hrp2.RIGHT_LEG)
     # servo_ideal.yaml keeps 9 significant digits.
     np.testing.assert_allclose(eff["k_tau"], TABLE1_K_TAU, rtol=1e-7)
     np.testing.assert_allclose(eff["k_v"], TABLE1_K_V, rtol=1e-7)  # latency included
     np.testing.assert_allclose(eff["latency"], config.latency)
     np.testing.assert_allclose(
-        eff["deadzone"], [pwl_priors(j)[0] for j in model.RIGHT_LEG], rtol=1e-12
+        eff["deadzone"], [pwl_priors(j)[0] for j in hrp2.RIGHT_LEG], rtol=1e-12
     )
-    p = servo.vectors(model.JOINT_NAMES)
+    p = servo.vectors(hrp2.JOINT_NAMES)
     # The left leg mirrors the right leg's no-load speeds; hip yaws and the upper
     # body have no voltage limit (no data).
     np.testing.assert_allclose(p["no_load_speed"][7:12], p["no_load_speed"][1:6])
@@ -63,13 +63,13 @@ def test_committed_servo_is_what_calibrate_writes(tmp_path):
     in it was edited by hand."""
     committed = load_servo_params()
     speeds = {
-        j: committed.joints[j].no_load_speed for j in model.RIGHT_LEG[1:]
+        j: committed.joints[j].no_load_speed for j in hrp2.RIGHT_LEG[1:]
     }
     rebuilt = build_servo(CalibrationConfig(), speeds)
     path = tmp_path / "servo.yaml"
     save_servo_params(rebuilt, path, ["test"])
     again = load_servo_params(path)
-    for name in model.JOINT_NAMES:
+    for name in hrp2.JOINT_NAMES:
         a, b = committed.joints[name], again.joints[name]
         for key, value in vars(a).items():
             assert getattr(b, key) == pytest.approx(value, rel=1e-8), (name, key)
@@ -92,7 +92,7 @@ def test_calibrate_command_end_to_end(tmp_path):
     out = tmp_path / "calibrate"
     assert main(["calibrate", "--config", str(config), "--out", str(out)]) == 0
     servo = load_servo_params(out / "servo.yaml")
-    assert np.all(np.isfinite(servo.vectors(model.RIGHT_LEG[1:])["no_load_speed"]))
+    assert np.all(np.isfinite(servo.vectors(hrp2.RIGHT_LEG[1:])["no_load_speed"]))
     report = (out / "calibration.md").read_text()
     assert "## Fit per joint" in report and "## Table 2's N" in report
     for figure in ("calibration_history.png", "calibration_fit.png", "calibration_knee_error.png"):

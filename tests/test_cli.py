@@ -25,9 +25,9 @@ def test_simulate_writes_log_summary_and_replay(tmp_path, capsys):
 
 
 def test_simulate_follows_a_trajectory_file(tmp_path):
-    from hrp2_drake.robot import model
+    from hrp2_drake.paper import hrp2
 
-    q0 = model.half_sitting()
+    q0 = hrp2.half_sitting()
     rows = np.array([np.concatenate([[t], q0]) for t in (0.0, 1.0)])
     rows[1, 1 + 3] += 0.1  # right knee +0.1 rad over 1 s
     path = tmp_path / "traj.pos"

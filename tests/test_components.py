@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from hrp2_drake.experiments.builders import COMPONENTS, TorqueControlConfig
-from hrp2_drake.experiments.components import (
+from hrp2_drake.assembly.builders import COMPONENTS, TorqueControlConfig
+from hrp2_drake.paper.components import (
     PANELS,
     analyse_components,
     check_panel,
@@ -18,9 +18,9 @@ from hrp2_drake.experiments.components import (
     force_window,
     motion_window,
 )
-from hrp2_drake.experiments.force import ForceConfig, run_force
-from hrp2_drake.experiments.motion import MotionConfig, run_motion
-from hrp2_drake.robot import model
+from hrp2_drake.paper.force import ForceConfig, run_force
+from hrp2_drake.paper.motion import MotionConfig, run_motion
+from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.station import StationConfig
 
 
@@ -34,7 +34,7 @@ def _fake_signals(amplitudes: dict[str, float], samples: int = 1000) -> dict:
         column = amplitudes.get(name, 0.0) * 1e-3 * np.sin(phase + k)
         signals[name] = np.tile(column[:, None], (1, 6))
     signals["delta_q"] = sum(signals[name] for name in COMPONENTS)
-    signals["q_ref"] = np.zeros((samples, model.NUM_JOINTS))
+    signals["q_ref"] = np.zeros((samples, hrp2.NUM_JOINTS))
     signals["q_ref"][200:, 3] = 0.01 * t[200:]
     signals["fallback_active"] = np.zeros((samples, 1))
     return signals

@@ -22,7 +22,7 @@ def test_a_repeated_warning_is_printed_once_then_counted(capsys):
             _fallback(logger, 0.512 + 0.001 * k)
         for k in range(3):
             _fallback(logger, 0.6 + k, "q_measured is not finite")
-        logging.getLogger("hrp2_drake.experiments.reproduce").info("motion: done in 12 s")
+        logging.getLogger("hrp2_drake.paper.reproduce").info("motion: done in 12 s")
         logging.getLogger("somebody.else").info("not shown")
         assert session.repeats() == {
             "warning: DeltaQTorqueController ::_::control::torque_controller: falling "

@@ -11,8 +11,8 @@ import pytest
 
 from hrp2_drake.cli import main
 from hrp2_drake.description import load_robot_description, robot_file
-from hrp2_drake.experiments.simulate import SimulateConfig, run_simulate
-from hrp2_drake.robot import model
+from hrp2_drake.tools.simulate import SimulateConfig, run_simulate
+from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.sensors import SensorsConfig
 from hrp2_drake.robot.station import StationConfig, make_station, sensor_sizes
 
@@ -20,14 +20,14 @@ MODELS = Path(__file__).resolve().parents[1] / "models"
 
 
 def test_hrp2_description_is_the_model_modules_names():
-    hrp2 = load_robot_description()
-    assert hrp2.name == "hrp2" and hrp2.base == "floating"
-    assert tuple(hrp2.joints) == model.JOINT_NAMES and len(hrp2.joints) == 30
-    assert tuple(hrp2.controlled_joints) == model.RIGHT_LEG
-    assert hrp2.sensor_names() == list(model.FT_SENSORS)
-    np.testing.assert_array_equal(hrp2.home_positions(), model.load_trajectory()[1][0])
+    robot = load_robot_description()
+    assert robot.name == "hrp2" and robot.base == "floating"
+    assert tuple(robot.joints) == hrp2.JOINT_NAMES and len(robot.joints) == 30
+    assert tuple(robot.controlled_joints) == hrp2.RIGHT_LEG
+    assert robot.sensor_names() == list(hrp2.FT_SENSORS)
+    np.testing.assert_array_equal(robot.home_positions(), robot.load_trajectory()[1][0])
     station = make_station(StationConfig(scenario="fixed_base"))
-    for name in sensor_sizes(hrp2):
+    for name in sensor_sizes(robot):
         assert station.HasOutputPort(name)
 
 
@@ -121,7 +121,7 @@ def test_cli_bad_robot_is_one_line(tmp_path, capsys):
 def test_offline_estimate_of_a_fixed_arm_log(tmp_path):
     """`simulate` then `estimate` on the arm (noiseless sensors, holding its pose
     against gravity): τ̂ from the log matches the servo's torques."""
-    from hrp2_drake.experiments.estimate_log import run_estimate
+    from hrp2_drake.tools.estimate import run_estimate
 
     config = SimulateConfig(
         station=StationConfig(robot="iiwa14", scenario="fixed_base",

@@ -1,4 +1,4 @@
-"""The closed-loop estimation experiment (hrp2_drake/experiments/estimation.py): a short
+"""The closed-loop estimation experiment (hrp2_drake/paper/estimation.py): a short
 run of both scenarios with noisy default sensors, its numbers and its report files."""
 
 import json
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from pydrake.common.yaml import yaml_load_typed
 
-from hrp2_drake.experiments.estimation import (
+from hrp2_drake.paper.estimation import (
     GOAL_RMS_OVER_PEAK,
     EstimationConfig,
     JointSinusoid,
@@ -16,9 +16,9 @@ from hrp2_drake.experiments.estimation import (
     shifted,
     sinusoid_reference,
 )
-from hrp2_drake.robot import model
+from hrp2_drake.paper import hrp2
 
-LEG = [model.JOINT_NAMES.index(j) for j in model.RIGHT_LEG]
+LEG = [hrp2.JOINT_NAMES.index(j) for j in hrp2.RIGHT_LEG]
 
 
 @pytest.fixture(scope="module")
@@ -149,11 +149,11 @@ def test_helpers():
     np.testing.assert_allclose(shifted(ramp, 1.5)[2:, 0], np.arange(8.0) + 0.5)
     assert np.all(np.isnan(shifted(ramp, 1.5)[:2]))
     np.testing.assert_allclose(shifted(ramp, 0.0), ramp)
-    q0 = model.half_sitting()
+    q0 = hrp2.half_sitting()
     t, q = sinusoid_reference(
         q0, [JointSinusoid("RLEG_JOINT3", 0.5, 1.0)], start=1.0, ramp=0.5, duration=3.0
     )
-    knee = model.JOINT_NAMES.index("RLEG_JOINT3")
+    knee = hrp2.JOINT_NAMES.index("RLEG_JOINT3")
     np.testing.assert_allclose(q[t <= 1.0], np.tile(q0, (np.sum(t <= 1.0), 1)))
     late = t >= 1.5
     np.testing.assert_allclose(

@@ -7,14 +7,13 @@ import pytest
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 
-from hrp2_drake.experiments import hrp2
-from hrp2_drake.experiments.builders import (
+from hrp2_drake.paper import hrp2
+from hrp2_drake.assembly.builders import (
     JointReference,
     TorqueControlConfig,
     build_torque_control,
 )
-from hrp2_drake.experiments.motion import run_controller
-from hrp2_drake.robot import model
+from hrp2_drake.paper.motion import run_controller
 from hrp2_drake.robot.faults import FaultInjector, SensorFault
 from hrp2_drake.robot.station import StationConfig, initial_joint_positions
 
@@ -70,7 +69,7 @@ def test_fault_config_errors_name_the_field():
 
 def test_a_campaign_whose_runs_raised_has_no_yes_verdict():
     """Runs that raised are not judged: every check names them, none holds."""
-    from hrp2_drake.experiments.faults import _verdict
+    from hrp2_drake.paper.faults import _verdict
 
     raised = "ValueError: k6 must be > 0"
     results = [
@@ -114,7 +113,7 @@ def test_a_bad_sample_hands_back_to_the_servo_and_torque_control_resumes(fault):
     assert mode[(t > detected + 0.06) & (t < detected + 0.1)].max() == 0.0
     assert mode[-1] == 1.0  # resumed
     assert np.all(np.isfinite(signals["q_cmd"]))
-    leg = [model.JOINT_NAMES.index(j) for j in model.RIGHT_LEG]
+    leg = [hrp2.JOINT_NAMES.index(j) for j in hrp2.RIGHT_LEG]
     steps = np.abs(np.diff(signals["q_cmd"][:, leg], axis=0)).max()
     assert steps < 0.002  # rad per period, mode switches included
     error = np.abs(signals["q_ref"][:, leg] - signals["q_measured"][:, leg])
@@ -129,8 +128,8 @@ def test_model_error_and_extra_latency():
     from hrp2_drake.robot.servo import Hrp2ServoEmulation, load_servo_params
 
     exact, wrong = MultibodyPlant(0.0), MultibodyPlant(0.0)
-    model.add_hrp2(exact)
-    model.add_hrp2_with_model_error(wrong, 0.2, seed=3)
+    hrp2.add_hrp2(exact)
+    hrp2.add_hrp2_with_model_error(wrong, 0.2, seed=3)
     exact.Finalize()
     wrong.Finalize()
     ratios = np.array(
@@ -143,10 +142,10 @@ def test_model_error_and_extra_latency():
     assert np.all(np.abs(ratios - 1) <= 0.2) and np.std(ratios) > 0.05
     assert wrong.num_actuators() == exact.num_actuators() == 30
     with pytest.raises(ValueError, match="error"):
-        model.add_hrp2_with_model_error(MultibodyPlant(0.0), 1.5)
+        hrp2.add_hrp2_with_model_error(MultibodyPlant(0.0), 1.5)
     params = load_servo_params()
-    servo = Hrp2ServoEmulation(exact, params, model.JOINT_NAMES, 1e-3, extra_latency=0.002)
-    base = Hrp2ServoEmulation(exact, params, model.JOINT_NAMES, 1e-3)
+    servo = Hrp2ServoEmulation(exact, params, hrp2.JOINT_NAMES, 1e-3, extra_latency=0.002)
+    base = Hrp2ServoEmulation(exact, params, hrp2.JOINT_NAMES, 1e-3)
     np.testing.assert_array_equal(servo.latency_periods, base.latency_periods + 2)
 
 

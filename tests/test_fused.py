@@ -12,13 +12,13 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.trajectories import PiecewisePolynomial
 
 from hrp2_drake.control.fused import FusedController
-from hrp2_drake.experiments.builders import (
+from hrp2_drake.assembly.builders import (
     TorqueControlConfig,
     build_torque_control,
     torque_chain_parts,
 )
-from hrp2_drake.experiments.ground_truth import true_motor_model
-from hrp2_drake.experiments.lcm_control import LcmControlConfig, control_reference
+from hrp2_drake.tools.ground_truth import true_motor_model
+from hrp2_drake.tools.control import LcmControlConfig, control_reference
 from hrp2_drake.hardware.control_loop import (
     ControlLoop,
     LoopConfig,

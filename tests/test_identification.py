@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from hrp2_drake.cli import main
-from hrp2_drake.experiments import hrp2
+from hrp2_drake.paper import hrp2
 from hrp2_drake.identification.excitation import (
     PHASE_HIGH_TORQUE,
     PHASE_HIGH_VELOCITY,
@@ -17,7 +17,6 @@ from hrp2_drake.identification.excitation import (
     make_plan,
     save_log,
 )
-from hrp2_drake.robot import model
 
 
 def test_increasing_sinusoid_is_the_papers_and_ends_at_rest():
@@ -35,7 +34,7 @@ def test_plan_rejects_unknown_joints():
     config = hrp2.right_leg_collection(0.25)
     config.sinusoids[0].joint = "RLEG_JOINT9"
     with pytest.raises(KeyError, match="RLEG_JOINT9"):
-        make_plan(config, model.JOINT_NAMES, model.half_sitting())
+        make_plan(config, hrp2.JOINT_NAMES, hrp2.half_sitting())
 
 
 @pytest.fixture(scope="module")
@@ -88,14 +87,14 @@ def test_identify_command_on_a_saved_log(short_log, tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["identify", "--log", str(path), "--out", str(out)]) == 0
     summary = json.loads((out / "identification.json").read_text())
-    assert set(summary["joints"]) == set(model.RIGHT_LEG)
+    assert set(summary["joints"]) == set(hrp2.RIGHT_LEG)
     assert "emulator" not in summary["joints"]["RLEG_JOINT3"]  # no ground truth read
     assert (out / "figure1_torque_vs_delta_q.png").stat().st_size > 10000
     assert (out / "figure3_friction_fit.png").stat().st_size > 10000
     from hrp2_drake.identification.motor_model import MotorModel
 
     identified = MotorModel.load(out / "motor_model.yaml")
-    assert identified.joint_names == list(model.RIGHT_LEG)
+    assert identified.joint_names == list(hrp2.RIGHT_LEG)
     # Without labels every sample (moves between parts too) is used: still within 10%.
     truth = hrp2.true_motor_model()
     np.testing.assert_allclose(identified.k_tau, truth.k_tau, rtol=0.10)

@@ -23,11 +23,11 @@ from hrp2_drake.control.inverse_dynamics import (
     make_fixed_base_plant,
 )
 from hrp2_drake.multibody import joint_indexing
-from hrp2_drake.robot import model
+from hrp2_drake.paper import hrp2
 
 kV = JacobianWrtVariable.kV
-LEG = list(model.RIGHT_LEG)
-FOOT = model.FT_SENSOR_BODIES["right_foot"]  # RLEG_FOOT: its frame is the F/T frame
+LEG = list(hrp2.RIGHT_LEG)
+FOOT = hrp2.FT_SENSOR_BODIES["right_foot"]  # RLEG_FOOT: its frame is the F/T frame
 KS = np.array([3000.0, 2500.0, 2000.0, 1500.0, 1000.0, 800.0])
 KD = np.array([30.0, 25.0, 20.0, 15.0, 10.0, 8.0])
 KF = np.array([0.5, 0.6, 0.7, 0.8, 0.9, 1.0])
@@ -35,13 +35,13 @@ KF = np.array([0.5, 0.6, 0.7, 0.8, 0.9, 1.0])
 
 @pytest.fixture(scope="module")
 def fixed_plant() -> MultibodyPlant:
-    return make_fixed_base_plant(model.add_hrp2, model.BASE_BODY)
+    return make_fixed_base_plant(hrp2.add_hrp2, hrp2.BASE_BODY)
 
 
 @pytest.fixture(scope="module")
 def floating_plant() -> MultibodyPlant:
     plant = MultibodyPlant(0.0)
-    model.add_hrp2(plant)
+    hrp2.add_hrp2(plant)
     plant.Finalize()
     return plant
 
@@ -57,13 +57,13 @@ def _config(**changes) -> InverseDynamicsConfig:
 def _nominal(plant: MultibodyPlant) -> np.ndarray:
     """The plant's positions at half-sitting."""
     q = plant.GetPositions(plant.CreateDefaultContext()).copy()
-    q[joint_indexing(plant, model.JOINT_NAMES).q] = model.half_sitting()
+    q[joint_indexing(plant, hrp2.JOINT_NAMES).q] = hrp2.half_sitting()
     return q
 
 
 def _inputs(seed: int, force: bool = True) -> dict:
     rng = np.random.default_rng(seed)
-    q0 = model.half_sitting()[:6]
+    q0 = hrp2.half_sitting()[:6]
     out = dict(
         q_ref=q0 + 0.1 * rng.standard_normal(6),
         v_ref=rng.standard_normal(6),
@@ -265,7 +265,7 @@ def test_floating_base_option(fixed_plant, floating_plant):
         base_angular_velocity=w_B,
     )
     out = _step(floating, tilted)
-    base = floating_plant.GetBodyByName(model.BASE_BODY)
+    base = floating_plant.GetBodyByName(hrp2.BASE_BODY)
     ref = _reference(
         floating_plant,
         nominal,
@@ -278,7 +278,7 @@ def test_floating_base_option(fixed_plant, floating_plant):
     np.testing.assert_allclose(out["tau_desired"], ref["tau"], rtol=1e-10, atol=1e-8)
 
     welded = make_fixed_base_plant(
-        model.add_hrp2, model.BASE_BODY, RigidTransform(R_WB, [0.0, 0.0, 1.0])
+        hrp2.add_hrp2, hrp2.BASE_BODY, RigidTransform(R_WB, [0.0, 0.0, 1.0])
     )
     still = dict(tilted, base_angular_velocity=np.zeros(3))
     np.testing.assert_allclose(
@@ -337,7 +337,7 @@ def test_bad_inputs(fixed_plant, floating_plant):
     with pytest.raises(ValueError, match="nominal_positions"):
         InverseDynamicsController(fixed_plant, _config(), np.zeros(3))
     with pytest.raises(KeyError, match="NOPE"):
-        make_fixed_base_plant(model.add_hrp2, "NOPE")
+        make_fixed_base_plant(hrp2.add_hrp2, "NOPE")
 
     controller = InverseDynamicsController(fixed_plant, _config())
     inputs = _inputs(0)

@@ -15,8 +15,8 @@ from pydrake.lcm import DrakeLcm
 from pydrake.systems.analysis import Simulator
 
 from hrp2_drake.cli import main
-from hrp2_drake.experiments.builders import build_torque_control
-from hrp2_drake.experiments.lcm_control import LcmControlConfig, control_reference
+from hrp2_drake.assembly.builders import build_torque_control
+from hrp2_drake.tools.control import LcmControlConfig, control_reference
 from hrp2_drake.hardware.lcm_station import (
     make_lcm_station,
     make_sim_robot,
@@ -31,7 +31,7 @@ IIWA = StationConfig(robot="iiwa14", scenario="fixed_base")
 def motor_model():
     """The iiwa's effective motor model (a test's shortcut for an identified one: the
     arm's identification is tested in test_arm.py)."""
-    from hrp2_drake.experiments.ground_truth import true_motor_model
+    from hrp2_drake.tools.ground_truth import true_motor_model
 
     return true_motor_model(IIWA.description())
 

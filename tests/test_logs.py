@@ -11,7 +11,7 @@ import pytest
 
 from hrp2_drake.cli import main
 from hrp2_drake.description import load_robot_description
-from hrp2_drake.experiments.identification import (
+from hrp2_drake.tools.identify import (
     IdentifyConfig,
     identify_segments,
     read_segments,

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from pydrake.multibody.plant import MultibodyPlant
 
-from hrp2_drake.robot import model
+from hrp2_drake.paper import hrp2
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -19,7 +19,7 @@ SHARED_DATA = REPO.parent / "shared" / "data"
 def test_urdf_is_a_plain_urdf_tree():
     """What any URDF tool needs: one root link, every other link the child of
     exactly one joint, joints naming existing links, revolute joints with limits."""
-    root = ET.parse(model.models_dir() / model.URDF_FILE).getroot()
+    root = ET.parse(hrp2.models_dir() / hrp2.URDF_FILE).getroot()
     assert root.tag == "robot"
     links = {link.get("name") for link in root.findall("link")}
     joints = root.findall("joint")
@@ -27,34 +27,34 @@ def test_urdf_is_a_plain_urdf_tree():
     assert len(children) == len(set(children))
     assert {j.find("parent").get("link") for j in joints} <= links
     assert set(children) <= links
-    assert links - set(children) == {model.BASE_BODY}
+    assert links - set(children) == {hrp2.BASE_BODY}
     revolute = [j for j in joints if j.get("type") == "revolute"]
-    assert [j.get("name") for j in revolute] == list(model.JOINT_NAMES)
+    assert [j.get("name") for j in revolute] == list(hrp2.JOINT_NAMES)
     for joint in revolute:
         limit = joint.find("limit")
         assert float(limit.get("lower")) < float(limit.get("upper"))
         assert float(limit.get("effort")) > 0
     fixed = {j.get("name") for j in joints if j.get("type") == "fixed"}
-    assert set(model.FT_SENSORS.values()) <= fixed
+    assert set(hrp2.FT_SENSORS.values()) <= fixed
     assert len(root.findall("transmission")) == 30
 
 
 def test_model_loads_with_sensor_frames_and_reflected_inertia():
     plant = MultibodyPlant(0.0)
-    model.add_hrp2(plant)
+    hrp2.add_hrp2(plant)
     plant.Finalize()
-    indexing = model.hrp2_joint_indexing(plant)
+    indexing = hrp2.hrp2_joint_indexing(plant)
     context = plant.CreateDefaultContext()
     q = plant.GetPositions(context)
-    q[indexing.q] = model.half_sitting()
+    q[indexing.q] = hrp2.half_sitting()
     plant.SetPositions(context, q)
     # Soles 0.105 m below the ankles, F/T 0.085 m below (sot-torque-control).
     for side in ("r", "l"):
         sole = plant.GetFrameByName(f"{side}_sole").CalcPoseInWorld(context)
         ankle = plant.GetBodyByName(f"{side.upper()}LEG_LINK5").EvalPoseInWorld(context)
         assert ankle.translation()[2] - sole.translation()[2] == pytest.approx(0.105)
-    imu = plant.GetFrameByName(model.IMU_FRAME)
-    torso = plant.GetFrameByName(model.IMU_BODY)
+    imu = plant.GetFrameByName(hrp2.IMU_FRAME)
+    torso = plant.GetFrameByName(hrp2.IMU_BODY)
     np.testing.assert_allclose(
         imu.CalcPose(context, torso).translation(), [-0.13, 0.0, 0.118], atol=1e-12
     )
@@ -70,11 +70,11 @@ def test_model_loads_with_sensor_frames_and_reflected_inertia():
 
 
 def test_half_sitting_is_the_first_climbing_sample():
-    t, q = model.load_trajectory()
+    t, q = hrp2.load_trajectory()
     assert q.shape == (3815, 30) and t[0] == 0.0
     assert t[-1] == pytest.approx(19.07)
     np.testing.assert_allclose(
-        model.half_sitting()[:6],
+        hrp2.half_sitting()[:6],
         [0, 3.529e-4, -0.453845, 0.8727609, -0.4189159, -3.529e-4],
     )
 
@@ -87,5 +87,5 @@ def test_generator_reproduces_the_committed_model(tmp_path):
         capture_output=True,
     )
     for name in ("hrp2.urdf", "servo_ideal.yaml", "climbing32.pos.gz"):
-        committed = (model.models_dir() / name).read_bytes()
+        committed = (hrp2.models_dir() / name).read_bytes()
         assert (tmp_path / name).read_bytes() == committed, name

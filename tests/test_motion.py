@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from hrp2_drake.cli import main
-from hrp2_drake.experiments.builders import JointReference, TorqueControlConfig
-from hrp2_drake.experiments.motion import (
+from hrp2_drake.assembly.builders import JointReference, TorqueControlConfig
+from hrp2_drake.paper.motion import (
     PAPER_K6,
     PAPER_TABLE2,
     PAPER_TABLE3,
@@ -21,7 +21,7 @@ from hrp2_drake.experiments.motion import (
     run_motion,
     write_motion_report,
 )
-from hrp2_drake.robot import model
+from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.station import StationConfig
 
 
@@ -32,7 +32,7 @@ def test_average_error_is_the_papers_formula():
 
 def test_climbing_reference_is_smooth_and_close_to_the_data():
     reference = climbing_reference(end=6.0)
-    t, q = model.load_trajectory()
+    t, q = hrp2.load_trajectory()
     for time in (1.0, 3.0, 5.5):
         q_ref, v_ref, a_ref = reference.at(time)
         k = int(round(time / 0.005))
@@ -155,14 +155,14 @@ def test_table2_sample_count_is_that_of_the_whole_reference():
     """paper_sample_count reads the moving joints' speeds alone: what the whole
     climbing reference (90 rows) gives, to the last bit."""
     reference = climbing_reference()
-    columns = [model.JOINT_NAMES.index(j) for j in model.RIGHT_LEG[1:]]
+    columns = [hrp2.JOINT_NAMES.index(j) for j in hrp2.RIGHT_LEG[1:]]
     t = np.arange(0.0, reference.end_time(), 0.001)
     speeds = np.array([reference.at(x)[1][columns] for x in t])
     assert paper_sample_count() == derive_sample_count(speeds, 0.001)
 
 
 def test_time_scaled_reference_is_the_same_path_slower():
-    from hrp2_drake.experiments.motion import _time_scaled
+    from hrp2_drake.paper.motion import _time_scaled
 
     motion = climbing_reference(end=3.0)
     slow = JointReference.from_samples(*_time_scaled(motion, 1.25))
@@ -176,7 +176,7 @@ def test_time_scaled_reference_is_the_same_path_slower():
 
 
 def test_improved_plan_shows_each_improvement_alone(tmp_path):
-    from hrp2_drake.experiments.motion import (
+    from hrp2_drake.paper.motion import (
         IMPROVED_FILE,
         estimation_delay,
         improved_plan,
@@ -245,7 +245,7 @@ def test_a_borrowed_reference_gives_a_trajectory_source_the_same_values():
 
     from pydrake.systems.primitives import TrajectorySource
 
-    from hrp2_drake.experiments.builders import JointReference, borrowed
+    from hrp2_drake.assembly.builders import JointReference, borrowed
 
     t = np.arange(0.0, 0.5 + 5e-4, 0.001)
     q = np.sin(np.outer(t, np.arange(1.0, 4.0)))
@@ -272,7 +272,7 @@ def test_first_order_hold_in_pieces_is_the_whole_one():
     segments; here 2.5 of them)."""
     from pydrake.trajectories import PiecewisePolynomial
 
-    from hrp2_drake.experiments.builders import HOLD_PIECE, first_order_hold
+    from hrp2_drake.assembly.builders import HOLD_PIECE, first_order_hold
 
     rng = np.random.default_rng(4)
     t = np.cumsum(rng.uniform(0.5e-3, 1.5e-3, int(2.5 * HOLD_PIECE) + 1))
@@ -301,7 +301,7 @@ def test_motion_reference_is_what_it_was_built_whole(time_scale):
     concatenated, bit for bit."""
     from pydrake.trajectories import PiecewisePolynomial
 
-    from hrp2_drake.experiments.motion import _climbing_samples, motion_reference
+    from hrp2_drake.paper.motion import _climbing_samples, motion_reference
 
     config = MotionConfig(start=3.0, end=5.5, settle=0.7)
     reference = motion_reference(config, time_scale)

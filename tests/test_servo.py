@@ -16,7 +16,7 @@ from pydrake.systems.primitives import (
 from pydrake.common.value import AbstractValue
 from pydrake.trajectories import PiecewisePolynomial
 
-from hrp2_drake.robot import model
+from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.sensors import SensorsConfig
 from hrp2_drake.robot.servo import (
     Hrp2ServoEmulation,
@@ -45,36 +45,36 @@ def calibrated():
 @pytest.fixture(scope="module")
 def plant():
     plant = MultibodyPlant(0.001)
-    model.add_hrp2(plant)
+    hrp2.add_hrp2(plant)
     plant.Finalize()
     return plant
 
 
 def test_data_file_matches_table1(params):
-    eff = effective_motor_parameters(params, model.RIGHT_LEG)
+    eff = effective_motor_parameters(params, hrp2.RIGHT_LEG)
     # The data file keeps 9 significant digits.
     np.testing.assert_allclose(eff["k_tau"], TABLE1_K_TAU, rtol=1e-7)
     np.testing.assert_allclose(eff["k_v"], TABLE1_K_V, rtol=1e-7)
     # Left leg mirrors the right; every joint has a plausible, positive model.
-    eff_all = effective_motor_parameters(params, model.JOINT_NAMES)
+    eff_all = effective_motor_parameters(params, hrp2.JOINT_NAMES)
     np.testing.assert_allclose(eff_all["k_tau"][6:12], TABLE1_K_TAU, rtol=1e-7)
     assert np.all(eff_all["k_tau"] > 0) and np.all(eff_all["k_v"] > 0)
 
 
 def test_servo_law_slope_is_k_tau(params, plant):
     """Outside the dead zone, at rest, Δq = Kτ τ + deadzone·sign(τ) exactly."""
-    servo = Hrp2ServoEmulation(plant, params, model.JOINT_NAMES)
+    servo = Hrp2ServoEmulation(plant, params, hrp2.JOINT_NAMES)
     context = servo.CreateDefaultContext()
     plant_context = plant.CreateDefaultContext()
-    indexing = model.hrp2_joint_indexing(plant)
+    indexing = hrp2.hrp2_joint_indexing(plant)
     q = plant.GetPositions(plant_context)
     # Joint angles on the encoder grid, so the quantization adds nothing.
-    res = params.vectors(model.JOINT_NAMES)["encoder_resolution"]
-    q[indexing.q] = np.round(model.half_sitting() / res) * res
+    res = params.vectors(hrp2.JOINT_NAMES)["encoder_resolution"]
+    q[indexing.q] = np.round(hrp2.half_sitting() / res) * res
     x = np.concatenate([q, np.zeros(plant.num_velocities())])
     servo.get_input_port(1).FixValue(context, x)
-    eff = effective_motor_parameters(params, model.JOINT_NAMES)
-    p = params.vectors(model.JOINT_NAMES)
+    eff = effective_motor_parameters(params, hrp2.JOINT_NAMES)
+    p = params.vectors(hrp2.JOINT_NAMES)
     peak = p["k1"] * p["i_max"]  # N·m at current saturation
     # Commands for 20% and 40% of the peak torque, both signs, past the dead zone.
     dqs = [s * (eff["deadzone"] + eff["k_tau"] * f * peak) for s in (1, -1) for f in (0.2, 0.4)]
@@ -95,9 +95,9 @@ def test_servo_law_slope_is_k_tau(params, plant):
 
 
 def test_servo_rejects_nan_command(params, plant):
-    servo = Hrp2ServoEmulation(plant, params, model.JOINT_NAMES)
+    servo = Hrp2ServoEmulation(plant, params, hrp2.JOINT_NAMES)
     context = servo.CreateDefaultContext()
-    q_cmd = model.half_sitting()
+    q_cmd = hrp2.half_sitting()
     q_cmd[3] = np.nan
     servo.get_input_port(0).FixValue(context, q_cmd)
     servo.get_input_port(1).FixValue(
@@ -116,7 +116,7 @@ def test_each_joint_follows_its_own_mechanisms_tick_by_tick(calibrated, plant):
 
     from hrp2_drake.robot.servo import dahl_step, servo_torque
 
-    names = model.JOINT_NAMES
+    names = hrp2.JOINT_NAMES
     params = type(calibrated)(
         {
             name: (
@@ -131,10 +131,10 @@ def test_each_joint_follows_its_own_mechanisms_tick_by_tick(calibrated, plant):
     delays = np.rint(p["latency"] / 1e-3).astype(int)
     dahl = p["hysteresis_width"] > 0
     assert set(delays) == {0, 1} and 0 < dahl.sum() < len(names)
-    q0 = model.half_sitting()
+    q0 = hrp2.half_sitting()
     servo = Hrp2ServoEmulation(plant, params, names, 1e-3, q0)
     context = servo.CreateDefaultContext()
-    indexing = model.hrp2_joint_indexing(plant)
+    indexing = hrp2.hrp2_joint_indexing(plant)
     x = np.zeros(plant.num_positions() + plant.num_velocities())
     x[indexing.q] = q0
     servo.get_input_port(0).FixValue(context, q0)
@@ -168,9 +168,9 @@ def test_per_step_law_is_servo_torque_bit_for_bit(calibrated, plant):
     the voltage limit either way and beyond the no-load speed, both directions."""
     from hrp2_drake.robot.servo import servo_torque
 
-    names = model.JOINT_NAMES
+    names = hrp2.JOINT_NAMES
     p = calibrated.vectors(names)
-    servo = Hrp2ServoEmulation(plant, calibrated, names, 1e-3, model.half_sitting())
+    servo = Hrp2ServoEmulation(plant, calibrated, names, 1e-3, hrp2.half_sitting())
     rng = np.random.default_rng(7)
     for scale_e, scale_v in [(1e-4, 0.01), (3e-3, 0.5), (0.05, 3.0), (0.2, 8.0)]:
         for _ in range(200):
@@ -185,7 +185,7 @@ def test_per_step_law_is_servo_torque_bit_for_bit(calibrated, plant):
 def test_explicit_torques_are_stable_at_1khz(params, plant):
     """Spectral radius < 1 per joint with the reflected inertia as inertia bound."""
     # Actuators are in joint order (checked by hrp2_joint_indexing).
-    model.hrp2_joint_indexing(plant)
+    hrp2.hrp2_joint_indexing(plant)
     reflected = np.array(
         [
             plant.get_joint_actuator(i).default_rotor_inertia()
@@ -193,10 +193,10 @@ def test_explicit_torques_are_stable_at_1khz(params, plant):
             for i in plant.GetJointActuatorIndices()
         ]
     )
-    radius = explicit_stability_margin(params, model.JOINT_NAMES, reflected, 1e-3)
+    radius = explicit_stability_margin(params, hrp2.JOINT_NAMES, reflected, 1e-3)
     assert radius.max() < 1.0
     # ...and the same servo without the rotor inertia would not be stable.
-    light = explicit_stability_margin(params, model.JOINT_NAMES, np.full(30, 1e-3), 1e-3)
+    light = explicit_stability_margin(params, hrp2.JOINT_NAMES, np.full(30, 1e-3), 1e-3)
     assert light.max() > 1.0
 
 
@@ -247,9 +247,9 @@ def test_closed_loop_static_k_tau_within_1_percent(params):
     """A known external couple on the right foot, the servo holding: the slope of Δq
     against the joint torque is the data file's Kτ within 1%, for both signs."""
     q0 = initial_joint_positions(StationConfig(scenario="fixed_base"))
-    eff = effective_motor_parameters(params, model.RIGHT_LEG)
+    eff = effective_motor_parameters(params, hrp2.RIGHT_LEG)
     plant = MultibodyPlant(0.0)
-    model.add_hrp2(plant)
+    hrp2.add_hrp2(plant)
     plant.Finalize()
     foot = plant.GetBodyByName("RLEG_FOOT").index()
     for sign in (1.0, -1.0):
@@ -274,8 +274,8 @@ def test_closed_loop_constant_velocity_k_v_within_1_percent(params):
     """Ramps at two constant speeds on the right leg: (Δq - Kτ± τ) grows with q̇ at
     the data file's Kv± within 1%."""
     q0 = initial_joint_positions(StationConfig(scenario="fixed_base"))
-    eff_pos = effective_motor_parameters(params, model.RIGHT_LEG, direction=+1)
-    eff_neg = effective_motor_parameters(params, model.RIGHT_LEG, direction=-1)
+    eff_pos = effective_motor_parameters(params, hrp2.RIGHT_LEG, direction=+1)
+    eff_neg = effective_motor_parameters(params, hrp2.RIGHT_LEG, direction=-1)
     speeds = (0.3, 0.6)  # rad/s
     directions = np.array([1, -1, 1, 1, -1, 1])  # stay inside the joint limits
     samples = []
@@ -305,15 +305,15 @@ def test_calibrated_file_keeps_table1_and_adds_every_mechanism(calibrated):
     """The identified Kτ, Kv of the calibrated servo are still Table 1 (Kv with the
     latency in it); the right leg has latency, a voltage limit, hysteresis and a dead
     zone of the authors' measured size (0.3-3 mrad half-width, not 0.04-0.3)."""
-    eff = effective_motor_parameters(calibrated, model.RIGHT_LEG)
+    eff = effective_motor_parameters(calibrated, hrp2.RIGHT_LEG)
     np.testing.assert_allclose(eff["k_tau"], TABLE1_K_TAU, rtol=1e-7)
     np.testing.assert_allclose(eff["k_v"], TABLE1_K_V, rtol=1e-7)
-    p = calibrated.vectors(model.RIGHT_LEG)
+    p = calibrated.vectors(hrp2.RIGHT_LEG)
     assert np.all(p["latency"] > 0)
     assert np.all(p["hysteresis_width"] > 0)
     assert np.all(np.isfinite(p["no_load_speed"][1:]))  # the moving joints
     assert np.all((eff["deadzone"] > 3e-4) & (eff["deadzone"] < 3e-3))
-    ideal = effective_motor_parameters(load_servo_params("ideal"), model.RIGHT_LEG)
+    ideal = effective_motor_parameters(load_servo_params("ideal"), hrp2.RIGHT_LEG)
     assert np.all(eff["deadzone"] > 2 * ideal["deadzone"])
 
 
@@ -323,8 +323,8 @@ def _single_joint_servo(plant, overrides: dict, off=()):
 
     base = load_servo_params("ideal")
     params = type(base)({n: replace(j, **overrides) for n, j in base.joints.items()})
-    q0 = model.half_sitting()
-    return Hrp2ServoEmulation(plant, params, model.JOINT_NAMES, 1e-3, q0, off), params, q0
+    q0 = hrp2.half_sitting()
+    return Hrp2ServoEmulation(plant, params, hrp2.JOINT_NAMES, 1e-3, q0, off), params, q0
 
 
 def _first_change_time(plant, latency: float) -> float:
@@ -342,7 +342,7 @@ def _first_change_time(plant, latency: float) -> float:
     builder.AddSystem(servo)
     builder.Connect(hold.get_output_port(), servo.get_input_port(0))
     x = np.zeros(plant.num_positions() + plant.num_velocities())
-    x[model.hrp2_joint_indexing(plant).q] = q0
+    x[hrp2.hrp2_joint_indexing(plant).q] = q0
     state = builder.AddSystem(ConstantVectorSource(x))
     builder.Connect(state.get_output_port(), servo.get_input_port(1))
     diagram = builder.Build()
@@ -379,7 +379,7 @@ def test_voltage_limit_is_the_torque_speed_line(plant):
         {"stall_current": 30.0, "no_load_speed": 5.0, "k5": 0.0, "k2": 0.0, "k3": 0.0},
         off=("voltage_limit",),
     )
-    p = params.vectors(model.JOINT_NAMES)
+    p = params.vectors(hrp2.JOINT_NAMES)
     q_cmd = q0 + 0.5  # far outside the dead zone: the current command saturates
     for speed in (0.0, 1.0, 2.5, 4.0, 5.0, 6.0):
         v = np.full(30, speed)
@@ -437,7 +437,7 @@ def test_direction_state_switches_with_hysteresis(plant):
     servo, _, q0 = _single_joint_servo(plant, {"hysteresis_width": width})
     builder = DiagramBuilder()
     builder.AddSystem(servo)
-    indexing = model.hrp2_joint_indexing(plant)
+    indexing = hrp2.hrp2_joint_indexing(plant)
     # q(t) = q0 + A sin(2π t): forward until 0.25 s, back until 0.75 s.
     times = np.arange(0.0, 1.0001, 0.001)
     amplitude = 0.005
@@ -480,7 +480,7 @@ def test_direction_state_switches_with_hysteresis(plant):
 
 def test_unknown_mechanism_is_one_clear_error(plant, params):
     with pytest.raises(ValueError, match="unknown mechanism.*'backlash'"):
-        Hrp2ServoEmulation(plant, params, model.JOINT_NAMES, off=("backlash",))
+        Hrp2ServoEmulation(plant, params, hrp2.JOINT_NAMES, off=("backlash",))
     with pytest.raises(ValueError, match="StationConfig.servo_off"):
         StationConfig(servo_off=["latencies"]).validate()
     with pytest.raises(FileNotFoundError, match="ideal"):
@@ -498,4 +498,4 @@ def test_calibrated_servo_is_stable_at_1khz(calibrated, plant):
             for i in plant.GetJointActuatorIndices()
         ]
     )
-    assert explicit_stability_margin(calibrated, model.JOINT_NAMES, reflected, 1e-3).max() < 1.0
+    assert explicit_stability_margin(calibrated, hrp2.JOINT_NAMES, reflected, 1e-3).max() < 1.0

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from hrp2_drake.config import load_config
-from hrp2_drake.experiments.stability import (
+from hrp2_drake.paper.stability import (
     StabilityConfig,
     models_from_identification,
     predicted_thresholds,
@@ -21,7 +21,7 @@ from hrp2_drake.experiments.stability import (
     write_stability_report,
 )
 from hrp2_drake.identification.motor_model import MotorModel
-from hrp2_drake.robot import model
+from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.station import StationConfig
 
 JOINT = "RLEG_JOINT4"  # ankle pitch
@@ -50,7 +50,7 @@ def test_least_squares_over_estimates_friction_at_high_speed(fits):
 def test_push_reference_and_delay_compensation():
     config = StabilityConfig(push_velocities=[2.0])
     reference = push_reference(config, 2.0)
-    j = model.JOINT_NAMES.index(JOINT)
+    j = hrp2.JOINT_NAMES.index(JOINT)
     q_start = reference.at(config.prepare + config.settle - 0.01)[0][j]
     assert q_start == pytest.approx(config.start_position, abs=1e-9)
     # At the release the reference moves at v0 and its q̇ is the derivative of its q.
@@ -66,7 +66,7 @@ def test_push_reference_and_delay_compensation():
         reference.at(config.release_time - 0.001)[0][j], abs=3e-3
     )
     # Every other joint holds its initial pose.
-    others = [k for k in range(model.NUM_JOINTS) if k != j]
+    others = [k for k in range(hrp2.NUM_JOINTS) if k != j]
     np.testing.assert_array_equal(q3[others], reference.at(0.0)[0][others])
     base = MotorModel([JOINT], [1e-4], [7e-3])
     assert with_delay_compensation(base, 0.001).k_v[0] == pytest.approx(8e-3)
@@ -131,7 +131,7 @@ def test_stability_report(short_stability, tmp_path):
 
 
 def _run(model_name: str, v0: float, final: float, limit_time=None, accelerates=None):
-    from hrp2_drake.experiments.stability import StabilityRun
+    from hrp2_drake.paper.stability import StabilityRun
 
     return StabilityRun(
         model_name, 1e-4, 7e-3, 0.001, v0, v0, max(v0, final), final, limit_time,
@@ -143,8 +143,8 @@ def test_a_run_that_reached_its_limit_is_never_called_stable(tmp_path):
     """Three outcomes: accelerates away, reached the limit (still moving when the
     observation stopped there: not shown stable), stable; the summary, the report
     and the verdict of Sec. 5.2 keep them apart."""
-    from hrp2_drake.experiments.reproduce import _push_outcome
-    from hrp2_drake.experiments.stability import StabilityResult, contrast, summarize
+    from hrp2_drake.paper.reproduce import _push_outcome
+    from hrp2_drake.paper.stability import StabilityResult, contrast, summarize
 
     config = StabilityConfig(push_velocities=[1.0, 2.0], command_delay_compensation=[0.001])
     runs = [

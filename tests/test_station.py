@@ -12,8 +12,8 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
 
 from hrp2_drake.config import load_config
-from hrp2_drake.experiments.simulate import SimulateConfig, run_simulate
-from hrp2_drake.robot import model
+from hrp2_drake.tools.simulate import SimulateConfig, run_simulate
+from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.faults import SensorClock, SensorFault
 from hrp2_drake.robot.sensors import (
     ForceTorqueReadout,
@@ -49,7 +49,7 @@ def _run(config: StationConfig, duration: float, q_offset=None):
 @pytest.fixture(scope="module")
 def kinematic_plant():
     plant = MultibodyPlant(0.0)
-    model.add_hrp2(plant)
+    hrp2.add_hrp2(plant)
     plant.Finalize()
     return plant
 
@@ -155,7 +155,7 @@ def test_fixed_base_step_response_is_stable():
     """Every joint commanded 0.05 rad away: the explicit servo torques converge with
     no oscillation growing, on the light distal joints too."""
     config = StationConfig(scenario="fixed_base", sensors=SensorsConfig.noiseless())
-    offset = np.full(model.NUM_JOINTS, 0.05)
+    offset = np.full(hrp2.NUM_JOINTS, 0.05)
     station, context, q_cmd = _run(config, 1.5, offset)
     x = station.GetOutputPort("state_true").Eval(context)
     q, v = x[:30], x[30:]
@@ -182,7 +182,7 @@ def test_encoders_are_quantized():
     station, context, _ = _run(StationConfig(scenario="fixed_base"), 0.05)
     from hrp2_drake.robot.servo import load_servo_params
 
-    res = load_servo_params().vectors(model.JOINT_NAMES)["encoder_resolution"]
+    res = load_servo_params().vectors(hrp2.JOINT_NAMES)["encoder_resolution"]
     q = station.GetOutputPort("q_measured").Eval(context)
     np.testing.assert_allclose(q / res, np.round(q / res), atol=1e-6)
 
@@ -217,7 +217,7 @@ def test_config_errors_say_what_and_where(tmp_path):
         make_station(bad_noise)
     with pytest.raises(KeyError, match="no joint 'RLEG_FT'"):
         plant = MultibodyPlant(0.0)
-        model.add_hrp2(plant)
+        hrp2.add_hrp2(plant)
         plant.Finalize()
         ForceTorqueReadout(plant, [("RLEG_FT", "RLEG_FOOT", "RLEG_FOOT")])
 
@@ -275,7 +275,7 @@ def test_sensor_sampler_is_the_separate_sensors_bit_for_bit():
         system: system.CreateDefaultContext()
         for system in [fused, readout, clock, *separate.values()]
     }
-    indexing = model.hrp2_joint_indexing(plant)
+    indexing = hrp2.hrp2_joint_indexing(plant)
     rng = np.random.default_rng(5)
     for k in (0, 1, 11, 13, 16, 4095, 4096, 4097, 9000):
         x = rng.normal(0.0, 0.3, plant.num_positions() + plant.num_velocities())

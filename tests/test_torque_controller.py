@@ -44,7 +44,7 @@ from hrp2_drake.control.torque_controller import (
 )
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import joint_indexing
-from hrp2_drake.robot import model
+from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.servo import effective_motor_parameters, load_servo_params
 from hrp2_drake.robot.station import (
     StationConfig,
@@ -52,8 +52,8 @@ from hrp2_drake.robot.station import (
     make_station,
 )
 
-LEG = list(model.RIGHT_LEG)
-FOOT = model.FT_SENSOR_BODIES["right_foot"]
+LEG = list(hrp2.RIGHT_LEG)
+FOOT = hrp2.FT_SENSOR_BODIES["right_foot"]
 # Table 1 of the paper (right leg).
 K_TAU = 1e-3 * np.array([0.212, 0.030, 0.12, 0.051, 0.177, 0.240])
 K_V = 1e-3 * np.array([13.0, 6.332, 7.0, 6.561, 7.698, 6.0])
@@ -68,7 +68,7 @@ def motor() -> MotorModel:
 
 @pytest.fixture(scope="module")
 def fixed_plant():
-    return make_fixed_base_plant(model.add_hrp2, model.BASE_BODY)
+    return make_fixed_base_plant(hrp2.add_hrp2, hrp2.BASE_BODY)
 
 
 def _config(**changes) -> TorqueControllerConfig:
@@ -82,7 +82,7 @@ def _inputs(seed: int) -> dict:
         tau_desired=20.0 * rng.standard_normal(6),
         tau_estimated=20.0 * rng.standard_normal(6),
         v=0.5 * rng.standard_normal(6),
-        q_measured=model.half_sitting()[:6] + 0.05 * rng.standard_normal(6),
+        q_measured=hrp2.half_sitting()[:6] + 0.05 * rng.standard_normal(6),
     )
 
 
@@ -359,9 +359,9 @@ def test_composed_controller_is_eqs_13_14(motor, fixed_plant):
     kd = np.array([20.0, 18.0, 15.0, 12.0, 9.0, 7.0])
     kf = np.array([0.5, 0.5, 0.8, 1.0, 1.0, 1.0])
     kp = np.array([2.0, 1.5, 2.0, 2.5, 2.0, 1.0])
-    ix = joint_indexing(fixed_plant, model.JOINT_NAMES)
+    ix = joint_indexing(fixed_plant, hrp2.JOINT_NAMES)
     nominal = np.zeros(fixed_plant.num_positions())
-    nominal[ix.q] = model.half_sitting()
+    nominal[ix.q] = hrp2.half_sitting()
     inverse_dynamics = InverseDynamicsController(
         fixed_plant,
         InverseDynamicsConfig(
@@ -377,7 +377,7 @@ def test_composed_controller_is_eqs_13_14(motor, fixed_plant):
     diagram = builder.Build()
     context = diagram.CreateDefaultContext()
 
-    q = model.half_sitting()[:6] + 0.05 * rng.standard_normal(6)
+    q = hrp2.half_sitting()[:6] + 0.05 * rng.standard_normal(6)
     v = 0.3 * rng.standard_normal(6)
     vdot_hat = 2.0 * rng.standard_normal(6)
     f_hat = np.array([1.0, -2.0, 0.5, 4.0, -6.0, 250.0])
@@ -777,7 +777,7 @@ def test_config_from_yaml(motor):
 
 
 def test_joint_command_merger_and_selector():
-    names = list(model.JOINT_NAMES)
+    names = list(hrp2.JOINT_NAMES)
     subset = ["RLEG_JOINT3", "RARM_JOINT0", "RLEG_JOINT0"]
     merger = JointCommandMerger(names, subset)
     context = merger.CreateDefaultContext()
@@ -814,7 +814,7 @@ def _track_sinusoid(torque_control: bool, duration: float = 0.8) -> np.ndarray:
     the discrete torque loop has its pole at −K_p: K_p = 0.5 here (the paper's
     K_p = 2 relies on the estimator's filtering, see the report).
     """
-    names = list(model.JOINT_NAMES)
+    names = list(hrp2.JOINT_NAMES)
     config = StationConfig(scenario="fixed_base")
     q0 = initial_joint_positions(config)
     builder = DiagramBuilder()
@@ -850,7 +850,7 @@ def _track_sinusoid(torque_control: bool, duration: float = 0.8) -> np.ndarray:
             merger.GetInputPort("q_controlled"),
         )
     else:
-        plant = make_fixed_base_plant(model.add_hrp2, model.BASE_BODY)
+        plant = make_fixed_base_plant(hrp2.add_hrp2, hrp2.BASE_BODY)
         nominal = plant.GetPositions(plant.CreateDefaultContext())
         nominal[joint_indexing(plant, names).q] = q0
         truth = effective_motor_parameters(load_servo_params(), LEG)

@@ -30,7 +30,7 @@ from hrp2_drake.estimation.torque_estimator import (
     TorqueEstimatorStep,
     add_estimator,
 )
-from hrp2_drake.robot import model
+from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.sensors import SensorsConfig
 from hrp2_drake.robot.station import (
     StationConfig,
@@ -39,12 +39,12 @@ from hrp2_drake.robot.station import (
 )
 
 kV = JacobianWrtVariable.kV
-SENSORS = list(model.FT_SENSORS)
+SENSORS = list(hrp2.FT_SENSORS)
 
 
 def _floating_plant(time_step: float = 0.0) -> MultibodyPlant:
     plant = MultibodyPlant(time_step)
-    model.add_hrp2(plant)
+    hrp2.add_hrp2(plant)
     plant.Finalize()
     return plant
 
@@ -60,12 +60,12 @@ def _config(plant: MultibodyPlant, **changes) -> TorqueEstimatorConfig:
         name: ForceTorqueSensorConfig(
             # The fixed joint's child frame is the sensor frame.
             frame=plant.GetJointByName(joint).frame_on_child().name(),
-            body=model.FT_SENSOR_BODIES[name],
+            body=hrp2.FT_SENSOR_BODIES[name],
         )
-        for name, joint in model.FT_SENSORS.items()
+        for name, joint in hrp2.FT_SENSORS.items()
     }
     config = TorqueEstimatorConfig(
-        joints=list(model.JOINT_NAMES), imu_frame=model.IMU_FRAME, sensors=sensors
+        joints=list(hrp2.JOINT_NAMES), imu_frame=hrp2.IMU_FRAME, sensors=sensors
     )
     return dataclasses.replace(config, **changes)
 
@@ -76,7 +76,7 @@ class _Truth:
     def __init__(self):
         builder = DiagramBuilder()
         self.plant = plant = builder.AddSystem(_floating_plant())
-        imu = plant.GetFrameByName(model.IMU_FRAME)
+        imu = plant.GetFrameByName(hrp2.IMU_FRAME)
         self.imu = imu
         gravity = plant.gravity_field().gravity_vector()
         accel = builder.AddSystem(
@@ -99,16 +99,16 @@ class _Truth:
         self.diagram = builder.Build()
         self.context = self.diagram.CreateDefaultContext()
         self.plant_context = plant.GetMyMutableContextFromRoot(self.context)
-        self.indexing = model.hrp2_joint_indexing(plant)
-        self.base = plant.GetBodyByName(model.BASE_BODY)
+        self.indexing = hrp2.hrp2_joint_indexing(plant)
+        self.base = plant.GetBodyByName(hrp2.BASE_BODY)
         self.sensor_frames = [
-            plant.GetJointByName(model.FT_SENSORS[s]).frame_on_child() for s in SENSORS
+            plant.GetJointByName(hrp2.FT_SENSORS[s]).frame_on_child() for s in SENSORS
         ]
         self.sensor_joints = [
-            plant.GetJointByName(model.FT_SENSORS[s]) for s in SENSORS
+            plant.GetJointByName(hrp2.FT_SENSORS[s]) for s in SENSORS
         ]
         self.sensor_bodies = [
-            plant.GetBodyByName(model.FT_SENSOR_BODIES[s]) for s in SENSORS
+            plant.GetBodyByName(hrp2.FT_SENSOR_BODIES[s]) for s in SENSORS
         ]
 
     def sample(
@@ -266,7 +266,7 @@ def test_matches_equations_of_motion(plant, truth, seed):
     np.testing.assert_allclose(out["unknown"], np.zeros(6), rtol=0, atol=1e-8)
 
 
-@pytest.mark.parametrize("link", [model.BASE_BODY, model.IMU_BODY])
+@pytest.mark.parametrize("link", [hrp2.BASE_BODY, hrp2.IMU_BODY])
 def test_unknown_wrench(plant, truth, link):
     """An extra wrench on the base or on the torso: unknown_wrench equals it (in the
     link's frame, about its origin) and τ̂ is still exact (Sec. 2.4)."""
@@ -274,16 +274,16 @@ def test_unknown_wrench(plant, truth, link):
     out = _estimate(plant, sample, unknown_wrench_body=link)
     np.testing.assert_allclose(out["unknown"], sample["unknown"], rtol=0, atol=1e-8)
     np.testing.assert_allclose(out["tau"], sample["tau"], rtol=0, atol=1e-8)
-    if link != model.BASE_BODY:
+    if link != hrp2.BASE_BODY:
         # Assuming the wrench on the base instead gets the chest (and leg) torques wrong.
         wrong = _estimate(plant, sample)
         assert np.max(np.abs(wrong["tau"] - sample["tau"])) > 1.0
 
 
 def test_estimate_without_context_matches_the_system(plant, truth):
-    sample = truth.sample(np.random.default_rng(20), unknown_body=model.IMU_BODY)
+    sample = truth.sample(np.random.default_rng(20), unknown_body=hrp2.IMU_BODY)
     estimator = FloatingBaseTorqueEstimator(
-        plant, _config(plant, unknown_wrench_body=model.IMU_BODY)
+        plant, _config(plant, unknown_wrench_body=hrp2.IMU_BODY)
     )
     result = estimator.estimate(
         sample["q"],
@@ -516,18 +516,18 @@ def test_wrong_size_input(plant):
         ({"base_body": "WAIST"}, KeyError, "base body 'WAIST'"),
         ({"base_body": "CHEST_LINK1"}, ValueError, "not a floating base"),
         (
-            {"joints": list(model.JOINT_NAMES[:-1]) + ["LARM_JOINT7"]},
+            {"joints": list(hrp2.JOINT_NAMES[:-1]) + ["LARM_JOINT7"]},
             KeyError,
             "LARM_JOINT7",
         ),
         (
-            {"joints": list(model.JOINT_NAMES[:-1])},
+            {"joints": list(hrp2.JOINT_NAMES[:-1])},
             ValueError,
             r"not in the config: \['LARM_JOINT6'\]",
         ),
         ({"joints": []}, ValueError, "joints is empty"),
         (
-            {"joints": list(model.JOINT_NAMES) + ["RLEG_JOINT0"]},
+            {"joints": list(hrp2.JOINT_NAMES) + ["RLEG_JOINT0"]},
             ValueError,
             "duplicated",
         ),
@@ -589,13 +589,13 @@ def test_plant_needs_exactly_one_base():
     bases are tested in test_estimator_layouts.py); a second free body leaves no
     unique base."""
     welded = MultibodyPlant(0.0)
-    model.add_hrp2(welded)
-    welded.WeldFrames(welded.world_frame(), welded.GetFrameByName(model.BASE_BODY))
+    hrp2.add_hrp2(welded)
+    welded.WeldFrames(welded.world_frame(), welded.GetFrameByName(hrp2.BASE_BODY))
     welded.Finalize()
     estimator = FloatingBaseTorqueEstimator(welded, _config(welded))
     assert estimator.is_fixed_base() and estimator.has_imu()
     two = MultibodyPlant(0.0)
-    instance = model.add_hrp2(two)
+    instance = hrp2.add_hrp2(two)
     two.AddRigidBody(
         "box", instance, SpatialInertia.SolidBoxWithMass(1.0, 0.1, 0.1, 0.1)
     )
@@ -613,7 +613,7 @@ sensors:
   left_foot: {frame: LLEG_FOOT}
 unknown_wrench_body: CHEST_LINK1
 offset_calibration_time: 0.5
-""" % ", ".join(model.JOINT_NAMES)
+""" % ", ".join(hrp2.JOINT_NAMES)
     config = yaml_load_typed(schema=TorqueEstimatorConfig, data=text)
     assert config.sensors["left_foot"] == ForceTorqueSensorConfig("LLEG_FOOT", "")
     estimator = FloatingBaseTorqueEstimator(plant, config)
@@ -640,7 +640,7 @@ def _static_hand_readings(truth: _Truth, rng, num: int, gripper: float = 0.3):
     for _ in range(num):
         q = plant.GetPositions(context)
         q[ix.q] = rng.uniform(-1.0, 1.0, ix.size)
-        q[ix.q[model.JOINT_NAMES.index("RARM_JOINT6")]] = gripper
+        q[ix.q[hrp2.JOINT_NAMES.index("RARM_JOINT6")]] = gripper
         plant.SetPositions(context, q)
         plant.SetFreeBodyPose(
             context,
@@ -789,7 +789,7 @@ def test_closed_loop_hanging_with_unknown_wrench_on_the_torso():
     """Hanging by strings tied to the torso (paper Fig. 2b): with the unknown wrench on
     the torso τ̂ tracks the servo's torque; assuming it on the base does not."""
     chain, plant, logs, _ = _closed_loop(
-        "hanging", 1.5, unknown_wrench_body=model.IMU_BODY
+        "hanging", 1.5, unknown_wrench_body=hrp2.IMU_BODY
     )
     # After the start-up transient (the robot settles on its strings, with errors up
     # to 0.25 N·m against the filtered truth until 0.7 s), while it swings slowly.
@@ -817,7 +817,7 @@ def test_closed_loop_offset_calibration():
     sensors.force_torque = StationConfig().sensors_config().force_torque  # HRP-2's
     bias = np.array([sensors.force_torque[s].bias for s in SENSORS])
     # Calibrate over [0.2, 0.7) s, after the filters' start-up (the default start).
-    changes = dict(unknown_wrench_body=model.IMU_BODY, offset_calibration_time=0.5)
+    changes = dict(unknown_wrench_body=hrp2.IMU_BODY, offset_calibration_time=0.5)
     chain, plant, logs, offsets = _closed_loop("hanging", 1.5, sensors, **changes)
     # Measured: offsets within 0.044 N and 0.0025 N·m of the biases (the sensors'
     # noise, 0.5 N and 0.02 N·m per sample, averaged); mean external wrenches after
@@ -854,8 +854,8 @@ def test_per_signal_windows_keep_one_delay(plant):
     )
     chain = add_estimator(builder, station, plant, config)
     encoders = chain.encoder_filter.windows()
-    assert encoders[model.JOINT_NAMES.index("RLEG_JOINT3")] == 61
-    assert encoders.count(21) == len(model.JOINT_NAMES) - 1
+    assert encoders[hrp2.JOINT_NAMES.index("RLEG_JOINT3")] == 61
+    assert encoders.count(21) == len(hrp2.JOINT_NAMES) - 1
     sensor_windows = chain.sensor_filter.windows()
     assert sensor_windows[:6] == (41,) * 6  # accelerometer, gyro
     foot = 6 + 6 * list(config.sensors).index("right_foot")

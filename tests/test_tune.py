@@ -12,9 +12,9 @@ pytest.importorskip("distributed")
 
 from hrp2_drake.cli import main
 from hrp2_drake.config import load_config
-from hrp2_drake.experiments.builders import TorqueControlConfig
+from hrp2_drake.assembly.builders import TorqueControlConfig
 from hrp2_drake.identification.motor_model import MotorModel
-from hrp2_drake.experiments.tune import (
+from hrp2_drake.paper.tune import (
     FAILED_COST,
     STUDY_FILE,
     MissingDependencyError,
@@ -27,9 +27,9 @@ from hrp2_drake.experiments.tune import (
     run_tune,
     trial_cost,
 )
-from hrp2_drake.robot import model
+from hrp2_drake.paper import hrp2
 
-LEG = list(model.RIGHT_LEG)
+LEG = list(hrp2.RIGHT_LEG)
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from hrp2_drake.description import load_robot_description
-from hrp2_drake.experiments.twin import TwinConfig, fit_twin
+from hrp2_drake.tools.twin import TwinConfig, fit_twin
 from hrp2_drake.identification.logs import read_robot_log
 from hrp2_drake.robot.rollout import emulated_servo, rollout
 

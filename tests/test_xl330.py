@@ -18,12 +18,12 @@ import numpy as np
 import pytest
 
 from hrp2_drake.cli import main
-from hrp2_drake.experiments.identification import (
+from hrp2_drake.tools.identify import (
     IdentifyConfig,
     identify_segments,
     read_segments,
 )
-from hrp2_drake.experiments.track import motor_model_at_station_gain
+from hrp2_drake.tools.track import motor_model_at_station_gain
 from hrp2_drake.identification.logs import RobotLog
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.robot.rollout import emulated_servo, rollout

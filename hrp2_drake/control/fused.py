@@ -68,7 +68,7 @@ EVENT_CONTROLLER_FALLBACK, EVENT_SUPERVISOR_FAULT = 1, 2
 class TorqueChainParts:
     """Everything the torque-control chain is made of, as data: the models and configs
     that the separate LeafSystems and the fused controller are both built from
-    (`hrp2_drake.experiments.builders.torque_chain_parts` makes it).
+    (`hrp2_drake.assembly.builders.torque_chain_parts` makes it).
 
     Args:
         all_joints: the robot's joints (every joint vector of the station).

@@ -160,7 +160,7 @@ def make_fixed_base_plant(
     world: the fixed-base model of the paper's controller (footnote 3).
 
     Args:
-        add_model: adds the robot to a plant (e.g. hrp2_drake.robot.model.add_hrp2;
+        add_model: adds the robot to a plant (e.g. hrp2_drake.paper.hrp2.add_hrp2;
             control never imports the robot package, the caller passes it).
         base_body: name of the body to weld (for HRP-2 "BODY", the waist).
         X_WB: pose of the base in the world (default identity: upright, so that

@@ -60,13 +60,13 @@ from typing import Callable
 import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
 
-from hrp2_drake.experiments.builders import (
+from hrp2_drake.assembly.builders import (
     COMPONENTS,
     JointReference,
     TorqueControlConfig,
     build_torque_control,
 )
-from hrp2_drake.experiments.motion import (
+from hrp2_drake.paper.motion import (
     IMPROVED_FILE,
     IMPROVEMENTS,
     improvement_alone,
@@ -74,7 +74,7 @@ from hrp2_drake.experiments.motion import (
     run_controller,
 )
 from hrp2_drake.identification.motor_model import MotorModel
-from hrp2_drake.robot import model
+from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.station import StationConfig, initial_joint_positions
 
 #: The axes of a wrench, in the order of the wrench vectors.
@@ -85,7 +85,7 @@ FZ, FX = 5, 3
 PAPER_OVERSHOOT = 0.10
 PAPER_COUPLING_X = 0.10
 #: The force task's frame: the right foot's F/T sensor frame.
-FORCE_FRAME = model.FT_SENSOR_BODIES["right_foot"]
+FORCE_FRAME = hrp2.FT_SENSOR_BODIES["right_foot"]
 SIGNALS = {"estimate": "external_wrench_right_foot", "ft_reading": "wrench_right_foot"}
 
 
@@ -537,10 +537,10 @@ def posture_gain(run: ForceRun) -> np.ndarray:
     s, c = run.signals, run.config
     on = (s["t"] >= c.sinusoid_start) & np.all(np.isfinite(s["q_measured"]), axis=1)
     x = s["f_ref"][on, FZ] - run.static_wrench[FZ]
-    gain = np.zeros(model.NUM_JOINTS)
+    gain = np.zeros(hrp2.NUM_JOINTS)
     basis = np.column_stack([x, np.ones(len(x))])
-    for j, name in enumerate(model.JOINT_NAMES):
-        if name in c.torque_control.controlled_joints(model.description()):
+    for j, name in enumerate(hrp2.JOINT_NAMES):
+        if name in c.torque_control.controlled_joints(hrp2.description()):
             gain[j] = np.linalg.lstsq(basis, s["q_measured"][on, j], rcond=None)[0][0]
     return gain
 
@@ -651,7 +651,7 @@ def summarize(result: ForceResult) -> dict:
             "metrics": run.metrics,
             "fallback_time": run.fallback_time,
             "joint_motion_peak_to_peak": dict(
-                zip(c.torque_control.controlled_joints(model.description()), joint_motion(run).tolist())
+                zip(c.torque_control.controlled_joints(hrp2.description()), joint_motion(run).tolist())
             ),
             "verdict": {name: _verdict(run.metrics[name], c) for name in run.metrics},
         }
@@ -729,7 +729,7 @@ def joint_motion(run: ForceRun) -> np.ndarray:
     """Peak-to-peak motion of the torque-controlled joints (encoders, rad) during the
     sinusoid, in the order of run.config.torque_control.joints."""
     on = run.signals["t"] >= run.config.sinusoid_start
-    columns = [model.JOINT_NAMES.index(j) for j in run.config.torque_control.controlled_joints(model.description())]
+    columns = [hrp2.JOINT_NAMES.index(j) for j in run.config.torque_control.controlled_joints(hrp2.description())]
     q = run.signals["q_measured"][on][:, columns]
     return q.max(axis=0) - q.min(axis=0)
 
@@ -794,7 +794,7 @@ def _markdown(result: ForceResult, summary: dict, figure: str) -> str:
         "force and K6 e_q resists it): "
         + ", ".join(
             f"{label} {value * 1e3:.1f}"
-            for label, value in zip(model.RIGHT_LEG_LABELS, motion)
+            for label, value in zip(hrp2.RIGHT_LEG_LABELS, motion)
         )
         + ".",
         "",

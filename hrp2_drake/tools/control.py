@@ -21,13 +21,13 @@ import numpy as np
 from hrp2_drake.console import say
 from hrp2_drake.control.fused import FusedController
 from hrp2_drake.control.safety import SafetyConfig
-from hrp2_drake.experiments.builders import (
+from hrp2_drake.assembly.builders import (
     JointReference,
     TorqueControlConfig,
     check_control_period,
     torque_chain_parts,
 )
-from hrp2_drake.experiments.track import TrackConfig, check_sinusoid, sinusoid_reference
+from hrp2_drake.tools.track import TrackConfig, check_sinusoid, sinusoid_reference
 from hrp2_drake.hardware.control_loop import (
     BridgeConfig,
     ControlLoop,

@@ -51,10 +51,10 @@ import numpy as np
 
 from hrp2_drake import console
 from hrp2_drake.config import check_finite, one_line
-from hrp2_drake.experiments.builders import TorqueControlConfig
-from hrp2_drake.experiments.motion import estimation_delay
+from hrp2_drake.assembly.builders import TorqueControlConfig
+from hrp2_drake.paper.motion import estimation_delay
 from hrp2_drake.identification.motor_model import MotorModel
-from hrp2_drake.robot import model
+from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.station import StationConfig
 
 INSTALL_HINT = "pip install -e '.[tune]'"
@@ -143,7 +143,7 @@ SEARCH_SPACE: tuple[ParamSpec, ...] = (
     # to 4 with windows down to 6 samples, the hanging leg tuned K_p = 1.5-2.7 on
     # three joints: unstable in the force experiment's contact.) 0 belongs in the
     # range: with the disturbance observer, K_p = 0 tracked best by hand.
-    ParamSpec("kp", "float", "kp", low=0.0, high=1.0, keys=model.RIGHT_LEG),
+    ParamSpec("kp", "float", "kp", low=0.0, high=1.0, keys=hrp2.RIGHT_LEG),
     # K_d of eq. 12, through its damping ratio (acts with feedback_velocity=estimate).
     ParamSpec("damping_ratio", "float", "damping_ratio", low=0.2, high=2.0),
     # The q̇ of ė_q (eq. 12) and of the friction feedforward K_v q̇ (eq. 10, 13).
@@ -159,7 +159,7 @@ SEARCH_SPACE: tuple[ParamSpec, ...] = (
     # motion cannot see their window (searched, it went to 10 samples, which the force
     # experiment's force feedback does not survive).
     ParamSpec("windows", "float", "windows", low=0.2, high=1.0,
-              keys=model.RIGHT_LEG + ("imu",), scale_of="window"),
+              keys=hrp2.RIGHT_LEG + ("imu",), scale_of="window"),
     # The DelayPredictor: τ̂ (and q̂̇) carried from the delay to the present.
     ParamSpec("predictor", "bool", "predictor"),
     # The disturbance observer's bandwidth (rad/s), or off (0), searched as bandwidth
@@ -418,7 +418,7 @@ class TuneConfig:
             check_finite(getattr(self, name), f"TuneConfig.{name}", 0.0, strict=False)
         check_finite(self.smoothing, "TuneConfig.smoothing", 0.0)
         check_finite(self.end, "TuneConfig.end", 0.0)
-        motion_end = float(model.load_trajectory()[0][-1])
+        motion_end = float(hrp2.load_trajectory()[0][-1])
         if not self.start + 0.001 <= self.end <= motion_end:
             raise ValueError(
                 f"TuneConfig.start, end: {self.start}-{self.end} s must be a part (1 ms "
@@ -484,7 +484,7 @@ _REFERENCES: dict = {}
 
 def _reference(task: TrialTask):
     """The climbing reference of a task (built once per worker process)."""
-    from hrp2_drake.experiments.motion import MotionConfig, motion_reference
+    from hrp2_drake.paper.motion import MotionConfig, motion_reference
 
     key = (task.start, task.end, task.settle, task.smoothing)
     if key not in _REFERENCES:
@@ -522,11 +522,11 @@ def run_trial(task: TrialTask) -> dict:
     fallback time, the supervisor's faults, the share of ticks with a saturated Δq;
     or {"error": ...} if the simulation failed (TRIAL_FAILURES). Anything else (a
     TypeError...) is a bug, not a bad trial: it propagates and stops the study."""
-    from hrp2_drake.experiments.builders import (
+    from hrp2_drake.assembly.builders import (
         build_position_control,
         build_torque_control,
     )
-    from hrp2_drake.experiments.motion import evaluate, run_controller
+    from hrp2_drake.paper.motion import evaluate, run_controller
 
     wall = time.perf_counter()
     reference = _reference(task)
@@ -972,7 +972,7 @@ def _report(result: TuneResult, config: TuneConfig, figures: dict[str, str]) -> 
     completed = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
     untuned = next((t for t in completed if t.user_attrs.get("untuned")), None)
     labels = [
-        model.RIGHT_LEG_LABELS[model.RIGHT_LEG.index(j)] for j in model.RIGHT_LEG[1:]
+        hrp2.RIGHT_LEG_LABELS[hrp2.RIGHT_LEG.index(j)] for j in hrp2.RIGHT_LEG[1:]
     ]
     rate = result.trials_run / max(result.wall_time, 1e-9) * 60
     lines = [

@@ -44,11 +44,10 @@ from hrp2_drake.identification.fitting import (
     fit_two_stage,
     overestimation_share,
 )
-from hrp2_drake.description import RobotDescription
-from hrp2_drake.experiments.ground_truth import true_motor_model
+from hrp2_drake.description import RobotDescription, load_robot_description
+from hrp2_drake.tools.ground_truth import true_motor_model
 from hrp2_drake.identification.logs import describe, read_robot_log
 from hrp2_drake.identification.motor_model import MotorModel
-from hrp2_drake.robot import model
 from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
 
 _logger = logging.getLogger(__name__)
@@ -498,7 +497,7 @@ def write_report(result: IdentificationResult, out: Path, log_is_simulated: bool
 
 
 def _label(joint: str, robot: RobotDescription | None = None) -> str:
-    robot = robot or model.description()
+    robot = robot or load_robot_description()
     if joint in robot.controlled_joints:
         return robot.labels()[robot.controlled_joints.index(joint)]
     return joint
@@ -804,5 +803,5 @@ def read_log(
     array), then `check_log`: text or NaN in an array, time not increasing on a
     constant grid, arrays of the wrong width, no column for a joint of the estimator."""
     log, names = load_log(path)
-    check_log(log, names, str(path), (robot or model.description()).joints)
+    check_log(log, names, str(path), (robot or load_robot_description()).joints)
     return log, names

@@ -62,15 +62,15 @@ from pathlib import Path
 
 import numpy as np
 
-from hrp2_drake.experiments.builders import (
+from hrp2_drake.assembly.builders import (
     JointReference,
     TorqueControlConfig,
     build_torque_control,
 )
-from hrp2_drake.experiments.motion import run_controller
+from hrp2_drake.paper.motion import run_controller
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import joint_indexing
-from hrp2_drake.robot import model
+from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.station import (
     StationConfig,
     initial_joint_positions,
@@ -141,7 +141,7 @@ class StabilityConfig:
         """Raises ValueError naming the bad field (yaml_load_typed does not call it)."""
         where = "StabilityConfig"
         self.station.validate()
-        if self.joint not in model.RIGHT_LEG:
+        if self.joint not in hrp2.RIGHT_LEG:
             raise ValueError(f"{where}.joint='{self.joint}' is not a right-leg joint")
         if self.direction not in (1.0, -1.0):
             raise ValueError(f"{where}.direction={self.direction} must be +1 or -1")
@@ -190,7 +190,7 @@ def push_reference(
     the release), then held where the push left it (q̇_d = q̈_d = 0: the open-loop
     controller's τ_d = ĥ)."""
     q0 = initial_joint_positions(config.station)
-    j = model.JOINT_NAMES.index(config.joint)
+    j = hrp2.JOINT_NAMES.index(config.joint)
     t = np.arange(0.0, config.duration + 0.5 + dt / 2, dt)
     q = np.tile(q0, (len(t), 1))
     v = np.zeros_like(q)
@@ -460,7 +460,7 @@ def models_from_identification(result, joints=None) -> dict[str, MotorModel]:
 def emulator_parameters(joint: str, servo_file: str = "") -> dict[str, float]:
     """The emulated servo's effective K_τ, K_v per direction of motion (ground truth,
     for the report only): keys k_tau+, k_tau-, k_v+, k_v-."""
-    from hrp2_drake.experiments import hrp2
+    from hrp2_drake.paper import hrp2
 
     out = {}
     for direction, sign in ((1, "+"), (-1, "-")):
@@ -544,7 +544,7 @@ def run_stability_experiment(
 
 def _markdown(result: StabilityResult, summary: dict, figure: str) -> str:
     c = result.config
-    label = model.RIGHT_LEG_LABELS[model.RIGHT_LEG.index(c.joint)]
+    label = hrp2.RIGHT_LEG_LABELS[hrp2.RIGHT_LEG.index(c.joint)]
     sign = "+" if c.direction > 0 else "−"
     lines = [
         "# Open-loop stability of the identified motor model (paper Sec. 5.2, 3.2.3)",
@@ -672,7 +672,7 @@ def plot_stability(result: StabilityResult, out: Path) -> str:
         ax.grid(True, alpha=0.3)
     handles, labels = axes[0][0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=len(velocities), fontsize=7)
-    label = model.RIGHT_LEG_LABELS[model.RIGHT_LEG.index(c.joint)]
+    label = hrp2.RIGHT_LEG_LABELS[hrp2.RIGHT_LEG.index(c.joint)]
     fig.suptitle(
         f"Open-loop torque control of the right {label} (K6 = K_p = 0): "
         "least squares vs asymmetric fit"

@@ -35,10 +35,9 @@ from pydrake.systems.primitives import TrajectorySource
 
 from hrp2_drake import console
 from hrp2_drake.estimation.torque_estimator import add_estimator
-from hrp2_drake.experiments import hrp2
-from hrp2_drake.experiments.simulate import joint_reference
+from hrp2_drake.paper import hrp2
+from hrp2_drake.tools.simulate import joint_reference
 from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
-from hrp2_drake.robot import model
 from hrp2_drake.robot.sensors import SensorsConfig
 from hrp2_drake.robot.station import (
     StationConfig,
@@ -215,7 +214,7 @@ class EstimationConfig:
             if scenario not in SCENARIOS:
                 raise ValueError(f"{where}.motions: unknown scenario '{scenario}'")
             for s in motion:
-                if s.joint not in model.JOINT_NAMES:
+                if s.joint not in hrp2.JOINT_NAMES:
                     raise ValueError(f"{where}.motions.{scenario}: joint '{s.joint}'")
 
     def run_duration(self) -> float:
@@ -241,7 +240,7 @@ def sinusoid_reference(
     s = np.clip((t - start) / ramp, 0.0, 1.0) if ramp > 0 else (t >= start) * 1.0
     envelope = s * s * (3.0 - 2.0 * s)
     for sinusoid in motion:
-        j = model.JOINT_NAMES.index(sinusoid.joint)
+        j = hrp2.JOINT_NAMES.index(sinusoid.joint)
         wave = np.sin(2 * math.pi * sinusoid.frequency * (t - start) + sinusoid.phase)
         wave = np.where(t >= start, wave, math.sin(sinusoid.phase))
         q[:, j] += envelope * (sinusoid.offset + sinusoid.amplitude * wave)
@@ -392,7 +391,7 @@ def best_shift(
 ) -> float:
     """The delay (samples, in half samples within ±10 of `nominal`) that minimises the
     total squared error of the right leg: verifies the chain's delay."""
-    leg = [model.JOINT_NAMES.index(j) for j in model.RIGHT_LEG]
+    leg = [hrp2.JOINT_NAMES.index(j) for j in hrp2.RIGHT_LEG]
     candidates = [round(nominal + 0.5 * k, 9) for k in range(-20, 21)]
     candidates = [c for c in candidates if c >= 0]
     cost = []
@@ -422,7 +421,7 @@ def analyse(run: dict, config: EstimationConfig, scenario: str) -> dict:
     RMS/peak); the waist's motion (tilt from vertical, height range)."""
     t, true = run["t"], run["true"]
     period = t[1] - t[0]
-    leg = [model.JOINT_NAMES.index(j) for j in model.RIGHT_LEG]
+    leg = [hrp2.JOINT_NAMES.index(j) for j in hrp2.RIGHT_LEG]
     q0 = initial_joint_positions(_station_config(config, scenario))
     _, q_cmd = sinusoid_reference(
         q0, config.motion(scenario), config.settle, config.ramp, t[-1], period
@@ -488,7 +487,7 @@ def plot_torque(run: dict, analysis: dict, config: EstimationConfig, path: Path)
     import matplotlib.pyplot as plt
 
     t, true = run["t"], run["true"]
-    j = model.JOINT_NAMES.index(PLOT_JOINT)
+    j = hrp2.JOINT_NAMES.index(PLOT_JOINT)
     shown = t >= max(config.settle, t[-1] - config.plot_seconds)
     best = analysis["best_window"]
     fig, (top, bottom) = plt.subplots(
@@ -526,8 +525,8 @@ def _table(w: dict) -> list[str]:
         "squared error near its velocity reversals (share of the time) |",
         "| --- | ---: | ---: | ---: | ---: |",
     ]
-    for k, name in enumerate(model.RIGHT_LEG):
-        j = model.JOINT_NAMES.index(name)
+    for k, name in enumerate(hrp2.RIGHT_LEG):
+        j = hrp2.JOINT_NAMES.index(name)
         time_share = w["right_leg_time_share_near_reversals"][k]
         share = (
             f"{100 * w['right_leg_error_share_near_reversals'][k]:.0f} % "
@@ -536,7 +535,7 @@ def _table(w: dict) -> list[str]:
             else "(does not move)"
         )
         lines.append(
-            f"| {name} ({model.RIGHT_LEG_LABELS[k]}) | {w['rms'][j]:.3f} | "
+            f"| {name} ({hrp2.RIGHT_LEG_LABELS[k]}) | {w['rms'][j]:.3f} | "
             f"{w['peak'][j]:.2f} | {100 * w['ratio'][j]:.2f} % | {share} |"
         )
     return lines
@@ -549,9 +548,9 @@ def _summary_all(w: dict, window) -> str:
     return (
         f"All 30 joints, {window}: median RMS error "
         f"{np.median(w['rms']):.3f} N·m, max {np.max(w['rms']):.3f} N·m "
-        f"({model.JOINT_NAMES[int(np.argmax(w['rms']))]}); RMS/peak median "
+        f"({hrp2.JOINT_NAMES[int(np.argmax(w['rms']))]}); RMS/peak median "
         f"{100 * np.median(ratio[loaded]):.2f} %, worst {100 * ratio[worst]:.2f} % "
-        f"({model.JOINT_NAMES[worst]}, peak {peak[worst]:.2f} N·m) over the "
+        f"({hrp2.JOINT_NAMES[worst]}, peak {peak[worst]:.2f} N·m) over the "
         f"{int(loaded.sum())} joints whose peak abs(τ) reaches 1 N·m (the others "
         "barely move)."
     )
@@ -562,7 +561,7 @@ def markdown(results: dict, config: EstimationConfig) -> str:
         "# Torque estimation in closed loop",
         "",
         "The station runs with noisy default sensors while the position servo tracks "
-        "sinusoids (`hrp2_drake/experiments/estimation.py`); one estimation chain per "
+        "sinusoids (`hrp2_drake/paper/estimation.py`); one estimation chain per "
         "Savitzky-Golay window reads the same sensors. τ̂ is compared with "
         "`joint_torque_true` delayed by the chain's delay ((N − 1)/2 + 2 samples); "
         f"errors from t = {config.settle} s (motion start). Goal: RMS error < "
@@ -676,8 +675,8 @@ def run_estimation_experiment(config: EstimationConfig, out: Path) -> dict:
         )
         console.say(message)
     summary = {
-        "joints": list(model.JOINT_NAMES),
-        "right_leg": list(model.RIGHT_LEG),
+        "joints": list(hrp2.JOINT_NAMES),
+        "right_leg": list(hrp2.RIGHT_LEG),
         "goal_rms_over_peak": GOAL_RMS_OVER_PEAK,
         "config": asdict(config),
         "scenarios": {

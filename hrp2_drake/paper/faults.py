@@ -24,16 +24,15 @@ import numpy as np
 from hrp2_drake import console
 from hrp2_drake.config import check_finite
 from hrp2_drake.control.safety import describe_faults
-from hrp2_drake.experiments import hrp2
-from hrp2_drake.experiments.builders import (
+from hrp2_drake.paper import hrp2
+from hrp2_drake.assembly.builders import (
     TorqueControlConfig,
     build_position_control,
     build_torque_control,
 )
-from hrp2_drake.experiments.force import ForceConfig, run_force
-from hrp2_drake.experiments.motion import MotionConfig, motion_reference, run_controller
+from hrp2_drake.paper.force import ForceConfig, run_force
+from hrp2_drake.paper.motion import MotionConfig, motion_reference, run_controller
 from hrp2_drake.identification.motor_model import MotorModel
-from hrp2_drake.robot import model
 from hrp2_drake.robot.faults import SensorFault
 from hrp2_drake.robot.station import StationConfig
 
@@ -57,7 +56,7 @@ class FaultCase:
 
 
 def default_cases() -> list[FaultCase]:
-    knee = model.JOINT_NAMES.index("RLEG_JOINT3")
+    knee = hrp2.JOINT_NAMES.index("RLEG_JOINT3")
     return [
         FaultCase("F/T NaN burst (5 ms)", [SensorFault("wrench_right_foot", "nan", 0.0, 0.005)]),
         FaultCase("F/T frozen (200 ms)", [SensorFault("wrench_right_foot", "freeze", 0.0, 0.2)]),
@@ -198,13 +197,13 @@ def _force_run(config: FaultCampaignConfig, case: FaultCase | None, motor_path: 
 @functools.cache
 def _joint_positions() -> np.ndarray:
     """Where the 30 joint angles are in the floating-base station's state."""
-    return model.hrp2_joint_indexing(hrp2.estimator_plant()).q
+    return hrp2.hrp2_joint_indexing(hrp2.estimator_plant()).q
 
 
 def _summarize(signals: dict, t_fault: float, experiment: str) -> dict:
     """What the campaign reports of one run (see the module docstring)."""
     t = signals["t"]
-    leg = [model.JOINT_NAMES.index(j) for j in model.RIGHT_LEG]
+    leg = [hrp2.JOINT_NAMES.index(j) for j in hrp2.RIGHT_LEG]
     after = t >= t_fault
     # Tracking against the true joint angles (ground truth, for evaluation): a faulty
     # encoder is what the controllers see, not where the leg is.
@@ -224,7 +223,7 @@ def _summarize(signals: dict, t_fault: float, experiment: str) -> dict:
         0.0,
     )
     out["max_command_step"] = float(excess.max())
-    knee = model.JOINT_NAMES.index("RLEG_JOINT3")
+    knee = hrp2.JOINT_NAMES.index("RLEG_JOINT3")
     out["trace"] = {
         "t": (t[::5] - t_fault).tolist(),
         "knee_error": np.nan_to_num(error[::5, leg.index(knee)]).tolist(),

@@ -36,7 +36,7 @@ from pydrake.trajectories import PiecewisePolynomial
 
 from hrp2_drake.config import check_finite
 from hrp2_drake.description import RobotDescription, joint_limits
-from hrp2_drake.experiments.builders import (
+from hrp2_drake.assembly.builders import (
     JointReference,
     TorqueControlConfig,
     build_position_control,

@@ -76,7 +76,7 @@ def load_signals(path: Path) -> dict[str, dict[str, np.ndarray]]:
 
 
 def step_identify(out: Path, quick: bool) -> dict:
-    from hrp2_drake.experiments.identification import IdentifyConfig, run_identify
+    from hrp2_drake.tools.identify import IdentifyConfig, run_identify
 
     config = IdentifyConfig(duration_scale=0.5 if quick else 1.0)
     return run_identify(config, out)
@@ -85,7 +85,7 @@ def step_identify(out: Path, quick: bool) -> dict:
 def step_motion(out: Path, model_path: Path, quick: bool, replays: bool) -> dict:
     from dataclasses import replace
 
-    from hrp2_drake.experiments.motion import (
+    from hrp2_drake.paper.motion import (
         FIGURE4_RUNS,
         MotionConfig,
         run_motion,
@@ -116,7 +116,7 @@ def _component_runs(labels) -> list[str]:
     """The motion runs among `labels` whose signals the components step reads
     (motion_signals.npz): the paper's torque control at K6 = 1 and 0.1, and
     position control."""
-    from hrp2_drake.experiments.motion import is_beyond_paper
+    from hrp2_drake.paper.motion import is_beyond_paper
 
     paper = [label for label in labels if not is_beyond_paper(label)]
     keep = [label for label in paper if "K6=1" in label and "," not in label]
@@ -131,8 +131,8 @@ def _motion_replay(config, motor_model, path: Path) -> None:
     from pydrake.geometry import Meshcat
     from pydrake.systems.analysis import Simulator
 
-    from hrp2_drake.experiments.builders import build_torque_control
-    from hrp2_drake.experiments.motion import motion_reference
+    from hrp2_drake.assembly.builders import build_torque_control
+    from hrp2_drake.paper.motion import motion_reference
 
     meshcat = Meshcat()
     reference = motion_reference(config)
@@ -153,8 +153,8 @@ def step_force(out: Path, model_path: Path, quick: bool, replays: bool) -> dict:
 
     from pydrake.geometry import Meshcat
 
-    from hrp2_drake.experiments.force import ForceConfig, run_force, run_force_all
-    from hrp2_drake.experiments.force import write_force_report
+    from hrp2_drake.paper.force import ForceConfig, run_force, run_force_all
+    from hrp2_drake.paper.force import write_force_report
     from hrp2_drake.identification.motor_model import MotorModel
 
     config = ForceConfig()
@@ -180,7 +180,7 @@ def step_force(out: Path, model_path: Path, quick: bool, replays: bool) -> dict:
 def step_stability(out: Path, model_path: Path, quick: bool, replays: bool) -> dict:
     from dataclasses import replace
 
-    from hrp2_drake.experiments.stability import StabilityConfig, run_stability_experiment
+    from hrp2_drake.paper.stability import StabilityConfig, run_stability_experiment
     from hrp2_drake.identification.motor_model import MotorModel
 
     config = StabilityConfig()
@@ -194,8 +194,8 @@ def step_stability(out: Path, model_path: Path, quick: bool, replays: bool) -> d
 
 
 def step_components(out: Path, motion_dir: Path, force_dir: Path) -> dict:
-    from hrp2_drake.experiments.components import analyse_components
-    from hrp2_drake.experiments.force import load_signals as load_force_signals
+    from hrp2_drake.paper.components import analyse_components
+    from hrp2_drake.paper.force import load_signals as load_force_signals
 
     return analyse_components(
         load_signals(motion_dir / "motion_signals.npz"),
@@ -205,7 +205,7 @@ def step_components(out: Path, motion_dir: Path, force_dir: Path) -> dict:
 
 
 def step_estimation(out: Path, model_path: Path, quick: bool, replays: bool) -> dict:
-    from hrp2_drake.experiments.estimation import (
+    from hrp2_drake.paper.estimation import (
         EstimationConfig,
         run_estimation_experiment,
     )
@@ -218,7 +218,7 @@ def step_estimation(out: Path, model_path: Path, quick: bool, replays: bool) -> 
 
 
 def step_faults(out: Path, model_path: Path, quick: bool, replays: bool) -> dict:
-    from hrp2_drake.experiments.faults import FaultCampaignConfig, run_fault_campaign
+    from hrp2_drake.paper.faults import FaultCampaignConfig, run_fault_campaign
 
     return run_fault_campaign(FaultCampaignConfig(quick=quick, jobs=1), model_path, out)
 
@@ -348,7 +348,7 @@ def verdicts(results: dict) -> list[Verdict]:
     """Every claim of the paper we test, then every goal of this project, each with
     the threshold it is judged by and one rule for partial results
     (`motion.partial_verdict`)."""
-    from hrp2_drake.experiments.motion import EQUIVALENT, goal_verdict, partial_verdict
+    from hrp2_drake.paper.motion import EQUIVALENT, goal_verdict, partial_verdict
 
     paper: list[Verdict] = []
     goals: list[Verdict] = []

@@ -40,8 +40,8 @@ from pathlib import Path
 import numpy as np
 
 from hrp2_drake import console
-from hrp2_drake.experiments.builders import build_position_control
-from hrp2_drake.experiments.motion import (
+from hrp2_drake.assembly.builders import build_position_control
+from hrp2_drake.paper.motion import (
     MOVING_JOINTS,
     PAPER_TABLE2,
     PAPER_TABLE3,
@@ -50,7 +50,7 @@ from hrp2_drake.experiments.motion import (
     paper_sample_count,
     run_controller,
 )
-from hrp2_drake.robot import model
+from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.servo import (
     ServoJointParams,
     ServoParams,
@@ -60,7 +60,7 @@ from hrp2_drake.robot.servo import (
 )
 from hrp2_drake.robot.station import StationConfig
 
-MOVING_LABELS = tuple(model.RIGHT_LEG_LABELS[model.RIGHT_LEG.index(j)] for j in MOVING_JOINTS)
+MOVING_LABELS = tuple(hrp2.RIGHT_LEG_LABELS[hrp2.RIGHT_LEG.index(j)] for j in MOVING_JOINTS)
 
 #: The position-control column of the paper's Table 2 (N⁻¹ sqrt(Σ e²), rad) and
 #: Table 3 (maximum error, rad): hip roll, hip pitch, knee, ankle pitch, ankle roll.
@@ -168,7 +168,7 @@ class CalibrationConfig:
             raise ValueError("CalibrationConfig: jobs must be 1 or 2, max_iterations >= 1")
 
 
-LEGS = model.JOINT_NAMES[:12]
+LEGS = hrp2.JOINT_NAMES[:12]
 
 
 def _mirror(joint: str) -> str:
@@ -229,7 +229,7 @@ def position_control_errors(
     signals = run_controller(control, reference.end_time(), "position control", stream=io.StringIO())
     t = signals["t"]
     after = t >= settle
-    columns = [model.JOINT_NAMES.index(j) for j in MOVING_JOINTS]
+    columns = [hrp2.JOINT_NAMES.index(j) for j in MOVING_JOINTS]
     error = (signals["q_ref"] - signals["q_measured"])[after][:, columns]
     out = {
         "max": np.abs(error).max(axis=0),
@@ -294,7 +294,7 @@ def gear_ratios(joints) -> np.ndarray:
     from pydrake.multibody.plant import MultibodyPlant
 
     plant = MultibodyPlant(0.0)
-    model.add_hrp2(plant)
+    hrp2.add_hrp2(plant)
     plant.Finalize()
     ratios = {}
     for index in plant.GetJointActuatorIndices():
@@ -461,7 +461,7 @@ def _measure(path: str, settle: float, off: tuple, end: float) -> dict:
     (for the report's plot)."""
     result = position_control_errors(path, settle, off, log=True, end=end)
     signals = result.pop("signals")
-    j = model.JOINT_NAMES.index("RLEG_JOINT3")
+    j = hrp2.JOINT_NAMES.index("RLEG_JOINT3")
     out = {k: v.tolist() for k, v in result.items()}
     out["signals"] = {
         "t": signals["t"][::5].tolist(),
@@ -480,8 +480,8 @@ def write_calibration_report(
     """calibration.md, calibration.json and the plots, in `out`."""
     out.mkdir(parents=True, exist_ok=True)
     servo = build_servo(config, result.speeds)
-    eff = effective_motor_parameters(servo, model.RIGHT_LEG)
-    p = servo.vectors(model.RIGHT_LEG)
+    eff = effective_motor_parameters(servo, hrp2.RIGHT_LEG)
+    p = servo.vectors(hrp2.RIGHT_LEG)
     final_max = np.asarray(result.final["max"])
     final_avg = np.asarray(result.final["average"])
     within_max = np.abs(final_max / PAPER_POSITION_MAX - 1) <= 0.20
@@ -533,7 +533,7 @@ def write_calibration_report(
         "| joint | 10³Kτ | 10³Kv (identified, incl. latency) | latency (ms) | dead zone (mrad, half) | Coulomb (N·m) | hysteresis (mrad) | stall current (A) | ω0 (rad/s) |",
         "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
-    for j, label in enumerate(model.RIGHT_LEG_LABELS):
+    for j, label in enumerate(hrp2.RIGHT_LEG_LABELS):
         lines.append(
             f"| {label} | {eff['k_tau'][j] * 1e3:.3f} | {eff['k_v'][j] * 1e3:.3f} | "
             f"{p['latency'][j] * 1e3:.0f} | {eff['deadzone'][j] * 1e3:.3f} | {p['k3'][j]:.2f} | "
@@ -650,13 +650,13 @@ def plot_calibration(result: CalibrationResult, out: Path) -> list[str]:
 def calibrate(config: CalibrationConfig, out: Path, install: bool = False, stream=None) -> dict:
     """Runs the calibration, writes out/servo.yaml and the report; with `install`,
     also models/hrp2/servo.yaml (the simulated robot's servo)."""
-    from hrp2_drake.robot.model import SERVO_FILE, models_dir
+    from hrp2_drake.paper.hrp2 import SERVO_FILE, models_dir
 
     stream = stream or sys.stderr
     result = run_calibration(config, out, stream)
     header = [
         "Hidden parameters of the emulated HRP-2 position servo (DESIGN.md), calibrated to",
-        "the real robot by `hrp2-drake calibrate` (hrp2_drake/experiments/calibrate.py):",
+        "the real robot by `hrp2-drake calibrate` (hrp2_drake/paper/calibrate.py):",
         "Table 1 (linear part), the authors' piecewise-linear fits (dead zone, Coulomb),",
         "the position-control column of Tables 2 and 3 (no-load speeds). Sources and",
         "report: models/hrp2/README.md. Only hrp2_drake/robot/ reads this file.",

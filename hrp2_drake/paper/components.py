@@ -44,8 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hrp2_drake.experiments.builders import COMPONENTS
-from hrp2_drake.robot import model
+from hrp2_drake.assembly.builders import COMPONENTS
+from hrp2_drake.paper import hrp2
 
 #: The components' labels, the paper's words.
 COMPONENT_LABELS = {name: name.replace("_", " ") for name in COMPONENTS}
@@ -78,7 +78,7 @@ class Panel:
 
     @property
     def title(self) -> str:
-        label = model.RIGHT_LEG_LABELS[model.RIGHT_LEG.index(self.joint)]
+        label = hrp2.RIGHT_LEG_LABELS[hrp2.RIGHT_LEG.index(self.joint)]
         if self.experiment == "motion":
             return f"({self.key}) {label}, motion control, K6 = {self.k6:g}"
         return f"({self.key}) {label}, force control"
@@ -134,7 +134,7 @@ def motion_window(
     leg's q_ref starts moving) until a fallback."""
     t = signals["t"]
     if start is None:
-        leg = [model.JOINT_NAMES.index(j) for j in model.RIGHT_LEG]
+        leg = [hrp2.JOINT_NAMES.index(j) for j in hrp2.RIGHT_LEG]
         moved = np.abs(signals["q_ref"][:, leg] - signals["q_ref"][0, leg]).max(axis=1)
         start = t[np.argmax(moved > 1e-6)] if np.any(moved > 1e-6) else t[0]
     window = t >= start
@@ -170,8 +170,8 @@ def component_statistics(
     that the six components add up to the command.
 
     The component ports are the controller's joint vectors (the right leg, in
-    model.RIGHT_LEG order)."""
-    k = model.RIGHT_LEG.index(joint)
+    hrp2.RIGHT_LEG order)."""
+    k = hrp2.RIGHT_LEG.index(joint)
     values = {name: signals[name][window, k] for name in COMPONENTS}
     stats = {
         name: {
@@ -384,7 +384,7 @@ def plot_figure6(
         else:
             signals = force_signals
             window = force_window(signals, force_start)
-        k = model.RIGHT_LEG.index(panel.joint)
+        k = hrp2.RIGHT_LEG.index(panel.joint)
         t = signals["t"][window]
         stats = summary["panels"][panel.key]["components"]
         for name in COMPONENTS:

@@ -18,7 +18,7 @@ from pydrake.systems.analysis import Simulator
 from pydrake.trajectories import PiecewisePolynomial
 
 from hrp2_drake.config import check_finite
-from hrp2_drake.experiments.builders import (
+from hrp2_drake.assembly.builders import (
     ControlDiagram,
     JointReference,
     TorqueControlConfig,
@@ -29,7 +29,7 @@ from hrp2_drake.experiments.builders import (
 from hrp2_drake.estimation.torque_estimator import TorqueEstimatorConfig
 from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
 from hrp2_drake.identification.motor_model import MotorModel
-from hrp2_drake.robot import model
+from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.station import StationConfig
 
 #: The paper's Table 2 (average error, rad·10³, its formula) and Table 3 (maximum
@@ -53,7 +53,7 @@ PAPER_TABLE3 = np.array(
         [6.11, 2.55, 3.69, 6.80, 16.44],
     ]
 )
-MOVING_JOINTS = model.RIGHT_LEG[1:]  # hip yaw stays at 0 in the climbing motion
+MOVING_JOINTS = hrp2.RIGHT_LEG[1:]  # hip yaw stays at 0 in the climbing motion
 PAPER_K6 = (1.0, 0.5, 0.25, 0.1)
 
 #: The tuned K6 = 0.1 controller (`hrp2-drake tune`, TorqueControlConfig YAML) that
@@ -139,7 +139,7 @@ def _climbing_samples(
     joints)."""
     from scipy.interpolate import make_smoothing_spline
 
-    t, q = model.load_trajectory()
+    t, q = hrp2.load_trajectory()
     end = t[-1] if end is None else end
     grid = np.arange(start, end + dt / 2, dt)
     splines = [make_smoothing_spline(t, q[:, j], lam=smoothing) for j in range(q.shape[1])]
@@ -181,7 +181,7 @@ def derive_sample_count(reference_speed: np.ndarray, dt: float = 0.001) -> dict:
     per_joint = ratio * np.sqrt(energy) / np.abs(reference_speed).max(axis=0)
     used = [j for j, name in enumerate(MOVING_JOINTS) if name != "RLEG_JOINT3"]
     n = float(np.exp(np.mean(np.log(per_joint[used]))))
-    labels = [model.RIGHT_LEG_LABELS[model.RIGHT_LEG.index(j)] for j in MOVING_JOINTS]
+    labels = [hrp2.RIGHT_LEG_LABELS[hrp2.RIGHT_LEG.index(j)] for j in MOVING_JOINTS]
     return {
         "n": n,
         "per_joint": per_joint.tolist(),
@@ -196,7 +196,7 @@ def paper_sample_count() -> dict:
     # The speeds of the moving joints in `climbing_reference()`: its rows of them
     # alone (the same values at the same breaks, 18 times smaller than all 90 rows).
     t, _, v, _ = _climbing_samples(1e-8, 0.0, None)
-    columns = [model.JOINT_NAMES.index(j) for j in MOVING_JOINTS]
+    columns = [hrp2.JOINT_NAMES.index(j) for j in MOVING_JOINTS]
     speed = PiecewisePolynomial.FirstOrderHold(t, v[:, columns].T)
     speeds = speed.vector_values(np.arange(0.0, speed.end_time(), 0.001)).T
     return derive_sample_count(speeds, 0.001)
@@ -280,7 +280,7 @@ def judge_claim(k6: float, torque_avg, torque_max, position_avg, position_max) -
     joints × average, maximum), with `partial_verdict`; `misses` names the cells
     that disagree."""
     claim = PAPER_CLAIMS[k6]
-    labels = [model.RIGHT_LEG_LABELS[model.RIGHT_LEG.index(j)] for j in MOVING_JOINTS]
+    labels = [hrp2.RIGHT_LEG_LABELS[hrp2.RIGHT_LEG.index(j)] for j in MOVING_JOINTS]
     misses = []
     for key, torque, position in (
         ("average", torque_avg, position_avg),
@@ -350,7 +350,7 @@ class MotionConfig:
         check_finite(self.settle, "MotionConfig.settle", 0.0, strict=False)
         check_finite(self.start, "MotionConfig.start", 0.0, strict=False)
         check_finite(self.end, "MotionConfig.end")
-        motion_end = float(model.load_trajectory()[0][-1])
+        motion_end = float(hrp2.load_trajectory()[0][-1])
         if self.start >= motion_end:
             raise ValueError(
                 f"MotionConfig.start = {self.start} s is not before the end of the "
@@ -486,7 +486,7 @@ def evaluate(label: str, k6, signals: dict, settle: float, delay: float) -> Cont
     against the truth delayed by the estimator's `delay` (s)."""
     t = signals["t"]
     after = t >= settle
-    columns = [model.JOINT_NAMES.index(j) for j in MOVING_JOINTS]
+    columns = [hrp2.JOINT_NAMES.index(j) for j in MOVING_JOINTS]
     error = (signals["q_ref"] - signals["q_measured"])[after][:, columns]
     fallback = None
     if "fallback_active" in signals and signals["fallback_active"].max() > 0:
@@ -506,7 +506,7 @@ def evaluate(label: str, k6, signals: dict, settle: float, delay: float) -> Cont
         run.supervisor_faults = describe_faults(bits)
     if "tau_estimated" in signals:
         shift = int(round(delay / (t[1] - t[0])))
-        leg = [model.JOINT_NAMES.index(j) for j in model.RIGHT_LEG]
+        leg = [hrp2.JOINT_NAMES.index(j) for j in hrp2.RIGHT_LEG]
         estimate = signals["tau_estimated"][shift:][:, leg]
         truth = signals["joint_torque_true"][: len(t) - shift][:, leg]
         keep = t[shift:] >= settle
@@ -540,7 +540,7 @@ def run_motion(
 
     config.validate()
     # KeyError before simulating.
-    motor_model.subset(config.torque_control.controlled_joints(model.description()))
+    motor_model.subset(config.torque_control.controlled_joints(hrp2.description()))
     reference = motion_reference(config)
     duration = reference.end_time()
     delay = estimation_delay(config.torque_control)
@@ -603,7 +603,7 @@ def _table(rows: list[list[str]], header: list[str]) -> list[str]:
 def write_motion_report(result: MotionResult, out: Path) -> dict:
     """Tables 2 and 3 beside the paper's, Figure 4, and motion.json."""
     out.mkdir(parents=True, exist_ok=True)
-    labels = [model.RIGHT_LEG_LABELS[model.RIGHT_LEG.index(j)] for j in MOVING_JOINTS]
+    labels = [hrp2.RIGHT_LEG_LABELS[hrp2.RIGHT_LEG.index(j)] for j in MOVING_JOINTS]
     main = [
         r for r in result.runs if not (is_variant(r.label) or is_beyond_paper(r.label))
     ]
@@ -701,7 +701,7 @@ def write_motion_report(result: MotionResult, out: Path) -> dict:
             rows.append([run.label] + [
                 f"{rms:.2f} / {peak:.0f}" for rms, peak in zip(run.torque_estimation_rms, run.torque_estimation_peak)
             ])
-        lines += _table(rows, ["controller"] + list(model.RIGHT_LEG_LABELS))
+        lines += _table(rows, ["controller"] + list(hrp2.RIGHT_LEG_LABELS))
     improved = improved_summary(result)
     if improved:
         lines += ["", *_improved_lines(improved, labels)]
@@ -724,7 +724,7 @@ def write_motion_report(result: MotionResult, out: Path) -> dict:
 def _against(run: ControllerRun, position: ControllerRun) -> dict:
     """Per moving joint, whether `run` is at least as accurate as position control
     (average and maximum), and the cells where it is not."""
-    labels = [model.RIGHT_LEG_LABELS[model.RIGHT_LEG.index(j)] for j in MOVING_JOINTS]
+    labels = [hrp2.RIGHT_LEG_LABELS[hrp2.RIGHT_LEG.index(j)] for j in MOVING_JOINTS]
     misses = []
     for key, name in (("average_error", "average"), ("max_error", "maximum")):
         for label, a, b in zip(labels, getattr(run, key), getattr(position, key)):
@@ -845,8 +845,8 @@ def plot_figure4(result: MotionResult, out: Path) -> str:
     labels = [l for l in FIGURE4_RUNS if l in result.signals]
     fig, axes = plt.subplots(2, 2, figsize=(12, 7.5), sharex=True, layout="constrained")
     for col, joint in enumerate(("RLEG_JOINT1", "RLEG_JOINT4")):
-        j = model.JOINT_NAMES.index(joint)
-        name = model.RIGHT_LEG_LABELS[j]
+        j = hrp2.JOINT_NAMES.index(joint)
+        name = hrp2.RIGHT_LEG_LABELS[j]
         for label in labels:
             s = result.signals[label]
             axes[0, col].plot(s["t"], s["q_measured"][:, j], label=label, lw=1)

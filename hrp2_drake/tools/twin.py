@@ -301,7 +301,7 @@ def model_errors(
 
 def least_squares_model(robot: RobotDescription, logs: Sequence[RobotLog]):
     """The least-squares motor model (`identify --fit least-squares`) of `logs`."""
-    from hrp2_drake.experiments.identification import IdentifyConfig, identify_segments
+    from hrp2_drake.tools.identify import IdentifyConfig, identify_segments
     from hrp2_drake.identification.dataset import LogSegment
     from hrp2_drake.robot.station import StationConfig
 

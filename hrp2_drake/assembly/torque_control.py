@@ -1,0 +1,200 @@
+"""The torque control's settings (paper Sec. 4) and the control period's check: what
+`build_torque_control` reads."""
+
+import math
+from dataclasses import dataclass, field
+
+from hrp2_drake.config import check_finite
+from hrp2_drake.control.safety import SafetyConfig
+from hrp2_drake.description import RobotDescription
+from hrp2_drake.robot.station import StationConfig
+
+
+@dataclass
+class TorqueControlConfig:
+    """The paper's torque control of a set of joints (HRP-2's right leg), Sec. 4.
+
+    Args:
+        joints: the torque-controlled joints; every other joint stays in position
+            control on its reference. Empty: the robot description's
+            controlled_joints.
+        k6: position-feedback gain relative to the position servo (Sec. 4.2): 1 = the
+            servo's own stiffness, 0.1 = 10% of it.
+        kp: torque-feedback gain K_p (paper: 2), one value or one per joint.
+        damping_ratio: sets K_d from K_s and the joint inertia (see
+            `inverse_dynamics_gains_for_k6`).
+        window: Savitzky-Golay window of the estimator (paper: 80 samples).
+        windows: per-joint (and per-sensor: an F/T sensor's name, or "imu") windows
+            instead of `window` (TorqueEstimatorConfig.windows): every window centred
+            on the longest one's centre, which sets the estimates' delay; each of
+            its parity. Short windows do not work with the paper's K_p = 2: the
+            tuned windows (4-16 samples) alone on the paper's K6 = 0.1 controller
+            track up to 9x worse than its 80-sample window (the motion experiment's
+            "per-signal windows only" row: ankle roll 7x the average and 9x the
+            maximum error, hips and ankle pitch 3-4x). A short window smooths τ̂
+            less, and the torque loop with K_p = 2 oscillates: Δq at 43 Hz on the
+            ankle roll and 200 Hz on the hip yaw, all of its power above 5 Hz
+            against a quarter of it with the 80-sample window (3.0-3.5 s of the
+            climbing motion). K_p ≤ 1 keeps the short-window loop stable: with K_p
+            = 1 the same windows track as well as the paper's controller (3-4 s of
+            the climbing motion, maximum errors 15/38/53/31/15 mrad against
+            16/40/53/39/17), which is why `hrp2-drake tune` bounds K_p to 1.
+        evaluation: where the filters evaluate their fit: "centre" (the paper's, delay
+            (N − 1)/2 samples) or "end" (causal, no delay, noisier).
+        position_source: "encoders" (e_q from the raw encoders, no delay; default) or
+            "estimate" (e_q from the filtered q̂, delayed by the window: the paper's).
+        feedback_velocity: the q̇ of ė_q in eq. 12: "estimate" (q̂̇, the paper's) or
+            "reference" (q̇_d, default: no velocity feedback in τ_d, see below).
+        friction_velocity: the q̇ of the friction feedforward K_v q̇ (eq. 10, 13):
+            "estimate" (q̂̇, the paper's) or "reference" (q̇_d, default).
+
+    Why the defaults differ from the paper's eq. 13 (measured in the motion
+    experiment, its "K6 = 1 with the estimates" table): the servo turns Δq = K_τ τ* +
+    K_v q̇_x into τ = τ* + (K_v/K_τ)(q̇_x − q̇). With q̇_x = q̂̇, delayed d = 40 ms by
+    the centred window, the last term is about −(K_v/K_τ) d q̈: the friction
+    feedforward arrives late and acts as an added inertia (passive: the real part of
+    (K_v/K_τ)(e^{−sd} − 1) is never positive) of 5 kg·m² on the knee and 2.3 on the
+    hip pitch, so the leg lags its reference (the authors' code, which fed q̂̇ there:
+    hip pitch maximum error 53 mrad against 6 with q̇_d, on the calibrated servo). With
+    q̇_x = q̇_d the same term is the servo's own damping on the velocity error,
+    (K_v/K_τ)(q̇_d − q̇), so K_d of eq. 12 is not needed. e_q from the 40 ms-old q̂ is
+    what makes the paper's eq. 12-13 as written unstable: with K6 = 1 it is the servo's
+    whole stiffness acting on a 40 ms-old position (it diverges on the `ideal` servo,
+    and, unsupervised, oscillates at 76-137 mrad on the calibrated one, bounded only by
+    the voltage limit); the raw encoders avoid it, as the authors' code did. Causal ("end")
+    filters remove the delay but their derivatives are too noisy for K_p = 2.
+        disturbance_observer: bandwidth (rad/s) of a DisturbanceObserver whose d̂, the
+            torque the motor model misses, is subtracted from τ*; 0: none (the
+            paper's controller).
+        predictor: a DelayPredictor carries the estimator's τ̂ (and q̂̇ where the
+            controller reads the estimate) from the chain's delay to the present
+            with the motor model, the joint inertia at the start pose and the Δq
+            already sent. The disturbance observer keeps the delayed, aligned
+            estimates. (f̂ of a force task is not predicted.)
+            It does not work on HRP-2 with K_p near 1 or above: on the calibrated
+            servo the controller falls back to position control within 0.1 s of
+            the start of torque control (measured on the climbing motion: 13 ms
+            after it with the paper's K6 = 0.1, K_p = 2; 0.19 s with K_p = 1; 0.08 s
+            with the tuned controller, K_p 0.13-0.98), so the motion experiment's
+            "predictor only" and "all (tuned) + predictor" rows are position
+            control's. The reason, measured: it inverts the motor model, so each
+            change ΔΔq of the Δq sent within its horizon adds ΔΔq/K_τ to the
+            predicted τ̂ at once (K_τ = 0.03-0.24 mrad/(N·m) on the leg: 4-33 N·m
+            per mrad of Δq), without the estimator's smoothing; the Δq controller answers two ticks later with
+            −K_p ΔΔq, so the loop through the predictor oscillates with a 4 ms period
+            and grows by √K_p per tick for K_p > 1 (the hip pitch's Δq reached ±98 mrad
+            within 12 ms) until |τ̂| passes tau_limit (500 N·m, fallback reason
+            "|tau_estimated| exceeds tau_limit"). The servo does not produce those
+            torques (the estimator's τ̂ stays smooth), and it is not the cause: the
+            `ideal` servo, without latency or voltage limit, falls back after the
+            same 11-13 ms. With K_p = 0.5 the 0.6 s measured ran without a fallback.
+        force_frame: frame of the force task ("" = motion control only); its wrench
+            is the estimate of the F/T sensor whose body it is (or the
+            description's force_sensor).
+        kf: force-feedback gain K_f (one value or 6).
+        delta_q_limit: saturation of Δq (rad).
+        start_time: position control until then (the filters fill), s.
+        offset_calibration_time: F/T offset calibration at start-up (s, from 0.2 s;
+            0 = none): only when nothing touches the feet and hands then (the robot
+            hanging); must end before start_time.
+        supervised: a SafetySupervisor between the controllers and the robot
+            (default): faults hand the robot back to its servo with a ramp, torque
+            control starts with a ramp and resumes once faults have cleared; the Δq
+            controller's own fallback then does not latch. False: the controller's
+            latched fallback alone.
+        safety: the supervisor's settings (its start_time is start_time).
+        model_error: the estimator's and inverse dynamics' model of the robot has
+            every link's mass and COM off by a random factor within ±model_error
+            (a fault: `RobotDescription.add_model`); 0: the exact model.
+        model_error_seed: the seed of those factors.
+    """
+
+    joints: list[str] = field(default_factory=list)
+    k6: float = 1.0
+    kp: list[float] = field(default_factory=lambda: [2.0])
+    damping_ratio: float = 1.0
+    window: int = 80
+    windows: dict[str, int] = field(default_factory=dict)
+    evaluation: str = "centre"
+    position_source: str = "encoders"
+    feedback_velocity: str = "reference"
+    friction_velocity: str = "reference"
+    disturbance_observer: float = 0.0
+    predictor: bool = False
+    force_frame: str = ""
+    kf: list[float] = field(default_factory=lambda: [0.0])
+    delta_q_limit: float = 0.1
+    start_time: float = 0.5
+    offset_calibration_time: float = 0.0
+    supervised: bool = True
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+    model_error: float = 0.0
+    model_error_seed: int = 0
+
+    def controlled_joints(self, robot: RobotDescription) -> list[str]:
+        """`joints`, or the robot's controlled joints if empty."""
+        return list(self.joints or robot.controlled_joints)
+
+    def validate(self) -> None:
+        self.safety.validate()
+        if not 0 <= self.model_error < 1:
+            raise ValueError(
+                f"TorqueControlConfig.model_error: {self.model_error} must be in [0, 1)"
+            )
+        if self.position_source not in ("encoders", "estimate"):
+            raise ValueError(f"TorqueControlConfig.position_source: '{self.position_source}'")
+        if self.offset_calibration_time > 0 and (
+            0.2 + self.offset_calibration_time > self.start_time
+        ):
+            raise ValueError(
+                "TorqueControlConfig.offset_calibration_time: the calibration "
+                f"(0.2 s + {self.offset_calibration_time} s) must end before "
+                f"start_time = {self.start_time} s"
+            )
+        for name in ("feedback_velocity", "friction_velocity"):
+            if getattr(self, name) not in ("estimate", "reference"):
+                raise ValueError(f"TorqueControlConfig.{name}: '{getattr(self, name)}'")
+        if isinstance(self.kp, (int, float)):  # a plain number from Python code
+            self.kp = [float(self.kp)]
+        if not self.kp or not all(math.isfinite(k) and k >= 0 for k in self.kp):
+            raise ValueError(
+                f"TorqueControlConfig.kp: {self.kp}: one value or one per joint, "
+                "each finite and >= 0"
+            )
+        if not (math.isfinite(self.disturbance_observer) and self.disturbance_observer >= 0):
+            raise ValueError(
+                f"TorqueControlConfig.disturbance_observer: {self.disturbance_observer} "
+                "must be a bandwidth >= 0 (rad/s; 0 = none)"
+            )
+        self._validate_gains()
+
+    def _validate_gains(self) -> None:
+        """K6, K_f and the Δq limit: finite, and of a sign a controller can use."""
+        check_finite(self.k6, "TorqueControlConfig.k6", 0.0, strict=False)
+        check_finite(self.delta_q_limit, "TorqueControlConfig.delta_q_limit", 0.0)
+        check_finite(self.start_time, "TorqueControlConfig.start_time", 0.0, False)
+        if isinstance(self.kf, (int, float)):  # a plain number from Python code
+            self.kf = [float(self.kf)]
+        if len(self.kf) not in (1, 6):
+            raise ValueError(
+                f"TorqueControlConfig.kf: {len(self.kf)} values, expected one or 6 "
+                "(one per axis of the wrench)"
+            )
+        for k, gain in enumerate(self.kf):
+            check_finite(gain, f"TorqueControlConfig.kf[{k}]", 0.0, strict=False)
+
+
+def check_control_period(
+    config: TorqueControlConfig, station: StationConfig, where: str = ""
+) -> None:
+    """Raises ValueError unless `config.safety.period` is the control period: the
+    station's sensor period (s), one supervisor update per controller tick. `where`:
+    the path of `config` in the user's file (e.g. "LcmControlConfig.torque_control")."""
+    period, safety = station.sensors_config().period, config.safety.period
+    if not math.isclose(safety, period, rel_tol=1e-9):
+        raise ValueError(
+            f"{where or 'TorqueControlConfig'}.safety.period: {safety:g} s, but the "
+            "control period (the robot's sensor period, station.sensors.period) is "
+            f"{period:g} s: the supervisor runs once per control tick; leave "
+            f"safety.period out or set it to {period:g}"
+        )
