@@ -28,6 +28,7 @@ import os
 import sys
 import zipfile
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import yaml
@@ -96,23 +97,43 @@ def _use_robot(station, args: argparse.Namespace) -> None:
         station.scenario = "fixed_base"
 
 
+def _set_given(config, args: argparse.Namespace, *names: str, **fields: str) -> None:
+    """Sets each option given on the command line (not None) on `config`: the options
+    `names` on the fields of the same name, and `fields` as field="option"."""
+    for field, name in [*zip(names, names), *fields.items()]:
+        value = getattr(args, name)
+        if value is not None:
+            setattr(config, field, value)
+
+
+def _validated_out(config, args: argparse.Namespace) -> Path:
+    """Validates `config` once the options are applied (`_validate`), then creates the
+    --out folder (`_output_folder`): bad input is reported before anything runs."""
+    _validate(config, args)
+    return _output_folder(args.out)
+
+
+def _configured(schema, args: argparse.Namespace, *options: str):
+    """(config, out): the --config file read into `schema` (`_config`) with the given
+    `options` on the fields of the same name (`_set_given`), validated; and the --out
+    folder, created (`_validated_out`)."""
+    config = _config(schema, args)
+    _set_given(config, args, *options)
+    return config, _validated_out(config, args)
+
+
 def _simulate(args: argparse.Namespace) -> int:
     from hrp2_drake.tools.simulate import SimulateConfig, run_simulate, summarize
 
     config = _config(SimulateConfig, args)
     _use_robot(config.station, args)
-    if args.scenario:
-        config.station.scenario = args.scenario
-    if args.duration is not None:
-        config.duration = args.duration
-    if args.trajectory is not None:
-        config.trajectory = args.trajectory
+    _set_given(config.station, args, "scenario")
+    _set_given(config, args, "duration", "trajectory")
     if args.seed is not None:
         config.station.sensors = dataclasses.replace(
             config.station.sensors_config(), seed=args.seed
         )
-    _validate(config, args)
-    out = _output_folder(args.out)
+    out = _validated_out(config, args)
 
     result = run_simulate(config, html=args.html)
     log = out / f"simulate_{config.station.scenario}.npz"
@@ -136,12 +157,10 @@ def _identify(args: argparse.Namespace) -> int:
 
     config = _config(IdentifyConfig, args)
     _use_robot(config.station, args)
-    if args.duration_scale is not None:
-        config.duration_scale = args.duration_scale
+    _set_given(config, args, "duration_scale")
     if args.fit is not None:
         config.fit = args.fit.replace("-", "_")
-    _validate(config, args)
-    out = _output_folder(args.out)
+    out = _validated_out(config, args)
     summary = run_identify(config, out, [Path(p) for p in args.log or []])
     gain = f" at servo gain {summary['gain']:g}" if summary["gain"] else ""
     print(
@@ -203,16 +222,15 @@ def _track(args: argparse.Namespace) -> int:
     config = _config(TrackConfig, args)
     if args.robot:
         config.station.robot = args.robot
-        if config.station.description().base == "floating":
-            config.station.scenario = "hanging"
     robot = config.station.description()
+    if args.robot and robot.base == "floating":
+        config.station.scenario = "hanging"
     if robot.base == "fixed" and not can_press(robot):
         # Nothing to press with (no tool_frame and force_sensor): unless asked for.
         config.force_task = config.force_task and _config_sets(args, "force_task")
     if args.quick:
         config.duration, config.force_duration, config.k6 = 2.5, 2.0, config.k6[:1]
-    _validate(config, args)
-    out = _output_folder(args.out)
+    out = _validated_out(config, args)
     from hrp2_drake.tools.identify import IdentifyConfig
 
     identify = IdentifyConfig(station=config.station, duration_scale=0.5 if args.quick else 1.0)
@@ -229,13 +247,10 @@ def _control(args: argparse.Namespace) -> int:
     from hrp2_drake.tools.control import LcmControlConfig, _ending, run_control
 
     config = _config(LcmControlConfig, args)
-    _use_robot(config.station, args)
-    if args.duration is not None:
-        config.duration = args.duration
-    if args.motion:
-        config.motion = args.motion
-    _validate(config, args)
-    out = _output_folder(args.out)
+    if args.robot:
+        config.robot = args.robot
+    _set_given(config, args, "duration", "motion")
+    out = _validated_out(config, args)
     summary = run_control(config, _motor_model(args, out, config), args.lcm, out)
     lat = summary["latency_us"]
     print(
@@ -245,10 +260,7 @@ def _control(args: argparse.Namespace) -> int:
         f"start-up, {len(summary['events'])} fallbacks"
         + (", gave up for good" if summary["gave_up"] else "")
     )
-    if summary["fault"]:
-        console.say(f"stopped: {_ending(summary)}")
-        return 1
-    return 0
+    return _stopped(_ending(summary) if summary["fault"] else None)
 
 
 def _sim_robot(args: argparse.Namespace) -> int:
@@ -257,8 +269,7 @@ def _sim_robot(args: argparse.Namespace) -> int:
 
     station = StationConfig()
     _use_robot(station, args)
-    if args.scenario:
-        station.scenario = args.scenario
+    _set_given(station, args, "scenario")
     validate_config(station)
     out = _output_folder(args.out) if args.out else None
     summary = run_sim_robot(station, args.lcm, args.duration, out, rate=args.realtime_rate)
@@ -267,8 +278,14 @@ def _sim_robot(args: argparse.Namespace) -> int:
         f"{summary['watchdog_trips']} times"
         + (", holding the measured pose at the end" if summary["holding"] else "")
     )
-    if summary["fault"]:
-        console.say(f"stopped: {summary['fault']}; held the measured pose")
+    return _stopped(f"{summary['fault']}; held the measured pose" if summary["fault"] else None)
+
+
+def _stopped(reason: str | None) -> int:
+    """The exit code of a run that talks to a robot: 1 after one line saying why it
+    stopped (`reason`), 0 if it ran to its end (None)."""
+    if reason is not None:
+        console.say(f"stopped: {reason}")
         return 1
     return 0
 
@@ -276,7 +293,8 @@ def _sim_robot(args: argparse.Namespace) -> int:
 def _motor_model(args: argparse.Namespace, out: Path, config=None, identify=None):
     """The --motor-model file (or the config's `motor_model`), checked against the
     joints `config` torque-controls, or one identified now with `identify` (an
-    IdentifyConfig; default: HRP-2's), saved under out/identify."""
+    IdentifyConfig; default: `IdentifyConfig()`, the default robot's), saved under
+    out/identify."""
     from hrp2_drake.identification.motor_model import MotorModel
 
     path = args.motor_model or getattr(config, "motor_model", "")
@@ -285,7 +303,9 @@ def _motor_model(args: argparse.Namespace, out: Path, config=None, identify=None
         # The joints the experiment torque-controls: checked before simulating.
         torque_control = getattr(config, "torque_control", None)
         if torque_control is not None:
-            needed = torque_control.controlled_joints(config.station.description())
+            station = getattr(config, "station", None)  # LcmControlConfig: its robot
+            robot = station.description() if station is not None else config.description()
+            needed = torque_control.controlled_joints(robot)
         else:
             needed = [config.joint] if hasattr(config, "joint") else []
         missing = [j for j in needed if j not in loaded.joint_names]
@@ -302,98 +322,121 @@ def _motor_model(args: argparse.Namespace, out: Path, config=None, identify=None
     return MotorModel.load(out / "identify" / "motor_model.yaml")
 
 
+def _motor_model_path(args: argparse.Namespace, out: Path) -> Path:
+    """The motor model file `_motor_model(args, out)` read: --motor-model, or the one
+    it identified under out/identify."""
+    return Path(args.motor_model or out / "identify" / "motor_model.yaml")
+
+
+def _estimation_experiment(args: argparse.Namespace) -> int:
+    """`experiment estimation`: torque-estimation accuracy in closed loop (paper Sec. 2,
+    5.1); prints each scenario's best window and its worst right-leg error."""
+    from hrp2_drake.paper.estimation import EstimationConfig, run_estimation_experiment
+
+    config, out = _configured(EstimationConfig, args)
+    summary = run_estimation_experiment(config, out)
+    print(f"report: {out / 'estimation.md'}")
+    for scenario, analysis in summary["scenarios"].items():
+        best = analysis["best_window"]
+        worst = analysis["windows"][str(best)]["right_leg_worst_ratio"]
+        print(
+            f"  {scenario}: best window {best}, worst right-leg RMS/peak "
+            f"{worst * 100:.2f}% (goal 3%: {'met' if analysis['goal_met'] else 'NOT met'})"
+        )
+    return 0
+
+
+def _motion_experiment(args: argparse.Namespace) -> int:
+    """`experiment motion`: motion tracking in torque control against position control
+    (paper Sec. 5.3); prints on how many joints each controller does better."""
+    from hrp2_drake.paper.motion import MotionConfig, run_motion, write_motion_report
+
+    config, out = _configured(MotionConfig, args, "end")
+    model = _motor_model(args, out, config)
+    summary = write_motion_report(run_motion(config, model), out)
+    print(f"report: {out / 'motion.md'}")
+    for label, verdict in summary["verdicts"].items():
+        print(
+            f"  {label}: better than position control on "
+            f"{len(verdict['average'])}/5 (average), {len(verdict['maximum'])}/5 (maximum)"
+        )
+    return 0
+
+
+def _force_experiment(args: argparse.Namespace) -> int:
+    """`experiment force`: force tracking on the block (paper Sec. 5.4); prints the F/T
+    reading's overshoot, lag and coupling."""
+    from hrp2_drake.paper.force import ForceConfig, run_force_experiment
+
+    config, out = _configured(ForceConfig, args)
+    summary = run_force_experiment(config, _motor_model(args, out, config), out)
+    m = summary["baseline"]["metrics"]["ft_reading"]
+    print(
+        f"report: {out / 'force.md'}; overshoot {m['overshoot'] * 100:+.1f}%, lag "
+        f"{m['lag_ms']:+.0f} ms, coupling on X {m['coupling_x'] * 100:.1f}%"
+    )
+    return 0
+
+
+def _stability_experiment(args: argparse.Namespace) -> int:
+    """`experiment stability`: open-loop stability of the motor model, the asymmetric
+    fit against the least-squares one written beside it (paper Sec. 5.2)."""
+    from hrp2_drake.identification.motor_model import MotorModel
+    from hrp2_drake.paper.stability import StabilityConfig, run_stability_experiment
+
+    config, out = _configured(StabilityConfig, args)
+    asymmetric = _motor_model(args, out, config)
+    path = _motor_model_path(args, out)
+    least_squares = path.with_name("motor_model_least_squares.yaml")
+    if not least_squares.is_file():
+        raise FileNotFoundError(
+            f"{least_squares}: the stability experiment also needs the symmetric "
+            "fit written by `hrp2-drake identify` next to the motor model"
+        )
+    models = {"asymmetric": asymmetric, "least_squares": MotorModel.load(least_squares)}
+    summary = run_stability_experiment(config, models, out)
+    print(f"report: {out / 'stability.md'}; contrast shown: {summary['contrast']}")
+    return 0
+
+
+def _fault_campaign(args: argparse.Namespace) -> int:
+    """`experiment faults`: the fault campaign of the supervised torque control; exit
+    code 1 if a run raised (the campaign could not judge it)."""
+    from hrp2_drake.paper.faults import FaultCampaignConfig, run_fault_campaign
+
+    config, out = _configured(FaultCampaignConfig, args)
+    _motor_model(args, out)  # checks --motor-model, or identifies one first
+    path = _motor_model_path(args, out)
+    summary = run_fault_campaign(config, path, out)
+    print(f"report: {out / 'faults.md'}")
+    for key, value in summary["verdict"].items():
+        if isinstance(value, bool):
+            print(f"  {key.replace('_', ' ')}: {'yes' if value else 'no'}")
+    raised = summary["verdict"]["raised"]
+    if raised:  # the campaign could not judge these: not a pass
+        runs = ", ".join(raised)
+        print(f"faults: {len(raised)} runs raised: {runs}", file=sys.stderr)
+    return 1 if raised else 0
+
+
+#: `hrp2-drake experiment NAME`: the paper's experiments, in the order --help lists them.
+_EXPERIMENTS = {
+    "estimation": _estimation_experiment,
+    "motion": _motion_experiment,
+    "force": _force_experiment,
+    "stability": _stability_experiment,
+    "faults": _fault_campaign,
+}
+
+
 def _experiment(args: argparse.Namespace) -> int:
     if args.end is not None and args.name != "motion":
         raise ValueError(
             f"--end: only the motion experiment has an end, not {args.name}"
         )
-    if args.name == "motion":
-        from hrp2_drake.paper.motion import MotionConfig, run_motion, write_motion_report
-
-        config = _config(MotionConfig, args)
-        if args.end is not None:
-            config.end = args.end
-        _validate(config, args)
-        out = _output_folder(args.out)
-        model = _motor_model(args, out, config)
-        summary = write_motion_report(run_motion(config, model), out)
-        print(f"report: {out / 'motion.md'}")
-        for label, verdict in summary["verdicts"].items():
-            print(
-                f"  {label}: better than position control on "
-                f"{len(verdict['average'])}/5 (average), {len(verdict['maximum'])}/5 (maximum)"
-            )
-        return 0
-    if args.name == "estimation":
-        from hrp2_drake.paper.estimation import (
-            EstimationConfig,
-            run_estimation_experiment,
-        )
-
-        config = _config(EstimationConfig, args)
-        _validate(config, args)
-        out = _output_folder(args.out)
-        summary = run_estimation_experiment(config, out)
-        print(f"report: {out / 'estimation.md'}")
-        for scenario, analysis in summary["scenarios"].items():
-            best = analysis["best_window"]
-            worst = analysis["windows"][str(best)]["right_leg_worst_ratio"]
-            print(
-                f"  {scenario}: best window {best}, worst right-leg RMS/peak "
-                f"{worst * 100:.2f}% (goal 3%: {'met' if analysis['goal_met'] else 'NOT met'})"
-            )
-        return 0
-    if args.name == "force":
-        from hrp2_drake.paper.force import ForceConfig, run_force_experiment
-
-        config = _config(ForceConfig, args)
-        _validate(config, args)
-        out = _output_folder(args.out)
-        summary = run_force_experiment(config, _motor_model(args, out, config), out)
-        m = summary["baseline"]["metrics"]["ft_reading"]
-        print(
-            f"report: {out / 'force.md'}; overshoot {m['overshoot'] * 100:+.1f}%, lag "
-            f"{m['lag_ms']:+.0f} ms, coupling on X {m['coupling_x'] * 100:.1f}%"
-        )
-        return 0
-    if args.name == "stability":
-        from hrp2_drake.paper.stability import StabilityConfig, run_stability_experiment
-        from hrp2_drake.identification.motor_model import MotorModel
-
-        config = _config(StabilityConfig, args)
-        _validate(config, args)
-        out = _output_folder(args.out)
-        asymmetric = _motor_model(args, out, config)
-        path = Path(args.motor_model or out / "identify" / "motor_model.yaml")
-        least_squares = path.with_name("motor_model_least_squares.yaml")
-        if not least_squares.is_file():
-            raise FileNotFoundError(
-                f"{least_squares}: the stability experiment also needs the symmetric "
-                "fit written by `hrp2-drake identify` next to the motor model"
-            )
-        models = {"asymmetric": asymmetric, "least_squares": MotorModel.load(least_squares)}
-        summary = run_stability_experiment(config, models, out)
-        print(f"report: {out / 'stability.md'}; contrast shown: {summary['contrast']}")
-        return 0
-    if args.name == "faults":
-        from hrp2_drake.paper.faults import FaultCampaignConfig, run_fault_campaign
-
-        config = _config(FaultCampaignConfig, args)
-        _validate(config, args)
-        out = _output_folder(args.out)
-        _motor_model(args, out)  # checks --motor-model, or identifies one first
-        path = Path(args.motor_model or out / "identify" / "motor_model.yaml")
-        summary = run_fault_campaign(config, path, out)
-        print(f"report: {out / 'faults.md'}")
-        for key, value in summary["verdict"].items():
-            if isinstance(value, bool):
-                print(f"  {key.replace('_', ' ')}: {'yes' if value else 'no'}")
-        raised = summary["verdict"]["raised"]
-        if raised:  # the campaign could not judge these: not a pass
-            runs = ", ".join(raised)
-            print(f"faults: {len(raised)} runs raised: {runs}", file=sys.stderr)
-        return 1 if raised else 0
-    raise ValueError(f"unknown experiment '{args.name}'")
+    if args.name not in _EXPERIMENTS:
+        raise ValueError(f"unknown experiment '{args.name}'")
+    return _EXPERIMENTS[args.name](args)
 
 
 def _calibrate(args: argparse.Namespace) -> int:
@@ -403,13 +446,8 @@ def _calibrate(args: argparse.Namespace) -> int:
 
     if args.log or (args.robot and load_robot_description(args.robot).name != "hrp2"):
         return _calibrate_from_logs(args)
-    config = _config(CalibrationConfig, args)
-    if args.max_iterations is not None:
-        config.max_iterations = args.max_iterations
-    if args.jobs is not None:
-        config.jobs = args.jobs
-    _validate(config, args)
-    summary = calibrate(config, _output_folder(args.out), install=args.install)
+    config, out = _configured(CalibrationConfig, args, "max_iterations", "jobs")
+    summary = calibrate(config, out, install=args.install)
     for label, ratio_max, ratio_avg in zip(
         ("hip roll", "hip pitch", "knee", "ankle pitch", "ankle roll"),
         np.divide(summary["max_error"], summary["paper_max_error"]),
@@ -431,12 +469,11 @@ def _calibrate_from_logs(args: argparse.Namespace) -> int:
             "calibrated to the paper's tables without logs)"
         )
     if args.config:
-        raise ValueError("calibrate --log: --config is HRP-2's CalibrationConfig; not used with --log")
+        raise ValueError(
+            "calibrate --log: --config is HRP-2's CalibrationConfig; not used with --log"
+        )
     config = TwinConfig()
-    if args.max_iterations is not None:
-        config.max_evaluations = args.max_iterations
-    if args.jobs is not None:
-        config.workers = args.jobs
+    _set_given(config, args, max_evaluations="max_iterations", workers="jobs")
     out = _output_folder(args.out)
     summary = run_calibrate_logs(robot, args.log, out, config, install=args.install)
     fit = summary["fit"]
@@ -460,7 +497,8 @@ def _calibrate_from_logs(args: argparse.Namespace) -> int:
 
 
 def _reproduce(args: argparse.Namespace) -> int:
-    from hrp2_drake.paper.reproduce import ReproduceConfig, run_reproduce, verdicts
+    from hrp2_drake.paper.claims import verdicts
+    from hrp2_drake.paper.reproduce import ReproduceConfig, run_reproduce
 
     config = ReproduceConfig(jobs=args.jobs, quick=args.quick, replays=not args.no_replays)
     validate_config(config)
@@ -479,9 +517,7 @@ def _tune(args: argparse.Namespace) -> int:
     config = _config(TuneConfig, args)
     if args.quick:
         config.quick()
-    for name in ("trials", "workers", "scheduler"):
-        if getattr(args, name) is not None:
-            setattr(config, name, getattr(args, name))
+    _set_given(config, args, "trials", "workers", "scheduler")
     _validate(config, args)
     check_environment(config)  # optuna, dask, the scheduler: before identifying
     out = _output_folder(args.out)
@@ -546,10 +582,55 @@ def _message(error: BaseException) -> str:
     return one_line(text) or type(error).__name__
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Runs the command; bad input is one line on stderr and exit code 2 (`--debug`:
-    the exception propagates, with its traceback)."""
-    # --debug is accepted before and after the command name.
+#: An argparse type: an integer >= 1 (a count of trials, workers, processes...).
+_COUNT = _number(int, 1, strict=False)
+
+#: The options several commands share, by name (`--motor-model`: "motor_model"): the
+#: add_argument keywords they have in common, which a command completes or overrides
+#: (`_add_options`).
+_SHARED_OPTIONS = {
+    "robot": {"help": "robot description: a robot.yaml or a name in models/ (default: hrp2)"},
+    "config": {},
+    "motor_model": {"help": "MotorModel YAML (default: identify one)"},
+    "log": {},
+    "lcm": {
+        "required": True,
+        "help": "LCM URL, e.g. udpm://239.255.76.67:7667?ttl=0 on a robot's network, "
+        "tcpq://127.0.0.1:7700 through `python -m hrp2_drake.hardware.tcpq_hub`, or memq://",
+    },
+    "scenario": {"choices": SCENARIOS},
+    "duration": {"type": _number(float, 0.0)},
+    "jobs": {"type": _COUNT},
+    "quick": {"action": "store_true"},
+    "out": {"help": "output folder"},  # default: out/<command>
+}
+
+#: The subcommands of `hrp2-drake` (argparse's type for them).
+_Commands = argparse._SubParsersAction
+
+
+def _add_options(
+    parser: argparse.ArgumentParser, command: str, /, **options: bool | str | dict
+) -> None:
+    """Adds the options `--name` of `command`, in the order given. Each value: True,
+    the shared option as it is (`_SHARED_OPTIONS`; --out defaults to out/<command>); a
+    string, its help; a dict, its add_argument keywords, over the shared ones if the
+    option is shared."""
+    for name, value in options.items():
+        keywords = dict(_SHARED_OPTIONS.get(name, {}))
+        if name == "out":
+            keywords["default"] = f"out/{command}"
+        if isinstance(value, str):
+            keywords["help"] = value
+        elif isinstance(value, dict):
+            keywords.update(value)
+        elif value is not True:
+            raise TypeError(f"_add_options: --{name}: expected True, a help or keywords")
+        parser.add_argument("--" + name.replace("_", "-"), **keywords)
+
+
+def _debug_option() -> argparse.ArgumentParser:
+    """--debug, accepted before and after the command name (a parent parser)."""
     debug = argparse.ArgumentParser(add_help=False)
     debug.add_argument(
         "--debug",
@@ -557,255 +638,277 @@ def main(argv: list[str] | None = None) -> int:
         default=argparse.SUPPRESS,
         help="let errors propagate with their Python traceback (for developers)",
     )
-    parser = _Parser(
-        prog="hrp2-drake",
-        description="Torque control without joint-torque sensors on a simulated HRP-2 "
-        "(Del Prete et al. 2015) in Drake.",
-        parents=[debug],
-    )
-    commands = parser.add_subparsers(dest="command", required=True)
+    return debug
 
-    sim = commands.add_parser(
+
+def _add_command(
+    commands: _Commands,
+    name: str,
+    run: Callable[[argparse.Namespace], int],
+    help: str,
+    /,
+    **options: bool | str | dict,
+) -> argparse.ArgumentParser:
+    """Adds the command `name`, which `run(args)` runs, with --debug and `options`
+    (`_add_options`); returns its parser."""
+    parser = commands.add_parser(name, parents=[_debug_option()], help=help)
+    parser.set_defaults(run=run)
+    _add_options(parser, name, **options)
+    return parser
+
+
+def _add_simulate(commands: _Commands) -> None:
+    _add_command(
+        commands,
         "simulate",
-        parents=[debug],
-        help="run a scenario with the position servo holding half-sitting or "
-        "following a trajectory; write the logged signals (.npz)",
-    )
-    robot_help = "robot description: a robot.yaml or a name in models/ (default: hrp2)"
-    sim.add_argument("--robot", help=robot_help)
-    sim.add_argument("--config", help="SimulateConfig YAML file")
-    sim.add_argument(
-        "--scenario", choices=SCENARIOS, help="default: standing (a fixed robot: fixed_base)"
-    )
-    sim.add_argument(
-        "--duration", type=_number(float, 0.0), help="simulated seconds (default 5)"
-    )
-    sim.add_argument(
-        "--trajectory",
-        help="'default' (the robot's own, HRP-2: stair climbing) or a file: time + "
+        _simulate,
+        "run a scenario with the position servo holding half-sitting or following a "
+        "trajectory; write the logged signals (.npz)",
+        robot=True,
+        config="SimulateConfig YAML file",
+        scenario="default: standing (a fixed robot: fixed_base)",
+        duration="simulated seconds (default 5)",
+        trajectory="'default' (the robot's own, HRP-2: stair climbing) or a file: time + "
         "the joint angles",
+        seed={"type": _number(int, 0, strict=False), "help": "sensor noise seed"},
+        out={"default": "out", "help": "output folder (default: out)"},
+        html={"action": "store_true", "help": "write a Meshcat HTML replay"},
     )
-    sim.add_argument(
-        "--seed", type=_number(int, 0, strict=False), help="sensor noise seed"
-    )
-    sim.add_argument("--out", default="out", help="output folder (default: out)")
-    sim.add_argument("--html", action="store_true", help="write a Meshcat HTML replay")
-    sim.set_defaults(run=_simulate)
 
-    ident = commands.add_parser(
+
+def _add_identify(commands: _Commands) -> None:
+    _add_command(
+        commands,
         "identify",
-        parents=[debug],
-        help="identify the motor model of the robot's controlled joints (paper Sec. 3; "
+        _identify,
+        "identify the motor model of the robot's controlled joints (paper Sec. 3; "
         "HRP-2: the right leg, hanging): data collection (or --log), non-causal "
         "estimation, every fit, Table 1, Figures 1 and 3",
+        robot=True,
+        config="IdentifyConfig YAML file",
+        log={
+            "nargs": "+",
+            "help": "identification logs instead of simulating: this project's .npz (see "
+            "README), or logs in the robot description's format (`logs`, e.g. BAM's JSON "
+            "for xl330_pendulum), at any rate; each log is its own segment",
+        },
+        fit={
+            "choices": ("asymmetric", "least-squares", "coulomb", "two-stage"),
+            "help": "the fit motor_model.yaml holds (default asymmetric: conservative, "
+            "for the controller; least-squares: for prediction and simulation)",
+        },
+        duration_scale={"type": _number(float, 0.0), "help": "shorten the collection"},
+        out=True,
     )
-    ident.add_argument("--robot", help=robot_help)
-    ident.add_argument("--config", help="IdentifyConfig YAML file")
-    ident.add_argument(
-        "--log",
-        nargs="+",
-        help="identification logs instead of simulating: this project's .npz (see "
-        "README), or logs in the robot description's format (`logs`, e.g. BAM's JSON "
-        "for xl330_pendulum), at any rate; each log is its own segment",
-    )
-    ident.add_argument(
-        "--fit",
-        choices=("asymmetric", "least-squares", "coulomb", "two-stage"),
-        help="the fit motor_model.yaml holds (default asymmetric: conservative, for "
-        "the controller; least-squares: for prediction and simulation)",
-    )
-    ident.add_argument(
-        "--duration-scale", type=_number(float, 0.0), help="shorten the collection"
-    )
-    ident.add_argument("--out", default="out/identify", help="output folder")
-    ident.set_defaults(run=_identify)
 
-    est = commands.add_parser(
+
+def _add_estimate(commands: _Commands) -> None:
+    _add_command(
+        commands,
         "estimate",
-        parents=[debug],
-        help="offline torque estimation of a recorded log (.npz: t, q_measured, the "
-        "IMU, wrench_<sensor>): τ̂, compensated and unknown wrenches, plot",
+        _estimate,
+        "offline torque estimation of a recorded log (.npz: t, q_measured, the IMU, "
+        "wrench_<sensor>): τ̂, compensated and unknown wrenches, plot",
+        robot=True,
+        log={"required": True, "help": "the log (.npz, see README)"},
+        window={"type": _number(int, 3), "default": 81, "help": "Savitzky-Golay window (odd)"},
+        calibrate_offsets={
+            "metavar": "START:END",
+            "default": "",
+            "help": "estimate the F/T sensors' offsets from this still segment of the "
+            "log (s; nothing touching the sensors) and subtract them",
+        },
+        out=True,
     )
-    est.add_argument("--robot", help=robot_help)
-    est.add_argument("--log", required=True, help="the log (.npz, see README)")
-    est.add_argument(
-        "--window", type=_number(int, 3), default=81, help="Savitzky-Golay window (odd)"
-    )
-    est.add_argument(
-        "--calibrate-offsets",
-        metavar="START:END",
-        default="",
-        help="estimate the F/T sensors' offsets from this still segment of the log "
-        "(s; nothing touching the sensors) and subtract them",
-    )
-    est.add_argument("--out", default="out/estimate", help="output folder")
-    est.set_defaults(run=_estimate)
 
-    val = commands.add_parser(
+
+def _add_validate(commands: _Commands) -> None:
+    _add_command(
+        commands,
         "validate",
-        parents=[debug],
-        help="judge a motor model by rollout on real logs: the model's servo replays "
-        "each logged command; position MAE and max error (mrad), plots, validate.md",
+        _validate_logs,
+        "judge a motor model by rollout on real logs: the model's servo replays each "
+        "logged command; position MAE and max error (mrad), plots, validate.md",
+        robot=True,
+        motor_model={"required": True, "help": "MotorModel YAML"},
+        log={"required": True, "nargs": "+", "help": "the robot's logs (its logs format)"},
+        out=True,
     )
-    val.add_argument("--robot", help=robot_help)
-    val.add_argument("--motor-model", required=True, help="MotorModel YAML")
-    val.add_argument(
-        "--log", required=True, nargs="+", help="the robot's logs (its logs format)"
-    )
-    val.add_argument("--out", default="out/validate", help="output folder")
-    val.set_defaults(run=_validate_logs)
 
-    track = commands.add_parser(
+
+def _add_track(commands: _Commands) -> None:
+    _add_command(
+        commands,
         "track",
-        parents=[debug],
-        help="torque control of any robot against its position servo: joint "
-        "tracking, and a force task at the tool (fixed-base robots)",
+        _track,
+        "torque control of any robot against its position servo: joint tracking, and a "
+        "force task at the tool (fixed-base robots)",
+        robot=True,
+        config="TrackConfig YAML file",
+        motor_model=True,
+        quick="shorter runs (CI)",
+        out=True,
     )
-    track.add_argument("--robot", help=robot_help)
-    track.add_argument("--config", help="TrackConfig YAML file")
-    track.add_argument("--motor-model", help="MotorModel YAML (default: identify one)")
-    track.add_argument("--quick", action="store_true", help="shorter runs (CI)")
-    track.add_argument("--out", default="out/track", help="output folder")
-    track.set_defaults(run=_track)
 
-    lcm_help = (
-        "LCM URL, e.g. udpm://239.255.76.67:7667?ttl=0 on a robot's network, "
-        "tcpq://127.0.0.1:7700 through `python -m hrp2_drake.hardware.tcpq_hub`, or memq://"
-    )
-    ctl = commands.add_parser(
+
+def _add_control(commands: _Commands) -> None:
+    _add_command(
+        commands,
         "control",
-        parents=[debug],
-        help="torque control of a robot over LCM (the robot's bridge or sim-robot): "
-        "the fused controller, one tick per encoder message, with per-tick timing",
-    )
-    ctl.add_argument("--robot", help=robot_help)
-    ctl.add_argument("--lcm", required=True, help=lcm_help)
-    ctl.add_argument("--motor-model", required=True, help="MotorModel YAML")
-    ctl.add_argument("--config", help="LcmControlConfig YAML file")
-    ctl.add_argument("--duration", type=_number(float, 0.0), help="seconds (default 5)")
-    ctl.add_argument("--motion", choices=("sinusoid", "hold"), help="default: sinusoid")
-    rate_help = "target real-time rate (default 1; < 1 slows the robot's clock, for tests)"
-    ctl.add_argument("--out", default="out/control", help="output folder")
-    ctl.set_defaults(run=_control, scenario=None)
+        _control,
+        "torque control of a robot over LCM (the robot's bridge or sim-robot): the fused "
+        "controller, one tick per encoder message, with per-tick timing",
+        robot=True,
+        lcm=True,
+        motor_model={"required": True, "help": "MotorModel YAML"},
+        config="LcmControlConfig YAML file",
+        duration="seconds (default 5)",
+        motion={"choices": ("sinusoid", "hold"), "help": "default: sinusoid"},
+        out=True,
+    ).set_defaults(scenario=None)
 
-    sim_robot = commands.add_parser(
+
+def _add_sim_robot(commands: _Commands) -> None:
+    _add_command(
+        commands,
         "sim-robot",
-        parents=[debug],
-        help="the simulated robot behind the LCM channels, in real time: what a real "
-        "robot's bridge must do",
+        _sim_robot,
+        "the simulated robot behind the LCM channels, in real time: what a real robot's "
+        "bridge must do",
+        robot=True,
+        lcm=True,
+        scenario="default: hanging (fixed robots: fixed_base)",
+        duration={"default": float("inf"), "help": "seconds (default: until Ctrl-C or SIGTERM)"},
+        realtime_rate={
+            "type": _number(float, 0.0),
+            "default": 1.0,
+            "help": "target real-time rate (default 1; < 1 slows the robot's clock, for "
+            "tests)",
+        },
+        out={"default": None, "help": "write the ground truth (sim_robot.npz) here on exit"},
     )
-    sim_robot.add_argument("--robot", help=robot_help)
-    sim_robot.add_argument("--lcm", required=True, help=lcm_help)
-    sim_robot.add_argument("--scenario", choices=SCENARIOS, help="default: hanging (fixed robots: fixed_base)")
-    sim_robot.add_argument(
-        "--duration", type=_number(float, 0.0), default=float("inf"),
-        help="seconds (default: until Ctrl-C or SIGTERM)",
-    )
-    sim_robot.add_argument("--realtime-rate", type=_number(float, 0.0), default=1.0, help=rate_help)
-    sim_robot.add_argument("--out", help="write the ground truth (sim_robot.npz) here on exit")
-    sim_robot.set_defaults(run=_sim_robot)
 
-    exp = commands.add_parser(
-        "experiment",
-        parents=[debug],
-        help="run one experiment of the paper: estimation (Sec. 2), motion (5.3), "
-        "force (5.4), stability (5.2), or the fault campaign of the supervised torque "
-        "control (faults); the component analysis (5.5) needs motion and force: see "
-        "reproduce",
-    )
-    exp.add_argument(
-        "name", choices=["estimation", "motion", "force", "stability", "faults"]
-    )
-    exp.add_argument("--config", help="the experiment's config YAML file")
-    exp.add_argument("--motor-model", help="MotorModel YAML (default: identify one)")
-    exp.add_argument(
-        "--end",
-        type=_number(float, 0.0),
-        help="motion: stop the climbing motion at (s)",
-    )
-    exp.add_argument("--out", default="out/experiment", help="output folder")
-    exp.set_defaults(run=_experiment)
 
-    cal = commands.add_parser(
+def _add_calibrate(commands: _Commands) -> None:
+    _add_command(
+        commands,
         "calibrate",
-        parents=[debug],
-        help="fit the emulated servo's parameters to what the real robot did: HRP-2 to "
-        "the paper's measurements (Table 1, position control in Tables 2 and 3); any "
-        "robot to its logs by rollout (--robot R --log ...): servo.yaml and a report",
+        _calibrate,
+        "fit the emulated servo's parameters to what the real robot did: HRP-2 to the "
+        "paper's measurements (Table 1, position control in Tables 2 and 3); any robot "
+        "to its logs by rollout (--robot R --log ...): servo.yaml and a report",
+        robot=True,
+        log={
+            "nargs": "+",
+            "help": "the robot's logs (its description's log format): fit its twin to "
+            "them by rollout, cross-validated across their servo gains",
+        },
+        config="CalibrationConfig YAML file (HRP-2, no --log)",
+        out=True,
+        max_iterations={
+            "type": _COUNT,
+            "help": "optimizer evaluations (with --log: rollouts of every log, default 150)",
+        },
+        jobs="parallel simulations (1 or 2)",
+        install={
+            "action": "store_true",
+            "help": "also write the robot's servo file (models/<robot>/servo.yaml: the "
+            "simulated robot's servo)",
+        },
     )
-    cal.add_argument("--robot", help=robot_help)
-    cal.add_argument(
-        "--log",
-        nargs="+",
-        help="the robot's logs (its description's log format): fit its twin to them by "
-        "rollout, cross-validated across their servo gains",
-    )
-    cal.add_argument("--config", help="CalibrationConfig YAML file (HRP-2, no --log)")
-    cal.add_argument("--out", default="out/calibrate", help="output folder")
-    cal.add_argument(
-        "--max-iterations",
-        type=_number(int, 1, strict=False),
-        help="optimizer evaluations (with --log: rollouts of every log, default 150)",
-    )
-    cal.add_argument(
-        "--jobs",
-        type=_number(int, 1, strict=False),
-        help="parallel simulations (1 or 2)",
-    )
-    cal.add_argument(
-        "--install",
-        action="store_true",
-        help="also write the robot's servo file (models/<robot>/servo.yaml: the "
-        "simulated robot's servo)",
-    )
-    cal.set_defaults(run=_calibrate)
 
-    rep = commands.add_parser(
-        "reproduce",
-        parents=[debug],
-        help="identification and every experiment of the paper: DIR/report.md, "
-        "DIR/results.json, figures and Meshcat replays",
-    )
-    rep.add_argument("--out", default="out/reproduce", help="output folder")
-    rep.add_argument(
-        "--jobs",
-        type=_number(int, 1, strict=False),
-        default=2,
-        help="parallel processes",
-    )
-    rep.add_argument("--quick", action="store_true", help="CI-sized durations")
-    rep.add_argument("--no-replays", action="store_true", help="skip Meshcat replays")
-    rep.set_defaults(run=_reproduce)
 
-    tune = commands.add_parser(
+def _add_tune(commands: _Commands) -> None:
+    _add_command(
+        commands,
         "tune",
-        parents=[debug],
-        help="tune the torque controller (K_p, windows, K_d, observer, predictor) by "
+        _tune,
+        "tune the torque controller (K_p, windows, K_d, observer, predictor) by "
         "closed-loop simulation of the climbing swing with Optuna: DIR/tuned.yaml, "
         "DIR/tune.md, plots; a second run resumes the study",
+        config="TuneConfig YAML file",
+        motor_model=True,
+        trials={"type": _COUNT, "help": "trials to run (default 40)"},
+        workers={
+            "type": _COUNT,
+            "help": "trials in flight (default: 2 local processes, or the cluster's "
+            "threads)",
+        },
+        scheduler="a Dask scheduler's address, tcp://host:port (default: local processes)",
+        quick="0.4 s of motion, 4 trials",
+        out="output folder (the study)",
     )
-    tune.add_argument("--config", help="TuneConfig YAML file")
-    tune.add_argument("--motor-model", help="MotorModel YAML (default: identify one)")
-    tune.add_argument(
-        "--trials",
-        type=_number(int, 1, strict=False),
-        help="trials to run (default 40)",
-    )
-    tune.add_argument(
-        "--workers",
-        type=_number(int, 1, strict=False),
-        help="trials in flight (default: 2 local processes, or the cluster's threads)",
-    )
-    tune.add_argument(
-        "--scheduler",
-        help="a Dask scheduler's address, tcp://host:port (default: local processes)",
-    )
-    tune.add_argument("--quick", action="store_true", help="0.4 s of motion, 4 trials")
-    tune.add_argument("--out", default="out/tune", help="output folder (the study)")
-    tune.set_defaults(run=_tune)
 
+
+def _add_reproduce(commands: _Commands) -> None:
+    _add_command(
+        commands,
+        "reproduce",
+        _reproduce,
+        "identification and every experiment of the paper: DIR/report.md, "
+        "DIR/results.json, figures and Meshcat replays",
+        out=True,
+        jobs={"default": 2, "help": "parallel processes"},
+        quick="CI-sized durations",
+        no_replays={"action": "store_true", "help": "skip Meshcat replays"},
+    )
+
+
+def _add_experiment(commands: _Commands) -> None:
+    experiment = _add_command(
+        commands,
+        "experiment",
+        _experiment,
+        "run one experiment of the paper: estimation (Sec. 2), motion (5.3), force "
+        "(5.4), stability (5.2), or the fault campaign of the supervised torque control "
+        "(faults); the component analysis (5.5) needs motion and force: see reproduce",
+    )
+    experiment.add_argument("name", choices=list(_EXPERIMENTS))
+    _add_options(
+        experiment,
+        "experiment",
+        config="the experiment's config YAML file",
+        motor_model=True,
+        end={"type": _number(float, 0.0), "help": "motion: stop the climbing motion at (s)"},
+        out=True,
+    )
+
+
+#: The commands, in the order `hrp2-drake --help` lists them.
+_COMMANDS = (
+    _add_simulate,
+    _add_identify,
+    _add_estimate,
+    _add_validate,
+    _add_track,
+    _add_control,
+    _add_sim_robot,
+    _add_experiment,
+    _add_calibrate,
+    _add_reproduce,
+    _add_tune,
+)
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The command line: `hrp2-drake [--debug] <command> [options]`."""
+    parser = _Parser(
+        prog="hrp2-drake",
+        description="Torque control without joint-torque sensors (Del Prete et al. 2015) "
+        "on a simulated robot in Drake: HRP-2, the paper's, or any robot description.",
+        parents=[_debug_option()],
+    )
+    commands = parser.add_subparsers(dest="command", required=True)
+    for add_command in _COMMANDS:
+        add_command(commands)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Runs the command; bad input is one line on stderr and exit code 2 (`--debug`:
+    the exception propagates, with its traceback)."""
     try:
-        args = parser.parse_args(argv)
+        args = _parser().parse_args(argv)
     except SystemExit as exit:  # --help (0), or a bad option (2), already printed
         code = exit.code
         return code if isinstance(code, int) else 0 if code is None else 2

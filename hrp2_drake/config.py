@@ -109,9 +109,25 @@ def _optional(schema: Any) -> Any:
     return schema
 
 
-def _unknown_keys(schema: Any, data: Any, path: str) -> list[tuple[str, list[str]]]:
-    """(path, the keys known there) of each key in `data` that `schema` (a dataclass
-    type) does not have."""
+def moved_keys(**moved: str):
+    """Class decorator of a config whose layout changed: each old key (a keyword) and
+    the path it moved to, relative to the config (e.g. `k6="controller.k6"`).
+    `load_config` refuses a file that still uses an old key, wherever the config is
+    nested, with one line naming the new key."""
+
+    def mark(schema: type[T]) -> type[T]:
+        schema._moved_keys = dict(moved)
+        return schema
+
+    return mark
+
+
+def _unknown_keys(
+    schema: Any, data: Any, path: str
+) -> list[tuple[str, list[str], tuple[str, str] | None]]:
+    """(path, the keys known there, None) of each key in `data` that `schema` (a
+    dataclass type) does not have; for a key that moved (`moved_keys`), (path, the keys
+    known there, (the schema's name, where the key moved to))."""
     schema = _optional(schema)
     origin, args = typing.get_origin(schema), typing.get_args(schema)
     if origin is list and isinstance(data, list):
@@ -131,10 +147,24 @@ def _unknown_keys(schema: Any, data: Any, path: str) -> list[tuple[str, list[str
         if key == "_tag":
             continue
         if key not in hints:
-            out.append((where, sorted(hints)))
+            moved = getattr(schema, "_moved_keys", {}).get(key)
+            out.append((where, sorted(hints), moved and (schema.__name__, moved)))
         else:
             out += _unknown_keys(hints[key], value, where)
     return out
+
+
+def _moved_keys_line(unknown: list[tuple[str, list[str], tuple[str, str] | None]]) -> str:
+    """The moved keys among `unknown` (`_unknown_keys`) on one line, by the config they
+    are in (e.g. "torque_control: TorqueControlConfig: 'k6' moved to 'controller.k6'");
+    "" if none moved."""
+    groups: dict[str, list[str]] = {}
+    for where, _, moved in unknown:
+        if moved:
+            parent, _, key = where.rpartition(".")
+            head = f"{parent}: {moved[0]}" if parent else moved[0]
+            groups.setdefault(head, []).append(f"'{key}' moved to '{moved[1]}'")
+    return "; ".join(f"{head}: {', '.join(keys)}" for head, keys in groups.items())
 
 
 def _describe(value: Any) -> str:
@@ -310,11 +340,14 @@ def load_config(
             f"got {_describe(raw)}"
         )
     unknown = _unknown_keys(schema, raw or {}, "")
+    moved = _moved_keys_line(unknown)
+    if moved:
+        raise ValueError(f"{source}: {moved}")
     if unknown:
-        where, known = unknown[0]
+        where, known, _ = unknown[0]
         there = f" in {where.rpartition('.')[0]}" if "." in where else ""
         raise ValueError(
-            f"{source}: unknown key(s) {[path for path, _ in unknown]} for "
+            f"{source}: unknown key(s) {[path for path, _, _ in unknown]} for "
             f"{schema.__name__} (known{there}: {known})"
         )
     wrong = _type_errors(schema, raw or {}, "")

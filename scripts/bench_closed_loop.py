@@ -52,7 +52,11 @@ from pydrake.systems.primitives import ConstantVectorSource
 
 from hrp2_drake.paper import hrp2
 from hrp2_drake.paper import motion
-from hrp2_drake.assembly.builders import build_position_control, build_torque_control
+from hrp2_drake.assembly.builders import (
+    build_position_control,
+    build_torque_control,
+    simulated_station,
+)
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.robot.station import (
     StationConfig,
@@ -97,22 +101,31 @@ def _diagrams(duration: float | None):
         else min(duration, reference.end_time())
     )
     motor_model, _ = _motor_model()
-    torque = replace(config.torque_control, k6=K6)
+    base = config.torque_control
+    torque = replace(base, controller=replace(base.controller, k6=K6))
+
+    def torque_control(torque_config, fused: bool = False):
+        robot, station, period = simulated_station(config.station)
+        return build_torque_control(
+            robot, station, reference, motor_model, torque_config,
+            control_period=period, fused=fused,
+        )
+
+    def position_control():
+        robot, station, _ = simulated_station(config.station)
+        return build_position_control(robot, station, reference)
+
     return end, {
-        "torque control K6=0.1": lambda: build_torque_control(
-            config.station, reference, motor_model, torque
-        ),
+        "torque control K6=0.1": lambda: torque_control(torque),
         # The same chain as one FusedTorqueController (the same signals; what `tune`
         # and the hardware loop run).
-        "torque control K6=0.1 fused": lambda: build_torque_control(
-            config.station, reference, motor_model, torque, fused=True
-        ),
+        "torque control K6=0.1 fused": lambda: torque_control(torque, fused=True),
         # The paper's stack alone: the Δq controller's own latched fallback, no
         # SafetySupervisor (ours, beyond the paper).
-        "torque control K6=0.1 unsupervised": lambda: build_torque_control(
-            config.station, reference, motor_model, replace(torque, supervised=False)
+        "torque control K6=0.1 unsupervised": lambda: torque_control(
+            replace(torque, supervised=False)
         ),
-        "position control": lambda: build_position_control(config.station, reference),
+        "position control": position_control,
     }
 
 

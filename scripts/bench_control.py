@@ -26,6 +26,7 @@ from hrp2_drake.assembly.builders import (
     TorqueControlConfig,
     build_position_control,
     build_torque_control,
+    simulated_station,
 )
 from hrp2_drake.paper.motion import MotionConfig, motion_reference
 
@@ -104,10 +105,16 @@ def bench_motion_experiment(duration: float = 2.0) -> list[dict]:
     config = MotionConfig(start=3.0, end=3.0 + duration, settle=0.0)
     reference = motion_reference(config)
     rows = []
+    robot, station, _ = simulated_station(config.station)
+    position = build_position_control(robot, station, reference)
+    robot, station, period = simulated_station(config.station)
+    torque = build_torque_control(
+        robot, station, reference, hrp2.true_motor_model(), TorqueControlConfig(),
+        control_period=period,
+    )
     for label, control in (
-        ("motion: position control", build_position_control(config.station, reference)),
-        ("motion: torque control (estimation + controllers)", build_torque_control(
-            config.station, reference, hrp2.true_motor_model(), TorqueControlConfig())),
+        ("motion: position control", position),
+        ("motion: torque control (estimation + controllers)", torque),
     ):
         simulator = Simulator(control.diagram)
         simulator.Initialize()

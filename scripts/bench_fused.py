@@ -36,7 +36,9 @@ def tuned_config(station):
         filename=str(station.description().path("torque_control_k6_0.1.yaml")),
         defaults=TorqueControlConfig(),
     )
-    return replace(config, start_time=0.5, safety=SafetyConfig(stale_time=0.010, stale_samples=12))
+    return replace(
+        config, start_time=0.5, supervisor=SafetyConfig(stale_time=0.010, stale_samples=12)
+    )
 
 
 def bench_fused_tick(duration: float = 3.0) -> list[dict]:
@@ -50,7 +52,7 @@ def bench_fused_tick(duration: float = 3.0) -> list[dict]:
     from hrp2_drake.robot.station import StationConfig
 
     station = StationConfig(scenario="hanging")
-    config = LcmControlConfig(station=station, duration=duration,
+    config = LcmControlConfig(robot=station.robot, duration=duration,
                               torque_control=tuned_config(station))
     robot = station.description()
     reference = control_reference(config)

@@ -22,7 +22,6 @@ import os
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 
@@ -38,12 +37,12 @@ def _control_config(robot_name: str, path: Path) -> None:
     from hrp2_drake.description import load_robot_description
 
     robot = load_robot_description(robot_name)
-    torque = {"k6": 0.1, "window": 41}
+    torque = {"controller": {"k6": 0.1}, "estimator": {"window": 41}}
     tuned = robot.path("torque_control_k6_0.1.yaml")
     if tuned.exists():
         torque = yaml.safe_load(tuned.read_text())
-    torque |= {"start_time": 0.5, "safety": {"stale_time": 0.010, "stale_samples": 12}}
-    config = {"torque_control": torque, "real_time": {"cpu": 0, "priority": 50}}
+    torque |= {"start_time": 0.5, "supervisor": {"stale_time": 0.010, "stale_samples": 12}}
+    config = {"torque_control": torque, "loop": {"real_time": {"cpu": 0, "priority": 50}}}
     path.write_text(yaml.safe_dump(config))
 
 
@@ -68,9 +67,9 @@ def in_process_errors(robot_name: str, duration: float, config_path: Path,
     station = StationConfig(robot=robot_name)
     if station.description().base == "fixed":
         station.scenario = "fixed_base"
-    config.station = station
+    config.robot = robot_name
     config.duration = duration
-    robot = config.station.description()
+    robot = config.description()
     reference = control_reference(config)
     controller = FusedController(torque_chain_parts(
         robot, reference, MotorModel.load(model_path), config.torque_control))
@@ -86,7 +85,7 @@ def in_process_errors(robot_name: str, duration: float, config_path: Path,
             np.maximum(worst, error, out=worst)
         ticks["k"] += 1
 
-    run_in_process(config.station, controller, reference, int(duration / 0.001), track)
+    run_in_process(station, controller, reference, int(duration / 0.001), track)
     return (worst * 1e3).tolist()
 
 

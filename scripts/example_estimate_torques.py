@@ -18,7 +18,7 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
 
 from hrp2_drake.description import load_robot_description
-from hrp2_drake.estimation.torque_estimator import add_estimator
+from hrp2_drake.estimation.torque_estimator import add_estimator, estimator_config
 from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
 
 
@@ -40,7 +40,7 @@ def main() -> None:
     builder.Connect(hold.get_output_port(), station.GetInputPort("q_cmd"))
     chain = add_estimator(
         builder, station, robot.make_plant(),
-        robot.estimator_config(window=41, offset_calibration_time=0.3),
+        estimator_config(robot, window=41, offset_calibration_time=0.3),
     )
     n = len(robot.joints)
     logs = {}

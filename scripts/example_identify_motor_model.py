@@ -15,7 +15,10 @@ import argparse
 from pathlib import Path
 
 from hrp2_drake.description import load_robot_description
-from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
+from hrp2_drake.estimation.torque_estimator import (
+    FloatingBaseTorqueEstimator,
+    estimator_config,
+)
 from hrp2_drake.identification.dataset import noncausal_estimates
 from hrp2_drake.identification.excitation import collect, make_plan
 from hrp2_drake.identification.fitting import check_identified, fit_asymmetric
@@ -46,7 +49,7 @@ def main() -> None:
     push_body = plant.GetBodyByName(excitation.pushes.body).index()
     log = collect(station, plan, push_body, excitation.pushes.point)
 
-    estimator = FloatingBaseTorqueEstimator(robot.make_plant(), robot.estimator_config())
+    estimator = FloatingBaseTorqueEstimator(robot.make_plant(), estimator_config(robot))
     data = noncausal_estimates(log, robot.joints, estimator, window=81, stride=5)
     fits = {}
     for name in robot.controlled_joints:

@@ -22,10 +22,11 @@ from hrp2_drake.assembly.builders import (
     build_position_control,
     build_torque_control,
 )
+from hrp2_drake.assembly.torque_control import ControllerSettings, EstimatorSettings
 from hrp2_drake.tools.track import TrackConfig, sinusoid_reference
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import joint_indexing
-from hrp2_drake.robot.station import StationConfig, initial_joint_positions
+from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
 
 
 def max_errors(control, duration: float, robot) -> np.ndarray:
@@ -61,11 +62,18 @@ def main() -> None:
     reference = sinusoid_reference(robot, initial_joint_positions(station), track)
     motor_model = MotorModel.load(args.motor_model)
 
-    position = max_errors(build_position_control(station, reference), args.duration, robot)
+    position = max_errors(
+        build_position_control(robot, make_station(station), reference), args.duration, robot
+    )
     torque = max_errors(
         build_torque_control(
-            station, reference, motor_model,
-            TorqueControlConfig(k6=args.k6, start_time=0.5, window=41),
+            robot, make_station(station), reference, motor_model,
+            TorqueControlConfig(
+                start_time=0.5,
+                controller=ControllerSettings(k6=args.k6),
+                estimator=EstimatorSettings(window=41),
+            ),
+            control_period=station.sensors_config().period,
         ),
         args.duration, robot,
     )

@@ -115,7 +115,7 @@ def other_actuators() -> dict[str, Actuator]:
 def servo_parameters(a: Actuator) -> dict[str, float]:
     """Servo gains (paper eq. 3, 5) that give the target effective Kτ and Kv.
 
-    Kτ = 1 / (K1 K4), Kv = (K1 K5 + K2) / (K1 K4) (DESIGN.md).
+    Kτ = 1 / (K1 K4), Kv = (K1 K5 + K2) / (K1 K4) (docs/architecture.md).
     """
     k1 = a.torque_constant * a.gear_ratio
     k4 = 1.0 / (k1 * a.k_tau)
@@ -445,7 +445,7 @@ def write_urdf(links: list[Link], servo: dict[str, dict]) -> str:
 
 def write_servo_yaml(servo: dict[str, dict]) -> str:
     lines = [
-        "# The `ideal` preset of the emulated HRP-2 position servo (DESIGN.md): the",
+        "# The `ideal` preset of the emulated HRP-2 position servo (docs/architecture.md): the",
         "# paper's eq. 6 with a small dead zone and Coulomb term, no latency, no voltage",
         "# limit, direction switching at sign(q_dot). For tests of the exact linear law;",
         "# the simulated robot uses the calibrated servo.yaml (hrp2-drake calibrate).",

@@ -36,7 +36,7 @@ def _extract(markdown: str, heading: str) -> list[str]:
 
 def results_section(run: Path) -> str:
     from hrp2_drake.paper.motion import paper_sample_count
-    from hrp2_drake.paper.reproduce import verdict_tables
+    from hrp2_drake.paper.claims import verdict_tables
 
     results = json.loads((run / "results.json").read_text())
     lines = [

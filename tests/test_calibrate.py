@@ -13,7 +13,6 @@ from hrp2_drake.paper.calibrate import (
     build_servo,
     pwl_priors,
 )
-from hrp2_drake.tools.identify import PAPER_TABLE1
 from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.servo import (
     effective_motor_parameters,
@@ -21,7 +20,8 @@ from hrp2_drake.robot.servo import (
     save_servo_params,
 )
 
-TABLE1_K_TAU, TABLE1_K_V = np.array([PAPER_TABLE1[j] for j in hrp2.RIGHT_LEG]).T * 1e-3
+TABLE1 = hrp2.description().published_motor_model  # the paper's Table 1: 10³ Kτ, 10³ Kv
+TABLE1_K_TAU, TABLE1_K_V = np.array([TABLE1[j] for j in hrp2.RIGHT_LEG]).T * 1e-3
 
 
 def test_pwl_priors_are_the_central_segments_of_the_authors_fits():

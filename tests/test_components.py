@@ -9,10 +9,9 @@ import numpy as np
 import pytest
 
 from hrp2_drake.assembly.builders import COMPONENTS, TorqueControlConfig
+from hrp2_drake.paper.claims import PANELS, check_panel
 from hrp2_drake.paper.components import (
-    PANELS,
     analyse_components,
-    check_panel,
     component_statistics,
     find_motion_run,
     force_window,

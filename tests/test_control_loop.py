@@ -89,7 +89,7 @@ def rig(tmp_path):
 
         def control(self, duration=3.0):
             config = tmp_path / "control.yaml"
-            config.write_text("wait_timeout: 20.0\n")
+            config.write_text("loop: {wait_timeout: 20.0}\n")
             control = _Process(CLI + ["control", "--robot", ROBOT, "--lcm", url,
                                       "--motor-model", str(model), "--config", str(config),
                                       "--duration", str(duration), "--out", str(tmp_path / "control")])

@@ -86,6 +86,10 @@ def _write(tmp_path: Path, source: str, edit) -> Path:
          r"initial_positions: 6 values for 7 joints"),
         ("iiwa14", "{joint: iiwa_joint_7,", "{joint: iiwa_joint_8,",
          r"identification\.sinusoids\[6\]\.joint: 'iiwa_joint_8' is not in joints"),
+        ("hrp2", "RLEG_JOINT5: [0.240, 6.0]", "RLEG_JOINT9: [0.240, 6.0]",
+         r"published_motor_model: 'RLEG_JOINT9' is not in joints"),
+        ("hrp2", "RLEG_JOINT5: [0.240, 6.0]", "RLEG_JOINT5: [0.240]",
+         r"published_motor_model\.RLEG_JOINT5: expected \[10³ Kτ, 10³ Kv\]"),
     ],
 )
 def test_bad_description_names_the_field(tmp_path, source, old, new, message):
@@ -145,7 +149,8 @@ def test_offline_estimate_of_a_fixed_arm_log(tmp_path):
 
 def test_generic_layers_import_no_robot_and_no_experiment():
     """estimation, identification and control import nothing from robot or
-    experiments, directly or through another module."""
+    experiments, directly or through another module (the robot description, the
+    bottom layer, they may)."""
     packages = ("estimation", "identification", "control")
     root = Path(__file__).resolve().parents[1] / "hrp2_drake"
     modules = [
@@ -155,7 +160,7 @@ def test_generic_layers_import_no_robot_and_no_experiment():
         "import sys\n"
         f"for m in {modules!r}: __import__(m)\n"
         "bad = [m for m in sys.modules if m.startswith(('hrp2_drake.robot', "
-        "'hrp2_drake.experiments', 'hrp2_drake.description'))]\n"
+        "'hrp2_drake.experiments'))]\n"
         "print(bad)\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

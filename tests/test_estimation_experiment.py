@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from pydrake.common.yaml import yaml_load_typed
 
+from hrp2_drake.paper.claims import GOAL_RMS_OVER_PEAK
 from hrp2_drake.paper.estimation import (
-    GOAL_RMS_OVER_PEAK,
     EstimationConfig,
     JointSinusoid,
     near_reversals,

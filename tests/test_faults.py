@@ -12,7 +12,9 @@ from hrp2_drake.assembly.builders import (
     JointReference,
     TorqueControlConfig,
     build_torque_control,
+    simulated_station,
 )
+from hrp2_drake.assembly.torque_control import ControllerSettings, EstimatorSettings
 from hrp2_drake.paper.motion import run_controller
 from hrp2_drake.robot.faults import FaultInjector, SensorFault
 from hrp2_drake.robot.station import StationConfig, initial_joint_positions
@@ -98,9 +100,13 @@ def test_a_bad_sample_hands_back_to_the_servo_and_torque_control_resumes(fault):
     station = StationConfig(scenario="fixed_base", servo_file="ideal", faults=[fault])
     q0 = initial_joint_positions(station)
     reference = JointReference.hold(q0, 1.5)
-    config = TorqueControlConfig(k6=1.0, window=40)
+    config = TorqueControlConfig(
+        controller=ControllerSettings(k6=1.0), estimator=EstimatorSettings(window=40)
+    )
+    robot, simulated, period = simulated_station(station)
     control = build_torque_control(
-        station, reference, hrp2.true_motor_model(servo_file="ideal"), config
+        robot, simulated, reference, hrp2.true_motor_model(servo_file="ideal"), config,
+        control_period=period,
     )
     signals = run_controller(control, 1.3, "fault", stream=open("/dev/null", "w"))
     t = signals["t"]
@@ -125,7 +131,7 @@ def test_model_error_and_extra_latency():
     and actuators; the extra latency: whole periods on every joint's command."""
     from pydrake.multibody.plant import MultibodyPlant
 
-    from hrp2_drake.robot.servo import Hrp2ServoEmulation, load_servo_params
+    from hrp2_drake.robot.servo import EmulatedPositionServo, load_servo_params
 
     exact, wrong = MultibodyPlant(0.0), MultibodyPlant(0.0)
     hrp2.add_hrp2(exact)
@@ -144,8 +150,8 @@ def test_model_error_and_extra_latency():
     with pytest.raises(ValueError, match="error"):
         hrp2.add_hrp2_with_model_error(MultibodyPlant(0.0), 1.5)
     params = load_servo_params()
-    servo = Hrp2ServoEmulation(exact, params, hrp2.JOINT_NAMES, 1e-3, extra_latency=0.002)
-    base = Hrp2ServoEmulation(exact, params, hrp2.JOINT_NAMES, 1e-3)
+    servo = EmulatedPositionServo(exact, params, hrp2.JOINT_NAMES, 1e-3, extra_latency=0.002)
+    base = EmulatedPositionServo(exact, params, hrp2.JOINT_NAMES, 1e-3)
     np.testing.assert_array_equal(servo.latency_periods, base.latency_periods + 2)
 
 

@@ -124,12 +124,14 @@ def test_force_reference_holds_the_static_wrench_then_a_sinusoid_on_fz():
 def test_force_config_loads_from_yaml_and_validates():
     config = load_config(
         ForceConfig,
-        data="amplitude: 30.0\nfrequency: 1.0\ntorque_control: {k6: 0.1, kf: [1.0], "
-        "force_frame: RLEG_FOOT}\nablations: [k6_0]\n",
+        data="amplitude: 30.0\nfrequency: 1.0\ntorque_control: {controller: {k6: 0.1, "
+        "kf: [1.0], force_frame: RLEG_FOOT}}\nablations: [k6_0]\n",
     )
     assert config.amplitude == 30.0 and config.ablations == ["k6_0"]
-    with pytest.raises(ValueError, match="force_frame"):
-        load_config(ForceConfig, data="torque_control: {force_frame: ''}\n")
+    with pytest.raises(ValueError, match="controller.force_frame"):
+        load_config(ForceConfig, data="torque_control: {controller: {force_frame: ''}}\n")
+    with pytest.raises(ValueError, match="'force_frame' moved to 'controller.force_frame'"):
+        load_config(ForceConfig, data="torque_control: {force_frame: RLEG_FOOT}\n")
     with pytest.raises(ValueError, match="ablations"):
         load_config(ForceConfig, data="ablations: [no_such_variant]\n")
     with pytest.raises(ValueError, match="scenario"):

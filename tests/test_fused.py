@@ -15,7 +15,13 @@ from hrp2_drake.control.fused import FusedController
 from hrp2_drake.assembly.builders import (
     TorqueControlConfig,
     build_torque_control,
+    simulated_station,
     torque_chain_parts,
+)
+from hrp2_drake.assembly.torque_control import (
+    ControllerSettings,
+    EstimatorSettings,
+    ObserverSettings,
 )
 from hrp2_drake.tools.ground_truth import true_motor_model
 from hrp2_drake.tools.control import LcmControlConfig, control_reference
@@ -50,8 +56,10 @@ CASES = {
     "iiwa_force": (
         IIWA,
         lambda: TorqueControlConfig(
-            k6=0.3, window=41, force_frame="ft_sensor_link", kf=[0.5], start_time=0.5,
-            disturbance_observer=20.0,
+            start_time=0.5,
+            estimator=EstimatorSettings(window=41),
+            controller=ControllerSettings(k6=0.3, force_frame="ft_sensor_link", kf=[0.5]),
+            observer=ObserverSettings(disturbance_observer=20.0),
         ),
         2.0,
         PiecewisePolynomial(np.array([0, 0, 0, 0, 0, 5.0]).reshape(6, 1)),
@@ -60,8 +68,10 @@ CASES = {
     "hrp2_predictor": (
         HRP2,
         lambda: TorqueControlConfig(
-            k6=1.0, window=41, predictor=True, supervised=False, start_time=0.5,
-            position_source="estimate",
+            supervised=False, start_time=0.5,
+            estimator=EstimatorSettings(window=41),
+            controller=ControllerSettings(k6=1.0, position_source="estimate"),
+            observer=ObserverSettings(predictor=True),
         ),
         0.8,
         None,
@@ -71,12 +81,13 @@ CASES = {
 
 def _run(case: str, fused: bool) -> dict[str, np.ndarray]:
     station, make, duration, force = CASES[case]
-    config = LcmControlConfig(station=station, duration=duration)
+    config = LcmControlConfig(robot=station.robot, duration=duration)
     reference = control_reference(config)
     extra = {"force_reference": force} if force is not None else {}
+    robot, simulated, period = simulated_station(station)
     control = build_torque_control(
-        station, reference, true_motor_model(station.description()), make(),
-        fused=fused, **extra,
+        robot, simulated, reference, true_motor_model(robot), make(),
+        control_period=period, fused=fused, **extra,
     )
     builder = DiagramBuilder()
     diagram = builder.AddSystem(control.diagram)
@@ -104,7 +115,7 @@ def test_fused_controller_equals_the_separate_systems(case):
 @pytest.mark.slow
 @pytest.mark.parametrize("station_config", [IIWA, HRP2], ids=["iiwa", "hrp2"])
 def test_message_driven_loop_over_memq_equals_the_fused_controller(station_config):
-    config = LcmControlConfig(station=station_config, duration=1.0)
+    config = LcmControlConfig(robot=station_config.robot, duration=1.0)
     robot = station_config.description()
     reference = control_reference(config)
     motor_model = true_motor_model(robot)

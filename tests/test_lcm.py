@@ -82,10 +82,16 @@ def test_waiting_for_a_silent_robot_names_the_channel(tmp_path, capsys, motor_mo
     argv = ["control", "--robot", "iiwa14", "--lcm", "memq://", "--motor-model", str(path),
             "--out", str(tmp_path)]
     config = tmp_path / "control.yaml"
-    config.write_text("wait_timeout: 0.05\n")
+    config.write_text("loop: {wait_timeout: 0.05}\n")
     assert main(argv + ["--config", str(config)]) == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert "no message from the robot" in err and "sim-robot" in err
+    # A file of the flat layout: one line naming the new keys.
+    config.write_text("wait_timeout: 0.05\nstation: {robot: iiwa14}\n")
+    assert main(argv + ["--config", str(config)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "'wait_timeout' moved to 'loop.wait_timeout'" in err[0]
+    assert "'station' moved to 'robot'" in err[0]
 
 
 def _max_errors(diagram, context, step, until, start=0.6):
@@ -103,16 +109,17 @@ def _max_errors(diagram, context, step, until, start=0.6):
 def test_memq_loop_tracks_like_the_in_process_diagram(motor_model):
     """The robot and the controller as two simulators over one memq:// LCM, advanced
     in lock step: the same controller diagram as in simulation, the station swapped."""
-    config = LcmControlConfig(station=IIWA, duration=2.0)
-    robot = config.station.description()
+    config = LcmControlConfig(robot=IIWA.robot, duration=2.0)
+    robot = config.description()
     reference = control_reference(config)
     lcm = DrakeLcm("memq://")
+    period = config.period()
     bridged = build_torque_control(
-        config.station, reference, motor_model, config.torque_control,
-        station=make_lcm_station(robot, lcm, wait_timeout=1.0),
+        robot, make_lcm_station(robot, lcm, period=period, wait_timeout=1.0), reference,
+        motor_model, config.torque_control, control_period=period,
     )
     controller = Simulator(bridged.diagram)
-    robot_sim = Simulator(make_sim_robot(config.station, lcm))
+    robot_sim = Simulator(make_sim_robot(IIWA, lcm))
     robot_sim.Initialize()
     robot_sim.AdvanceTo(0.001)  # its first sensor messages
     controller.Initialize()
@@ -122,7 +129,10 @@ def test_memq_loop_tracks_like_the_in_process_diagram(motor_model):
         controller.AdvanceTo(t)
 
     over_lcm = _max_errors(bridged.diagram, controller.get_context(), lock_step, 2.0)
-    direct = build_torque_control(config.station, reference, motor_model, config.torque_control)
+    direct = build_torque_control(
+        robot, make_station(IIWA), reference, motor_model, config.torque_control,
+        control_period=period,
+    )
     simulator = Simulator(direct.diagram)
     simulator.Initialize()
     in_process = _max_errors(direct.diagram, simulator.get_context(), simulator.AdvanceTo, 2.0)

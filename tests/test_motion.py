@@ -8,6 +8,7 @@ import pytest
 
 from hrp2_drake.cli import main
 from hrp2_drake.assembly.builders import JointReference, TorqueControlConfig
+from hrp2_drake.assembly.torque_control import ControllerSettings, EstimatorSettings
 from hrp2_drake.paper.motion import (
     PAPER_K6,
     PAPER_TABLE2,
@@ -16,12 +17,12 @@ from hrp2_drake.paper.motion import (
     average_error,
     climbing_reference,
     derive_sample_count,
-    judge_claim,
     paper_sample_count,
     run_motion,
     write_motion_report,
 )
 from hrp2_drake.paper import hrp2
+from hrp2_drake.paper.claims import judge_claim
 from hrp2_drake.robot.station import StationConfig
 
 
@@ -113,9 +114,13 @@ def test_experiment_command_with_a_saved_model(identified_model, tmp_path):
 
 def test_torque_control_config_errors():
     with pytest.raises(ValueError, match="must end before start_time"):
-        TorqueControlConfig(offset_calibration_time=0.5).validate()
-    with pytest.raises(ValueError, match="friction_velocity"):
-        TorqueControlConfig(friction_velocity="measured").validate()
+        TorqueControlConfig(
+            estimator=EstimatorSettings(offset_calibration_time=0.5)
+        ).validate()
+    with pytest.raises(ValueError, match="controller.friction_velocity"):
+        TorqueControlConfig(
+            controller=ControllerSettings(friction_velocity="measured")
+        ).validate()
 
 
 def test_claims_as_written_hold_on_the_papers_own_tables():
@@ -185,22 +190,32 @@ def test_improved_plan_shows_each_improvement_alone(tmp_path):
 
     base = MotionConfig().torque_control
     tuned = load_improved(IMPROVED_FILE, base)  # the committed, tuned controller
-    assert tuned.k6 == 0.1 and tuned.offset_calibration_time == base.offset_calibration_time
+    assert tuned.controller.k6 == 0.1
+    assert tuned.estimator.offset_calibration_time == base.estimator.offset_calibration_time
     plan = dict(improved_plan(base, tuned))
     paper = plan["improved K6=0.1: disturbance observer only"]
-    assert (paper.kp, paper.window, paper.windows) == ([2.0], 80, {})
+    assert (paper.controller.kp, paper.estimator.window, paper.estimator.windows) == (
+        [2.0], 80, {}
+    )
     # The observer alone keeps the tuned bandwidth x estimation delay.
-    assert paper.disturbance_observer * estimation_delay(paper) == pytest.approx(
-        tuned.disturbance_observer * estimation_delay(tuned)
+    bandwidth = paper.observer.disturbance_observer
+    assert bandwidth * estimation_delay(paper) == pytest.approx(
+        tuned.observer.disturbance_observer * estimation_delay(tuned)
     )
     alone = plan["improved K6=0.1: per-signal windows only"]
-    assert (alone.window, alone.windows) == (tuned.window, tuned.windows)
-    assert alone.disturbance_observer == 0.0
+    assert (alone.estimator.window, alone.estimator.windows) == (
+        tuned.estimator.window, tuned.estimator.windows
+    )
+    assert alone.observer.disturbance_observer == 0.0
     # The predictor: alone, and on top of the tuned controller when tuning left it off.
-    assert plan["improved K6=0.1: predictor only"].predictor
+    assert plan["improved K6=0.1: predictor only"].observer.predictor
     bad = tmp_path / "tuned.yaml"
-    bad.write_text("kp: [1.0]\nobserver: 3\n")
+    bad.write_text("controller: {kp: [1.0]}\nobserver: 3\n")
     with pytest.raises(ValueError, match="MotionConfig.improved: .*observer"):
+        MotionConfig(improved=str(bad)).validate()
+    # A file of the flat layout (before the settings were nested): one line per move.
+    bad.write_text("kp: [1.0]\nwindow: 41\n")
+    with pytest.raises(ValueError, match="'kp' moved to 'controller.kp', 'window' moved"):
         MotionConfig(improved=str(bad)).validate()
 
 

@@ -25,7 +25,7 @@ from hrp2_drake.robot.rollout import (
 )
 from hrp2_drake.robot.servo import (
     SERVO_MECHANISMS,
-    Hrp2ServoEmulation,
+    EmulatedPositionServo,
     effective_motor_parameters,
     servo_torque,
 )
@@ -82,7 +82,7 @@ def _linear(prior):
 
 
 def test_enabled_port_switches_the_drive_off_and_keeps_the_friction(prior, plant):
-    servo = Hrp2ServoEmulation(plant, prior, ["servo"], 0.001, enable_port=True)
+    servo = EmulatedPositionServo(plant, prior, ["servo"], 0.001, enable_port=True)
     context = servo.CreateDefaultContext()
     servo.GetInputPort("q_cmd").FixValue(context, [0.3])
     servo.GetInputPort("state").FixValue(context, [0.1, 0.7])

@@ -1,4 +1,4 @@
-"""Hrp2ServoEmulation: the law itself (the `ideal` preset), the effective motor model
+"""EmulatedPositionServo: the law itself (the `ideal` preset), the effective motor model
 in closed loop on the simulated robot, the stability of the explicit torques at 1 kHz,
 and each mechanism of the calibrated servo (latency, voltage limit, hysteresis)."""
 
@@ -19,7 +19,7 @@ from pydrake.trajectories import PiecewisePolynomial
 from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.sensors import SensorsConfig
 from hrp2_drake.robot.servo import (
-    Hrp2ServoEmulation,
+    EmulatedPositionServo,
     effective_motor_parameters,
     explicit_stability_margin,
     load_servo_params,
@@ -63,7 +63,7 @@ def test_data_file_matches_table1(params):
 
 def test_servo_law_slope_is_k_tau(params, plant):
     """Outside the dead zone, at rest, Δq = Kτ τ + deadzone·sign(τ) exactly."""
-    servo = Hrp2ServoEmulation(plant, params, hrp2.JOINT_NAMES)
+    servo = EmulatedPositionServo(plant, params, hrp2.JOINT_NAMES)
     context = servo.CreateDefaultContext()
     plant_context = plant.CreateDefaultContext()
     indexing = hrp2.hrp2_joint_indexing(plant)
@@ -95,7 +95,7 @@ def test_servo_law_slope_is_k_tau(params, plant):
 
 
 def test_servo_rejects_nan_command(params, plant):
-    servo = Hrp2ServoEmulation(plant, params, hrp2.JOINT_NAMES)
+    servo = EmulatedPositionServo(plant, params, hrp2.JOINT_NAMES)
     context = servo.CreateDefaultContext()
     q_cmd = hrp2.half_sitting()
     q_cmd[3] = np.nan
@@ -105,6 +105,29 @@ def test_servo_rejects_nan_command(params, plant):
     )
     with pytest.raises(ValueError, match="RLEG_JOINT3"):
         servo.get_output_port().Eval(context)
+
+
+def test_deprecated_name_warns_and_builds_the_same_servo(calibrated, plant):
+    """`Hrp2ServoEmulation`, the old name, warns once naming the new class and builds
+    the same system: same ports, same torques for the same inputs."""
+    with pytest.warns(DeprecationWarning, match="EmulatedPositionServo") as warned:
+        from hrp2_drake.robot.servo import Hrp2ServoEmulation
+    assert len(warned) == 1 and Hrp2ServoEmulation is EmulatedPositionServo
+    q0 = hrp2.half_sitting()
+    x = np.zeros(plant.num_positions() + plant.num_velocities())
+    x[: plant.num_positions()] = plant.GetPositions(plant.CreateDefaultContext())
+    torques = []
+    for servo_class in (Hrp2ServoEmulation, EmulatedPositionServo):
+        servo = servo_class(plant, calibrated, hrp2.JOINT_NAMES, 1e-3, q0, enable_port=True)
+        names = [servo.get_input_port(i).get_name() for i in range(servo.num_input_ports())]
+        assert names == ["q_cmd", "state", "enabled"]
+        context = servo.CreateDefaultContext()
+        servo.get_input_port(0).FixValue(context, q0 + 0.01)
+        servo.get_input_port(1).FixValue(context, x)
+        servo.get_input_port(2).FixValue(context, np.ones(len(q0)))
+        torques.append(servo.get_output_port().Eval(context))
+    np.testing.assert_array_equal(torques[0], torques[1])
+    assert np.any(torques[0] != 0)
 
 
 def test_each_joint_follows_its_own_mechanisms_tick_by_tick(calibrated, plant):
@@ -132,7 +155,7 @@ def test_each_joint_follows_its_own_mechanisms_tick_by_tick(calibrated, plant):
     dahl = p["hysteresis_width"] > 0
     assert set(delays) == {0, 1} and 0 < dahl.sum() < len(names)
     q0 = hrp2.half_sitting()
-    servo = Hrp2ServoEmulation(plant, params, names, 1e-3, q0)
+    servo = EmulatedPositionServo(plant, params, names, 1e-3, q0)
     context = servo.CreateDefaultContext()
     indexing = hrp2.hrp2_joint_indexing(plant)
     x = np.zeros(plant.num_positions() + plant.num_velocities())
@@ -170,7 +193,7 @@ def test_per_step_law_is_servo_torque_bit_for_bit(calibrated, plant):
 
     names = hrp2.JOINT_NAMES
     p = calibrated.vectors(names)
-    servo = Hrp2ServoEmulation(plant, calibrated, names, 1e-3, hrp2.half_sitting())
+    servo = EmulatedPositionServo(plant, calibrated, names, 1e-3, hrp2.half_sitting())
     rng = np.random.default_rng(7)
     for scale_e, scale_v in [(1e-4, 0.01), (3e-3, 0.5), (0.05, 3.0), (0.2, 8.0)]:
         for _ in range(200):
@@ -324,7 +347,7 @@ def _single_joint_servo(plant, overrides: dict, off=()):
     base = load_servo_params("ideal")
     params = type(base)({n: replace(j, **overrides) for n, j in base.joints.items()})
     q0 = hrp2.half_sitting()
-    return Hrp2ServoEmulation(plant, params, hrp2.JOINT_NAMES, 1e-3, q0, off), params, q0
+    return EmulatedPositionServo(plant, params, hrp2.JOINT_NAMES, 1e-3, q0, off), params, q0
 
 
 def _first_change_time(plant, latency: float) -> float:
@@ -480,7 +503,7 @@ def test_direction_state_switches_with_hysteresis(plant):
 
 def test_unknown_mechanism_is_one_clear_error(plant, params):
     with pytest.raises(ValueError, match="unknown mechanism.*'backlash'"):
-        Hrp2ServoEmulation(plant, params, hrp2.JOINT_NAMES, off=("backlash",))
+        EmulatedPositionServo(plant, params, hrp2.JOINT_NAMES, off=("backlash",))
     with pytest.raises(ValueError, match="StationConfig.servo_off"):
         StationConfig(servo_off=["latencies"]).validate()
     with pytest.raises(FileNotFoundError, match="ideal"):

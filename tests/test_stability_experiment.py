@@ -143,7 +143,7 @@ def test_a_run_that_reached_its_limit_is_never_called_stable(tmp_path):
     """Three outcomes: accelerates away, reached the limit (still moving when the
     observation stopped there: not shown stable), stable; the summary, the report
     and the verdict of Sec. 5.2 keep them apart."""
-    from hrp2_drake.paper.reproduce import _push_outcome
+    from hrp2_drake.paper.claims import _push_outcome
     from hrp2_drake.paper.stability import StabilityResult, contrast, summarize
 
     config = StabilityConfig(push_velocities=[1.0, 2.0], command_delay_compensation=[0.001])

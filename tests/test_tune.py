@@ -68,8 +68,10 @@ def test_base_configuration_round_trips_through_the_space():
     assert params["disturbance_observer_on"] is False
     assert "disturbance_observer" not in params
     again = apply_params(base, params, space, LEG)
-    assert again.kp == [base.kp[0]] * 6 and again.windows == {}
-    assert (again.k6, again.window, again.disturbance_observer) == (0.1, 80, 0.0)
+    assert again.controller.kp == [base.controller.kp[0]] * 6
+    assert again.estimator.windows == {}
+    assert (again.controller.k6, again.estimator.window) == (0.1, 80)
+    assert again.observer.disturbance_observer == 0.0
     # A per-signal window: a fraction of `window` of its parity (the estimator
     # centres them on the longest one), in [3, window]; the observer on.
     params |= {
@@ -82,12 +84,14 @@ def test_base_configuration_round_trips_through_the_space():
         "disturbance_observer": 0.5,  # bandwidth x delay
     }
     tuned = apply_params(base, params, space, LEG)
-    assert tuned.windows == {"RLEG_JOINT3": 9, "RLEG_JOINT4": 57}  # imu: 81, implicit
+    # imu: 81, implicit
+    assert tuned.estimator.windows == {"RLEG_JOINT3": 9, "RLEG_JOINT4": 57}
     # The window of 81 delays the estimates by 42 ms: a bandwidth of 0.5 / 0.042.
-    assert tuned.kp[2] == 3.0
-    assert tuned.disturbance_observer == pytest.approx(0.5 / 0.042)
+    assert tuned.controller.kp[2] == 3.0
+    assert tuned.observer.disturbance_observer == pytest.approx(0.5 / 0.042)
     params |= {"window": 80, "windows[RLEG_JOINT3]": 0.5}
-    assert apply_params(base, params, space, LEG).windows["RLEG_JOINT3"] == 40
+    assert apply_params(base, params, space, LEG).estimator.windows["RLEG_JOINT3"] == 40
+    assert base == TuneConfig().base()  # apply_params leaves its base alone
     tuned.validate()
     assert "k6" in {p.name for p in active_space(tiny(include=["k6"]), LEG)[0]}
 
@@ -167,7 +171,8 @@ def test_study_on_a_local_dask_cluster_matches_the_process_pool_and_resumes(
     assert (out / STUDY_FILE).is_file() and (out / "history.png").is_file()
     assert "Dask cluster" in (out / "tune.md").read_text()
     tuned = load_config(TorqueControlConfig, filename=out / "tuned.yaml")
-    assert tuned == dask.tuned and tuned.k6 == 0.1
+    assert tuned == dask.tuned and tuned.controller.k6 == 0.1
+    assert "controller:" in (out / "tuned.yaml").read_text()  # nested, as it loads
     assert tuned == load_config(
         TorqueControlConfig, data=dask.best.user_attrs["torque_control"]
     )
@@ -224,7 +229,8 @@ def test_bad_scheduler_and_bad_config_are_one_line(tmp_path, capsys, motor_model
     for text, match in (
         ("exclude: [kq]\n", r"exclude: \['kq'\] not in SEARCH_SPACE"),
         ("settle: 0.2\n", "settle = 0.2 s must be >= torque_control.start_time"),
-        ("torque_control: {window: 80, windowz: {}}\n", "windowz"),
+        ("torque_control: {estimator: {window: 80, windowz: {}}}\n", "windowz"),
+        ("torque_control: {window: 80}\n", "'window' moved to 'estimator.window'"),
     ):
         with pytest.raises(ValueError, match=match):
             load_config(TuneConfig, data=text)

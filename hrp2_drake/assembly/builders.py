@@ -1,5 +1,5 @@
-"""Diagram builders for the control experiments (paper Sec. 5): the robot's own
-position control (the baseline) and the paper's torque control.
+"""The closed loop of any robot as one Diagram: the robot's own position control
+(the baseline) and the paper's torque control (Sec. 4).
 
 .. code-block:: text
 
@@ -12,15 +12,20 @@ position control (the baseline) and the paper's torque control.
                              ▲  q̂, q̂̇ (or encoders)      ▲ τ̂, q̂̇, encoders            │
                              └──────── add_estimator (SG filters + RNEA) ◄──────────────┘
 
-Both return a `ControlDiagram`: the diagram, which exports every signal an experiment
-logs as a named output port (`LOGGED`), and its station.
+Both take the robot as data (its `RobotDescription`) and its station as a Diagram: a
+simulated one (`simulated_station(StationConfig)`, which also gives the control
+period) or a robot over LCM (`hardware.make_lcm_station`). Both return a
+`ControlDiagram`: the diagram, which exports every signal an experiment logs as a
+named output port (`ControlDiagram.output_names`), and its station.
 """
 
 import functools
 import weakref
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
+from pydrake.geometry import Meshcat
 from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort, PortDataType
 from pydrake.systems.primitives import MatrixGain, TrajectorySource
 from pydrake.trajectories import (
@@ -51,6 +56,7 @@ from hrp2_drake.control.torque_controller import (
     make_joint_selector,
 )
 from hrp2_drake.description import RobotDescription
+from hrp2_drake.estimation import torque_estimator
 from hrp2_drake.estimation.torque_estimator import add_estimator
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import joint_indexing
@@ -80,8 +86,8 @@ def first_order_hold(
     ConcatenateInTime of the whole (a segment depends on its two samples alone, and
     the pieces meet exactly), without their copies: FirstOrderHold takes twice the
     memory of its result while it builds it, ConcatenateInTime copies its argument,
-    and a 1 kHz reference is large (the climbing motion, 16 001 segments x 90 rows,
-    is a 210 MB PiecewisePolynomial: 440 MB while FirstOrderHold builds it whole).
+    and a 1 kHz reference is large (16 s of 30 joints, 16 001 segments x 90 rows, is
+    a 210 MB PiecewisePolynomial: 440 MB while FirstOrderHold builds it whole).
     """
     trajectory = after
     for k in range(0, max(len(breaks) - 1, 1), HOLD_PIECE):
@@ -132,7 +138,7 @@ def borrowed(trajectory: Trajectory) -> FunctionHandleTrajectory:
     caller keeps it alive (a `ControlDiagram` keeps its own).
 
     Why: TrajectorySource keeps a copy of its trajectory, a 1 kHz reference is large
-    (the climbing motion, a PiecewisePolynomial of 16 001 segments x 90 rows, takes
+    (16 s of 30 joints, a PiecewisePolynomial of 16 001 segments x 90 rows, takes
     210 MB), and pydrake 1.51.1 on Python 3.11 never frees a Diagram holding a
     Python LeafSystem (every control diagram here: such a system's tp_traverse
     visits its __dict__ twice, so the garbage collector takes the cycles through it
@@ -219,23 +225,58 @@ def _station_ports(station: Diagram, robot: RobotDescription) -> dict[str, Outpu
     return {name: station.GetOutputPort(name) for name in names if station.HasOutputPort(name)}
 
 
-def _add_station(builder: DiagramBuilder, station_config: StationConfig, meshcat, station):
-    """The given station (e.g. `hardware.make_lcm_station`), or the simulated one."""
-    if station is None:
-        station = make_station(station_config, meshcat)
+class SimulatedStation(NamedTuple):
+    """What the builders take, for a simulated robot (`simulated_station`)."""
+
+    #: The robot the station simulates.
+    robot: RobotDescription
+    #: `make_station`'s Diagram: one per built diagram (a Diagram joins one builder).
+    station: Diagram
+    #: The control period (s): the station's sensor period.
+    control_period: float
+
+
+def simulated_station(config: StationConfig, meshcat: Meshcat | None = None) -> SimulatedStation:
+    """The simulated station of `config` (`make_station(config, meshcat)`), its robot
+    and its control period (`config.sensors_config().period`, s): the common case of
+    `build_position_control` and `build_torque_control`, e.g.
+
+        robot, station, period = simulated_station(config)
+        build_torque_control(robot, station, ..., control_period=period)
+    """
+    return SimulatedStation(
+        config.description(), make_station(config, meshcat), config.sensors_config().period
+    )
+
+
+def _add_station(builder: DiagramBuilder, robot: RobotDescription, station: Diagram) -> Diagram:
+    """Adds `station` (a simulated or a hardware station) to `builder` as "station",
+    once its q_cmd input is checked to command every joint of `robot`."""
+    if not station.HasInputPort("q_cmd"):
+        raise ValueError(f"station '{station.get_name()}': no q_cmd input port")
+    size = station.GetInputPort("q_cmd").size()
+    if size != len(robot.joints):
+        raise ValueError(
+            f"station '{station.get_name()}': q_cmd has {size} rows, expected one per "
+            f"joint of robot '{robot.name}' ({len(robot.joints)})"
+        )
     return builder.AddNamedSystem("station", station)
 
 
 def build_position_control(
-    station_config: StationConfig, reference: JointReference, meshcat=None, station=None
+    robot: RobotDescription, station: Diagram, reference: JointReference
 ) -> ControlDiagram:
     """The baseline: the robot's own position servo tracking the reference (q_cmd =
-    q_ref). `station`: a station Diagram to use instead of simulating
-    `station_config` (e.g. the LCM hardware station; the config still names the
-    robot)."""
-    robot = station_config.description()
+    q_ref).
+
+    Args:
+        robot: the robot of `station`.
+        station: a station Diagram with `make_station`'s ports: a simulated one
+            (`simulated_station`) or a robot over LCM (`hardware.make_lcm_station`).
+        reference: the joint reference of every joint of `robot`.
+    """
     builder = DiagramBuilder()
-    station = _add_station(builder, station_config, meshcat, station)
+    station = _add_station(builder, robot, station)
     blocks = _add_reference(builder, reference, len(robot.joints))
     builder.Connect(blocks["q_ref"], station.GetInputPort("q_cmd"))
     ports = _station_ports(station, robot) | {
@@ -260,6 +301,94 @@ def _joint_inertia(plant, all_joints: list[str], joints: list[str], q: np.ndarra
     return np.diag(plant.CalcMassMatrix(context))[rows]
 
 
+def _check_controlled_joints(
+    robot: RobotDescription, config: TorqueControlConfig, joints: list[str]
+) -> None:
+    """Raises ValueError unless `joints` are joints of `robot` and
+    `config.controller.kp` gives one gain or one per joint."""
+    unknown = [j for j in joints if j not in robot.joints]
+    if unknown:
+        raise ValueError(
+            f"TorqueControlConfig.joints: {unknown} are not joints of robot '{robot.name}'"
+        )
+    kp = config.controller.kp
+    if len(kp) not in (1, len(joints)):
+        raise ValueError(
+            f"TorqueControlConfig.controller.kp: {len(kp)} values for {len(joints)} "
+            "joints (give one, or one per joint)"
+        )
+
+
+def _inverse_dynamics_plant(robot: RobotDescription, errors: dict):
+    """The inverse dynamics' model, on the fixed-base model (paper footnote 3): a
+    floating robot's base welded upright at the origin, a fixed robot as it is
+    mounted; with the model `errors` of `robot.make_plant`."""
+    if robot.base == "fixed":
+        return robot.make_plant(weld_base=True, **errors)
+    return make_fixed_base_plant(
+        functools.partial(robot.add_model, weld_base=False, **errors), robot.base_body
+    )
+
+
+def _inverse_dynamics_config(
+    config: TorqueControlConfig, joints: list[str], ks: np.ndarray, kd: np.ndarray
+) -> InverseDynamicsConfig:
+    """The inverse dynamics of `joints` with the gains K_s, K_d (one per joint)."""
+    return InverseDynamicsConfig(
+        joints=joints,
+        ks=ks.tolist(),
+        kd=kd.tolist(),
+        force_frame=config.controller.force_frame,
+        kf=list(config.controller.kf) if config.controller.force_frame else [0.0],
+    )
+
+
+def _torque_controller_config(
+    config: TorqueControlConfig, joints: list[str]
+) -> TorqueControllerConfig:
+    """The Δq torque controller of `joints`."""
+    return TorqueControllerConfig(
+        joints=joints,
+        kp=list(config.controller.kp),
+        delta_q_limit=[config.controller.delta_q_limit],
+        start_time=config.start_time,
+        latch_fallback=not config.supervised,
+        disturbance_compensation=config.observer.disturbance_observer > 0,
+    )
+
+
+def _observer_parts(
+    config: TorqueControlConfig, joints: list[str], controller_model: MotorModel, delay: float
+) -> tuple[MotorModel, DisturbanceObserverConfig] | None:
+    """The disturbance observer's model and config (None without one); `delay`: the
+    estimation chain's (s)."""
+    bandwidth = config.observer.disturbance_observer
+    if not bandwidth > 0:
+        return None
+    # The observer inverts the controller's own model: no Coulomb term (the
+    # controller sends none), so what friction the model misses is d̂'s.
+    return (
+        MotorModel(
+            joints, controller_model.k_tau, controller_model.k_v, np.zeros(len(joints))
+        ),
+        DisturbanceObserverConfig(
+            joints=joints, bandwidth=bandwidth, delay=delay
+        ),
+    )
+
+
+def _supervisor_parts(robot: RobotDescription, config: TorqueControlConfig) -> tuple | None:
+    """The safety supervisor's (monitored sensors, config, number of sensor stamps),
+    None if `config` is not supervised."""
+    if not config.supervised:
+        return None
+    return (
+        supervisor_sensors(robot.sensor_names(), imu=robot.has_imu()),
+        replace(config.supervisor, start_time=config.start_time),
+        len(sensor_sizes(robot)),
+    )
+
+
 def torque_chain_parts(
     robot: RobotDescription,
     reference: JointReference,
@@ -270,78 +399,31 @@ def torque_chain_parts(
     both the separate systems and the fused controller are built from."""
     config.validate()
     joints = config.controlled_joints(robot)
-    unknown = [j for j in joints if j not in robot.joints]
-    if unknown:
-        raise ValueError(
-            f"TorqueControlConfig.joints: {unknown} are not joints of robot '{robot.name}'"
-        )
-    if len(config.kp) not in (1, len(joints)):
-        raise ValueError(
-            f"TorqueControlConfig.kp: {len(config.kp)} values for {len(joints)} "
-            "joints (give one, or one per joint)"
-        )
+    _check_controlled_joints(robot, config, joints)
     all_joints = list(robot.joints)
     # The controllers' model of the robot (with errors, if asked: a fault).
-    errors = dict(model_error=config.model_error, seed=config.model_error_seed)
-    estimator_config = robot.estimator_config(
-        config.window,
-        windows=dict(config.windows),
-        evaluation=config.evaluation,
-        offset_calibration_time=config.offset_calibration_time,
+    errors = dict(model_error=config.faults.model_error, seed=config.faults.model_error_seed)
+    estimator = config.estimator
+    estimator_config = torque_estimator.estimator_config(
+        robot,
+        estimator.window,
+        windows=dict(estimator.windows),
+        evaluation=estimator.evaluation,
+        offset_calibration_time=estimator.offset_calibration_time,
         offset_calibration_start=0.2,
     )
-    # Inverse dynamics on the fixed-base model (paper footnote 3): a floating robot's
-    # base welded upright at the origin, a fixed robot as it is mounted.
-    if robot.base == "fixed":
-        fixed = robot.make_plant(weld_base=True, **errors)
-    else:
-        fixed = make_fixed_base_plant(
-            functools.partial(robot.add_model, weld_base=False, **errors), robot.base_body
-        )
+    fixed = _inverse_dynamics_plant(robot, errors)
     controller_model = motor_model.subset(joints)
     inertia = _joint_inertia(fixed, all_joints, joints, reference.at(0.0)[0])
+    gains = config.controller
     ks, kd = inverse_dynamics_gains_for_k6(
-        controller_model.k_tau, config.k6, inertia, config.kp, config.damping_ratio
-    )
-    id_config = InverseDynamicsConfig(
-        joints=joints,
-        ks=ks.tolist(),
-        kd=kd.tolist(),
-        force_frame=config.force_frame,
-        kf=list(config.kf) if config.force_frame else [0.0],
-    )
-    controller_config = TorqueControllerConfig(
-        joints=joints,
-        kp=list(config.kp),
-        delta_q_limit=[config.delta_q_limit],
-        start_time=config.start_time,
-        latch_fallback=not config.supervised,
-        disturbance_compensation=config.disturbance_observer > 0,
+        controller_model.k_tau, gains.k6, inertia, gains.kp, gains.damping_ratio
     )
     delay = (estimator_config.delay_samples() + 2) * estimator_config.period
-    observer = None
-    if config.disturbance_observer > 0:
-        # The observer inverts the controller's own model: no Coulomb term (the
-        # controller sends none), so what friction the model misses is d̂'s.
-        observer = (
-            MotorModel(
-                joints, controller_model.k_tau, controller_model.k_v, np.zeros(len(joints))
-            ),
-            DisturbanceObserverConfig(
-                joints=joints, bandwidth=config.disturbance_observer, delay=delay
-            ),
-        )
     predictor = None
-    if config.predictor:
+    if config.observer.predictor:
         predictor = DelayPredictorConfig(
             joints=joints, delay=delay, inertia=inertia.tolist()
-        )
-    supervisor = None
-    if config.supervised:
-        supervisor = (
-            supervisor_sensors(robot.sensor_names(), imu=robot.has_imu()),
-            replace(config.safety, start_time=config.start_time),
-            len(sensor_sizes(robot)),
         )
     return TorqueChainParts(
         all_joints=all_joints,
@@ -349,45 +431,60 @@ def torque_chain_parts(
         estimator_plant=robot.make_plant(**errors),
         estimator_config=estimator_config,
         id_plant=fixed,
-        id_config=id_config,
+        id_config=_inverse_dynamics_config(config, joints, ks, kd),
         controller_model=controller_model,
-        controller_config=controller_config,
-        observer=observer,
+        controller_config=_torque_controller_config(config, joints),
+        observer=_observer_parts(config, joints, controller_model, delay),
         predictor=predictor,
-        supervisor=supervisor,
-        position_source=config.position_source,
-        feedback_velocity=config.feedback_velocity,
-        friction_velocity=config.friction_velocity,
-        force_sensor=robot.sensor_of_body(config.force_frame) if config.force_frame else "",
+        supervisor=_supervisor_parts(robot, config),
+        position_source=gains.position_source,
+        feedback_velocity=gains.feedback_velocity,
+        friction_velocity=gains.friction_velocity,
+        force_sensor=robot.sensor_of_body(gains.force_frame) if gains.force_frame else "",
         period=estimator_config.period,
     )
 
 
 def build_torque_control(
-    station_config: StationConfig,
+    robot: RobotDescription,
+    station: Diagram,
     reference: JointReference,
     motor_model: MotorModel,
     config: TorqueControlConfig,
-    meshcat=None,
+    *,
+    control_period: float,
     force_reference: PiecewisePolynomial | None = None,
-    station: Diagram | None = None,
     fused: bool = False,
 ) -> ControlDiagram:
     """Station + estimation chain + inverse dynamics + Δq torque controller (paper Sec.
     4) on `config.joints`, the other joints in position control on the reference.
-    `station`: a station Diagram with the simulated station's ports to use instead of
-    simulating `station_config` (e.g. `hardware.make_lcm_station`: the same
-    controller on hardware; the config still names the robot).
-    `fused`: the whole chain as one `FusedTorqueController` (the real-time path; the
-    same signals to 1e-12) instead of its separate systems."""
-    robot = station_config.description()
-    check_control_period(config, station_config)
+
+    Args:
+        robot: the robot of `station`.
+        station: a station Diagram with `make_station`'s ports: a simulated one
+            (`simulated_station`) or a robot over LCM (`hardware.make_lcm_station`:
+            the same controller on hardware).
+        reference: the joint reference of every joint of `robot`.
+        motor_model: the controller's model of the actuators.
+        config: the torque control; its supervisor's period must be `control_period`.
+        control_period: the robot's sensor period (s): one supervisor update a tick.
+        force_reference: the wrench reference (6 rows), needed when `config` has a
+            force frame (a force task).
+        fused: the whole chain as one `FusedTorqueController` (the real-time path;
+            the same signals to 1e-12) instead of its separate systems.
+    """
+    check_control_period(config, control_period)
     parts = torque_chain_parts(robot, reference, motor_model, config)
     builder = DiagramBuilder()
-    station = _add_station(builder, station_config, meshcat, station)
+    station = _add_station(builder, robot, station)
     blocks = _add_reference(builder, reference, len(parts.all_joints))
     f_ref = None
-    if config.force_frame:
+    if parts.force_sensor:  # a force frame: a force task
+        if force_reference is None:
+            raise ValueError(
+                f"build_torque_control: no force_reference for the force task at F/T "
+                f"sensor '{parts.force_sensor}' (TorqueControlConfig's force frame)"
+            )
         f_ref = builder.AddNamedSystem(
             "force_reference", TrajectorySource(borrowed(force_reference))
         ).get_output_port()
@@ -420,56 +517,17 @@ def _add_fused_chain(builder, station, robot, parts, blocks, f_ref) -> dict[str,
 
 def _add_separate_chain(builder, station, robot, parts, blocks, f_ref) -> dict[str, OutputPort]:
     """The chain as its separate LeafSystems (the design card's diagram)."""
-    all_joints, joints = parts.all_joints, parts.joints
     chain = add_estimator(builder, station, parts.estimator_plant, parts.estimator_config)
-
-    def select(name: str):
-        """A selector of the controlled joints from a vector of all joints."""
-        return builder.AddNamedSystem(name, make_joint_selector(all_joints, joints))
-
     inverse_dynamics = builder.AddNamedSystem(
         "inverse_dynamics", InverseDynamicsController(parts.id_plant, parts.id_config)
     )
-    selected = {}
+    selected = _add_controlled_signals(builder, station, chain, parts, blocks)
     for name in ("q_ref", "v_ref", "vdot_ref"):
-        selected[name] = sel = select(f"{name}_controlled")
-        builder.Connect(blocks[name], sel.get_input_port())
-        builder.Connect(sel.get_output_port(), inverse_dynamics.GetInputPort(name))
-    q_enc = select("q_measured_controlled")
-    builder.Connect(station.GetOutputPort("q_measured"), q_enc.get_input_port())
-    q_hat = select("q_estimate_controlled")
-    builder.Connect(chain.encoder_filter.GetOutputPort("value"), q_hat.get_input_port())
-    v_hat = select("v_estimate_controlled")
-    builder.Connect(chain.encoder_filter.GetOutputPort("derivative"), v_hat.get_input_port())
-    tau_hat = select("tau_estimate_controlled")
-    builder.Connect(chain.estimator.GetOutputPort("tau"), tau_hat.get_input_port())
-    position = q_enc if parts.position_source == "encoders" else q_hat
-    velocity = {
-        "estimate": v_hat.get_output_port(),
-        "reference": selected["v_ref"].get_output_port(),
-    }
-    torque_estimate = tau_hat.get_output_port()
-    predictor = None
-    if parts.predictor is not None:
-        # τ̂ and q̂̇ carried from the chain's delay to the present (the Δq input is
-        # connected below, once the controller exists).
-        predictor = builder.AddNamedSystem(
-            "delay_predictor", DelayPredictor(parts.controller_model, parts.predictor)
-        )
-        vdot_hat = select("vdot_estimate_controlled")
-        builder.Connect(
-            chain.encoder_filter.GetOutputPort("second_derivative"),
-            vdot_hat.get_input_port(),
-        )
-        for source, target in (
-            (v_hat, "v_estimated"),
-            (vdot_hat, "vdot_estimated"),
-            (tau_hat, "tau_estimated"),
-        ):
-            builder.Connect(source.get_output_port(), predictor.GetInputPort(target))
-        velocity["estimate"] = predictor.GetOutputPort("v_predicted")
-        torque_estimate = predictor.GetOutputPort("tau_predicted")
-    builder.Connect(position.get_output_port(), inverse_dynamics.GetInputPort("q"))
+        builder.Connect(selected[name], inverse_dynamics.GetInputPort(name))
+    predictor, v_estimate, torque_estimate = _add_delay_predictor(builder, chain, parts, selected)
+    velocity = {"estimate": v_estimate, "reference": selected["v_ref"]}
+    position = selected["q_measured" if parts.position_source == "encoders" else "q_estimate"]
+    builder.Connect(position, inverse_dynamics.GetInputPort("q"))
     builder.Connect(velocity[parts.feedback_velocity], inverse_dynamics.GetInputPort("v"))
     if parts.force_sensor:
         builder.Connect(f_ref, inverse_dynamics.GetInputPort("f_ref"))
@@ -487,47 +545,13 @@ def _add_separate_chain(builder, station, robot, parts, blocks, f_ref) -> dict[s
     builder.Connect(velocity[parts.friction_velocity], torque.GetInputPort("v"))
     if predictor is not None:
         builder.Connect(torque.GetOutputPort("delta_q"), predictor.GetInputPort("delta_q"))
-    builder.Connect(q_enc.get_output_port(), torque.GetInputPort("q_measured"))
-    builder.Connect(selected["q_ref"].get_output_port(), torque.GetInputPort("q_ref"))
+    builder.Connect(selected["q_measured"], torque.GetInputPort("q_measured"))
+    builder.Connect(selected["q_ref"], torque.GetInputPort("q_ref"))
     builder.Connect(chain.input_fault, torque.GetInputPort("sensor_fault"))
     if parts.observer is not None:
-        observer = builder.AddNamedSystem(
-            "disturbance_observer", DisturbanceObserver(*parts.observer)
-        )
-        builder.Connect(torque.GetOutputPort("delta_q"), observer.GetInputPort("delta_q"))
-        builder.Connect(v_hat.get_output_port(), observer.GetInputPort("v"))
-        builder.Connect(tau_hat.get_output_port(), observer.GetInputPort("tau_estimated"))
-        builder.Connect(observer.get_output_port(), torque.GetInputPort("tau_disturbance"))
+        _add_disturbance_observer(builder, parts, selected, torque)
 
-    merger = builder.AddNamedSystem("merger", JointCommandMerger(all_joints, joints))
-    builder.Connect(blocks["q_ref"], merger.GetInputPort("q_ref"))
-    builder.Connect(torque.GetOutputPort("q_cmd"), merger.GetInputPort("q_controlled"))
-    q_cmd = merger.get_output_port()
-    supervisor_ports = {}
-    if parts.supervisor is not None:
-        monitored, safety, num_stamps = parts.supervisor
-        supervisor = builder.AddNamedSystem(
-            "safety_supervisor",
-            SafetySupervisor(len(all_joints), monitored, safety, num_sensor_stamps=num_stamps),
-        )
-        builder.Connect(q_cmd, supervisor.GetInputPort("q_torque"))
-        builder.Connect(blocks["q_ref"], supervisor.GetInputPort("q_position"))
-        for name in ("q_measured", *monitored):
-            builder.Connect(station.GetOutputPort(name), supervisor.GetInputPort(name))
-        builder.Connect(
-            torque.GetOutputPort("fallback_active"),
-            supervisor.GetInputPort("controller_fallback"),
-        )
-        builder.Connect(
-            station.GetOutputPort("sensor_time"), supervisor.GetInputPort("sensor_time")
-        )
-        q_cmd = supervisor.GetOutputPort("q_cmd")
-        supervisor_ports = {
-            f"supervisor_{name}": supervisor.GetOutputPort(name)
-            for name in ("mode", "fault", "transition")
-        }
-    ports = supervisor_ports | {
-        "q_cmd": q_cmd,
+    ports = _add_command(builder, station, parts, blocks, torque) | {
         "tau_estimated": chain.estimator.GetOutputPort("tau"),
         "tau_desired": inverse_dynamics.GetOutputPort("tau_desired"),
         "delta_q": torque.GetOutputPort("delta_q"),
@@ -538,3 +562,107 @@ def _add_separate_chain(builder, station, robot, parts, blocks, f_ref) -> dict[s
         name = f"external_wrench_{robot.force_sensor}"
         ports[name] = chain.estimator.GetOutputPort(name)
     return ports | {name: torque.GetOutputPort(name) for name in COMPONENTS}
+
+
+def _add_selector(builder, parts, name: str, source: OutputPort) -> OutputPort:
+    """`source`, a vector of all joints, restricted to the controlled joints by the
+    selector system `name`."""
+    selector = builder.AddNamedSystem(
+        name, make_joint_selector(parts.all_joints, parts.joints)
+    )
+    builder.Connect(source, selector.get_input_port())
+    return selector.get_output_port()
+
+
+def _add_controlled_signals(builder, station, chain, parts, blocks) -> dict[str, OutputPort]:
+    """The controlled joints' reference (q_ref, v_ref, vdot_ref), encoders
+    (q_measured) and estimates (q_estimate, v_estimate, tau_estimate), by name; each
+    selected by a system named `<name>_controlled`."""
+    sources = {name: blocks[name] for name in ("q_ref", "v_ref", "vdot_ref")} | {
+        "q_measured": station.GetOutputPort("q_measured"),
+        "q_estimate": chain.encoder_filter.GetOutputPort("value"),
+        "v_estimate": chain.encoder_filter.GetOutputPort("derivative"),
+        "tau_estimate": chain.estimator.GetOutputPort("tau"),
+    }
+    return {
+        name: _add_selector(builder, parts, f"{name}_controlled", source)
+        for name, source in sources.items()
+    }
+
+
+def _add_delay_predictor(builder, chain, parts, selected: dict[str, OutputPort]):
+    """τ̂ and q̂̇ carried from the chain's delay to the present, if `parts.predictor`
+    (its Δq input is for the caller to connect, once the controller exists).
+
+    Returns:
+        (the DelayPredictor or None, the velocity estimate, the torque estimate): the
+        predicted ones, or without a predictor q̂̇ and τ̂.
+    """
+    if parts.predictor is None:
+        return None, selected["v_estimate"], selected["tau_estimate"]
+    predictor = builder.AddNamedSystem(
+        "delay_predictor", DelayPredictor(parts.controller_model, parts.predictor)
+    )
+    vdot_hat = _add_selector(
+        builder,
+        parts,
+        "vdot_estimate_controlled",
+        chain.encoder_filter.GetOutputPort("second_derivative"),
+    )
+    for source, target in (
+        (selected["v_estimate"], "v_estimated"),
+        (vdot_hat, "vdot_estimated"),
+        (selected["tau_estimate"], "tau_estimated"),
+    ):
+        builder.Connect(source, predictor.GetInputPort(target))
+    return (
+        predictor,
+        predictor.GetOutputPort("v_predicted"),
+        predictor.GetOutputPort("tau_predicted"),
+    )
+
+
+def _add_disturbance_observer(builder, parts, selected: dict[str, OutputPort], torque) -> None:
+    """The disturbance observer of `parts.observer`, in a loop with the torque
+    controller: d̂ from Δq, q̂̇ and τ̂."""
+    observer = builder.AddNamedSystem(
+        "disturbance_observer", DisturbanceObserver(*parts.observer)
+    )
+    builder.Connect(torque.GetOutputPort("delta_q"), observer.GetInputPort("delta_q"))
+    builder.Connect(selected["v_estimate"], observer.GetInputPort("v"))
+    builder.Connect(selected["tau_estimate"], observer.GetInputPort("tau_estimated"))
+    builder.Connect(observer.get_output_port(), torque.GetInputPort("tau_disturbance"))
+
+
+def _add_command(builder, station, parts, blocks, torque) -> dict[str, OutputPort]:
+    """q_cmd: the controlled joints' command merged with the other joints' reference,
+    through the safety supervisor if `parts.supervisor`. Returns the supervisor's
+    signals (supervisor_mode, _fault, _transition) if any, then q_cmd."""
+    merger = builder.AddNamedSystem(
+        "merger", JointCommandMerger(parts.all_joints, parts.joints)
+    )
+    builder.Connect(blocks["q_ref"], merger.GetInputPort("q_ref"))
+    builder.Connect(torque.GetOutputPort("q_cmd"), merger.GetInputPort("q_controlled"))
+    if parts.supervisor is None:
+        return {"q_cmd": merger.get_output_port()}
+    monitored, safety, num_stamps = parts.supervisor
+    supervisor = builder.AddNamedSystem(
+        "safety_supervisor",
+        SafetySupervisor(len(parts.all_joints), monitored, safety, num_sensor_stamps=num_stamps),
+    )
+    builder.Connect(merger.get_output_port(), supervisor.GetInputPort("q_torque"))
+    builder.Connect(blocks["q_ref"], supervisor.GetInputPort("q_position"))
+    for name in ("q_measured", *monitored):
+        builder.Connect(station.GetOutputPort(name), supervisor.GetInputPort(name))
+    builder.Connect(
+        torque.GetOutputPort("fallback_active"),
+        supervisor.GetInputPort("controller_fallback"),
+    )
+    builder.Connect(
+        station.GetOutputPort("sensor_time"), supervisor.GetInputPort("sensor_time")
+    )
+    ports = {
+        f"supervisor_{name}": supervisor.GetOutputPort(name)
+        for name in ("mode", "fault", "transition")
+    }
+    return ports | {"q_cmd": supervisor.GetOutputPort("q_cmd")}

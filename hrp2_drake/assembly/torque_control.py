@@ -1,28 +1,37 @@
 """The torque control's settings (paper Sec. 4) and the control period's check: what
-`build_torque_control` reads."""
+`build_torque_control` reads.
 
+`TorqueControlConfig` holds the wiring decisions (which joints, when torque control
+starts, whether a supervisor guards it) and one settings class per concern, each with
+its own `validate()`: `estimator`, `controller`, `observer`, `supervisor` (a
+`SafetyConfig`) and `faults`. A file of the flat layout (before issue 19: `k6: 0.1` at
+the top) is refused with one line naming each key's new place (`moved_keys`).
+
+`field_at`, `set_field_at`, `replace_fields` and `field_type` read, set and replace a
+field by its path ("controller.k6"): for code that varies settings by name (the motion
+experiment's improvements, `hrp2-drake tune`'s search space).
+"""
+
+import dataclasses
 import math
+import typing
 from dataclasses import dataclass, field
+from typing import Any, TypeVar
 
-from hrp2_drake.config import check_finite
+from hrp2_drake.config import check_finite, moved_keys
 from hrp2_drake.control.safety import SafetyConfig
 from hrp2_drake.description import RobotDescription
-from hrp2_drake.robot.station import StationConfig
+from hrp2_drake.estimation.savitzky_golay import EVALUATION_POINTS
+
+_WHERE = "TorqueControlConfig"
+T = TypeVar("T")
 
 
 @dataclass
-class TorqueControlConfig:
-    """The paper's torque control of a set of joints (HRP-2's right leg), Sec. 4.
+class EstimatorSettings:
+    """The torque estimator of the torque control (paper Sec. 2, `add_estimator`).
 
     Args:
-        joints: the torque-controlled joints; every other joint stays in position
-            control on its reference. Empty: the robot description's
-            controlled_joints.
-        k6: position-feedback gain relative to the position servo (Sec. 4.2): 1 = the
-            servo's own stiffness, 0.1 = 10% of it.
-        kp: torque-feedback gain K_p (paper: 2), one value or one per joint.
-        damping_ratio: sets K_d from K_s and the joint inertia (see
-            `inverse_dynamics_gains_for_k6`).
         window: Savitzky-Golay window of the estimator (paper: 80 samples).
         windows: per-joint (and per-sensor: an F/T sensor's name, or "imu") windows
             instead of `window` (TorqueEstimatorConfig.windows): every window centred
@@ -41,12 +50,52 @@ class TorqueControlConfig:
             16/40/53/39/17), which is why `hrp2-drake tune` bounds K_p to 1.
         evaluation: where the filters evaluate their fit: "centre" (the paper's, delay
             (N − 1)/2 samples) or "end" (causal, no delay, noisier).
+        offset_calibration_time: F/T offset calibration at start-up (s, from 0.2 s;
+            0 = none): only when nothing touches the feet and hands then (the robot
+            hanging); must end before the torque control's start_time.
+    """
+
+    window: int = 80
+    windows: dict[str, int] = field(default_factory=dict)
+    evaluation: str = "centre"
+    offset_calibration_time: float = 0.0
+
+    def validate(self) -> None:
+        """Raises ValueError naming the bad field (the windows' names and parities are
+        checked against the robot when the estimator is built)."""
+        where = f"{_WHERE}.estimator"
+        if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window < 3:
+            raise ValueError(f"{where}.window: {self.window!r} must be an integer >= 3")
+        if self.evaluation not in EVALUATION_POINTS:
+            raise ValueError(
+                f"{where}.evaluation: '{self.evaluation}', expected one of {EVALUATION_POINTS}"
+            )
+        check_finite(
+            self.offset_calibration_time, f"{where}.offset_calibration_time", 0.0, False
+        )
+
+
+@dataclass
+class ControllerSettings:
+    """The inverse dynamics and the Δq torque controller (paper Sec. 4, eq. 12-13).
+
+    Args:
+        k6: position-feedback gain relative to the position servo (Sec. 4.2): 1 = the
+            servo's own stiffness, 0.1 = 10% of it.
+        kp: torque-feedback gain K_p (paper: 2), one value or one per joint.
+        damping_ratio: sets K_d from K_s and the joint inertia (see
+            `inverse_dynamics_gains_for_k6`).
         position_source: "encoders" (e_q from the raw encoders, no delay; default) or
             "estimate" (e_q from the filtered q̂, delayed by the window: the paper's).
         feedback_velocity: the q̇ of ė_q in eq. 12: "estimate" (q̂̇, the paper's) or
             "reference" (q̇_d, default: no velocity feedback in τ_d, see below).
         friction_velocity: the q̇ of the friction feedforward K_v q̇ (eq. 10, 13):
             "estimate" (q̂̇, the paper's) or "reference" (q̇_d, default).
+        force_frame: frame of the force task ("" = motion control only); its wrench
+            is the estimate of the F/T sensor whose body it is (or the
+            description's force_sensor).
+        kf: force-feedback gain K_f (one value or 6).
+        delta_q_limit: saturation of Δq (rad).
 
     Why the defaults differ from the paper's eq. 13 (measured in the motion
     experiment, its "K6 = 1 with the estimates" table): the servo turns Δq = K_τ τ* +
@@ -63,6 +112,53 @@ class TorqueControlConfig:
     and, unsupervised, oscillates at 76-137 mrad on the calibrated one, bounded only by
     the voltage limit); the raw encoders avoid it, as the authors' code did. Causal ("end")
     filters remove the delay but their derivatives are too noisy for K_p = 2.
+    """
+
+    k6: float = 1.0
+    kp: list[float] = field(default_factory=lambda: [2.0])
+    damping_ratio: float = 1.0
+    position_source: str = "encoders"
+    feedback_velocity: str = "reference"
+    friction_velocity: str = "reference"
+    force_frame: str = ""
+    kf: list[float] = field(default_factory=lambda: [0.0])
+    delta_q_limit: float = 0.1
+
+    def validate(self) -> None:
+        """Raises ValueError naming the bad field: the signals' sources, and gains that
+        are finite and of a sign a controller can use (a plain number for `kp` or `kf`,
+        from Python code, becomes a list of one)."""
+        where = f"{_WHERE}.controller"
+        if self.position_source not in ("encoders", "estimate"):
+            raise ValueError(f"{where}.position_source: '{self.position_source}'")
+        for name in ("feedback_velocity", "friction_velocity"):
+            if getattr(self, name) not in ("estimate", "reference"):
+                raise ValueError(f"{where}.{name}: '{getattr(self, name)}'")
+        if isinstance(self.kp, (int, float)):  # a plain number from Python code
+            self.kp = [float(self.kp)]
+        if not self.kp or not all(math.isfinite(k) and k >= 0 for k in self.kp):
+            raise ValueError(
+                f"{where}.kp: {self.kp}: one value or one per joint, each finite and >= 0"
+            )
+        check_finite(self.k6, f"{where}.k6", 0.0, strict=False)
+        check_finite(self.delta_q_limit, f"{where}.delta_q_limit", 0.0)
+        if isinstance(self.kf, (int, float)):  # a plain number from Python code
+            self.kf = [float(self.kf)]
+        if len(self.kf) not in (1, 6):
+            raise ValueError(
+                f"{where}.kf: {len(self.kf)} values, expected one or 6 (one per axis of "
+                "the wrench)"
+            )
+        for k, gain in enumerate(self.kf):
+            check_finite(gain, f"{where}.kf[{k}]", 0.0, strict=False)
+
+
+@dataclass
+class ObserverSettings:
+    """What the torque control adds to the paper's to correct its delayed estimates
+    (the paper's future work).
+
+    Args:
         disturbance_observer: bandwidth (rad/s) of a DisturbanceObserver whose d̂, the
             torque the motor model misses, is subtracted from τ*; 0: none (the
             paper's controller).
@@ -80,121 +176,168 @@ class TorqueControlConfig:
             control's. The reason, measured: it inverts the motor model, so each
             change ΔΔq of the Δq sent within its horizon adds ΔΔq/K_τ to the
             predicted τ̂ at once (K_τ = 0.03-0.24 mrad/(N·m) on the leg: 4-33 N·m
-            per mrad of Δq), without the estimator's smoothing; the Δq controller answers two ticks later with
-            −K_p ΔΔq, so the loop through the predictor oscillates with a 4 ms period
+            per mrad of Δq), without the estimator's smoothing; the Δq controller
+            answers two ticks later with −K_p ΔΔq, so the loop through the
+            predictor oscillates with a 4 ms period
             and grows by √K_p per tick for K_p > 1 (the hip pitch's Δq reached ±98 mrad
             within 12 ms) until |τ̂| passes tau_limit (500 N·m, fallback reason
             "|tau_estimated| exceeds tau_limit"). The servo does not produce those
             torques (the estimator's τ̂ stays smooth), and it is not the cause: the
             `ideal` servo, without latency or voltage limit, falls back after the
             same 11-13 ms. With K_p = 0.5 the 0.6 s measured ran without a fallback.
-        force_frame: frame of the force task ("" = motion control only); its wrench
-            is the estimate of the F/T sensor whose body it is (or the
-            description's force_sensor).
-        kf: force-feedback gain K_f (one value or 6).
-        delta_q_limit: saturation of Δq (rad).
-        start_time: position control until then (the filters fill), s.
-        offset_calibration_time: F/T offset calibration at start-up (s, from 0.2 s;
-            0 = none): only when nothing touches the feet and hands then (the robot
-            hanging); must end before start_time.
-        supervised: a SafetySupervisor between the controllers and the robot
-            (default): faults hand the robot back to its servo with a ramp, torque
-            control starts with a ramp and resumes once faults have cleared; the Δq
-            controller's own fallback then does not latch. False: the controller's
-            latched fallback alone.
-        safety: the supervisor's settings (its start_time is start_time).
+    """
+
+    disturbance_observer: float = 0.0
+    predictor: bool = False
+
+    def validate(self) -> None:
+        """Raises ValueError unless the observer's bandwidth is finite and >= 0."""
+        if not (math.isfinite(self.disturbance_observer) and self.disturbance_observer >= 0):
+            raise ValueError(
+                f"{_WHERE}.observer.disturbance_observer: {self.disturbance_observer} "
+                "must be a bandwidth >= 0 (rad/s; 0 = none)"
+            )
+
+
+@dataclass
+class FaultSettings:
+    """Faults of the controllers' own model of the robot (the fault campaign).
+
+    Args:
         model_error: the estimator's and inverse dynamics' model of the robot has
             every link's mass and COM off by a random factor within ±model_error
             (a fault: `RobotDescription.add_model`); 0: the exact model.
         model_error_seed: the seed of those factors.
     """
 
-    joints: list[str] = field(default_factory=list)
-    k6: float = 1.0
-    kp: list[float] = field(default_factory=lambda: [2.0])
-    damping_ratio: float = 1.0
-    window: int = 80
-    windows: dict[str, int] = field(default_factory=dict)
-    evaluation: str = "centre"
-    position_source: str = "encoders"
-    feedback_velocity: str = "reference"
-    friction_velocity: str = "reference"
-    disturbance_observer: float = 0.0
-    predictor: bool = False
-    force_frame: str = ""
-    kf: list[float] = field(default_factory=lambda: [0.0])
-    delta_q_limit: float = 0.1
-    start_time: float = 0.5
-    offset_calibration_time: float = 0.0
-    supervised: bool = True
-    safety: SafetyConfig = field(default_factory=SafetyConfig)
     model_error: float = 0.0
     model_error_seed: int = 0
+
+    def validate(self) -> None:
+        """Raises ValueError unless model_error is in [0, 1)."""
+        if not 0 <= self.model_error < 1:
+            raise ValueError(
+                f"{_WHERE}.faults.model_error: {self.model_error} must be in [0, 1)"
+            )
+
+
+@moved_keys(
+    k6="controller.k6", kp="controller.kp", damping_ratio="controller.damping_ratio",
+    position_source="controller.position_source",
+    feedback_velocity="controller.feedback_velocity",
+    friction_velocity="controller.friction_velocity",
+    force_frame="controller.force_frame", kf="controller.kf",
+    delta_q_limit="controller.delta_q_limit",
+    window="estimator.window", windows="estimator.windows",
+    evaluation="estimator.evaluation",
+    offset_calibration_time="estimator.offset_calibration_time",
+    disturbance_observer="observer.disturbance_observer", predictor="observer.predictor",
+    safety="supervisor",
+    model_error="faults.model_error", model_error_seed="faults.model_error_seed",
+)
+@dataclass
+class TorqueControlConfig:
+    """The paper's torque control of a set of joints (e.g. HRP-2's right leg), Sec. 4.
+
+    Args:
+        joints: the torque-controlled joints; every other joint stays in position
+            control on its reference. Empty: the robot description's
+            controlled_joints.
+        start_time: position control until then (the filters fill), s.
+        supervised: a SafetySupervisor between the controllers and the robot
+            (default): faults hand the robot back to its servo with a ramp, torque
+            control starts with a ramp and resumes once faults have cleared; the Δq
+            controller's own fallback then does not latch. False: the controller's
+            latched fallback alone.
+        estimator: the torque estimator (its windows, the F/T offset calibration).
+        controller: the inverse dynamics' and the Δq controller's gains and signals.
+        observer: the disturbance observer and the delay predictor (default: none).
+        supervisor: the supervisor's settings (its start_time is start_time).
+        faults: errors of the controllers' model of the robot (default: none).
+    """
+
+    joints: list[str] = field(default_factory=list)
+    start_time: float = 0.5
+    supervised: bool = True
+    estimator: EstimatorSettings = field(default_factory=EstimatorSettings)
+    controller: ControllerSettings = field(default_factory=ControllerSettings)
+    observer: ObserverSettings = field(default_factory=ObserverSettings)
+    supervisor: SafetyConfig = field(default_factory=SafetyConfig)
+    faults: FaultSettings = field(default_factory=FaultSettings)
 
     def controlled_joints(self, robot: RobotDescription) -> list[str]:
         """`joints`, or the robot's controlled joints if empty."""
         return list(self.joints or robot.controlled_joints)
 
     def validate(self) -> None:
-        self.safety.validate()
-        if not 0 <= self.model_error < 1:
+        """Raises ValueError naming the bad field: each part's own checks, then those
+        across parts (the offset calibration ends before start_time)."""
+        self.supervisor.validate()
+        self.faults.validate()
+        self.estimator.validate()
+        self.controller.validate()
+        self.observer.validate()
+        check_finite(self.start_time, f"{_WHERE}.start_time", 0.0, False)
+        calibration = self.estimator.offset_calibration_time
+        if calibration > 0 and 0.2 + calibration > self.start_time:
             raise ValueError(
-                f"TorqueControlConfig.model_error: {self.model_error} must be in [0, 1)"
+                f"{_WHERE}.estimator.offset_calibration_time: the calibration "
+                f"(0.2 s + {calibration} s) must end before start_time = "
+                f"{self.start_time} s"
             )
-        if self.position_source not in ("encoders", "estimate"):
-            raise ValueError(f"TorqueControlConfig.position_source: '{self.position_source}'")
-        if self.offset_calibration_time > 0 and (
-            0.2 + self.offset_calibration_time > self.start_time
-        ):
-            raise ValueError(
-                "TorqueControlConfig.offset_calibration_time: the calibration "
-                f"(0.2 s + {self.offset_calibration_time} s) must end before "
-                f"start_time = {self.start_time} s"
-            )
-        for name in ("feedback_velocity", "friction_velocity"):
-            if getattr(self, name) not in ("estimate", "reference"):
-                raise ValueError(f"TorqueControlConfig.{name}: '{getattr(self, name)}'")
-        if isinstance(self.kp, (int, float)):  # a plain number from Python code
-            self.kp = [float(self.kp)]
-        if not self.kp or not all(math.isfinite(k) and k >= 0 for k in self.kp):
-            raise ValueError(
-                f"TorqueControlConfig.kp: {self.kp}: one value or one per joint, "
-                "each finite and >= 0"
-            )
-        if not (math.isfinite(self.disturbance_observer) and self.disturbance_observer >= 0):
-            raise ValueError(
-                f"TorqueControlConfig.disturbance_observer: {self.disturbance_observer} "
-                "must be a bandwidth >= 0 (rad/s; 0 = none)"
-            )
-        self._validate_gains()
-
-    def _validate_gains(self) -> None:
-        """K6, K_f and the Δq limit: finite, and of a sign a controller can use."""
-        check_finite(self.k6, "TorqueControlConfig.k6", 0.0, strict=False)
-        check_finite(self.delta_q_limit, "TorqueControlConfig.delta_q_limit", 0.0)
-        check_finite(self.start_time, "TorqueControlConfig.start_time", 0.0, False)
-        if isinstance(self.kf, (int, float)):  # a plain number from Python code
-            self.kf = [float(self.kf)]
-        if len(self.kf) not in (1, 6):
-            raise ValueError(
-                f"TorqueControlConfig.kf: {len(self.kf)} values, expected one or 6 "
-                "(one per axis of the wrench)"
-            )
-        for k, gain in enumerate(self.kf):
-            check_finite(gain, f"TorqueControlConfig.kf[{k}]", 0.0, strict=False)
 
 
-def check_control_period(
-    config: TorqueControlConfig, station: StationConfig, where: str = ""
-) -> None:
-    """Raises ValueError unless `config.safety.period` is the control period: the
-    station's sensor period (s), one supervisor update per controller tick. `where`:
-    the path of `config` in the user's file (e.g. "LcmControlConfig.torque_control")."""
-    period, safety = station.sensors_config().period, config.safety.period
-    if not math.isclose(safety, period, rel_tol=1e-9):
+def check_control_period(config: TorqueControlConfig, period: float, where: str = "") -> None:
+    """Raises ValueError unless `config.supervisor.period` is the control `period` (s):
+    the robot's sensor period (a simulated station's
+    `StationConfig.sensors_config().period`), one supervisor update per controller
+    tick. `where`: the path of `config` in the user's file (e.g.
+    "LcmControlConfig.torque_control")."""
+    supervisor = config.supervisor.period
+    if not math.isclose(supervisor, period, rel_tol=1e-9):
         raise ValueError(
-            f"{where or 'TorqueControlConfig'}.safety.period: {safety:g} s, but the "
-            "control period (the robot's sensor period, station.sensors.period) is "
+            f"{where or _WHERE}.supervisor.period: {supervisor:g} s, but the control "
+            "period (the robot's sensor period, sensors.period) is "
             f"{period:g} s: the supervisor runs once per control tick; leave "
-            f"safety.period out or set it to {period:g}"
+            f"supervisor.period out or set it to {period:g}"
         )
+
+
+def field_at(config: Any, path: str) -> Any:
+    """The value of the field at `path` of a config: "start_time", or a nested one
+    ("controller.k6")."""
+    for name in path.split("."):
+        config = getattr(config, name)
+    return config
+
+
+def set_field_at(config: Any, path: str, value: Any) -> None:
+    """Sets the field at `path` (as `field_at`) of `config`, in place."""
+    parent, _, name = path.rpartition(".")
+    setattr(field_at(config, parent) if parent else config, name, value)
+
+
+def replace_fields(config: T, changes: dict[str, Any]) -> T:
+    """`dataclasses.replace` by field path (as `field_at`): a copy of `config` with
+    `changes`, the nested settings they touch copied too, the others shared."""
+    top, nested = {}, {}
+    for path, value in changes.items():
+        name, _, rest = path.partition(".")
+        if rest:
+            nested.setdefault(name, {})[rest] = value
+        else:
+            top[name] = value
+    for name, inner in nested.items():
+        top[name] = replace_fields(top.get(name, getattr(config, name)), inner)
+    return dataclasses.replace(config, **top)
+
+
+def field_type(schema: type, path: str) -> Any:
+    """The type of the field at `path` (as `field_at`) of the dataclass `schema`;
+    None if it has no such field."""
+    for name in path.split("."):
+        hints = typing.get_type_hints(schema) if dataclasses.is_dataclass(schema) else {}
+        if name not in hints:
+            return None
+        schema = hints[name]
+    return schema

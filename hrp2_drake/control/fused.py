@@ -109,6 +109,13 @@ class TorqueChainParts:
         return (config.delay_samples() + 2) * config.period
 
 
+def _start_in(array: np.ndarray, view: np.ndarray) -> int:
+    """The index in the 1-D `array` of the first entry of `view`, a contiguous view on
+    it."""
+    offset = view.__array_interface__["data"][0] - array.__array_interface__["data"][0]
+    return offset // array.itemsize
+
+
 class FusedController:
     """The whole torque-control chain as one plain object (module docstring).
 
@@ -127,8 +134,8 @@ class FusedController:
         self.parts = parts
         self._period = parts.period
         all_joints, joints = parts.all_joints, parts.joints
-        self._N = N = len(all_joints)
-        self._n = n = len(joints)
+        self._N = len(all_joints)
+        self._n = len(joints)
         self._index = np.array([all_joints.index(j) for j in joints])
         econfig = parts.estimator_config
         if list(econfig.joints) != list(all_joints):
@@ -140,7 +147,22 @@ class FusedController:
         self._sensor_names = list(econfig.sensors)
         k = len(self._sensor_names)
         self._num_sensor_values = (6 if self._has_imu else 0) + 6 * k
+        self._make_steps()
+        self._make_state()
+        self._make_buffers()
+        self._wire()
+        self._make_gathers()
+        # Events: (t, kind, code) rows, a ring of the latest ones, and counts.
+        self.events = np.zeros((256, 3))
+        self.num_events = 0
+        self.event_counts = {EVENT_CONTROLLER_FALLBACK: 0, EVENT_SUPERVISOR_FAULT: 0}
 
+    # ------------------------------------------------------------------ wiring
+
+    def _make_steps(self) -> None:
+        """The steps of the chain, from `parts` (None for a step it does not have)."""
+        parts, N = self.parts, self._N
+        econfig = parts.estimator_config
         encoder_windows, sensor_windows = filter_windows(econfig)
         self.encoder_filter = SavitzkyGolayStep(
             N, encoder_windows, 2, econfig.period, econfig.evaluation, span=econfig.span()
@@ -175,6 +197,10 @@ class FusedController:
             else None
         )
         self._num_stamps = parts.supervisor[2] if parts.supervisor else 0
+
+    def _make_state(self) -> None:
+        """One state vector for all steps (each step bound to its rows), and its copy
+        at the start of each tick."""
         steps = [
             ("encoder_filter", self.encoder_filter),
             ("sensor_filter", self.sensor_filter),
@@ -186,7 +212,6 @@ class FusedController:
             ("supervisor", self.supervisor),
         ]
         self._steps: dict[str, Step] = {name: s for name, s in steps if s is not None}
-        # One state vector for all steps, and its copy at the start of each tick.
         self._offsets: dict[str, int] = {}
         size = 0
         for name, step in self._steps.items():
@@ -197,15 +222,6 @@ class FusedController:
             start = self._offsets[name]
             step.bind(self.state[start : start + step.state_size])
         self._initial_state = self.state.copy()
-        self._make_buffers()
-        self._wire()
-        self._make_gathers()
-        # Events: (t, kind, code) rows, a ring of the latest ones, and counts.
-        self.events = np.zeros((256, 3))
-        self.num_events = 0
-        self.event_counts = {EVENT_CONTROLLER_FALLBACK: 0, EVENT_SUPERVISOR_FAULT: 0}
-
-    # ------------------------------------------------------------------ wiring
 
     def _make_buffers(self) -> None:
         N, n = self._N, self._n
@@ -286,9 +302,7 @@ class FusedController:
 
     def _source_rows(self, view: np.ndarray) -> np.ndarray:
         """The rows of `_sources` that a view on it covers."""
-        sources = self._sources
-        start = (view.__array_interface__["data"][0]
-                 - sources.__array_interface__["data"][0]) // sources.itemsize
+        start = _start_in(self._sources, view)
         return np.arange(start, start + view.size)
 
     def _make_gathers(self) -> None:
@@ -535,9 +549,7 @@ class FusedTorqueController(WitnessFreeLeafSystem):
 
     def _rows_of(self, view: np.ndarray) -> slice:
         """The rows of the fused state that a state view covers."""
-        state = self._fused.state
-        start = (view.__array_interface__["data"][0]
-                 - state.__array_interface__["data"][0]) // state.itemsize
+        start = _start_in(self._fused.state, view)
         return slice(start, start + view.size)
 
     def fused_controller(self) -> FusedController:

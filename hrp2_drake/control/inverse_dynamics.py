@@ -865,7 +865,7 @@ class InverseDynamicsController(StepSystem):
     as a leg, they do not depend on the other joints at all. The controller computes
     them on a private copy of the part of `plant` that the controlled joints move
     (the bodies outboard of them, every other joint welded at `nominal_positions`;
-    for the right leg, 6 bodies instead of the robot's 31), which gives the same
+    e.g. HRP-2's right leg: 6 bodies instead of the robot's 31), which gives the same
     numbers for less work per update (plant itself if a controlled joint is neither
     revolute nor prismatic). With config.floating_base the controller keeps one
     private context of `plant` itself; the base pose is

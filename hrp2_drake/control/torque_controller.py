@@ -957,6 +957,16 @@ def _check_shape(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
     return array
 
 
+def _check_jacobian(jacobian, n: int) -> np.ndarray:
+    """J_j as a finite (k, n) float array (raises ValueError otherwise)."""
+    J = np.asarray(jacobian, dtype=float)
+    if J.ndim != 2 or J.shape[1] != n:
+        raise ValueError(
+            f"gain mapping: 'jacobian' has shape {J.shape}, expected (k, {n})"
+        )
+    return _check_shape("jacobian", J, J.shape)
+
+
 def gains_from_user(
     k_tau,
     kp,
@@ -992,12 +1002,7 @@ def gains_from_user(
     k8 = K_tau @ Kp @ M  # K8 = K_τ K_p M_j
     k9 = None
     if jacobian is not None:
-        J = np.asarray(jacobian, dtype=float)
-        if J.ndim != 2 or J.shape[1] != n:
-            raise ValueError(
-                f"gain mapping: 'jacobian' has shape {J.shape}, expected (k, {n})"
-            )
-        J = _check_shape("jacobian", J, J.shape)
+        J = _check_jacobian(jacobian, n)
         Kf = _as_matrix("kf", kf, J.shape[0])
         # K9 = −K_τ (K_p J_jᵀ (I + K_f) + J_jᵀ K_f)
         k9 = -K_tau @ (Kp @ J.T @ (np.eye(J.shape[0]) + Kf) + J.T @ Kf)
@@ -1041,19 +1046,7 @@ def user_from_gains(
     K_tau = _as_matrix("k_tau", k_tau, n)
     K6 = _as_matrix("k6", k6, n)
     K7 = _as_matrix("k7", k7, n)
-    if kp is None:
-        if k8 is None or mass_matrix is None:
-            raise ValueError("user_from_gains: with kp=None, give k8 and mass_matrix")
-        K8 = _check_shape("k8", k8, (n, n))
-        M = _check_shape("mass_matrix", mass_matrix, (n, n))
-        # K8 = K_τ K_p M_j  →  K_p = K_τ⁻¹ K8 M_j⁻¹
-        Kp = np.linalg.solve(M.T, np.linalg.solve(K_tau, K8).T).T
-    else:
-        if k8 is not None or mass_matrix is not None:
-            raise ValueError(
-                "user_from_gains: give kp, or k8 and mass_matrix, not both"
-            )
-        Kp = _as_matrix("kp", kp, n)
+    Kp = _user_kp(K_tau, kp, k8, mass_matrix, n)
     I = np.eye(n)
     A = K_tau @ (I + Kp)
     if np.linalg.cond(A) > 1e12:
@@ -1064,29 +1057,44 @@ def user_from_gains(
     if k9 is not None:
         if jacobian is None:
             raise ValueError("user_from_gains: k9 needs the jacobian")
-        J = np.asarray(jacobian, dtype=float)
-        if J.ndim != 2 or J.shape[1] != n:
-            raise ValueError(
-                f"gain mapping: 'jacobian' has shape {J.shape}, expected (k, {n})"
-            )
-        J = _check_shape("jacobian", J, J.shape)
-        k = J.shape[0]
-        K9 = _check_shape("k9", k9, (n, k))
-        if np.linalg.matrix_rank(J) < k:
-            raise ValueError(
-                f"user_from_gains: J_j has rank {np.linalg.matrix_rank(J)} < {k}: K_f "
-                "is not determined by K9"
-            )
-        # K9 = −K_τ (K_p J_jᵀ + (I + K_p) J_jᵀ K_f)
-        B = np.linalg.solve(I + Kp, -np.linalg.solve(K_tau, K9) - Kp @ J.T)
-        kf, *_ = np.linalg.lstsq(J.T, B, rcond=None)
-        residual = np.linalg.norm(J.T @ kf - B)
-        if residual > 1e-8 * max(np.linalg.norm(B), 1e-300):
-            raise ValueError(
-                "user_from_gains: no K_f gives this K9 for these K_p, K_τ and J_j "
-                f"(relative residual {residual / np.linalg.norm(B):.3g})"
-            )
+        kf = _user_kf(K_tau, Kp, k9, _check_jacobian(jacobian, n))
     return UserGains(Kp, ks, kd, kf)
+
+
+def _user_kp(K_tau: np.ndarray, kp, k8, mass_matrix, n: int) -> np.ndarray:
+    """K_p of `user_from_gains`: `kp` as a matrix, or K_τ⁻¹ K8 M_j⁻¹ with kp=None."""
+    if kp is None:
+        if k8 is None or mass_matrix is None:
+            raise ValueError("user_from_gains: with kp=None, give k8 and mass_matrix")
+        K8 = _check_shape("k8", k8, (n, n))
+        M = _check_shape("mass_matrix", mass_matrix, (n, n))
+        # K8 = K_τ K_p M_j  →  K_p = K_τ⁻¹ K8 M_j⁻¹
+        return np.linalg.solve(M.T, np.linalg.solve(K_tau, K8).T).T
+    if k8 is not None or mass_matrix is not None:
+        raise ValueError("user_from_gains: give kp, or k8 and mass_matrix, not both")
+    return _as_matrix("kp", kp, n)
+
+
+def _user_kf(K_tau: np.ndarray, Kp: np.ndarray, k9, J: np.ndarray) -> np.ndarray:
+    """K_f of `user_from_gains`: the solution of J_jᵀ K_f = (I + K_p)⁻¹ (−K_τ⁻¹ K9 −
+    K_p J_jᵀ), for a checked J_j (k, n) of full row rank and a K9 it can produce."""
+    n, k = J.shape[1], J.shape[0]
+    K9 = _check_shape("k9", k9, (n, k))
+    if np.linalg.matrix_rank(J) < k:
+        raise ValueError(
+            f"user_from_gains: J_j has rank {np.linalg.matrix_rank(J)} < {k}: K_f "
+            "is not determined by K9"
+        )
+    # K9 = −K_τ (K_p J_jᵀ + (I + K_p) J_jᵀ K_f)
+    B = np.linalg.solve(np.eye(n) + Kp, -np.linalg.solve(K_tau, K9) - Kp @ J.T)
+    kf, *_ = np.linalg.lstsq(J.T, B, rcond=None)
+    residual = np.linalg.norm(J.T @ kf - B)
+    if residual > 1e-8 * max(np.linalg.norm(B), 1e-300):
+        raise ValueError(
+            "user_from_gains: no K_f gives this K9 for these K_p, K_τ and J_j "
+            f"(relative residual {residual / np.linalg.norm(B):.3g})"
+        )
+    return kf
 
 
 def inverse_dynamics_gains_for_k6(

@@ -107,6 +107,7 @@ from pydrake.systems.framework import (
 )
 from pydrake.systems.primitives import Adder, Demultiplexer, Multiplexer
 
+from hrp2_drake.description import RobotDescription
 from hrp2_drake.estimation.savitzky_golay import EVALUATION_POINTS, SavitzkyGolayFilter
 from hrp2_drake.multibody import (
     check_joint_names,
@@ -292,6 +293,26 @@ class TorqueEstimatorConfig:
                         f"longest window, {span}, so its centre (the instant it "
                         "estimates) cannot be the longest one's"
                     )
+
+
+def estimator_config(
+    robot: RobotDescription, window: int = 80, **options
+) -> TorqueEstimatorConfig:
+    """The estimator of paper Sec. 2 for `robot`: its joints, IMU (if any), F/T
+    sensors and unknown-wrench link, `window` samples per Savitzky-Golay filter;
+    `options` set the other fields of TorqueEstimatorConfig."""
+    options.setdefault("unknown_wrench_body", robot.unknown_wrench_body)
+    sensors = {
+        name: ForceTorqueSensorConfig(frame=sensor.frame, body=sensor.body)
+        for name, sensor in robot.force_torque_sensors.items()
+    }
+    return TorqueEstimatorConfig(
+        joints=list(robot.joints),
+        imu_frame=robot.imu_frame,
+        sensors=sensors,
+        window=window,
+        **options,
+    )
 
 
 class TorqueEstimate(NamedTuple):
@@ -1360,6 +1381,41 @@ def _internal_model(
         ValueError: a joint of `plant` that is neither revolute, prismatic nor weld
             (nor the floating joint of the base).
     """
+    model, frames = _copy_bodies_and_frames(plant, context)
+    # The tree rooted at the IMU's body, and the joint that holds each body.
+    holder = tree_joints(plant, root_frame.body().index())
+    root_instance = _add_root(model, plant, root_frame, frames, set(holder))
+    by_body = {int(sensor.body.index()): sensor for sensor in sensors}
+    for child, (parent_index, joint) in sorted(holder.items()):
+        forward = int(joint.child_body().index()) == child
+        on_parent, on_child = (
+            (joint.frame_on_parent(), joint.frame_on_child())
+            if forward
+            else (joint.frame_on_child(), joint.frame_on_parent())
+        )
+        F = frames[int(on_parent.index())]
+        M = frames[int(on_child.index())]
+        sensor = by_body.get(child)
+        if sensor is not None:
+            M = _mount_sensor(model, sensor, child, on_child, root_instance)
+        try:
+            copy_joint(model, plant, context, joint, F, M, forward)
+        except ValueError as error:
+            raise ValueError(f"{_WHERE}: {error} (besides the floating base)") from None
+    model.Finalize()
+    for sensor in sensors:
+        # QuaternionFloatingJoint velocities: [ω_FM; v_FM] in F (= S at the identity).
+        sensor.rows = sensor.joint.velocity_start() + np.arange(6)
+    return model, frames
+
+
+def _copy_bodies_and_frames(
+    plant: MultibodyPlant, context: Context
+) -> tuple[MultibodyPlant, dict[int, object]]:
+    """The internal model's first step: a plant without gravity holding `plant`'s model
+    instances, bodies (inertias in `context`) and frames (the ephemeral ones left
+    out). Returns it (not finalized) and its copy of each frame by `plant`'s frame
+    index."""
     model = MultibodyPlant(0.0)
     model.mutable_gravity_field().set_gravity_vector(np.zeros(3))
     for i in range(2, plant.num_model_instances()):  # 0: world, 1: default
@@ -1389,12 +1445,21 @@ def _internal_model(
                 )
             )
         )
+    return model, frames
 
-    # The tree rooted at the IMU's body, and the joint that holds each body.
-    top = int(root_frame.body().index())
-    holder = tree_joints(plant, root_frame.body().index())
-    seen = set(holder) | {top}
 
+def _add_root(
+    model: MultibodyPlant,
+    plant: MultibodyPlant,
+    root_frame: object,
+    frames: dict[int, object],
+    held: set[int],
+) -> ModelInstanceIndex:
+    """Adds the internal model's massless floating root body, welded to the copy of
+    `root_frame`, and welds to the world the bodies out of the robot's tree (neither
+    the root frame's body nor one of `held`, the bodies a joint of the tree holds).
+    Returns the root's model instance."""
+    in_tree = held | {int(root_frame.body().index())}
     root_instance = model.AddModelInstance(_ROOT)
     root = model.AddRigidBody(_ROOT, root_instance, SpatialInertia.Zero())
     model.AddJoint(
@@ -1406,66 +1471,59 @@ def _internal_model(
         )
     )
     for i in range(1, plant.num_bodies()):
-        if i not in seen:  # not the robot's: keep it out of the model's dofs
+        if i not in in_tree:  # not the robot's: keep it out of the model's dofs
             model.WeldFrames(
                 model.world_frame(), model.get_body(BodyIndex(i)).body_frame()
             )
-    by_body = {int(sensor.body.index()): sensor for sensor in sensors}
-    for child, (parent_index, joint) in sorted(holder.items()):
-        forward = int(joint.child_body().index()) == child
-        on_parent, on_child = (
-            (joint.frame_on_parent(), joint.frame_on_child())
-            if forward
-            else (joint.frame_on_child(), joint.frame_on_parent())
+    return root_instance
+
+
+def _mount_sensor(
+    model: MultibodyPlant,
+    sensor: _Sensor,
+    child: int,
+    on_child: object,
+    root_instance: ModelInstanceIndex,
+) -> object:
+    """Hangs body B (index `child`) below F/T sensor `sensor`: a massless mount at B's
+    place and a 6-dof joint from the frame S on the mount to the frame S on B. Fills
+    the sensor's model_body, model_frame, joint and p_BoSo_S. Returns the mount's frame
+    that the joint holding B attaches to (at `on_child`'s pose)."""
+    B = model.get_body(BodyIndex(child))
+    mount = model.AddRigidBody(
+        f"{sensor.name}_ft_sensor_mount", root_instance, SpatialInertia.Zero()
+    )
+    M = model.AddFrame(
+        FixedOffsetFrame(
+            f"{sensor.name}_ft_sensor_mount_joint",
+            mount.body_frame(),
+            on_child.GetFixedPoseInBodyFrame(),
         )
-        F = frames[int(on_parent.index())]
-        M = frames[int(on_child.index())]
-        sensor = by_body.get(child)
-        if sensor is not None:
-            # The joint holds a massless mount at B's place; B hangs from the mount.
-            B = model.get_body(BodyIndex(child))
-            mount = model.AddRigidBody(
-                f"{sensor.name}_ft_sensor_mount", root_instance, SpatialInertia.Zero()
-            )
-            M = model.AddFrame(
-                FixedOffsetFrame(
-                    f"{sensor.name}_ft_sensor_mount_joint",
-                    mount.body_frame(),
-                    on_child.GetFixedPoseInBodyFrame(),
-                )
-            )
-            sensor.model_body = B
-            sensor.model_frame = model.AddFrame(
-                FixedOffsetFrame(
-                    f"{sensor.name}_ft_sensor",
-                    B.body_frame(),
-                    sensor.X_BS,
-                    root_instance,
-                )
-            )
-            S_mount = model.AddFrame(
-                FixedOffsetFrame(
-                    f"{sensor.name}_ft_sensor_on_mount",
-                    mount.body_frame(),
-                    sensor.X_BS,
-                )
-            )
-            sensor.joint = model.AddJoint(
-                QuaternionFloatingJoint(
-                    f"{sensor.name}_ft_sensor_joint", S_mount, sensor.model_frame
-                )
-            )
-            R_BS = sensor.X_BS.rotation().matrix()
-            sensor.p_BoSo_S = R_BS.T @ sensor.X_BS.translation()
-        try:
-            copy_joint(model, plant, context, joint, F, M, forward)
-        except ValueError as error:
-            raise ValueError(f"{_WHERE}: {error} (besides the floating base)") from None
-    model.Finalize()
-    for sensor in sensors:
-        # QuaternionFloatingJoint velocities: [ω_FM; v_FM] in F (= S at the identity).
-        sensor.rows = sensor.joint.velocity_start() + np.arange(6)
-    return model, frames
+    )
+    sensor.model_body = B
+    sensor.model_frame = model.AddFrame(
+        FixedOffsetFrame(
+            f"{sensor.name}_ft_sensor",
+            B.body_frame(),
+            sensor.X_BS,
+            root_instance,
+        )
+    )
+    S_mount = model.AddFrame(
+        FixedOffsetFrame(
+            f"{sensor.name}_ft_sensor_on_mount",
+            mount.body_frame(),
+            sensor.X_BS,
+        )
+    )
+    sensor.joint = model.AddJoint(
+        QuaternionFloatingJoint(
+            f"{sensor.name}_ft_sensor_joint", S_mount, sensor.model_frame
+        )
+    )
+    R_BS = sensor.X_BS.rotation().matrix()
+    sensor.p_BoSo_S = R_BS.T @ sensor.X_BS.translation()
+    return M
 
 
 # --------------------------------------------------------------------- the chain
@@ -1563,10 +1621,31 @@ def add_estimator(
         KeyError: a port the station lacks (named), an unknown frame/joint.
     """
     config.validate()
-    names = list(config.sensors)
-    has_imu = bool(config.imu_frame)
-    imu_ports = [accelerometer, gyroscope] if has_imu else []
-    ports = [encoders] + imu_ports + [wrench_prefix + n for n in names]
+    imu_ports = [accelerometer, gyroscope] if config.imu_frame else []
+    sensor_ports = imu_ports + [wrench_prefix + s for s in config.sensors]
+    _check_station_ports(station, config, encoders, sensor_ports)
+    estimator = builder.AddNamedSystem(name, FloatingBaseTorqueEstimator(plant, config))
+    encoder_filter = _add_encoder_filter(builder, station, estimator, config, encoders, name)
+    faults = [encoder_filter.GetOutputPort("input_fault")]
+    sensor_filter = _add_sensor_filter(
+        builder, station, estimator, config, sensor_ports, name
+    )
+    if sensor_filter is not None:
+        faults.append(sensor_filter.GetOutputPort("input_fault"))
+    fault = builder.AddNamedSystem(f"{name}_input_fault", Adder(len(faults), 1))
+    for k, port in enumerate(faults):
+        builder.Connect(port, fault.get_input_port(k))
+    return EstimationChain(
+        estimator, encoder_filter, sensor_filter, fault.get_output_port()
+    )
+
+
+def _check_station_ports(
+    station: System, config: TorqueEstimatorConfig, encoders: str, sensor_ports: list[str]
+) -> None:
+    """add_estimator's first step: `station` has the encoder port, of one entry per
+    joint, and every sensor port (a KeyError, a ValueError naming them otherwise)."""
+    ports = [encoders] + sensor_ports
     missing = [p for p in ports if not station.HasOutputPort(p)]
     if missing:
         raise KeyError(
@@ -1578,12 +1657,23 @@ def add_estimator(
             f"add_estimator: port '{encoders}' has "
             f"{station.GetOutputPort(encoders).size()} entries, config.joints has {n}"
         )
-    estimator = builder.AddNamedSystem(name, FloatingBaseTorqueEstimator(plant, config))
-    encoder_windows, sensor_windows = filter_windows(config)
+
+
+def _add_encoder_filter(
+    builder: DiagramBuilder,
+    station: System,
+    estimator: FloatingBaseTorqueEstimator,
+    config: TorqueEstimatorConfig,
+    encoders: str,
+    name: str,
+) -> SavitzkyGolayFilter:
+    """Adds the encoders' Savitzky-Golay filter (order 2) between the station's port
+    `encoders` and the estimator's q, v and vdot inputs; returns it."""
+    encoder_windows, _ = filter_windows(config)
     encoder_filter = builder.AddNamedSystem(
         f"{name}_encoder_filter",
         SavitzkyGolayFilter(
-            n,
+            len(config.joints),
             encoder_windows,
             2,
             config.period,
@@ -1600,47 +1690,54 @@ def add_estimator(
         builder.Connect(
             encoder_filter.GetOutputPort(source), estimator.GetInputPort(target)
         )
-    faults = [encoder_filter.GetOutputPort("input_fault")]
+    return encoder_filter
 
-    sizes = [3] * len(imu_ports) + [6] * len(names)
-    sensor_filter = None
-    if sizes:
-        mux = builder.AddNamedSystem(f"{name}_sensor_mux", Multiplexer(sizes))
-        for k, port in enumerate(ports[1:]):
-            builder.Connect(station.GetOutputPort(port), mux.get_input_port(k))
-        sensor_filter = builder.AddNamedSystem(
-            f"{name}_sensor_filter",
-            SavitzkyGolayFilter(
-                sum(sizes),
-                sensor_windows,
-                1,
-                config.period,
-                config.evaluation,
-                span=config.span(),
-            ),
-        )
-        builder.Connect(mux.get_output_port(), sensor_filter.get_input_port())
-        values = builder.AddNamedSystem(f"{name}_sensor_values", Demultiplexer(sizes))
-        builder.Connect(sensor_filter.GetOutputPort("value"), values.get_input_port())
-        imu_targets = ["imu_linear_acceleration", "imu_angular_velocity"]
-        targets = imu_targets[: len(imu_ports)] + [f"wrench_{n}" for n in names]
-        for k, target in enumerate(targets):
-            builder.Connect(values.get_output_port(k), estimator.GetInputPort(target))
-        if has_imu:
-            rates = builder.AddNamedSystem(
-                f"{name}_sensor_derivatives", Demultiplexer(sizes)
-            )
-            builder.Connect(
-                sensor_filter.GetOutputPort("derivative"), rates.get_input_port()
-            )
-            builder.Connect(
-                rates.get_output_port(1),
-                estimator.GetInputPort("imu_angular_acceleration"),
-            )
-        faults.append(sensor_filter.GetOutputPort("input_fault"))
-    fault = builder.AddNamedSystem(f"{name}_input_fault", Adder(len(faults), 1))
-    for k, port in enumerate(faults):
-        builder.Connect(port, fault.get_input_port(k))
-    return EstimationChain(
-        estimator, encoder_filter, sensor_filter, fault.get_output_port()
+
+def _add_sensor_filter(
+    builder: DiagramBuilder,
+    station: System,
+    estimator: FloatingBaseTorqueEstimator,
+    config: TorqueEstimatorConfig,
+    sensor_ports: list[str],
+    name: str,
+) -> SavitzkyGolayFilter | None:
+    """Adds the IMU's and F/T sensors' Savitzky-Golay filter (order 1) between the
+    station's `sensor_ports` (accelerometer and gyroscope with an IMU, then each F/T
+    sensor's) and the estimator: a Mux, the filter, a Demux of its values, and with an
+    IMU a Demux of its derivatives for the gyro's (imu_angular_acceleration). Returns
+    the filter, or None (and adds nothing) without any of these sensors."""
+    names = list(config.sensors)
+    num_imu_ports = len(sensor_ports) - len(names)
+    sizes = [3] * num_imu_ports + [6] * len(names)
+    if not sizes:
+        return None
+    _, sensor_windows = filter_windows(config)
+    mux = builder.AddNamedSystem(f"{name}_sensor_mux", Multiplexer(sizes))
+    for k, port in enumerate(sensor_ports):
+        builder.Connect(station.GetOutputPort(port), mux.get_input_port(k))
+    sensor_filter = builder.AddNamedSystem(
+        f"{name}_sensor_filter",
+        SavitzkyGolayFilter(
+            sum(sizes),
+            sensor_windows,
+            1,
+            config.period,
+            config.evaluation,
+            span=config.span(),
+        ),
     )
+    builder.Connect(mux.get_output_port(), sensor_filter.get_input_port())
+    values = builder.AddNamedSystem(f"{name}_sensor_values", Demultiplexer(sizes))
+    builder.Connect(sensor_filter.GetOutputPort("value"), values.get_input_port())
+    imu_targets = ["imu_linear_acceleration", "imu_angular_velocity"]
+    targets = imu_targets[:num_imu_ports] + [f"wrench_{n}" for n in names]
+    for k, target in enumerate(targets):
+        builder.Connect(values.get_output_port(k), estimator.GetInputPort(target))
+    if num_imu_ports:
+        rates = builder.AddNamedSystem(f"{name}_sensor_derivatives", Demultiplexer(sizes))
+        builder.Connect(sensor_filter.GetOutputPort("derivative"), rates.get_input_port())
+        builder.Connect(
+            rates.get_output_port(1),
+            estimator.GetInputPort("imu_angular_acceleration"),
+        )
+    return sensor_filter

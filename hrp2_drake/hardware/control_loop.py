@@ -95,37 +95,60 @@ def request_real_time(config: RealTimeConfig) -> dict:
     return granted
 
 
+def _check_time(value, name: str) -> None:
+    """Raises ValueError naming `name` unless `value` is a time: finite, > 0 (s)."""
+    if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+        raise ValueError(f"{name}: {value!r} must be a finite number > 0 (s)")
+
+
 @dataclass
-class LoopConfig:
-    """The controller loop's settings.
+class LoopSettings:
+    """The controller loop's own settings (what a run does not set itself).
 
     Args:
-        duration: seconds of robot time to run (from the first encoder message).
-        period: the robot's sensor period (s): the tick's budget.
         wait_timeout: how long to wait for the first message of every channel (s).
         silence_timeout: the robot is silent after this long without a new encoder
             sample (s): the loop ramps out.
-        ramp_time: the ramp from the last command to the measured pose (s).
-        real_time: CPU, scheduler and garbage collector.
+        ramp_time: the ramp from the last command to the measured pose that ends
+            every run (s).
+        real_time: CPU pinning, SCHED_FIFO priority, garbage collector.
     """
 
-    duration: float = 5.0
-    period: float = 0.001
     wait_timeout: float = 10.0
     silence_timeout: float = 0.05
     ramp_time: float = 0.2
     real_time: RealTimeConfig = field(default_factory=RealTimeConfig)
 
-    def validate(self) -> None:
-        for name in ("duration", "period", "wait_timeout", "silence_timeout", "ramp_time"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"LoopConfig.{name}: {value!r} must be a finite number > 0 (s)")
-        if self.silence_timeout < 2 * self.period:
+    def validate(self, period: float = 0.0, where: str = "LoopSettings") -> None:
+        """Raises ValueError naming `where`.<field>: each time finite and > 0, and
+        silence_timeout at least two control periods (`period`, s; 0: unknown)."""
+        for name in ("wait_timeout", "silence_timeout", "ramp_time"):
+            _check_time(getattr(self, name), f"{where}.{name}")
+        if self.silence_timeout < 2 * period:
             raise ValueError(
-                f"LoopConfig.silence_timeout: {self.silence_timeout} s is shorter than "
-                f"two periods ({2 * self.period} s)"
+                f"{where}.silence_timeout: {self.silence_timeout} s is shorter than "
+                f"two periods ({2 * period} s)"
             )
+
+
+@dataclass
+class LoopConfig:
+    """The controller loop's settings for one run.
+
+    Args:
+        duration: seconds of robot time to run (from the first encoder message).
+        period: the robot's sensor period (s): the tick's budget.
+        settings: the loop's own settings (timeouts, ramp, real time).
+    """
+
+    duration: float = 5.0
+    period: float = 0.001
+    settings: LoopSettings = field(default_factory=LoopSettings)
+
+    def validate(self) -> None:
+        for name in ("duration", "period"):
+            _check_time(getattr(self, name), f"LoopConfig.{name}")
+        self.settings.validate(self.period, "LoopConfig.settings")
 
 
 class ControlLoop:
@@ -271,7 +294,7 @@ class ControlLoop:
         """Waits up to wait_timeout for a message on every sensor channel (without
         ticking); a TimeoutError naming the silent ones otherwise."""
         channels = [self.channels.q_measured] + [c.codec.channel for c in self._others]
-        deadline = time.monotonic() + self.config.wait_timeout
+        deadline = time.monotonic() + self.config.settings.wait_timeout
         try:
             while len(self._seen) < len(channels) and time.monotonic() < deadline:
                 self.transport.handle(max(min(0.05, deadline - time.monotonic()), 0.0))
@@ -281,7 +304,7 @@ class ControlLoop:
         if silent:
             raise TimeoutError(
                 f"no message from the robot on {', '.join(silent)} within "
-                f"{self.config.wait_timeout:g} s on {self.transport.url}: start the "
+                f"{self.config.settings.wait_timeout:g} s on {self.transport.url}: start the "
                 "robot's bridge (or `hrp2-drake sim-robot`) first, with the same URL "
                 "and robot"
             )
@@ -290,7 +313,7 @@ class ControlLoop:
     def run(self) -> dict:
         """Runs until the duration (robot time), a fault, or a signal; ramps out; the
         run's summary (see `summary`)."""
-        config = self.config
+        config = self.config.settings
         granted = request_real_time(config.real_time)
         previous = {
             sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGTERM, signal.SIGINT)
@@ -345,7 +368,7 @@ class ControlLoop:
         q_hold = self.controller.q_measured.copy()
         if not np.all(np.isfinite(q_hold)):
             q_hold = q_from
-        steps = max(1, int(round(self.config.ramp_time / self.config.period)))
+        steps = max(1, int(round(self.config.settings.ramp_time / self.config.period)))
         start = time.perf_counter()
         try:
             for k in range(1, steps + 1):

@@ -14,13 +14,12 @@ The result is an identification log: what a real robot would record (see
 `IDENTIFICATION_LOG_SIGNALS` and `save_log`), plus, in simulation only, ground truth
 for evaluation. Nothing here reads the servo's parameters.
 
-A station is any Diagram with the ports of DESIGN.md: input `q_cmd` and
+A station is any Diagram with the ports of docs/architecture.md: input `q_cmd` and
 `applied_spatial_force`, outputs `q_measured`, `imu_linear_acceleration`,
 `imu_angular_velocity`, `wrench_<sensor>`; `joint_torque_true` is logged if present.
 """
 
-import copy
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -34,6 +33,12 @@ from pydrake.systems.framework import Context, Diagram, DiagramBuilder, LeafSyst
 from pydrake.systems.primitives import TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
+# The configs are the robot description's (plain data), imported here for this module's users.
+from hrp2_drake.description.excitation import (  # noqa: F401
+    CollectionConfig,
+    PushConfig,
+    SinusoidConfig,
+)
 from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
 
 # Phases of an identification log, per sample.
@@ -44,107 +49,6 @@ PHASE_TRANSITION, PHASE_HIGH_TORQUE, PHASE_HIGH_VELOCITY = 0, 1, 2
 #: `IMU_LOG_SIGNALS` (m/s², rad/s), and every F/T sensor s its "wrench_<s>" ([N·m; N]).
 IDENTIFICATION_LOG_SIGNALS = ("q_cmd", "q_measured")
 IMU_LOG_SIGNALS = ("imu_linear_acceleration", "imu_angular_velocity")
-
-
-@dataclass
-class SinusoidConfig:
-    """One joint's increasing-amplitude sinusoid (paper 3.4.2).
-
-    Args:
-        joint: joint name.
-        center_offset: offset of the sinusoid's centre from the nominal pose (rad),
-            e.g. to keep a leg clear of the other one.
-        amplitude_start: a0 (rad).
-        amplitude_end: a0 + a T (rad), reached at the end.
-        peak_velocity: the velocity amplitude reached at the end (rad/s); sets the
-            frequency f = peak_velocity / (2π amplitude_end).
-        duration: T (s), rounded by `end_time` to end at a peak of the sinusoid
-            (zero velocity), so that the move away from it is gentle.
-    """
-
-    joint: str = ""
-    center_offset: float = 0.0
-    amplitude_start: float = 0.02
-    amplitude_end: float = 0.3
-    peak_velocity: float = 1.0
-    duration: float = 8.0
-
-    def frequency(self) -> float:
-        return self.peak_velocity / (2 * np.pi * self.amplitude_end)
-
-    def end_time(self) -> float:
-        """The duration rounded to end at a peak: (k + 1/4) periods."""
-        f = self.frequency()
-        return (max(round(f * self.duration - 0.25), 0) + 0.25) / f
-
-
-@dataclass
-class PushConfig:
-    """Pushes on one body in several joint configurations (paper 3.4.1).
-
-    Args:
-        body: the pushed body (e.g. the foot below the F/T sensor).
-        point: where the push is applied, in the body frame (m).
-        configurations: joint offsets from the nominal pose, one list per
-            configuration, as {joint name: offset (rad)}.
-        max_force: bound of each force component (N).
-        max_torque: bound of each couple component (N·m).
-        ramp_duration: time of one ramp between two wrenches (s).
-        extra_ramps: ramps per configuration after the 12 single-axis ones (random
-            combinations of one or two axes).
-        seed: seed of the random wrenches.
-    """
-
-    body: str = ""
-    point: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
-    configurations: list[dict[str, float]] = field(default_factory=lambda: [{}])
-    max_force: float = 100.0
-    max_torque: float = 30.0
-    ramp_duration: float = 0.6
-    extra_ramps: int = 8
-    seed: int = 0
-
-
-@dataclass
-class CollectionConfig:
-    """A whole identification data collection.
-
-    Args:
-        nominal_offsets: {joint name: offset (rad)} from the station's initial pose for
-            the whole collection (e.g. the other leg spread out of the way).
-        pushes: the high-torque part (none if `pushes.body` is empty).
-        sinusoids: the high-velocity part, one joint at a time.
-        transition: time to move smoothly between parts (s).
-        settle: time to hold at the start (s).
-    """
-
-    nominal_offsets: dict[str, float] = field(default_factory=dict)
-    pushes: PushConfig = field(default_factory=PushConfig)
-    sinusoids: list[SinusoidConfig] = field(default_factory=list)
-    transition: float = 1.0
-    settle: float = 1.0
-
-    def validate(self) -> None:
-        for s in self.sinusoids:
-            if not (0 < s.amplitude_start <= s.amplitude_end and s.duration > 0):
-                raise ValueError(f"CollectionConfig.sinusoids[{s.joint}]: bad amplitudes/duration")
-        if self.pushes.extra_ramps < 0:
-            raise ValueError("CollectionConfig.pushes.extra_ramps must be >= 0")
-
-    def is_empty(self) -> bool:
-        return not (self.sinusoids or self.pushes.body)
-
-    def scaled(self, duration_scale: float, seed: int | None = None) -> "CollectionConfig":
-        """A copy shortened (or lengthened) by `duration_scale`: the pushes' random
-        ramps and the sinusoids' durations (each at least 2 s) scale, the 12
-        single-axis pushes stay; `seed` replaces the pushes' seed if given."""
-        out = copy.deepcopy(self)
-        out.pushes.extra_ramps = round(self.pushes.extra_ramps * duration_scale)
-        if seed is not None:
-            out.pushes.seed = seed
-        for s in out.sinusoids:
-            s.duration = max(2.0, s.duration * duration_scale)
-        return out
 
 
 @dataclass
@@ -172,8 +76,37 @@ def make_plan(
     q_nominal: np.ndarray,
     dt: float = 0.001,
 ) -> ExcitationPlan:
-    """The joint reference and push profile of `config`, around `q_nominal`."""
+    """The joint reference and push profile of `config`, around `q_nominal` (rad,
+    `joint_names` order): a hold of config.settle s, a move to the nominal pose, the
+    pushes (configuration after configuration), the sinusoids (joint after joint,
+    their reference sampled every 10 `dt` s), and a move back to the nominal pose."""
     config.validate()
+    index = _joint_index(config, joint_names)
+    q_initial = np.asarray(q_nominal, float)
+    q_nominal = q_initial.copy()
+    for name, offset in config.nominal_offsets.items():
+        q_nominal[index[name]] += offset
+    plan = _PlanSamples(q_initial, config.transition)
+    t = plan.hold(q_initial, config.settle)
+    t = plan.move_to(q_nominal, t)
+    pushes = config.pushes
+    rng = np.random.default_rng(pushes.seed)
+    if pushes.body:
+        for conf in pushes.configurations:
+            q = np.asarray(q_nominal, float).copy()
+            for name, offset in conf.items():
+                q[index[name]] += offset
+            t = plan.push(q, t, pushes, rng)
+    for s in config.sinusoids:
+        t = plan.sinusoid(q_nominal, index[s.joint], s, t, dt)
+    t = plan.move_to(np.asarray(q_nominal, float), t)
+    plan.wrench_t.append(t)
+    plan.wrenches.append(np.zeros(6))
+    return plan.plan()
+
+
+def _joint_index(config: CollectionConfig, joint_names: Sequence[str]) -> dict[str, int]:
+    """{joint name: index}; a KeyError names a joint of `config` not in joint_names."""
     index = {name: i for i, name in enumerate(joint_names)}
     for s in config.sinusoids:
         if s.joint not in index:
@@ -184,89 +117,101 @@ def make_plan(
         for name in offsets:
             if name not in index:
                 raise KeyError(f"CollectionConfig.{where}: unknown joint '{name}'")
-    q_initial = np.asarray(q_nominal, float)
-    q_nominal = q_initial.copy()
-    for name, offset in config.nominal_offsets.items():
-        q_nominal[index[name]] += offset
-    times = [0.0]
-    poses = [q_initial]
-    wrench_t = [0.0]
-    wrenches = [np.zeros(6)]
-    phases = []
-    t = config.settle
+    return index
 
-    def move_to(q: np.ndarray, t: float) -> float:
-        # Smooth (cubic, zero end velocities) move, sampled densely.
-        start, q_start = times[-1], poses[-1]
+
+class _PlanSamples:
+    """The samples of an `ExcitationPlan` (`make_plan`), appended part after part:
+    joint poses (`times`, `poses`), push wrenches (`wrench_t`, `wrenches`) and the
+    phases; each part starts at the time t it is given and returns its end time (s).
+    """
+
+    def __init__(self, q_initial: np.ndarray, transition: float):
+        self.transition = transition  # the time of a move (s)
+        self.times = [0.0]
+        self.poses = [q_initial]
+        self.wrench_t = [0.0]
+        self.wrenches = [np.zeros(6)]
+        self.phases = []
+
+    def hold(self, q: np.ndarray, t: float) -> float:
+        """The pose q at time t."""
+        self.times.append(t)
+        self.poses.append(q)
+        return t
+
+    def move_to(self, q: np.ndarray, t: float) -> float:
+        """A smooth (cubic, zero end velocities) move from the last pose to q, sampled
+        densely."""
+        start, q_start = self.times[-1], self.poses[-1]
         for s in np.linspace(0, 1, 21)[1:]:
-            times.append(t + s * config.transition)
-            poses.append(q_start + (3 * s**2 - 2 * s**3) * (q - q_start))
-        phases.append((start, times[-1], PHASE_TRANSITION, -1))
-        return times[-1]
+            self.times.append(t + s * self.transition)
+            self.poses.append(q_start + (3 * s**2 - 2 * s**3) * (q - q_start))
+        self.phases.append((start, self.times[-1], PHASE_TRANSITION, -1))
+        return self.times[-1]
 
-    times.append(t)
-    poses.append(q_initial)
-    t = move_to(q_nominal, t)
-    pushes = config.pushes
-    rng = np.random.default_rng(pushes.seed)
-    if pushes.body:
+    def push(
+        self, q: np.ndarray, t: float, pushes: PushConfig, rng: np.random.Generator
+    ) -> float:
+        """A move to the configuration q, then the ramps of its pushes (random
+        magnitudes and order from `rng`), back to no wrench."""
         bound = np.array([pushes.max_torque] * 3 + [pushes.max_force] * 3)
-        for conf in pushes.configurations:
-            q = np.asarray(q_nominal, float).copy()
-            for name, offset in conf.items():
-                q[index[name]] += offset
-            t = move_to(q, t)
-            start = t
-            wrench_t.append(t)
-            wrenches.append(np.zeros(6))
-            single = [(axis, sign) for axis in range(6) for sign in (-1, 1)]
-            order = rng.permutation(len(single))
-            for k in range(len(single) + pushes.extra_ramps):
-                # One axis at a time (both signs of each), then one or two at a time,
-                # like a hand pushing.
-                target = np.zeros(6)
-                if k < len(single):
-                    axis, sign = single[order[k]]
-                    target[axis] = sign * rng.uniform(0.6, 1.0)
-                else:
-                    axes = rng.choice(6, size=rng.integers(1, 3), replace=False)
-                    target[axes] = rng.uniform(0.5, 1.0, size=len(axes)) * rng.choice(
-                        [-1, 1], size=len(axes)
-                    )
-                t += pushes.ramp_duration
-                wrench_t.append(t)
-                wrenches.append(target * bound)
+        t = self.move_to(q, t)
+        start = t
+        self.wrench_t.append(t)
+        self.wrenches.append(np.zeros(6))
+        single = [(axis, sign) for axis in range(6) for sign in (-1, 1)]
+        order = rng.permutation(len(single))
+        for k in range(len(single) + pushes.extra_ramps):
+            # One axis at a time (both signs of each), then one or two at a time,
+            # like a hand pushing.
+            target = np.zeros(6)
+            if k < len(single):
+                axis, sign = single[order[k]]
+                target[axis] = sign * rng.uniform(0.6, 1.0)
+            else:
+                axes = rng.choice(6, size=rng.integers(1, 3), replace=False)
+                target[axes] = rng.uniform(0.5, 1.0, size=len(axes)) * rng.choice(
+                    [-1, 1], size=len(axes)
+                )
             t += pushes.ramp_duration
-            wrench_t.append(t)
-            wrenches.append(np.zeros(6))
-            times.append(t)
-            poses.append(q)
-            phases.append((start, t, PHASE_HIGH_TORQUE, -1))
-    for s in config.sinusoids:
-        j = index[s.joint]
+            self.wrench_t.append(t)
+            self.wrenches.append(target * bound)
+        t += pushes.ramp_duration
+        self.wrench_t.append(t)
+        self.wrenches.append(np.zeros(6))
+        self.hold(q, t)
+        self.phases.append((start, t, PHASE_HIGH_TORQUE, -1))
+        return t
+
+    def sinusoid(
+        self, q_nominal: np.ndarray, j: int, s: SinusoidConfig, t: float, dt: float
+    ) -> float:
+        """A move to the start of joint j's sinusoid s, then the sinusoid around
+        q_nominal, sampled every 10 dt (s)."""
         start = np.asarray(q_nominal, float).copy()
         start[j] += s.center_offset
-        t = move_to(start, t)
+        t = self.move_to(start, t)
         duration = s.end_time()
         local = np.linspace(0.0, duration, int(np.ceil(duration / (10 * dt))) + 1)
         for tau in local[1:]:
             q = np.asarray(q_nominal, float).copy()
             q[j] = increasing_sinusoid(tau, q_nominal[j] + s.center_offset, s)
-            times.append(t + tau)
-            poses.append(q)
-        phases.append((t, t + duration, PHASE_HIGH_VELOCITY, j))
-        t += duration
-    t = move_to(np.asarray(q_nominal, float), t)
-    wrench_t.append(t)
-    wrenches.append(np.zeros(6))
-    # C1, no overshoot between the dense samples (10 ms on the sinusoids).
-    q_traj = PiecewisePolynomial.CubicShapePreserving(
-        np.array(times), np.array(poses).T, zero_end_point_derivatives=True
-    )
-    wrench_traj = PiecewisePolynomial.FirstOrderHold(
-        np.array(wrench_t), np.array(wrenches).T
-    )
-    return ExcitationPlan(q_traj, wrench_traj, phases)
+            self.times.append(t + tau)
+            self.poses.append(q)
+        self.phases.append((t, t + duration, PHASE_HIGH_VELOCITY, j))
+        return t + duration
+
+    def plan(self) -> ExcitationPlan:
+        """The plan of these samples."""
+        # C1, no overshoot between the dense samples (10 ms on the sinusoids).
+        q_traj = PiecewisePolynomial.CubicShapePreserving(
+            np.array(self.times), np.array(self.poses).T, zero_end_point_derivatives=True
+        )
+        wrench_traj = PiecewisePolynomial.FirstOrderHold(
+            np.array(self.wrench_t), np.array(self.wrenches).T
+        )
+        return ExcitationPlan(q_traj, wrench_traj, self.phases)
 
 
 class PushSource(LeafSystem):

@@ -371,22 +371,33 @@ def _regressor(tau, dq, coulomb: bool, where: str) -> np.ndarray:
     """The matrix A of eq. 7: columns τ, q̇, sign(q̇) (those given, k_c if coulomb)."""
     columns = []
     if tau is not None:
-        if np.max(np.abs(tau)) < MIN_TORQUE:
-            raise ValueError(
-                f"{where}: no torque (max |tau| = {np.max(np.abs(tau)):.3g} N·m "
-                f"< {MIN_TORQUE}), cannot identify k_tau"
-            )
+        _check_excited(tau, "no torque", "tau", "N·m", MIN_TORQUE, "k_tau", where)
         columns.append(tau)
     if dq is not None:
-        if np.max(np.abs(dq)) < MIN_VELOCITY:
-            raise ValueError(
-                f"{where}: no motion (max |dq| = {np.max(np.abs(dq)):.3g} rad/s "
-                f"< {MIN_VELOCITY}), cannot identify k_v"
-            )
+        _check_excited(dq, "no motion", "dq", "rad/s", MIN_VELOCITY, "k_v", where)
         columns.append(dq)
         if coulomb:
             columns.append(np.sign(dq))
     return np.column_stack(columns)
+
+
+def _check_excited(
+    values: np.ndarray,
+    lack: str,
+    name: str,
+    unit: str,
+    minimum: float,
+    parameter: str,
+    where: str,
+) -> None:
+    """Raises ValueError if max |values| (`name`, in `unit`) is below `minimum`: the
+    data do not excite `parameter` (`lack` says what is missing)."""
+    peak = np.max(np.abs(values))
+    if peak < minimum:
+        raise ValueError(
+            f"{where}: {lack} (max |{name}| = {peak:.3g} {unit} < {minimum}), "
+            f"cannot identify {parameter}"
+        )
 
 
 def _scaled_problem(A: np.ndarray, b: np.ndarray, where: str):

@@ -40,9 +40,9 @@ from pathlib import Path
 import numpy as np
 
 from hrp2_drake import console
-from hrp2_drake.assembly.builders import build_position_control
+from hrp2_drake.assembly.builders import build_position_control, simulated_station
+from hrp2_drake.paper.claims import MOVING_JOINTS, MOVING_LABELS
 from hrp2_drake.paper.motion import (
-    MOVING_JOINTS,
     PAPER_TABLE2,
     PAPER_TABLE3,
     MotionConfig,
@@ -51,6 +51,7 @@ from hrp2_drake.paper.motion import (
     run_controller,
 )
 from hrp2_drake.paper import hrp2
+from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure
 from hrp2_drake.robot.servo import (
     ServoJointParams,
     ServoParams,
@@ -59,8 +60,6 @@ from hrp2_drake.robot.servo import (
     save_servo_params,
 )
 from hrp2_drake.robot.station import StationConfig
-
-MOVING_LABELS = tuple(hrp2.RIGHT_LEG_LABELS[hrp2.RIGHT_LEG.index(j)] for j in MOVING_JOINTS)
 
 #: The position-control column of the paper's Table 2 (N⁻¹ sqrt(Σ e²), rad) and
 #: Table 3 (maximum error, rad): hip roll, hip pitch, knee, ankle pitch, ankle roll.
@@ -225,7 +224,8 @@ def position_control_errors(
     station = StationConfig(scenario="hanging", servo_file=servo_file, servo_off=list(servo_off))
     config = MotionConfig(station=station, settle=settle, end=end)
     reference = motion_reference(config)
-    control = build_position_control(station, reference)
+    robot, simulated, _ = simulated_station(station)
+    control = build_position_control(robot, simulated, reference)
     signals = run_controller(control, reference.end_time(), "position control", stream=io.StringIO())
     t = signals["t"]
     after = t >= settle
@@ -303,12 +303,113 @@ def gear_ratios(joints) -> np.ndarray:
     return np.array([ratios[j] for j in joints])
 
 
+class _Fit:
+    """The least squares of `run_calibration` over log(ω0) of the moving joints: its
+    simulations (in `pool`, a point and its finite-difference neighbour at a time),
+    their cache and history, the residuals and their (diagonal) Jacobian."""
+
+    STEP = 0.04  # finite-difference step of log(ω0)
+
+    def __init__(self, config: CalibrationConfig, work: Path, n: float, wall0: float, stream):
+        self.config, self.work, self.n = config, work, n
+        self.wall0, self.stream = wall0, stream
+        self.lo, self.hi = np.log(config.no_load_speed_bounds)
+        self.prior = np.clip(
+            np.log(config.motor_no_load_speed / gear_ratios(MOVING_JOINTS)), self.lo, self.hi
+        )
+        self.history: list[Evaluation] = []
+        self.cache: dict[tuple, dict] = {}
+        self.pool = ProcessPoolExecutor(
+            max_workers=config.jobs, mp_context=get_context("spawn"),
+            initializer=console.start_worker, initargs=(console.program(), ""),
+        )
+        self.counter = iter(range(10**6))
+
+    def submit(self, x: np.ndarray):
+        speeds = dict(zip(MOVING_JOINTS, np.exp(x).tolist()))
+        path = self.work / f"candidate_{next(self.counter)}.yaml"
+        return self.pool.submit(_evaluate, (self.config, speeds, str(path), ()))
+
+    def residuals(self, x: np.ndarray, result: dict) -> np.ndarray:
+        r = _residuals(result, self.n, self.config.average_weight)
+        return np.concatenate([r, self.config.prior_weight * (x - self.prior)])
+
+    def record(self, x: np.ndarray, result: dict, kind: str = "iterate") -> np.ndarray:
+        """The residuals of one simulation, added to the history and said."""
+        r = self.residuals(x, result)
+        self.history.append(
+            Evaluation(
+                np.exp(x).tolist(),
+                list(result["max"]),
+                _average(result, self.n).tolist(),
+                float(0.5 * r @ r),
+                kind,
+            )
+        )
+        ratios = np.asarray(result["max"]) / PAPER_POSITION_MAX
+        console.say(
+            f"simulation {len(self.history):2d} ({time.perf_counter() - self.wall0:5.0f} s): "
+            f"ω0 {np.array2string(np.exp(x), precision=2)} rad/s -> max error / "
+            f"paper {np.array2string(ratios, precision=2)}, cost {0.5 * r @ r:.4f}",
+            self.stream,
+        )
+        return r
+
+    def perturbed(self, x: np.ndarray) -> np.ndarray:
+        # Step into the bounds, away from the nearer one.
+        return np.where(x + self.STEP <= self.hi, x + self.STEP, x - self.STEP)
+
+    def fun(self, x: np.ndarray) -> np.ndarray:
+        key = tuple(np.round(x, 12))
+        if key not in self.cache:
+            # The point and its finite-difference neighbour, in parallel: the
+            # Jacobian is (nearly) diagonal, one joint's no-load speed moves its own
+            # errors, so one extra simulation gives all of it.
+            here, there = self.submit(x), self.submit(self.perturbed(x))
+            self.cache[key] = {"here": here.result(), "there": there}
+        return self.record(x, self.cache[key]["here"])
+
+    def jac(self, x: np.ndarray) -> np.ndarray:
+        key = tuple(np.round(x, 12))
+        if key not in self.cache:
+            self.fun(x)
+        entry = self.cache[key]
+        if "r_there" not in entry:
+            entry["r_there"] = self.record(
+                self.perturbed(x), entry["there"].result(), "finite difference"
+            )
+        r0 = self.residuals(x, entry["here"])
+        dx = self.perturbed(x) - x
+        m = len(MOVING_JOINTS)
+        jacobian = np.zeros((3 * m, m))
+        for j in range(m):
+            for row in (j, m + j):
+                jacobian[row, j] = (entry["r_there"][row] - r0[row]) / dx[j]
+            jacobian[2 * m + j, j] = self.config.prior_weight
+        return jacobian
+
+    def solve(self):
+        """scipy's least_squares from the prior (its OptimizeResult)."""
+        from scipy.optimize import least_squares
+
+        x0 = self.prior.copy()
+        return least_squares(
+            self.fun,
+            x0,
+            jac=self.jac,
+            bounds=(np.full_like(x0, self.lo), np.full_like(x0, self.hi)),
+            method="trf",
+            x_scale=1.0,
+            max_nfev=self.config.max_iterations,
+            xtol=1e-3,
+            ftol=1e-4,
+        )
+
+
 def run_calibration(config: CalibrationConfig, work: Path, stream=None) -> CalibrationResult:
     """Fits the no-load speeds of the moving joints to the position-control column of
     Tables 2 and 3 (module docstring), then measures the calibrated servo, the `ideal`
     preset and each mechanism switched off on the same swing."""
-    from scipy.optimize import least_squares
-
     stream = stream or sys.stderr
     config.validate()
     work.mkdir(parents=True, exist_ok=True)
@@ -320,140 +421,67 @@ def run_calibration(config: CalibrationConfig, work: Path, stream=None) -> Calib
         "at 1 kHz), derived from the paper's own tables",
         stream,
     )
-    lo, hi = np.log(config.no_load_speed_bounds)
-    prior = np.clip(
-        np.log(config.motor_no_load_speed / gear_ratios(MOVING_JOINTS)), lo, hi
-    )
-    step = 0.04  # finite-difference step of log(ω0)
-    history: list[Evaluation] = []
-    cache: dict[tuple, dict] = {}
-    pool = ProcessPoolExecutor(
-        max_workers=config.jobs, mp_context=get_context("spawn"),
-        initializer=console.start_worker, initargs=(console.program(), ""),
-    )
-    counter = iter(range(10**6))
-
-    def submit(x: np.ndarray):
-        speeds = dict(zip(MOVING_JOINTS, np.exp(x).tolist()))
-        path = work / f"candidate_{next(counter)}.yaml"
-        return pool.submit(_evaluate, (config, speeds, str(path), ()))
-
-    def residuals(x: np.ndarray, result: dict) -> np.ndarray:
-        r = _residuals(result, n, config.average_weight)
-        return np.concatenate([r, config.prior_weight * (x - prior)])
-
-    def record(x: np.ndarray, result: dict, kind: str = "iterate") -> np.ndarray:
-        r = residuals(x, result)
-        history.append(
-            Evaluation(
-                np.exp(x).tolist(),
-                list(result["max"]),
-                _average(result, n).tolist(),
-                float(0.5 * r @ r),
-                kind,
-            )
-        )
-        ratios = np.asarray(result["max"]) / PAPER_POSITION_MAX
-        console.say(
-            f"simulation {len(history):2d} ({time.perf_counter() - wall0:5.0f} s): "
-            f"ω0 {np.array2string(np.exp(x), precision=2)} rad/s -> max error / "
-            f"paper {np.array2string(ratios, precision=2)}, cost {0.5 * r @ r:.4f}",
-            stream,
-        )
-        return r
-
-    def perturbed(x: np.ndarray) -> np.ndarray:
-        # Step into the bounds, away from the nearer one.
-        return np.where(x + step <= hi, x + step, x - step)
-
-    def fun(x: np.ndarray) -> np.ndarray:
-        key = tuple(np.round(x, 12))
-        if key not in cache:
-            # The point and its finite-difference neighbour, in parallel: the
-            # Jacobian is (nearly) diagonal, one joint's no-load speed moves its own
-            # errors, so one extra simulation gives all of it.
-            here, there = submit(x), submit(perturbed(x))
-            cache[key] = {"here": here.result(), "there": there}
-        return record(x, cache[key]["here"])
-
-    def jac(x: np.ndarray) -> np.ndarray:
-        key = tuple(np.round(x, 12))
-        if key not in cache:
-            fun(x)
-        entry = cache[key]
-        if "r_there" not in entry:
-            entry["r_there"] = record(
-                perturbed(x), entry["there"].result(), "finite difference"
-            )
-        r0 = residuals(x, entry["here"])
-        dx = perturbed(x) - x
-        m = len(MOVING_JOINTS)
-        jacobian = np.zeros((3 * m, m))
-        for j in range(m):
-            for row in (j, m + j):
-                jacobian[row, j] = (entry["r_there"][row] - r0[row]) / dx[j]
-            jacobian[2 * m + j, j] = config.prior_weight
-        return jacobian
-
-    x0 = prior.copy()
+    fit = _Fit(config, work, n, wall0, stream)
     try:
-        solution = least_squares(
-            fun,
-            x0,
-            jac=jac,
-            bounds=(np.full_like(x0, lo), np.full_like(x0, hi)),
-            method="trf",
-            x_scale=1.0,
-            max_nfev=config.max_iterations,
-            xtol=1e-3,
-            ftol=1e-4,
-        )
+        solution = fit.solve()
         speeds = dict(zip(MOVING_JOINTS, np.exp(solution.x).tolist()))
         optimizer = {
-            "method": "scipy.optimize.least_squares (trf, bounds, diagonal finite-difference Jacobian)",
+            "method": "scipy.optimize.least_squares (trf, bounds, diagonal "
+            "finite-difference Jacobian)",
             "status": int(solution.status),
             "message": str(solution.message),
             "function_evaluations": int(solution.nfev),
             "cost": float(solution.cost),
         }
         console.say(solution.message, stream)
-        # The calibrated servo, the ideal preset and each mechanism off, in parallel.
-        final_path = work / "servo.yaml"
-        save_servo_params(build_servo(config, speeds), final_path, ["calibrated"])
-        from hrp2_drake.robot.servo import SERVO_MECHANISMS
-
-        runs = {"calibrated": (str(final_path), ()), "ideal": ("ideal", ())}
-        runs |= {f"{m} off": (str(final_path), (m,)) for m in SERVO_MECHANISMS}
-        futures = {
-            label: pool.submit(_measure, path, config.settle, off, config.end)
-            for label, (path, off) in runs.items()
-        }
-        measured = {}
-        for label, future in futures.items():
-            measured[label] = future.result()
-            console.say(f"measured {label}", stream)
+        measured = _measure_all(config, speeds, work, fit.pool, stream)
     finally:
-        pool.shutdown()
+        fit.pool.shutdown()
     for path in work.glob("candidate_*.yaml"):
         path.unlink()
-
-    def summary(result: dict) -> dict:
-        return {
-            "max": list(result["max"]),
-            "average": _average(result, n).tolist(),
-            "rms": list(result["rms"]),
-        }
-
+    final, ideal = measured["calibrated"], measured["ideal"]
     return CalibrationResult(
         speeds=speeds,
         sample_count=sample_count,
-        history=history,
-        final=summary(measured["calibrated"]) | {"signals": measured["calibrated"].get("signals")},
-        ideal=summary(measured["ideal"]) | {"signals": measured["ideal"].get("signals")},
-        ablation={k: summary(v) for k, v in measured.items() if k.endswith(" off")},
+        history=fit.history,
+        final=_errors(final, n) | {"signals": final.get("signals")},
+        ideal=_errors(ideal, n) | {"signals": ideal.get("signals")},
+        ablation={k: _errors(v, n) for k, v in measured.items() if k.endswith(" off")},
         optimizer=optimizer,
         wall_time=time.perf_counter() - wall0,
     )
+
+
+def _measure_all(
+    config: CalibrationConfig, speeds: dict[str, float], work: Path, pool, stream
+) -> dict[str, dict]:
+    """The calibrated servo (`speeds`, written to work/servo.yaml), the ideal preset
+    and each mechanism off, in parallel in `pool`: `_measure` of each, by label."""
+    from hrp2_drake.robot.servo import SERVO_MECHANISMS
+
+    final_path = work / "servo.yaml"
+    save_servo_params(build_servo(config, speeds), final_path, ["calibrated"])
+    runs = {"calibrated": (str(final_path), ()), "ideal": ("ideal", ())}
+    runs |= {f"{m} off": (str(final_path), (m,)) for m in SERVO_MECHANISMS}
+    futures = {
+        label: pool.submit(_measure, path, config.settle, off, config.end)
+        for label, (path, off) in runs.items()
+    }
+    measured = {}
+    for label, future in futures.items():
+        measured[label] = future.result()
+        console.say(f"measured {label}", stream)
+    return measured
+
+
+def _errors(result: dict, n: float) -> dict:
+    """A measured run's maximum, Table 2 average (with the paper's N) and RMS errors
+    (rad, per moving joint)."""
+    return {
+        "max": list(result["max"]),
+        "average": _average(result, n).tolist(),
+        "rms": list(result["rms"]),
+    }
 
 
 def _measure(path: str, settle: float, off: tuple, end: float) -> dict:
@@ -479,15 +507,67 @@ def write_calibration_report(
 ) -> dict:
     """calibration.md, calibration.json and the plots, in `out`."""
     out.mkdir(parents=True, exist_ok=True)
-    servo = build_servo(config, result.speeds)
-    eff = effective_motor_parameters(servo, hrp2.RIGHT_LEG)
-    p = servo.vectors(hrp2.RIGHT_LEG)
     final_max = np.asarray(result.final["max"])
     final_avg = np.asarray(result.final["average"])
     within_max = np.abs(final_max / PAPER_POSITION_MAX - 1) <= 0.20
     within_avg = np.abs(final_avg / PAPER_POSITION_AVERAGE - 1) <= 0.30
+    lines = _introduction(result, config)
+    lines += ["## Fit per joint (position control, rad·10³: simulation (paper, ratio))", ""]
+    rows = [
+        [
+            label,
+            _ratio_cell(final_max[j], PAPER_POSITION_MAX[j], 1e3, 2),
+            "yes" if within_max[j] else "no",
+            _ratio_cell(final_avg[j], PAPER_POSITION_AVERAGE[j], 1e3, 3),
+            "yes" if within_avg[j] else "no",
+            f"{result.speeds[MOVING_JOINTS[j]]:.2f}",
+        ]
+        for j, label in enumerate(MOVING_LABELS)
+    ]
+    header = [
+        "joint", "max error (Table 3)", "within ±20%", "average error (Table 2, N above)",
+        "within ±30%", "ω0 (rad/s)",
+    ]
+    lines += markdown_table(header, rows, align="lrcrcr")
+    lines += ["", "## The calibrated servo, right leg", ""]
+    lines += _servo_table(build_servo(config, result.speeds))
+    lines += [
+        "",
+        "## What each mechanism changes (maximum error, rad·10³; paper in the header)",
+        "",
+    ]
+    rows = [("calibrated", result.final), ("ideal preset (before)", result.ideal)]
+    rows += list(result.ablation.items())
+    lines += markdown_table(
+        ["servo", *(f"{l} ({v * 1e3:g})" for l, v in zip(MOVING_LABELS, PAPER_POSITION_MAX))],
+        [[label, *(f"{v * 1e3:.2f}" for v in values["max"])] for label, values in rows],
+    )
+    figures = plot_calibration(result, out)
+    lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
+    (out / "calibration.md").write_text("\n".join(lines))
+    summary = {
+        "no_load_speeds": result.speeds,
+        "sample_count": result.sample_count,
+        "max_error": result.final["max"],
+        "average_error": result.final["average"],
+        "paper_max_error": PAPER_POSITION_MAX.tolist(),
+        "paper_average_error": PAPER_POSITION_AVERAGE.tolist(),
+        "within_max_20": within_max.tolist(),
+        "within_average_30": within_avg.tolist(),
+        "ideal": {k: result.ideal[k] for k in ("max", "average")},
+        "ablation": result.ablation,
+        "optimizer": result.optimizer,
+        "history": [asdict(e) for e in result.history],
+        "wall_time": result.wall_time,
+    }
+    (out / "calibration.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def _introduction(result: CalibrationResult, config: CalibrationConfig) -> list[str]:
+    """The report's title, what was fitted to what, and Table 2's N."""
     n = result.sample_count["n"]
-    lines = [
+    return [
         "# Calibration of the emulated servo to the real HRP-2",
         "",
         "The servo's linear part is the paper's Table 1; its dead zone and Coulomb friction "
@@ -514,76 +594,47 @@ def write_calibration_report(
         f"{result.sample_count['log_duration']:.1f} s log at 1 kHz, about the moving part of the "
         "19 s motion (1.1-14.9 s).",
         "",
-        "## Fit per joint (position control, rad·10³: simulation (paper, ratio))",
-        "",
-        "| joint | max error (Table 3) | within ±20% | average error (Table 2, N above) | within ±30% | ω0 (rad/s) |",
-        "| --- | ---: | :---: | ---: | :---: | ---: |",
     ]
-    for j, label in enumerate(MOVING_LABELS):
-        lines.append(
-            f"| {label} | {_ratio_cell(final_max[j], PAPER_POSITION_MAX[j], 1e3, 2)} | "
-            f"{'yes' if within_max[j] else 'no'} | "
-            f"{_ratio_cell(final_avg[j], PAPER_POSITION_AVERAGE[j], 1e3, 3)} | "
-            f"{'yes' if within_avg[j] else 'no'} | {result.speeds[MOVING_JOINTS[j]]:.2f} |"
-        )
-    lines += [
-        "",
-        "## The calibrated servo, right leg",
-        "",
-        "| joint | 10³Kτ | 10³Kv (identified, incl. latency) | latency (ms) | dead zone (mrad, half) | Coulomb (N·m) | hysteresis (mrad) | stall current (A) | ω0 (rad/s) |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+
+
+def _servo_table(servo: ServoParams) -> list[str]:
+    """The right leg's servo parameters, effective (identified) where it matters."""
+    eff = effective_motor_parameters(servo, hrp2.RIGHT_LEG)
+    p = servo.vectors(hrp2.RIGHT_LEG)
+    rows = [
+        [
+            label,
+            f"{eff['k_tau'][j] * 1e3:.3f}",
+            f"{eff['k_v'][j] * 1e3:.3f}",
+            f"{p['latency'][j] * 1e3:.0f}",
+            f"{eff['deadzone'][j] * 1e3:.3f}",
+            f"{p['k3'][j]:.2f}",
+            f"{p['hysteresis_width'][j] * 1e3:.2f}",
+            f"{p['stall_current'][j]:.0f}",
+            f"{p['no_load_speed'][j]:.2f}",
+        ]
+        for j, label in enumerate(hrp2.RIGHT_LEG_LABELS)
     ]
-    for j, label in enumerate(hrp2.RIGHT_LEG_LABELS):
-        lines.append(
-            f"| {label} | {eff['k_tau'][j] * 1e3:.3f} | {eff['k_v'][j] * 1e3:.3f} | "
-            f"{p['latency'][j] * 1e3:.0f} | {eff['deadzone'][j] * 1e3:.3f} | {p['k3'][j]:.2f} | "
-            f"{p['hysteresis_width'][j] * 1e3:.2f} | {p['stall_current'][j]:.0f} | "
-            f"{p['no_load_speed'][j]:.2f} |"
-        )
-    lines += [
-        "",
-        "## What each mechanism changes (maximum error, rad·10³; paper in the header)",
-        "",
-        "| servo | " + " | ".join(f"{l} ({v * 1e3:g})" for l, v in zip(MOVING_LABELS, PAPER_POSITION_MAX)) + " |",
-        "| --- |" + " ---: |" * len(MOVING_LABELS),
+    header = [
+        "joint", "10³Kτ", "10³Kv (identified, incl. latency)", "latency (ms)",
+        "dead zone (mrad, half)", "Coulomb (N·m)", "hysteresis (mrad)", "stall current (A)",
+        "ω0 (rad/s)",
     ]
-    rows = [("calibrated", result.final), ("ideal preset (before)", result.ideal)]
-    rows += list(result.ablation.items())
-    for label, values in rows:
-        lines.append(
-            f"| {label} | " + " | ".join(f"{v * 1e3:.2f}" for v in values["max"]) + " |"
-        )
-    figures = plot_calibration(result, out)
-    lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
-    (out / "calibration.md").write_text("\n".join(lines))
-    summary = {
-        "no_load_speeds": result.speeds,
-        "sample_count": result.sample_count,
-        "max_error": result.final["max"],
-        "average_error": result.final["average"],
-        "paper_max_error": PAPER_POSITION_MAX.tolist(),
-        "paper_average_error": PAPER_POSITION_AVERAGE.tolist(),
-        "within_max_20": within_max.tolist(),
-        "within_average_30": within_avg.tolist(),
-        "ideal": {k: result.ideal[k] for k in ("max", "average")},
-        "ablation": result.ablation,
-        "optimizer": result.optimizer,
-        "history": [asdict(e) for e in result.history],
-        "wall_time": result.wall_time,
-    }
-    (out / "calibration.json").write_text(json.dumps(summary, indent=2))
-    return summary
+    return markdown_table(header, rows)
 
 
 def plot_calibration(result: CalibrationResult, out: Path) -> list[str]:
-    import matplotlib
+    """Three figures in `out`: the fit's convergence, simulation against the paper
+    before (the ideal preset) and after, the knee's error over time; their names."""
+    names = ["calibration_history.png", "calibration_fit.png", "calibration_knee_error.png"]
+    for plot, name in zip((_plot_history, _plot_fit, _plot_knee_error), names):
+        save_figure(plot(result), out / name, tight=True)
+    return names
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    names = []
-    # 1. Convergence: each simulation's max-error ratios and cost.
-    fig, axes = plt.subplots(1, 2, figsize=(15, 4))
+def _plot_history(result: CalibrationResult):
+    """Convergence: each simulation's max-error ratios and cost."""
+    fig, axes = pyplot().subplots(1, 2, figsize=(15, 4))
     ratios = np.array([np.asarray(e.max_error) / PAPER_POSITION_MAX for e in result.history])
     costs = np.array([e.cost for e in result.history])
     iterate = np.array([e.kind == "iterate" for e in result.history])
@@ -595,21 +646,23 @@ def plot_calibration(result: CalibrationResult, out: Path) -> list[str]:
     axes[0].set_xlabel("simulation (o: the optimizer's points, x: finite-difference steps)")
     axes[0].set_ylabel("max error / paper (Table 3)")
     axes[0].set_yscale("log")
-    axes[0].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)  # beside the data
+    legend_beside(axes[0])
     axes[1].semilogy(index[iterate], costs[iterate], "ko-", ms=3, label="optimizer's points")
-    axes[1].semilogy(index[~iterate], costs[~iterate], "kx", alpha=0.5, label="finite-difference steps")
-    axes[1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
+    axes[1].semilogy(
+        index[~iterate], costs[~iterate], "kx", alpha=0.5, label="finite-difference steps"
+    )
+    legend_beside(axes[1])
     axes[1].set_xlabel("simulation")
     axes[1].set_ylabel("cost ½‖r‖² (log ratios)")
     for ax in axes:
         ax.grid(True, alpha=0.3)
     fig.suptitle("Calibration: least squares over the no-load speeds")
-    fig.tight_layout()
-    names.append("calibration_history.png")
-    fig.savefig(out / names[-1], dpi=110)
-    plt.close(fig)
-    # 2. Simulation vs paper, before (ideal) and after (calibrated).
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4))
+    return fig
+
+
+def _plot_fit(result: CalibrationResult):
+    """Simulation vs paper, before (the ideal preset) and after (calibrated)."""
+    fig, axes = pyplot().subplots(1, 2, figsize=(12, 4))
     x = np.arange(len(MOVING_LABELS))
     for ax, key, paper, title in (
         (axes[0], "max", PAPER_POSITION_MAX, "Table 3: maximum error"),
@@ -622,14 +675,14 @@ def plot_calibration(result: CalibrationResult, out: Path) -> list[str]:
         ax.set_ylabel("rad·10³")
         ax.set_title(title)
         ax.grid(True, axis="y", alpha=0.3)
-    axes[1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)  # beside the bars
+    legend_beside(axes[1])
     fig.suptitle("Position control on the climbing swing")
-    fig.tight_layout()
-    names.append("calibration_fit.png")
-    fig.savefig(out / names[-1], dpi=110)
-    plt.close(fig)
-    # 3. The knee's error over time.
-    fig, ax = plt.subplots(figsize=(12, 3.5))
+    return fig
+
+
+def _plot_knee_error(result: CalibrationResult):
+    """The knee's error over time, the ideal preset and the calibrated servo."""
+    fig, ax = pyplot().subplots(figsize=(12, 3.5))
     for label, run in (("ideal preset", result.ideal), ("calibrated", result.final)):
         s = run.get("signals")
         if s:
@@ -638,13 +691,9 @@ def plot_calibration(result: CalibrationResult, out: Path) -> list[str]:
     ax.axhline(-PAPER_POSITION_MAX[2] * 1e3, color="k", ls="--", lw=0.8)
     ax.set_xlabel("t (s)")
     ax.set_ylabel("knee tracking error (mrad)")
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)  # beside the data
+    legend_beside(ax)
     ax.grid(True, alpha=0.3)
-    fig.tight_layout()
-    names.append("calibration_knee_error.png")
-    fig.savefig(out / names[-1], dpi=110)
-    plt.close(fig)
-    return names
+    return fig
 
 
 def calibrate(config: CalibrationConfig, out: Path, install: bool = False, stream=None) -> dict:
@@ -655,7 +704,7 @@ def calibrate(config: CalibrationConfig, out: Path, install: bool = False, strea
     stream = stream or sys.stderr
     result = run_calibration(config, out, stream)
     header = [
-        "Hidden parameters of the emulated HRP-2 position servo (DESIGN.md), calibrated to",
+        "Hidden parameters of the emulated HRP-2 position servo (docs/architecture.md), calibrated to",
         "the real robot by `hrp2-drake calibrate` (hrp2_drake/paper/calibrate.py):",
         "Table 1 (linear part), the authors' piecewise-linear fits (dead zone, Coulomb),",
         "the position-control column of Tables 2 and 3 (no-load speeds). Sources and",

@@ -39,70 +39,19 @@ fallback to position control. Both can be given instead.
 import json
 import math
 import re
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from hrp2_drake.assembly.builders import COMPONENTS
 from hrp2_drake.paper import hrp2
+from hrp2_drake.paper.claims import PANELS, check_panel
+from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure
 
 #: The components' labels, the paper's words.
 COMPONENT_LABELS = {name: name.replace("_", " ") for name in COMPONENTS}
-#: The joints of Fig. 6 (right leg, index in the controller's joint vectors).
-HIP_PITCH, KNEE, ANKLE_PITCH = "RLEG_JOINT2", "RLEG_JOINT3", "RLEG_JOINT4"
 #: The motion runs of Fig. 6a-d, by K6.
 MOTION_K6 = (0.1, 1.0)
-
-
-@dataclass(frozen=True)
-class Panel:
-    """One panel of Fig. 6: an experiment, a joint and what the paper concludes.
-
-    Attributes:
-        key: "a" .. "f".
-        experiment: "motion" or "force".
-        k6: the motion run's K6 (None for force).
-        joint: the joint's name (HRP-2 order).
-        first: the component the paper finds largest.
-        next: the components the paper names after it (any order among them must
-            fill the ranks right after `first`).
-    """
-
-    key: str
-    experiment: str
-    k6: float | None
-    joint: str
-    first: str
-    next: tuple[str, ...]
-
-    @property
-    def title(self) -> str:
-        label = hrp2.RIGHT_LEG_LABELS[hrp2.RIGHT_LEG.index(self.joint)]
-        if self.experiment == "motion":
-            return f"({self.key}) {label}, motion control, K6 = {self.k6:g}"
-        return f"({self.key}) {label}, force control"
-
-
-PANELS = (
-    Panel(
-        "a", "motion", 0.1, HIP_PITCH, "feedforward_friction", ("feedback_position",)
-    ),
-    Panel(
-        "b", "motion", 1.0, HIP_PITCH, "feedforward_friction", ("feedback_position",)
-    ),
-    Panel("c", "motion", 0.1, KNEE, "feedforward_friction", ("feedback_position",)),
-    Panel("d", "motion", 1.0, KNEE, "feedforward_friction", ("feedback_position",)),
-    Panel("e", "force", None, KNEE, "feedforward_torque", ("feedback_force",)),
-    Panel(
-        "f",
-        "force",
-        None,
-        ANKLE_PITCH,
-        "feedforward_torque",
-        ("feedback_force", "feedback_position"),
-    ),
-)
 
 
 def find_motion_run(motion_signals: dict[str, dict], k6: float) -> str:
@@ -201,13 +150,6 @@ def component_statistics(
     }
 
 
-def check_panel(panel: Panel, ranking: list[str]) -> bool:
-    """The paper's conclusion for the panel: `first` ranks first and `next` fill the
-    following ranks."""
-    n = len(panel.next)
-    return ranking[0] == panel.first and set(ranking[1 : 1 + n]) == set(panel.next)
-
-
 def analyse_components(
     motion_signals: dict[str, dict[str, np.ndarray]],
     force_signals: dict[str, np.ndarray],
@@ -290,48 +232,13 @@ def _markdown(summary: dict, figure: str) -> str:
         "(share of the sum of the six RMS). Motion: the climbing swing (hanging); "
         "force: the sinusoidal force on the right foot (standing on the block).",
         "",
-        "| panel | "
-        + " | ".join(COMPONENT_LABELS[c] for c in COMPONENTS)
-        + " | ranking (RMS) | paper's conclusion |",
-        "| --- |" + " ---: |" * len(COMPONENTS) + " --- | --- |",
-    ]
-    for key, p in summary["panels"].items():
-        cells = [
-            f"{p['components'][c]['rms'] * 1e3:.3f} ({p['components'][c]['share']:.0%})"
-            for c in COMPONENTS
-        ]
-        ranking = " > ".join(COMPONENT_LABELS[c] for c in p["ranking"][:3])
-        expected = (
-            COMPONENT_LABELS[p["expected"][0]]
-            + ", then "
-            + " and ".join(COMPONENT_LABELS[c] for c in p["expected"][1:])
-        )
-        verdict = "holds" if p["holds"] else "**does not hold**"
-        lines.append(
-            f"| {p['title']} | " + " | ".join(cells) + f" | {ranking} | {expected}: "
-            f"{verdict} |"
-        )
-    lines += [
+        *_component_table(summary["panels"], "rms"),
         "",
         "The same with the standard deviation (the varying part only; ranking and "
         "verdict):",
         "",
-        "| panel | "
-        + " | ".join(COMPONENT_LABELS[c] for c in COMPONENTS)
-        + " | ranking (std) | paper's conclusion |",
-        "| --- |" + " ---: |" * len(COMPONENTS) + " --- | --- |",
+        *_component_table(summary["panels"], "std"),
     ]
-    for key, p in summary["panels"].items():
-        cells = [
-            f"{p['components'][c]['std'] * 1e3:.3f} "
-            f"({p['components'][c]['share_std']:.0%})"
-            for c in COMPONENTS
-        ]
-        ranking = " > ".join(COMPONENT_LABELS[c] for c in p["ranking_std"][:3])
-        verdict = "holds" if p["holds_std"] else "**does not hold**"
-        lines.append(
-            f"| {p['title']} | " + " | ".join(cells) + f" | {ranking} | {verdict} |"
-        )
     c, cs = summary["conclusions"], summary["conclusions_std"]
     lines += [
         "",
@@ -359,6 +266,34 @@ def _markdown(summary: dict, figure: str) -> str:
     return "\n".join(lines)
 
 
+def _component_table(panels: dict, statistic: str) -> list[str]:
+    """One row per panel: each component's `statistic` ("rms" or "std", mrad) with
+    its share of the six, the three largest, and the paper's conclusion judged on
+    them (named in full on the RMS table)."""
+    suffix = "" if statistic == "rms" else f"_{statistic}"
+    rows = []
+    for p in panels.values():
+        stats = p["components"]
+        cells = [
+            f"{stats[c][statistic] * 1e3:.3f} ({stats[c]['share' + suffix]:.0%})"
+            for c in COMPONENTS
+        ]
+        ranking = " > ".join(COMPONENT_LABELS[c] for c in p["ranking" + suffix][:3])
+        verdict = "holds" if p["holds" + suffix] else "**does not hold**"
+        if statistic == "rms":
+            expected = (
+                COMPONENT_LABELS[p["expected"][0]]
+                + ", then "
+                + " and ".join(COMPONENT_LABELS[c] for c in p["expected"][1:])
+            )
+            verdict = f"{expected}: {verdict}"
+        rows.append([p["title"], *cells, ranking, verdict])
+    name = {"rms": "RMS"}.get(statistic, statistic)
+    header = ["panel", *(COMPONENT_LABELS[c] for c in COMPONENTS)]
+    header += [f"ranking ({name})", "paper's conclusion"]
+    return markdown_table(header, rows, align="l" + "r" * len(COMPONENTS) + "ll")
+
+
 def plot_figure6(
     motion_signals: dict,
     runs: dict[float, str],
@@ -370,11 +305,7 @@ def plot_figure6(
 ) -> str:
     """Fig. 6: the components of Δq over time (mrad) in the six panels, each
     legend, beside its panel (off the data), with the component's RMS share."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     colors = dict(zip(COMPONENTS, plt.rcParams["axes.prop_cycle"].by_key()["color"]))
     fig, axes = plt.subplots(3, 2, figsize=(17, 10), layout="constrained")
     for ax, panel in zip(axes.ravel(), PANELS):
@@ -405,11 +336,10 @@ def plot_figure6(
         ax.set_title(panel.title, fontsize=10)
         ax.set_ylabel("Δq component (mrad)")
         ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
+        legend_beside(ax, fontsize=7)
     for ax in axes[-1]:
         ax.set_xlabel("t (s)")
     fig.suptitle("Figure 6: components of Δq (share of the RMS in the legend)")
     name = "figure6_components.png"
-    fig.savefig(out / name, dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / name)
     return name

@@ -36,6 +36,8 @@ from pydrake.systems.primitives import TrajectorySource
 from hrp2_drake import console
 from hrp2_drake.estimation.torque_estimator import add_estimator
 from hrp2_drake.paper import hrp2
+from hrp2_drake.paper.claims import GOAL_RMS_OVER_PEAK
+from hrp2_drake.report import markdown_table, pyplot, save_figure
 from hrp2_drake.tools.simulate import joint_reference
 from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
 from hrp2_drake.robot.sensors import SensorsConfig
@@ -47,7 +49,6 @@ from hrp2_drake.robot.station import (
 
 SCENARIOS = ("hanging", "standing")
 PAPER_WINDOW = 80  # samples (paper Sec. 5.1)
-GOAL_RMS_OVER_PEAK = 0.03  # the issue's goal, right leg, at the best window
 PLOT_JOINT = "RLEG_JOINT3"  # the right knee
 REVERSAL_MARGIN = 0.03  # s, see analyse
 
@@ -481,11 +482,7 @@ def analyse(run: dict, config: EstimationConfig, scenario: str) -> dict:
 def plot_torque(run: dict, analysis: dict, config: EstimationConfig, path: Path):
     """τ̂ (paper window and best window, each shifted back by its delay) and the true τ
     of PLOT_JOINT over the last config.plot_seconds, with the errors below."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     t, true = run["t"], run["true"]
     j = hrp2.JOINT_NAMES.index(PLOT_JOINT)
     shown = t >= max(config.settle, t[-1] - config.plot_seconds)
@@ -514,17 +511,12 @@ def plot_torque(run: dict, analysis: dict, config: EstimationConfig, path: Path)
     bottom.set_xlabel("time the estimate refers to (s)")
     # One legend below the panels (off the data); the errors below share the styles.
     fig.legend(*top.get_legend_handles_labels(), loc="outside lower center", ncol=2, fontsize=8)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def _table(w: dict) -> list[str]:
     """The right-leg table of one chain's analysis."""
-    lines = [
-        "| joint | RMS error (N·m) | peak abs(τ) (N·m) | RMS / peak | share of the "
-        "squared error near its velocity reversals (share of the time) |",
-        "| --- | ---: | ---: | ---: | ---: |",
-    ]
+    rows = []
     for k, name in enumerate(hrp2.RIGHT_LEG):
         j = hrp2.JOINT_NAMES.index(name)
         time_share = w["right_leg_time_share_near_reversals"][k]
@@ -534,11 +526,15 @@ def _table(w: dict) -> list[str]:
             if time_share > 0
             else "(does not move)"
         )
-        lines.append(
-            f"| {name} ({hrp2.RIGHT_LEG_LABELS[k]}) | {w['rms'][j]:.3f} | "
-            f"{w['peak'][j]:.2f} | {100 * w['ratio'][j]:.2f} % | {share} |"
-        )
-    return lines
+        rows.append([
+            f"{name} ({hrp2.RIGHT_LEG_LABELS[k]})", f"{w['rms'][j]:.3f}",
+            f"{w['peak'][j]:.2f}", f"{100 * w['ratio'][j]:.2f} %", share,
+        ])
+    header = [
+        "joint", "RMS error (N·m)", "peak abs(τ) (N·m)", "RMS / peak",
+        "share of the squared error near its velocity reversals (share of the time)",
+    ]
+    return markdown_table(header, rows)
 
 
 def _summary_all(w: dict, window) -> str:
@@ -574,70 +570,84 @@ def markdown(results: dict, config: EstimationConfig) -> str:
         "",
     ]
     for scenario, analysis in results.items():
-        best = analysis["best_window"]
-        lines += [
-            f"## {scenario}",
-            "",
-            f"{analysis['duration_s']:.1f} s simulated at "
-            f"{analysis['real_time_factor']:.2f}x real time (station + "
-            f"{len(analysis['windows'])} chains). Motion: "
-            + ", ".join(
-                f"{s.joint} {s.amplitude:+.2f} rad {s.frequency:g} Hz"
-                for s in config.motion(scenario)
-            )
-            + ".",
-            "",
-            f"The waist tilted at most {math.degrees(analysis['base_max_tilt_rad']):.1f}° "
-            f"from vertical, its height stayed in "
-            f"[{analysis['base_height_range_m'][0]:.3f}, "
-            f"{analysis['base_height_range_m'][1]:.3f}] m.",
-            "",
-            "| window | delay (ms) | shift minimising the error (samples) | "
-            "worst right-leg RMS/peak | same, at that shift |",
-            "| ---: | ---: | ---: | ---: | ---: |",
-        ]
-        for window, w in sorted(analysis["windows"].items()):
-            lines.append(
-                f"| {window} | {1e3 * w['delay_s']:.1f} | {w['best_shift_samples']:.1f} "
-                f"(delay: {w['delay_samples']:.1f}) | "
-                f"{100 * w['right_leg_worst_ratio']:.2f} % | "
-                f"{100 * w['right_leg_worst_ratio_at_best_shift']:.2f} % |"
-            )
-        lines += ["", f"### {scenario}, paper window ({PAPER_WINDOW})", ""]
-        paper, best_w = analysis["windows"][PAPER_WINDOW], analysis["windows"][best]
-        lines += _table(paper)
-        lines += ["", _summary_all(paper, f"window {PAPER_WINDOW}"), ""]
-        lines += [f"### {scenario}, best window ({best})", ""]
-        lines += _table(best_w)
-        lines += ["", _summary_all(best_w, f"window {best}"), ""]
-        verdict = "met" if analysis["goal_met"] else "NOT met"
-        lines += [
-            f"Goal (RMS < {100 * GOAL_RMS_OVER_PEAK:.0f} % of peak on every right-leg "
-            f"joint at the best window): **{verdict}** (worst "
-            f"{100 * best_w['right_leg_worst_ratio']:.2f} %).",
-            "",
-        ]
-        per_signal = analysis.get("per_signal")
-        if per_signal is not None:
-            label = _per_signal_label(config)
-            verdict = "met" if analysis["per_signal_goal_met"] else "NOT met"
-            lines += [f"### {scenario}, per-signal windows ({label})", ""]
-            lines += _table(per_signal)
-            lines += [
-                "",
-                _summary_all(per_signal, "per-signal windows"),
-                "",
-                f"Delay {1e3 * per_signal['delay_s']:.1f} ms (the longest window's "
-                f"centre; best shift {per_signal['best_shift_samples']:.1f} samples). "
-                f"Goal with per-signal windows: **{verdict}** (worst "
-                f"{100 * per_signal['right_leg_worst_ratio']:.2f} %).",
-                "",
-            ]
-        lines += [
-            f"![τ̂ and true τ, {PLOT_JOINT}](estimation_tau_{scenario}.png)",
-            "",
-        ]
+        lines += _scenario_lines(scenario, analysis, config)
     return "\n".join(lines)
+
+
+def _scenario_lines(scenario: str, analysis: dict, config: EstimationConfig) -> list[str]:
+    """One scenario's section: the run, every window, the joint tables of the paper's
+    and the best window with the goal, of the per-signal windows if run, the plot."""
+    best = analysis["best_window"]
+    lines = [
+        f"## {scenario}",
+        "",
+        f"{analysis['duration_s']:.1f} s simulated at "
+        f"{analysis['real_time_factor']:.2f}x real time (station + "
+        f"{len(analysis['windows'])} chains). Motion: "
+        + ", ".join(
+            f"{s.joint} {s.amplitude:+.2f} rad {s.frequency:g} Hz"
+            for s in config.motion(scenario)
+        )
+        + ".",
+        "",
+        f"The waist tilted at most {math.degrees(analysis['base_max_tilt_rad']):.1f}° "
+        f"from vertical, its height stayed in "
+        f"[{analysis['base_height_range_m'][0]:.3f}, "
+        f"{analysis['base_height_range_m'][1]:.3f}] m.",
+        "",
+        *_window_table(analysis["windows"]),
+    ]
+    lines += ["", f"### {scenario}, paper window ({PAPER_WINDOW})", ""]
+    paper, best_w = analysis["windows"][PAPER_WINDOW], analysis["windows"][best]
+    lines += _table(paper)
+    lines += ["", _summary_all(paper, f"window {PAPER_WINDOW}"), ""]
+    lines += [f"### {scenario}, best window ({best})", ""]
+    lines += _table(best_w)
+    lines += ["", _summary_all(best_w, f"window {best}"), ""]
+    verdict = "met" if analysis["goal_met"] else "NOT met"
+    lines += [
+        f"Goal (RMS < {100 * GOAL_RMS_OVER_PEAK:.0f} % of peak on every right-leg "
+        f"joint at the best window): **{verdict}** (worst "
+        f"{100 * best_w['right_leg_worst_ratio']:.2f} %).",
+        "",
+    ]
+    per_signal = analysis.get("per_signal")
+    if per_signal is not None:
+        label = _per_signal_label(config)
+        verdict = "met" if analysis["per_signal_goal_met"] else "NOT met"
+        lines += [f"### {scenario}, per-signal windows ({label})", ""]
+        lines += _table(per_signal)
+        lines += [
+            "",
+            _summary_all(per_signal, "per-signal windows"),
+            "",
+            f"Delay {1e3 * per_signal['delay_s']:.1f} ms (the longest window's "
+            f"centre; best shift {per_signal['best_shift_samples']:.1f} samples). "
+            f"Goal with per-signal windows: **{verdict}** (worst "
+            f"{100 * per_signal['right_leg_worst_ratio']:.2f} %).",
+            "",
+        ]
+    return lines + [f"![τ̂ and true τ, {PLOT_JOINT}](estimation_tau_{scenario}.png)", ""]
+
+
+def _window_table(windows: dict[int, dict]) -> list[str]:
+    """Per window: its delay, the shift that minimises the error, the worst
+    right-leg RMS/peak at its delay and at that shift."""
+    rows = [
+        [
+            f"{window}",
+            f"{1e3 * w['delay_s']:.1f}",
+            f"{w['best_shift_samples']:.1f} (delay: {w['delay_samples']:.1f})",
+            f"{100 * w['right_leg_worst_ratio']:.2f} %",
+            f"{100 * w['right_leg_worst_ratio_at_best_shift']:.2f} %",
+        ]
+        for window, w in sorted(windows.items())
+    ]
+    header = [
+        "window", "delay (ms)", "shift minimising the error (samples)",
+        "worst right-leg RMS/peak", "same, at that shift",
+    ]
+    return markdown_table(header, rows, align="rrrrr")
 
 
 def _per_signal_label(config: EstimationConfig) -> str:

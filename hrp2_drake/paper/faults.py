@@ -29,10 +29,17 @@ from hrp2_drake.assembly.builders import (
     TorqueControlConfig,
     build_position_control,
     build_torque_control,
+    simulated_station,
+)
+from hrp2_drake.assembly.torque_control import (
+    ControllerSettings,
+    EstimatorSettings,
+    replace_fields,
 )
 from hrp2_drake.paper.force import ForceConfig, run_force
 from hrp2_drake.paper.motion import MotionConfig, motion_reference, run_controller
 from hrp2_drake.identification.motor_model import MotorModel
+from hrp2_drake.report import markdown_table, pyplot, save_figure
 from hrp2_drake.robot.faults import SensorFault
 from hrp2_drake.robot.station import StationConfig
 
@@ -152,20 +159,27 @@ def _motion_run(config: FaultCampaignConfig, case: FaultCase | None, motor_path:
                 position_control: bool = False) -> dict:
     t_fault = config.motion_fault_time
     station = StationConfig(scenario="hanging")
-    torque = TorqueControlConfig(k6=config.k6, offset_calibration_time=0.25)
+    torque = TorqueControlConfig(
+        controller=ControllerSettings(k6=config.k6),
+        estimator=EstimatorSettings(offset_calibration_time=0.25),
+    )
     if case is not None:
         station = replace(
             station, faults=_shifted(case, t_fault), extra_command_latency=case.extra_command_latency
         )
-        torque = replace(torque, model_error=case.model_error)
+        torque = replace_fields(torque, {"faults.model_error": case.model_error})
     motion = MotionConfig(
         station=station, start=config.motion_start, end=config.motion_end, settle=SETTLE
     )
     reference = motion_reference(motion)
+    robot, simulated, period = simulated_station(station)
     if position_control:
-        control = build_position_control(station, reference)
+        control = build_position_control(robot, simulated, reference)
     else:
-        control = build_torque_control(station, reference, MotorModel.load(motor_path), torque)
+        control = build_torque_control(
+            robot, simulated, reference, MotorModel.load(motor_path), torque,
+            control_period=period,
+        )
     signals = run_controller(control, reference.end_time(), "faults", stream=io.StringIO())
     return _summarize(signals, t_fault, "motion")
 
@@ -186,7 +200,9 @@ def _force_run(config: FaultCampaignConfig, case: FaultCase | None, motor_path: 
         force = replace(
             force,
             station=station,
-            torque_control=replace(force.torque_control, model_error=case.model_error),
+            torque_control=replace_fields(
+                force.torque_control, {"faults.model_error": case.model_error}
+            ),
         )
     run = run_force(force, MotorModel.load(motor_path))
     out = _summarize(run.signals, t_fault, "force")
@@ -321,11 +337,7 @@ def _plot(results: list[dict], out: Path) -> str:
     """Per experiment: the supervisor's mode and the knee's tracking error around the
     fault, one line per fault, each case in a style of its own (up to 11 curves a
     panel); one legend below the panels, off the data."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     kinds = sorted({r["experiment"] for r in results})
     cases = list(dict.fromkeys(r["case"] for r in results))
     colours = [f"C{k}" for k in range(10) if k != 7]  # C7 is the grey of position control
@@ -364,8 +376,7 @@ def _plot(results: list[dict], out: Path) -> str:
             handles.setdefault(label, handle)
     fig.legend(handles.values(), handles.keys(), loc="outside lower center", ncol=4, fontsize=8)
     name = "faults.png"
-    fig.savefig(out / name, dpi=100)
-    plt.close(fig)
+    save_figure(fig, out / name, dpi=100)
     return name
 
 
@@ -423,31 +434,22 @@ def _report(summary: dict, out: Path) -> str:
         "the leg is); `step` is how much farther q_cmd moved in one period than the reference "
         "did, at most, during mode switches.",
         "",
-        f"- nothing raised, nothing diverged: **{'yes' if v['nothing_raised'] else 'no: ' + ', '.join(v['raised'])}**",
-        f"- every NaN, freeze or staleness detected within 10 ms: **{'yes' if v['detected_within_10_ms'] else 'no: ' + ', '.join(v['detected_late'])}**",
-        f"- no q_cmd step above {STEP_BOUND * 1e3:g} mrad at a mode switch: **{'yes' if v['no_step_above_bound'] else 'no: ' + ', '.join(v['steps_above_bound'])}**",
-        f"- tracking no worse than position control + {TRACKING_MARGIN * 1e3:g} mrad: **{'yes' if v['tracking_within_margin'] else 'no: ' + ', '.join(v['tracking_worse'])}**",
+        _check("nothing raised, nothing diverged", v, "nothing_raised", "raised"),
+        _check(
+            "every NaN, freeze or staleness detected within 10 ms",
+            v, "detected_within_10_ms", "detected_late",
+        ),
+        _check(
+            f"no q_cmd step above {STEP_BOUND * 1e3:g} mrad at a mode switch",
+            v, "no_step_above_bound", "steps_above_bound",
+        ),
+        _check(
+            f"tracking no worse than position control + {TRACKING_MARGIN * 1e3:g} mrad",
+            v, "tracking_within_margin", "tracking_worse",
+        ),
         "",
-        "| experiment | fault | detected (delay) | faults seen | position control after | resumed | max error after (mrad) | step (mrad) | outcome |",
-        "| --- | --- | --- | --- | ---: | --- | ---: | ---: | --- |",
+        *_run_table(results),
     ]
-    for r in results:
-        if r.get("raised"):
-            lines.append(f"| {r['experiment']} | {r['case']} | - | - | - | - | - | - | raised: {r['raised']} |")
-            continue
-        detected = "-"
-        if "detected" in r:
-            detected = (
-                f"yes ({r['detection_delay'] * 1e3:.0f} ms)" if r["detected"] else "no"
-            )
-        down = r.get("position_control_at")
-        lines.append(
-            f"| {r['experiment']} | {r['case']} | {detected} | {r.get('faults', '-')} | "
-            f"{'-' if down is None else f'{down * 1e3:.0f} ms'} | "
-            f"{'-' if 'resumed' not in r else ('yes' if r['resumed'] else 'no')} | "
-            f"{r['max_error_after'] * 1e3:.1f} | {r.get('max_switch_step', 0.0) * 1e3:.2f} | "
-            f"{'ran' if r['finite'] else 'not finite'} |"
-        )
     lines += [
         "",
         "A fault the supervisor cannot see (a bias step, an extra latency, a wrong model) "
@@ -456,3 +458,40 @@ def _report(summary: dict, out: Path) -> str:
         "",
     ]
     return "\n".join(lines)
+
+
+def _check(text: str, verdict: dict, key: str, misses: str) -> str:
+    """One criterion of `_verdict`, met ("yes") or not (and where not)."""
+    met = "yes" if verdict[key] else "no: " + ", ".join(verdict[misses])
+    return f"- {text}: **{met}**"
+
+
+def _run_table(results: list[dict]) -> list[str]:
+    """One row per run: its detection, fallback, resumption, error and step."""
+    rows = []
+    for r in results:
+        if r.get("raised"):
+            rows.append([r["experiment"], r["case"], *["-"] * 6, f"raised: {r['raised']}"])
+            continue
+        detected = "-"
+        if "detected" in r:
+            detected = (
+                f"yes ({r['detection_delay'] * 1e3:.0f} ms)" if r["detected"] else "no"
+            )
+        down = r.get("position_control_at")
+        rows.append([
+            r["experiment"],
+            r["case"],
+            detected,
+            f"{r.get('faults', '-')}",
+            "-" if down is None else f"{down * 1e3:.0f} ms",
+            "-" if "resumed" not in r else ("yes" if r["resumed"] else "no"),
+            f"{r['max_error_after'] * 1e3:.1f}",
+            f"{r.get('max_switch_step', 0.0) * 1e3:.2f}",
+            "ran" if r["finite"] else "not finite",
+        ])
+    header = [
+        "experiment", "fault", "detected (delay)", "faults seen", "position control after",
+        "resumed", "max error after (mrad)", "step (mrad)", "outcome",
+    ]
+    return markdown_table(header, rows, align="llllrlrrl")

@@ -66,11 +66,14 @@ from hrp2_drake.assembly.builders import (
     JointReference,
     TorqueControlConfig,
     build_torque_control,
+    simulated_station,
 )
+from hrp2_drake.assembly.torque_control import ControllerSettings, EstimatorSettings
 from hrp2_drake.paper.motion import run_controller
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import joint_indexing
 from hrp2_drake.paper import hrp2
+from hrp2_drake.report import markdown_table, pyplot, save_figure
 from hrp2_drake.robot.station import (
     StationConfig,
     initial_joint_positions,
@@ -239,13 +242,15 @@ def open_loop_config(config: StabilityConfig) -> TorqueControlConfig:
     so K_s = K_d = 0) and the estimator's q̂̇ in the friction compensation."""
     return TorqueControlConfig(
         joints=[config.joint],
-        k6=0.0,
-        kp=0.0,
-        damping_ratio=0.0,
-        window=config.window,
-        position_source="encoders",
-        feedback_velocity="estimate",
-        friction_velocity="estimate",
+        controller=ControllerSettings(
+            k6=0.0,
+            kp=0.0,
+            damping_ratio=0.0,
+            position_source="encoders",
+            feedback_velocity="estimate",
+            friction_velocity="estimate",
+        ),
+        estimator=EstimatorSettings(window=config.window),
         start_time=config.release_time,
         # The experiment is the open loop released at once at speed (Sec. 5.2): no
         # supervisor ramp, the controller's own latched fallback as the only guard.
@@ -334,11 +339,14 @@ def run_open_loop(
     label: str = "open loop",
 ) -> dict[str, np.ndarray]:
     """One open-loop run: the logged signals of `run_controller`."""
+    robot, station, period = simulated_station(config.station)
     control = build_torque_control(
-        config.station,
+        robot,
+        station,
         push_reference(config, push_velocity),
         motor_model,
         open_loop_config(config),
+        control_period=period,
     )
     return run_controller(control, config.duration, label)
 
@@ -558,30 +566,18 @@ def _markdown(result: StabilityResult, summary: dict, figure: str) -> str:
         f"{c.observe:g} s (or until it reaches its position limit). The outcome of a "
         f"run: {stable_definition(c)}.",
         "",
-        "| fit | 10³ K̂_τ | 10³ K̂_v | δc (ms) | v0 (rad/s) | release speed "
-        "| peak speed | final speed | reached the limit after | outcome |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
-    ]
-    for r in result.runs:
-        lines.append(
-            f"| {r.model} | {r.k_tau * 1e3:.4f} | {r.k_v * 1e3:.3f} | "
-            f"{r.delay_compensation * 1e3:g} | {r.push_velocity:g} | "
-            f"{r.release_speed:.2f} | {r.peak_speed:.2f} | {r.final_speed:.2f} | "
-            + (f"{r.limit_time:.2f} s" if r.limit_time is not None else "-")
-            + f" | {'**accelerates away**' if r.accelerates else r.outcome} |"
-        )
-    lines += [
+        *_run_table(result.runs),
         "",
         "Speed above which the open-loop joint should accelerate, predicted from the "
         "emulated servo's hidden parameters at steady speed (evaluation only; "
         "'none' = not below 10 rad/s), per direction:",
         "",
-        "| fit, δc | + | − |",
-        "| --- | ---: | ---: |",
     ]
-    for key, value in result.predicted_threshold.items():
-        cells = [f"{value[d]:.2f} rad/s" if value[d] else "none" for d in ("+", "-")]
-        lines.append(f"| {key} | " + " | ".join(cells) + " |")
+    rows = [
+        [key, *(f"{value[d]:.2f} rad/s" if value[d] else "none" for d in ("+", "-"))]
+        for key, value in result.predicted_threshold.items()
+    ]
+    lines += markdown_table(["fit, δc", "+", "−"], rows)
     truth = emulator_parameters(c.joint, c.station.servo_file)
     fits = {r.model: r.k_v for r in result.runs}
     over = ", ".join(
@@ -624,15 +620,35 @@ def _markdown(result: StabilityResult, summary: dict, figure: str) -> str:
     return "\n".join(lines)
 
 
+def _run_table(runs: list[StabilityRun]) -> list[str]:
+    """One row per open-loop run: the fit, the push and what the joint did."""
+    rows = [
+        [
+            r.model,
+            f"{r.k_tau * 1e3:.4f}",
+            f"{r.k_v * 1e3:.3f}",
+            f"{r.delay_compensation * 1e3:g}",
+            f"{r.push_velocity:g}",
+            f"{r.release_speed:.2f}",
+            f"{r.peak_speed:.2f}",
+            f"{r.final_speed:.2f}",
+            f"{r.limit_time:.2f} s" if r.limit_time is not None else "-",
+            "**accelerates away**" if r.accelerates else r.outcome,
+        ]
+        for r in runs
+    ]
+    header = [
+        "fit", "10³ K̂_τ", "10³ K̂_v", "δc (ms)", "v0 (rad/s)", "release speed",
+        "peak speed", "final speed", "reached the limit after", "outcome",
+    ]
+    return markdown_table(header, rows, align="l" + "r" * 8 + "l")
+
+
 def plot_stability(result: StabilityResult, out: Path) -> str:
     """Joint speed after the release, one panel per delay compensation: the
     least-squares runs in solid reds, the asymmetric runs in dashed blues, one
     curve per push velocity (darker: faster); the legend below the panels."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     c = result.config
     delays = list(c.command_delay_compensation)
     fig, axes = plt.subplots(
@@ -679,6 +695,5 @@ def plot_stability(result: StabilityResult, out: Path) -> str:
     )
     fig.tight_layout(rect=(0, 0.1, 1, 1))
     name = "figure_open_loop_stability.png"
-    fig.savefig(out / name, dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / name)
     return name

@@ -43,7 +43,7 @@ import socket
 import time
 import typing
 import warnings
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -52,9 +52,17 @@ import numpy as np
 from hrp2_drake import console
 from hrp2_drake.config import check_finite, one_line
 from hrp2_drake.assembly.builders import TorqueControlConfig
+from hrp2_drake.assembly.torque_control import (
+    EstimatorSettings,
+    field_at,
+    field_type,
+    replace_fields,
+    set_field_at,
+)
 from hrp2_drake.paper.motion import estimation_delay
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.paper import hrp2
+from hrp2_drake.report import markdown_table, pyplot, save_figure
 from hrp2_drake.robot.station import StationConfig
 
 INSTALL_HINT = "pip install -e '.[tune]'"
@@ -95,8 +103,9 @@ class ParamSpec:
     Args:
         name: the Optuna parameter's name (per-key specs: `name[key]`).
         kind: "int", "float", "log-float" (log-uniform), "bool", "categorical".
-        field: the TorqueControlConfig field it sets. A spec whose field the config
-            does not have is left out (reported).
+        field: the TorqueControlConfig field it sets, by its path (e.g.
+            "controller.kp", `torque_control.field_at`). A spec whose field the
+            config does not have is left out (reported).
         low, high: the range (int, float, log-float); step for int.
         choices: the values of a categorical.
         keys: one parameter per key: joints of a list field in the controlled joints'
@@ -104,9 +113,9 @@ class ParamSpec:
             "imu"). A list field that is a number gets one shared parameter.
         off: if not None, a bool parameter `name_on` is searched first, and the
             field is `off` when it is False (disturbance_observer: 0 = none).
-        scale_of: the value is a fraction of this (already set) integer field,
-            rounded to an integer of the field's parity in [3, field]
-            (windows: of `window`; the estimator centres every window on the
+        scale_of: the value is a fraction of this (already set) integer field (its
+            path), rounded to an integer of the field's parity in [3, field]
+            (windows: of `estimator.window`; the estimator centres every window on the
             longest one's centre, which needs the same parity).
         per_delay: the value is the product of the field and the estimation
             chain's delay (dimensionless), searched in [low, high] and set as value /
@@ -136,37 +145,37 @@ class ParamSpec:
 SEARCH_SPACE: tuple[ParamSpec, ...] = (
     # Position feedback relative to the servo's stiffness (Sec. 4.2): fixed by the
     # user (TuneConfig.k6); searched only with `include: [k6]`.
-    ParamSpec("k6", "log-float", "k6", low=0.05, high=1.0, default=False),
+    ParamSpec("k6", "log-float", "controller.k6", low=0.05, high=1.0, default=False),
     # K_p of eq. 11, per joint: the gain of the torque error in Δq, at most 1: with
     # an undelayed τ̂ eq. 11 is unstable for K_p > 1 (DeltaQTorqueController's
     # docstring), and short windows or the predictor come close to that. (Searched up
     # to 4 with windows down to 6 samples, the hanging leg tuned K_p = 1.5-2.7 on
     # three joints: unstable in the force experiment's contact.) 0 belongs in the
     # range: with the disturbance observer, K_p = 0 tracked best by hand.
-    ParamSpec("kp", "float", "kp", low=0.0, high=1.0, keys=hrp2.RIGHT_LEG),
+    ParamSpec("kp", "float", "controller.kp", low=0.0, high=1.0, keys=hrp2.RIGHT_LEG),
     # K_d of eq. 12, through its damping ratio (acts with feedback_velocity=estimate).
-    ParamSpec("damping_ratio", "float", "damping_ratio", low=0.2, high=2.0),
+    ParamSpec("damping_ratio", "float", "controller.damping_ratio", low=0.2, high=2.0),
     # The q̇ of ė_q (eq. 12) and of the friction feedforward K_v q̇ (eq. 10, 13).
-    ParamSpec("feedback_velocity", "categorical", "feedback_velocity",
+    ParamSpec("feedback_velocity", "categorical", "controller.feedback_velocity",
               choices=("reference", "estimate")),
-    ParamSpec("friction_velocity", "categorical", "friction_velocity",
+    ParamSpec("friction_velocity", "categorical", "controller.friction_velocity",
               choices=("reference", "estimate")),
     # The longest Savitzky-Golay window: the estimates' delay, (window - 1) / 2 ms.
-    ParamSpec("window", "int", "window", low=15, high=100),
+    ParamSpec("window", "int", "estimator.window", low=15, high=100),
     # Per-joint and per-sensor windows, fractions of `window`, centred on its centre
     # (the same instant, the same delay): shorter, less lag of a fast signal's fit.
     # Not the F/T sensors': the hanging leg's foot touches nothing, so the tuning
     # motion cannot see their window (searched, it went to 10 samples, which the force
     # experiment's force feedback does not survive).
-    ParamSpec("windows", "float", "windows", low=0.2, high=1.0,
-              keys=hrp2.RIGHT_LEG + ("imu",), scale_of="window"),
+    ParamSpec("windows", "float", "estimator.windows", low=0.2, high=1.0,
+              keys=hrp2.RIGHT_LEG + ("imu",), scale_of="estimator.window"),
     # The DelayPredictor: τ̂ (and q̂̇) carried from the delay to the present.
-    ParamSpec("predictor", "bool", "predictor"),
+    ParamSpec("predictor", "bool", "observer.predictor"),
     # The disturbance observer's bandwidth (rad/s), or off (0), searched as bandwidth
     # x the estimates' delay: at most 1, the classical bound for a loop closed through
     # a delay. (Searched in rad/s up to 400 it tuned to 400 at a 16.5 ms delay: best
     # on the hanging leg, and unstable in the force experiment's contact.)
-    ParamSpec("disturbance_observer", "log-float", "disturbance_observer",
+    ParamSpec("disturbance_observer", "log-float", "observer.disturbance_observer",
               low=0.05, high=1.0, off=0.0, per_delay=True),
 )
 # fmt: on
@@ -186,12 +195,13 @@ class Param:
         return f"{self.spec.name}[{self.key}]" if self.key else self.spec.name
 
 
-def _field_kind(name: str) -> str | None:
-    """ "list", "dict" or "scalar" for a TorqueControlConfig field; None if absent."""
-    hints = typing.get_type_hints(TorqueControlConfig)
-    if name not in hints:
+def _field_kind(path: str) -> str | None:
+    """ "list", "dict" or "scalar" for a TorqueControlConfig field (its path); None if
+    absent."""
+    hint = field_type(TorqueControlConfig, path)
+    if hint is None:
         return None
-    origin = typing.get_origin(hints[name])
+    origin = typing.get_origin(hint)
     return {list: "list", dict: "dict"}.get(origin, "scalar")
 
 
@@ -254,7 +264,7 @@ def suggest(trial, space: list[Param]) -> dict:
 
 
 def _scaled(spec: ParamSpec, value: float, config: TorqueControlConfig) -> int:
-    reference = int(getattr(config, spec.scale_of))
+    reference = int(field_at(config, spec.scale_of))
     lowest = 3 + (reference - 3) % 2  # the shortest window of reference's parity
     value = int(round(value * reference))
     value += (reference - value) % 2  # towards `reference`: its parity
@@ -272,7 +282,7 @@ def apply_params(
     for param in sorted(space, key=lambda p: (bool(p.spec.scale_of), p.spec.per_delay)):
         spec, name = param.spec, param.name
         if spec.off is not None and f"{name}_on" in params and not params[f"{name}_on"]:
-            setattr(config, spec.field, spec.off)
+            set_field_at(config, spec.field, spec.off)
             continue
         if name not in params:
             continue
@@ -282,18 +292,18 @@ def apply_params(
         if spec.per_delay:
             value = value / estimation_delay(config)
         if param.target == "list":
-            values = list(getattr(config, spec.field))
+            values = list(field_at(config, spec.field))
             if len(values) == 1:
                 values = values * len(joints)
             values[joints.index(param.key)] = float(value)
-            setattr(config, spec.field, values)
+            set_field_at(config, spec.field, values)
         elif param.target == "dict":
-            values = getattr(config, spec.field)
+            values = field_at(config, spec.field)
             values[param.key] = value
-            if spec.scale_of and value == getattr(config, spec.scale_of):
+            if spec.scale_of and value == field_at(config, spec.scale_of):
                 del values[param.key]  # the common window: left implicit
         else:
-            setattr(config, spec.field, value)
+            set_field_at(config, spec.field, value)
     return config
 
 
@@ -305,17 +315,17 @@ def base_params(
     out = {}
     for param in space:
         spec, name = param.spec, param.name
-        value = getattr(base, spec.field)
+        value = field_at(base, spec.field)
         if param.target == "list":
             value = value[0] if len(value) == 1 else value[joints.index(param.key)]
         elif param.target == "dict":
             value = value.get(
-                param.key, getattr(base, spec.scale_of) if spec.scale_of else None
+                param.key, field_at(base, spec.scale_of) if spec.scale_of else None
             )
             if value is None:
                 continue
         if spec.scale_of:
-            value = value / getattr(base, spec.scale_of)
+            value = value / field_at(base, spec.scale_of)
         if spec.per_delay:
             value = value * estimation_delay(base)
         if spec.off is not None:
@@ -336,7 +346,7 @@ def base_params(
 
 def _default_torque_control() -> TorqueControlConfig:
     # As the motion experiment's: hanging, the F/T offsets calibrated at start-up.
-    return TorqueControlConfig(offset_calibration_time=0.25)
+    return TorqueControlConfig(estimator=EstimatorSettings(offset_calibration_time=0.25))
 
 
 @dataclass
@@ -449,7 +459,7 @@ class TuneConfig:
 
     def base(self) -> TorqueControlConfig:
         """The untuned torque control: torque_control with this k6."""
-        return replace(self.torque_control, k6=self.k6)
+        return replace_fields(self.torque_control, {"controller.k6": self.k6})
 
     def quick(self) -> None:
         """A smoke run: 0.4 s of the swing's fastest part, 4 trials."""
@@ -525,6 +535,7 @@ def run_trial(task: TrialTask) -> dict:
     from hrp2_drake.assembly.builders import (
         build_position_control,
         build_torque_control,
+        simulated_station,
     )
     from hrp2_drake.paper.motion import evaluate, run_controller
 
@@ -532,13 +543,14 @@ def run_trial(task: TrialTask) -> dict:
     reference = _reference(task)
     where = {"host": socket.gethostname(), "pid": os.getpid()}
     try:
+        robot, station, period = simulated_station(task.station)
         if task.torque_control is None:
-            control = build_position_control(task.station, reference)
+            control = build_position_control(robot, station, reference)
         else:
             # The fused controller: the diagram's signals, at less cost per step.
             control = build_torque_control(
-                task.station, reference, task.motor_model, task.torque_control,
-                fused=True,
+                robot, station, reference, task.motor_model, task.torque_control,
+                control_period=period, fused=True,
             )
         with _quiet("hrp2_drake.control"):  # the result reports the fallbacks
             signals = run_controller(
@@ -550,7 +562,7 @@ def run_trial(task: TrialTask) -> dict:
             "wall_time": time.perf_counter() - wall,
         }
     torque = task.torque_control
-    delay = 0.0 if torque is None else (torque.window - 1) / 2 * 0.001 + 0.002
+    delay = 0.0 if torque is None else (torque.estimator.window - 1) / 2 * 0.001 + 0.002
     run = evaluate("trial", None, signals, task.settle, delay)
     out = where | {
         "average_error": run.average_error,
@@ -562,7 +574,7 @@ def run_trial(task: TrialTask) -> dict:
     }
     if torque is not None:
         active = signals["t"] >= torque.start_time
-        saturated = np.abs(signals["delta_q"][active]) >= torque.delta_q_limit * (
+        saturated = np.abs(signals["delta_q"][active]) >= torque.controller.delta_q_limit * (
             1 - 1e-9
         )
         out["saturation"] = float(saturated.any(axis=1).mean()) if active.any() else 0.0
@@ -922,14 +934,11 @@ def load_tuned(text: str) -> TorqueControlConfig:
 
 def _plots(study, out: Path) -> dict[str, str]:
     """history.png and importances.png; a note instead of a figure it cannot draw."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     import optuna
     from optuna.trial import TrialState
     from optuna.visualization import matplotlib as plots
 
+    plt = pyplot()
     figures = {}
     completed = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
     with warnings.catch_warnings():
@@ -937,9 +946,7 @@ def _plots(study, out: Path) -> dict[str, str]:
         warnings.simplefilter("ignore", UserWarning)  # "few trials per regime"
         ax = plots.plot_optimization_history(study)
         ax.figure.set_size_inches(8, 4.5)
-        ax.figure.tight_layout()
-        ax.figure.savefig(out / "history.png", dpi=100)
-        plt.close(ax.figure)
+        save_figure(ax.figure, out / "history.png", dpi=100, tight=True)
         figures["history"] = "history.png"
         if len(completed) < 2:
             figures["importances"] = (
@@ -951,9 +958,7 @@ def _plots(study, out: Path) -> dict[str, str]:
                 evaluator = optuna.importance.PedAnovaImportanceEvaluator()
                 ax = plots.plot_param_importances(study, evaluator=evaluator)
                 ax.figure.set_size_inches(8, 6)
-                ax.figure.tight_layout()
-                ax.figure.savefig(out / "importances.png", dpi=100)
-                plt.close(ax.figure)
+                save_figure(ax.figure, out / "importances.png", dpi=100, tight=True)
                 figures["importances"] = "importances.png"
             except Exception as error:  # too few distinct trials, one parameter...
                 plt.close("all")
@@ -978,8 +983,8 @@ def _report(result: TuneResult, config: TuneConfig, figures: dict[str, str]) -> 
     lines = [
         "# Tuning the torque controller (`hrp2-drake tune`)",
         "",
-        f"K6 = {result.tuned.k6:g}; the climbing swing {config.start:g}-{config.end:g} s "
-        f"after {config.settle:g} s holding its first pose, HRP-2 hanging. Cost: the worst "
+        f"K6 = {result.tuned.controller.k6:g}; the climbing swing {config.start:g}-{config.end:g}"
+        f" s after {config.settle:g} s holding its first pose, HRP-2 hanging. Cost: the worst "
         f"ratio of torque control's error to position control's over the 5 moving joints "
         f"and over average/maximum error (paper Tables 2-3), + {config.mean_weight:g} x "
         f"the mean ratio, + {config.fallback_penalty:g} if it fell back, + "
@@ -999,38 +1004,15 @@ def _report(result: TuneResult, config: TuneConfig, figures: dict[str, str]) -> 
             f"{untuned.user_attrs.get('worst_ratio', float('nan')):.3f}"
         )
     lines += [f"- note: {note}" for note in result.notes]
-    lines += [
-        "",
-        "## Best trial against position control",
-        "",
-        "| joint | average (x10³ rad) | ratio | maximum (mrad) | ratio |",
-        "| --- | ---: | ---: | ---: | ---: |",
+    lines += ["", "## Best trial against position control", ""]
+    lines += _best_trial_lines(best.user_attrs, result.position, labels)
+    lines += ["", "## Best parameters", ""]
+    rows = [
+        [name, _fmt(untuned.params.get(name, "-") if untuned else "-"),
+         _fmt(best.params.get(name, "-"))]
+        for name in sorted(set(best.params) | set(untuned.params if untuned else ()))
     ]
-    attrs, position = best.user_attrs, result.position
-    if "average_ratio" in attrs:
-        for j, label in enumerate(labels):
-            lines.append(
-                f"| {label} | {attrs['average_error'][j] * 1e3:.4f} "
-                f"({position['average_error'][j] * 1e3:.4f}) | {attrs['average_ratio'][j]:.3f} "
-                f"| {attrs['max_error'][j] * 1e3:.2f} ({position['max_error'][j] * 1e3:.2f}) "
-                f"| {attrs['max_ratio'][j]:.3f} |"
-            )
-        lines += [
-            "",
-            "Cells: torque control (position control).",
-            f"Saturated ticks: {attrs.get('saturation', 0.0) * 100:.2f}%; fell back: "
-            f"{'yes' if attrs.get('fell_back') else 'no'}.",
-        ]
-    lines += [
-        "",
-        "## Best parameters",
-        "",
-        "| parameter | untuned | best |",
-        "| --- | ---: | ---: |",
-    ]
-    for name in sorted(set(best.params) | set(untuned.params if untuned else ())):
-        base = untuned.params.get(name, "-") if untuned else "-"
-        lines.append(f"| {name} | {_fmt(base)} | {_fmt(best.params.get(name, '-'))} |")
+    lines += markdown_table(["parameter", "untuned", "best"], rows)
     lines += [
         "",
         "Written to `tuned.yaml` (a TorqueControlConfig: the `torque_control` of "
@@ -1044,6 +1026,31 @@ def _report(result: TuneResult, config: TuneConfig, figures: dict[str, str]) -> 
             f"![{name}]({value})" if value.endswith(".png") else f"- {name}: {value}"
         )
     return "\n".join(lines) + "\n"
+
+
+def _best_trial_lines(attrs: dict, position: dict, labels: list[str]) -> list[str]:
+    """The best trial's errors beside position control's per moving joint (rad·10³,
+    and their ratios); a trial without them (it failed): the table's header alone."""
+    rows = [
+        [
+            label,
+            f"{attrs['average_error'][j] * 1e3:.4f} ({position['average_error'][j] * 1e3:.4f})",
+            f"{attrs['average_ratio'][j]:.3f}",
+            f"{attrs['max_error'][j] * 1e3:.2f} ({position['max_error'][j] * 1e3:.2f})",
+            f"{attrs['max_ratio'][j]:.3f}",
+        ]
+        for j, label in enumerate(labels)
+    ] if "average_ratio" in attrs else []
+    header = ["joint", "average (x10³ rad)", "ratio", "maximum (mrad)", "ratio"]
+    lines = markdown_table(header, rows)
+    if "average_ratio" in attrs:
+        lines += [
+            "",
+            "Cells: torque control (position control).",
+            f"Saturated ticks: {attrs.get('saturation', 0.0) * 100:.2f}%; fell back: "
+            f"{'yes' if attrs.get('fell_back') else 'no'}.",
+        ]
+    return lines
 
 
 def _fmt(value) -> str:

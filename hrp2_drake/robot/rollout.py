@@ -20,7 +20,7 @@ the first sample enters the simulation.
 The servo is any system a factory `servo(plant, joint_names)` builds with input ports
 "q_cmd", "state" and optionally "enabled", and output port "actuation":
 `model_servo` (an identified `MotorModel`, `MotorModelServo`) or `emulated_servo`
-(the emulated servo, `Hrp2ServoEmulation`). `hrp2-drake validate` goes through
+(the emulated servo, `EmulatedPositionServo`). `hrp2-drake validate` goes through
 `rollout`, and so should anything else that replays a log (a servo's calibration on
 logs).
 """
@@ -33,16 +33,22 @@ from typing import Callable, Sequence
 import numpy as np
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import BasicVector, Context, DiagramBuilder, LeafSystem
+from pydrake.systems.framework import (
+    BasicVector,
+    Context,
+    Diagram,
+    DiagramBuilder,
+    LeafSystem,
+)
 from pydrake.systems.primitives import TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
 from hrp2_drake.description import RobotDescription
 from hrp2_drake.identification.logs import RobotLog
 from hrp2_drake.identification.motor_model import MotorModel
-from hrp2_drake.multibody import joint_indexing
-from hrp2_drake.robot.servo import Hrp2ServoEmulation, ServoParams
-from hrp2_drake.simulation import WitnessFreeLeafSystem, add_loggers
+from hrp2_drake.multibody import JointIndexing, joint_indexing
+from hrp2_drake.robot.servo import EmulatedPositionServo, ServoParams
+from hrp2_drake.simulation import LoggedPort, WitnessFreeLeafSystem, add_loggers
 
 #: Builds the servo of a rollout for a finalized plant and the log's joints: a system
 #: with input ports "q_cmd", "state" (and optionally "enabled") and output port
@@ -81,7 +87,7 @@ class MotorModelServo(WitnessFreeLeafSystem):
 
     Timing: direct feedthrough, no state. A discrete plant reads its actuation
     input at the start of each step, from the state at that time, and holds it over
-    the step; `Hrp2ServoEmulation` computes its output the same way (from the state
+    the step; `EmulatedPositionServo` computes its output the same way (from the state
     port, in the output's calc; its discrete state only carries the latency buffer
     and the direction state). So both servos apply τ(q_cmd(t_k), x(t_k)) over
     [t_k, t_k + h], and a model equivalent to the emulator's law gives the same
@@ -206,14 +212,14 @@ def emulated_servo(
     off: Sequence[str] = (),
     initial_q_cmd: Sequence[float] | None = None,
 ) -> ServoFactory:
-    """The factory of the emulated servo (`Hrp2ServoEmulation`, with its "enabled"
+    """The factory of the emulated servo (`EmulatedPositionServo`, with its "enabled"
     port) with `params` at servo gain `gain` (`ServoParams.at_gain`; None: as they
     are), its period the plant's step, mechanisms `off` switched off;
     `initial_q_cmd`: what its latency buffer holds at the start (None: zeros)."""
     at_gain = params.at_gain(gain) if gain else params
 
     def factory(plant: MultibodyPlant, joint_names: Sequence[str]) -> LeafSystem:
-        return Hrp2ServoEmulation(
+        return EmulatedPositionServo(
             plant,
             at_gain,
             joint_names,
@@ -283,6 +289,33 @@ def rollout(
         ValueError: the log is shorter than two samples, its period is below
             `time_step`, or its joints are not the plant's.
     """
+    _check_rollout(log, time_step)
+    period = log.period
+    diagram, plant, indexing, logger = _rollout_diagram(robot, log, servo, time_step)
+
+    simulator = Simulator(diagram)
+    context = simulator.get_mutable_context()
+    plant_context = plant.GetMyMutableContextFromRoot(context)
+    q0 = plant.GetPositions(plant_context)
+    q0[indexing.q] = log.q_measured[0]
+    plant.SetPositions(plant_context, q0)
+    plant.SetVelocities(plant_context, np.zeros(plant.num_velocities()))
+
+    wall0 = time.perf_counter()
+    simulator.Initialize()
+    # Past the last grid time by less than a step, so that rounding of the re-zeroed
+    # grid cannot drop the last sample.
+    simulator.AdvanceTo(float(log.t[-1]) + 0.5 * min(period, time_step))
+    wall_time = time.perf_counter() - wall0
+
+    state = logger.data(context).T
+    q_sim = _on_log_grid(log, logger.sample_times(context), state[:, indexing.q])
+    return RolloutResult(log=log, q_sim=q_sim, wall_time=wall_time)
+
+
+def _check_rollout(log: RobotLog, time_step: float) -> None:
+    """Raises ValueError unless the log has two samples or more and a period of at
+    least the finite, positive `time_step` (s)."""
     m = len(log.t)
     if m < 2:
         raise ValueError(f"rollout: log '{log.name}' has {m} samples, needs at least 2")
@@ -294,9 +327,15 @@ def rollout(
             f"rollout: log '{log.name}' has period {period:g} s, below the plant's "
             f"time step {time_step:g} s"
         )
+
+
+def _rollout_diagram(
+    robot: RobotDescription, log: RobotLog, servo: ServoFactory, time_step: float
+) -> tuple[Diagram, MultibodyPlant, JointIndexing, LoggedPort]:
+    """The rollout's diagram (module docstring): (diagram, plant, the log's joints in
+    the plant, the logger of the plant's state every log period)."""
     names = list(log.joint_names)
     n = len(names)
-
     builder = DiagramBuilder()
     plant = builder.AddNamedSystem("plant", MultibodyPlant(time_step))
     robot.add_model(plant)
@@ -317,36 +356,24 @@ def rollout(
             "enabled", TrajectorySource(_held(log.t, mask, time_step))
         )
         builder.Connect(enabled.get_output_port(), servo_system.GetInputPort("enabled"))
-    loggers = add_loggers(builder, {"state": plant.get_state_output_port()}, period)
-    diagram = builder.Build()
+    loggers = add_loggers(builder, {"state": plant.get_state_output_port()}, log.period)
+    return builder.Build(), plant, indexing, loggers["state"]
 
-    simulator = Simulator(diagram)
-    context = simulator.get_mutable_context()
-    plant_context = plant.GetMyMutableContextFromRoot(context)
-    q0 = plant.GetPositions(plant_context)
-    q0[indexing.q] = log.q_measured[0]
-    plant.SetPositions(plant_context, q0)
-    plant.SetVelocities(plant_context, np.zeros(plant.num_velocities()))
 
-    wall0 = time.perf_counter()
-    simulator.Initialize()
-    # Past the last grid time by less than a step, so that rounding of the re-zeroed
-    # grid cannot drop the last sample.
-    simulator.AdvanceTo(float(log.t[-1]) + 0.5 * min(period, time_step))
-    wall_time = time.perf_counter() - wall0
-
-    state = loggers["state"].data(context).T
-    sample_times = loggers["state"].sample_times(context)
-    rows = np.rint(sample_times / period).astype(int)
-    q_sim = np.full((m, n), np.nan)
+def _on_log_grid(log: RobotLog, sample_times: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """The logged joint positions q (one row per logger sample at `sample_times`, s)
+    on the log's grid, (m, n); a RuntimeError if a grid time has no sample."""
+    m = len(log.t)
+    rows = np.rint(sample_times / log.period).astype(int)
+    q_sim = np.full((m, q.shape[1]), np.nan)
     keep = rows < m
-    q_sim[rows[keep]] = state[keep][:, indexing.q]
+    q_sim[rows[keep]] = q[keep]
     if np.any(np.isnan(q_sim)):
         raise RuntimeError(
             f"rollout: the logger missed {int(np.isnan(q_sim[:, 0]).sum())} of the "
             f"{m} grid times of log '{log.name}'"
         )
-    return RolloutResult(log=log, q_sim=q_sim, wall_time=wall_time)
+    return q_sim
 
 
 def rollout_errors(log: RobotLog, q_sim: np.ndarray) -> RolloutErrors:

@@ -21,7 +21,6 @@ same laws as separate systems, for other diagrams; they give the same numbers
 """
 
 import math
-from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
@@ -30,124 +29,11 @@ from pydrake.multibody.math import SpatialForce
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.framework import Context, DiscreteValues
 
+# The configs are the robot description's (plain data), imported here for this module's users.
+from hrp2_drake.description.sensors import NoiseConfig, SensorsConfig  # noqa: F401
 from hrp2_drake.multibody import joint_indexing
 from hrp2_drake.robot.faults import SensorFault, freeze_windows, update_stamps
 from hrp2_drake.simulation import WitnessFreeLeafSystem
-
-
-@dataclass
-class NoiseConfig:
-    """Noise of one sensor.
-
-    Args:
-        std: white-noise standard deviation per axis (one value: every axis), in the
-            sensor's unit (rad, m/s², rad/s, N·m and N).
-        bias: constant offset per axis (one value: every axis), same unit.
-    """
-
-    std: list[float] = field(default_factory=lambda: [0.0])
-    bias: list[float] = field(default_factory=lambda: [0.0])
-
-    def vectors(self, size: int, where: str) -> tuple[np.ndarray, np.ndarray]:
-        """(std, bias) broadcast to `size`; a wrong length is a ValueError."""
-        out = []
-        for name in ("std", "bias"):
-            value = np.asarray(getattr(self, name), dtype=float)
-            if value.size == 1:
-                value = np.full(size, value.item())
-            if value.shape != (size,) or not np.all(np.isfinite(value)):
-                raise ValueError(
-                    f"{where}.{name} must hold 1 or {size} finite values, "
-                    f"got {getattr(self, name)}"
-                )
-            out.append(value)
-        if np.any(out[0] < 0):
-            raise ValueError(f"{where}.std must be >= 0, got {self.std}")
-        return out[0], out[1]
-
-
-def _default_ft() -> NoiseConfig:
-    # 6-axis sensors of the JR3/ATI class: ~0.5 N and ~0.02 N·m noise at 1 kHz. Their
-    # offsets (a few N, a few 0.01 N·m, drifting between power-ups) are per sensor:
-    # a robot description gives them in `force_torque`.
-    return NoiseConfig([0.02, 0.02, 0.02, 0.5, 0.5, 0.5], [0.0])
-
-
-@dataclass
-class SensorsConfig:
-    """Sensor noise, bias and sampling (defaults: HRP-2-like magnitudes).
-
-    Args:
-        period: sampling period of every sensor (s).
-        seed: seed of the noise generators (same seed, same noise).
-        encoder_quantization: quantize encoder readings at the joint resolution of
-            a 4000-count motor encoder through the gear (models/hrp2/README.md).
-        encoder: additional encoder noise (rad); none by default.
-        accelerometer: m/s². MEMS-class: 0.02 m/s² noise, ~0.05 m/s² bias.
-        gyroscope: rad/s. 0.005 rad/s noise, ~0.002 rad/s bias.
-        force_torque: per sensor name, [τx, τy, τz, fx, fy, fz] in N·m and N;
-            a sensor not listed has `force_torque_default`.
-        force_torque_default: the F/T sensors not in `force_torque`.
-    """
-
-    period: float = 0.001
-    seed: int = 0
-    encoder_quantization: bool = True
-    encoder: NoiseConfig = field(default_factory=NoiseConfig)
-    accelerometer: NoiseConfig = field(
-        default_factory=lambda: NoiseConfig([0.02], [0.05, -0.03, 0.04])
-    )
-    gyroscope: NoiseConfig = field(
-        default_factory=lambda: NoiseConfig([0.005], [0.002, -0.001, 0.0015])
-    )
-    force_torque: dict[str, NoiseConfig] = field(default_factory=dict)
-    force_torque_default: NoiseConfig = field(default_factory=_default_ft)
-
-    def force_torque_noise(self, name: str) -> NoiseConfig:
-        """The noise of F/T sensor `name`."""
-        return self.force_torque.get(name, self.force_torque_default)
-
-    def validate(
-        self, num_joints: int | None = None, sensor_names: Sequence[str] | None = None
-    ) -> None:
-        """Raises ValueError naming the bad field (yaml_load_typed does not call it):
-        the period must be finite and > 0, the seed >= 0, and each noise config must
-        hold 1 or as many values as its sensor has axes (the encoders' only when the
-        number of joints is given); `force_torque` may only name the given sensors."""
-        if not (math.isfinite(self.period) and self.period > 0):
-            raise ValueError(
-                "SensorsConfig.period must be a finite number > 0 (s), "
-                f"got {self.period}"
-            )
-        if self.seed < 0:
-            raise ValueError(f"SensorsConfig.seed must be >= 0, got {self.seed}")
-        if num_joints is not None:
-            self.encoder.vectors(num_joints, "SensorsConfig.encoder")
-        self.accelerometer.vectors(3, "SensorsConfig.accelerometer")
-        self.gyroscope.vectors(3, "SensorsConfig.gyroscope")
-        self.force_torque_default.vectors(6, "SensorsConfig.force_torque_default")
-        for name, noise in self.force_torque.items():
-            noise.vectors(6, f"SensorsConfig.force_torque.{name}")
-        if sensor_names is not None:
-            unknown = sorted(set(self.force_torque) - set(sensor_names))
-            if unknown:
-                raise ValueError(
-                    f"SensorsConfig.force_torque: unknown sensors {unknown}, the robot has "
-                    f"{sorted(sensor_names)}"
-                )
-
-    @staticmethod
-    def noiseless(period: float = 0.001) -> "SensorsConfig":
-        """Perfect sensors (no noise, no bias, no quantization), for tests."""
-        zero = NoiseConfig([0.0], [0.0])
-        return SensorsConfig(
-            period=period,
-            encoder_quantization=False,
-            encoder=zero,
-            accelerometer=zero,
-            gyroscope=zero,
-            force_torque_default=zero,
-        )
 
 
 class SampledSignal:
@@ -337,6 +223,49 @@ def force_torque_maps(
     return joints, np.array(maps).reshape(-1, 6, 6)
 
 
+def _sensor_laws(
+    config: SensorsConfig,
+    num_joints: int,
+    encoder_resolution: np.ndarray | None,
+    imu: bool,
+    force_torque_names: Sequence[str],
+) -> dict[str, SampledSignal]:
+    """The `SampledSignal` law of each channel of a `SensorSampler`, by channel name
+    (the former samplers' names, for errors), in the seeds' order: encoders,
+    accelerometer and gyroscope (with an IMU), the F/T sensors side by side."""
+    n = num_joints
+    seeds = iter(range(1000 * config.seed + 1, 1000 * config.seed + 100))
+    laws = {
+        "encoders": SampledSignal(
+            n,
+            *config.encoder.vectors(n, "sensors.encoder"),
+            next(seeds),
+            encoder_resolution,
+        )
+    }
+    if imu:
+        for name, noise in (
+            ("accelerometer", config.accelerometer),
+            ("gyroscope", config.gyroscope),
+        ):
+            vectors = noise.vectors(3, f"sensors.{name}")
+            laws[f"imu_{name}"] = SampledSignal(3, *vectors, next(seeds))
+    if force_torque_names:
+        stds, biases = zip(
+            *(
+                config.force_torque_noise(s).vectors(6, f"sensors.force_torque.{s}")
+                for s in force_torque_names
+            )
+        )
+        laws["force_torque"] = SampledSignal(
+            6 * len(force_torque_names),
+            np.concatenate(stds),
+            np.concatenate(biases),
+            next(seeds),
+        )
+    return laws
+
+
 class SensorSampler(WitnessFreeLeafSystem):
     """Every sensor of a simulated robot sampled at once each period, as a robot's
     sensor bus delivers them: the encoders, the IMU (if any) and the F/T sensors, each
@@ -394,43 +323,21 @@ class SensorSampler(WitnessFreeLeafSystem):
             faults: the station's faults: a "freeze" stops its sensor's stamp.
         """
         super().__init__()
-        n = len(joint_names)
         names = [sensor[0] for sensor in force_torque]
         self._period = config.period
-        seeds = iter(range(1000 * config.seed + 1, 1000 * config.seed + 100))
-        # The channels (the former samplers' names, for errors), in the seeds' order.
-        laws = {
-            "encoders": SampledSignal(
-                n,
-                *config.encoder.vectors(n, "sensors.encoder"),
-                next(seeds),
-                encoder_resolution,
-            )
-        }
-        if imu:
-            for name, noise in (
-                ("accelerometer", config.accelerometer),
-                ("gyroscope", config.gyroscope),
-            ):
-                vectors = noise.vectors(3, f"sensors.{name}")
-                laws[f"imu_{name}"] = SampledSignal(3, *vectors, next(seeds))
-        if names:
-            stds, biases = zip(
-                *(
-                    config.force_torque_noise(s).vectors(6, f"sensors.force_torque.{s}")
-                    for s in names
-                )
-            )
-            laws["force_torque"] = SampledSignal(
-                6 * len(names),
-                np.concatenate(stds),
-                np.concatenate(biases),
-                next(seeds),
-            )
+        laws = _sensor_laws(config, len(joint_names), encoder_resolution, imu, names)
+        views = self._make_buffers(laws)
+        self._declare_inputs(plant, joint_names, views, imu, force_torque)
+        self._declare_outputs(views, initial_q, imu, names, faults)
+        self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
 
-        # One buffer of every clean signal and one of every measurement, channel
-        # after channel (the noisy ones last), with views per channel: one finite
-        # check, one bias addition and one noise addition for the whole bus.
+    def _make_buffers(
+        self, laws: dict[str, SampledSignal]
+    ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """One buffer of every clean signal and one of every measurement, channel
+        after channel (the noisy ones last), with views per channel: one finite check,
+        one bias addition and one noise addition for the whole bus. Returns the
+        (signal, measurement) views of each channel."""
         order = sorted(laws, key=lambda name: laws[name].noisy)  # stable
         size = sum(law.size for law in laws.values())
         self._signals, self._measurements = np.zeros(size), np.zeros(size)
@@ -444,10 +351,6 @@ class SensorSampler(WitnessFreeLeafSystem):
                 (name, laws[name], self._signals[rows], self._measurements[rows])
             )
             start += laws[name].size
-        views = {
-            name: (signal, measurement)
-            for name, _, signal, measurement in self._channels
-        }
         # The noisy channels in the seeds' order, which the stable sort kept.
         self._noisy_laws = [law for law in laws.values() if law.noisy]
         noisy_size = sum(law.size for law in self._noisy_laws)
@@ -457,8 +360,20 @@ class SensorSampler(WitnessFreeLeafSystem):
         self._quantized = [
             (law, m) for _, law, _, m in self._channels if law.resolution is not None
         ]
+        return {
+            name: (signal, measurement)
+            for name, _, signal, measurement in self._channels
+        }
 
-        # Inputs, and where each one's signal goes.
+    def _declare_inputs(
+        self,
+        plant: MultibodyPlant,
+        joint_names: Sequence[str],
+        views: dict[str, tuple[np.ndarray, np.ndarray]],
+        imu: bool,
+        force_torque: Sequence[tuple[str, str, str, str]],
+    ) -> None:
+        """The input ports, and where each one's signal goes (its channel's view)."""
         self._state = self.DeclareVectorInputPort(
             "state", plant.num_positions() + plant.num_velocities()
         )
@@ -474,7 +389,7 @@ class SensorSampler(WitnessFreeLeafSystem):
                     (self.DeclareVectorInputPort(port, 3), views[channel][0])
                 )
         self._reaction = None
-        if names:
+        if force_torque:
             self._reaction = self.DeclareAbstractInputPort(
                 "reaction_forces", AbstractValue.Make([SpatialForce()])
             )
@@ -486,7 +401,16 @@ class SensorSampler(WitnessFreeLeafSystem):
             # are ForceTorqueReadout's).
             self._force_torque_signal = views["force_torque"][0].reshape(-1, 6, 1)
 
-        # Outputs: a discrete state group per port, then the stamps.
+    def _declare_outputs(
+        self,
+        views: dict[str, tuple[np.ndarray, np.ndarray]],
+        initial_q: np.ndarray,
+        imu: bool,
+        names: Sequence[str],
+        faults: Sequence[SensorFault],
+    ) -> None:
+        """A discrete state group and an output port per sensor port (its channel's
+        measurement view), then the stamps."""
         self._outputs = []  # (group, measurement view)
         ports = [("q_measured", views["encoders"][1], np.asarray(initial_q, float))]
         if imu:
@@ -506,7 +430,6 @@ class SensorSampler(WitnessFreeLeafSystem):
         stamps = self.DeclareDiscreteState(len(ports))
         self._stamps_group = int(stamps)
         self.DeclareStateOutputPort("sensor_time", stamps)
-        self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
         t = context.get_time()

@@ -1,10 +1,11 @@
-"""Hrp2ServoEmulation: a robot's emulated position servo (DESIGN.md), modelled on
-HRP-2's closed-source one; its parameters come from the robot description's
-servo_file (HRP-2: models/hrp2/servo.yaml; the iiwa: models/iiwa14/servo.yaml).
+"""EmulatedPositionServo: a robot's emulated position servo (docs/architecture.md), a current
+loop behind a position-error command as in closed-source servo boards (first
+modelled on HRP-2's); its parameters come from the robot description's servo_file
+(e.g. HRP-2: models/hrp2/servo.yaml; the iiwa: models/iiwa14/servo.yaml).
 
 Per joint, with e = q_cmd(t - d) - q_encoder (paper eq. 5, plus what the paper and the
-authors' measurements show of the real robot, Sec. 3.2; models/hrp2/README.md gives
-the source of every mechanism and number):
+authors' measurements show of a real servo, Sec. 3.2; each robot's models/<name>/README.md
+gives the source of every mechanism and number):
 
     u        = K4 e - K5 q̇                                       current command, A
     i        = clip(deadzone(u, i_dz), i_lo(q̇), i_hi(q̇))        dead zone, limits
@@ -33,10 +34,11 @@ Without dead zone, saturation and latency this is exactly the paper's eq. 6,
 Δq = Kτ τ + Kv q̇ + Kc sign(q̇), with Kτ = 1/(K1 K4), Kv = (K1 K5 + K2)/(K1 K4),
 Kc = K3/(K1 K4); the latency adds d to the Kv an identification measures, since it
 sees Δq = q_cmd(t) - q with the command as sent (`effective_motor_parameters`).
-The parameters live in models/hrp2/servo.yaml (calibrated, `hrp2-drake calibrate`)
-or servo_ideal.yaml (the `ideal` preset, eq. 6 with a small dead zone and Coulomb
-term) and are the hidden truth of the simulation: only hrp2_drake.robot reads them;
-estimation, identification and control must find everything from signals.
+The parameters live in the robot description's servo files (e.g. HRP-2:
+models/hrp2/servo.yaml, calibrated by `hrp2-drake calibrate`, or servo_ideal.yaml, the
+`ideal` preset: eq. 6 with a small dead zone and Coulomb term) and are the hidden truth
+of the simulation: only hrp2_drake.robot reads them; estimation, identification and
+control must find everything from signals.
 
 Stability: the torque is explicit (held over each plant step). Every joint carries
 the reflected rotor inertia ρ² I_r, which bounds the joint-space inertia from below,
@@ -48,6 +50,7 @@ discrete closed loop; tests/test_servo.py checks it and a closed-loop run.
 import copy
 import functools
 import math
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -60,7 +63,7 @@ from hrp2_drake.config import load_config
 from hrp2_drake.multibody import JointIndexing, joint_indexing
 from hrp2_drake.simulation import WitnessFreeLeafSystem
 
-#: The servo mechanisms that can be switched off (`Hrp2ServoEmulation(..., off=...)`,
+#: The servo mechanisms that can be switched off (`EmulatedPositionServo(..., off=...)`,
 #: `StationConfig.servo_off`).
 SERVO_MECHANISMS = ("latency", "voltage_limit", "hysteresis", "deadzone")
 
@@ -142,7 +145,8 @@ class ServoJointParams:
 
 @dataclass
 class ServoParams:
-    """Servo parameters of every joint, by joint name (models/hrp2/servo.yaml)."""
+    """Servo parameters of every joint, by joint name (a robot description's
+    servo_file, e.g. models/hrp2/servo.yaml)."""
 
     joints: dict[str, ServoJointParams] = field(default_factory=dict)
 
@@ -351,16 +355,52 @@ def dahl_step(s: np.ndarray, dq: np.ndarray, width: np.ndarray) -> np.ndarray:
     return np.where(dq == 0, s, target + (s - target) * decay)
 
 
-class Hrp2ServoEmulation(WitnessFreeLeafSystem):
+def _applied_parameters(
+    params: ServoParams,
+    joint_names: Sequence[str],
+    period: float,
+    off: Sequence[str],
+    extra_latency: float,
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The servo's parameters as arrays over `joint_names` (`ServoParams.vectors`)
+    with the mechanisms `off` switched off, and each joint's command delay in whole
+    servo periods of `period` s (its latency, none with "latency" off, plus
+    `extra_latency` s).
+
+    Raises:
+        KeyError: a joint without servo parameters.
+        ValueError: `extra_latency` is not finite and >= 0.
+    """
+    n = len(joint_names)
+    p = params.vectors(joint_names)
+    if "deadzone" in off:
+        p["i_deadzone"] = np.zeros(n)
+    if "voltage_limit" in off:
+        p["stall_current"] = np.full(n, np.inf)
+        p["no_load_speed"] = np.full(n, np.inf)
+    if "hysteresis" in off:
+        p["hysteresis_width"] = np.zeros(n)
+    delays = np.rint(p["latency"] / period).astype(int)
+    if "latency" in off:
+        delays[:] = 0
+    if not (math.isfinite(extra_latency) and extra_latency >= 0):
+        raise ValueError(
+            f"EmulatedPositionServo: extra_latency must be finite and >= 0, got {extra_latency}"
+        )
+    delays = delays + int(np.rint(extra_latency / period))
+    return p, delays
+
+
+class EmulatedPositionServo(WitnessFreeLeafSystem):
     """The emulated position servo: q_cmd and the plant state in, joint torques out.
 
     .. code-block:: text
 
-                   ┌─────────────────────┐
-        q_cmd ────►│                     │
-        state ────►│ Hrp2ServoEmulation  ├──► actuation
-      enabled ────►│                     │
-     (optional)    └─────────────────────┘
+                   ┌───────────────────────┐
+        q_cmd ────►│                       │
+        state ────►│ EmulatedPositionServo ├──► actuation
+      enabled ────►│                       │
+     (optional)    └───────────────────────┘
 
     Ports:
         q_cmd: commanded joint positions (rad), n = len(joint_names), joint order.
@@ -398,37 +438,34 @@ class Hrp2ServoEmulation(WitnessFreeLeafSystem):
         unknown = sorted(set(off) - set(SERVO_MECHANISMS))
         if unknown:
             raise ValueError(
-                f"Hrp2ServoEmulation: unknown mechanism(s) {unknown} to switch off "
+                f"EmulatedPositionServo: unknown mechanism(s) {unknown} to switch off "
                 f"(known: {list(SERVO_MECHANISMS)})"
             )
         self._indexing: JointIndexing = joint_indexing(plant, joint_names)
         if np.any(self._indexing.u < 0):
             missing = [n for n, u in zip(joint_names, self._indexing.u) if u < 0]
-            raise ValueError(f"Hrp2ServoEmulation: joints without actuator: {missing}")
+            raise ValueError(f"EmulatedPositionServo: joints without actuator: {missing}")
         if not period > 0:
-            raise ValueError(f"Hrp2ServoEmulation: period must be > 0, got {period}")
-        n = len(joint_names)
-        p = params.vectors(joint_names)
-        if "deadzone" in off:
-            p["i_deadzone"] = np.zeros(n)
-        if "voltage_limit" in off:
-            p["stall_current"] = np.full(n, np.inf)
-            p["no_load_speed"] = np.full(n, np.inf)
-        if "hysteresis" in off:
-            p["hysteresis_width"] = np.zeros(n)
-        delays = np.rint(p["latency"] / period).astype(int)
-        if "latency" in off:
-            delays[:] = 0
-        if not (math.isfinite(extra_latency) and extra_latency >= 0):
-            raise ValueError(
-                f"Hrp2ServoEmulation: extra_latency must be finite and >= 0, got {extra_latency}"
-            )
-        delays = delays + int(np.rint(extra_latency / period))
+            raise ValueError(f"EmulatedPositionServo: period must be > 0, got {period}")
+        p, delays = _applied_parameters(params, joint_names, period, off, extra_latency)
         self._p = p
         self._delays = delays
         self._dahl = p["hysteresis_width"] > 0
         self._width = np.where(self._dahl, p["hysteresis_width"], 1.0)
-        self._n = n
+        self._n = len(joint_names)
+        self._declare_ports_and_state(plant, period, initial_q_cmd, enable_port)
+        self._precompute_step_constants(plant)
+
+    def _declare_ports_and_state(
+        self,
+        plant: MultibodyPlant,
+        period: float,
+        initial_q_cmd: Sequence[float] | None,
+        enable_port: bool,
+    ) -> None:
+        """Declares the input ports, the discrete state with its events, and the
+        actuation output (class docstring), in that order."""
+        n = self._n
         self._q_cmd = self.DeclareVectorInputPort("q_cmd", n)
         self._state = self.DeclareVectorInputPort(
             "state", plant.num_positions() + plant.num_velocities()
@@ -436,11 +473,11 @@ class Hrp2ServoEmulation(WitnessFreeLeafSystem):
         self._enabled = None
         if enable_port:
             self._enabled = self.DeclareVectorInputPort("enabled", n)
-        depth = int(delays.max())
+        depth = int(self._delays.max())
         initial = np.zeros(n) if initial_q_cmd is None else np.asarray(initial_q_cmd, float)
         if initial.shape != (n,):
             raise ValueError(
-                f"Hrp2ServoEmulation: initial_q_cmd has {initial.size} values, expected {n}"
+                f"EmulatedPositionServo: initial_q_cmd has {initial.size} values, expected {n}"
             )
         self._depth = depth
         # One discrete state group (one read and one write per update): the direction
@@ -455,11 +492,15 @@ class Hrp2ServoEmulation(WitnessFreeLeafSystem):
         self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
         self.DeclareVectorOutputPort("actuation", plant.num_actuators(), self._calc)
 
-        # The servo runs at every plant step: what its law and state need per step is
-        # computed here once (the arithmetic is `joint_torques`' and `servo_torque`'s,
-        # operation for operation; tests/test_servo.py compares them bit for bit).
-        # Constants are arrays (numpy takes longer to broadcast a Python float than
-        # to read an array) and constant masks are index arrays (cheaper than where).
+    def _precompute_step_constants(self, plant: MultibodyPlant) -> None:
+        """What the servo's law and state need per step, computed once.
+
+        The servo runs at every plant step: the arithmetic is `joint_torques`' and
+        `servo_torque`'s, operation for operation (tests/test_servo.py compares them bit
+        for bit). Constants are arrays (numpy takes longer to broadcast a Python float
+        than to read an array) and constant masks are index arrays (cheaper than where).
+        """
+        n, p, delays = self._n, self._p, self._delays
         self._state_q = self._indexing.q
         self._state_v = plant.num_positions() + self._indexing.v
         self._ones = np.ones(n)  # also the finite check: x·1 is finite iff every x_i is
@@ -482,7 +523,6 @@ class Hrp2ServoEmulation(WitnessFreeLeafSystem):
         if sorted(self._indexing.u) == list(range(plant.num_actuators())):
             self._actuation_order = np.argsort(self._indexing.u)
         self._num_actuators = plant.num_actuators()
-
     @property
     def joint_names(self) -> tuple[str, ...]:
         return self._indexing.names
@@ -552,7 +592,7 @@ class Hrp2ServoEmulation(WitnessFreeLeafSystem):
         q_cmd = self._q_cmd.Eval(context)
         if not math.isfinite(q_cmd.dot(self._ones)):
             bad = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(q_cmd))]
-            raise ValueError(f"Hrp2ServoEmulation: q_cmd is not finite for {bad}")
+            raise ValueError(f"EmulatedPositionServo: q_cmd is not finite for {bad}")
         return q_cmd
 
     def _applied_command(self, q_cmd: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -595,3 +635,19 @@ class Hrp2ServoEmulation(WitnessFreeLeafSystem):
         actuation = np.zeros(self._num_actuators)
         actuation[self._indexing.u] = tau
         output.set_value(actuation)
+
+
+def __getattr__(name: str):
+    """The deprecated name `Hrp2ServoEmulation` (the class was renamed
+    `EmulatedPositionServo`, which drives any robot): importing it warns once per
+    place that imports it, and gives `EmulatedPositionServo` itself. It goes in the
+    next release."""
+    if name == "Hrp2ServoEmulation":
+        warnings.warn(
+            "hrp2_drake.robot.servo.Hrp2ServoEmulation is deprecated: use "
+            "EmulatedPositionServo (the same class, renamed)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return EmulatedPositionServo
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

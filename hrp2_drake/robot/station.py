@@ -6,7 +6,7 @@ as one Diagram with named ports.
                            ┌──────────────────────────────┐
     q_cmd ────────────────►│                              ├──► q_measured
     applied_spatial_force ►│   MultibodyPlant (robot)     ├──► imu_linear_acceleration  (if an IMU)
-                           │ + Hrp2ServoEmulation         ├──► imu_angular_velocity     (if an IMU)
+                           │ + EmulatedPositionServo      ├──► imu_angular_velocity     (if an IMU)
                            │ + encoders, IMU, F/T         ├──► wrench_<sensor> (each)
                            │   (+ fault injection)        ├──► sensor_time
                            │   (noise, bias, 1 kHz)       ├──► joint_torque_true
@@ -14,14 +14,14 @@ as one Diagram with named ports.
                            │                              ├──► body_poses
                            └──────────────────────────────┘
 
-The robot is `StationConfig.robot`, a robot description (hrp2_drake/description.py):
+The robot is `StationConfig.robot`, a robot description (hrp2_drake/description/):
 its model, joints, IMU, F/T sensors, servo parameters and sensor noise.
 
 Scenarios (`StationConfig.scenario`):
   - "fixed_base": the base welded at the description's base_pose (a fixed robot has
     only this one).
   - "hanging": floating base held by two strings (the description's
-    scenarios.hanging: HRP-2's shoulders; spring-dampers to fixed anchors, as in the
+    scenarios.hanging, e.g. HRP-2's shoulders; spring-dampers to fixed anchors, as in the
     paper's Fig. 2b), feet in the air.
   - "standing": the soles (scenarios.soles) on flat ground.
   - "standing_on_block": one sole on a rigid block (the paper's Fig. 2a), the leg
@@ -62,7 +62,7 @@ from pydrake.multibody.plant import (
     MultibodyPlantConfig,
 )
 from pydrake.multibody.tree import LinearBushingRollPitchYaw, LinearSpringDamper
-from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort
 from pydrake.systems.sensors import Accelerometer, Gyroscope
 
 from hrp2_drake.config import check_finite
@@ -76,7 +76,7 @@ from hrp2_drake.robot.faults import FaultInjector, SensorFault
 from hrp2_drake.robot.sensors import SensorSampler, SensorsConfig
 from hrp2_drake.robot.servo import (
     SERVO_MECHANISMS,
-    Hrp2ServoEmulation,
+    EmulatedPositionServo,
     ServoParams,
     load_servo_params,
 )
@@ -493,7 +493,7 @@ def make_station(config: StationConfig, meshcat: Meshcat | None = None) -> Diagr
     servo_params = config.servo_params()
     servo = builder.AddNamedSystem(
         "servo",
-        Hrp2ServoEmulation(
+        EmulatedPositionServo(
             plant,
             servo_params,
             robot.joints,
@@ -591,18 +591,6 @@ def _add_sensors(
     """The sensors: Drake's Accelerometer and Gyroscope on the IMU frame, and one
     SensorSampler for the whole bus (encoders, IMU, F/T sensors, stamps); each sensor
     port through a FaultInjector if a fault names it."""
-
-    def export(port, name: str) -> None:
-        """Exports a sensor port, through a FaultInjector if a fault names it."""
-        mine = [f for f in faults if f.signal == name]
-        if mine:
-            injector = builder.AddNamedSystem(
-                f"faults_{name}", FaultInjector(port.size(), mine, cfg.period)
-            )
-            builder.Connect(port, injector.get_input_port())
-            port = injector.get_output_port()
-        builder.ExportOutput(port, name)
-
     resolution = None
     if cfg.encoder_quantization:
         resolution = servo.vectors(indexing.names)["encoder_resolution"]
@@ -627,34 +615,7 @@ def _add_sensors(
     builder.Connect(plant.get_state_output_port(), sensors.GetInputPort("state"))
 
     if robot.has_imu():
-        imu = plant.GetFrameByName(robot.imu_frame)
-        X_BS = imu.GetFixedPoseInBodyFrame()
-        body = imu.body()
-        accel = builder.AddNamedSystem(
-            "accelerometer", Accelerometer(body, X_BS, plant.gravity_field().gravity_vector())
-        )
-        gyro = builder.AddNamedSystem("gyroscope", Gyroscope(body, X_BS))
-        builder.Connect(plant.get_body_poses_output_port(), accel.get_body_poses_input_port())
-        builder.Connect(
-            plant.get_body_spatial_velocities_output_port(),
-            accel.get_body_velocities_input_port(),
-        )
-        builder.Connect(
-            plant.get_body_spatial_accelerations_output_port(),
-            accel.get_body_accelerations_input_port(),
-        )
-        builder.Connect(plant.get_body_poses_output_port(), gyro.get_body_poses_input_port())
-        builder.Connect(
-            plant.get_body_spatial_velocities_output_port(),
-            gyro.get_body_velocities_input_port(),
-        )
-        builder.Connect(
-            accel.get_measurement_output_port(),
-            sensors.GetInputPort("linear_acceleration"),
-        )
-        builder.Connect(
-            gyro.get_measurement_output_port(), sensors.GetInputPort("angular_velocity")
-        )
+        _add_imu(builder, plant, robot.imu_frame, sensors)
     if robot.sensor_names():
         builder.Connect(
             plant.get_reaction_forces_output_port(),
@@ -662,6 +623,64 @@ def _add_sensors(
         )
 
     for name in sensor_sizes(robot):  # q_measured, the IMU's, wrench_<sensor> each
-        export(sensors.GetOutputPort(name), name)
+        _export_sensor(builder, sensors.GetOutputPort(name), name, faults, cfg.period)
     # The time stamp of every sensor's latest sample (sensor_sizes order).
     builder.ExportOutput(sensors.GetOutputPort("sensor_time"), "sensor_time")
+
+
+def _add_imu(
+    builder: DiagramBuilder,
+    plant: MultibodyPlant,
+    imu_frame: str,
+    sensors: SensorSampler,
+) -> None:
+    """Drake's Accelerometer (proper acceleration: the plant's gravity vector) and
+    Gyroscope on `imu_frame`, wired to the plant's body outputs and to the
+    SensorSampler's IMU inputs."""
+    imu = plant.GetFrameByName(imu_frame)
+    X_BS = imu.GetFixedPoseInBodyFrame()
+    body = imu.body()
+    accel = builder.AddNamedSystem(
+        "accelerometer", Accelerometer(body, X_BS, plant.gravity_field().gravity_vector())
+    )
+    gyro = builder.AddNamedSystem("gyroscope", Gyroscope(body, X_BS))
+    builder.Connect(plant.get_body_poses_output_port(), accel.get_body_poses_input_port())
+    builder.Connect(
+        plant.get_body_spatial_velocities_output_port(),
+        accel.get_body_velocities_input_port(),
+    )
+    builder.Connect(
+        plant.get_body_spatial_accelerations_output_port(),
+        accel.get_body_accelerations_input_port(),
+    )
+    builder.Connect(plant.get_body_poses_output_port(), gyro.get_body_poses_input_port())
+    builder.Connect(
+        plant.get_body_spatial_velocities_output_port(),
+        gyro.get_body_velocities_input_port(),
+    )
+    builder.Connect(
+        accel.get_measurement_output_port(),
+        sensors.GetInputPort("linear_acceleration"),
+    )
+    builder.Connect(
+        gyro.get_measurement_output_port(), sensors.GetInputPort("angular_velocity")
+    )
+
+
+def _export_sensor(
+    builder: DiagramBuilder,
+    port: OutputPort,
+    name: str,
+    faults: Sequence[SensorFault],
+    period: float,
+) -> None:
+    """Exports a sensor port as `name`, through a FaultInjector (sampling every
+    `period` s) if a fault names it."""
+    mine = [f for f in faults if f.signal == name]
+    if mine:
+        injector = builder.AddNamedSystem(
+            f"faults_{name}", FaultInjector(port.size(), mine, period)
+        )
+        builder.Connect(port, injector.get_input_port())
+        port = injector.get_output_port()
+    builder.ExportOutput(port, name)

@@ -13,11 +13,11 @@ ground truth for evaluation. Start-up order: the robot (or `sim-robot`) first, t
 """
 
 import json
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from hrp2_drake.config import check_finite, moved_keys
 from hrp2_drake.console import say
 from hrp2_drake.control.fused import FusedController
 from hrp2_drake.control.safety import SafetyConfig
@@ -27,95 +27,106 @@ from hrp2_drake.assembly.builders import (
     check_control_period,
     torque_chain_parts,
 )
+from hrp2_drake.assembly.torque_control import EstimatorSettings
+from hrp2_drake.description import RobotDescription, load_robot_description
 from hrp2_drake.tools.track import TrackConfig, check_sinusoid, sinusoid_reference
 from hrp2_drake.hardware.control_loop import (
     BridgeConfig,
     ControlLoop,
     LoopConfig,
-    RealTimeConfig,
+    LoopSettings,
     RobotBridge,
 )
 from hrp2_drake.hardware.lcm_station import LcmChannels
 from hrp2_drake.hardware.transport import open_transport
 from hrp2_drake.identification.motor_model import MotorModel
-from hrp2_drake.robot.station import StationConfig, initial_joint_positions
+from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure
+from hrp2_drake.robot.station import StationConfig
 
 
+@moved_keys(
+    station="robot",
+    wait_timeout="loop.wait_timeout",
+    silence_timeout="loop.silence_timeout",
+    ramp_time="loop.ramp_time",
+    real_time="loop.real_time",
+)
 @dataclass
 class LcmControlConfig:
     """Configuration of `hrp2-drake control`.
 
     Args:
-        station: names the robot (`station.robot`) and its home pose (the scenario's
-            initial pose: what the reference starts from; use the robot's scenario).
+        robot: the robot's description: a robot.yaml path, or the name of a robot in
+            models/ ("hrp2", "iiwa14"); empty: HRP-2. It gives the control period
+            (its sensors.period) and the home pose the reference starts from (its
+            initial_positions, or its trajectory's first sample).
         torque_control: the controller (its supervisor included; staleness limits
             widened for a transport's jitter).
         duration: how long to run (s of robot time).
         motion: "sinusoid" (every controlled joint around the home pose, `track`'s
             reference) or "hold" (the home pose).
         amplitude, frequency, settle: the sinusoids (rad, Hz) after `settle` s.
-        wait_timeout: how long to wait for the robot's first messages (s).
-        silence_timeout: the robot is silent after this long without a new encoder
-            sample (s): the loop ramps to position control and stops.
-        ramp_time: the ramp from the last command to the measured pose that ends
-            every run (s).
-        real_time: CPU pinning, SCHED_FIFO priority, garbage collector.
+        loop: the message-driven loop's own settings: how long to wait for the
+            robot's first messages, when the robot is silent (the loop then ramps to
+            position control and stops), the ramp that ends every run, real time.
         channels: the LCM channels.
     """
 
-    station: StationConfig = field(default_factory=StationConfig)
+    robot: str = ""
     torque_control: TorqueControlConfig = field(default_factory=lambda: TorqueControlConfig(
-        start_time=0.5, window=41,
+        start_time=0.5, estimator=EstimatorSettings(window=41),
         # A sample may come a few ms late over a network (and two real-time processes
         # share 2 cores here): stale after 10 ms or 12 repeated samples, not 2.5 / 5.
-        safety=SafetyConfig(stale_time=0.010, stale_samples=12),
+        supervisor=SafetyConfig(stale_time=0.010, stale_samples=12),
     ))
     duration: float = 5.0
     motion: str = "sinusoid"
     amplitude: float = 0.2
     frequency: float = 0.4
     settle: float = 0.5
-    wait_timeout: float = 10.0
-    silence_timeout: float = 0.05
-    ramp_time: float = 0.2
-    real_time: RealTimeConfig = field(default_factory=RealTimeConfig)
+    loop: LoopSettings = field(default_factory=LoopSettings)
     channels: LcmChannels = field(default_factory=LcmChannels)
+
+    def description(self) -> RobotDescription:
+        """The robot's description (checked against its model; cached)."""
+        return load_robot_description(self.robot or None)
+
+    def period(self) -> float:
+        """The control period: the robot's sensor period (s)."""
+        return self.description().sensors.period
+
+    def home(self) -> np.ndarray:
+        """The home pose (rad, the description's joint order)."""
+        return self.description().home_positions()
 
     def validate(self) -> None:
         """Raises ValueError naming the bad field: the robot, the controller (its gains,
         its supervisor's period against the robot's), the motion against the joints'
         limits, the loop's timing."""
-        self.station.validate()
+        robot = self.description()
         self.torque_control.validate()
         where = "LcmControlConfig"
-        check_control_period(
-            self.torque_control, self.station, f"{where}.torque_control"
-        )
+        check_control_period(self.torque_control, self.period(), f"{where}.torque_control")
         if self.motion not in ("sinusoid", "hold"):
             raise ValueError(
                 f"{where}.motion: '{self.motion}', expected sinusoid or hold"
             )
-        check_sinusoid(self.station, self.amplitude, self.frequency, self.settle, where)
-        self.loop_config().validate()
+        check_sinusoid(robot, self.home(), self.amplitude, self.frequency, self.settle, where)
+        check_finite(self.duration, f"{where}.duration", 0.0)
+        self.loop.validate(self.period(), f"{where}.loop")
 
     def loop_config(self) -> LoopConfig:
-        return LoopConfig(
-            duration=self.duration,
-            period=self.station.sensors_config().period,
-            wait_timeout=self.wait_timeout,
-            silence_timeout=self.silence_timeout,
-            ramp_time=self.ramp_time,
-            real_time=self.real_time,
-        )
+        """The loop's settings for this run: `loop`, `duration` and the robot's period."""
+        return LoopConfig(duration=self.duration, period=self.period(), settings=self.loop)
 
 
 def control_reference(config: LcmControlConfig) -> JointReference:
-    robot = config.station.description()
-    q0 = initial_joint_positions(config.station)
+    robot = config.description()
+    q0 = config.home()
     if config.motion == "hold":
         return JointReference.hold(q0, config.duration + 1.0)
     track = TrackConfig(
-        station=config.station, settle=config.settle, amplitude=config.amplitude,
+        settle=config.settle, amplitude=config.amplitude,
         frequency=config.frequency, duration=config.duration + 1.0 - config.settle,
     )
     return sinusoid_reference(robot, q0, track)
@@ -128,12 +139,12 @@ def run_control(
     run the message-driven loop, report (control.md with a latency histogram,
     control.json, control.npz). The summary says why the run ended ("fault")."""
     config.validate()
-    robot = config.station.description()
+    robot = config.description()
     reference = control_reference(config)
     controller = FusedController(
         torque_chain_parts(robot, reference, motor_model, config.torque_control)
     )
-    transport = open_transport(lcm_url, timeout=min(config.wait_timeout, 2.0))
+    transport = open_transport(lcm_url, timeout=min(config.loop.wait_timeout, 2.0))
     try:
         loop = ControlLoop(controller, robot, transport, config.channels, reference,
                            config=config.loop_config())
@@ -157,15 +168,13 @@ def run_control(
     out.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out / "control.npz", **signals)
     (out / "control.json").write_text(json.dumps(summary, indent=2))
-    _latency_histogram(signals["latency_us"], config.station.sensors_config().period, out / "latency.png")
+    _latency_histogram(signals["latency_us"], config.period(), out / "latency.png")
     (out / "control.md").write_text(_markdown(robot, config, summary))
     return summary
 
 
 def _latency_histogram(latency_us: np.ndarray, period: float, path: Path) -> None:
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 3.5))
+    fig, ax = pyplot().subplots(figsize=(7, 3.5))
     if len(latency_us):
         bins = np.logspace(np.log10(max(latency_us.min(), 1.0)), np.log10(latency_us.max() + 1), 60)
         ax.hist(latency_us, bins=bins, color="tab:blue")
@@ -174,11 +183,9 @@ def _latency_histogram(latency_us: np.ndarray, period: float, path: Path) -> Non
     ax.axvline(period * 1e6, color="tab:red", linestyle="--", label=f"period {period * 1e6:.0f} µs")
     ax.set_xlabel("receive → publish latency (µs)")
     ax.set_ylabel("ticks")
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)  # beside the histogram
+    legend_beside(ax, fontsize=None)
     ax.set_title("Controller ticks over LCM")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, tight=True)
 
 
 def _markdown(robot, config: LcmControlConfig, summary: dict) -> str:
@@ -203,10 +210,13 @@ def _markdown(robot, config: LcmControlConfig, summary: dict) -> str:
             "Errors as the encoders see them (q_ref − q_measured, mrad), after torque "
             "control started:",
             "",
-            "| | " + " | ".join(labels) + " |",
-            "| --- |" + " ---: |" * len(labels),
-            "| maximum | " + " | ".join(f"{v:.2f}" for v in summary["max_error_mrad"]) + " |",
-            "| RMS | " + " | ".join(f"{v:.2f}" for v in summary["rms_error_mrad"]) + " |",
+            *markdown_table(
+                [None, *labels],
+                [
+                    [name, *(f"{v:.2f}" for v in summary[key])]
+                    for name, key in (("maximum", "max_error_mrad"), ("RMS", "rms_error_mrad"))
+                ],
+            ),
             "",
         ]
     rt = summary.get("real_time", {})
@@ -222,7 +232,7 @@ def _markdown(robot, config: LcmControlConfig, summary: dict) -> str:
         f"Operating system: CPU {rt.get('cpu')}, scheduler {rt.get('scheduler')}"
         + (f" ({rt['error'].strip('; ')})" if rt.get("error") else "") + "; garbage "
         "collector frozen and disabled in the loop"
-        + ("" if config.real_time.freeze_gc else " (not: freeze_gc is off)") + ".",
+        + ("" if config.loop.real_time.freeze_gc else " (not: freeze_gc is off)") + ".",
         "",
         "![latency](latency.png)",
         "",
@@ -230,8 +240,11 @@ def _markdown(robot, config: LcmControlConfig, summary: dict) -> str:
         "",
     ]
     if summary["events"]:
-        lines += ["| t (s) | what | reason |", "| ---: | --- | --- |"]
-        lines += [f"| {e['t']:.3f} | {e['what']} | {e['reason']} |" for e in summary["events"]]
+        lines += markdown_table(
+            ["t (s)", "what", "reason"],
+            [[f"{e['t']:.3f}", f"{e['what']}", f"{e['reason']}"] for e in summary["events"]],
+            align="rll",
+        )
     else:
         lines.append("None.")
     if summary["overrun_times"]:

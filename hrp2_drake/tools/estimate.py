@@ -24,13 +24,17 @@ from pathlib import Path
 import numpy as np
 
 from hrp2_drake.description import RobotDescription
-from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
+from hrp2_drake.estimation.torque_estimator import (
+    FloatingBaseTorqueEstimator,
+    estimator_config,
+)
 from hrp2_drake.identification.dataset import (
     check_log,
     log_columns,
     noncausal_torques,
     read_npz,
 )
+from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure
 
 
 def read_estimation_log(path: str | Path, robot: RobotDescription) -> tuple[dict, list[str]]:
@@ -79,7 +83,7 @@ def estimate_log(
     if window % 2 == 0 or window < 3:
         raise ValueError(f"--window must be odd and >= 3, got {window}")
     t = np.asarray(log["t"], float)
-    estimator = FloatingBaseTorqueEstimator(robot.make_plant(), robot.estimator_config())
+    estimator = FloatingBaseTorqueEstimator(robot.make_plant(), estimator_config(robot))
     columns = log_columns(names, robot.joints)
     estimates, (_, v, _) = noncausal_torques(
         log, columns, estimator, window, np.arange(len(t)), offsets
@@ -120,7 +124,7 @@ def calibrate_offsets(robot: RobotDescription, result: dict, segment: slice) -> 
     reading over `segment`, a still stretch of the log where nothing touches the
     sensors (what the online chain's start-up calibration does)."""
     nested = FloatingBaseTorqueEstimator(
-        robot.make_plant(), robot.estimator_config()
+        robot.make_plant(), estimator_config(robot)
     ).nested_sensors()
     if nested:
         raise ValueError(
@@ -212,13 +216,8 @@ def run_estimate(
 
 
 def _plot(robot: RobotDescription, result: dict, log: dict, names: list[str], path: Path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     joints = robot.controlled_joints or robot.joints
-    fig, axes = plt.subplots(len(joints), 1, figsize=(9, 1.8 * len(joints)), sharex=True)
+    fig, axes = pyplot().subplots(len(joints), 1, figsize=(9, 1.8 * len(joints)), sharex=True)
     axes = np.atleast_1d(axes)
     labels = dict(zip(robot.controlled_joints, robot.labels()))
     for ax, joint in zip(axes, joints):
@@ -228,12 +227,10 @@ def _plot(robot: RobotDescription, result: dict, log: dict, names: list[str], pa
                     color="0.6", lw=2, label="true (simulation)")
         ax.plot(result["t"], result["tau"][:, j], lw=1, label="τ̂")
         ax.set_ylabel(f"{labels.get(joint, joint)}\n(N·m)")
-    axes[0].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0, fontsize=8)  # beside the data
+    legend_beside(axes[0])
     axes[-1].set_xlabel("t (s)")
     fig.suptitle(f"{robot.name}: estimated joint torques")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100, tight=True)
 
 
 def _markdown(robot: RobotDescription, summary: dict) -> str:
@@ -245,14 +242,15 @@ def _markdown(robot: RobotDescription, summary: dict) -> str:
         f"({'IMU' if robot.has_imu() else 'fixed base, no IMU'}, F/T sensors "
         f"{robot.sensor_names()}). Arrays: `estimate.npz`; plot: `estimate_torques.png`.",
         "",
-        "| joint | peak τ̂ (N·m) |" + (" RMS error vs truth (N·m) |" if "rms_error_vs_truth" in summary else ""),
-        "| --- | ---: |" + (" ---: |" if "rms_error_vs_truth" in summary else ""),
     ]
-    for joint, peak in summary["peak_torque"].items():
-        row = f"| {joint} | {peak:.2f} |"
-        if "rms_error_vs_truth" in summary:
-            row += f" {summary['rms_error_vs_truth'][joint]:.3f} |"
-        lines.append(row)
+    truth = summary.get("rms_error_vs_truth")  # None: no ground truth in the log
+    header = ["joint", "peak τ̂ (N·m)"]
+    header += ["RMS error vs truth (N·m)"] if truth is not None else []
+    rows = [
+        [joint, f"{peak:.2f}"] + ([f"{truth[joint]:.3f}"] if truth is not None else [])
+        for joint, peak in summary["peak_torque"].items()
+    ]
+    lines += markdown_table(header, rows)
     if summary["offsets"]:
         lines += ["", f"F/T offsets calibrated over {summary['calibration_segment']} s "
                   "(mean compensated reading, [τ (N·m); f (N)], sensor frame), subtracted:", ""]

@@ -18,7 +18,10 @@ from typing import Sequence
 
 import numpy as np
 
-from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
+from hrp2_drake.estimation.torque_estimator import (
+    FloatingBaseTorqueEstimator,
+    estimator_config,
+)
 from hrp2_drake.config import check_finite
 from hrp2_drake.identification.dataset import (
     IdentificationData,
@@ -48,19 +51,11 @@ from hrp2_drake.description import RobotDescription, load_robot_description
 from hrp2_drake.tools.ground_truth import true_motor_model
 from hrp2_drake.identification.logs import describe, read_robot_log
 from hrp2_drake.identification.motor_model import MotorModel
+from hrp2_drake.report import markdown_table, pyplot, save_figure
 from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
 
 _logger = logging.getLogger(__name__)
 
-#: The paper's Table 1 (10³ Kτ, 10³ Kv), right leg.
-PAPER_TABLE1 = {
-    "RLEG_JOINT0": (0.212, 13.0),
-    "RLEG_JOINT1": (0.030, 6.332),
-    "RLEG_JOINT2": (0.12, 7.0),
-    "RLEG_JOINT3": (0.051, 6.561),
-    "RLEG_JOINT4": (0.177, 7.698),
-    "RLEG_JOINT5": (0.240, 6.0),
-}
 LINEAR_METHODS = ("asymmetric", "least_squares", "two_stage")
 #: The fits `IdentifyConfig.fit` may pick for motor_model.yaml, and what each is for.
 FITS = ("asymmetric", "least_squares", "coulomb", "two_stage")
@@ -254,7 +249,7 @@ def identify_segments(
     robot = config.station.description()
     gains = [s.gain for s in segments]
     reference = min(gains) if gains[0] is not None else 0.0
-    estimator = FloatingBaseTorqueEstimator(robot.make_plant(), robot.estimator_config())
+    estimator = FloatingBaseTorqueEstimator(robot.make_plant(), estimator_config(robot))
     data = estimate_segments(
         segments, estimator, config.window, config.stride,
         robot.position_loop.saturation_error, config.saturation_margin,
@@ -466,9 +461,9 @@ def write_report(result: IdentificationResult, out: Path, log_is_simulated: bool
         row["w_sweep"] = {f"{w:g}": v for w, v in r.w_sweep.items()}
         if r.per_gain:
             row["per_gain"] = {f"{g:g}": v for g, v in r.per_gain.items()}
-        if r.joint in PAPER_TABLE1:
-            row["paper"] = {"k_tau": PAPER_TABLE1[r.joint][0] * 1e-3,
-                            "k_v": PAPER_TABLE1[r.joint][1] * 1e-3}
+        if r.joint in robot.published_motor_model:  # [10³ Kτ, 10³ Kv]
+            k_tau, k_v = robot.published_motor_model[r.joint]
+            row["paper"] = {"k_tau": k_tau * 1e-3, "k_v": k_v * 1e-3}
         if truth is not None:
             row["emulator"] = {"k_tau": float(truth.k_tau[k]), "k_v": float(truth.k_v[k])}
             row["relative_error_asymmetric"] = {
@@ -503,15 +498,6 @@ def _label(joint: str, robot: RobotDescription | None = None) -> str:
     return joint
 
 
-def _table(header: list[str], rows: list[list[str]], align: str = "---:") -> list[str]:
-    """A markdown table: the first column left-aligned, the others `align`."""
-    return [
-        "| " + " | ".join(header) + " |",
-        "| --- |" + f" {align} |" * (len(header) - 1),
-        *("| " + " | ".join(row) + " |" for row in rows),
-    ]
-
-
 def _markdown(result: IdentificationResult, summary: dict, figures: list[str]) -> str:
     config = result.config
     robot = config.station.description()
@@ -533,7 +519,7 @@ def _markdown(result: IdentificationResult, summary: dict, figures: list[str]) -
         *(f"- {m.replace('_', ' ')}: {FIT_PURPOSE[m]}." for m in FITS),
     ]
     if result.logs:
-        lines += ["", "## Logs", "", *_table(
+        lines += ["", "## Logs", "", *markdown_table(
             ["log", "raw rate (Hz)", "duration (s)", "gain", "servo on", "longest gap (ms)"],
             [[r["log"], f"{r['raw_rate_hz']:g}", f"{r['duration_s']:g}",
               "–" if r["gain"] is None else f"{r['gain']:g}",
@@ -549,14 +535,15 @@ def _markdown(result: IdentificationResult, summary: dict, figures: list[str]) -
         "",
     ]
     methods = FITS + ("piecewise_linear",)
-    lines += _table(
-        ["joint", *(m.replace("_", " ") for m in methods[:-1]),
-         "piecewise-linear (static samples only)"],
+    header = ["joint", *(m.replace("_", " ") for m in methods[:-1]),
+              "piecewise-linear (static samples only)"]
+    lines += markdown_table(
+        header,
         [[label(joint)] + [
             f"{v['rms'] * 1e3:.3f} / {v['overestimation'] * 100:.1f}%" if v else "not fitted"
             for v in (row["validation"].get(m) for m in methods)
         ] for joint, row in joints.items()],
-        align="---",
+        align="l" * len(header),
     )
     notes = [f"- {label(r.joint)}: {r.piecewise_note}" for r in result.joints if r.piecewise_note]
     if notes:
@@ -564,7 +551,7 @@ def _markdown(result: IdentificationResult, summary: dict, figures: list[str]) -
                   "comparison only) needs an initial guess of its breakpoints:", "", *notes]
     lines += _sweep_table(result, joints, label)
     if "torque_estimation" in summary:
-        lines += ["", "## Non-causal torque estimate vs ground truth", "", *_table(
+        lines += ["", "## Non-causal torque estimate vs ground truth", "", *markdown_table(
             ["joint", "RMS error (N·m)", "peak |τ| (N·m)", "RMS / peak"],
             [[label(j), f"{v['rms']:.3f}", f"{v['peak']:.1f}", f"{v['rms'] / v['peak'] * 100:.2f}%"]
              for j, v in summary["torque_estimation"].items()])]
@@ -598,7 +585,7 @@ def _parameter_table(result, joints: dict, label) -> list[str]:
             cells += [f"{p['k_tau'] * 1e3:.3f}", f"{p['k_v'] * 1e3:.3f}"] if p else ["–", "–"]
         rows.append(cells)
     return ["", f"## Table 1: identified motor parameters{scale} (10³ Kτ in rad/(N·m), "
-            "10³ Kv in s, 10³ Kc in rad)", "", *_table(header, rows)]
+            "10³ Kv in s, 10³ Kc in rad)", "", *markdown_table(header, rows)]
 
 
 def _gain_table(result, joints: dict, label) -> list[str]:
@@ -626,7 +613,7 @@ def _gain_table(result, joints: dict, label) -> list[str]:
             body.append(cells)
         header = (["fit (" + label(joint) + ")"] + [f"Kτ·gain at {g}" for g in gains]
                   + ["Kτ spread"] + [f"Kv·gain at {g}" for g in gains] + ["Kv spread"])
-        lines += _table(header, body) + [""]
+        lines += markdown_table(header, body) + [""]
     return lines[:-1]
 
 
@@ -651,7 +638,8 @@ def _sweep_table(result, joints: dict, label) -> list[str]:
                 cell += f" / {(v['k_tau'] / e['k_tau'] - 1) * 100:+.1f}%, {(v['k_v'] / e['k_v'] - 1) * 100:+.1f}%"
             cells.append(cell)
         rows.append(cells)
-    return lines + _table(["joint"] + [f"w = {w:g}" for w in config.w_sweep], rows, align="---")
+    header = ["joint"] + [f"w = {w:g}" for w in config.w_sweep]
+    return lines + markdown_table(header, rows, align="l" * len(header))
 
 
 def truth_in(summary: dict) -> bool:
@@ -673,71 +661,77 @@ def plot_figures(result: IdentificationResult, out: Path) -> list[str]:
     """Figure 1 (τ vs Δq at near-zero velocity with the fits; HRP-2: knee and hip
     pitch) and Figure 3 (friction part vs q̇, symmetric vs asymmetric; HRP-2: ankle
     pitch and hip roll); another robot: its first two identified joints."""
-    import matplotlib
+    by_joint = {r.joint: r for r in result.joints}
+    robot = result.config.station.description()
+    names = []
+    for name, paper_joints, plot in (
+        ("figure1_torque_vs_delta_q.png", FIGURE1_JOINTS, _plot_figure1),
+        ("figure3_friction_fit.png", FIGURE3_JOINTS, _plot_figure3),
+    ):
+        joints = _figure_joints(by_joint, paper_joints)
+        if joints:
+            save_figure(plot(result, joints, robot), out / name, tight=True)
+            names.append(name)
+    return names
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
+def _plot_figure1(result: IdentificationResult, joints: list[str], robot: RobotDescription):
+    """Figure 1 of `joints`: τ̂ vs Δq at near-zero velocity, the data and the fits."""
     data, cfg = result.data, result.config
     by_joint = {r.joint: r for r in result.joints}
-    column = {name: i for i, name in enumerate(cfg.station.description().joints)}
-    names = []
+    column = {name: i for i, name in enumerate(robot.joints)}
+    fig, axes = pyplot().subplots(1, len(joints), figsize=(6 * len(joints), 4.5), squeeze=False)
+    for ax, joint in zip(axes[0], joints):
+        r, j = by_joint[joint], column[joint]
+        static = result.train & (np.abs(data.dq[:, j]) < cfg.zero_velocity_threshold)
+        tau, dq, dlt = data.joint(j, static)
+        ax.scatter(tau[dq > 0], dlt[dq > 0] * 1e3, s=2, alpha=0.4, label="data, q̇ > 0")
+        ax.scatter(tau[dq < 0], dlt[dq < 0] * 1e3, s=2, alpha=0.4, label="data, q̇ < 0")
+        grid = np.linspace(tau.min(), tau.max(), 200)
+        for method, style in (("least_squares", "k--"), ("asymmetric", "b-")):
+            k = r.models[method].k_tau[0]
+            ax.plot(grid, k * grid * 1e3, style, label=f"{method.replace('_', ' ')}: Δq = Kτ τ")
+        if r.piecewise is not None:
+            ax.plot(grid, r.piecewise.positive(grid) * 1e3, "g:", label="piecewise, q̇ > 0")
+            ax.plot(grid, r.piecewise.negative(grid) * 1e3, "m:", label="piecewise, q̇ < 0")
+        ax.set_xlabel("τ̂ (N·m)")
+        ax.set_ylabel("Δq (mrad)")
+        ax.set_title(f"{_label(joint, robot)}, |q̇| < {cfg.zero_velocity_threshold} rad/s")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle("Figure 1: torque vs position error at near-zero velocity")
+    return fig
 
-    fig1 = _figure_joints(by_joint, FIGURE1_JOINTS)
-    if fig1:
-        fig, axes = plt.subplots(1, len(fig1), figsize=(6 * len(fig1), 4.5), squeeze=False)
-        for ax, joint in zip(axes[0], fig1):
-            r, j = by_joint[joint], column[joint]
-            static = result.train & (np.abs(data.dq[:, j]) < cfg.zero_velocity_threshold)
-            tau, dq, dlt = data.joint(j, static)
-            ax.scatter(tau[dq > 0], dlt[dq > 0] * 1e3, s=2, alpha=0.4, label="data, q̇ > 0")
-            ax.scatter(tau[dq < 0], dlt[dq < 0] * 1e3, s=2, alpha=0.4, label="data, q̇ < 0")
-            grid = np.linspace(tau.min(), tau.max(), 200)
-            for method, style in (("least_squares", "k--"), ("asymmetric", "b-")):
-                k = r.models[method].k_tau[0]
-                ax.plot(grid, k * grid * 1e3, style, label=f"{method.replace('_', ' ')}: Δq = Kτ τ")
-            if r.piecewise is not None:
-                ax.plot(grid, r.piecewise.positive(grid) * 1e3, "g:", label="piecewise, q̇ > 0")
-                ax.plot(grid, r.piecewise.negative(grid) * 1e3, "m:", label="piecewise, q̇ < 0")
-            ax.set_xlabel("τ̂ (N·m)")
-            ax.set_ylabel("Δq (mrad)")
-            ax.set_title(f"{_label(joint, cfg.station.description())}, |q̇| < {cfg.zero_velocity_threshold} rad/s")
+
+def _plot_figure3(result: IdentificationResult, joints: list[str], robot: RobotDescription):
+    """Figure 3 of `joints`: the friction part of the model vs q̇, symmetric (least
+    squares) beside asymmetric."""
+    data, cfg = result.data, result.config
+    by_joint = {r.joint: r for r in result.joints}
+    column = {name: i for i, name in enumerate(robot.joints)}
+    fig, axes = pyplot().subplots(len(joints), 2, figsize=(11, 4 * len(joints)), squeeze=False)
+    for row, joint in zip(axes, joints):
+        r, j = by_joint[joint], column[joint]
+        tau, dq, dlt = data.joint(j, result.train)
+        for ax, method in zip(row, ("least_squares", "asymmetric")):
+            fitted = r.models[method]
+            friction = dlt - fitted.k_tau[0] * tau
+            ax.scatter(dq, friction * 1e3, s=2, alpha=0.3, color="tab:red", label="data")
+            grid = np.linspace(dq.min(), dq.max(), 100)
+            kv = fitted.k_v[0]
+            ax.plot(grid, kv * grid * 1e3, "b-", label=f"Kv q̇, Kv = {kv * 1e3:.2f}e-3")
+            share = overestimation_share(fitted, tau, dq, dlt)
+            kind = "symmetric, eq. 7" if method == "least_squares" else f"asymmetric, w={cfg.w:g}"
+            ax.set_title(
+                f"{_label(joint, robot)}, {kind}: over-estimates {share * 100:.1f}%",
+                fontsize=10,
+            )
+            ax.set_xlabel("q̇ (rad/s)")
+            ax.set_ylabel("Δq − Kτ τ̂ (mrad)")
             ax.grid(True, alpha=0.3)
-            ax.legend(fontsize=7)
-        fig.suptitle("Figure 1: torque vs position error at near-zero velocity")
-        fig.tight_layout()
-        fig.savefig(out / "figure1_torque_vs_delta_q.png", dpi=110)
-        plt.close(fig)
-        names.append("figure1_torque_vs_delta_q.png")
-
-    fig3 = _figure_joints(by_joint, FIGURE3_JOINTS)
-    if fig3:
-        fig, axes = plt.subplots(len(fig3), 2, figsize=(11, 4 * len(fig3)), squeeze=False)
-        for row, joint in zip(axes, fig3):
-            r, j = by_joint[joint], column[joint]
-            tau, dq, dlt = data.joint(j, result.train)
-            for ax, method in zip(row, ("least_squares", "asymmetric")):
-                fitted = r.models[method]
-                friction = dlt - fitted.k_tau[0] * tau
-                ax.scatter(dq, friction * 1e3, s=2, alpha=0.3, color="tab:red", label="data")
-                grid = np.linspace(dq.min(), dq.max(), 100)
-                ax.plot(grid, fitted.k_v[0] * grid * 1e3, "b-", label=f"Kv q̇, Kv = {fitted.k_v[0] * 1e3:.2f}e-3")
-                share = overestimation_share(fitted, tau, dq, dlt)
-                kind = "symmetric, eq. 7" if method == "least_squares" else f"asymmetric, w={cfg.w:g}"
-                ax.set_title(
-                    f"{_label(joint, cfg.station.description())}, {kind}: over-estimates {share * 100:.1f}%",
-                    fontsize=10,
-                )
-                ax.set_xlabel("q̇ (rad/s)")
-                ax.set_ylabel("Δq − Kτ τ̂ (mrad)")
-                ax.grid(True, alpha=0.3)
-                ax.legend(fontsize=8)
-        fig.suptitle("Figure 3: friction part of the model vs velocity")
-        fig.tight_layout()
-        fig.savefig(out / "figure3_friction_fit.png", dpi=110)
-        plt.close(fig)
-        names.append("figure3_friction_fit.png")
-    return names
+            ax.legend(fontsize=8)
+    fig.suptitle("Figure 3: friction part of the model vs velocity")
+    return fig
 
 
 def run_identify(

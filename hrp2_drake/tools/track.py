@@ -43,9 +43,16 @@ from hrp2_drake.assembly.builders import (
     build_torque_control,
     check_control_period,
 )
+from hrp2_drake.assembly.torque_control import EstimatorSettings, replace_fields
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import is_strictly_below, joint_indexing, tree_parents
-from hrp2_drake.robot.station import BoxObstacle, StationConfig, initial_joint_positions
+from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure
+from hrp2_drake.robot.station import (
+    BoxObstacle,
+    StationConfig,
+    initial_joint_positions,
+    make_station,
+)
 from hrp2_drake.simulation import run_with_progress
 
 
@@ -79,7 +86,9 @@ class TrackConfig:
 
     station: StationConfig = field(default_factory=lambda: StationConfig(robot="iiwa14", scenario="fixed_base"))
     torque_control: TorqueControlConfig = field(
-        default_factory=lambda: TorqueControlConfig(offset_calibration_time=0.3)
+        default_factory=lambda: TorqueControlConfig(
+            estimator=EstimatorSettings(offset_calibration_time=0.3)
+        )
     )
     k6: list[float] = field(default_factory=lambda: [1.0, 0.3])
     duration: float = 6.0
@@ -109,10 +118,13 @@ class TrackConfig:
             check_finite(getattr(self, name), f"{where}.{name}", 0.0)
         for name in ("kf", "press", "force_amplitude", "gap"):
             check_finite(getattr(self, name), f"{where}.{name}", 0.0, strict=False)
-        check_sinusoid(self.station, self.amplitude, self.frequency, self.settle, where)
-        control = f"{where}.torque_control"
-        check_control_period(self.torque_control, self.station, control)
         robot = self.station.description()
+        check_sinusoid(
+            robot, initial_joint_positions(self.station),
+            self.amplitude, self.frequency, self.settle, where,
+        )
+        control = f"{where}.torque_control"
+        check_control_period(self.torque_control, self.station.sensors_config().period, control)
         if self.force_task and robot.base == "fixed" and not can_press(robot):
             raise ValueError(
                 f"TrackConfig.force_task: robot '{robot.name}' has no tool_frame and "
@@ -150,21 +162,21 @@ def motor_model_at_station_gain(
 
 
 def check_sinusoid(
-    station: StationConfig,
+    robot: RobotDescription,
+    q0: np.ndarray,
     amplitude: float,
     frequency: float,
     settle: float,
     where: str,
 ) -> None:
     """Raises ValueError naming `where`.<field> unless the sinusoids of
-    `sinusoid_reference` fit the robot: settle >= 0 s, frequency > 0 Hz, and every
-    controlled joint within its position limits (home ± amplitude, with its phase) and
-    its velocity limit (amplitude · 2π · frequency, rad/s)."""
+    `sinusoid_reference` around `q0` (rad, every joint of `robot`) fit the robot:
+    settle >= 0 s, frequency > 0 Hz, and every controlled joint within its position
+    limits (home ± amplitude, with its phase) and its velocity limit (amplitude · 2π ·
+    frequency, rad/s)."""
     check_finite(settle, f"{where}.settle", 0.0, strict=False)
     check_finite(frequency, f"{where}.frequency", 0.0)
     check_finite(amplitude, f"{where}.amplitude", 0.0, strict=False)
-    robot = station.description()
-    q0 = initial_joint_positions(station)
     lower, upper, speed = joint_limits(robot)
     controlled = robot.controlled_joints
     for k, name in enumerate(controlled):
@@ -289,14 +301,16 @@ def run_tracking(config: TrackConfig, motor_model: MotorModel) -> dict:
     reference = sinusoid_reference(robot, q0, config)
     duration = reference.end_time()
     runs = {}
-    position = build_position_control(config.station, reference)
+    position = build_position_control(robot, make_station(config.station), reference)
     q_index = joint_indexing(position.station.GetSubsystemByName("plant"), robot.joints).q
     signals = _simulate(position, duration, "position control")
     runs["position control"] = _tracking_errors(robot, q_index, signals, config.settle)
     torque = replace(config.torque_control, start_time=config.settle)
+    period = config.station.sensors_config().period
     for k6 in config.k6:
         control = build_torque_control(
-            config.station, reference, motor_model, replace(torque, k6=k6)
+            robot, make_station(config.station), reference, motor_model,
+            replace_fields(torque, {"controller.k6": k6}), control_period=period,
         )
         signals = _simulate(control, duration, f"torque control K6={k6:g}")
         runs[f"torque control K6={k6:g}"] = _tracking_errors(robot, q_index, signals, config.settle)
@@ -337,14 +351,14 @@ def run_force_task(config: TrackConfig, motor_model: MotorModel, out: Path) -> d
     f_ref[3:] = np.outer(up_S, magnitude)
     force_reference = PiecewisePolynomial.FirstOrderHold(t, f_ref)
     reference = _lowering(plant, context, robot, tip, q0, config, t[-1])
-    torque = replace(
-        config.torque_control,
-        k6=config.force_k6,
-        kf=[config.kf],
-        force_frame=sensor.frame,
-        start_time=config.settle,
-    )
-    control = build_torque_control(station, reference, motor_model, torque,
+    torque = replace_fields(config.torque_control, {
+        "controller.k6": config.force_k6,
+        "controller.kf": [config.kf],
+        "controller.force_frame": sensor.frame,
+        "start_time": config.settle,
+    })
+    control = build_torque_control(robot, make_station(station), reference, motor_model, torque,
+                                   control_period=station.sensors_config().period,
                                    force_reference=force_reference)
     tool_bodies = _bodies_below(robot, plant, robot.sensor_body(robot.force_sensor, plant))
 
@@ -403,8 +417,6 @@ def _lowest_collision_point(station_config: StationConfig, body_name: str) -> fl
     station's initial pose."""
     from pydrake.geometry import Sphere
 
-    from hrp2_drake.robot.station import make_station
-
     station = make_station(station_config)
     plant = station.GetSubsystemByName("plant")
     scene_graph = station.GetSubsystemByName("scene_graph")
@@ -439,22 +451,15 @@ def _bodies_below(robot: RobotDescription, plant: MultibodyPlant, body: str) -> 
 
 
 def _plot_force(t, desired, achieved, estimate, config: TrackConfig, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(9, 3.5))
+    fig, ax = pyplot().subplots(figsize=(9, 3.5))
     ax.plot(t, desired, "k--", lw=1, label="reference")
     ax.plot(t, achieved, lw=1.5, label="contact force (truth)")
     ax.plot(t, estimate, lw=0.8, alpha=0.8, label="estimate f̂ (F/T, compensated)")
     ax.axvline(config.settle, color="0.7", lw=0.8)
     ax.set_xlabel("t (s)")
     ax.set_ylabel("force on the table (N)")
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0, fontsize=8)  # beside the data
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    legend_beside(ax)
+    save_figure(fig, path, dpi=100, tight=True)
 
 
 def run_track(config: TrackConfig, motor_model: MotorModel, out: Path) -> dict:
@@ -476,23 +481,16 @@ def run_track(config: TrackConfig, motor_model: MotorModel, out: Path) -> dict:
 
 
 def _plot_tracking(robot: RobotDescription, runs: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     labels = robot.labels()
     x = np.arange(len(labels))
     width = 0.8 / len(runs)
-    fig, ax = plt.subplots(figsize=(9, 3.5))
+    fig, ax = pyplot().subplots(figsize=(9, 3.5))
     for k, (name, errors) in enumerate(runs.items()):
         ax.bar(x + k * width, np.array(errors["maximum"]) * 1e3, width, label=name)
     ax.set_xticks(x + 0.4 - width / 2, labels)
     ax.set_ylabel("maximum tracking error (mrad)")
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0, fontsize=8)  # beside the bars
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    legend_beside(ax)
+    save_figure(fig, path, dpi=100, tight=True)
 
 
 def _markdown(robot: RobotDescription, config: TrackConfig, summary: dict) -> str:
@@ -509,12 +507,12 @@ def _markdown(robot: RobotDescription, config: TrackConfig, summary: dict) -> st
         "after a settle at home. Errors of the true joint angles (mrad), from the end "
         f"of the settle. Plot: `track_errors.png`.{model}",
         "",
-        "| controller | " + " | ".join(labels) + " |",
-        "| --- |" + " ---: |" * len(labels),
     ]
-    for name, errors in summary["tracking"].items():
-        cells = [f"{m * 1e3:.2f} ({r * 1e3:.2f})" for m, r in zip(errors["maximum"], errors["rms"])]
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    rows = [
+        [name, *(f"{m * 1e3:.2f} ({r * 1e3:.2f})" for m, r in zip(e["maximum"], e["rms"]))]
+        for name, e in summary["tracking"].items()
+    ]
+    lines += markdown_table(["controller", *labels], rows)
     lines += ["", "Cells: maximum (RMS)."]
     force = summary.get("force_task")
     if force:
@@ -527,11 +525,13 @@ def _markdown(robot: RobotDescription, config: TrackConfig, summary: dict) -> st
             f"{config.force_k6}, K_f = {config.kf}. Truth: the contact force from "
             "Drake's contact results (evaluation only). Plot: `track_force.png`.",
             "",
-            "| RMS error (N) | maximum error (N) | mean error (N) | amplitude ratio | "
-            "estimate f̂ vs truth, RMS (N) |",
-            "| ---: | ---: | ---: | ---: | ---: |",
-            f"| {force['rms_error_N']:.2f} | {force['max_error_N']:.2f} | "
-            f"{force['mean_error_N']:+.2f} | {force['amplitude_ratio']:.2f} | "
-            f"{force['estimate_rms_error_N']:.2f} |",
+            *markdown_table(
+                ["RMS error (N)", "maximum error (N)", "mean error (N)", "amplitude ratio",
+                 "estimate f̂ vs truth, RMS (N)"],
+                [[f"{force['rms_error_N']:.2f}", f"{force['max_error_N']:.2f}",
+                  f"{force['mean_error_N']:+.2f}", f"{force['amplitude_ratio']:.2f}",
+                  f"{force['estimate_rms_error_N']:.2f}"]],
+                align="rrrrr",
+            ),
         ]
     return "\n".join(lines) + "\n"

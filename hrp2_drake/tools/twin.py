@@ -46,6 +46,7 @@ import scipy.optimize
 from hrp2_drake import console
 from hrp2_drake.description import RobotDescription, load_robot_description
 from hrp2_drake.identification.logs import RobotLog, read_robot_log
+from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure
 from hrp2_drake.robot.rollout import emulated_servo, model_servo, rollout, rollout_errors
 from hrp2_drake.robot.servo import ServoParams, load_servo_params, save_servo_params
 
@@ -458,40 +459,57 @@ def _markdown(robot, summary: dict, figures: list[str], install: bool) -> str:
             "twin, and the least-squares motor model (`identify --fit least-squares`) "
             "identified on the same logs. Position MAE / maximum error (mrad), whole log.",
             "",
-            "| fitted on gain | log | twin MAE | twin max | least squares MAE | least squares max |",
-            "| ---: | --- | ---: | ---: | ---: | ---: |",
-            *(f"| {r['train_gain']:g} | {r['log']} | {r['twin_mae_mrad']:.1f} | "
-              f"{r['twin_max_mrad']:.1f} | {r['model_mae_mrad']:.1f} | {r['model_max_mrad']:.1f} |"
-              for r in cross["rows"]),
-            f"| | **mean** | **{cross['twin_mean_mae_mrad']:.1f}** | | "
-            f"**{cross['least_squares_mean_mae_mrad']:.1f}** | |",
+            *_cross_gain_table(cross),
             "",
             f"Project goal (not the paper's): the twin's cross-gain mean MAE at least "
             f"{TWIN_GOAL:.0%} below the least-squares model's: "
             f"{cross['twin_below_least_squares']:.1%} below, **{verdict}**.",
             "",
         ]
-    lines += ["## Parameters (prior → twin)", "",
-              "| joint | parameter | prior | twin |", "| --- | --- | ---: | ---: |"]
-    for joint, values in summary["parameters"].items():
-        for name, value in values.items():
-            lines.append(f"| {joint} | {name} | {summary['prior'][joint][name]:.4g} | {value:.4g} |")
-    lines += ["", "## Rollout MAE of the twin on the logs it was fitted on (mrad)", "",
-              "| log | MAE |", "| --- | ---: |",
-              *(f"| {k} | {v:.1f} |" for k, v in summary["mae_on_fitted_logs_mrad"].items())]
+    lines += ["## Parameters (prior → twin)", ""]
+    lines += markdown_table(
+        ["joint", "parameter", "prior", "twin"],
+        [
+            [f"{joint}", f"{name}", f"{summary['prior'][joint][name]:.4g}", f"{value:.4g}"]
+            for joint, values in summary["parameters"].items()
+            for name, value in values.items()
+        ],
+        align="llrr",
+    )
+    lines += ["", "## Rollout MAE of the twin on the logs it was fitted on (mrad)", ""]
+    lines += markdown_table(
+        ["log", "MAE"],
+        [[f"{k}", f"{v:.1f}"] for k, v in summary["mae_on_fitted_logs_mrad"].items()],
+    )
     lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures]
     return "\n".join(lines) + "\n"
 
 
+def _cross_gain_table(cross: dict) -> list[str]:
+    """Per log of the other gain: the twin's and the least-squares model's rollout
+    errors (mrad), then their mean MAE."""
+    rows = [
+        [f"{r['train_gain']:g}", f"{r['log']}", f"{r['twin_mae_mrad']:.1f}",
+         f"{r['twin_max_mrad']:.1f}", f"{r['model_mae_mrad']:.1f}", f"{r['model_max_mrad']:.1f}"]
+        for r in cross["rows"]
+    ]
+    rows.append([
+        None, "**mean**", f"**{cross['twin_mean_mae_mrad']:.1f}**", None,
+        f"**{cross['least_squares_mean_mae_mrad']:.1f}**", None,
+    ])
+    header = [
+        "fitted on gain", "log", "twin MAE", "twin max", "least squares MAE",
+        "least squares max",
+    ]
+    return markdown_table(header, rows, align="rlrrrr")
+
+
 def _plot(robot, logs: Sequence[RobotLog], final: TwinFit, out: Path) -> list[str]:
     """Measured vs twin position on the first log of each gain (first joint)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     chosen = list({log.gain: log for log in reversed(logs)}.values())[::-1]
-    fig, axes = plt.subplots(len(chosen), 1, figsize=(9, 3.2 * len(chosen)), squeeze=False)
+    fig, axes = pyplot().subplots(
+        len(chosen), 1, figsize=(9, 3.2 * len(chosen)), squeeze=False
+    )
     for ax, log in zip(axes[:, 0], chosen):
         q = rollout(robot, log, twin_servo(final.params, log)).q_sim
         ax.plot(log.t, log.q_cmd[:, 0], color="0.6", lw=1, label="command")
@@ -501,9 +519,7 @@ def _plot(robot, logs: Sequence[RobotLog], final: TwinFit, out: Path) -> list[st
         ax.set_xlabel("t (s)")
         ax.set_ylabel(f"{robot.joints[0]} (rad)")
         ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    fig.tight_layout()
+        legend_beside(ax, borderaxespad=None)  # matplotlib's pad from the axes
     name = "calibrate_rollouts.png"
-    fig.savefig(out / name, dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / name, tight=True)
     return [name]

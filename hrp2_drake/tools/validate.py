@@ -30,6 +30,7 @@ from hrp2_drake import console
 from hrp2_drake.description import RobotDescription
 from hrp2_drake.identification.logs import RobotLog, read_robot_log
 from hrp2_drake.identification.motor_model import MotorModel
+from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure
 from hrp2_drake.robot.rollout import (
     RolloutErrors,
     RolloutResult,
@@ -191,14 +192,9 @@ def _servo_off_stretches(t: np.ndarray, valid: np.ndarray) -> list[tuple[float, 
 def _plot(
     robot: RobotDescription, result: RolloutResult, errors: RolloutErrors, path: Path
 ):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     log = result.log
     n = len(log.joint_names)
-    fig, axes = plt.subplots(n, 1, figsize=(9, 2.6 * n), sharex=True, squeeze=False)
+    fig, axes = pyplot().subplots(n, 1, figsize=(9, 2.6 * n), sharex=True, squeeze=False)
     labels = dict(zip(robot.controlled_joints, robot.labels()))
     stretches = _servo_off_stretches(log.t, log.valid)
     for j, (ax, joint) in enumerate(zip(axes[:, 0], log.joint_names)):
@@ -214,20 +210,22 @@ def _plot(
             f"{errors.max_error_servo_on[j] * 1e3:.1f} mrad",
             fontsize=9,
         )
-    axes[0, 0].legend(
-        loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0, fontsize=8
-    )
+    legend_beside(axes[0, 0])
     axes[-1, 0].set_xlabel("t (s)")
     gain = "" if log.gain is None else f", gain {log.gain:g}"
     fig.suptitle(f"{robot.name}: rollout of the motor model on {log.name}{gain}")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100, tight=True)
 
 
 def _markdown(robot: RobotDescription, model: MotorModel, summary: dict) -> str:
-    def cell(value: float | None) -> str:
-        return "n/a" if value is None or np.isnan(value) else f"{value:.1f}"
+    def errors(values: dict, joint: str) -> list[str]:
+        """The joint's MAE and maximum error, whole log and servo on (mrad)."""
+        return [
+            "n/a" if value is None or np.isnan(value) else f"{value:.1f}"
+            for value in (values[key][joint] for key in (
+                "mae_mrad", "max_error_mrad", "mae_servo_on_mrad", "max_error_servo_on_mrad"
+            ))
+        ]
 
     gain = (
         f" (at servo gain {model.gain:g}, rescaled to each log's)" if model.gain else ""
@@ -242,29 +240,30 @@ def _markdown(robot: RobotDescription, model: MotorModel, summary: dict) -> str:
         "over the whole log and over its servo-on samples (servo off, the model's joint "
         "is free: no friction).",
         "",
-        "| log | joint | gain | s | servo on | MAE | max | MAE servo on | max servo on | wall (s) |",
-        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
-    for row in summary["logs"]:
-        for joint in summary["joints"]:
-            log_gain = "—" if row["gain"] is None else f"{row['gain']:g}"
-            lines.append(
-                f"| {row['log']} | {joint} | {log_gain} | "
-                f"{row['duration_s']:.2f} | {row['servo_on_share'] * 100:.0f}% | "
-                f"{cell(row['mae_mrad'][joint])} | {cell(row['max_error_mrad'][joint])} | "
-                f"{cell(row['mae_servo_on_mrad'][joint])} | "
-                f"{cell(row['max_error_servo_on_mrad'][joint])} | "
-                f"{row['rollout_wall_time_s']:.2f} |"
-            )
-    mean = summary["mean"]
-    for joint in summary["joints"]:
-        lines.append(
-            f"| **mean of {len(summary['logs'])}** | {joint} | | | | "
-            f"{cell(mean['mae_mrad'][joint])} | {cell(mean['max_error_mrad'][joint])} | "
-            f"{cell(mean['mae_servo_on_mrad'][joint])} | "
-            f"{cell(mean['max_error_servo_on_mrad'][joint])} | "
-            f"{summary['mean_rollout_wall_time_s']:.2f} |"
-        )
+    rows = [
+        [
+            f"{row['log']}",
+            joint,
+            "—" if row["gain"] is None else f"{row['gain']:g}",
+            f"{row['duration_s']:.2f}",
+            f"{row['servo_on_share'] * 100:.0f}%",
+            *errors(row, joint),
+            f"{row['rollout_wall_time_s']:.2f}",
+        ]
+        for row in summary["logs"]
+        for joint in summary["joints"]
+    ]
+    rows += [  # the mean over the logs: no gain, duration, servo-on share
+        [f"**mean of {len(summary['logs'])}**", joint, None, None, None,
+         *errors(summary["mean"], joint), f"{summary['mean_rollout_wall_time_s']:.2f}"]
+        for joint in summary["joints"]
+    ]
+    header = [
+        "log", "joint", "gain", "s", "servo on", "MAE", "max", "MAE servo on",
+        "max servo on", "wall (s)",
+    ]
+    lines += markdown_table(header, rows, align="ll" + "r" * 8)
     lines += [
         "",
         "Figures: " + ", ".join(f"`{row['figure']}`" for row in summary["logs"]),

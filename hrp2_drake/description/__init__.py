@@ -14,6 +14,13 @@ an error names the field, e.g.
 
 The fields are documented on the dataclasses below; `models/hrp2/robot.yaml` is a
 commented example.
+
+The description is the bottom layer of the package, plain data: it imports only
+pydrake, numpy, the standard library, `hrp2_drake.config` and `hrp2_drake.multibody`.
+The configs it holds live beside it, in `sensors` (the simulated sensors' noise),
+`excitation` (the identification excitation) and `logs` (how the robot's logs are
+read); the modules that use them (`robot.sensors`, `identification.excitation`,
+`identification.logs`) import them from here.
 """
 
 import functools
@@ -26,17 +33,13 @@ import numpy as np
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import MultibodyPlant
-from pydrake.multibody.tree import BodyIndex, ModelInstanceIndex
+from pydrake.multibody.tree import BodyIndex, ModelInstanceIndex, RigidBody
 
 from hrp2_drake.config import load_config
+from hrp2_drake.description.excitation import CollectionConfig
+from hrp2_drake.description.logs import LogFormat
+from hrp2_drake.description.sensors import SensorsConfig
 from hrp2_drake.multibody import is_strictly_below, tree_parents
-from hrp2_drake.estimation.torque_estimator import (
-    ForceTorqueSensorConfig,
-    TorqueEstimatorConfig,
-)
-from hrp2_drake.identification.excitation import CollectionConfig
-from hrp2_drake.identification.logs import LogFormat
-from hrp2_drake.robot.sensors import SensorsConfig
 
 BASES = ("floating", "fixed")
 #: The robot of every command without --robot.
@@ -179,11 +182,16 @@ class RobotDescription:
             angles), or empty.
         scenarios: what the legged scenarios need.
         identification: the excitation of `hrp2-drake identify` (pushes on a body
-            and one increasing sinusoid per controlled joint); empty sinusoids: one
-            per controlled joint from its limits (`default_collection`).
-        logs: how the robot's own logs are read (`identification.logs.LogFormat`):
+            and one increasing sinusoid per controlled joint); empty: none (identify
+            then needs a collection of its own).
+        logs: how the robot's own logs are read (`description.logs.LogFormat`):
             format, columns, units, servo gain, the grid they are resampled to.
         position_loop: the servo's documented position loop (saturation, gain).
+        published_motor_model: Kτ and Kv published for this robot, per joint, as
+            [10³ Kτ, 10³ Kv] (Kτ in rad/(N·m), Kv in rad·s/rad; so the numbers are in
+            mrad/(N·m) and mrad·s/rad), the way the paper's Table 1 prints them
+            (HRP-2: that table, its source cited in robot.yaml); identification
+            reports compare with them. Empty: none published.
     """
 
     name: str = ""
@@ -210,6 +218,7 @@ class RobotDescription:
     identification: CollectionConfig = field(default_factory=CollectionConfig)
     logs: LogFormat = field(default_factory=LogFormat)
     position_loop: PositionLoopDescription = field(default_factory=PositionLoopDescription)
+    published_motor_model: dict[str, list[float]] = field(default_factory=dict)
     #: The description file (set by the loader; paths are relative to its folder).
     source_file: str = ""
 
@@ -291,6 +300,14 @@ class RobotDescription:
         self.sensors.validate(len(self.joints), list(self.force_torque_sensors))
         self.logs.validate(len(self.joints))
         self.position_loop.validate()
+        for joint, values in self.published_motor_model.items():
+            if joint not in self.joints:
+                raise ValueError(f"published_motor_model: '{joint}' is not in joints")
+            if len(values) != 2 or not all(math.isfinite(v) and v >= 0 for v in values):
+                raise ValueError(
+                    f"published_motor_model.{joint}: expected [10³ Kτ, 10³ Kv], two "
+                    f"finite numbers >= 0, got {values}"
+                )
 
     # ------------------------------------------------------------ files
 
@@ -385,22 +402,6 @@ class RobotDescription:
         plant.Finalize()
         return plant
 
-    def estimator_config(self, window: int = 80, **options) -> TorqueEstimatorConfig:
-        """The estimator of paper Sec. 2 for this robot: its joints, IMU (if any),
-        F/T sensors and unknown-wrench link; `options` set the other fields."""
-        options.setdefault("unknown_wrench_body", self.unknown_wrench_body)
-        sensors = {
-            name: ForceTorqueSensorConfig(frame=sensor.frame, body=sensor.body)
-            for name, sensor in self.force_torque_sensors.items()
-        }
-        return TorqueEstimatorConfig(
-            joints=list(self.joints),
-            imu_frame=self.imu_frame,
-            sensors=sensors,
-            window=window,
-            **options,
-        )
-
     def sensor_of_body(self, body: str) -> str:
         """The F/T sensor whose body is `body` (or whose frame is `body`), else the
         description's force_sensor."""
@@ -433,7 +434,16 @@ class RobotDescription:
     def check_model(self, plant: MultibodyPlant) -> None:
         """Checks every name against `plant` (finalized, from `make_plant`); a
         ValueError names the field."""
-        world = plant.world_body().index()
+        base = self._check_base(plant)
+        self._check_joints(plant)
+        parent = tree_parents(plant, base.index())
+        below = self._check_force_torque_sensors(plant, base, parent)
+        self._check_imu(plant, parent, below)
+        self._check_other_names(plant)
+        self._check_home(plant)
+
+    def _check_base(self, plant: MultibodyPlant) -> RigidBody:
+        """base_body is in the model, floating or fixed as `base` says; returns it."""
         if not plant.HasBodyNamed(self.base_body):
             raise ValueError(f"base_body: no body '{self.base_body}' in the model")
         base = plant.GetBodyByName(self.base_body)
@@ -445,6 +455,10 @@ class RobotDescription:
         if self.base == "fixed" and plant.GetFloatingBaseBodies():
             names = [plant.get_body(BodyIndex(b)).name() for b in plant.GetFloatingBaseBodies()]
             raise ValueError(f"base: 'fixed', but the model has floating bodies {names}")
+        return base
+
+    def _check_joints(self, plant: MultibodyPlant) -> None:
+        """`joints` are the model's one-dof joints, all of them, each actuated."""
         for j, name in enumerate(self.joints):
             if not plant.HasJointNamed(name):
                 raise ValueError(f"joints[{j}]: no joint '{name}' in the model")
@@ -473,7 +487,14 @@ class RobotDescription:
         unactuated = [name for name in self.joints if name not in actuated]
         if unactuated:
             raise ValueError(f"joints: {unactuated} have no actuator in the model")
-        parent = tree_parents(plant, base.index())
+
+    def _check_force_torque_sensors(
+        self, plant: MultibodyPlant, base: RigidBody, parent: dict[int, int]
+    ) -> dict[str, int]:
+        """Each sensor's frame and body are in the model, the body is below the sensor
+        (not the base, not above its frame, rigidly holding it). Returns the index of
+        each sensor's body, by sensor name."""
+        world = plant.world_body().index()
         below = {}
         for name, sensor in self.force_torque_sensors.items():
             where = f"force_torque_sensors.{name}"
@@ -501,16 +522,28 @@ class RobotDescription:
                     f"body '{frame.body().name()}'): give the body right below the sensor"
                 )
             below[name] = int(body.index())
-        if self.imu_frame:
-            if not plant.HasFrameNamed(self.imu_frame):
-                raise ValueError(f"imu_frame: no frame '{self.imu_frame}' in the model")
-            imu_body = int(plant.GetFrameByName(self.imu_frame).body().index())
-            for name, index in below.items():
-                if imu_body == index or is_strictly_below(parent, imu_body, index):
-                    raise ValueError(
-                        f"imu_frame: '{self.imu_frame}' is below F/T sensor '{name}': the "
-                        "IMU must be on the base side of every sensor"
-                    )
+        return below
+
+    def _check_imu(
+        self, plant: MultibodyPlant, parent: dict[int, int], below: dict[str, int]
+    ) -> None:
+        """The IMU frame (if any) is in the model, on the base side of every F/T
+        sensor (`below`: each sensor's body index)."""
+        if not self.imu_frame:
+            return
+        if not plant.HasFrameNamed(self.imu_frame):
+            raise ValueError(f"imu_frame: no frame '{self.imu_frame}' in the model")
+        imu_body = int(plant.GetFrameByName(self.imu_frame).body().index())
+        for name, index in below.items():
+            if imu_body == index or is_strictly_below(parent, imu_body, index):
+                raise ValueError(
+                    f"imu_frame: '{self.imu_frame}' is below F/T sensor '{name}': the "
+                    "IMU must be on the base side of every sensor"
+                )
+
+    def _check_other_names(self, plant: MultibodyPlant) -> None:
+        """The bodies, frames and joints that the unknown wrench, the tool, the
+        scenarios and the identification excitation name."""
         for key, value in (
             ("unknown_wrench_body", self.unknown_wrench_body),
             ("scenarios.hanging.body", self.scenarios.hanging.body),
@@ -538,6 +571,9 @@ class RobotDescription:
         push = self.identification.pushes.body
         if push and not plant.HasBodyNamed(push):
             raise ValueError(f"identification.pushes.body: no body '{push}' in the model")
+
+    def _check_home(self, plant: MultibodyPlant) -> None:
+        """The home pose is within the model's joint limits."""
         home = self.home_positions()
         for j, name in enumerate(self.joints):
             joint = plant.GetJointByName(name)
@@ -547,7 +583,6 @@ class RobotDescription:
                     f"initial_positions[{j}]: {name} = {home[j]:.6g} rad is outside its "
                     f"limits [{low:.6g}, {high:.6g}]"
                 )
-
 
 @functools.lru_cache(maxsize=8)
 def _joint_limits(source_file: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -609,7 +644,7 @@ def _perturbed_urdf(text: str, error: float, seed: int) -> str:
 def models_root() -> Path:
     """models/ of the source tree, or $HRP2_DRAKE_MODELS_ROOT if set."""
     env = os.environ.get("HRP2_DRAKE_MODELS_ROOT")
-    return Path(env) if env else Path(__file__).resolve().parents[1] / "models"
+    return Path(env) if env else Path(__file__).resolve().parents[2] / "models"
 
 
 def robot_file(robot: str | Path | None = None) -> Path:
