@@ -1,0 +1,105 @@
+"""The house's layering (docs/architecture.md, "Layers"): every import inside the
+package, at module level or inside a function, goes down or sideways, never up.
+
+From the bottom: the shared helpers; the robot description (plain data); the
+algorithms (estimation, identification, control), which serve any robot from a
+MultibodyPlant and names; the robot (simulated, or over LCM); the closed-loop assembly;
+the any-robot tools; the paper on HRP-2; the command line, which dispatches to all.
+"""
+
+import ast
+import sys
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "hrp2_drake"
+
+HELPERS = {"config", "multibody", "console", "simulation", "step", "report"}
+ALGORITHMS = {"estimation", "identification", "control"}
+ROBOT = {"robot", "hardware"}
+
+#: What each part of the package may import from the package (besides itself).
+ALLOWED: dict[str, set[str]] = {
+    "config": set(),
+    "multibody": set(),
+    "console": set(),
+    "report": set(),
+    "simulation": {"console"},
+    "step": {"simulation", "console"},
+    "description": {"config", "multibody"},
+    "estimation": HELPERS | {"description"},
+    "identification": HELPERS | {"description", "estimation"},
+    "control": HELPERS | {"description", "estimation", "identification"},
+    "robot": HELPERS | {"description"} | ALGORITHMS,
+    "hardware": HELPERS | {"description", "robot"} | ALGORITHMS,
+    "assembly": HELPERS | {"description"} | ALGORITHMS | ROBOT,
+    "tools": HELPERS | {"description", "assembly"} | ALGORITHMS | ROBOT,
+    "paper": HELPERS | {"description", "assembly", "tools"} | ALGORITHMS | ROBOT,
+    "cli": HELPERS | {"description", "assembly", "tools", "paper"} | ALGORITHMS | ROBOT,
+}
+
+
+def _part(path: Path) -> str:
+    """The part of the package a file belongs to: its folder, or its module's name
+    for a module at the top of the package."""
+    relative = path.relative_to(PACKAGE)
+    return relative.parts[0] if len(relative.parts) > 1 else relative.stem
+
+
+def _imports(path: Path) -> list[tuple[int, str]]:
+    """(line, imported part of the package) of every import of the package in `path`."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            modules = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            modules = [node.module]
+            if node.module == "hrp2_drake":  # from hrp2_drake import console
+                modules = [f"hrp2_drake.{alias.name}" for alias in node.names]
+        else:
+            continue
+        for module in modules:
+            parts = module.split(".")
+            if parts[0] == "hrp2_drake" and len(parts) > 1:
+                found.append((node.lineno, parts[1]))
+    return found
+
+
+def _sources() -> list[Path]:
+    return sorted(p for p in PACKAGE.rglob("*.py") if p != PACKAGE / "__init__.py")
+
+
+def test_every_part_of_the_package_has_a_layer():
+    parts = {_part(path) for path in _sources()}
+    assert parts <= set(ALLOWED), f"no layer for {sorted(parts - set(ALLOWED))}"
+
+
+@pytest.mark.parametrize("path", _sources(), ids=lambda p: str(p.relative_to(PACKAGE)))
+def test_imports_go_down(path):
+    part = _part(path)
+    wrong = [
+        f"{path.relative_to(PACKAGE.parent)}:{line} imports hrp2_drake.{target}"
+        for line, target in _imports(path)
+        if target != part and target not in ALLOWED.get(part, set())
+    ]
+    assert not wrong, f"{part} may import only {sorted(ALLOWED[part])}:\n" + "\n".join(wrong)
+
+
+def test_the_rules_of_issue_19_are_in_the_table():
+    """The three rules the layering must enforce, read from the table itself."""
+    assert all("paper" not in allowed for part, allowed in ALLOWED.items() if part != "cli")
+    assert ALLOWED["description"] <= {"config", "multibody"}
+    for part in ALGORITHMS:
+        assert not ALLOWED[part] & {"robot", "hardware", "assembly", "tools", "paper"}
+
+
+def test_the_checker_sees_an_upward_import(tmp_path, monkeypatch):
+    """An import from inside a function is seen, and one going up is refused."""
+    bad = tmp_path / "hrp2_drake" / "control" / "bad.py"
+    bad.parent.mkdir(parents=True)
+    bad.write_text("def f():\n    from hrp2_drake.paper import hrp2\n")
+    monkeypatch.setattr(sys.modules[__name__], "PACKAGE", tmp_path / "hrp2_drake")
+    assert _imports(bad) == [(2, "paper")]
+    with pytest.raises(AssertionError, match="control/bad.py:2 imports hrp2_drake.paper"):
+        test_imports_go_down(bad)
