@@ -10,6 +10,10 @@ the `validate()` of the config and of every config nested in it.
 Note: modules that define config dataclasses must not use
 `from __future__ import annotations` (yaml_load_typed needs real types), and
 yaml_load_typed does not call `__post_init__`: validation lives in `validate()`.
+
+A config's fields can be named by path ("controller.k6"): `field_at`, `set_field_at`,
+`replace_fields` (`dataclasses.replace` by path) and `field_type`, for code that varies
+settings by name.
 """
 
 import copy
@@ -284,6 +288,46 @@ def validate_config(config: Any, source: str | None = None, path: str = "") -> N
         for child_path, child in children:
             if dataclasses.is_dataclass(child):
                 validate_config(child, source, child_path)
+
+
+def field_at(config: Any, path: str) -> Any:
+    """The value of the field at `path` of a config: "start_time", or a nested one
+    ("controller.k6")."""
+    for name in path.split("."):
+        config = getattr(config, name)
+    return config
+
+
+def set_field_at(config: Any, path: str, value: Any) -> None:
+    """Sets the field at `path` (as `field_at`) of `config`, in place."""
+    parent, _, name = path.rpartition(".")
+    setattr(field_at(config, parent) if parent else config, name, value)
+
+
+def replace_fields(config: T, changes: dict[str, Any]) -> T:
+    """`dataclasses.replace` by field path (as `field_at`): a copy of `config` with
+    `changes`, the nested settings they touch copied too, the others shared."""
+    top, nested = {}, {}
+    for path, value in changes.items():
+        name, _, rest = path.partition(".")
+        if rest:
+            nested.setdefault(name, {})[rest] = value
+        else:
+            top[name] = value
+    for name, inner in nested.items():
+        top[name] = replace_fields(top.get(name, getattr(config, name)), inner)
+    return dataclasses.replace(config, **top)
+
+
+def field_type(schema: type, path: str) -> Any:
+    """The type of the field at `path` (as `field_at`) of the dataclass `schema`;
+    None if it has no such field."""
+    for name in path.split("."):
+        hints = typing.get_type_hints(schema) if dataclasses.is_dataclass(schema) else {}
+        if name not in hints:
+            return None
+        schema = hints[name]
+    return schema
 
 
 def check_finite(

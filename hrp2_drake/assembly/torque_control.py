@@ -7,16 +7,13 @@ its own `validate()`: `estimator`, `controller`, `observer`, `supervisor` (a
 `SafetyConfig`) and `faults`. A file of the flat layout (before issue 19: `k6: 0.1` at
 the top) is refused with one line naming each key's new place (`moved_keys`).
 
-`field_at`, `set_field_at`, `replace_fields` and `field_type` read, set and replace a
-field by its path ("controller.k6"): for code that varies settings by name (the motion
-experiment's improvements, `hrp2-drake tune`'s search space).
+Code that varies settings by name (the motion experiment's improvements, `hrp2-drake
+tune`'s search space) names them by path ("controller.k6"): `hrp2_drake.config.field_at`,
+`set_field_at`, `replace_fields`, `field_type`.
 """
 
-import dataclasses
 import math
-import typing
 from dataclasses import dataclass, field
-from typing import Any, TypeVar
 
 from hrp2_drake.config import check_finite, moved_keys
 from hrp2_drake.control.safety import SafetyConfig
@@ -24,7 +21,6 @@ from hrp2_drake.description import RobotDescription
 from hrp2_drake.estimation.savitzky_golay import EVALUATION_POINTS
 
 _WHERE = "TorqueControlConfig"
-T = TypeVar("T")
 
 
 @dataclass
@@ -301,43 +297,3 @@ def check_control_period(config: TorqueControlConfig, period: float, where: str 
             f"{period:g} s: the supervisor runs once per control tick; leave "
             f"supervisor.period out or set it to {period:g}"
         )
-
-
-def field_at(config: Any, path: str) -> Any:
-    """The value of the field at `path` of a config: "start_time", or a nested one
-    ("controller.k6")."""
-    for name in path.split("."):
-        config = getattr(config, name)
-    return config
-
-
-def set_field_at(config: Any, path: str, value: Any) -> None:
-    """Sets the field at `path` (as `field_at`) of `config`, in place."""
-    parent, _, name = path.rpartition(".")
-    setattr(field_at(config, parent) if parent else config, name, value)
-
-
-def replace_fields(config: T, changes: dict[str, Any]) -> T:
-    """`dataclasses.replace` by field path (as `field_at`): a copy of `config` with
-    `changes`, the nested settings they touch copied too, the others shared."""
-    top, nested = {}, {}
-    for path, value in changes.items():
-        name, _, rest = path.partition(".")
-        if rest:
-            nested.setdefault(name, {})[rest] = value
-        else:
-            top[name] = value
-    for name, inner in nested.items():
-        top[name] = replace_fields(top.get(name, getattr(config, name)), inner)
-    return dataclasses.replace(config, **top)
-
-
-def field_type(schema: type, path: str) -> Any:
-    """The type of the field at `path` (as `field_at`) of the dataclass `schema`;
-    None if it has no such field."""
-    for name in path.split("."):
-        hints = typing.get_type_hints(schema) if dataclasses.is_dataclass(schema) else {}
-        if name not in hints:
-            return None
-        schema = hints[name]
-    return schema

@@ -31,11 +31,8 @@ from hrp2_drake.assembly.builders import (
     build_torque_control,
     simulated_station,
 )
-from hrp2_drake.assembly.torque_control import (
-    ControllerSettings,
-    EstimatorSettings,
-    replace_fields,
-)
+from hrp2_drake.assembly.torque_control import ControllerSettings, EstimatorSettings
+from hrp2_drake.config import replace_fields
 from hrp2_drake.paper.force import ForceConfig, run_force
 from hrp2_drake.paper.motion import MotionConfig, motion_reference, run_controller
 from hrp2_drake.identification.motor_model import MotorModel

@@ -67,7 +67,8 @@ from hrp2_drake.assembly.builders import (
     build_torque_control,
     simulated_station,
 )
-from hrp2_drake.assembly.torque_control import ControllerSettings, field_at, replace_fields
+from hrp2_drake.assembly.torque_control import ControllerSettings
+from hrp2_drake.config import field_at, replace_fields
 from hrp2_drake.paper.motion import (
     IMPROVED_FILE,
     IMPROVEMENTS,

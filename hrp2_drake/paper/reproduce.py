@@ -137,7 +137,7 @@ def _motion_replay(config, motor_model, path: Path) -> None:
     from pydrake.systems.analysis import Simulator
 
     from hrp2_drake.assembly.builders import build_torque_control, simulated_station
-    from hrp2_drake.assembly.torque_control import replace_fields
+    from hrp2_drake.config import replace_fields
     from hrp2_drake.paper.motion import motion_reference
 
     meshcat = Meshcat()

@@ -43,7 +43,8 @@ from hrp2_drake.assembly.builders import (
     build_torque_control,
     check_control_period,
 )
-from hrp2_drake.assembly.torque_control import EstimatorSettings, replace_fields
+from hrp2_drake.assembly.torque_control import EstimatorSettings
+from hrp2_drake.config import replace_fields
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import is_strictly_below, joint_indexing, tree_parents
 from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure
