@@ -36,6 +36,7 @@ from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import BodyIndex, ModelInstanceIndex, RigidBody
 
 from hrp2_drake.config import load_config
+from hrp2_drake.description.bus import BusDescription, check_bus_period
 from hrp2_drake.description.excitation import CollectionConfig
 from hrp2_drake.description.logs import LogFormat
 from hrp2_drake.description.sensors import SensorsConfig
@@ -187,6 +188,10 @@ class RobotDescription:
         logs: how the robot's own logs are read (`description.logs.LogFormat`):
             format, columns, units, servo gain, the grid they are resampled to.
         position_loop: the servo's documented position loop (saturation, gain).
+        bus: the servo bus the robot's joints are on (`description.bus`; empty
+            `kind`: none). A robot on a bus runs at the bus's rate: `sensors.period`
+            is its period, which the bus must carry; its servos' position P gain is
+            `position_loop.gain`.
         published_motor_model: Kτ and Kv published for this robot, per joint, as
             [10³ Kτ, 10³ Kv] (Kτ in rad/(N·m), Kv in rad·s/rad; so the numbers are in
             mrad/(N·m) and mrad·s/rad), the way the paper's Table 1 prints them
@@ -218,6 +223,7 @@ class RobotDescription:
     identification: CollectionConfig = field(default_factory=CollectionConfig)
     logs: LogFormat = field(default_factory=LogFormat)
     position_loop: PositionLoopDescription = field(default_factory=PositionLoopDescription)
+    bus: BusDescription = field(default_factory=BusDescription)
     published_motor_model: dict[str, list[float]] = field(default_factory=dict)
     #: The description file (set by the loader; paths are relative to its folder).
     source_file: str = ""
@@ -300,6 +306,7 @@ class RobotDescription:
         self.sensors.validate(len(self.joints), list(self.force_torque_sensors))
         self.logs.validate(len(self.joints))
         self.position_loop.validate()
+        self._validate_bus()
         for joint, values in self.published_motor_model.items():
             if joint not in self.joints:
                 raise ValueError(f"published_motor_model: '{joint}' is not in joints")
@@ -308,6 +315,23 @@ class RobotDescription:
                     f"published_motor_model.{joint}: expected [10³ Kτ, 10³ Kv], two "
                     f"finite numbers >= 0, got {values}"
                 )
+
+    def _validate_bus(self) -> None:
+        """The bus against the joints, the sensors' period (the bus's) and the gain
+        it sets."""
+        bus = self.bus
+        bus.validate(len(self.joints))
+        if not bus.active:
+            return
+        check_bus_period(bus, self.sensors.period, "sensors.period")
+        gain = bus.servo_model().register("position_p_gain")
+        low, high = gain.limits()
+        value = self.position_loop.gain
+        if not (value == int(value) and low <= value <= high and value > 0):
+            raise ValueError(
+                f"position_loop.gain: {value:g}, but a robot on a bus sets it in its "
+                f"servos' Position P Gain: an integer from 1 to {high}"
+            )
 
     # ------------------------------------------------------------ files
 
