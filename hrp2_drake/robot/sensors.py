@@ -308,6 +308,7 @@ class SensorSampler(WitnessFreeLeafSystem):
         imu: bool = True,
         force_torque: Sequence[tuple[str, str, str, str]] = (),
         faults: Sequence[SensorFault] = (),
+        lead: float = 0.0,
     ):
         """
         Args:
@@ -321,15 +322,24 @@ class SensorSampler(WitnessFreeLeafSystem):
             force_torque: (sensor name, fixed joint, sensor frame, body below the
                 sensor) of each F/T sensor (see ForceTorqueReadout).
             faults: the station's faults: a "freeze" stops its sensor's stamp.
+            lead: sample this long (s, less than a period) before each multiple of
+                the period: a bus reads the sensors `lead` before the controller's
+                command reaches the servos (`StationConfig.sample_lead`).
         """
         super().__init__()
         names = [sensor[0] for sensor in force_torque]
         self._period = config.period
+        if not 0 <= lead < config.period:
+            raise ValueError(
+                f"SensorSampler: lead {lead} s must be >= 0 and shorter than the period "
+                f"({config.period} s)"
+            )
+        self._offset = (config.period - lead) % config.period
         laws = _sensor_laws(config, len(joint_names), encoder_resolution, imu, names)
         views = self._make_buffers(laws)
         self._declare_inputs(plant, joint_names, views, imu, force_torque)
         self._declare_outputs(views, initial_q, imu, names, faults)
-        self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
+        self.DeclarePeriodicDiscreteUpdateEvent(config.period, self._offset, self._update)
 
     def _make_buffers(
         self, laws: dict[str, SampledSignal]
@@ -446,7 +456,7 @@ class SensorSampler(WitnessFreeLeafSystem):
                     _raise_not_finite(name, signal, t)
         # SampledSignal.sample of every channel, operation by operation on the whole
         # bus (each entry sees the same operations, so the numbers are the same).
-        k = round(t / self._period)
+        k = round((t - self._offset) / self._period)
         measurements = self._measurements
         np.add(self._signals, self._bias, out=measurements)
         if self._noisy_laws:

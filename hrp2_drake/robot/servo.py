@@ -418,6 +418,10 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
     with latency d = k periods acts on the command its board received k periods ago;
     with d = 0 (or "latency" off) on q_cmd directly, as the `ideal` preset does.
 
+    A bus servo takes its goal in encoder pulses: with `command_resolution` (rad, the
+    goal register's quantum; 0: none) q_cmd is rounded to the nearest pulse (half to
+    even), as `BusDescription.quantized` rounds it.
+
     The encoder quantization (`encoder_resolution`) applies to the position error,
     like the real servo; the velocity is the plant's (a real servo differentiates
     motor-side encoder counts at a high rate).
@@ -433,8 +437,15 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
         off: Sequence[str] = (),
         extra_latency: float = 0.0,
         enable_port: bool = False,
+        command_resolution: float = 0.0,
     ):
         super().__init__()
+        if not (math.isfinite(command_resolution) and command_resolution >= 0):
+            raise ValueError(
+                "EmulatedPositionServo: command_resolution must be finite and >= 0, "
+                f"got {command_resolution}"
+            )
+        self._command_resolution = command_resolution or None
         unknown = sorted(set(off) - set(SERVO_MECHANISMS))
         if unknown:
             raise ValueError(
@@ -550,13 +561,27 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
             enabled: per joint, > 0.5 on, otherwise off (friction only); None: on.
         """
         p = self._p
-        # np.round(x) is np.rint(x) (half to even), without np.round's Python layer.
-        q_encoder = np.rint(q / self._quantum_divisor) * p["encoder_resolution"]
-        q_encoder[self._unquantized] = q[self._unquantized]
         direction = np.tanh(v / p["v_coulomb"])
         if s is not None:
             direction[self._dahl_joints] = s[self._dahl_joints]
-        return self._servo_torque(q_cmd - q_encoder, v, direction, enabled)
+        return self._servo_torque(q_cmd - self.encoder(q), v, direction, enabled)
+
+    def encoder(self, q: np.ndarray) -> np.ndarray:
+        """What the servo's own encoder reads of the joint angles q (rad): q
+        quantized at each joint's encoder_resolution (none where it is 0)."""
+        # np.round(x) is np.rint(x) (half to even), without np.round's Python layer.
+        q_encoder = np.rint(q / self._quantum_divisor) * self._p["encoder_resolution"]
+        q_encoder[self._unquantized] = q[self._unquantized]
+        return q_encoder
+
+    def motor_current(
+        self, q_cmd: np.ndarray, q: np.ndarray, v: np.ndarray,
+        enabled: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """The motor current i (A) the servo drives for the command it acts on
+        (after the latency), as `joint_torques` computes it: what a servo reports as
+        its present current."""
+        return self._drive_current(q_cmd - self.encoder(q), v, enabled)
 
     def _servo_torque(
         self,
@@ -566,9 +591,19 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
         enabled: np.ndarray | None = None,
     ) -> np.ndarray:
         """servo_torque(self's parameters, error, v, direction): the same operations
-        on the same numbers, with array constants. np.clip(x, lo, hi) is written
-        np.minimum(hi, np.maximum(lo, x)), which returns what clip returns (ties
-        included), about 1 us less."""
+        on the same numbers, with array constants."""
+        p, one = self._p, self._ones
+        current = self._drive_current(error, v, enabled)
+        drive = p["k1"] * (one + p["k1_asymmetry"] * direction) * current
+        coulomb = p["k3"] + p["load_friction"] * np.abs(drive)
+        return drive - p["k2"] * v - coulomb * direction
+
+    def _drive_current(
+        self, error: np.ndarray, v: np.ndarray, enabled: np.ndarray | None = None
+    ) -> np.ndarray:
+        """The motor current i (A) of the servo law (module docstring). np.clip(x, lo,
+        hi) is written np.minimum(hi, np.maximum(lo, x)), which returns what clip
+        returns (ties included), about 1 us less."""
         p, one = self._p, self._ones
         u = p["k4"] * error - p["k5"] * v
         current = np.sign(u) * np.maximum(np.abs(u) - p["i_deadzone"], self._zeros)
@@ -580,9 +615,7 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
         current = np.minimum(upper, np.maximum(lower, current))
         if enabled is not None:
             current = np.where(enabled > 0.5, current, self._zeros)
-        drive = p["k1"] * (one + p["k1_asymmetry"] * direction) * current
-        coulomb = p["k3"] + p["load_friction"] * np.abs(drive)
-        return drive - p["k2"] * v - coulomb * direction
+        return current
 
     def _joint_state(self, context: Context) -> tuple[np.ndarray, np.ndarray]:
         x = self._state.Eval(context)
@@ -593,7 +626,18 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
         if not math.isfinite(q_cmd.dot(self._ones)):
             bad = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(q_cmd))]
             raise ValueError(f"EmulatedPositionServo: q_cmd is not finite for {bad}")
+        if self._command_resolution is not None:
+            return np.rint(q_cmd / self._command_resolution) * self._command_resolution
         return q_cmd
+
+    def current(self, context: Context) -> np.ndarray:
+        """The motor current (A) in `context` (this system's), as the servo drives it
+        now: what a servo reports as its present current."""
+        x = context.get_discrete_state(self._x).get_value()
+        q_cmd = self._applied_command(self._checked_command(context), x)
+        q, v = self._joint_state(context)
+        enabled = None if self._enabled is None else self._enabled.Eval(context)
+        return self.motor_current(q_cmd, q, v, enabled)
 
     def _applied_command(self, q_cmd: np.ndarray, x: np.ndarray) -> np.ndarray:
         """The command each joint acts on: q_cmd delayed by its latency (x: the

@@ -170,6 +170,12 @@ class StationConfig:
             "voltage_limit", "hysteresis", "deadzone").
         contact_approximation: Drake's discrete contact approximation.
         obstacles: boxes welded to the world.
+        sample_lead: the sensors sample this long (s) before each multiple of their
+            period, rounded up to whole plant steps (the plant's state changes only
+            then): a controller ticking at those multiples acts on samples that old,
+            as on a servo bus, where the command reaches the servos the bus's
+            read-to-write delay after they sampled (`BusTiming.read_to_write`). 0:
+            the sensors sample at the tick (a controller one period behind them).
     """
 
     robot: str = ""
@@ -186,6 +192,7 @@ class StationConfig:
     extra_command_latency: float = 0.0
     contact_approximation: str = "sap"
     obstacles: list[BoxObstacle] = field(default_factory=list)
+    sample_lead: float = 0.0
 
     def description(self) -> RobotDescription:
         """The robot description (checked against its model; cached)."""
@@ -306,6 +313,17 @@ class StationConfig:
             )
         latency = self.extra_command_latency
         check_finite(latency, "StationConfig.extra_command_latency", 0.0, False)
+        check_finite(self.sample_lead, "StationConfig.sample_lead", 0.0, False)
+        if self.sample_lead_steps() * self.time_step >= period * (1 - 1e-9):
+            raise ValueError(
+                f"StationConfig.sample_lead: {self.sample_lead:g} s (whole plant steps: "
+                f"{self.sample_lead_steps() * self.time_step:g} s) must be shorter than "
+                f"the sensors' period ({period:g} s)"
+            )
+
+    def sample_lead_steps(self) -> int:
+        """`sample_lead` in whole plant steps, rounded up."""
+        return math.ceil(self.sample_lead / self.time_step - 1e-9)
 
     def _validate_joints(self, robot: RobotDescription) -> None:
         n = len(robot.joints)
@@ -477,11 +495,17 @@ def add_scenario_plant(
     return plant, scene_graph
 
 
-def make_station(config: StationConfig, meshcat: Meshcat | None = None) -> Diagram:
+def make_station(
+    config: StationConfig, meshcat: Meshcat | None = None, servo_enable: bool = False
+) -> Diagram:
     """Builds the station Diagram (module docstring) for `config`.
 
     The default context of the returned diagram holds the scenario's initial state.
     If `meshcat` is given, a MeshcatVisualizer publishes the illustration geometry.
+    With `servo_enable`, the servo's `enabled` input is exported as `servo_enabled`
+    (per joint, 1 on: a real servo's torque enable; it must then be given). A robot
+    on a bus (its description's `bus`) takes its goal positions in encoder pulses:
+    q_cmd is rounded to them (`BusDescription.quantized`).
     """
     config.validate()
     robot = config.description()
@@ -501,16 +525,20 @@ def make_station(config: StationConfig, meshcat: Meshcat | None = None) -> Diagr
             initial_q_cmd=q0,
             off=config.servo_off,
             extra_latency=config.extra_command_latency,
+            enable_port=servo_enable,
+            command_resolution=robot.bus.quantum() if robot.bus.active else 0.0,
         ),
     )
-    builder.Connect(plant.get_state_output_port(), servo.get_input_port(1))
-    builder.Connect(servo.get_output_port(), plant.get_actuation_input_port())
-    builder.ExportInput(servo.get_input_port(0), "q_cmd")
+    builder.Connect(plant.get_state_output_port(), servo.GetInputPort("state"))
+    builder.Connect(servo.GetOutputPort("actuation"), plant.get_actuation_input_port())
+    builder.ExportInput(servo.GetInputPort("q_cmd"), "q_cmd")
+    if servo_enable:
+        builder.ExportInput(servo.GetInputPort("enabled"), "servo_enabled")
     builder.ExportInput(plant.get_applied_spatial_force_input_port(), "applied_spatial_force")
 
     _add_sensors(
         builder, plant, robot, indexing, config.sensors_config(), q0, servo_params,
-        config.faults,
+        config.faults, config.sample_lead_steps() * config.time_step,
     )
 
     builder.ExportOutput(plant.get_net_actuation_output_port(), "joint_torque_true")
@@ -587,6 +615,7 @@ def _add_sensors(
     q0: np.ndarray,
     servo: ServoParams,
     faults: Sequence[SensorFault] = (),
+    lead: float = 0.0,
 ) -> None:
     """The sensors: Drake's Accelerometer and Gyroscope on the IMU frame, and one
     SensorSampler for the whole bus (encoders, IMU, F/T sensors, stamps); each sensor
@@ -610,6 +639,7 @@ def _add_sensors(
                 )
             ],
             faults=faults,
+            lead=lead,
         ),
     )
     builder.Connect(plant.get_state_output_port(), sensors.GetInputPort("state"))
