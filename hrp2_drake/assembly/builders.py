@@ -27,7 +27,7 @@ from typing import NamedTuple
 import numpy as np
 from pydrake.geometry import Meshcat
 from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort, PortDataType
-from pydrake.systems.primitives import MatrixGain, TrajectorySource
+from pydrake.systems.primitives import MatrixGain, TrajectorySource, ZeroOrderHold
 from pydrake.trajectories import (
     FunctionHandleTrajectory,
     PiecewisePolynomial,
@@ -61,7 +61,11 @@ from hrp2_drake.estimation.torque_estimator import add_estimator
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import joint_indexing
 from hrp2_drake.robot.station import StationConfig, make_station, sensor_sizes
-from hrp2_drake.assembly.torque_control import TorqueControlConfig, check_control_period
+from hrp2_drake.assembly.torque_control import (
+    TorqueControlConfig,
+    check_control_period,
+    delta_q_limit,
+)
 
 #: The six components of Δq of paper Sec. 5.5 (the controller's seventh, the torque
 #: integral, is zero with the paper's K_i = 0).
@@ -105,9 +109,12 @@ def first_order_hold(
 @dataclass
 class JointReference:
     """A joint-space reference for all n joints of a robot: positions, velocities,
-    accelerations as one trajectory of 3n rows [q; q̇; q̈] (rad, rad/s, rad/s²)."""
+    accelerations as one trajectory of 3n rows [q; q̇; q̈] (rad, rad/s, rad/s²);
+    `approach_time`: the move from the robot's pose it starts with (s;
+    `after_approach`)."""
 
     trajectory: PiecewisePolynomial
+    approach_time: float = 0.0
 
     @staticmethod
     def from_samples(t: np.ndarray, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> "JointReference":
@@ -122,6 +129,36 @@ class JointReference:
         return JointReference(
             PiecewisePolynomial.ZeroOrderHold([0.0, duration], np.column_stack([values, values]))
         )
+
+    def after_approach(
+        self, start: np.ndarray, speed: float = 0.5, tolerance: float = 1e-3
+    ) -> "JointReference":
+        """This reference (piecewise linear between its breaks, as `from_samples` and
+        `hold` make it) delayed by a smooth move to its first pose from `start` (rad,
+        every joint; the robot's measured pose): a quintic with zero velocity and
+        acceleration at both ends, no joint faster than `speed` rad/s, at least 0.2
+        s, its duration in `approach_time`; this reference itself if `start` is
+        within `tolerance` (rad) of its first pose on every joint (the position servo
+        takes that step)."""
+        q0 = self.at(0.0)[0]
+        distance = float(np.max(np.abs(q0 - start)))
+        if distance <= tolerance:
+            return self
+        duration = max(0.2, 1.875 * distance / speed)  # a quintic peaks at 15/8 the mean
+        t = np.arange(0.0, duration, 0.001)
+        s = t / duration
+        e = s**3 * (10 - 15 * s + 6 * s**2)
+        de = 30 * s**2 * (1 - s) ** 2 / duration
+        dde = 60 * s * (1 - s) * (1 - 2 * s) / duration**2
+        move = np.asarray(q0 - start, float)
+        later = self.trajectory.get_segment_times()
+        samples = np.array([self.trajectory.value(x).ravel() for x in later])
+        times = np.concatenate([t, duration + np.asarray(later)])
+        values = np.vstack([
+            np.hstack([start + np.outer(e, move), np.outer(de, move), np.outer(dde, move)]),
+            samples,
+        ])
+        return JointReference(first_order_hold(times, values.T), approach_time=duration)
 
     def at(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         x = self.trajectory.value(t).ravel()
@@ -264,7 +301,8 @@ def _add_station(builder: DiagramBuilder, robot: RobotDescription, station: Diag
 
 
 def build_position_control(
-    robot: RobotDescription, station: Diagram, reference: JointReference
+    robot: RobotDescription, station: Diagram, reference: JointReference,
+    command_period: float = 0.0,
 ) -> ControlDiagram:
     """The baseline: the robot's own position servo tracking the reference (q_cmd =
     q_ref).
@@ -274,15 +312,22 @@ def build_position_control(
         station: a station Diagram with `make_station`'s ports: a simulated one
             (`simulated_station`) or a robot over LCM (`hardware.make_lcm_station`).
         reference: the joint reference of every joint of `robot`.
+        command_period: the period at which the servo gets its goal (s; a bus
+            writes it once per period: q_ref held from each multiple of it); 0: the
+            reference as it is.
     """
     builder = DiagramBuilder()
     station = _add_station(builder, robot, station)
     blocks = _add_reference(builder, reference, len(robot.joints))
-    builder.Connect(blocks["q_ref"], station.GetInputPort("q_cmd"))
-    ports = _station_ports(station, robot) | {
-        "q_ref": blocks["q_ref"],
-        "q_cmd": blocks["q_ref"],
-    }
+    q_cmd = blocks["q_ref"]
+    if command_period > 0:
+        hold = builder.AddNamedSystem(
+            "goal_hold", ZeroOrderHold(command_period, len(robot.joints))
+        )
+        builder.Connect(q_cmd, hold.get_input_port())
+        q_cmd = hold.get_output_port()
+    builder.Connect(q_cmd, station.GetInputPort("q_cmd"))
+    ports = _station_ports(station, robot) | {"q_ref": blocks["q_ref"], "q_cmd": q_cmd}
     return _build(builder, station, ports, reference)
 
 
@@ -344,13 +389,16 @@ def _inverse_dynamics_config(
 
 
 def _torque_controller_config(
-    config: TorqueControlConfig, joints: list[str]
+    robot: RobotDescription, config: TorqueControlConfig, joints: list[str]
 ) -> TorqueControllerConfig:
-    """The Δq torque controller of `joints`."""
+    """The Δq torque controller of `joints`: Δq saturated at `delta_q_limit`, the
+    fallback latched at twice it."""
+    limit = delta_q_limit(robot, config)
     return TorqueControllerConfig(
         joints=joints,
         kp=list(config.controller.kp),
-        delta_q_limit=[config.controller.delta_q_limit],
+        delta_q_limit=[limit],
+        delta_q_fallback_limit=[2 * limit],
         start_time=config.start_time,
         latch_fallback=not config.supervised,
         disturbance_compensation=config.observer.disturbance_observer > 0,
@@ -433,7 +481,7 @@ def torque_chain_parts(
         id_plant=fixed,
         id_config=_inverse_dynamics_config(config, joints, ks, kd),
         controller_model=controller_model,
-        controller_config=_torque_controller_config(config, joints),
+        controller_config=_torque_controller_config(robot, config, joints),
         observer=_observer_parts(config, joints, controller_model, delay),
         predictor=predictor,
         supervisor=_supervisor_parts(robot, config),

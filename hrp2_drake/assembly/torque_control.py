@@ -12,6 +12,7 @@ tune`'s search space) names them by path ("controller.k6"): `hrp2_drake.config.f
 `set_field_at`, `replace_fields`, `field_type`.
 """
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -91,7 +92,11 @@ class ControllerSettings:
             is the estimate of the F/T sensor whose body it is (or the
             description's force_sensor).
         kf: force-feedback gain K_f (one value or 6).
-        delta_q_limit: saturation of Δq (rad).
+        delta_q_limit: saturation of Δq (rad); twice it latches the controller's
+            fallback. 0: the robot's own (`delta_q_limit`): where its description
+            documents its position loop, the error at which the loop's output
+            saturates at its gain (beyond it a larger Δq adds no torque: a Dynamixel
+            XL330 at kp 400, 0.87 rad); else 0.1 rad (HRP-2's leg: hundreds of N·m).
 
     Why the defaults differ from the paper's eq. 13 (measured in the motion
     experiment, its "K6 = 1 with the estimates" table): the servo turns Δq = K_τ τ* +
@@ -118,7 +123,7 @@ class ControllerSettings:
     friction_velocity: str = "reference"
     force_frame: str = ""
     kf: list[float] = field(default_factory=lambda: [0.0])
-    delta_q_limit: float = 0.1
+    delta_q_limit: float = 0.0
 
     def validate(self) -> None:
         """Raises ValueError naming the bad field: the signals' sources, and gains that
@@ -137,7 +142,7 @@ class ControllerSettings:
                 f"{where}.kp: {self.kp}: one value or one per joint, each finite and >= 0"
             )
         check_finite(self.k6, f"{where}.k6", 0.0, strict=False)
-        check_finite(self.delta_q_limit, f"{where}.delta_q_limit", 0.0)
+        check_finite(self.delta_q_limit, f"{where}.delta_q_limit", 0.0, strict=False)
         if isinstance(self.kf, (int, float)):  # a plain number from Python code
             self.kf = [float(self.kf)]
         if len(self.kf) not in (1, 6):
@@ -288,7 +293,7 @@ def check_control_period(config: TorqueControlConfig, period: float, where: str 
     the robot's sensor period (a simulated station's
     `StationConfig.sensors_config().period`), one supervisor update per controller
     tick. `where`: the path of `config` in the user's file (e.g.
-    "LcmControlConfig.torque_control")."""
+    "ControlConfig.torque_control")."""
     supervisor = config.supervisor.period
     if not math.isclose(supervisor, period, rel_tol=1e-9):
         raise ValueError(
@@ -297,3 +302,52 @@ def check_control_period(config: TorqueControlConfig, period: float, where: str 
             f"{period:g} s: the supervisor runs once per control tick; leave "
             f"supervisor.period out or set it to {period:g}"
         )
+
+
+#: Δq's saturation where a robot documents none (rad): `delta_q_limit`.
+DEFAULT_DELTA_Q_LIMIT = 0.1
+
+
+def delta_q_limit(robot: RobotDescription, config: TorqueControlConfig) -> float:
+    """The saturation of Δq (rad) of `config` on `robot`: its controller's
+    delta_q_limit, or for 0 the error at which the robot's documented position loop
+    saturates at its gain (`PositionLoopDescription.saturation_error`), else
+    `DEFAULT_DELTA_Q_LIMIT`."""
+    if config.controller.delta_q_limit > 0:
+        return config.controller.delta_q_limit
+    saturation = robot.position_loop.saturation_error(None)
+    return saturation if math.isfinite(saturation) else DEFAULT_DELTA_Q_LIMIT
+
+
+#: The rate every setting of this module is stated at: 1 kHz, HRP-2's (s).
+REFERENCE_PERIOD = 0.001
+
+
+def at_period(config: TorqueControlConfig, period: float) -> TorqueControlConfig:
+    """`config`, stated for the reference period (1 ms: `REFERENCE_PERIOD`), for a
+    robot sampled every `period` s (a robot on a servo bus runs at the bus's rate):
+    the same spans of time. The estimator's windows keep their length in seconds
+    (rounded to whole samples, at least 5; per-signal windows of the longest one's
+    parity); the supervisor runs once per period and
+    its stale_time scales with it; counts of periods (stale_samples,
+    encoder_stale_samples) and times in seconds stay. At 1 ms, `config` itself."""
+    if math.isclose(period, REFERENCE_PERIOD, rel_tol=1e-9):
+        return config
+    scale = period / REFERENCE_PERIOD
+
+    def samples(window: int) -> int:
+        return max(5, round(window / scale))
+
+    window = samples(config.estimator.window)
+    windows = {name: samples(w) for name, w in config.estimator.windows.items()}
+    longest = max([window, *windows.values()])
+    # Every window centred on the longest one's centre: each of its parity.
+    windows = {name: w + (w - longest) % 2 for name, w in windows.items()}
+    window += (window - longest) % 2
+    estimator = dataclasses.replace(config.estimator, window=window, windows=windows)
+    supervisor = dataclasses.replace(
+        config.supervisor,
+        period=config.supervisor.period * scale,
+        stale_time=config.supervisor.stale_time * scale,
+    )
+    return dataclasses.replace(config, estimator=estimator, supervisor=supervisor)

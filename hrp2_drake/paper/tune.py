@@ -532,6 +532,7 @@ def run_trial(task: TrialTask) -> dict:
         build_torque_control,
         simulated_station,
     )
+    from hrp2_drake.assembly.torque_control import delta_q_limit
     from hrp2_drake.paper.motion import evaluate, run_controller
 
     wall = time.perf_counter()
@@ -569,9 +570,8 @@ def run_trial(task: TrialTask) -> dict:
     }
     if torque is not None:
         active = signals["t"] >= torque.start_time
-        saturated = np.abs(signals["delta_q"][active]) >= torque.controller.delta_q_limit * (
-            1 - 1e-9
-        )
+        limit = delta_q_limit(task.station.description(), torque)
+        saturated = np.abs(signals["delta_q"][active]) >= limit * (1 - 1e-9)
         out["saturation"] = float(saturated.any(axis=1).mean()) if active.any() else 0.0
         out["saturation_per_joint"] = saturated.mean(axis=0).tolist()
         out["torque_estimation_rms"] = run.torque_estimation_rms
