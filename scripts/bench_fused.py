@@ -47,12 +47,12 @@ def bench_fused_tick(duration: float = 3.0) -> list[dict]:
     from hrp2_drake.control.fused import FusedController
     from hrp2_drake.assembly.builders import torque_chain_parts
     from hrp2_drake.tools.ground_truth import true_motor_model
-    from hrp2_drake.tools.control import LcmControlConfig, control_reference
+    from hrp2_drake.tools.control import ControlConfig, control_reference
     from hrp2_drake.hardware.control_loop import run_in_process
     from hrp2_drake.robot.station import StationConfig
 
     station = StationConfig(scenario="hanging")
-    config = LcmControlConfig(robot=station.robot, duration=duration,
+    config = ControlConfig(robot=station.robot, duration=duration,
                               torque_control=tuned_config(station))
     robot = station.description()
     reference = control_reference(config)

@@ -29,7 +29,7 @@ P99_GOAL_US = 250.0
 
 
 def _control_config(robot_name: str, path: Path) -> None:
-    """The controller's LcmControlConfig YAML: the tuned controller on HRP-2, K6 = 0.1
+    """The controller's ControlConfig YAML: the tuned controller on HRP-2, K6 = 0.1
     elsewhere; the supervisor's staleness limits widened for a transport's jitter;
     CPU 0 and SCHED_FIFO asked for."""
     import yaml
@@ -56,13 +56,13 @@ def in_process_errors(robot_name: str, duration: float, config_path: Path,
 
     from hrp2_drake.control.fused import FusedController
     from hrp2_drake.assembly.builders import torque_chain_parts
-    from hrp2_drake.tools.control import LcmControlConfig, control_reference
+    from hrp2_drake.tools.control import ControlConfig, control_reference
     from hrp2_drake.hardware.control_loop import run_in_process
     from hrp2_drake.identification.motor_model import MotorModel
     from hrp2_drake.robot.station import StationConfig
 
-    config = yaml_load_typed(schema=LcmControlConfig, filename=str(config_path),
-                             defaults=LcmControlConfig())
+    config = yaml_load_typed(schema=ControlConfig, filename=str(config_path),
+                             defaults=ControlConfig())
     # The robot's scenario as `sim-robot` runs it (hanging; a fixed robot: fixed_base).
     station = StationConfig(robot=robot_name)
     if station.description().base == "fixed":

@@ -24,13 +24,14 @@ from hrp2_drake.assembly.torque_control import (
     ObserverSettings,
 )
 from hrp2_drake.tools.ground_truth import true_motor_model
-from hrp2_drake.tools.control import LcmControlConfig, control_reference
+from hrp2_drake.tools.control import ControlConfig, control_reference
 from hrp2_drake.hardware.control_loop import (
     ControlLoop,
     LoopConfig,
     RobotBridge,
     run_in_process,
 )
+from hrp2_drake.hardware.lcm_link import LcmLink
 from hrp2_drake.hardware.lcm_station import LcmChannels
 from hrp2_drake.hardware.transport import DrakeLcmTransport
 from hrp2_drake.robot.station import StationConfig
@@ -81,7 +82,7 @@ CASES = {
 
 def _run(case: str, fused: bool) -> dict[str, np.ndarray]:
     station, make, duration, force = CASES[case]
-    config = LcmControlConfig(robot=station.robot, duration=duration)
+    config = ControlConfig(robot=station.robot, duration=duration)
     reference = control_reference(config)
     extra = {"force_reference": force} if force is not None else {}
     robot, simulated, period = simulated_station(station)
@@ -115,7 +116,7 @@ def test_fused_controller_equals_the_separate_systems(case):
 @pytest.mark.slow
 @pytest.mark.parametrize("station_config", [IIWA, HRP2], ids=["iiwa", "hrp2"])
 def test_message_driven_loop_over_memq_equals_the_fused_controller(station_config):
-    config = LcmControlConfig(robot=station_config.robot, duration=1.0)
+    config = ControlConfig(robot=station_config.robot, duration=1.0)
     robot = station_config.description()
     reference = control_reference(config)
     motor_model = true_motor_model(robot)
@@ -129,8 +130,8 @@ def test_message_driven_loop_over_memq_equals_the_fused_controller(station_confi
     # The robot's bridge and the controller's loop on one memq:// LCM, in lock step.
     transport = DrakeLcmTransport("memq://")
     bridge = RobotBridge(station_config, transport)
-    loop = ControlLoop(FusedController(parts()), robot, transport, LcmChannels(),
-                       reference, config=LoopConfig(duration=1.0))
+    controller = FusedController(parts())
+    link = LcmLink(robot, transport, LcmChannels(), controller, wait_timeout=1.0)
 
     def pump():
         while transport.handle(0.0):
@@ -138,9 +139,11 @@ def test_message_driven_loop_over_memq_equals_the_fused_controller(station_confi
 
     bridge.step()  # the robot's first messages, which the controller waits for
     pump()
-    loop.wait_for_robot()
+    link.connect(controller)
+    loop = ControlLoop(controller, link, reference, config=LoopConfig(duration=1.0))
     for _ in range(ticks):
         bridge.step()
+        assert loop.step(0.0)
         pump()
     assert loop.ticks == ticks and loop.refused == 0
     signals = loop.signals()

@@ -1,25 +1,32 @@
-"""Message-driven real-time loops over LCM: the controller's and the robot's.
+"""The controller's real-time loop, one for every robot link, and the simulated robot
+over LCM.
 
-`ControlLoop` (the controller, `hrp2-drake control`): the robot's encoder message is
-the clock. Each new `<P>_Q_MEASURED` message is decoded into preallocated buffers, one
-tick of the `FusedController` runs, and `<P>_Q_CMD` is published at once. The IMU and
-F/T messages only update the latest values (and their stamps) when they arrive; the
-robot sends them before the encoders of the same period. No Simulator paces it, no
-LCM system takes extra steps, and Python's garbage collector does not run inside the
-loop (`gc.freeze()` after start-up, then `gc.disable()` until the loop ends).
+`ControlLoop` (the controller, `hrp2-drake control`): each period, the link
+(`hardware.link.RobotLink`) writes the period's samples into the fused controller's
+buffers, one tick of the `FusedController` runs, and the link sends the command at
+once. Over LCM (`hardware.lcm_link.LcmLink`) the robot's encoder message is the
+clock; on a Dynamixel bus (`hardware.dynamixel.DynamixelLink`) the loop's own clock,
+one sync read and one sync write per period. No Simulator paces it, and Python's
+garbage collector does not run inside the loop (`gc.freeze()` after start-up, then
+`gc.disable()` until the loop ends).
 
 It fails safe. Whatever ends a run (its duration, a malformed or stale message, a
-silent robot, an exception, SIGTERM/SIGINT), the command ramps from the last one sent
-to the measured pose over `ramp_time` (position control holding the robot), the report
-is written with the fault and its time, and the process ends with one line. Where the
-transport itself is gone nothing can be sent: the loop ends cleanly and the robot's
-own watchdog holds the pose.
+silent robot or servo, a servo's hardware error, an exception, SIGTERM/SIGINT), the
+command ramps from the last one sent to the measured pose over `ramp_time`
+(position control holding the robot), the report is written with the fault and its
+time, and the process ends with one line. Where the link itself is gone nothing can
+be sent: the loop ends cleanly and the robot's own watchdog (or its servos' position
+loop) holds the pose.
 
 `RobotBridge` (the robot, `hrp2-drake sim-robot`): the reference for a real robot's
-bridge. Every period it publishes the sensors (F/T and IMU first, the encoders last,
-stamped with the robot's clock), applies the latest command, and guards itself: after
-`watchdog_periods` without a new command it holds the measured pose until commands
-come again.
+LCM bridge. Every period it publishes the sensors (F/T and IMU first, the encoders
+last, stamped with the robot's clock), applies the latest command, and guards itself:
+after `watchdog_periods` without a new command it holds the measured pose until
+commands come again.
+
+`run_in_process` and `run_on_bus_in_process`: the fused controller on the simulated
+robot in one process with the LCM loop's and the bus loop's timing, what the loops
+are tested against.
 """
 
 import gc
@@ -38,28 +45,10 @@ from hrp2_drake.control.fused import (
 )
 from hrp2_drake.control.safety import describe_faults
 from hrp2_drake.control.torque_controller import FALLBACK_REASONS
-from hrp2_drake.description import RobotDescription
-from hrp2_drake.hardware.lcm_station import IMU_COORDS, LcmChannels
-from hrp2_drake.hardware.messages import SignalCodec, WrenchCodec
+from hrp2_drake.hardware.lcm_station import LcmChannels
+from hrp2_drake.hardware.link import LinkClosed, LoopFault, RobotLink
+from hrp2_drake.hardware.messages import SignalCodec
 from hrp2_drake.hardware.transport import Transport, TransportClosed
-
-
-class LoopFault(RuntimeError):
-    """What ended a loop early (the message names it)."""
-
-
-@dataclass
-class _SensorChannel:
-    """An IMU or F/T channel of the controller: its codec, the rows of the fused
-    controller's sensor values and stamps it writes, the stamp's unit (s), and the
-    latest stamp (-1: none yet)."""
-
-    codec: object
-    values: np.ndarray
-    stamp_rows: np.ndarray
-    unit: float
-    last_stamp: int = -1
-
 
 @dataclass
 class RealTimeConfig:
@@ -151,123 +140,75 @@ class LoopConfig:
         self.settings.validate(self.period, "LoopConfig.settings")
 
 
+
 class ControlLoop:
-    """The controller's message-driven loop (module docstring).
+    """The controller's loop over any robot link (module docstring).
 
     Args:
-        controller: the fused controller (built for `robot`).
-        robot: the robot description (joint names, IMU, F/T sensors).
-        transport: the LCM transport (`transport.open_transport`).
-        channels: the channel names.
+        controller: the fused controller (built for the link's robot).
+        link: the robot (`RobotLink`), connected (`RobotLink.connect`).
         reference: a `JointReference` (q, v, vdot of every joint over time).
         force_reference: f_ref(t) (6) of a force task, or None.
         config: the loop's settings.
     """
 
-    def __init__(self, controller: FusedController, robot: RobotDescription,
-                 transport: Transport, channels: LcmChannels, reference,
+    def __init__(self, controller: FusedController, link: RobotLink, reference,
                  force_reference=None, config: LoopConfig | None = None):
         self.controller = controller
-        self.robot = robot
-        self.transport = transport
-        self.channels = channels = channels.resolved(robot)
+        self.link = link
         self.reference = reference
         self.force_reference = force_reference
         self.config = config = config or LoopConfig()
         config.validate()
-        N = len(robot.joints)
-        self._N = N
-        self._q_codec = SignalCodec(robot.joints, channels.q_measured)
-        self._cmd_codec = SignalCodec(robot.joints, channels.q_cmd)
-        # The other sensor channels, each writing into the controller's buffers.
-        values = controller.sensor_values
-        stamps = controller.sensor_time
-        self._others: list[_SensorChannel] = []
-        row, stamp_row = 0, 1
-        if robot.has_imu():
-            codec = SignalCodec(IMU_COORDS, channels.imu)
-            # The IMU's one message stamps its two signals (accelerometer, gyro).
-            self._others.append(_SensorChannel(codec, values[0:6], stamps[1:3], 1e-6))
-            row, stamp_row = 6, 3
-        for name in robot.sensor_names():
-            codec = WrenchCodec(channels.wrench(name))
-            self._others.append(_SensorChannel(
-                codec, values[row : row + 6], stamps[stamp_row : stamp_row + 1], 1e-3
-            ))
-            row, stamp_row = row + 6, stamp_row + 1
+        N = len(controller.q_measured)
         self._q_cmd = np.zeros(N)
-        self._last_stamp = -1
-        self._first_stamp = -1
         self.t = 0.0
         self.ticks = 0
-        self.refused = 0
         self.fault: LoopFault | None = None
         self.fault_time = math.nan
         capacity = int(config.duration / config.period * 1.2) + 1000
         self.latency_ns = np.zeros(capacity, dtype=np.int64)
+        self.cycle_ns = np.zeros(capacity, dtype=np.int64)
         self.receive_gap_ns = np.zeros(capacity, dtype=np.int64)
         self.log_t = np.zeros(capacity)
         self.log = {name: np.zeros((capacity, N)) for name in ("q_ref", "q_measured", "q_cmd")}
         self.log_mode = np.zeros(capacity)
         self._last_receive = 0
         self._stop = False
-        self._armed = False  # ticks only once every channel has spoken
         self.ramped = False
-        self._seen: set[str] = set()
-        transport.subscribe(channels.q_measured, self._on_q_measured)
-        for other in self._others:
-            transport.subscribe(
-                other.codec.channel, lambda data, c=other: self._on_sensor(c, data)
-            )
 
-    # ---------------------------------------------------------------- messages
+    @property
+    def refused(self) -> int:
+        """Samples the link refused (an old or repeated timestamp)."""
+        return self.link.counters().get("refused_samples", 0)
 
-    def _on_sensor(self, channel: "_SensorChannel", data: bytes) -> None:
-        self._seen.add(channel.codec.channel)
-        stamp = channel.codec.timestamp(data)
-        if stamp <= channel.last_stamp:
-            self.refused += 1
-            return
-        try:
-            channel.values[:] = channel.codec.values(data)
-        except ValueError as error:
-            raise LoopFault(str(error)) from None
-        channel.last_stamp = stamp
-        if self._first_stamp >= 0:
-            channel.stamp_rows[:] = stamp * channel.unit - self._first_stamp * 1e-6
+    # ---------------------------------------------------------------- periods
 
-    def _on_q_measured(self, data: bytes) -> None:
-        received = time.perf_counter_ns()
-        if not self._armed:
-            self._seen.add(self.channels.q_measured)
-            return
-        stamp = SignalCodec.timestamp(data)
-        if stamp <= self._last_stamp:
-            self.refused += 1  # an old or repeated sample: not a new period
-            return
-        controller = self.controller
-        try:
-            controller.q_measured[:] = self._q_codec.values(data)
-        except ValueError as error:
-            raise LoopFault(str(error)) from None
-        first = self._first_stamp < 0
-        if first:
-            self._first_stamp = stamp
-            for other in self._others:
-                other.stamp_rows[:] = other.last_stamp * other.unit - stamp * 1e-6
-        self._last_stamp = stamp
-        t = self.t = (stamp - self._first_stamp) * 1e-6
-        controller.sensor_time[0] = t
+    def step(self, timeout: float = 0.0) -> bool:
+        """One period if the link has one within `timeout` s (receive, tick, send);
+        whether it had. What `run` repeats; a lock-step test calls it alone."""
+        t = self.link.receive(self.controller, timeout)
+        if t is None:
+            return False
+        self._tick(t)
+        return True
+
+    def _tick(self, t: float) -> None:
+        controller, link = self.controller, self.link
+        first = self.ticks == 0
+        self.t = t
         self._set_reference(t)
         if first:
             controller.initialize(t)
         controller.tick(t)
         q_cmd = controller.command(controller.q_ref, self._q_cmd)
-        self.transport.publish(self.channels.q_cmd, self._cmd_codec.encode(q_cmd, t))
+        link.send(q_cmd, t)
         done = time.perf_counter_ns()
+        received = link.received_ns
         k = self.ticks
         if k < len(self.latency_ns):
             self.latency_ns[k] = done - received
+            self.cycle_ns[k] = done - link.started_ns
             self.receive_gap_ns[k] = received - self._last_receive if k else 0
             self.log_t[k] = t
             self.log["q_ref"][k] = controller.q_ref
@@ -280,35 +221,12 @@ class ControlLoop:
             self._stop = True
 
     def _set_reference(self, t: float) -> None:
-        controller, N = self.controller, self._N
-        x = self.reference.trajectory.value(t)[:, 0]
-        controller.q_ref[:] = x[:N]
-        controller.v_ref[:] = x[N : 2 * N]
-        controller.vdot_ref[:] = x[2 * N :]
+        controller = self.controller
+        controller.q_ref[:], controller.v_ref[:], controller.vdot_ref[:] = self.reference.at(t)
         if self.force_reference is not None:
             controller.f_ref[:] = self.force_reference.value(t)[:, 0]
 
     # ---------------------------------------------------------------- running
-
-    def wait_for_robot(self) -> None:
-        """Waits up to wait_timeout for a message on every sensor channel (without
-        ticking); a TimeoutError naming the silent ones otherwise."""
-        channels = [self.channels.q_measured] + [c.codec.channel for c in self._others]
-        deadline = time.monotonic() + self.config.settings.wait_timeout
-        try:
-            while len(self._seen) < len(channels) and time.monotonic() < deadline:
-                self.transport.handle(max(min(0.05, deadline - time.monotonic()), 0.0))
-        except LoopFault as error:
-            raise ValueError(f"the robot's first messages: {error}") from None
-        silent = [channel for channel in channels if channel not in self._seen]
-        if silent:
-            raise TimeoutError(
-                f"no message from the robot on {', '.join(silent)} within "
-                f"{self.config.settings.wait_timeout:g} s on {self.transport.url}: start the "
-                "robot's bridge (or `hrp2-drake sim-robot`) first, with the same URL "
-                "and robot"
-            )
-        self._armed = True
 
     def run(self) -> dict:
         """Runs until the duration (robot time), a fault, or a signal; ramps out; the
@@ -322,21 +240,12 @@ class ControlLoop:
             gc.collect()
             gc.freeze()
             gc.disable()
-        silence_ns = int(config.silence_timeout * 1e9)
         try:
-            last_tick, ticks = time.perf_counter_ns(), self.ticks
             while not self._stop:
-                self.transport.handle(config.silence_timeout / 4)
-                now = time.perf_counter_ns()
-                if self.ticks != ticks:
-                    last_tick, ticks = now, self.ticks
-                elif now - last_tick > silence_ns:
-                    raise LoopFault(
-                        f"the robot went silent: no new {self.channels.q_measured} "
-                        f"sample for {config.silence_timeout * 1e3:.0f} ms"
-                    )
-        except TransportClosed as error:
-            self._set_fault(LoopFault(f"the transport is gone: {error}"))
+                if not self.step(config.silence_timeout):
+                    raise LoopFault(self.link.silence(config.silence_timeout))
+        except LinkClosed as error:
+            self._set_fault(LoopFault(self.link.gone(error)))
         except LoopFault as error:
             self._set_fault(error)
             self._ramp_out()
@@ -363,34 +272,41 @@ class ControlLoop:
 
     def _ramp_out(self) -> None:
         """From the last command to the measured pose over ramp_time, one command per
-        period on the wall clock (the robot may have gone silent)."""
+        period: each after the period's samples where they still come (a lock-step
+        robot's clock is its traffic), on the wall clock where they do not (the robot
+        may have gone silent)."""
+        period = self.config.period
         q_from = self._q_cmd.copy()
         q_hold = self.controller.q_measured.copy()
         if not np.all(np.isfinite(q_hold)):
             q_hold = q_from
-        steps = max(1, int(round(self.config.settings.ramp_time / self.config.period)))
+        steps = max(1, int(round(self.config.settings.ramp_time / period)))
         start = time.perf_counter()
         try:
             for k in range(1, steps + 1):
+                try:
+                    self.link.receive(self.controller, period)
+                except LoopFault:
+                    pass  # a faulty sample does not stop the ramp
                 s = k / steps
-                command = (1.0 - s) * q_from + s * q_hold
-                self.transport.publish(
-                    self.channels.q_cmd, self._cmd_codec.encode(command, self.t + k * self.config.period)
-                )
-                delay = start + k * self.config.period - time.perf_counter()
-                if delay > 0:
+                self.link.send((1.0 - s) * q_from + s * q_hold, self.t + k * period)
+                delay = start + k * period - time.perf_counter()
+                if delay > 0 and not self.link.lockstep:
                     time.sleep(delay)
-        except TransportClosed as error:
-            self._set_fault(LoopFault(f"the transport is gone during the ramp: {error}"))
+        except LinkClosed as error:
+            self._set_fault(LoopFault(f"{self.link.gone(error)} (during the ramp)"))
             return
         self.ramped = True
 
     # ---------------------------------------------------------------- report
 
     def summary(self, granted: dict | None = None) -> dict:
-        """Ticks, latency (receive to publish), overruns, torque share, events."""
+        """Ticks, latency (samples in to command out), the period's cycle (the
+        exchange's start to the command out), overruns, torque share, events, what
+        the link counted."""
         k = min(self.ticks, len(self.latency_ns))
         latency = self.latency_ns[:k] * 1e-3
+        cycle = self.cycle_ns[:k] * 1e-3
         period_us = self.config.period * 1e6
         controller = self.controller
         # Start-up: position control until start_time, then the supervisor's ramp.
@@ -399,60 +315,80 @@ class ControlLoop:
             start += controller.parts.supervisor[1].ramp_time
         after = self.log_t[:k] >= start
         share = float(np.mean(self.log_mode[:k][after] >= 1.0)) if np.any(after) else 0.0
+        overruns = np.flatnonzero(cycle > period_us)
+        percentile = (lambda x, p: float(np.percentile(x, p))) if k else (lambda x, p: math.nan)
+        gave_up = False
+        if controller.supervisor is not None:
+            cfg = controller.parts.supervisor[1]
+            gave_up = controller.event_counts[EVENT_SUPERVISOR_FAULT] > cfg.max_reentries
+        return {
+            "ticks": int(self.ticks),
+            "refused_samples": int(self.refused),
+            "latency_us": {
+                "p50": percentile(latency, 50), "p99": percentile(latency, 99),
+                "p99.9": percentile(latency, 99.9),
+                "max": float(latency.max()) if k else math.nan,
+            },
+            "cycle_us": {"p50": percentile(cycle, 50), "p99": percentile(cycle, 99),
+                         "max": float(cycle.max()) if k else math.nan},
+            "overruns": int(len(overruns)),
+            "overrun_times": [float(self.log_t[i]) for i in overruns[:50]],
+            "longest_overrun_run": _longest_run(overruns),
+            "overruns_followed_by_a_fallback": self._followed_by_a_fallback(overruns),
+            "torque_share": share,
+            "events": self._events(),
+            "event_counts": {
+                "controller_fallback": controller.event_counts[EVENT_CONTROLLER_FALLBACK],
+                "supervisor_fault": controller.event_counts[EVENT_SUPERVISOR_FAULT],
+            },
+            "gave_up": bool(gave_up),
+            "fault": str(self.fault) if self.fault else "",
+            "fault_time": None if math.isnan(self.fault_time) else float(self.fault_time),
+            "ramped": bool(self.ramped),
+            "ending": self.link.ending(self.ramped),
+            "link": {"name": self.link.name, **self.link.counters()},
+            "real_time": granted or {},
+        }
+
+    def _events(self) -> list[dict]:
         events = []
-        for t, kind, code in controller.recorded_events():
+        for t, kind, code in self.controller.recorded_events():
             if kind == EVENT_CONTROLLER_FALLBACK:
                 events.append({"t": t, "what": "controller fallback",
                                "reason": FALLBACK_REASONS.get(code, str(code))})
             elif kind == EVENT_SUPERVISOR_FAULT:
                 events.append({"t": t, "what": "supervisor fault",
                                "reason": describe_faults(code)})
-        overruns = np.flatnonzero(latency > period_us)
-        # Each overrun alone (a stall), or in runs (a tick that cannot keep up)?
-        longest_run = 0
-        if len(overruns):
-            breaks = np.flatnonzero(np.diff(overruns) > 1)
-            starts = np.concatenate([[0], breaks + 1])
-            ends = np.concatenate([breaks, [len(overruns) - 1]])
-            longest_run = int((ends - starts).max() + 1)
-        fault_times = np.array([t for t, kind, _ in controller.recorded_events()])
-        followed = sum(
+        return events
+
+    def _followed_by_a_fallback(self, overruns: np.ndarray) -> int:
+        """Overruns followed by a fallback or a supervisor fault within 50 ms."""
+        fault_times = np.array([t for t, _, _ in self.controller.recorded_events()])
+        if not len(fault_times):
+            return 0
+        return sum(
             bool(np.any((fault_times >= self.log_t[i]) & (fault_times < self.log_t[i] + 0.05)))
             for i in overruns
-        ) if len(fault_times) else 0
-        gave_up = False
-        if controller.supervisor is not None:
-            cfg = controller.parts.supervisor[1]
-            gave_up = controller.event_counts[EVENT_SUPERVISOR_FAULT] > cfg.max_reentries
-        percentile = (lambda p: float(np.percentile(latency, p))) if k else (lambda p: math.nan)
-        return {
-            "ticks": int(self.ticks),
-            "refused_samples": int(self.refused),
-            "latency_us": {
-                "p50": percentile(50), "p99": percentile(99), "p99.9": percentile(99.9),
-                "max": float(latency.max()) if k else math.nan,
-            },
-            "overruns": int(len(overruns)),
-            "overrun_times": [float(self.log_t[i]) for i in overruns[:50]],
-            "longest_overrun_run": longest_run,
-            "overruns_followed_by_a_fallback": int(followed),
-            "torque_share": share,
-            "events": events,
-            "event_counts": {"controller_fallback": controller.event_counts[EVENT_CONTROLLER_FALLBACK],
-                             "supervisor_fault": controller.event_counts[EVENT_SUPERVISOR_FAULT]},
-            "gave_up": bool(gave_up),
-            "fault": str(self.fault) if self.fault else "",
-            "fault_time": None if math.isnan(self.fault_time) else float(self.fault_time),
-            "ramped": bool(self.ramped),
-            "real_time": granted or {},
-        }
+        )
 
     def signals(self) -> dict[str, np.ndarray]:
         k = min(self.ticks, len(self.latency_ns))
         out = {"t": self.log_t[:k].copy(), "latency_us": self.latency_ns[:k] * 1e-3,
+               "cycle_us": self.cycle_ns[:k] * 1e-3,
                "receive_gap_us": self.receive_gap_ns[:k] * 1e-3,
                "torque_active": self.log_mode[:k].copy()}
         return out | {name: log[:k].copy() for name, log in self.log.items()}
+
+
+def _longest_run(indices: np.ndarray) -> int:
+    """The longest run of consecutive integers in the sorted `indices` (0 if none):
+    each overrun alone (a stall), or in runs (a tick that cannot keep up)?"""
+    if not len(indices):
+        return 0
+    breaks = np.flatnonzero(np.diff(indices) > 1)
+    starts = np.concatenate([[0], breaks + 1])
+    ends = np.concatenate([breaks, [len(indices) - 1]])
+    return int((ends - starts).max() + 1)
 
 
 # ------------------------------------------------------------------ the robot's side
@@ -523,9 +459,6 @@ class RobotBridge:
         self.k = 0
         self._last_command_k = -1
         self._last_command_stamp = -1
-        self._last_command_wall = 0.0
-        self._watch_from = 0.0
-        self._watchdog_time = config.watchdog_periods * self.period / config.rate
         self.watchdog_trips = 0
         self.late_periods = 0  # periods that started over a period behind real time
         self.holding = False
@@ -550,20 +483,17 @@ class RobotBridge:
             return
         self._last_command_stamp = stamp
         self._last_command_k = self.k
-        self._last_command_wall = time.perf_counter()
         self.holding = False
         self._command[:] = values
         self._q_cmd_port.FixValue(self._context, self._command)
 
-    def _watchdog(self, now: float, late: bool) -> None:
+    def _watchdog(self) -> None:
         """Holds the measured pose once no new command has come for watchdog_periods
-        periods of wall time (at the bridge's rate). While the robot itself is behind
-        its clock (a stall of its own, catching up), that time does not run."""
-        if late:
-            self._watch_from = now
+        of the robot's own periods (once commands have come): a robot that runs
+        late counts its periods all the same."""
         if self._last_command_k < 0 or self.holding:
             return
-        if now - max(self._last_command_wall, self._watch_from) > self._watchdog_time:
+        if self.k - self._last_command_k > self.config.watchdog_periods:
             self.hold()
             self.watchdog_trips += 1
 
@@ -638,7 +568,7 @@ class RobotBridge:
                         self.late_periods += late
                         break
                     self.transport.handle(remaining)
-                self._watchdog(time.perf_counter(), late)
+                self._watchdog()
         except TransportClosed as error:
             self.fault = f"the transport is gone at t = {self._context.get_time():.3f} s ({error})"
             self.hold()
@@ -695,7 +625,6 @@ def run_in_process(station_config, controller: FusedController, reference, ticks
     q_cmd_port = station.GetInputPort("q_cmd")
     q_cmd_port.FixValue(context, initial_joint_positions(station_config))
     command = np.zeros(len(robot.joints))
-    N = len(robot.joints)
     tick = on_tick or (lambda step: step())
     simulator.Initialize()
     out = []
@@ -705,9 +634,7 @@ def run_in_process(station_config, controller: FusedController, reference, ticks
             controller.sensor_buffer[a:b] = port.Eval(context)
         t = (k - 1) * period
         controller.sensor_time[:] = stamp_port.Eval(context) - period
-        x = reference.trajectory.value(t)[:, 0]
-        controller.q_ref[:], controller.v_ref[:] = x[:N], x[N : 2 * N]
-        controller.vdot_ref[:] = x[2 * N :]
+        controller.q_ref[:], controller.v_ref[:], controller.vdot_ref[:] = reference.at(t)
         if k == 1:
             controller.initialize(t)
 
@@ -717,5 +644,51 @@ def run_in_process(station_config, controller: FusedController, reference, ticks
 
         tick(step)
         q_cmd_port.FixValue(context, command)
+        out.append((command.copy(), controller.estimator.tau.copy()))
+    return out
+
+
+def run_on_bus_in_process(station_config, controller: FusedController, reference,
+                          ticks: int, on_tick=None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The fused controller on the simulated robot's servos (`SimulatedServos`) in one
+    process, without a wire, with the bus loop's timing: what `DynamixelLink` and a
+    lock-step emulator (`hardware.sim_servo`) do, call for call.
+
+    Start-up at robot time 0, as `DynamixelBus.start`: the P gain set
+    (`position_loop.gain`), the present pose read (through the goal register's
+    pulses) and made the goal, torque on. Then period k: the servos sample at k·T,
+    one tick at t = k·T, and the command, in pulses, reaches them at k·T + d (d: the
+    bus's `read_to_write`). `on_tick(step)` wraps each tick (a timer). Returns
+    (q_cmd, τ̂) per tick.
+    """
+    from hrp2_drake.robot.bus_servos import SimulatedServos
+
+    servos = SimulatedServos(station_config)
+    robot = servos.robot
+    bus = robot.bus
+    period = station_config.sensors_config().period
+    delay = bus.timing().read_to_write
+    servos.set_gain(robot.position_loop.gain)
+    servos.set_goal(bus.quantized(servos.present().position))
+    servos.set_enabled(np.ones(len(robot.joints)))
+    command = np.zeros(len(robot.joints))
+    tick = on_tick or (lambda step: step())
+    out = []
+    for k in range(ticks):
+        t = k * period
+        servos.advance_to(t)
+        controller.q_measured[:] = bus.quantized(servos.present().position)
+        controller.sensor_time[0] = t
+        controller.q_ref[:], controller.v_ref[:], controller.vdot_ref[:] = reference.at(t)
+        if k == 0:
+            controller.initialize(t)
+
+        def step(t=t):
+            controller.tick(t)
+            controller.command(controller.q_ref, command)
+
+        tick(step)
+        servos.advance_to(t + delay)
+        servos.set_goal(bus.quantized(command))
         out.append((command.copy(), controller.estimator.tau.copy()))
     return out

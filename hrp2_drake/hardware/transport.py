@@ -26,6 +26,7 @@ import time
 from typing import Callable, Protocol
 from urllib.parse import urlparse
 
+from hrp2_drake.hardware.link import LinkClosed
 from hrp2_drake.hardware.tcpq_hub import (
     MAGIC_CLIENT,
     MAGIC_SERVER,
@@ -38,7 +39,7 @@ Handler = Callable[[bytes], None]
 SCHEMES = ("tcpq", "udpm", "memq")
 
 
-class TransportClosed(ConnectionError):
+class TransportClosed(LinkClosed):
     """The transport is gone (the hub closed the connection, the socket failed)."""
 
 

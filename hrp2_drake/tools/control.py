@@ -1,19 +1,22 @@
-"""`hrp2-drake control --lcm URL` and `hrp2-drake sim-robot --lcm URL`: the torque
-controller against a robot over LCM, in real time, and the simulated robot that
-stands in for the real one behind the same channels (hrp2_drake/hardware).
+"""`hrp2-drake control --lcm URL | --port DEV` and `hrp2-drake sim-robot --lcm URL`:
+the torque controller against a robot in real time, over LCM or on its Dynamixel bus,
+and the simulated robot that stands in for a real one behind the LCM channels
+(hrp2_drake/hardware).
 
 `control` runs the fused controller (`control/fused.py`, the same steps as the
-simulation's systems) in the message-driven loop (`hardware/control_loop.py`): the
-robot's encoder message is the clock; decode, one tick, publish. It times every tick
-from receive to publish and writes control.md (with a latency histogram),
+simulation's systems) in the control loop (`hardware/control_loop.py`), one loop for
+both links: over LCM the robot's encoder message is the clock (decode, one tick,
+publish); on a bus, the loop's own clock at the bus's period (one sync read, one
+tick, one sync write). It starts from the robot's measured pose with a smooth move to
+the home pose, times every tick and writes control.md (with a latency histogram),
 control.json and control.npz. `sim-robot` is `RobotBridge`: the simulated station
-behind the channels, in real time, with a command watchdog; on exit it writes its
-ground truth for evaluation. Start-up order: the robot (or `sim-robot`) first, then
-`control`, which waits for the robot's first messages.
+behind the LCM channels, in real time, with a command watchdog; on exit it writes its
+ground truth for evaluation. Start-up order: the robot (or `sim-robot`, or
+`sim-servo`) first, then `control`, which waits for the robot.
 """
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +30,7 @@ from hrp2_drake.assembly.builders import (
     check_control_period,
     torque_chain_parts,
 )
-from hrp2_drake.assembly.torque_control import EstimatorSettings
+from hrp2_drake.assembly.torque_control import EstimatorSettings, at_period
 from hrp2_drake.description import RobotDescription, load_robot_description
 from hrp2_drake.tools.track import TrackConfig, check_sinusoid, sinusoid_reference
 from hrp2_drake.hardware.control_loop import (
@@ -38,6 +41,7 @@ from hrp2_drake.hardware.control_loop import (
     RobotBridge,
 )
 from hrp2_drake.hardware.lcm_station import LcmChannels
+from hrp2_drake.hardware.link import RobotLink
 from hrp2_drake.hardware.transport import open_transport
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure
@@ -52,16 +56,17 @@ from hrp2_drake.robot.station import StationConfig
     real_time="loop.real_time",
 )
 @dataclass
-class LcmControlConfig:
+class ControlConfig:
     """Configuration of `hrp2-drake control`.
 
     Args:
         robot: the robot's description: a robot.yaml path, or the name of a robot in
             models/ ("hrp2", "iiwa14"); empty: HRP-2. It gives the control period
-            (its sensors.period) and the home pose the reference starts from (its
-            initial_positions, or its trajectory's first sample).
+            (its sensors.period: on a bus, the bus's) and the home pose the reference
+            goes to (its initial_positions, or its trajectory's first sample).
         torque_control: the controller (its supervisor included; staleness limits
-            widened for a transport's jitter).
+            widened for a transport's jitter), stated at 1 kHz: on a robot with
+            another period, the same spans of time (`at_period`).
         duration: how long to run (s of robot time).
         motion: "sinusoid" (every controlled joint around the home pose, `track`'s
             reference) or "hold" (the home pose).
@@ -69,7 +74,9 @@ class LcmControlConfig:
         loop: the message-driven loop's own settings: how long to wait for the
             robot's first messages, when the robot is silent (the loop then ramps to
             position control and stops), the ramp that ends every run, real time.
-        channels: the LCM channels.
+        channels: the LCM channels (over LCM).
+        approach_speed: the move from the measured pose to the home pose that starts
+            every run, in position control: its fastest joint (rad/s).
     """
 
     robot: str = ""
@@ -86,6 +93,7 @@ class LcmControlConfig:
     settle: float = 0.5
     loop: LoopSettings = field(default_factory=LoopSettings)
     channels: LcmChannels = field(default_factory=LcmChannels)
+    approach_speed: float = 0.5
 
     def description(self) -> RobotDescription:
         """The robot's description (checked against its model; cached)."""
@@ -99,20 +107,27 @@ class LcmControlConfig:
         """The home pose (rad, the description's joint order)."""
         return self.description().home_positions()
 
+    def torque_control_at_period(self) -> TorqueControlConfig:
+        """`torque_control` at the robot's period (`at_period`)."""
+        return at_period(self.torque_control, self.period())
+
     def validate(self) -> None:
         """Raises ValueError naming the bad field: the robot, the controller (its gains,
         its supervisor's period against the robot's), the motion against the joints'
         limits, the loop's timing."""
         robot = self.description()
         self.torque_control.validate()
-        where = "LcmControlConfig"
-        check_control_period(self.torque_control, self.period(), f"{where}.torque_control")
+        where = "ControlConfig"
+        check_control_period(
+            self.torque_control_at_period(), self.period(), f"{where}.torque_control"
+        )
         if self.motion not in ("sinusoid", "hold"):
             raise ValueError(
                 f"{where}.motion: '{self.motion}', expected sinusoid or hold"
             )
         check_sinusoid(robot, self.home(), self.amplitude, self.frequency, self.settle, where)
         check_finite(self.duration, f"{where}.duration", 0.0)
+        check_finite(self.approach_speed, f"{where}.approach_speed", 0.0)
         self.loop.validate(self.period(), f"{where}.loop")
 
     def loop_config(self) -> LoopConfig:
@@ -120,47 +135,92 @@ class LcmControlConfig:
         return LoopConfig(duration=self.duration, period=self.period(), settings=self.loop)
 
 
-def control_reference(config: LcmControlConfig) -> JointReference:
+def control_reference(config: ControlConfig, start: np.ndarray | None = None) -> JointReference:
+    """The run's reference: home for `settle` s, then `motion`; after a move from
+    `start` (the measured pose) to home if given (`JointReference.after_approach`)."""
     robot = config.description()
     q0 = config.home()
     if config.motion == "hold":
-        return JointReference.hold(q0, config.duration + 1.0)
-    track = TrackConfig(
-        settle=config.settle, amplitude=config.amplitude,
-        frequency=config.frequency, duration=config.duration + 1.0 - config.settle,
-    )
-    return sinusoid_reference(robot, q0, track)
+        reference = JointReference.hold(q0, config.duration + 1.0)
+    else:
+        track = TrackConfig(
+            settle=config.settle, amplitude=config.amplitude,
+            frequency=config.frequency, duration=config.duration + 1.0 - config.settle,
+        )
+        reference = sinusoid_reference(robot, q0, track)
+    if start is None:
+        return reference
+    return reference.after_approach(start, config.approach_speed)
+
+
+def open_link(config: ControlConfig, controller: FusedController, lcm_url: str = "",
+              port: str = "", lockstep: bool = False) -> RobotLink:
+    """The robot's link: over LCM at `lcm_url`, or on its bus at `port` (a robot
+    description with a `bus`); `lockstep`: the robot behind the port is a lock-step
+    simulation."""
+    robot = config.description()
+    if port:
+        from hrp2_drake.hardware.dynamixel import DynamixelLink
+
+        if not robot.bus.active:
+            raise ValueError(
+                f"--port {port}: robot '{robot.name}' has no bus in its description "
+                "(use --lcm for a robot with an LCM bridge)"
+            )
+        return DynamixelLink(robot, port, lockstep=lockstep)
+    from hrp2_drake.hardware.lcm_link import LcmLink
+
+    transport = open_transport(lcm_url, timeout=min(config.loop.wait_timeout, 2.0))
+    link = LcmLink(robot, transport, config.channels, controller, config.loop.wait_timeout)
+    link.close = transport.close
+    return link
 
 
 def run_control(
-    config: LcmControlConfig, motor_model: MotorModel, lcm_url: str, out: Path
+    config: ControlConfig, motor_model: MotorModel, out: Path, lcm_url: str = "",
+    port: str = "", lockstep: bool = False,
 ) -> dict:
-    """The whole `hrp2-drake control`: build the fused controller, wait for the robot,
-    run the message-driven loop, report (control.md with a latency histogram,
-    control.json, control.npz). The summary says why the run ended ("fault")."""
+    """The whole `hrp2-drake control`: build the fused controller, connect to the
+    robot (over LCM at `lcm_url`, or on its bus at `port`), move to home and run the
+    control loop, report (control.md with a latency histogram, control.json,
+    control.npz). The summary says why the run ended ("fault")."""
     config.validate()
     robot = config.description()
-    reference = control_reference(config)
+    torque_control = config.torque_control_at_period()
+    if motor_model.gain:  # a model stated at a servo gain: at the gain the robot runs at
+        motor_model = motor_model.at_gain(robot.position_loop.gain or motor_model.gain)
+    # The chain is built for a reference from home; the run's one (from the measured
+    # pose) replaces it once the robot is there (the parts read only its start).
     controller = FusedController(
-        torque_chain_parts(robot, reference, motor_model, config.torque_control)
+        torque_chain_parts(robot, control_reference(config), motor_model, torque_control)
     )
-    transport = open_transport(lcm_url, timeout=min(config.loop.wait_timeout, 2.0))
+    link = open_link(config, controller, lcm_url, port, lockstep)
     try:
-        loop = ControlLoop(controller, robot, transport, config.channels, reference,
-                           config=config.loop_config())
-        say(f"waiting for {robot.name} on {lcm_url} ...")
-        loop.wait_for_robot()
-        say(f"running {config.duration} s")
+        say(f"waiting for {robot.name} on {link.name} ...")
+        start = link.connect(controller)
+        reference = control_reference(config, start)
+        approach = reference.approach_time
+        loop_config = replace(config.loop_config(), duration=config.duration + approach)
+        loop = ControlLoop(controller, link, reference, config=loop_config)
+        say(f"running {config.duration} s" + (f" after a {approach:.1f} s move home" if approach else ""))
         summary = loop.run()
     finally:
-        transport.close()
+        link.close()
+    summary["approach_s"] = approach
+    return _report(config, robot, loop, summary, out, torque_control.start_time + approach)
+
+
+def _report(config: ControlConfig, robot: RobotDescription, loop: ControlLoop,
+            summary: dict, out: Path, torque_start: float) -> dict:
+    """control.npz, control.json, latency.png and control.md; the summary with the
+    tracking errors after torque control started (`torque_start`, s)."""
     signals = loop.signals()
     cols = [robot.joints.index(j) for j in config.torque_control.controlled_joints(robot)]
-    after = signals["t"] >= config.torque_control.start_time + 0.1
+    after = signals["t"] >= torque_start + 0.1
     error = signals["q_ref"][after][:, cols] - signals["q_measured"][after][:, cols]
     summary |= {
         "robot": robot.name,
-        "lcm": lcm_url,
+        "period": config.period(),
         "duration": config.duration,
         "max_error_mrad": (np.abs(error).max(axis=0) * 1e3).tolist() if len(error) else [],
         "rms_error_mrad": (np.sqrt(np.mean(error**2, axis=0)) * 1e3).tolist() if len(error) else [],
@@ -181,21 +241,21 @@ def _latency_histogram(latency_us: np.ndarray, period: float, path: Path) -> Non
         ax.set_xscale("log")
         ax.set_yscale("log")
     ax.axvline(period * 1e6, color="tab:red", linestyle="--", label=f"period {period * 1e6:.0f} µs")
-    ax.set_xlabel("receive → publish latency (µs)")
+    ax.set_xlabel("samples in → command out (µs)")
     ax.set_ylabel("ticks")
     legend_beside(ax, fontsize=None)
-    ax.set_title("Controller ticks over LCM")
+    ax.set_title("Controller ticks")
     save_figure(fig, path, tight=True)
 
 
-def _markdown(robot, config: LcmControlConfig, summary: dict) -> str:
+def _markdown(robot, config: ControlConfig, summary: dict) -> str:
     labels = robot.labels()
     lat = summary["latency_us"]
     lines = [
-        f"# Torque control of {robot.name} over LCM ({summary['lcm']})",
+        f"# Torque control of {robot.name} ({summary['link']['name']})",
         "",
-        f"{config.duration} s, message-driven (the robot's encoder message clocks each "
-        f"tick); motion: {config.motion}.",
+        f"{config.duration} s at {1 / config.period():.0f} Hz, {_clock(robot)}; motion: "
+        f"{config.motion}.",
         "",
         f"**How the run ended:** {_ending(summary)}",
         "",
@@ -223,9 +283,9 @@ def _markdown(robot, config: LcmControlConfig, summary: dict) -> str:
     lines += [
         "## Ticks",
         "",
-        f"{summary['ticks']} ticks; receive → publish latency: p50 {lat['p50']:.0f} µs, "
+        f"{summary['ticks']} ticks; samples in → command out (the tick and its send): p50 {lat['p50']:.0f} µs, "
         f"p99 {lat['p99']:.0f} µs, p99.9 {lat['p99.9']:.0f} µs, max {lat['max']:.0f} µs; "
-        f"{summary['overruns']} ticks over the period (the longest run of consecutive "
+        f"{summary['overruns']} periods whose exchange and tick took longer than the period (the longest run of consecutive "
         f"ones: {summary['longest_overrun_run']}; followed by a fallback within 50 ms: "
         f"{summary['overruns_followed_by_a_fallback']}); {summary['refused_samples']} "
         "samples refused (timestamp not advancing).",
@@ -236,6 +296,7 @@ def _markdown(robot, config: LcmControlConfig, summary: dict) -> str:
         "",
         "![latency](latency.png)",
         "",
+        *_bus_section(robot, summary),
         "## Fallbacks",
         "",
     ]
@@ -256,12 +317,43 @@ def _ending(summary: dict) -> str:
     """Why the run ended and what the robot was left with, in one sentence."""
     what = summary["fault"] or "its duration"
     when = f" at t = {summary['fault_time']:.3f} s" if summary["fault"] else ""
-    if summary.get("ramped"):
-        after = "the command then ramped to the measured pose (position control)"
-    else:
-        after = ("nothing could be sent any more: the robot's own watchdog holds its "
-                 "pose")
-    return f"{what}{when}; {after}."
+    return f"{what}{when}; {summary['ending']}."
+
+
+def _clock(robot: RobotDescription) -> str:
+    if robot.bus.active:
+        return (f"the loop's own clock on the bus ({robot.bus.model} x {len(robot.bus.ids)} "
+                f"at {robot.bus.baud / 1e6:g} Mbit/s: one sync read and one sync write per "
+                "period)")
+    return "message-driven (the robot's encoder message clocks each tick)"
+
+
+def _bus_section(robot: RobotDescription, summary: dict) -> list[str]:
+    """The bus's budget, the measured cycle, and its faults per servo."""
+    if not robot.bus.active:
+        return []
+    timing = robot.bus.timing()
+    link = summary["link"]
+    cycle = summary["cycle_us"]
+    rows = [
+        [servo, joint, f"{c['no_status']}", f"{c['corrupt']}", f"{c['hardware_alerts']}"]
+        for (servo, c), joint in zip(link["servos"].items(), robot.joints)
+    ]
+    return [
+        "## The bus",
+        "",
+        f"Budget per period (wire time, return delays, the adapter's latency timer, the "
+        f"compute allowance): {timing.describe()}; the period is "
+        f"{summary['period'] * 1e6:.0f} µs. Measured, sync read to sync write sent: p50 "
+        f"{cycle['p50']:.0f} µs, p99 {cycle['p99']:.0f} µs, max {cycle['max']:.0f} µs; "
+        f"{link['late_periods']} periods started more than a period late (the largest "
+        f"lag {link['max_lag_ms']:.1f} ms); {link['incomplete_periods']} periods without "
+        "every servo's status.",
+        "",
+        *markdown_table(["ID", "joint", "no status", "corrupt status", "hardware alerts"],
+                        rows, align="llrrr"),
+        "",
+    ]
 
 
 def run_sim_robot(config: StationConfig, lcm_url: str, duration: float, out: Path | None,
