@@ -19,6 +19,13 @@ The motor model is used at the gain the station's servo runs at
 (`motor_model_at_station_gain`): a model identified from logs that state the servo's
 gain holds at that gain, not necessarily the simulated servo's.
 
+A robot on a servo bus runs at the bus's rate (its `sensors.period`), inside the
+simulated loop as on the wire: its sensors sample the bus's read-to-write delay
+before each tick (`StationConfig.sample_lead`), its goals are whole encoder pulses,
+and position control too gets its goal once per period. Its report adds a table at
+other rates (`rates`: 100, 200, 500 Hz and 1 kHz by default): does torque control
+still beat the servo's position control at the rate the bus allows?
+
 Writes track.md, track.json and plots. Nothing here knows a robot's names.
 """
 
@@ -36,6 +43,7 @@ from pydrake.trajectories import PiecewisePolynomial
 
 from hrp2_drake.config import check_finite
 from hrp2_drake.description import RobotDescription, joint_limits
+from hrp2_drake.description.bus import bus_for_period
 from hrp2_drake.assembly.builders import (
     JointReference,
     TorqueControlConfig,
@@ -43,7 +51,7 @@ from hrp2_drake.assembly.builders import (
     build_torque_control,
     check_control_period,
 )
-from hrp2_drake.assembly.torque_control import EstimatorSettings
+from hrp2_drake.assembly.torque_control import EstimatorSettings, at_period
 from hrp2_drake.config import replace_fields
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import is_strictly_below, joint_indexing, tree_parents
@@ -65,7 +73,9 @@ class TrackConfig:
         station: the robot (its `robot`, scenario, sensors, servo).
         torque_control: the torque controller (its k6 is replaced by each of `k6`;
             default: the F/T offsets calibrated over [0.2, 0.5) s, while the robot
-            holds its home pose and the tool just touches the table).
+            holds its home pose and the tool just touches the table), stated at 1
+            kHz: on a robot with another period, the same spans of time
+            (`at_period`).
         k6: the torque controller's position gains to compare (Sec. 4.2).
         duration: length of the free-space motion (s), after `settle`.
         settle: position control at the home pose before torque control starts (s).
@@ -83,6 +93,10 @@ class TrackConfig:
         ramp: time to lower the tool onto the table (first half) and ramp the force
             from 0 to `press` (second half) (s).
         gap: height of the tool above the table at home (m).
+        rates: for a robot on a bus, the loop rates (Hz) of the rate table: position
+            control and torque control at each, the bus's read-to-write delay inside
+            the loop (at a rate the described bus cannot carry, the fastest bus its
+            servos allow, said in the table); empty: none.
     """
 
     station: StationConfig = field(default_factory=lambda: StationConfig(robot="iiwa14", scenario="fixed_base"))
@@ -105,6 +119,15 @@ class TrackConfig:
     force_duration: float = 4.0
     ramp: float = 1.0
     gap: float = 0.005
+    rates: list[float] = field(default_factory=lambda: [100.0, 200.0, 500.0, 1000.0])
+
+    def period(self) -> float:
+        """The control period: the station's sensor period (on a bus, the bus's)."""
+        return self.station.sensors_config().period
+
+    def torque_control_at_period(self, period: float | None = None) -> TorqueControlConfig:
+        """`torque_control` at `period` (default: the robot's; `at_period`)."""
+        return at_period(self.torque_control, period or self.period())
 
     def validate(self) -> None:
         self.station.validate()
@@ -125,7 +148,9 @@ class TrackConfig:
             self.amplitude, self.frequency, self.settle, where,
         )
         control = f"{where}.torque_control"
-        check_control_period(self.torque_control, self.station.sensors_config().period, control)
+        check_control_period(self.torque_control_at_period(), self.period(), control)
+        for k, rate in enumerate(self.rates):
+            check_finite(rate, f"{where}.rates[{k}]", 0.0)
         if self.force_task and robot.base == "fixed" and not can_press(robot):
             raise ValueError(
                 f"TrackConfig.force_task: robot '{robot.name}' has no tool_frame and "
@@ -268,10 +293,18 @@ def _tracking_errors(
     q_true = signals["state_true"][keep][:, q_index]
     error = signals["q_ref"][keep] - q_true
     cols = [robot.joints.index(j) for j in robot.controlled_joints]
-    return {
+    out = {
         "maximum": np.abs(error[:, cols]).max(axis=0).tolist(),
         "rms": np.sqrt(np.mean(error[:, cols] ** 2, axis=0)).tolist(),
     }
+    if "tau_estimated" in signals:  # a torque-control run (ground truth: evaluation only)
+        tau_error = (signals["tau_estimated"][keep] - signals["joint_torque_true"][keep])[:, cols]
+        out["tau_rms_error"] = np.sqrt(np.mean(tau_error**2, axis=0)).tolist()
+        if "supervisor_mode" in signals:
+            out["torque_share"] = float(np.mean(signals["supervisor_mode"][keep] >= 1.0))
+        else:
+            out["torque_share"] = float(np.mean(signals["fallback_active"][keep] < 0.5))
+    return out
 
 
 def _simulate(control, duration: float, label: str, extra_ports=None) -> dict:
@@ -285,7 +318,9 @@ def _simulate(control, duration: float, label: str, extra_ports=None) -> dict:
         for name in ("q_ref", "state_true", "q_cmd")
     }
     for name in control.output_names():
-        if name.startswith("external_wrench_") or name.startswith("wrench_"):
+        if name.startswith(("external_wrench_", "wrench_")) or name in (
+            "tau_estimated", "joint_torque_true", "supervisor_mode", "fallback_active"
+        ):
             ports[name] = diagram.GetOutputPort(name)
     if extra_ports:
         ports |= extra_ports(builder, diagram)
@@ -295,27 +330,73 @@ def _simulate(control, duration: float, label: str, extra_ports=None) -> dict:
     return logs_to_arrays(loggers, simulator.get_context())
 
 
-def run_tracking(config: TrackConfig, motor_model: MotorModel) -> dict:
-    """Free-space tracking: position control, then torque control at each K6."""
-    robot = config.station.description()
-    q0 = initial_joint_positions(config.station)
+#: The plant's step of a robot on a bus (s): `track_station`.
+BUS_TIME_STEP = 0.00025
+
+
+def track_station(config: TrackConfig, period: float | None = None,
+                  robot: RobotDescription | None = None) -> StationConfig:
+    """The station of a run at `period` (s; default: the robot's): a robot on a bus
+    (its description, or `robot`'s bus) samples its sensors the bus's
+    read-to-write delay before each tick, on a plant of step `BUS_TIME_STEP`."""
+    station = config.station
+    robot = robot or station.description()
+    period = period or config.period()
+    if period != config.period():
+        station = replace(station, sensors=replace(station.sensors_config(), period=period))
+    if robot.bus.active:
+        # A plant step fine enough to put the bus's sub-millisecond read-to-write
+        # delay inside a 1 kHz period (the delay is rounded up to whole steps).
+        station = replace(station, time_step=min(station.time_step, BUS_TIME_STEP),
+                          sample_lead=robot.bus.timing().read_to_write)
+    return station
+
+
+def run_tracking(config: TrackConfig, motor_model: MotorModel, period: float | None = None,
+                 robot: RobotDescription | None = None) -> dict:
+    """Free-space tracking: position control, then torque control at each K6; at
+    `period` (s; default: the robot's) with `robot`'s bus (default: the
+    description's)."""
+    robot = robot or config.station.description()
+    period = period or config.period()
+    station = track_station(config, period, robot)
+    q0 = initial_joint_positions(station)
     reference = sinusoid_reference(robot, q0, config)
     duration = reference.end_time()
     runs = {}
-    position = build_position_control(robot, make_station(config.station), reference)
+    command_period = period if robot.bus.active else 0.0
+    position = build_position_control(robot, make_station(station), reference, command_period)
     q_index = joint_indexing(position.station.GetSubsystemByName("plant"), robot.joints).q
     signals = _simulate(position, duration, "position control")
     runs["position control"] = _tracking_errors(robot, q_index, signals, config.settle)
-    torque = replace(config.torque_control, start_time=config.settle)
-    period = config.station.sensors_config().period
+    torque = replace(config.torque_control_at_period(period), start_time=config.settle)
     for k6 in config.k6:
         control = build_torque_control(
-            robot, make_station(config.station), reference, motor_model,
+            robot, make_station(station), reference, motor_model,
             replace_fields(torque, {"controller.k6": k6}), control_period=period,
         )
         signals = _simulate(control, duration, f"torque control K6={k6:g}")
         runs[f"torque control K6={k6:g}"] = _tracking_errors(robot, q_index, signals, config.settle)
     return runs
+
+
+def run_rates(config: TrackConfig, motor_model: MotorModel) -> list[dict]:
+    """The rate table of a robot on a bus: tracking at each of `config.rates`, on the
+    described bus where it carries the rate, else on the fastest its servos allow."""
+    robot = config.station.description()
+    rows = []
+    for rate in config.rates:
+        period = 1.0 / rate
+        try:
+            bus, note = bus_for_period(robot.bus, period)
+        except ValueError as error:
+            rows.append({"rate": rate, "skipped": str(error)})
+            continue
+        at_rate = replace(robot, bus=bus, sensors=replace(robot.sensors, period=period))
+        runs = run_tracking(config, motor_model, period, at_rate)
+        rows.append({"rate": rate, "note": note, "read_to_write_ms": bus.timing().read_to_write * 1e3,
+                     "cycle_ms": bus.timing().cycle * 1e3, "runs": runs})
+    return rows
 
 
 def run_force_task(config: TrackConfig, motor_model: MotorModel, out: Path) -> dict:
@@ -473,6 +554,11 @@ def run_track(config: TrackConfig, motor_model: MotorModel, out: Path) -> dict:
     summary = {"robot": robot.name, "joints": list(robot.controlled_joints),
                "motor_model_gain": motor_model.gain}
     summary["tracking"] = run_tracking(config, motor_model)
+    if robot.bus.active:
+        summary["bus"] = {"rate": 1.0 / config.period(),
+                          "read_to_write_ms": robot.bus.timing().read_to_write * 1e3}
+        if config.rates:
+            summary["rates"] = run_rates(config, motor_model)
     if config.force_task and can_press(robot):
         summary["force_task"] = run_force_task(config, motor_model, out)
     (out / "track.json").write_text(json.dumps(summary, indent=2))
@@ -515,6 +601,8 @@ def _markdown(robot: RobotDescription, config: TrackConfig, summary: dict) -> st
     ]
     lines += markdown_table(["controller", *labels], rows)
     lines += ["", "Cells: maximum (RMS)."]
+    if "bus" in summary:
+        lines += ["", *_rates_markdown(robot, summary)]
     force = summary.get("force_task")
     if force:
         lines += [
@@ -536,3 +624,62 @@ def _markdown(robot: RobotDescription, config: TrackConfig, summary: dict) -> st
             ),
         ]
     return "\n".join(lines) + "\n"
+
+
+def _rates_markdown(robot: RobotDescription, summary: dict) -> list[str]:
+    """The bus's rate and, per rate of the rate table, position against torque
+    control (the better K6), and whether torque control beats the servo."""
+    bus = robot.bus
+    lines = [
+        "## On the bus",
+        "",
+        f"{len(bus.ids)} {bus.model} at {bus.baud / 1e6:g} Mbit/s: the loop runs at "
+        f"{summary['bus']['rate']:.0f} Hz, the command reaching the servos "
+        f"{summary['bus']['read_to_write_ms']:.2f} ms after they sampled (the bus's "
+        "read-to-write delay, inside the simulated loop: sensors sampled that long "
+        "before each tick); goals in whole encoder pulses, position control's goal "
+        "written once per period too.",
+    ]
+    rates = summary.get("rates")
+    if not rates:
+        return lines
+    labels = robot.labels()
+    rows = []
+    for row in rates:
+        if "skipped" in row:
+            rows.append([f"{row['rate']:.0f}", "-", "-", "-", "-", "-", row["skipped"]])
+            continue
+        runs = row["runs"]
+        position = runs["position control"]
+        torque = {name: e for name, e in runs.items() if name != "position control"}
+        best = min(torque, key=lambda name: max(torque[name]["maximum"]))
+        beats = all(t <= p for t, p in zip(torque[best]["rms"], position["rms"]))
+        chosen = torque[best]
+        rows.append([
+            f"{row['rate']:.0f}",
+            f"{row['read_to_write_ms']:.2f}",
+            ", ".join(f"{m * 1e3:.1f} ({r * 1e3:.1f})"
+                      for m, r in zip(position["maximum"], position["rms"])),
+            f"{best.removeprefix('torque control ')}: " + ", ".join(
+                f"{m * 1e3:.1f} ({r * 1e3:.1f})" for m, r in zip(chosen["maximum"], chosen["rms"])
+            ),
+            f"{chosen['torque_share'] * 100:.0f}%",
+            ", ".join(f"{e * 1e3:.0f}" for e in chosen["tau_rms_error"]),
+            ("yes" if beats else "no") + (f"; {row['note']}" if row["note"] else ""),
+        ])
+    return lines + [
+        "",
+        f"**The same motion at other loop rates** (maximum (RMS) error, mrad, "
+        f"{', '.join(labels)}): does torque control beat the servo's position control "
+        "(RMS, every joint)?",
+        "",
+        *markdown_table(["rate (Hz)", "read → write (ms)", "position control",
+                         "torque control (best K6)", "in torque control",
+                         "τ̂ error, RMS (mN·m)", "torque control better"], rows,
+                        align="rrllrrl"),
+        "",
+        "In torque control: the share of the run after the settle with the supervisor "
+        "in torque control (the rest: its ramps and fallbacks to position control). "
+        "τ̂ error: the estimator's torque against the plant's (ground truth, evaluation "
+        "only).",
+    ]
