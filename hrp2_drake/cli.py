@@ -11,6 +11,9 @@
     hrp2-drake tune [--config FILE] [--trials N] [--workers W] [--scheduler ADDRESS]
                     [--motor-model M] [--quick] [--out DIR]
     hrp2-drake control --lcm URL | sim-robot --lcm URL   (torque control over LCM)
+    hrp2-drake record --robot R --port DEV    (a Dynamixel robot's identification logs)
+    hrp2-drake control --robot R --port DEV --motor-model M   (on its Dynamixel bus)
+    hrp2-drake sim-servo --robot R            (its servos emulated on a pseudo-terminal)
 
 --robot is a robot description (models/<name>/robot.yaml, or its name: hrp2, iiwa14);
 without it, HRP-2.
@@ -244,14 +247,19 @@ def _track(args: argparse.Namespace) -> int:
 
 
 def _control(args: argparse.Namespace) -> int:
-    from hrp2_drake.tools.control import LcmControlConfig, _ending, run_control
+    from hrp2_drake.tools.control import ControlConfig, _ending, run_control
 
-    config = _config(LcmControlConfig, args)
+    config = _config(ControlConfig, args)
     if args.robot:
         config.robot = args.robot
     _set_given(config, args, "duration", "motion")
+    if bool(args.lcm) == bool(args.port):
+        raise ValueError("give the robot's link: --lcm URL or --port DEV (one of them)")
+    if args.lockstep and not args.port:
+        raise ValueError("--lockstep: only with --port (a lock-step robot behind a bus)")
     out = _validated_out(config, args)
-    summary = run_control(config, _motor_model(args, out, config), args.lcm, out)
+    summary = run_control(config, _motor_model(args, out, config), out, lcm_url=args.lcm,
+                          port=args.port, lockstep=args.lockstep)
     lat = summary["latency_us"]
     print(
         f"report: {out / 'control.md'}; {summary['ticks']} ticks, latency p50 "
@@ -281,6 +289,37 @@ def _sim_robot(args: argparse.Namespace) -> int:
     return _stopped(f"{summary['fault']}; held the measured pose" if summary["fault"] else None)
 
 
+def _record(args: argparse.Namespace) -> int:
+    from hrp2_drake.tools.record import RecordConfig, run_record
+
+    config = _config(RecordConfig, args)
+    if args.robot:
+        config.robot = args.robot
+    if args.gain:
+        config.gains = list(args.gain)
+    out = _validated_out(config, args)
+    summary = run_record(config, args.port, out, lockstep=args.lockstep)
+    for log in summary["logs"]:
+        print(f"  {out / log['log']}: {log['samples']} samples at P gain {log['gain']:g}")
+    print(f"report: {out / 'record.md'}")
+    faults = [log["fault"] for log in summary["logs"] if log["fault"]]
+    return _stopped(faults[0] if faults else None)
+
+
+def _sim_servo(args: argparse.Namespace) -> int:
+    from hrp2_drake.hardware.sim_servo import parse_fault, run_sim_servo
+
+    faults = [parse_fault(spec) for spec in args.fault or []]
+    ids = [int(x) for x in args.ids.split(",")] if args.ids else None
+    out = _output_folder(args.out) if args.out else None
+    summary = run_sim_servo(
+        args.robot or "", lockstep=args.lockstep, rate=args.realtime_rate,
+        duration=args.duration, faults=faults, ids=ids, out=out,
+    )
+    stopped = summary.get("stopped", "")
+    return _stopped(stopped if stopped and "closed" in stopped else None)
+
+
 def _stopped(reason: str | None) -> int:
     """The exit code of a run that talks to a robot: 1 after one line saying why it
     stopped (`reason`), 0 if it ran to its end (None)."""
@@ -303,7 +342,7 @@ def _motor_model(args: argparse.Namespace, out: Path, config=None, identify=None
         # The joints the experiment torque-controls: checked before simulating.
         torque_control = getattr(config, "torque_control", None)
         if torque_control is not None:
-            station = getattr(config, "station", None)  # LcmControlConfig: its robot
+            station = getattr(config, "station", None)  # ControlConfig: its robot
             robot = station.description() if station is not None else config.description()
             needed = torque_control.controlled_joints(robot)
         else:
@@ -756,16 +795,67 @@ def _add_control(commands: _Commands) -> None:
         commands,
         "control",
         _control,
-        "torque control of a robot over LCM (the robot's bridge or sim-robot): the fused "
-        "controller, one tick per encoder message, with per-tick timing",
+        "torque control of a robot over LCM (the robot's bridge or sim-robot: one tick "
+        "per encoder message) or on its Dynamixel bus (a serial port, or sim-servo's: "
+        "one sync read, one tick, one sync write per period), with per-tick timing",
         robot=True,
-        lcm=True,
+        lcm={"required": False, "default": "", "help": "the robot over LCM: its URL "
+             "(see sim-robot --lcm)"},
+        port={"default": "", "help": "the robot on its Dynamixel bus: the serial port "
+              "(e.g. /dev/ttyUSB0, or the path sim-servo prints)"},
+        lockstep={"action": "store_true", "help": "with --port: the robot is a lock-step "
+                  "simulation (sim-servo --lockstep): the loop does not wait for the wall "
+                  "clock"},
         motor_model={"required": True, "help": "MotorModel YAML"},
-        config="LcmControlConfig YAML file",
+        config="ControlConfig YAML file",
         duration="seconds (default 5)",
         motion={"choices": ("sinusoid", "hold"), "help": "default: sinusoid"},
         out=True,
     ).set_defaults(scenario=None)
+
+
+def _add_record(commands: _Commands) -> None:
+    _add_command(
+        commands,
+        "record",
+        _record,
+        "record a robot's identification logs through its Dynamixel bus: the "
+        "description's excitation through the servos' own position control, one log per "
+        "P gain, in the robot's log format (for identify, validate, calibrate)",
+        robot=True,
+        port={"required": True, "help": "the serial port (e.g. /dev/ttyUSB0, or the path "
+              "sim-servo prints)"},
+        gain={"type": _number(int, 0), "action": "append", "default": None,
+              "help": "a position P gain to record at (repeat for several; default: the "
+              "description's position_loop.gain)"},
+        lockstep={"action": "store_true", "help": "the robot is a lock-step simulation "
+                  "(sim-servo --lockstep)"},
+        config="RecordConfig YAML file",
+        out=True,
+    )
+
+
+def _add_sim_servo(commands: _Commands) -> None:
+    _add_command(
+        commands,
+        "sim-servo",
+        _sim_servo,
+        "the simulated robot's Dynamixel servos on a pseudo-terminal (Protocol 2.0, "
+        "the robot's physics behind every ID, wire time and return delays honoured): "
+        "prints the port's path",
+        robot=True,
+        lockstep={"action": "store_true", "help": "the robot's clock is the bus traffic "
+                  "(one period per sync read): deterministic, for tests"},
+        realtime_rate={"type": _number(float, 0.0), "default": 1.0,
+                       "help": "target real-time rate (default 1)"},
+        duration={"default": float("inf"), "help": "seconds (default: until Ctrl-C or SIGTERM)"},
+        fault={"action": "append", "help": "inject a fault, e.g. silent:1@2.0, crc:1@1.5x20, "
+               "hardware:1@2.0:overload, close@3.0, wrong_model:1:XM430-W350 (repeat for "
+               "several)"},
+        ids={"default": "", "help": "serve these IDs instead of the description's "
+             "(comma-separated), e.g. to test a wrong ID"},
+        out={"default": None, "help": "write a report (sim_servo.md, sim_servo.json) here on exit"},
+    )
 
 
 def _add_sim_robot(commands: _Commands) -> None:
@@ -883,6 +973,8 @@ _COMMANDS = (
     _add_track,
     _add_control,
     _add_sim_robot,
+    _add_record,
+    _add_sim_servo,
     _add_experiment,
     _add_calibrate,
     _add_reproduce,

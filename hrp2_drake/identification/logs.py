@@ -405,3 +405,56 @@ def describe(logs: Sequence[RobotLog]) -> list[Mapping[str, object]]:
         }
         for log in logs
     ]
+
+
+# ---------------------------------------------------------------------- exporters
+def write_robot_log(
+    path: str | Path,
+    log_format: LogFormat,
+    columns: Mapping[str, np.ndarray],
+    meta: Mapping[str, object] | None = None,
+) -> Path:
+    """Writes a log as a robot records it, in its description's format, so that
+    `read_robot_log` reads it back: `columns` by name (1-D arrays, one value per
+    sample: the format's time, position, command and valid columns among them),
+    `meta` the file's top-level values (JSON: the gain under `log_format.gain`;
+    CSV: each a constant column). Returns the path written.
+
+    Raises:
+        ValueError: the format is this project's npz (written by
+            `excitation.save_log`), or a column the format names is missing.
+    """
+    path = Path(path)
+    needed = [log_format.time, *log_format.position, *log_format.command]
+    needed += [log_format.valid] if log_format.valid else []
+    missing = [key for key in needed if key not in columns]
+    if missing:
+        raise ValueError(f"write_robot_log: columns {missing} missing (the log format's)")
+    meta = dict(meta or {})
+    names = list(columns)
+    if log_format.format == "json":
+        data = {name: np.asarray(columns[name]).tolist() for name in names}
+        if log_format.samples:
+            count = len(data[names[0]])
+            document = {**meta, log_format.samples: [
+                {name: data[name][k] for name in names} for k in range(count)
+            ]}
+        else:
+            document = {**meta, **data}
+        path.write_text(json.dumps(document))
+    elif log_format.format == "csv":
+        constant = {k: v for k, v in meta.items() if isinstance(v, (int, float))}
+        header = names + list(constant)
+        count = len(np.asarray(columns[names[0]]))
+        with path.open("w", newline="") as file:
+            writer = csv.writer(file)
+            writer.writerow(header)
+            for k in range(count):
+                writer.writerow([repr(float(columns[n][k])) for n in names]
+                                + [repr(float(v)) for v in constant.values()])
+    else:
+        raise ValueError(
+            f"write_robot_log: format '{log_format.format}' is this project's own log "
+            "(identification.excitation.save_log)"
+        )
+    return path
