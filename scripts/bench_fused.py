@@ -57,7 +57,8 @@ def bench_fused_tick(duration: float = 3.0) -> list[dict]:
     robot = station.description()
     reference = control_reference(config)
     controller = FusedController(
-        torque_chain_parts(robot, reference, true_motor_model(robot), config.torque_control)
+        torque_chain_parts(robot, reference, true_motor_model(robot), config.torque_control,
+                           period=config.period())
     )
     plant = robot.make_plant()
     context = plant.CreateDefaultContext()

@@ -72,7 +72,8 @@ def in_process_errors(robot_name: str, duration: float, config_path: Path,
     robot = config.description()
     reference = control_reference(config)
     controller = FusedController(torque_chain_parts(
-        robot, reference, MotorModel.load(model_path), config.torque_control))
+        robot, reference, MotorModel.load(model_path), config.torque_control,
+        period=config.period()))
     cols = [robot.joints.index(j) for j in config.torque_control.controlled_joints(robot)]
     start = config.torque_control.start_time + 0.1
     worst = np.zeros(len(cols))

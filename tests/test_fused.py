@@ -122,7 +122,8 @@ def test_message_driven_loop_over_memq_equals_the_fused_controller(station_confi
     motor_model = true_motor_model(robot)
 
     def parts():
-        return torque_chain_parts(robot, reference, motor_model, config.torque_control)
+        return torque_chain_parts(robot, reference, motor_model, config.torque_control,
+                                  period=config.period())
 
     ticks = 900
     direct = run_in_process(station_config, FusedController(parts()), reference, ticks)

@@ -376,11 +376,14 @@ def _inverse_dynamics_plant(robot: RobotDescription, errors: dict):
 
 
 def _inverse_dynamics_config(
-    config: TorqueControlConfig, joints: list[str], ks: np.ndarray, kd: np.ndarray
+    config: TorqueControlConfig, joints: list[str], ks: np.ndarray, kd: np.ndarray,
+    period: float,
 ) -> InverseDynamicsConfig:
-    """The inverse dynamics of `joints` with the gains K_s, K_d (one per joint)."""
+    """The inverse dynamics of `joints` with the gains K_s, K_d (one per joint), updated
+    every `period` s."""
     return InverseDynamicsConfig(
         joints=joints,
+        period=period,
         ks=ks.tolist(),
         kd=kd.tolist(),
         force_frame=config.controller.force_frame,
@@ -389,13 +392,14 @@ def _inverse_dynamics_config(
 
 
 def _torque_controller_config(
-    robot: RobotDescription, config: TorqueControlConfig, joints: list[str]
+    robot: RobotDescription, config: TorqueControlConfig, joints: list[str], period: float
 ) -> TorqueControllerConfig:
-    """The Δq torque controller of `joints`: Δq saturated at `delta_q_limit`, the
-    fallback latched at twice it."""
+    """The Δq torque controller of `joints`, updated every `period` s: Δq saturated at
+    `delta_q_limit`, the fallback latched at twice it."""
     limit = delta_q_limit(robot, config)
     return TorqueControllerConfig(
         joints=joints,
+        period=period,
         kp=list(config.controller.kp),
         delta_q_limit=[limit],
         delta_q_fallback_limit=[2 * limit],
@@ -406,10 +410,11 @@ def _torque_controller_config(
 
 
 def _observer_parts(
-    config: TorqueControlConfig, joints: list[str], controller_model: MotorModel, delay: float
+    config: TorqueControlConfig, joints: list[str], controller_model: MotorModel, delay: float,
+    period: float,
 ) -> tuple[MotorModel, DisturbanceObserverConfig] | None:
     """The disturbance observer's model and config (None without one); `delay`: the
-    estimation chain's (s)."""
+    estimation chain's (s); `period`: the control period (s)."""
     bandwidth = config.observer.disturbance_observer
     if not bandwidth > 0:
         return None
@@ -420,7 +425,7 @@ def _observer_parts(
             joints, controller_model.k_tau, controller_model.k_v, np.zeros(len(joints))
         ),
         DisturbanceObserverConfig(
-            joints=joints, bandwidth=bandwidth, delay=delay
+            joints=joints, bandwidth=bandwidth, delay=delay, period=period
         ),
     )
 
@@ -442,10 +447,17 @@ def torque_chain_parts(
     reference: JointReference,
     motor_model: MotorModel,
     config: TorqueControlConfig,
+    *,
+    period: float,
 ) -> TorqueChainParts:
     """The models and configs of the torque-control chain of `config` on `robot`: what
-    both the separate systems and the fused controller are built from."""
+    both the separate systems and the fused controller are built from.
+
+    `period`: the control period (s), the robot's sensor period (on a bus, the bus's):
+    every step of the chain updates once per period, and the Savitzky-Golay filters
+    differentiate with it (`config` stated for it: `at_period`)."""
     config.validate()
+    check_control_period(config, period)
     joints = config.controlled_joints(robot)
     _check_controlled_joints(robot, config, joints)
     all_joints = list(robot.joints)
@@ -459,6 +471,7 @@ def torque_chain_parts(
         evaluation=estimator.evaluation,
         offset_calibration_time=estimator.offset_calibration_time,
         offset_calibration_start=0.2,
+        period=period,
     )
     fixed = _inverse_dynamics_plant(robot, errors)
     controller_model = motor_model.subset(joints)
@@ -471,7 +484,7 @@ def torque_chain_parts(
     predictor = None
     if config.observer.predictor:
         predictor = DelayPredictorConfig(
-            joints=joints, delay=delay, inertia=inertia.tolist()
+            joints=joints, delay=delay, inertia=inertia.tolist(), period=period
         )
     return TorqueChainParts(
         all_joints=all_joints,
@@ -479,10 +492,10 @@ def torque_chain_parts(
         estimator_plant=robot.make_plant(**errors),
         estimator_config=estimator_config,
         id_plant=fixed,
-        id_config=_inverse_dynamics_config(config, joints, ks, kd),
+        id_config=_inverse_dynamics_config(config, joints, ks, kd, period),
         controller_model=controller_model,
-        controller_config=_torque_controller_config(robot, config, joints),
-        observer=_observer_parts(config, joints, controller_model, delay),
+        controller_config=_torque_controller_config(robot, config, joints, period),
+        observer=_observer_parts(config, joints, controller_model, delay, period),
         predictor=predictor,
         supervisor=_supervisor_parts(robot, config),
         position_source=gains.position_source,
@@ -521,8 +534,7 @@ def build_torque_control(
         fused: the whole chain as one `FusedTorqueController` (the real-time path;
             the same signals to 1e-12) instead of its separate systems.
     """
-    check_control_period(config, control_period)
-    parts = torque_chain_parts(robot, reference, motor_model, config)
+    parts = torque_chain_parts(robot, reference, motor_model, config, period=control_period)
     builder = DiagramBuilder()
     station = _add_station(builder, robot, station)
     blocks = _add_reference(builder, reference, len(parts.all_joints))

@@ -192,7 +192,8 @@ def run_control(
     # The chain is built for a reference from home; the run's one (from the measured
     # pose) replaces it once the robot is there (the parts read only its start).
     controller = FusedController(
-        torque_chain_parts(robot, control_reference(config), motor_model, torque_control)
+        torque_chain_parts(robot, control_reference(config), motor_model, torque_control,
+                           period=config.period())
     )
     link = open_link(config, controller, lcm_url, port, lockstep)
     try:
