@@ -50,6 +50,7 @@ from hrp2_drake.hardware.link import LinkClosed, LoopFault, RobotLink
 from hrp2_drake.hardware.messages import SignalCodec
 from hrp2_drake.hardware.transport import Transport, TransportClosed
 
+
 @dataclass
 class RealTimeConfig:
     """How the loop asks the operating system for real time.
@@ -140,7 +141,6 @@ class LoopConfig:
         self.settings.validate(self.period, "LoopConfig.settings")
 
 
-
 class ControlLoop:
     """The controller's loop over any robot link (module docstring).
 
@@ -152,8 +152,14 @@ class ControlLoop:
         config: the loop's settings.
     """
 
-    def __init__(self, controller: FusedController, link: RobotLink, reference,
-                 force_reference=None, config: LoopConfig | None = None):
+    def __init__(
+        self,
+        controller: FusedController,
+        link: RobotLink,
+        reference,
+        force_reference=None,
+        config: LoopConfig | None = None,
+    ):
         self.controller = controller
         self.link = link
         self.reference = reference
@@ -171,7 +177,9 @@ class ControlLoop:
         self.cycle_ns = np.zeros(capacity, dtype=np.int64)
         self.receive_gap_ns = np.zeros(capacity, dtype=np.int64)
         self.log_t = np.zeros(capacity)
-        self.log = {name: np.zeros((capacity, N)) for name in ("q_ref", "q_measured", "q_cmd")}
+        self.log = {
+            name: np.zeros((capacity, N)) for name in ("q_ref", "q_measured", "q_cmd")
+        }
         self.log_mode = np.zeros(capacity)
         self._last_receive = 0
         self._stop = False
@@ -222,7 +230,9 @@ class ControlLoop:
 
     def _set_reference(self, t: float) -> None:
         controller = self.controller
-        controller.q_ref[:], controller.v_ref[:], controller.vdot_ref[:] = self.reference.at(t)
+        controller.q_ref[:], controller.v_ref[:], controller.vdot_ref[:] = (
+            self.reference.at(t)
+        )
         if self.force_reference is not None:
             controller.f_ref[:] = self.force_reference.value(t)[:, 0]
 
@@ -234,7 +244,8 @@ class ControlLoop:
         config = self.config.settings
         granted = request_real_time(config.real_time)
         previous = {
-            sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGTERM, signal.SIGINT)
+            sig: signal.signal(sig, self._on_signal)
+            for sig in (signal.SIGTERM, signal.SIGINT)
         }
         if config.real_time.freeze_gc:
             gc.collect()
@@ -268,7 +279,8 @@ class ControlLoop:
 
     def _set_fault(self, fault: LoopFault) -> None:
         if self.fault is None:
-            self.fault, self.fault_time = fault, self.t
+            self.fault = fault
+            self.fault_time = self.t if fault.t is None else fault.t
 
     def _ramp_out(self) -> None:
         """From the last command to the measured pose over ramp_time, one command per
@@ -314,23 +326,33 @@ class ControlLoop:
         if controller.parts.supervisor is not None:
             start += controller.parts.supervisor[1].ramp_time
         after = self.log_t[:k] >= start
-        share = float(np.mean(self.log_mode[:k][after] >= 1.0)) if np.any(after) else 0.0
+        share = (
+            float(np.mean(self.log_mode[:k][after] >= 1.0)) if np.any(after) else 0.0
+        )
         overruns = np.flatnonzero(cycle > period_us)
-        percentile = (lambda x, p: float(np.percentile(x, p))) if k else (lambda x, p: math.nan)
+        percentile = (
+            (lambda x, p: float(np.percentile(x, p))) if k else (lambda x, p: math.nan)
+        )
         gave_up = False
         if controller.supervisor is not None:
             cfg = controller.parts.supervisor[1]
-            gave_up = controller.event_counts[EVENT_SUPERVISOR_FAULT] > cfg.max_reentries
+            gave_up = (
+                controller.event_counts[EVENT_SUPERVISOR_FAULT] > cfg.max_reentries
+            )
         return {
             "ticks": int(self.ticks),
             "refused_samples": int(self.refused),
             "latency_us": {
-                "p50": percentile(latency, 50), "p99": percentile(latency, 99),
+                "p50": percentile(latency, 50),
+                "p99": percentile(latency, 99),
                 "p99.9": percentile(latency, 99.9),
                 "max": float(latency.max()) if k else math.nan,
             },
-            "cycle_us": {"p50": percentile(cycle, 50), "p99": percentile(cycle, 99),
-                         "max": float(cycle.max()) if k else math.nan},
+            "cycle_us": {
+                "p50": percentile(cycle, 50),
+                "p99": percentile(cycle, 99),
+                "max": float(cycle.max()) if k else math.nan,
+            },
             "overruns": int(len(overruns)),
             "overrun_times": [float(self.log_t[i]) for i in overruns[:50]],
             "longest_overrun_run": _longest_run(overruns),
@@ -338,12 +360,16 @@ class ControlLoop:
             "torque_share": share,
             "events": self._events(),
             "event_counts": {
-                "controller_fallback": controller.event_counts[EVENT_CONTROLLER_FALLBACK],
+                "controller_fallback": controller.event_counts[
+                    EVENT_CONTROLLER_FALLBACK
+                ],
                 "supervisor_fault": controller.event_counts[EVENT_SUPERVISOR_FAULT],
             },
             "gave_up": bool(gave_up),
             "fault": str(self.fault) if self.fault else "",
-            "fault_time": None if math.isnan(self.fault_time) else float(self.fault_time),
+            "fault_time": (
+                None if math.isnan(self.fault_time) else float(self.fault_time)
+            ),
             "ramped": bool(self.ramped),
             "ending": self.link.ending(self.ramped),
             "link": {"name": self.link.name, **self.link.counters()},
@@ -354,11 +380,21 @@ class ControlLoop:
         events = []
         for t, kind, code in self.controller.recorded_events():
             if kind == EVENT_CONTROLLER_FALLBACK:
-                events.append({"t": t, "what": "controller fallback",
-                               "reason": FALLBACK_REASONS.get(code, str(code))})
+                events.append(
+                    {
+                        "t": t,
+                        "what": "controller fallback",
+                        "reason": FALLBACK_REASONS.get(code, str(code)),
+                    }
+                )
             elif kind == EVENT_SUPERVISOR_FAULT:
-                events.append({"t": t, "what": "supervisor fault",
-                               "reason": describe_faults(code)})
+                events.append(
+                    {
+                        "t": t,
+                        "what": "supervisor fault",
+                        "reason": describe_faults(code),
+                    }
+                )
         return events
 
     def _followed_by_a_fallback(self, overruns: np.ndarray) -> int:
@@ -367,16 +403,24 @@ class ControlLoop:
         if not len(fault_times):
             return 0
         return sum(
-            bool(np.any((fault_times >= self.log_t[i]) & (fault_times < self.log_t[i] + 0.05)))
+            bool(
+                np.any(
+                    (fault_times >= self.log_t[i])
+                    & (fault_times < self.log_t[i] + 0.05)
+                )
+            )
             for i in overruns
         )
 
     def signals(self) -> dict[str, np.ndarray]:
         k = min(self.ticks, len(self.latency_ns))
-        out = {"t": self.log_t[:k].copy(), "latency_us": self.latency_ns[:k] * 1e-3,
-               "cycle_us": self.cycle_ns[:k] * 1e-3,
-               "receive_gap_us": self.receive_gap_ns[:k] * 1e-3,
-               "torque_active": self.log_mode[:k].copy()}
+        out = {
+            "t": self.log_t[:k].copy(),
+            "latency_us": self.latency_ns[:k] * 1e-3,
+            "cycle_us": self.cycle_ns[:k] * 1e-3,
+            "receive_gap_us": self.receive_gap_ns[:k] * 1e-3,
+            "torque_active": self.log_mode[:k].copy(),
+        }
         return out | {name: log[:k].copy() for name, log in self.log.items()}
 
 
@@ -413,7 +457,9 @@ class BridgeConfig:
         if not (self.duration > 0):
             raise ValueError(f"BridgeConfig.duration: {self.duration} must be > 0 (s)")
         if not (math.isfinite(self.rate) and self.rate > 0):
-            raise ValueError(f"BridgeConfig.rate: {self.rate} must be a finite number > 0")
+            raise ValueError(
+                f"BridgeConfig.rate: {self.rate} must be a finite number > 0"
+            )
         if not (isinstance(self.watchdog_periods, int) and self.watchdog_periods >= 1):
             raise ValueError(
                 f"BridgeConfig.watchdog_periods: {self.watchdog_periods!r} must be an "
@@ -430,8 +476,13 @@ class RobotBridge:
     applied at once. The ground truth is logged for evaluation only.
     """
 
-    def __init__(self, station_config, transport: Transport,
-                 channels: LcmChannels | None = None, config: BridgeConfig | None = None):
+    def __init__(
+        self,
+        station_config,
+        transport: Transport,
+        channels: LcmChannels | None = None,
+        config: BridgeConfig | None = None,
+    ):
         from pydrake.systems.analysis import Simulator
 
         from hrp2_drake.robot.station import initial_joint_positions, make_station
@@ -532,13 +583,15 @@ class RobotBridge:
 
     def _record(self) -> None:
         context = self._context
-        self._log.append((
-            context.get_time(),
-            self.station.GetOutputPort("state_true").Eval(context).copy(),
-            self.station.GetOutputPort("q_measured").Eval(context).copy(),
-            self._command.copy(),
-            self.holding,
-        ))
+        self._log.append(
+            (
+                context.get_time(),
+                self.station.GetOutputPort("state_true").Eval(context).copy(),
+                self.station.GetOutputPort("q_measured").Eval(context).copy(),
+                self._command.copy(),
+                self.holding,
+            )
+        )
 
     def run(self) -> dict:
         """Real time until the duration, a signal, or the transport's end."""
@@ -547,7 +600,9 @@ class RobotBridge:
         def terminate(signum, frame):
             stop["now"] = True
 
-        previous = {s: signal.signal(s, terminate) for s in (signal.SIGTERM, signal.SIGINT)}
+        previous = {
+            s: signal.signal(s, terminate) for s in (signal.SIGTERM, signal.SIGINT)
+        }
         wall_period = self.period / self.config.rate
         if self.k == 0:
             self.step()  # initialization: not timed against the clock
@@ -597,11 +652,14 @@ class RobotBridge:
             return {}
         columns = list(zip(*self._log))
         names = ("t", "state_true", "q_measured", "q_cmd", "holding")
-        return {name: np.array(column, dtype=float) for name, column in zip(names, columns)}
+        return {
+            name: np.array(column, dtype=float) for name, column in zip(names, columns)
+        }
 
 
-def run_in_process(station_config, controller: FusedController, reference, ticks: int,
-                   on_tick=None) -> list[tuple[np.ndarray, np.ndarray]]:
+def run_in_process(
+    station_config, controller: FusedController, reference, ticks: int, on_tick=None
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """The fused controller on the simulated station in one process, without messages,
     with the LCM loop's timing: the station's sample k (k >= 1) is the controller's tick
     at t = (k − 1) period (over LCM the robot's first sample is consumed while the
@@ -611,7 +669,11 @@ def run_in_process(station_config, controller: FusedController, reference, ticks
     per tick."""
     from pydrake.systems.analysis import Simulator
 
-    from hrp2_drake.robot.station import initial_joint_positions, make_station, sensor_sizes
+    from hrp2_drake.robot.station import (
+        initial_joint_positions,
+        make_station,
+        sensor_sizes,
+    )
 
     robot = station_config.description()
     period = station_config.sensors_config().period
@@ -634,7 +696,9 @@ def run_in_process(station_config, controller: FusedController, reference, ticks
             controller.sensor_buffer[a:b] = port.Eval(context)
         t = (k - 1) * period
         controller.sensor_time[:] = stamp_port.Eval(context) - period
-        controller.q_ref[:], controller.v_ref[:], controller.vdot_ref[:] = reference.at(t)
+        controller.q_ref[:], controller.v_ref[:], controller.vdot_ref[:] = reference.at(
+            t
+        )
         if k == 1:
             controller.initialize(t)
 
@@ -648,8 +712,9 @@ def run_in_process(station_config, controller: FusedController, reference, ticks
     return out
 
 
-def run_on_bus_in_process(station_config, controller: FusedController, reference,
-                          ticks: int, on_tick=None) -> list[tuple[np.ndarray, np.ndarray]]:
+def run_on_bus_in_process(
+    station_config, controller: FusedController, reference, ticks: int, on_tick=None
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """The fused controller on the simulated robot's servos (`SimulatedServos`) in one
     process, without a wire, with the bus loop's timing: what `DynamixelLink` and a
     lock-step emulator (`hardware.sim_servo`) do, call for call.
@@ -679,7 +744,9 @@ def run_on_bus_in_process(station_config, controller: FusedController, reference
         servos.advance_to(t)
         controller.q_measured[:] = bus.quantized(servos.present().position)
         controller.sensor_time[0] = t
-        controller.q_ref[:], controller.v_ref[:], controller.vdot_ref[:] = reference.at(t)
+        controller.q_ref[:], controller.v_ref[:], controller.vdot_ref[:] = reference.at(
+            t
+        )
         if k == 0:
             controller.initialize(t)
 

@@ -24,10 +24,12 @@ joint; a port that disappears mid-run (the adapter unplugged, the emulator kille
 raises `BusClosed`.
 """
 
+import termios
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import serial
 
 from hrp2_drake.description import RobotDescription
 from hrp2_drake.hardware.link import LinkClosed, LoopFault, RobotLink
@@ -89,8 +91,11 @@ class DynamixelBus:
         self._packet = dynamixel_sdk.PacketHandler(2.0)
         self._address, self._length = bus.read_block()
         self._items = [
-            (item, self.model.register(item).address - self._address,
-             self.model.register(item).size)
+            (
+                item,
+                self.model.register(item).address - self._address,
+                self.model.register(item).size,
+            )
             for item in bus.read
         ]
         goal = self.model.register("goal_position")
@@ -130,7 +135,9 @@ class DynamixelBus:
         try:
             opened = self._port.openPort() and self._port.setBaudRate(self.bus.baud)
         except Exception as error:  # pyserial: SerialException, OSError
-            raise ValueError(f"{self.port_name}: cannot open the port ({error})") from None
+            raise ValueError(
+                f"{self.port_name}: cannot open the port ({error})"
+            ) from None
         if not opened:
             raise ValueError(
                 f"{self.port_name}: cannot open the port at {self.bus.baud} bit/s"
@@ -149,12 +156,16 @@ class DynamixelBus:
         for k in range(len(self.ids)):
             self._write_checked(k, "torque_enable", 0)
             delay = self.model.register("return_delay_time")
-            self._write_checked(k, "return_delay_time", round(self.bus.return_delay / delay.unit))
+            self._write_checked(
+                k, "return_delay_time", round(self.bus.return_delay / delay.unit)
+            )
             self._write_checked(k, "operating_mode", POSITION_CONTROL_MODE)
             self._write_checked(k, "position_p_gain", int(gain))
         # One READ and one WRITE per servo, not the periods' sync read and write: a
         # lock-step robot counts those as its periods.
-        present = np.array([self._read_checked(k, "present_position") for k in range(len(self.ids))])
+        present = np.array(
+            [self._read_checked(k, "present_position") for k in range(len(self.ids))]
+        )
         q = self.bus.to_radians(present)
         goal = self.bus.to_pulses(q)
         for k in range(len(self.ids)):
@@ -184,10 +195,15 @@ class DynamixelBus:
     def _write_checked(self, k: int, item: str, value: int) -> None:
         """Writes `item` of servo k and reads it back; a ValueError if either fails."""
         register = self.model.register(item)
-        write = {1: self._packet.write1ByteTxRx, 2: self._packet.write2ByteTxRx,
-                 4: self._packet.write4ByteTxRx}[register.size]
+        write = {
+            1: self._packet.write1ByteTxRx,
+            2: self._packet.write2ByteTxRx,
+            4: self._packet.write4ByteTxRx,
+        }[register.size]
         unsigned = value & ((1 << (8 * register.size)) - 1)
-        result, error = self._call(write, self._port, self.ids[k], register.address, unsigned)
+        result, error = self._call(
+            write, self._port, self.ids[k], register.address, unsigned
+        )
         self._check_result(k, f"writing {item} = {value}", result, error)
         back = self._read_checked(k, item, "reading it back")
         if back != value:
@@ -196,9 +212,14 @@ class DynamixelBus:
     def _read_checked(self, k: int, item: str, what: str = "") -> int:
         """`item` of servo k (signed items as such); a ValueError if the read fails."""
         register = self.model.register(item)
-        read = {1: self._packet.read1ByteTxRx, 2: self._packet.read2ByteTxRx,
-                4: self._packet.read4ByteTxRx}[register.size]
-        value, result, error = self._call(read, self._port, self.ids[k], register.address)
+        read = {
+            1: self._packet.read1ByteTxRx,
+            2: self._packet.read2ByteTxRx,
+            4: self._packet.read4ByteTxRx,
+        }[register.size]
+        value, result, error = self._call(
+            read, self._port, self.ids[k], register.address
+        )
         self._check_result(k, what or f"reading {item}", result, error)
         bits = 8 * register.size
         if register.signed and value >= 1 << (bits - 1):
@@ -207,21 +228,25 @@ class DynamixelBus:
 
     def _check_result(self, k: int, what: str, result: int, error: int) -> None:
         if result != self._sdk.COMM_SUCCESS:
-            raise ValueError(f"{self._where(k)}{what}: {self._packet.getTxRxResult(result)}")
+            raise ValueError(
+                f"{self._where(k)}{what}: {self._packet.getTxRxResult(result)}"
+            )
         if error & 0x80:
-            raise ValueError(f"{self._where(k)}{what}: hardware error: {self.hardware_error(k)}")
+            raise ValueError(
+                f"{self._where(k)}{what}: hardware error: {self.hardware_error(k)}"
+            )
         if error:
-            raise ValueError(f"{self._where(k)}{what}: {self._packet.getRxPacketError(error)}")
+            raise ValueError(
+                f"{self._where(k)}{what}: {self._packet.getRxPacketError(error)}"
+            )
 
     def _call(self, function, *args):
-        """An SDK call; a vanished port (pyserial's OSError or SerialException) is
-        `BusClosed`."""
+        """An SDK call; a vanished port (pyserial's OSError or SerialException, or
+        termios.error from a hung-up terminal) is `BusClosed`."""
         try:
             return function(*args)
-        except Exception as error:
-            if isinstance(error, OSError) or type(error).__name__ == "SerialException":
-                raise BusClosed(f"{self.port_name}: {error}") from None
-            raise
+        except (OSError, termios.error, serial.SerialException) as error:
+            raise BusClosed(f"{self.port_name}: {error}") from None
 
     # ---------------------------------------------------------------- periods
 
@@ -231,19 +256,24 @@ class DynamixelBus:
         last = self._last
         result = self._call(self._reader.txPacket)
         if result != sdk.COMM_SUCCESS:
-            raise BusClosed(f"{self.port_name}: sync read not sent ({packet.getTxRxResult(result)})")
+            raise BusClosed(
+                f"{self.port_name}: sync read not sent ({packet.getTxRxResult(result)})"
+            )
         status, alert, errors = last.status, last.alert, last.error
         for k, servo in enumerate(self.ids):
             data, result, error = self._call(packet.readRx, port, servo, self._length)
             if result != sdk.COMM_SUCCESS or len(data) != self._length:
-                status[k] = STATUS_SILENT if result == sdk.COMM_RX_TIMEOUT else STATUS_CORRUPT
+                status[k] = (
+                    STATUS_SILENT if result == sdk.COMM_RX_TIMEOUT else STATUS_CORRUPT
+                )
                 continue
             status[k] = STATUS_OK
             alert[k] = bool(error & 0x80)
             errors[k] = error & 0x7F
             for item, offset, size in self._items:
                 self._raw[item][k] = int.from_bytes(
-                    bytes(data[offset : offset + size]), "little",
+                    bytes(data[offset : offset + size]),
+                    "little",
                     signed=self.model.registers[item].signed,
                 )
         ok = status == STATUS_OK
@@ -282,7 +312,13 @@ class DynamixelBus:
         """Torque enable of every servo (no read-back: used at the end of a run)."""
         register = self.model.register("torque_enable")
         for servo in self.ids:
-            self._call(self._packet.write1ByteTxRx, self._port, servo, register.address, int(on))
+            self._call(
+                self._packet.write1ByteTxRx,
+                self._port,
+                servo,
+                register.address,
+                int(on),
+            )
 
     def close(self) -> None:
         if self.is_open:
@@ -316,8 +352,13 @@ class DynamixelLink(RobotLink):
         gain: the position P gain to set (None: the description's).
     """
 
-    def __init__(self, robot: RobotDescription, port: str, lockstep: bool = False,
-                 gain: float | None = None):
+    def __init__(
+        self,
+        robot: RobotDescription,
+        port: str,
+        lockstep: bool = False,
+        gain: float | None = None,
+    ):
         self.robot = robot
         self.gain = gain
         self.bus = DynamixelBus(robot, port)
@@ -354,12 +395,12 @@ class DynamixelLink(RobotLink):
                 if lag > timeout:
                     raise LoopFault(
                         f"{self.name}: the loop is {lag * 1e3:.0f} ms behind the bus "
-                        f"period ({self.period * 1e3:g} ms)"
+                        f"period ({self.period * 1e3:g} ms)", t
                     )
         self.started_ns = time.perf_counter_ns()
         self.reading = reading = self.bus.read()
         self.received_ns = time.perf_counter_ns()
-        self._tally(reading)
+        self._tally(reading, t)
         controller.q_measured[:] = reading.position
         if reading.complete:
             controller.sensor_time[0] = t
@@ -368,9 +409,10 @@ class DynamixelLink(RobotLink):
         self._k += 1
         return t
 
-    def _tally(self, reading: BusRead) -> None:
-        """Counts the period's bus faults; a LoopFault for a servo's hardware alert or
-        a servo without a valid status for `silent_periods` periods."""
+    def _tally(self, reading: BusRead, t: float) -> None:
+        """Counts the period's bus faults (the period at t, s); a LoopFault for a
+        servo's hardware alert or a servo without a valid status for
+        `silent_periods` periods."""
         ok = reading.status == STATUS_OK
         self.silent += reading.status == STATUS_SILENT
         self.corrupt += reading.status == STATUS_CORRUPT
@@ -378,13 +420,19 @@ class DynamixelLink(RobotLink):
         alert = ok & reading.alert
         self.alerts += alert
         for k in np.flatnonzero(alert):
-            raise LoopFault(f"{self.bus.name(k)}: hardware error: {self.bus.hardware_error(k)}")
+            raise LoopFault(
+                f"{self.bus.name(k)}: hardware error: {self.bus.hardware_error(k)}", t
+            )
         limit = self.robot.bus.silent_periods
         for k in np.flatnonzero(self._failures >= limit):
-            what = "no status" if reading.status[k] == STATUS_SILENT else "a corrupt status"
+            what = (
+                "no status"
+                if reading.status[k] == STATUS_SILENT
+                else "a corrupt status"
+            )
             raise LoopFault(
                 f"{self.bus.name(k)}: {what} in {self._failures[k]} periods in a row "
-                f"(silent_periods: {limit})"
+                f"(silent_periods: {limit})", t
             )
 
     def send(self, q_cmd: np.ndarray, t: float) -> None:
@@ -395,15 +443,22 @@ class DynamixelLink(RobotLink):
 
     def ending(self, ramped: bool) -> str:
         if ramped:
-            return ("the goal then ramped to the measured pose: the servos' own position "
-                    "loop holds the robot")
-        return ("nothing could be sent any more: the servos hold their last goal "
-                "position (their own position loop)")
+            return (
+                "the goal then ramped to the measured pose: the servos' own position "
+                "loop holds the robot"
+            )
+        return (
+            "nothing could be sent any more: the servos hold their last goal "
+            "position (their own position loop)"
+        )
 
     def counters(self) -> dict:
         per_servo = {
-            str(servo): {"no_status": int(self.silent[k]), "corrupt": int(self.corrupt[k]),
-                         "hardware_alerts": int(self.alerts[k])}
+            str(servo): {
+                "no_status": int(self.silent[k]),
+                "corrupt": int(self.corrupt[k]),
+                "hardware_alerts": int(self.alerts[k]),
+            }
             for k, servo in enumerate(self.bus.ids)
         }
         return {

@@ -14,7 +14,12 @@ import numpy as np
 
 
 class LoopFault(RuntimeError):
-    """What ended a loop early (the message names it)."""
+    """What ended a loop early (the message names it); `t`: the time of the period it
+    happened in (s), if not the last tick's."""
+
+    def __init__(self, message: str, t: float | None = None):
+        super().__init__(message)
+        self.t = t
 
 
 class LinkClosed(ConnectionError):
