@@ -30,6 +30,10 @@ Sections (all by default; pick with --only):
              hub on 127.0.0.1 (scripts/bench_lcm.py; --lcm-duration, default 60 s):
              receive-to-publish latency p50/p99/p99.9/max (goal p99 <= 250 us),
              overruns of the 1 ms period, torque-control share, fallbacks.
+  bus        the Dynamixel bus loop through the emulated servos (`sim-servo`), back to
+             back: cycle p50/p99 and the achieved rate for 1, 6 and 12 XL330s at 1, 2
+             and 4 Mbit/s, beside the wire-time budget and what a USB adapter's 1 ms
+             latency timer leaves (scripts/bench_bus.py; --bus-cycles, default 2000).
 
 Figures vary from run to run (2 cores, shared): compare rows of the same run.
 
@@ -38,6 +42,7 @@ Figures vary from run to run (2 cores, shared): compare rows of the same run.
     python scripts/bench.py --only fused
     python scripts/bench.py --only lcm [--lcm-duration 60]
     python scripts/bench.py --only closed_loop [--closed-loop-duration 5]
+    python scripts/bench.py --only bus [--bus-cycles 2000]
 """
 
 import argparse
@@ -381,12 +386,13 @@ def bench_tick(rounds: int = 41, ticks_per_round: int = 250) -> list[dict]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
-        "--only", default="sim,sg,estimator,control,fit,tick,fused,closed_loop,lcm"
+        "--only", default="sim,sg,estimator,control,fit,tick,fused,closed_loop,lcm,bus"
     )
     parser.add_argument("--duration", type=float, default=3.0, help="simulated s")
     parser.add_argument("--json", type=Path, help="also write the rows here")
     parser.add_argument("--rounds", type=int, default=41, help="tick: rounds (median)")
     parser.add_argument("--lcm-duration", type=float, default=60.0, help="lcm: seconds")
+    parser.add_argument("--bus-cycles", type=int, default=2000, help="bus: cycles per bus")
     parser.add_argument(
         "--closed-loop-duration",
         type=float,
@@ -451,6 +457,17 @@ def main() -> int:
             bench_lcm(robot, args.lcm_duration, Path("out/bench_lcm") / robot)
             for robot in ("hrp2", "iiwa14")
         ]
+    if "bus" in sections:
+        from bench_bus import SERVOS, BAUDS, bench_bus
+        import tempfile
+
+        print("bus", file=sys.stderr)
+        with tempfile.TemporaryDirectory() as folder:
+            results["bus"] = [
+                {"name": f"{n} x XL330 at {baud / 1e6:g} Mbit/s"}
+                | bench_bus(n, baud, args.bus_cycles, Path(folder))
+                for n in SERVOS for baud in BAUDS
+            ]
 
     for section, rows in results.items():
         print(f"\n## {section}")
