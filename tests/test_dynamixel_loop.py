@@ -9,7 +9,6 @@ bus loop equals the fused controller in process with the same bus timing, and ev
 bus fault ends in a ramp where the bus still works, a report and one line."""
 
 import json
-import os
 import signal
 import subprocess
 import sys

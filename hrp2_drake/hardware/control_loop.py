@@ -29,11 +29,13 @@ robot in one process with the LCM loop's and the bus loop's timing, what the loo
 are tested against.
 """
 
+import contextlib
 import gc
 import math
 import os
 import signal
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -83,6 +85,23 @@ def request_real_time(config: RealTimeConfig) -> dict:
         except (OSError, AttributeError) as error:
             granted["error"] += f"SCHED_FIFO: {getattr(error, 'strerror', error)}; "
     return granted
+
+
+@contextlib.contextmanager
+def garbage_collector_frozen(freeze: bool = True) -> Iterator[None]:
+    """Within it, Python's garbage collector does not run (the objects of start-up
+    collected and frozen first): a collection of a process that imported Drake takes
+    tens of ms, more than a period. Everything the same without `freeze`."""
+    if freeze:
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+    try:
+        yield
+    finally:
+        if freeze:
+            gc.enable()
+            gc.unfreeze()
 
 
 def _check_time(value, name: str) -> None:
@@ -247,31 +266,28 @@ class ControlLoop:
             sig: signal.signal(sig, self._on_signal)
             for sig in (signal.SIGTERM, signal.SIGINT)
         }
-        if config.real_time.freeze_gc:
-            gc.collect()
-            gc.freeze()
-            gc.disable()
         try:
-            while not self._stop:
-                if not self.step(config.silence_timeout):
-                    raise LoopFault(self.link.silence(config.silence_timeout))
-        except LinkClosed as error:
-            self._set_fault(LoopFault(self.link.gone(error)))
-        except LoopFault as error:
-            self._set_fault(error)
-            self._ramp_out()
-        except Exception as error:  # a bug must not leave the robot in torque mode
-            self._set_fault(LoopFault(f"{type(error).__name__}: {error}"))
-            self._ramp_out()
-        else:
-            self._ramp_out()
+            with garbage_collector_frozen(config.real_time.freeze_gc):
+                self._loop(config.silence_timeout)
         finally:
-            if config.real_time.freeze_gc:
-                gc.enable()
-                gc.unfreeze()
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
         return self.summary(granted)
+
+    def _loop(self, silence: float) -> None:
+        """Periods until the end, then the ramp out; a fault recorded on the way."""
+        try:
+            while not self._stop:
+                if not self.step(silence):
+                    raise LoopFault(self.link.silence(silence))
+        except LinkClosed as error:
+            self._set_fault(LoopFault(self.link.gone(error)))
+            return
+        except LoopFault as error:
+            self._set_fault(error)
+        except Exception as error:  # a bug must not leave the robot in torque mode
+            self._set_fault(LoopFault(f"{type(error).__name__}: {error}"))
+        self._ramp_out()
 
     def _on_signal(self, signum, frame) -> None:
         self._set_fault(LoopFault(f"stopped by {signal.Signals(signum).name}"))
@@ -608,28 +624,22 @@ class RobotBridge:
             self.step()  # initialization: not timed against the clock
         start = time.perf_counter() - self.k * wall_period
         try:
-            gc.collect()
-            gc.freeze()
-            gc.disable()
-            while not stop["now"] and self.k * self.period <= self.config.duration:
-                self.step()
-                deadline = start + self.k * wall_period
-                self.transport.handle(0.0)  # at least once: behind schedule too
-                late = False
-                while True:
-                    remaining = deadline - time.perf_counter()
-                    if remaining <= 0:
-                        late = remaining < -wall_period
-                        self.late_periods += late
-                        break
-                    self.transport.handle(remaining)
-                self._watchdog()
+            with garbage_collector_frozen():
+                while not stop["now"] and self.k * self.period <= self.config.duration:
+                    self.step()
+                    deadline = start + self.k * wall_period
+                    self.transport.handle(0.0)  # at least once: behind schedule too
+                    while True:
+                        remaining = deadline - time.perf_counter()
+                        if remaining <= 0:
+                            self.late_periods += remaining < -wall_period
+                            break
+                        self.transport.handle(remaining)
+                    self._watchdog()
         except TransportClosed as error:
             self.fault = f"the transport is gone at t = {self._context.get_time():.3f} s ({error})"
             self.hold()
         finally:
-            gc.enable()
-            gc.unfreeze()
             for s, handler in previous.items():
                 signal.signal(s, handler)
         return self.summary()

@@ -332,13 +332,14 @@ class DynamixelBus:
 class DynamixelLink(RobotLink):
     """A robot on its Dynamixel bus as the control loop's link (`hardware.link`).
 
-    The loop's own clock: period k starts at k·T on the wall clock (T: the
-    description's `sensors.period`, the bus's) with one sync read, and its command is
-    one sync write. A period that starts late runs at once (it is counted; a loop more
-    than the loop's silence timeout behind is a fault). With `lockstep` (a lock-step
-    simulation behind the port: its clock is the bus traffic) nothing waits for the
-    wall clock. The samples of period k have time k·T; their stamp moves only when
-    every servo answered.
+    The loop's own clock: period k starts at k·T on the wall clock from the first
+    `receive` (T: the description's `sensors.period`, the bus's) with one sync read,
+    and its command is one sync write. A period that starts late runs at once (it is
+    counted; a loop more than the loop's silence timeout behind is a fault), or, with
+    `skip_late`, skips to the period of now. With `lockstep` (a lock-step simulation
+    behind the port: its clock is the bus traffic) nothing waits for the wall clock.
+    The samples of period k have time k·T; their stamp moves only when every servo
+    answered.
 
     Bus faults are counted per servo: no status, a corrupt status (CRC, length), a
     hardware alert. A servo with a hardware alert, or without a valid status for
@@ -350,6 +351,9 @@ class DynamixelLink(RobotLink):
         port: the serial port.
         lockstep: the robot's clock is the bus traffic.
         gain: the position P gain to set (None: the description's).
+        skip_late: a period that starts more than a period late skips to the period
+            of now (counted), rather than running late: a recording, whose log takes
+            the host's clock (a controller runs every period).
     """
 
     def __init__(
@@ -358,9 +362,12 @@ class DynamixelLink(RobotLink):
         port: str,
         lockstep: bool = False,
         gain: float | None = None,
+        skip_late: bool = False,
     ):
         self.robot = robot
         self.gain = gain
+        self.skip_late = skip_late
+        self.skipped = 0
         self.bus = DynamixelBus(robot, port)
         self.name = port
         self.lockstep = lockstep
@@ -380,10 +387,11 @@ class DynamixelLink(RobotLink):
     def connect(self, controller) -> np.ndarray:
         q = self.bus.start(self.gain)
         controller.q_measured[:] = q
-        self._t0 = time.perf_counter()
         return q
 
     def receive(self, controller, timeout: float) -> float | None:
+        if self._k == 0:
+            self._t0 = time.perf_counter()  # the clock starts with the first period
         t = self._k * self.period
         if not self.lockstep:
             lag = time.perf_counter() - (self._t0 + t)
@@ -392,7 +400,12 @@ class DynamixelLink(RobotLink):
             elif lag > self.period:
                 self.late += 1
                 self.max_lag = max(self.max_lag, lag)
-                if lag > timeout:
+                if self.skip_late:  # on to the period of now
+                    skipped = int(lag / self.period)
+                    self.skipped += skipped
+                    self._k += skipped
+                    t = self._k * self.period
+                elif lag > timeout:
                     raise LoopFault(
                         f"{self.name}: the loop is {lag * 1e3:.0f} ms behind the bus "
                         f"period ({self.period * 1e3:g} ms)", t
@@ -465,6 +478,7 @@ class DynamixelLink(RobotLink):
             "servos": per_servo,
             "incomplete_periods": int(self.incomplete),
             "late_periods": int(self.late),
+            "skipped_periods": int(self.skipped),
             "max_lag_ms": self.max_lag * 1e3,
         }
 

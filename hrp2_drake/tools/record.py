@@ -27,7 +27,7 @@ import numpy as np
 from hrp2_drake.config import check_finite
 from hrp2_drake.console import say
 from hrp2_drake.description import RobotDescription, load_robot_description
-from hrp2_drake.hardware.control_loop import LoopSettings
+from hrp2_drake.hardware.control_loop import LoopSettings, garbage_collector_frozen
 from hrp2_drake.hardware.dynamixel import DynamixelLink
 from hrp2_drake.hardware.link import LinkClosed, LoopFault
 from hrp2_drake.identification.excitation import make_plan
@@ -49,7 +49,9 @@ class RecordConfig:
             (< 1; each at least 2 s).
         approach_speed: the move from the measured pose to the excitation's start:
             its fastest joint (rad/s).
-        loop: the loop's settings (a loop this far behind the bus period stops).
+        loop: the loop's settings (its real_time.freeze_gc; a period that starts
+            more than a period late skips to the period of now, counted in the
+            report).
     """
 
     robot: str = ""
@@ -116,13 +118,14 @@ def record_one(robot: RobotDescription, port: str, gain: float, config: RecordCo
     bus = robot.bus
     n = len(robot.joints)
     buffers = SimpleNamespace(q_measured=np.zeros(n), sensor_time=np.zeros(1))
-    link = DynamixelLink(robot, port, lockstep=lockstep, gain=gain)
+    link = DynamixelLink(robot, port, lockstep=lockstep, gain=gain, skip_late=True)
     try:
         start = link.connect(buffers)
         plan = make_plan(robot.identification.scaled(config.duration_scale), robot.joints,
                          robot.home_positions())
         excitation = _Excitation(plan, start, config.approach_speed)
-        rows, fault = _play(link, buffers, excitation, config, lockstep)
+        with garbage_collector_frozen(config.loop.real_time.freeze_gc):
+            rows, fault = _play(link, buffers, excitation, config, lockstep)
     finally:
         link.close()
     columns = _columns(robot, rows)
@@ -235,7 +238,8 @@ def _markdown(robot: RobotDescription, summary: dict) -> str:
         faults = sum(c["no_status"] + c["corrupt"] for c in servos)
         rows.append([f"`{log['log']}`", f"{log['gain']:g}", f"{log['samples']}",
                      f"{log['approach_s']:.1f}", f"{faults}",
-                     f"{log['bus']['late_periods']}", log["fault"] or "its end"])
+                     f"{log['bus']['late_periods']} ({log['bus']['skipped_periods']})",
+                     log["fault"] or "its end"])
     lines = [
         f"# Identification logs of {robot.name}, recorded on its bus",
         "",
@@ -247,7 +251,7 @@ def _markdown(robot: RobotDescription, summary: dict) -> str:
         f"--robot {robot.name} --log <log>` (and `validate`, `calibrate`).",
         "",
         *markdown_table(["log", "P gain", "samples", "move to start (s)",
-                         "statuses missing or corrupt", "late periods", "ended with"], rows),
+                         "statuses missing or corrupt", "late periods (skipped)", "ended with"], rows),
         "",
         *[f"![{log['log']}]({Path(log['log']).stem}.png)" for log in summary["logs"]],
     ]
