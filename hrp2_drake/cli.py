@@ -632,6 +632,10 @@ _SHARED_OPTIONS = {
     "config": {},
     "motor_model": {"help": "MotorModel YAML (default: identify one)"},
     "log": {},
+    "port": {"help": "the robot on its Dynamixel bus: the serial port (e.g. /dev/ttyUSB0, "
+             "or the path sim-servo prints)"},
+    "lockstep": {"action": "store_true", "help": "the robot behind the port is a lock-step "
+                 "simulation (sim-servo --lockstep): nothing waits for the wall clock"},
     "lcm": {
         "required": True,
         "help": "LCM URL, e.g. udpm://239.255.76.67:7667?ttl=0 on a robot's network, "
@@ -801,11 +805,8 @@ def _add_control(commands: _Commands) -> None:
         robot=True,
         lcm={"required": False, "default": "", "help": "the robot over LCM: its URL "
              "(see sim-robot --lcm)"},
-        port={"default": "", "help": "the robot on its Dynamixel bus: the serial port "
-              "(e.g. /dev/ttyUSB0, or the path sim-servo prints)"},
-        lockstep={"action": "store_true", "help": "with --port: the robot is a lock-step "
-                  "simulation (sim-servo --lockstep): the loop does not wait for the wall "
-                  "clock"},
+        port={"default": ""},
+        lockstep=True,
         motor_model={"required": True, "help": "MotorModel YAML"},
         config="ControlConfig YAML file",
         duration="seconds (default 5)",
@@ -823,13 +824,11 @@ def _add_record(commands: _Commands) -> None:
         "description's excitation through the servos' own position control, one log per "
         "P gain, in the robot's log format (for identify, validate, calibrate)",
         robot=True,
-        port={"required": True, "help": "the serial port (e.g. /dev/ttyUSB0, or the path "
-              "sim-servo prints)"},
+        port={"required": True},
         gain={"type": _number(int, 0), "action": "append", "default": None,
               "help": "a position P gain to record at (repeat for several; default: the "
               "description's position_loop.gain)"},
-        lockstep={"action": "store_true", "help": "the robot is a lock-step simulation "
-                  "(sim-servo --lockstep)"},
+        lockstep=True,
         config="RecordConfig YAML file",
         out=True,
     )

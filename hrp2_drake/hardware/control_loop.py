@@ -697,7 +697,6 @@ def run_in_process(
     q_cmd_port = station.GetInputPort("q_cmd")
     q_cmd_port.FixValue(context, initial_joint_positions(station_config))
     command = np.zeros(len(robot.joints))
-    tick = on_tick or (lambda step: step())
     simulator.Initialize()
     out = []
     for k in range(1, ticks + 1):
@@ -706,20 +705,26 @@ def run_in_process(
             controller.sensor_buffer[a:b] = port.Eval(context)
         t = (k - 1) * period
         controller.sensor_time[:] = stamp_port.Eval(context) - period
-        controller.q_ref[:], controller.v_ref[:], controller.vdot_ref[:] = reference.at(
-            t
-        )
-        if k == 1:
-            controller.initialize(t)
-
-        def step(t=t):
-            controller.tick(t)
-            controller.command(controller.q_ref, command)
-
-        tick(step)
+        _tick_in_process(controller, reference, t, k == 1, on_tick, command)
         q_cmd_port.FixValue(context, command)
         out.append((command.copy(), controller.estimator.tau.copy()))
     return out
+
+
+def _tick_in_process(controller: FusedController, reference, t: float, first: bool,
+                     on_tick, command: np.ndarray) -> None:
+    """One tick of an in-process run at t (s): the reference at t, the chain's
+    initialization on the `first`, the tick and its command into `command`, wrapped
+    by `on_tick(step)` if given (a timer)."""
+    controller.q_ref[:], controller.v_ref[:], controller.vdot_ref[:] = reference.at(t)
+    if first:
+        controller.initialize(t)
+
+    def step():
+        controller.tick(t)
+        controller.command(controller.q_ref, command)
+
+    (on_tick or (lambda tick: tick()))(step)
 
 
 def run_on_bus_in_process(
@@ -747,24 +752,13 @@ def run_on_bus_in_process(
     servos.set_goal(bus.quantized(servos.present().position))
     servos.set_enabled(np.ones(len(robot.joints)))
     command = np.zeros(len(robot.joints))
-    tick = on_tick or (lambda step: step())
     out = []
     for k in range(ticks):
         t = k * period
         servos.advance_to(t)
         controller.q_measured[:] = bus.quantized(servos.present().position)
         controller.sensor_time[0] = t
-        controller.q_ref[:], controller.v_ref[:], controller.vdot_ref[:] = reference.at(
-            t
-        )
-        if k == 0:
-            controller.initialize(t)
-
-        def step(t=t):
-            controller.tick(t)
-            controller.command(controller.q_ref, command)
-
-        tick(step)
+        _tick_in_process(controller, reference, t, k == 0, on_tick, command)
         servos.advance_to(t + delay)
         servos.set_goal(bus.quantized(command))
         out.append((command.copy(), controller.estimator.tau.copy()))
