@@ -106,6 +106,30 @@ def first_order_hold(
     return trajectory
 
 
+class SmoothMove:
+    """A move from `start` to `goal` (rad, every joint): a quintic with zero velocity
+    and acceleration at both ends, no joint faster than `speed` rad/s (a quintic peaks
+    at 15/8 of the mean speed), at least 0.2 s; none (`duration` 0) if `start` is
+    within `tolerance` (rad) of `goal` on every joint (the position servo takes that
+    step). The move that starts a run on a robot, from its measured pose."""
+
+    def __init__(self, start: np.ndarray, goal: np.ndarray, speed: float,
+                 tolerance: float = 1e-3):
+        self.start = np.asarray(start, float)
+        self.step = np.asarray(goal, float) - self.start
+        distance = float(np.max(np.abs(self.step)))
+        self.duration = max(0.2, 1.875 * distance / speed) if distance > tolerance else 0.0
+
+    def at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """q, q̇, q̈ at the times t (s, 1-D, within the move): (len(t), n) each."""
+        s = np.asarray(t, float) / self.duration
+        e = s**3 * (10 - 15 * s + 6 * s**2)
+        de = 30 * s**2 * (1 - s) ** 2 / self.duration
+        dde = 60 * s * (1 - s) * (1 - 2 * s) / self.duration**2
+        step = self.step
+        return self.start + np.outer(e, step), np.outer(de, step), np.outer(dde, step)
+
+
 @dataclass
 class JointReference:
     """A joint-space reference for all n joints of a robot: positions, velocities,
@@ -135,30 +159,18 @@ class JointReference:
     ) -> "JointReference":
         """This reference (piecewise linear between its breaks, as `from_samples` and
         `hold` make it) delayed by a smooth move to its first pose from `start` (rad,
-        every joint; the robot's measured pose): a quintic with zero velocity and
-        acceleration at both ends, no joint faster than `speed` rad/s, at least 0.2
-        s, its duration in `approach_time`; this reference itself if `start` is
-        within `tolerance` (rad) of its first pose on every joint (the position servo
-        takes that step)."""
-        q0 = self.at(0.0)[0]
-        distance = float(np.max(np.abs(q0 - start)))
-        if distance <= tolerance:
+        every joint; the robot's measured pose): `SmoothMove`, its duration in
+        `approach_time`; this reference itself if the move is none (`start` within
+        `tolerance` of the first pose)."""
+        move = SmoothMove(start, self.at(0.0)[0], speed, tolerance)
+        if not move.duration:
             return self
-        duration = max(0.2, 1.875 * distance / speed)  # a quintic peaks at 15/8 the mean
-        t = np.arange(0.0, duration, 0.001)
-        s = t / duration
-        e = s**3 * (10 - 15 * s + 6 * s**2)
-        de = 30 * s**2 * (1 - s) ** 2 / duration
-        dde = 60 * s * (1 - s) * (1 - 2 * s) / duration**2
-        move = np.asarray(q0 - start, float)
+        t = np.arange(0.0, move.duration, 0.001)
         later = self.trajectory.get_segment_times()
         samples = np.array([self.trajectory.value(x).ravel() for x in later])
-        times = np.concatenate([t, duration + np.asarray(later)])
-        values = np.vstack([
-            np.hstack([start + np.outer(e, move), np.outer(de, move), np.outer(dde, move)]),
-            samples,
-        ])
-        return JointReference(first_order_hold(times, values.T), approach_time=duration)
+        times = np.concatenate([t, move.duration + np.asarray(later)])
+        values = np.vstack([np.hstack(move.at(t)), samples])
+        return JointReference(first_order_hold(times, values.T), approach_time=move.duration)
 
     def at(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         x = self.trajectory.value(t).ravel()

@@ -188,3 +188,7 @@ class LcmLink(RobotLink):
 
     def counters(self) -> dict:
         return {"refused_samples": int(self.refused)}
+
+    def close(self) -> None:
+        """Closes the transport (the link's, from `open_transport`)."""
+        self.transport.close()

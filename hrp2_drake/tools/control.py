@@ -171,9 +171,7 @@ def open_link(config: ControlConfig, controller: FusedController, lcm_url: str =
     from hrp2_drake.hardware.lcm_link import LcmLink
 
     transport = open_transport(lcm_url, timeout=min(config.loop.wait_timeout, 2.0))
-    link = LcmLink(robot, transport, config.channels, controller, config.loop.wait_timeout)
-    link.close = transport.close
-    return link
+    return LcmLink(robot, transport, config.channels, controller, config.loop.wait_timeout)
 
 
 def run_control(

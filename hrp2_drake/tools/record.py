@@ -24,6 +24,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from hrp2_drake.assembly.builders import SmoothMove
 from hrp2_drake.config import check_finite
 from hrp2_drake.console import say
 from hrp2_drake.description import RobotDescription, load_robot_description
@@ -92,22 +93,18 @@ class RecordConfig:
 
 
 class _Excitation:
-    """The goal over time: a quintic move from the measured pose to the plan's start,
-    then the plan (`make_plan`'s q_cmd)."""
+    """The goal over time: a smooth move from the measured pose to the plan's start
+    (`SmoothMove`), then the plan (`make_plan`'s q_cmd)."""
 
     def __init__(self, plan, start: np.ndarray, speed: float):
         self.plan = plan
-        self.start = start
-        first = plan.q_cmd.value(0.0).ravel()
-        self.move = first - start
-        distance = float(np.max(np.abs(self.move)))
-        self.approach = max(0.2, 1.875 * distance / speed) if distance > 1e-9 else 0.0
+        self.move = SmoothMove(start, plan.q_cmd.value(0.0).ravel(), speed)
+        self.approach = self.move.duration
         self.end = self.approach + plan.duration
 
     def __call__(self, t: float) -> np.ndarray:
         if t < self.approach:
-            s = t / self.approach
-            return self.start + s**3 * (10 - 15 * s + 6 * s**2) * self.move
+            return self.move.at(np.array([t]))[0][0]
         return self.plan.q_cmd.value(min(t - self.approach, self.plan.duration)).ravel()
 
 
