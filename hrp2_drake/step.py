@@ -6,7 +6,8 @@ outputs are named state arrays (what a LeafSystem exposes with
 `DeclareStateOutputPort`): a consumer reads them one tick later, the one-sample delay of
 a real controller. A step holds no systems Context (a MultibodyPlant context as a
 computation workspace is fine), allocates nothing per tick, and never logs: it counts
-events in its state and its shell reports them.
+events in its state and its shell reports them. Its arithmetic is a numba kernel
+(`hrp2_drake.kernels`), which `warm_up` compiles before a loop starts.
 
 Two shells run the same steps:
 
@@ -113,6 +114,11 @@ class Step:
     def reset(self) -> None:
         """Back to the initial state (in place)."""
         self._state[:] = self.initial_state()
+
+    def warm_up(self) -> None:
+        """Compiles (or loads from numba's cache) every kernel the step calls per
+        tick (`hrp2_drake.kernels`): each called once on arrays of the real types and
+        layouts, the step's state left as it was. A step without kernels: nothing."""
 
 
 class StepSystem(WitnessFreeLeafSystem):

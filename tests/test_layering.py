@@ -15,7 +15,7 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "hrp2_drake"
 
-HELPERS = {"config", "multibody", "console", "simulation", "step", "report"}
+HELPERS = {"config", "multibody", "console", "simulation", "step", "report", "kernels"}
 ALGORITHMS = {"estimation", "identification", "control"}
 ROBOT = {"robot", "hardware"}
 
@@ -25,6 +25,7 @@ ALLOWED: dict[str, set[str]] = {
     "multibody": set(),
     "console": set(),
     "report": set(),
+    "kernels": set(),
     "simulation": {"console"},
     "step": {"simulation", "console"},
     "description": {"config", "multibody"},
