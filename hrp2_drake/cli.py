@@ -280,7 +280,8 @@ def _sim_robot(args: argparse.Namespace) -> int:
     _set_given(station, args, "scenario")
     validate_config(station)
     out = _output_folder(args.out) if args.out else None
-    summary = run_sim_robot(station, args.lcm, args.duration, out, rate=args.realtime_rate)
+    summary = run_sim_robot(station, args.lcm, args.duration, out, rate=args.realtime_rate,
+                            lockstep=args.lockstep)
     print(
         f"sim-robot: {summary['simulated']:.2f} s simulated; command watchdog tripped "
         f"{summary['watchdog_trips']} times"
@@ -874,6 +875,10 @@ def _add_sim_robot(commands: _Commands) -> None:
             "help": "target real-time rate (default 1; < 1 slows the robot's clock, for "
             "tests)",
         },
+        lockstep={"action": "store_true", "help": "advance a period only once the "
+                  "controller's command for the last one has come (after the first "
+                  "command: or 0.2 s without one): a clock independent of the machine, "
+                  "for tests"},
         out={"default": None, "help": "write the ground truth (sim_robot.npz) here on exit"},
     )
 

@@ -177,11 +177,17 @@ def test_hub_relays_between_processes_on_the_loopback():
 
 
 def test_control_and_sim_robot_across_processes(tmp_path, motor_model):
-    """`hrp2-drake sim-robot` and `hrp2-drake control` in two processes, through the
-    tcpq hub on 127.0.0.1: the same motion closes the loop over TCP. The robot runs
-    at half real time, so that a loaded 2-core CI machine keeps its clock; the
-    controller ticks on its messages, whatever their rate (the real-time figures are
-    measured in scripts/bench_lcm.py)."""
+    """`hrp2-drake sim-robot --lockstep` and `hrp2-drake control` in two processes,
+    through the tcpq hub on 127.0.0.1: the same motion closes the loop over TCP. The
+    robot advances a period only once the command for the last one has come, so the
+    run does not depend on the machine's speed: it equals the fused controller in one
+    process (`run_in_process`) command for command, to 1e-9 rad (the real-time figures
+    are measured in scripts/bench_lcm.py)."""
+    from hrp2_drake.assembly.builders import torque_chain_parts
+    from hrp2_drake.control.fused import FusedController
+    from hrp2_drake.hardware.control_loop import run_in_process
+    from hrp2_drake.identification.motor_model import MotorModel
+
     port = _free_port()
     url = f"tcpq://127.0.0.1:{port}"
     cli = [sys.executable, "-m", "hrp2_drake.cli"]
@@ -190,19 +196,19 @@ def test_control_and_sim_robot_across_processes(tmp_path, motor_model):
         stdout=subprocess.PIPE, text=True,
     )
     robot = None
+    path = tmp_path / "model.yaml"
+    motor_model.save(path)
     try:
         hub.stdout.readline()
         robot = subprocess.Popen(
             cli + ["sim-robot", "--robot", "iiwa14", "--lcm", url, "--duration", "30",
-                   "--realtime-rate", "0.5", "--out", str(tmp_path / "robot")],
+                   "--lockstep", "--out", str(tmp_path / "robot")],
             stderr=subprocess.PIPE, text=True,
         )
-        path = tmp_path / "model.yaml"
-        motor_model.save(path)
         done = subprocess.run(
             cli + ["control", "--robot", "iiwa14", "--lcm", url, "--motor-model", str(path),
                    "--duration", "3", "--out", str(tmp_path / "control")],
-            capture_output=True, text=True, timeout=120,
+            capture_output=True, text=True, timeout=300,
         )
         assert done.returncode == 0, done.stderr[-2000:]
         robot.terminate()
@@ -212,14 +218,21 @@ def test_control_and_sim_robot_across_processes(tmp_path, motor_model):
             if process is not None and process.poll() is None:
                 process.kill()
     summary = json.loads((tmp_path / "control" / "control.json").read_text())
-    # 3 s after the move from the measured pose (sagged under gravity) to home: one
-    # tick per period from 0 to the end, to the rounding of the move's duration.
-    ticks = summary["ticks"] - (3.0 + summary["approach_s"]) / 0.001
-    assert abs(ticks - 1) <= 1 and summary["fault"] == ""
-    assert summary["torque_share"] == 1.0 and summary["events"] == []
-    # Measured: 1.3-2.1 mrad (in one process over memq: 0.9-1.2; the position servo:
-    # 7-10): the two clocks run free against each other and a tick may start late.
-    assert max(summary["max_error_mrad"]) < 4.0, summary
+    # The robot waits on its first sample: no move from a sagged pose, one tick per
+    # period from 0 to 3 s.
+    assert summary["approach_s"] == 0.0 and summary["ticks"] == 3001
+    assert summary["fault"] == "" and summary["torque_share"] == 1.0
+    assert summary["events"] == []
+    signals = np.load(tmp_path / "control" / "control.npz")
+    config = ControlConfig(robot="iiwa14", duration=3.0)
+    robot_description = config.description()
+    reference = control_reference(config)
+    controller = FusedController(torque_chain_parts(
+        robot_description, reference, MotorModel.load(path),
+        config.torque_control_at_period(), period=config.period()))
+    direct = run_in_process(IIWA, controller, reference, summary["ticks"])
+    np.testing.assert_allclose(signals["q_cmd"], np.array([q for q, _ in direct]),
+                               rtol=0, atol=1e-9)
     truth = np.load(tmp_path / "robot" / "sim_robot.npz")
     moved = np.ptp(truth["q_cmd"], axis=0)
     assert np.all(moved > 0.15)  # the reference moved every joint by 0.2-0.27 rad

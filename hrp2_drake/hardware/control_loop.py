@@ -461,13 +461,20 @@ class BridgeConfig:
     Args:
         duration: seconds of robot time (inf: until SIGTERM or SIGINT).
         rate: the real-time rate (1 on a robot; < 1 slows the robot's clock).
-        watchdog_periods: hold the measured pose after this many periods without a
-            new command (once commands have come).
+        watchdog_periods: hold the measured pose after this many of its own periods
+            without a new command (once commands have come).
+        lockstep: the robot advances a period only once the command for the last
+            one has come, or after `lockstep_timeout` s without one: a clock that
+            does not depend on the machine, for tests (a real robot never waits).
+        lockstep_timeout: how long a lock-step robot waits for a command (s of wall
+            time): before the first command, and when the controller is gone.
     """
 
     duration: float = math.inf
     rate: float = 1.0
     watchdog_periods: int = 5
+    lockstep: bool = False
+    lockstep_timeout: float = 0.2
 
     def validate(self) -> None:
         if not (self.duration > 0):
@@ -481,6 +488,7 @@ class BridgeConfig:
                 f"BridgeConfig.watchdog_periods: {self.watchdog_periods!r} must be an "
                 "integer >= 1"
             )
+        _check_time(self.lockstep_timeout, "BridgeConfig.lockstep_timeout")
 
 
 class RobotBridge:
@@ -564,6 +572,34 @@ class RobotBridge:
             self.hold()
             self.watchdog_trips += 1
 
+    def _wait_for_command(self, stopped) -> bool:
+        """Lock step: handles messages until a command newer than the last period's
+        has come, or, once commands have come, lockstep_timeout s of wall time (the
+        controller gone: the watchdog counts these periods). Before the first
+        command it waits as long as it takes, sending its first sample again every
+        lockstep_timeout (the controller ticks on it); holding its pose (the watchdog tripped) it
+        waits for nothing. False if `stopped()` says so meanwhile."""
+        timeout = self.config.lockstep_timeout
+        deadline = time.perf_counter() + timeout
+        self.transport.handle(0.0)  # at least once: a command that came meanwhile
+        if self.holding:
+            return True  # nothing to wait for: on at full speed until commands come
+        while self._last_command_k < self.k:
+            if stopped():
+                return False
+            if self._last_command_k < 0:
+                # Nobody has answered yet: the sample again, for a controller that
+                # subscribed after it went out (the same stamps: not a new period).
+                self.transport.handle(timeout)
+                if self._last_command_k < 0:
+                    self.publish_sensors()
+                continue
+            remaining = deadline - time.perf_counter()
+            if remaining <= 0:
+                break
+            self.transport.handle(remaining)
+        return True
+
     def hold(self) -> None:
         """Holds the measured pose (the servo in position control)."""
         q = self.station.GetOutputPort("q_measured").Eval(self._context)
@@ -626,6 +662,12 @@ class RobotBridge:
         try:
             with garbage_collector_frozen():
                 while not stop["now"] and self.k * self.period <= self.config.duration:
+                    if self.config.lockstep:
+                        if not self._wait_for_command(lambda: stop["now"]):
+                            break
+                        self._watchdog()
+                        self.step()
+                        continue
                     self.step()
                     deadline = start + self.k * wall_period
                     self.transport.handle(0.0)  # at least once: behind schedule too
@@ -671,10 +713,10 @@ def run_in_process(
     station_config, controller: FusedController, reference, ticks: int, on_tick=None
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """The fused controller on the simulated station in one process, without messages,
-    with the LCM loop's timing: the station's sample k (k >= 1) is the controller's tick
-    at t = (k − 1) period (over LCM the robot's first sample is consumed while the
-    controller waits for every channel), and the command is applied at once. What the
-    message-driven loop is tested against (tests/test_fused.py), and the bench's
+    with the LCM loop's timing: the station's sample k (k >= 0; 0 at initialization,
+    as the robot's bridge sends it) is the controller's tick at t = k period, and the
+    command is applied at once. What the message-driven loop is tested against
+    (tests/test_fused.py, tests/test_lcm.py with a lock-step robot), and the bench's
     closed-loop tick (`on_tick(tick)` wraps each tick: a timer). Returns (q_cmd, τ̂)
     per tick."""
     from pydrake.systems.analysis import Simulator
@@ -699,13 +741,13 @@ def run_in_process(
     command = np.zeros(len(robot.joints))
     simulator.Initialize()
     out = []
-    for k in range(1, ticks + 1):
-        simulator.AdvanceTo(k * period)
+    for k in range(ticks):
+        if k:
+            simulator.AdvanceTo(k * period)
         for port, a, b in zip(sensor_ports, rows[:-1], rows[1:]):
             controller.sensor_buffer[a:b] = port.Eval(context)
-        t = (k - 1) * period
-        controller.sensor_time[:] = stamp_port.Eval(context) - period
-        _tick_in_process(controller, reference, t, k == 1, on_tick, command)
+        controller.sensor_time[:] = stamp_port.Eval(context)
+        _tick_in_process(controller, reference, k * period, k == 0, on_tick, command)
         q_cmd_port.FixValue(context, command)
         out.append((command.copy(), controller.estimator.tau.copy()))
     return out

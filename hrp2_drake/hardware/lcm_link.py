@@ -148,8 +148,11 @@ class LcmLink(RobotLink):
                 "robot's bridge (or `hrp2-drake sim-robot`) first, with the same URL "
                 "and robot"
             )
-        # The samples the controller waited on are not periods of the run.
-        self._pending.clear()
+        # The latest sample is the run's first period (a lock-step robot waits on
+        # it for the first command); the older ones are not periods of the run.
+        while len(self._pending) > 1:
+            self._pending.popleft()
+        self.refused = 0  # (a robot may send its first sample again while it waits)
         return np.array(q, dtype=float)
 
     def receive(self, controller, timeout: float) -> float | None:

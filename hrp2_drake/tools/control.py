@@ -357,12 +357,14 @@ def _bus_section(robot: RobotDescription, summary: dict) -> list[str]:
 
 def run_sim_robot(config: StationConfig, lcm_url: str, duration: float, out: Path | None,
                   channels: LcmChannels | None = None, rate: float = 1.0,
-                  watchdog_periods: int = 5) -> dict:
+                  watchdog_periods: int = 5, lockstep: bool = False) -> dict:
     """The whole `hrp2-drake sim-robot`: `RobotBridge` in real time (or at `rate` times
-    it) for `duration` s (inf: until SIGTERM or Ctrl-C); writes its ground truth
-    (sim_robot.npz: t, state_true, q_measured, q_cmd, holding) to `out` on exit."""
+    it, or in lock step with the controller's commands) for `duration` s (inf: until
+    SIGTERM or Ctrl-C); writes its ground truth (sim_robot.npz: t, state_true,
+    q_measured, q_cmd, holding) to `out` on exit."""
     config.validate()
-    bridge_config = BridgeConfig(duration=duration, rate=rate, watchdog_periods=watchdog_periods)
+    bridge_config = BridgeConfig(duration=duration, rate=rate, watchdog_periods=watchdog_periods,
+                                 lockstep=lockstep)
     bridge_config.validate()
     transport = open_transport(lcm_url)
     try:
