@@ -59,11 +59,15 @@ def jit_enabled() -> bool:
 
 def freeze() -> None:
     """No more compiling: a kernel called with a signature it has not compiled for
-    raises (numba's TypeError) instead of compiling."""
+    raises (numba's TypeError) instead of compiling; one never compiled (a step the
+    controller does not have) raises at any call."""
     global _frozen
     if jit_enabled():
         for dispatcher in kernels():
-            dispatcher.disable_compile()
+            if dispatcher.signatures:
+                dispatcher.disable_compile()
+            else:  # numba's disable_compile() asserts a compiled signature
+                dispatcher._can_compile = False
     _frozen = True
 
 
@@ -97,8 +101,8 @@ def interpreted() -> Iterator[None]:
     swapped = []
     for module_name, name, dispatcher in _KERNELS:
         module = sys.modules[module_name]
-        if getattr(module, name) is dispatcher:
-            setattr(module, name, dispatcher.py_func)
+        if getattr(module, name) is dispatcher:  # (with NUMBA_DISABLE_JIT: the function)
+            setattr(module, name, getattr(dispatcher, "py_func", dispatcher))
             swapped.append((module, name, dispatcher))
     try:
         yield

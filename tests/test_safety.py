@@ -1,10 +1,15 @@
 """SafetySupervisor: each health check, the ramped transfer both ways, re-entry, the
 latched emergency stop (the closed loop is in tests/test_faults.py)."""
 
+import contextlib
+import hashlib
+
 import numpy as np
 import pytest
 
+from hrp2_drake import kernels
 from hrp2_drake.control.safety import (
+    FAULT_BITS,
     SafetyConfig,
     SafetySupervisor,
     SafetySupervisorStep,
@@ -256,3 +261,152 @@ def test_the_step_runs_on_a_bound_buffer_and_holds_the_e_stop_pose():
     np.testing.assert_allclose(q_cmd, [0.005 + 0.07, -0.008 + 0.14], rtol=0, atol=1e-15)
     step.reset_emergency_stop()
     assert not step.emergency_stopped()
+
+
+# ------------------------------------------------------------- the numba kernels
+
+
+def _scripted_run():
+    """The step through every fault (bits 1 to 256; a NaN encoder, an infinite and an
+    out-of-range F/T entry, a frozen encoder while the reference moves, a jump, a NaN
+    command, all samples NaN, a stuck sensor, the e-stop held and reset, the
+    controller's fallback, a stale stamp), re-entries until max_reentries, absent and
+    connected optional inputs in turn; returns [(returned bits, state, q_cmd)] of every
+    period and the union of the fault bits."""
+    config = SafetyConfig(
+        start_time=0.005, ramp_time=0.004, reentry_time=0.006, stale_samples=4,
+        encoder_stale_samples=3, max_reentries=10,
+    )
+    sensors = {"imu_linear_acceleration": "acceleration", "wrench_x": "wrench"}
+    step = SafetySupervisorStep(3, sensors, config, 2)
+    n, s = 3, 9
+    q_torque, q_cmd = np.zeros(n), np.zeros(n)
+    q_position, q_measured, values = np.zeros(n), np.zeros(n), np.zeros(s)
+    e_stop, fallback, stamps = np.zeros(1), np.zeros(1), np.zeros(2)
+    step.initialize(q_measured, q_position, values)
+    trace, bits_seen = [], 0
+    for k in range(220):
+        t = k * 0.001
+        frozen = q_measured[0]
+        for j in range(n):
+            q_position[j] = min(k % 46, 46 - k % 46) * 1e-3 * (j + 1)  # a triangle
+            q_measured[j] = q_position[j] + ((k * 31 + j * 7) % 5) * 1e-5
+            q_torque[j] = q_position[j] + 0.01 * (j + 1)
+        if 60 <= k < 70:
+            q_measured[0] = frozen  # a frozen encoder, its reference moving
+        for j in range(s):  # a noisy sensor, exact arithmetic (no RNG, no libm)
+            values[j] = ((k * 7919 + j * 104729) % 1000) / 1000 - 0.5
+        if 100 <= k < 106:
+            values[:] = 0.25  # a stuck sensor
+        if k == 30:
+            q_measured[1] = np.nan
+        if k == 40:
+            values[4] = np.inf
+        if k == 50:
+            values[8] = 5000.0  # force beyond force_limit
+        if k == 80:
+            q_measured[2] += 0.05  # a jump
+        if k == 90:
+            q_torque[0] = np.nan
+        if k == 95:
+            q_measured[:] = np.nan
+            values[:] = np.nan
+        e_stop[0] = 1.0 if k == 120 else 0.0
+        if k == 150:
+            step.reset_emergency_stop()
+        fallback[0] = 1.0 if 130 <= k < 133 else 0.0
+        stamps[:] = t - 0.001
+        if k == 175:
+            stamps[1] = t - 0.01
+        returned = step.step(
+            t, q_torque, q_position, q_measured, values,
+            None if k % 2 else e_stop,
+            None if k % 3 == 0 else fallback,
+            stamps if k >= 150 else None,
+        )
+        bits_seen |= int(step.fault[0])
+        step.q_cmd(q_torque, q_position, None if k % 5 == 0 else fallback, q_cmd)
+        trace.append((returned, step.state.copy(), q_cmd.copy()))
+    return trace, bits_seen
+
+
+def _digest(trace) -> str:
+    digest = hashlib.sha256()
+    for returned, state, q_cmd in trace:
+        digest.update(np.int64(returned).tobytes())
+        digest.update(state.tobytes())
+        digest.update(q_cmd.tobytes())
+    return digest.hexdigest()
+
+
+#: `_digest(_scripted_run()[0])` with the numpy step before the numba kernels (every
+#: return, state and q_cmd bit for bit).
+_NUMPY_DIGEST = "0bddd23d56a17714de1748131447284e58ecce1e1fd45e1b3eb7a92f1da8f708"
+
+
+def test_kernels_compiled_interpreted_and_numpy_are_bitwise_equal():
+    """The kernels compiled, the same source interpreted, and the numpy step they
+    replaced give the same returns, states and commands, bit for bit, through every
+    fault."""
+    compiled, bits_seen = _scripted_run()
+    # (With NUMBA_DISABLE_JIT=1 both runs are the Python source.)
+    with kernels.interpreted() if kernels.jit_enabled() else contextlib.nullcontext():
+        interpreted, _ = _scripted_run()
+    assert bits_seen == sum(FAULT_BITS)
+    reported = [bits for bits, _, _ in compiled if bits]
+    assert reported == [1, 2, 4, 32, 8, 256, 3, 16, 64, 128, 16]
+    for (r1, s1, c1), (r2, s2, c2) in zip(compiled, interpreted):
+        assert r1 == r2
+        np.testing.assert_array_equal(s1.view(np.int64), s2.view(np.int64))
+        np.testing.assert_array_equal(c1.view(np.int64), c2.view(np.int64))
+    assert _digest(compiled) == _NUMPY_DIGEST
+    assert compiled[-1][1][0] == 0.0  # the 11th fault: position control stays
+
+
+def test_warm_up_then_frozen_a_tick_runs_and_a_new_signature_raises():
+    """warm_up compiles both kernels without touching the state; frozen, a real step
+    (the fused controller's bound buffer, a LeafSystem's arrays) runs, and a float32
+    array raises instead of compiling."""
+    step, _ = _step_and_system(num_stamps=3)
+    buffer = np.zeros(step.state_size + 3)
+    step.bind(buffer[1:-2])
+    step.initialize(np.zeros(2), np.zeros(2), np.zeros(9))
+    step.memory[0] = 0.25  # some state to keep
+    before = buffer.copy()
+    step.warm_up()
+    np.testing.assert_array_equal(buffer, before)
+    q_torque, q_cmd = np.array([0.1, 0.2]), np.zeros(2)
+    try:
+        kernels.freeze()
+        assert step.step(
+            0.0, q_torque, np.zeros(2), np.zeros(2), np.ones(9), np.zeros(1),
+            np.zeros(1), np.zeros(3),
+        ) == 0
+        step.step(0.001, q_torque, np.zeros(2), np.zeros(2), np.zeros(9))
+        step.q_cmd(q_torque, np.zeros(2), None, q_cmd)
+        h = _Harness().step(5)  # the LeafSystem shell (Drake's arrays)
+        assert h.out("mode")[0] == pytest.approx(0.5)
+        if kernels.jit_enabled():
+            with pytest.raises(TypeError):
+                step.step(
+                    0.002, q_torque.astype(np.float32), np.zeros(2), np.zeros(2),
+                    np.zeros(9),
+                )
+            with pytest.raises(TypeError):
+                step.q_cmd(q_torque, np.zeros(4)[::2], None, q_cmd)
+    finally:
+        kernels.thaw()
+    assert step.mode[0] == pytest.approx(0.2)
+
+
+def test_inputs_of_the_wrong_size_raise():
+    step, _ = _step_and_system(num_stamps=3)
+    z = np.zeros(2)
+    with pytest.raises(ValueError, match="wrong size"):
+        step.step(0.0, z, z, z, np.zeros(8))
+    with pytest.raises(ValueError, match="wrong size"):
+        step.step(0.0, z, z, z, np.zeros(9), None, None, np.zeros(2))
+    with pytest.raises(ValueError, match="wrong size"):
+        step.step(0.0, np.zeros(3), z, z, np.zeros(9))
+    with pytest.raises(ValueError, match="wrong size"):
+        step.q_cmd(z, z, None, np.zeros(3))

@@ -29,7 +29,8 @@ stop latches: the robot holds the pose measured when it was pressed (ramping dow
 torque control) until `reset_emergency_stop`.
 
 The arithmetic is `SafetySupervisorStep`'s (no Drake: a fused controller runs it as
-is); `SafetySupervisor` is its LeafSystem shell.
+is), two numba kernels (`hrp2_drake.kernels`): `_supervise` (its `step`) and
+`_command` (its `q_cmd`); `SafetySupervisor` is its LeafSystem shell.
 
 .. code-block:: text
 
@@ -52,6 +53,7 @@ from typing import Sequence
 import numpy as np
 from pydrake.systems.framework import BasicVector, Context, DiscreteValues, InputPort
 
+from hrp2_drake.kernels import kernel
 from hrp2_drake.step import Step, StepSystem
 
 _logger = logging.getLogger(__name__)
@@ -158,9 +160,233 @@ SENSOR_KINDS: dict[str, int] = {"wrench": 6, "acceleration": 3, "angular_velocit
 # since start_time, torque wanted (ramping up or in torque), e-stop pressed].
 _CLEAR_ROW, _FAULTS_ROW, _WANT_ROW, _PRESSED_ROW = range(4)
 
+# Where the step's named arrays start in its flat state (their declaration order in
+# `SafetySupervisorStep.__init__`, checked there): mode, fault, transition (2), memory.
+# The memory's blocks follow its 4 scalar rows: the held pose (n), the last healthy
+# offset (n), the last samples (n + s), their repeat counts (n + s), the anchors (n).
+_MODE, _FAULT, _TRANSITION, _MEMORY = 0, 1, 2, 4
+_HOLD = _MEMORY + 4
+
+# The rows of the step's constants (`SafetySupervisorStep._constants`, packed once at
+# construction), then the range of each monitored sensor entry (s rows).
+(_C_PERIOD, _C_RAMP, _C_START, _C_REENTRY, _C_MAX_REENTRIES, _C_STALE_SAMPLES,
+ _C_STALE_COUNT, _C_JUMP, _C_ENCODER_STALE, _C_ENCODER_MOTION, _C_STALE_TIME,
+ _C_STAMPS, _C_LIMITS) = range(13)
+
+#: What a kernel gets for an input that is not connected (None): no entries.
+_ABSENT = np.zeros(0)
+
+
+@kernel
+def _supervise(
+    t, state, constants, q_torque, q_position, q_measured, sensors, e_stop,
+    controller_fallback, sensor_time, stamped,
+):
+    """`SafetySupervisorStep.step`'s arithmetic, in place on `state` (the step's flat
+    state): the health checks, the mode and the memory; returns the fault bits when a
+    fault starts this period, else 0. `e_stop`, `controller_fallback`: 1-arrays, or no
+    entries when not connected; `stamped`: whether `sensor_time` was given.
+
+    Every value is computed as the numpy code before it did, operation for operation
+    (bit for bit). A finiteness test is, as before, that of a sum (any NaN or inf, or
+    finite entries whose sum overflows, |x| ~ 1e308): a loop here, BLAS's dot before,
+    which can differ in order only at that overflow edge."""
+    n = q_measured.shape[0]
+    s = sensors.shape[0]
+    if (
+        q_torque.shape[0] != n
+        or q_position.shape[0] != n
+        or state.shape[0] != _HOLD + 5 * n + 2 * s
+        or constants.shape[0] != _C_LIMITS + s
+        or (stamped and sensor_time.shape[0] != int(constants[_C_STAMPS]))
+    ):
+        raise ValueError("SafetySupervisorStep.step: an input of the wrong size")
+    last_torque = _HOLD + n
+    last = last_torque + n  # [q_measured (n); sensors (s)]
+    count = last + n + s
+    anchor = count + n + s
+    period = constants[_C_PERIOD]
+    previous_bits = int(state[_FAULT])
+    alpha = state[_MODE]
+    faults = state[_MEMORY + _FAULTS_ROW]
+    # ---- Sensor health (bits 1, 2, 4, 8, 16, 32); each memory row read before it
+    # is written. Which samples are finite: [q; sensors] at once, the usual case.
+    bits = 0
+    q_sum = 0.0
+    for i in range(n):
+        q_sum += q_measured[i]
+    total = q_sum
+    for j in range(s):
+        total += sensors[j]
+    q_finite = True
+    sensors_finite = True
+    if not math.isfinite(total):
+        sensors_sum = 0.0
+        for j in range(s):
+            sensors_sum += sensors[j]
+        q_finite = math.isfinite(q_sum)
+        sensors_finite = math.isfinite(sensors_sum)
+        if not q_finite:
+            bits |= 1
+        if not sensors_finite:
+            bits |= 2
+    if q_finite:
+        # Jumps; each encoder's count of identical consecutive samples (count + 1 or
+        # 0: count·same + same before) and its anchor (q_position where it changed);
+        # without the drivers' stamps, a frozen encoder (the reference moved by more
+        # than encoder_motion while the encoder stayed for encoder_stale_samples).
+        jump = constants[_C_JUMP]
+        encoder_stale = constants[_C_ENCODER_STALE]
+        motion = constants[_C_ENCODER_MOTION]
+        for i in range(n):
+            q = q_measured[i]
+            previous = state[last + i]
+            if abs(q - previous) > jump:
+                bits |= 8
+            if q == previous:
+                repeats = state[count + i] + 1.0
+            else:
+                repeats = 0.0
+                state[anchor + i] = q_position[i]
+            state[count + i] = repeats
+            if (
+                not stamped
+                and repeats >= encoder_stale
+                and abs(q_position[i] - state[anchor + i]) > motion
+            ):
+                bits |= 32
+            state[last + i] = q
+    if sensors_finite:
+        # Range, and a noisy sensor repeating its sample (stale_samples; 0: no check).
+        stale_check = constants[_C_STALE_SAMPLES] != 0
+        stale_count = constants[_C_STALE_COUNT]
+        for j in range(s):
+            value = sensors[j]
+            row = last + n + j
+            if value == state[row]:
+                repeats = state[count + n + j] + 1.0
+            else:
+                repeats = 0.0
+            state[count + n + j] = repeats
+            if abs(value) > constants[_C_LIMITS + j]:
+                bits |= 4
+            if stale_check and repeats >= stale_count:
+                bits |= 16
+            state[row] = value
+    if stamped:
+        stale_time = constants[_C_STALE_TIME]
+        for k in range(sensor_time.shape[0]):
+            if t - sensor_time[k] > stale_time:
+                bits |= 16
+    # ---- The e-stop, the controller's fallback, the torque chain's command.
+    if e_stop.shape[0] > 0 and e_stop[0] > 0:
+        bits |= 64
+    if controller_fallback.shape[0] > 0 and controller_fallback[0] > 0:
+        bits |= 128
+    torque_sum = 0.0
+    for i in range(n):
+        torque_sum += q_torque[i]
+    torque_finite = math.isfinite(torque_sum)
+    if not torque_finite:
+        bits |= 256
+    state[_FAULT] = float(bits)
+    clear = state[_MEMORY + _CLEAR_ROW] + period if bits == 0 else 0.0
+    state[_MEMORY + _CLEAR_ROW] = clear
+    # E-stop (latched): hold the pose measured when it was pressed (the last finite
+    # one if this one is not).
+    held = state[_MEMORY + _PRESSED_ROW] != 0
+    if bits & 64 and not held:
+        if bits & 1:
+            for i in range(n):
+                state[_HOLD + i] = state[last + i]
+        else:
+            for i in range(n):
+                state[_HOLD + i] = q_measured[i]
+        state[_MEMORY + _PRESSED_ROW] = 1.0
+        held = True
+    # Mode: torque from start_time while healthy; after a fault, only once every fault
+    # has been clear for reentry_time.
+    running = t + 0.5 * period >= constants[_C_START]
+    if running and bits != 0 and previous_bits == 0:
+        faults += 1.0
+        state[_MEMORY + _FAULTS_ROW] = faults
+    want_torque = (
+        running
+        and bits == 0
+        and not held
+        and faults <= constants[_C_MAX_REENTRIES]
+        and (faults == 0 or clear >= constants[_C_REENTRY])
+    )
+    state[_MEMORY + _WANT_ROW] = 1.0 if want_torque else 0.0
+    # The last command of a healthy torque chain in use: what a ramp down starts from
+    # (once a fault is seen, the chain's own output is not trusted).
+    if want_torque and torque_finite:
+        for i in range(n):
+            state[last_torque + i] = q_torque[i] - q_position[i]
+    ramp = constants[_C_RAMP]
+    if want_torque:
+        new_alpha = alpha + ramp
+        if not new_alpha < 1.0:  # min(1.0, α + ramp)
+            new_alpha = 1.0
+    else:
+        new_alpha = alpha - ramp
+        if not new_alpha > 0.0:  # max(0.0, α − ramp)
+            new_alpha = 0.0
+    new_fault = 0
+    if bits != 0 and previous_bits == 0:
+        state[_TRANSITION] = t
+        state[_TRANSITION + 1] = float(bits)
+        new_fault = bits
+    elif want_torque and alpha == 0 and new_alpha > 0:
+        state[_TRANSITION] = t
+        state[_TRANSITION + 1] = 0.0
+    state[_MODE] = new_alpha
+    return new_fault
+
+
+@kernel
+def _command(state, q_torque, q_position, controller_fallback, out):
+    """`SafetySupervisorStep.q_cmd`'s arithmetic into `out` (elementwise, bit for bit
+    the numpy code's; the finiteness of q_torque tested on its sum, as in
+    `_supervise`). `controller_fallback`: a 1-array, or no entries when not
+    connected."""
+    n = q_torque.shape[0]
+    if q_position.shape[0] != n or out.shape[0] != n or state.shape[0] < _HOLD + 2 * n:
+        raise ValueError("SafetySupervisorStep.q_cmd: an input of the wrong size")
+    last_torque = _HOLD + n
+    alpha = state[_MODE]
+    pressed = state[_MEMORY + _PRESSED_ROW] > 0
+    if alpha <= 0.0:
+        if pressed:
+            for i in range(n):
+                out[i] = state[_HOLD + i]
+        else:
+            for i in range(n):
+                out[i] = q_position[i]
+        return
+    fault = state[_FAULT] > 0
+    fallback = controller_fallback.shape[0] > 0 and controller_fallback[0] > 0
+    wanted = state[_MEMORY + _WANT_ROW] > 0
+    torque_sum = 0.0
+    for i in range(n):
+        torque_sum += q_torque[i]
+    if fault or fallback or not wanted or not math.isfinite(torque_sum):
+        # The torque chain's last healthy offset from the reference, which the ramp
+        # takes to zero: q_cmd moves with the reference, bumplessly.
+        for i in range(n):
+            position = state[_HOLD + i] if pressed else q_position[i]
+            out[i] = state[last_torque + i] * alpha + position
+        return
+    rest = 1.0 - alpha
+    for i in range(n):
+        position = state[_HOLD + i] if pressed else q_position[i]
+        out[i] = q_torque[i] * alpha + position * rest
+
 
 class SafetySupervisorStep(Step):
-    """The supervisor's per-tick arithmetic (module docstring), without Drake.
+    """The supervisor's per-tick arithmetic (module docstring), without Drake: the
+    numba kernels `_supervise` (`step`) and `_command` (`q_cmd`) on the step's flat
+    state and its constants, packed once here.
 
     Args:
         num_joints: n, the size of q_torque, q_position, q_measured and q_cmd.
@@ -173,7 +399,7 @@ class SafetySupervisorStep(Step):
 
     State (`Step`): `mode` (1, α), `fault` (1, the bits of the last period, see
     FAULT_BITS), `transition` (2, [time (s), bits] of the last switch: bits 0 for a
-    ramp up), and `memory` (4 + 4 n + 2 s, s the sensors' total size): [time clear
+    ramp up), and `memory` (4 + 5 n + 2 s, s the sensors' total size): [time clear
     (s), faults since start_time, torque wanted, e-stop pressed; the e-stop's held
     pose (n, rad); q_torque − q_position of the last healthy period (n, rad); the
     last samples [q_measured (n); sensors (s)]; how many periods each has repeated
@@ -197,16 +423,31 @@ class SafetySupervisorStep(Step):
         self._config = config
         self._n = n = num_joints
         self._sensor_size = sensor_size = sum(SENSOR_KINDS[k] for k in sensors.values())
-        self._ramp_step = config.period / config.ramp_time
+        self._num_stamps = num_sensor_stamps
         # The range of every monitored entry, in input order.
         ranges = {
             "wrench": [config.torque_limit] * 3 + [config.force_limit] * 3,
             "acceleration": [config.acceleration_limit] * 3,
             "angular_velocity": [config.angular_velocity_limit] * 3,
         }
-        self._sensor_limits = np.array(
-            [limit for kind in sensors.values() for limit in ranges[kind]]
-        )
+        limits = [limit for kind in sensors.values() for limit in ranges[kind]]
+        # The kernel's constants, in the rows _C_* name (the products and quotients as
+        # the numpy code formed them).
+        constants = np.zeros(_C_LIMITS + sensor_size)
+        constants[_C_PERIOD] = config.period
+        constants[_C_RAMP] = config.period / config.ramp_time
+        constants[_C_START] = config.start_time
+        constants[_C_REENTRY] = config.reentry_time
+        constants[_C_MAX_REENTRIES] = config.max_reentries
+        constants[_C_STALE_SAMPLES] = config.stale_samples
+        constants[_C_STALE_COUNT] = config.stale_samples - 1.0
+        constants[_C_JUMP] = config.encoder_jump_speed * config.period
+        constants[_C_ENCODER_STALE] = float(config.encoder_stale_samples)
+        constants[_C_ENCODER_MOTION] = config.encoder_motion
+        constants[_C_STALE_TIME] = config.stale_time
+        constants[_C_STAMPS] = num_sensor_stamps
+        constants[_C_LIMITS:] = limits
+        self._constants = constants
         size = n + sensor_size  # the monitored samples, [q_measured; sensors]
         rows = _layout([0, 0, 0, 0, n, n, size, size, n])
         self._hold_rows, self._last_torque_rows = rows[4], rows[5]
@@ -215,32 +456,12 @@ class SafetySupervisorStep(Step):
         self._declare("fault", 0.0)
         self._declare("transition", np.zeros(2))
         self._declare("memory", np.zeros(self._anchor_rows.stop))
-        # The thresholds as arrays (numpy compares two arrays faster than an array
-        # and a Python float), and the per-tick work buffers (the ufuncs get them as
-        # positional outputs, and count_nonzero tests a flag array: both about twice
-        # as fast as `out=` and `.any()` on 30 entries).
-        self._jump_limit = np.full(n, config.encoder_jump_speed * config.period)
-        self._encoder_stale = np.full(n, float(config.encoder_stale_samples))
-        self._encoder_motion = np.full(n, config.encoder_motion)
-        self._stale_count = np.full(sensor_size, config.stale_samples - 1.0)
-        self._stale_time = np.full(num_sensor_stamps, config.stale_time)
-        self._ones_n = np.ones(n)
-        self._ones_sensors = np.ones(sensor_size)
-        self._ones_samples = np.ones(size)
-        self._samples = np.zeros(size)
-        self._q_values = self._samples[:n]
-        self._sensor_values = self._samples[n:]
-        self._same = np.zeros(size, dtype=bool)
-        self._same_q = self._same[:n]
-        self._diff_n = np.zeros(n)
-        self._flag_n = np.zeros(n, dtype=bool)
-        self._flag2_n = np.zeros(n, dtype=bool)
-        self._abs_sensors = np.zeros(sensor_size)
-        self._flag_sensors = np.zeros(sensor_size, dtype=bool)
-        self._age = np.zeros(num_sensor_stamps)
-        self._flag_age = np.zeros(num_sensor_stamps, dtype=bool)
-        self._blend = np.zeros(n)
         self._finalize()
+        # The kernels' layout of the state (_MODE, ...): the declarations above.
+        names = ("mode", "fault", "transition", "memory")
+        starts = [self.rows(name).start for name in names]
+        if starts != [_MODE, _FAULT, _TRANSITION, _MEMORY] or self._hold_rows.start != 4:
+            raise AssertionError("SafetySupervisorStep: the state layout changed")
 
     def _views_changed(self) -> None:
         memory, n = self.memory, self._n
@@ -250,14 +471,6 @@ class SafetySupervisorStep(Step):
         self._count = memory[self._count_rows]
         self._anchor = memory[self._anchor_rows]
         self._last_q = self._last[:n]
-        self._count_q = self._count[:n]
-        self._count_sensors = self._count[n:]
-        # (samples, last, count, same) over the finite rows, indexed by
-        # 2 q_finite + sensors_finite: [q; sensors] (3), q (2), sensors (1), none.
-        self._finite_views = [
-            (self._samples[rows], self._last[rows], self._count[rows], self._same[rows])
-            for rows in (slice(n, n), slice(n, None), slice(0, n), slice(None))
-        ]
 
     def config(self) -> SafetyConfig:
         return self._config
@@ -289,6 +502,19 @@ class SafetySupervisorStep(Step):
         self._anchor[:] = q_position
         self._last[self._n :] = sensors
 
+    def warm_up(self) -> None:
+        """Compiles (or loads from numba's cache) `_supervise` and `_command` on arrays
+        of a tick's types (1-D C-contiguous float64: a state vector's copy, zero
+        inputs), the state left as it was."""
+        state = self._state.copy()
+        zeros = np.zeros(self._n)
+        _supervise(
+            0.0, state, self._constants, zeros, zeros, zeros,
+            np.zeros(self._sensor_size), np.zeros(1), np.zeros(1),
+            np.zeros(self._num_stamps), True,
+        )
+        _command(state, zeros, zeros, np.zeros(1), np.zeros(self._n))
+
     def step(
         self,
         t: float,
@@ -301,7 +527,7 @@ class SafetySupervisorStep(Step):
         sensor_time: np.ndarray | None = None,
     ) -> int:
         """One control period at time t (s): the health checks, mode and memory, in
-        place on the state.
+        place on the state (the kernel `_supervise`).
 
         Args:
             q_torque, q_position, q_measured: n joint positions each (rad): the
@@ -313,137 +539,20 @@ class SafetySupervisorStep(Step):
             sensor_time: the time of each sensor's latest sample (s), or None
                 (no stamps: the frozen-encoder heuristic instead).
 
+        Every array is a 1-D float64 array (C-contiguous: what `warm_up` compiles
+        for).
+
         Returns:
             The fault bits when a fault starts this period (to be reported by the
             caller: the step never logs), else 0.
         """
-        c = self._config
-        memory = self.memory
-        previous_bits = int(self.fault[0])
-        alpha = self.mode[0]
-        faults = memory[_FAULTS_ROW]
-        bits = self._health(t, q_position, q_measured, sensors, sensor_time)
-        if e_stop is not None and e_stop[0] > 0:
-            bits |= 64
-        if controller_fallback is not None and controller_fallback[0] > 0:
-            bits |= 128
-        torque_finite = math.isfinite(q_torque.dot(self._ones_n))
-        if not torque_finite:
-            bits |= 256
-        self.fault[0] = bits
-        clear = memory[_CLEAR_ROW] + c.period if bits == 0 else 0.0
-        memory[_CLEAR_ROW] = clear
-        # E-stop (latched): hold the pose measured when it was pressed (the last
-        # finite one if this one is not).
-        held = memory[_PRESSED_ROW] != 0
-        if bits & 64 and not held:
-            self._hold[:] = self._last_q if bits & 1 else q_measured
-            memory[_PRESSED_ROW] = 1.0
-            held = True
-        # Mode: torque from start_time while healthy; after a fault, only once every
-        # fault has been clear for reentry_time.
-        running = t + 0.5 * c.period >= c.start_time
-        if running and bits and not previous_bits:
-            faults += 1
-            memory[_FAULTS_ROW] = faults
-        want_torque = (
-            running
-            and bits == 0
-            and not held
-            and faults <= c.max_reentries
-            and (faults == 0 or clear >= c.reentry_time)
+        return _supervise(
+            t, self._state, self._constants, q_torque, q_position, q_measured, sensors,
+            _ABSENT if e_stop is None else e_stop,
+            _ABSENT if controller_fallback is None else controller_fallback,
+            _ABSENT if sensor_time is None else sensor_time,
+            sensor_time is not None,
         )
-        memory[_WANT_ROW] = float(want_torque)
-        # The last command of a healthy torque chain in use: what a ramp down starts
-        # from (once a fault is seen, the chain's own output is not trusted).
-        if want_torque and torque_finite:
-            np.subtract(q_torque, q_position, self._last_torque)
-        ramp = self._ramp_step
-        new_alpha = min(1.0, alpha + ramp) if want_torque else max(0.0, alpha - ramp)
-        new_fault = 0
-        if bits and not previous_bits:
-            self.transition[0], self.transition[1] = t, float(bits)
-            new_fault = bits
-        elif want_torque and alpha == 0 and new_alpha > 0:
-            self.transition[0], self.transition[1] = t, 0.0
-        self.mode[0] = new_alpha
-        return new_fault
-
-    def _health(
-        self,
-        t: float,
-        q_position: np.ndarray,
-        q_measured: np.ndarray,
-        sensors: np.ndarray,
-        sensor_time: np.ndarray | None,
-    ) -> int:
-        """The sensors' fault bits of this period (1, 2, 4, 8, 16, 32); updates the
-        sample memory (each row read before it is written)."""
-        samples = self._samples
-        self._q_values[:] = q_measured
-        self._sensor_values[:] = sensors
-        bits = 0
-        # Which samples to remember: the finite parts ([q; sensors] at once when all
-        # of it is, the usual case).
-        if math.isfinite(samples.dot(self._ones_samples)):
-            q_finite = sensors_finite = True
-        else:
-            q_finite = math.isfinite(self._q_values.dot(self._ones_n))
-            sensors_finite = math.isfinite(self._sensor_values.dot(self._ones_sensors))
-            bits |= (0 if q_finite else 1) | (0 if sensors_finite else 2)
-        finite_samples, last, count, same = self._finite_views[
-            2 * q_finite + sensors_finite
-        ]
-        if q_finite:
-            np.subtract(self._q_values, self._last_q, self._diff_n)
-            np.abs(self._diff_n, self._diff_n)
-            np.greater(self._diff_n, self._jump_limit, self._flag_n)
-            if np.count_nonzero(self._flag_n):
-                bits |= 8
-        # Each sample's count of identical consecutive samples:
-        # count = where(same, count + 1, 0), in place.
-        np.equal(finite_samples, last, same)
-        np.multiply(count, same, count)
-        np.add(count, same, count)
-        if q_finite:
-            bits |= self._frozen_encoders(q_position, sensor_time is None)
-        if self._sensor_size and not bits & 2:
-            np.abs(self._sensor_values, self._abs_sensors)
-            flags = self._flag_sensors
-            if np.count_nonzero(
-                np.greater(self._abs_sensors, self._sensor_limits, flags)
-            ):
-                bits |= 4
-            if self._config.stale_samples and np.count_nonzero(
-                np.greater_equal(self._count_sensors, self._stale_count, flags)
-            ):
-                bits |= 16
-        last[...] = finite_samples
-        if sensor_time is not None:
-            np.subtract(t, sensor_time, self._age)
-            np.greater(self._age, self._stale_time, self._flag_age)
-            if np.count_nonzero(self._flag_age):
-                bits |= 16
-        return bits
-
-    def _frozen_encoders(self, q_position: np.ndarray, check: bool) -> int:
-        """Moves each encoder's anchor to q_position (rad) where it changed; 32 when
-        `check` and an encoder has not moved for encoder_stale_samples periods while
-        its reference moved by more than encoder_motion, else 0."""
-        anchor = self._anchor
-        np.logical_not(self._same_q, self._flag_n)
-        np.copyto(anchor, q_position, where=self._flag_n)
-        # Only without the drivers' stamps: a joint starting to move from rest
-        # (latency, dead zone, stiction) can stay on its count for several periods
-        # while its reference moves away.
-        if not check:
-            return 0
-        np.greater_equal(self._count_q, self._encoder_stale, self._flag_n)
-        np.subtract(q_position, anchor, self._diff_n)
-        np.abs(self._diff_n, self._diff_n)
-        np.greater(self._diff_n, self._encoder_motion, self._flag2_n)
-        np.logical_and(self._flag_n, self._flag2_n, self._flag_n)
-        return 32 if np.count_nonzero(self._flag_n) else 0
 
     def q_cmd(
         self,
@@ -456,27 +565,12 @@ class SafetySupervisorStep(Step):
         state and the live inputs (no extra delay): α q_torque + (1 − α) q_position,
         or, while torque control is not wanted (a fault, the controller's fallback, a
         non-finite q_torque, a ramp down), q_position + α × the last healthy offset;
-        the e-stop's held pose replaces q_position. Returns `out`."""
-        alpha = self.mode[0]
-        memory = self.memory
-        if memory[_PRESSED_ROW] > 0:
-            q_position = self._hold
-        if alpha <= 0.0:
-            out[:] = q_position
-            return out
-        fault = self.fault[0] > 0
-        fallback = controller_fallback is not None and controller_fallback[0] > 0
-        wanted = memory[_WANT_ROW] > 0
-        torque_finite = math.isfinite(q_torque.dot(self._ones_n))
-        if fault or fallback or not wanted or not torque_finite:
-            # The torque chain's last healthy offset from the reference, which the
-            # ramp takes to zero: q_cmd moves with the reference, bumplessly.
-            np.multiply(self._last_torque, alpha, out)
-            np.add(out, q_position, out)
-            return out
-        np.multiply(q_torque, alpha, out)
-        np.multiply(q_position, 1.0 - alpha, self._blend)
-        np.add(out, self._blend, out)
+        the e-stop's held pose replaces q_position (the kernel `_command`). Returns
+        `out`."""
+        _command(
+            self._state, q_torque, q_position,
+            _ABSENT if controller_fallback is None else controller_fallback, out,
+        )
         return out
 
 
