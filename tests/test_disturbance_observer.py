@@ -6,6 +6,8 @@ import math
 import numpy as np
 import pytest
 
+from hrp2_drake import kernels
+from hrp2_drake.control import disturbance_observer
 from hrp2_drake.control.disturbance_observer import (
     DisturbanceObserver,
     DisturbanceObserverConfig,
@@ -139,3 +141,74 @@ def test_the_step_on_plain_arrays_is_the_system():
     np.testing.assert_array_equal(
         raw, step.raw_disturbance(delta_q[159], v[200], tau[200])
     )
+
+
+# --------------------------------------------------------------------- the kernels
+
+
+def _kernel_run(config: DisturbanceObserverConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The observer's state after each of 200 periods (a step disturbance, NaN τ̂
+    and a NaN Δq on the way, d̂ clipped), and raw_disturbance on (50, n) rows."""
+    disturbance = lambda t: np.array([5.0, -2.0]) * (t >= 0.05)  # noqa: E731
+    delta_q, v, tau, _ = _signals(disturbance, 200, nan_at=range(120, 125))
+    delta_q[100, 0] = np.nan
+    step = DisturbanceObserverStep(MODEL, config)
+    states = []
+    for k in range(200):
+        step.step(k * PERIOD, delta_q[k], v[k], tau[k])
+        states.append(step.state.copy())
+    return np.array(states), step.raw_disturbance(delta_q[:50], v[:50], tau[:50])
+
+
+@pytest.mark.skipif(not kernels.jit_enabled(), reason="NUMBA_DISABLE_JIT: no kernels")
+@pytest.mark.parametrize("delay", [DELAY, 0.0])
+def test_kernel_compiled_equals_interpreted(delay):
+    """The kernels compiled and as their Python source (`kernels.interpreted`) on
+    the same periods (K_c sign(q̂̇) on the knee, the clip, bad input, with and
+    without the Δq delay): the same states and raw d bit for bit."""
+    config = DisturbanceObserverConfig(
+        JOINTS, bandwidth=50.0, delay=delay, limit=[3.0, 10.0]
+    )
+    compiled = _kernel_run(config)
+    with kernels.interpreted():
+        assert not hasattr(disturbance_observer._observer_step, "py_func")  # Python
+        interpreted = _kernel_run(config)
+    for a, b in zip(compiled, interpreted):
+        np.testing.assert_array_equal(a, b)
+    assert compiled[0][-1, 0] == 3.0  # clipped
+    assert np.all(np.isfinite(compiled[0]))
+
+
+def test_warm_up_then_frozen():
+    """warm_up compiles the kernels for a tick's arrays without touching the state;
+    frozen, a real tick on a step bound into a larger state (as in the fused
+    controller) runs, and arrays of another type raise instead of compiling."""
+    config = DisturbanceObserverConfig(JOINTS, bandwidth=50.0, delay=DELAY)
+    step = DisturbanceObserverStep(MODEL, config)
+    buffer = np.zeros(step.state_size + 5)
+    step.bind(buffer[2 : 2 + step.state_size])
+    delta_q, v, tau, _ = _signals(lambda t: np.array([5.0, -2.0]), 60)
+    for k in range(45):
+        step.step(k * PERIOD, delta_q[k], v[k], tau[k])
+    before = buffer.copy()
+    step.warm_up()
+    np.testing.assert_array_equal(buffer, before)
+    if kernels.jit_enabled():  # every kernel of the module compiled
+        mine = [k for k in kernels.kernels()
+                if k.py_func.__module__ == disturbance_observer.__name__]
+        assert mine and all(k.signatures for k in mine)
+    try:
+        kernels.freeze()
+        step.step(45 * PERIOD, delta_q[45], v[45], tau[45])
+        assert step.disturbance[0] > 0.0 and step.counters[1] == 46
+        raw = step.raw_disturbance(delta_q[4], v[45], tau[45], out=np.zeros(2))
+        np.testing.assert_allclose(raw, [5.0, -2.0], atol=1e-9)
+        if kernels.jit_enabled():
+            with pytest.raises(TypeError):
+                step.step(0.0, delta_q[46].astype(np.float32), v[46], tau[46])
+    finally:
+        kernels.thaw()
+    state = step.state.copy()
+    with pytest.raises(ValueError, match="2 entries"):
+        step.step(0.0, delta_q[46][:1], v[46], tau[46])
+    np.testing.assert_array_equal(step.state, state)

@@ -12,6 +12,8 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, MatrixGain
 from scipy.integrate import solve_ivp
 
+from hrp2_drake import kernels
+from hrp2_drake.control import predictor
 from hrp2_drake.control.predictor import (
     DelayPredictor,
     DelayPredictorConfig,
@@ -353,3 +355,88 @@ def test_the_step_on_plain_arrays_is_the_system():
     v = np.array(out["v_predicted"])
     np.testing.assert_allclose(v[50:100], v_now[50:100], rtol=0, atol=1e-9)
     np.testing.assert_allclose(step.wrench_predicted, 1.0 + 0.0425 * np.arange(6.0))
+
+
+# --------------------------------------------------------------------- the kernels
+
+
+def _kernel_run(config: DelayPredictorConfig, ticks: int = 200) -> np.ndarray:
+    """The predictor's state after each tick on the exact joints, bad input on the
+    way (NaN τ̂, an infinite Δq entry, a NaN wrench rate)."""
+    joints = Joints(_excitation(ticks + OFFSET + 5), TAU_REST)
+    inputs, _, _ = _scenario(joints, config.delay, config.command_latency, ticks)
+    inputs["tau_estimated"][100:103] = np.nan
+    inputs["delta_q"][150, 1] = np.inf
+    wrench = np.tile(np.arange(6.0), (ticks, 1))
+    rate = np.ones((ticks, 6))
+    rate[170, 2] = np.nan
+    step = DelayPredictorStep(MODEL, config)
+    states = []
+    for k in range(ticks):
+        extra = (wrench[k], rate[k]) if config.wrench_size else ()
+        step.step(
+            k * PERIOD,
+            *(inputs[name][k] for name in ("v_estimated", "vdot_estimated")),
+            inputs["tau_estimated"][k],
+            inputs["delta_q"][k],
+            *extra,
+        )
+        states.append(step.state.copy())
+    return np.array(states)
+
+
+@pytest.mark.skipif(not kernels.jit_enabled(), reason="NUMBA_DISABLE_JIT: no kernels")
+@pytest.mark.parametrize(
+    "changes",
+    [
+        dict(
+            wrench_size=6, max_velocity_correction=[0.05], max_torque_correction=[5.0]
+        ),
+        dict(delay=0.0, latency=0.0),  # M = 0: the estimates pass through
+    ],
+)
+def test_kernel_compiled_equals_interpreted(changes):
+    """The kernel compiled and as its Python source (`kernels.interpreted`) on the
+    same ticks: the same states bit for bit (the weighted sum over the window in
+    the same order)."""
+    config = _config(**{"delay": 0.0415, "latency": 0.001, **changes})
+    compiled = _kernel_run(config)
+    with kernels.interpreted():
+        assert not hasattr(predictor._predictor_step, "py_func")  # Python
+        interpreted = _kernel_run(config)
+    np.testing.assert_array_equal(compiled, interpreted)
+    assert np.all(np.isfinite(compiled))
+
+
+def test_warm_up_then_frozen():
+    """warm_up compiles the kernel for a tick's arrays without touching the state;
+    frozen, a real tick on a step bound into a larger state (as in the fused
+    controller) runs, and arrays of another type raise instead of compiling."""
+    config = _config(0.0415, 0.001, wrench_size=6)
+    step = DelayPredictorStep(MODEL, config)
+    buffer = np.zeros(step.state_size + 4)
+    step.bind(buffer[1 : 1 + step.state_size])
+    v, wrench, hold = np.array([0.1, -0.2, 0.3]), np.ones(6), K_TAU * TAU_REST
+    for k in range(50):
+        step.step(k * PERIOD, v, np.zeros(3), TAU_REST, hold, wrench, wrench)
+    before = buffer.copy()
+    step.warm_up()
+    np.testing.assert_array_equal(buffer, before)
+    if kernels.jit_enabled():  # every kernel of the module compiled
+        mine = [k for k in kernels.kernels()
+                if k.py_func.__module__ == predictor.__name__]
+        assert mine and all(k.signatures for k in mine)
+    try:
+        kernels.freeze()
+        step.step(0.05, v, np.zeros(3), TAU_REST, hold, wrench, 2 * wrench)
+        assert step.is_ready() and step.bad_input_count() == 0
+        np.testing.assert_allclose(step.wrench_predicted, 1.0 + 2 * step.horizon())
+        if kernels.jit_enabled():
+            with pytest.raises(TypeError):
+                step.step(0.051, v.astype(np.float32), v, v, v, wrench, wrench)
+    finally:
+        kernels.thaw()
+    state = step.state.copy()
+    with pytest.raises(ValueError, match="wrench_estimated and wrench_rate 6"):
+        step.step(0.051, v, v, v, v)  # no wrench with wrench_size 6
+    np.testing.assert_array_equal(step.state, state)

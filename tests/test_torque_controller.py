@@ -22,7 +22,9 @@ from pydrake.systems.primitives import (
 )
 from pydrake.trajectories import PiecewisePolynomial
 
+from hrp2_drake import kernels
 from hrp2_drake.config import load_config
+from hrp2_drake.control import torque_controller
 from hrp2_drake.control.inverse_dynamics import (
     TORQUE_COMPONENTS,
     InverseDynamicsConfig,
@@ -601,6 +603,123 @@ def test_step_without_terms_and_unlatched(motor):
         step.step(
             0.0, *(inputs[k] for k in ("tau_desired", "tau_estimated")), nan, nan, nan
         )
+
+
+# --------------------------------------------------------------------- the kernels
+
+
+def _kernel_ticks(motor, config, seed: int):
+    """A DeltaQTorqueStep run through every path of its kernel: torque control with
+    the inverse-dynamics terms (and without), saturation, before start_time, each
+    FALLBACK_REASONS code with a reset after it, q_ref given or not. Returns the
+    state after each tick and the codes."""
+    rng = np.random.default_rng(seed)
+    step = DeltaQTorqueStep(motor, config)
+    q0 = hrp2.half_sitting()[:6]
+    step.initialize(0.0, q0, q0 + 0.01)
+    faults = {
+        10: dict(tau_estimated=np.r_[np.nan, np.zeros(5)]),
+        14: dict(tau_estimated=np.r_[600.0, np.zeros(5)]),
+        18: dict(v=np.r_[np.zeros(5), np.inf]),
+        22: dict(tau_desired=np.r_[2000.0, np.zeros(5)]),
+        26: dict(q_measured=np.r_[np.nan, q0[1:]]),
+        30: dict(sensor_fault=np.ones(1)),
+        34: dict(tau_disturbance=np.full(6, np.nan)),
+        38: dict(v=np.r_[10.0, np.zeros(5)]),  # Δq 0.13 rad: saturated, no fallback
+    }
+    states, codes = [], []
+    for k in range(44):
+        values = dict(
+            tau_desired=20.0 * rng.standard_normal(6),
+            tau_estimated=20.0 * rng.standard_normal(6),
+            v=0.5 * rng.standard_normal(6),
+            q_measured=q0 + 0.01 * rng.standard_normal(6),
+            q_ref=q0 + 0.02 if k % 2 else None,
+            sensor_fault=np.zeros(1) if k % 3 else None,
+            terms=10.0 * rng.standard_normal((5, 6)) if k % 4 else None,
+            tau_disturbance=rng.standard_normal(6),
+        )
+        values.update(faults.get(k, {}))
+        if k - 2 in faults:
+            step.reset_fallback()
+        codes.append(step.step(k * PERIOD, **values))
+        states.append(step.state.copy())
+    return np.array(states), codes
+
+
+@pytest.mark.skipif(not kernels.jit_enabled(), reason="NUMBA_DISABLE_JIT: no kernels")
+@pytest.mark.parametrize(
+    "changes",
+    [
+        dict(ki=[5.0], integral_limit=[0.01], disturbance_compensation=True,
+             coulomb_compensation=True, start_time=3 * PERIOD),
+        dict(kp=[0.5, 1, 2, 3, 0, 2], latch_fallback=False),
+    ],
+)
+def test_kernel_compiled_equals_interpreted(motor, changes):
+    """The step's kernels compiled and as their Python source
+    (`kernels.interpreted`) on the same ticks: the same states bit for bit (the
+    kernels are elementwise; tanh is libm's in both), the same codes, and every
+    fallback reason reported."""
+    config = _config(**changes)
+    compiled = _kernel_ticks(motor, config, 40)
+    with kernels.interpreted():
+        assert not hasattr(torque_controller._delta_q_step, "py_func")  # Python
+        interpreted = _kernel_ticks(motor, config, 40)
+    np.testing.assert_array_equal(compiled[0], interpreted[0])
+    assert compiled[1] == interpreted[1]
+    expected = [1, 2, 3, 4, 5, 6] + ([3] if config.disturbance_compensation else [])
+    assert sorted(code for code in compiled[1] if code) == sorted(expected)
+    assert np.all(compiled[0][:, 0:6] != 0.0)  # q_cmd held or commanded
+    # Tick 38 saturated joint 0 (delta_q, delta_q_unsaturated: state rows 6, 12).
+    assert compiled[0][38, 6] == 0.1 and 0.1 < compiled[0][38, 12] < 0.2
+
+
+def _compiled_all(module) -> bool:
+    """Whether every kernel of `module` has a compiled signature (after warm_up)."""
+    mine = [k for k in kernels.kernels() if k.py_func.__module__ == module.__name__]
+    return bool(mine) and all(k.signatures for k in mine)
+
+
+def test_warm_up_then_frozen(motor):
+    """warm_up compiles the kernels for a tick's arrays without touching the state;
+    frozen, a real tick on a step bound into a larger state (as in the fused
+    controller) runs, and arrays of another type raise instead of compiling."""
+    config = _config(ki=[5.0], disturbance_compensation=True)
+    step = DeltaQTorqueStep(motor, config)
+    buffer = np.zeros(step.state_size + 7)
+    step.bind(buffer[3 : 3 + step.state_size])
+    inputs = _inputs(30)
+    step.initialize(0.0, inputs["q_measured"], inputs["q_measured"] + 0.01)
+    before = buffer.copy()
+    step.warm_up()
+    np.testing.assert_array_equal(buffer, before)
+    args = [inputs[k] for k in ("tau_desired", "tau_estimated", "v", "q_measured")]
+    terms = 10.0 * np.random.default_rng(31).standard_normal((5, 6))
+    disturbance = np.full(6, 0.5)
+    assert not kernels.jit_enabled() or _compiled_all(torque_controller)
+    try:
+        kernels.freeze()
+        assert step.step(0.0, *args, None, None, terms, disturbance) == 0
+        q_ref, fault = args[3] + 0.01, np.zeros(1)
+        assert step.step(0.001, *args, q_ref, fault, None, disturbance) == 0
+        integral = 2 * PERIOD * (inputs["tau_desired"] - inputs["tau_estimated"])
+        tau_star = _eq10_11(inputs, ki=5.0, integral=integral)[0] - disturbance
+        np.testing.assert_allclose(step.tau_commanded, tau_star, rtol=1e-12)
+        step.initialize(0.0, inputs["q_measured"])
+        if kernels.jit_enabled():
+            single = [a.astype(np.float32) for a in args]
+            with pytest.raises(TypeError):
+                step.step(0.002, *single, None, None, terms, disturbance)
+    finally:
+        kernels.thaw()
+    # A wrong size raises (the kernel checks, and changes nothing).
+    state = step.state.copy()
+    with pytest.raises(ValueError, match="wrong size"):
+        step.step(0.003, *args[:3], args[3][:5])
+    with pytest.raises(ValueError, match="disturbance_compensation needs"):
+        step.step(0.003, *args)
+    np.testing.assert_array_equal(step.state, state)
 
 
 # --------------------------------------------------------------------- gain mapping

@@ -29,6 +29,7 @@ import numpy as np
 from pydrake.systems.framework import Context, DiscreteValues
 
 from hrp2_drake.identification.motor_model import MotorModel
+from hrp2_drake.kernels import kernel
 from hrp2_drake.multibody import check_joint_names
 from hrp2_drake.step import Step, StepSystem
 
@@ -74,6 +75,107 @@ class DisturbanceObserverConfig:
             )
 
 
+# The constants of DisturbanceObserverStep (`_constants`, packed once): K_τ, K_v,
+# K_c, the limit (rows of n), then the scalars α, D (the delay in periods), whether
+# |d̂| is clipped, whether K_c is used.
+_C_K_TAU, _C_K_V, _C_K_C, _C_LIMIT = range(4)
+_C_ROWS = 4
+_S_ALPHA, _S_DELAY, _S_CLIPS, _S_COULOMB = range(4)
+_S_COUNT = 4
+# What `_observer_step` returns on inputs of the wrong size (the step raises).
+_BAD_SIZE = -1
+
+
+@kernel
+def _raw_disturbance(delta_q, v, tau, k_tau, k_v, k_c, coulomb):
+    """d = τ̂ − (Δq − K_v q̇ − K_c sign(q̇)) / K_τ for one joint (numpy's order of
+    operations, and its sign: 0 at ±0); coulomb False: no K_c term."""
+    out = delta_q - k_v * v
+    if coulomb:  # (K_c = 0: nothing to subtract)
+        sign = 1.0 if v > 0.0 else (-1.0 if v < 0.0 else 0.0)
+        out = out - sign * k_c
+    return tau - out / k_tau
+
+
+@kernel
+def _observer_step(delta_q, v, tau_estimated, state, constants):
+    """One period of DisturbanceObserverStep on its `state` ([d̂; ring; counters])
+    with its packed `constants` (`DisturbanceObserverStep.step`); returns 0, or
+    _BAD_SIZE (nothing changed). Elementwise, in numpy's order of operations (bit
+    for bit); the sums only test finiteness."""
+    c = constants
+    n = (c.shape[0] - _S_COUNT) // _C_ROWS
+    scalars = _C_ROWS * n
+    delay = int(c[scalars + _S_DELAY])
+    ring = n  # the ring's first entry; counters after it
+    counters = ring + max(delay, 1) * n
+    if (
+        delta_q.shape[0] != n
+        or v.shape[0] != n
+        or tau_estimated.shape[0] != n
+        or state.shape[0] != counters + 2
+    ):
+        return _BAD_SIZE
+    slot, count = int(state[counters]), int(state[counters + 1])
+    delta_q_sum = 0.0
+    total = 0.0
+    for i in range(n):
+        delta_q_sum += delta_q[i]
+        total += v[i]
+    for i in range(n):
+        total += tau_estimated[i]
+    delta_q_finite = math.isfinite(delta_q_sum)
+    # d̂ moves towards the raw d of the Δq sent `delay` ago; held on a non-finite
+    # input or while no Δq is that old yet.
+    update = math.isfinite(delta_q_sum + total) and count >= delay
+    alpha = c[scalars + _S_ALPHA]
+    clips = c[scalars + _S_CLIPS] != 0.0
+    coulomb = c[scalars + _S_COULOMB] != 0.0
+    old = ring + slot * n  # the Δq sent `delay` ago (delay > 0)
+    for i in range(n):
+        if update:
+            raw = _raw_disturbance(
+                state[old + i] if delay else delta_q[i],
+                v[i],
+                tau_estimated[i],
+                c[_C_K_TAU * n + i],
+                c[_C_K_V * n + i],
+                c[_C_K_C * n + i],
+                coulomb,
+            )
+            estimate = state[i]
+            estimate = estimate + (raw - estimate) * alpha
+            if clips:  # clipped to ±limit
+                limit = c[_C_LIMIT * n + i]
+                estimate = min(max(estimate, -limit), limit)
+            state[i] = estimate
+        if delay:  # Δq sent now, in its slot (zero if not finite)
+            state[old + i] = delta_q[i] if delta_q_finite else 0.0
+    if delay:
+        state[counters] = (slot + 1) % delay
+    state[counters + 1] = count + 1
+    return 0
+
+
+@kernel
+def _raw_disturbance_rows(delta_q, v, tau, constants, out):
+    """`_raw_disturbance` of each entry of (m, n) arrays, joint i in column i."""
+    c = constants
+    n = (c.shape[0] - _S_COUNT) // _C_ROWS
+    coulomb = c[_C_ROWS * n + _S_COULOMB] != 0.0
+    for row in range(out.shape[0]):
+        for i in range(n):
+            out[row, i] = _raw_disturbance(
+                delta_q[row, i],
+                v[row, i],
+                tau[row, i],
+                c[_C_K_TAU * n + i],
+                c[_C_K_V * n + i],
+                c[_C_K_C * n + i],
+                coulomb,
+            )
+
+
 class DisturbanceObserverStep(Step):
     """The observer's per-tick arithmetic (module docstring), without Drake.
 
@@ -85,6 +187,9 @@ class DisturbanceObserverStep(Step):
     State (`Step`): `disturbance` (n, d̂, N·m), `ring` (max(D, 1), n): the Δq
     (rad) sent over the last D = delay_periods() periods, and `counters` (2):
     [next ring slot, periods seen].
+
+    A tick is one numba kernel (`_observer_step`) on the state and the model,
+    packed once into one array (`hrp2_drake.kernels`); it allocates nothing.
     """
 
     def __init__(self, motor_model: MotorModel, config: DisturbanceObserverConfig):
@@ -92,25 +197,22 @@ class DisturbanceObserverStep(Step):
         config.validate()
         self._config = config
         model = motor_model.subset(config.joints)
-        n = len(config.joints)
-        self._k_tau, self._k_v, self._k_c = model.k_tau, model.k_v, model.k_c
-        self._alpha = 1.0 - math.exp(-config.bandwidth * config.period)
+        n = self._n = len(config.joints)
         self._delay = round(config.delay / config.period)
-        self._limit = np.broadcast_to(np.asarray(config.limit, float), (n,)).copy()
-        self._lower = -self._limit
-        self._clips = bool(np.any(np.isfinite(self._limit)))  # else no clip at all
-        self._coulomb = bool(np.any(self._k_c != 0.0))  # else K_c sign(q̇) = 0
-        self._ones = np.ones(n)
+        limit = np.broadcast_to(np.asarray(config.limit, float), (n,))
+        scalars = np.zeros(_S_COUNT)
+        scalars[_S_ALPHA] = 1.0 - math.exp(-config.bandwidth * config.period)
+        scalars[_S_DELAY] = self._delay
+        scalars[_S_CLIPS] = np.any(np.isfinite(limit))  # else no clip at all
+        scalars[_S_COULOMB] = np.any(model.k_c != 0.0)  # else K_c sign(q̂̇) = 0
+        self._constants = np.concatenate(
+            [np.asarray(row, dtype=float) for row in (model.k_tau, model.k_v)]
+            + [np.asarray(model.k_c, dtype=float), limit, scalars]
+        )
         self._declare("disturbance", np.zeros(n))
         self._declare("ring", np.zeros((max(self._delay, 1), n)))
         self._declare("counters", np.zeros(2))
-        # Per-tick work: the raw d, K_c sign(q̂̇).
-        self._raw = np.zeros(n)
-        self._friction = np.zeros(n)
         self._finalize()
-
-    def _views_changed(self) -> None:
-        self._slots = list(self.ring)  # a view per ring row
 
     def config(self) -> DisturbanceObserverConfig:
         return self._config
@@ -129,22 +231,27 @@ class DisturbanceObserverStep(Step):
         """d = τ̂ − (Δq − K_v q̇ − K_c sign(q̇)) / K_τ for aligned samples (N·m; Δq in
         rad, q̇ in rad/s, τ̂ in N·m; any shapes that broadcast with (n,)).
 
-        Into `out` ((n,), not an input) when given, with no allocation (the per-tick
-        use); a new array otherwise."""
+        Into `out` (C-contiguous float64 of the broadcast shape, not an input) when
+        given; a new array otherwise."""
+        n = self._n
+        shape = np.broadcast_shapes(np.shape(delta_q), np.shape(v), np.shape(tau), (n,))
         if out is None:
-            out = np.empty(np.broadcast(delta_q, v, tau, self._k_tau).shape)
-            friction = np.empty_like(out)
-        else:
-            friction = self._friction
-        # (Positional outputs: about twice as fast as `out=` on small arrays.)
-        np.multiply(self._k_v, v, out)
-        np.subtract(delta_q, out, out)
-        if self._coulomb:  # (K_c = 0: nothing to subtract)
-            np.sign(v, friction)
-            np.multiply(friction, self._k_c, friction)  # K_c sign(q̇)
-            np.subtract(out, friction, out)
-        np.divide(out, self._k_tau, out)
-        np.subtract(tau, out, out)
+            out = np.empty(shape)
+        elif (
+            out.shape != shape
+            or out.dtype != np.float64
+            or not out.flags.c_contiguous
+        ):
+            raise ValueError(
+                f"{_WHERE}.raw_disturbance: out must be a C-contiguous float64 array "
+                f"of shape {shape}, got {out.dtype} {out.shape}"
+            )
+        rows = [
+            np.ascontiguousarray(np.broadcast_to(np.asarray(x, dtype=float), shape))
+            .reshape(-1, n)
+            for x in (delta_q, v, tau)
+        ]
+        _raw_disturbance_rows(*rows, self._constants, out.reshape(-1, n))
         return out
 
     def step(
@@ -153,28 +260,21 @@ class DisturbanceObserverStep(Step):
         """One period (t in s, unused): Δq sent now (n, rad) enters the ring; with q̂̇
         (n, rad/s) and τ̂ (n, N·m), as old as `delay`, d̂ moves towards the raw d of
         the Δq sent `delay` ago (held on a non-finite input or before the ring
-        covers `delay`)."""
-        counters, ones = self.counters, self._ones
-        slot, count = int(counters[0]), int(counters[1])
-        delta_q_sum = delta_q.dot(ones)
-        finite = math.isfinite(delta_q_sum + v.dot(ones) + tau_estimated.dot(ones))
-        old = self._slots[slot] if self._delay else delta_q  # sent `delay` ago
-        raw = None  # hold d̂ on a bad sample, or while no Δq is that old yet
-        if finite and count >= self._delay:
-            raw = self.raw_disturbance(old, v, tau_estimated, out=self._raw)
-        if self._delay:
-            old[:] = delta_q if math.isfinite(delta_q_sum) else 0.0  # its slot, reused
-            counters[0] = (slot + 1) % self._delay
-        counters[1] = count + 1
-        if raw is None:
-            return
-        estimate = self.disturbance
-        np.subtract(raw, estimate, raw)
-        np.multiply(raw, self._alpha, raw)
-        np.add(estimate, raw, estimate)
-        if self._clips:  # clipped to ±limit
-            np.maximum(estimate, self._lower, out=estimate)
-            np.minimum(estimate, self._limit, out=estimate)
+        covers `delay`). Float64 arrays (`warm_up`)."""
+        if _observer_step(delta_q, v, tau_estimated, self.state, self._constants):
+            raise ValueError(
+                f"{_WHERE}: delta_q, v and tau_estimated must have {self._n} entries"
+            )
+
+    def warm_up(self) -> None:
+        """Compiles (or loads from numba's cache) the kernels for the arrays of a
+        tick (C-contiguous float64 vectors), on copies: the state is left as it
+        was; and `_raw_disturbance` for its scalar arguments (a kernel that `freeze`
+        disables needs a signature of its own)."""
+        zeros = np.zeros(self._n)
+        _raw_disturbance(0.0, 0.0, 0.0, 1.0, 0.0, 0.0, False)
+        _observer_step(zeros, zeros, zeros, self.state.copy(), self._constants)
+        self.raw_disturbance(zeros, zeros, zeros, out=np.zeros(self._n))
 
 
 class DisturbanceObserver(StepSystem):

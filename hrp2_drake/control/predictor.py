@@ -32,7 +32,7 @@ has an exact discretization: per step of length h, with x = q̇ − q̂̇,
     x⁺ = Φ x + Γ (q̂̈ + (Δq_j − Δq_0) / (K_τ m)),   Φ = e^(−h/T),  Γ = T (1 − Φ),
 
 a linear recurrence whose end value over the horizon is one weighted sum of the
-buffered Δq (the weights are precomputed; one vectorized pass of O(M n) per tick):
+buffered Δq (the weights are precomputed; one pass of O(M n) per tick):
 
     q̇_pred = q̂̇ + x_end
     τ_pred = τ̂ + m (q̈_end − q̂̈) = τ̂ + [(Δq_end − Δq_0) − K_v x_end] / K_τ
@@ -79,6 +79,7 @@ import numpy as np
 from pydrake.systems.framework import Context, DiscreteValues
 
 from hrp2_drake.identification.motor_model import MotorModel
+from hrp2_drake.kernels import kernel
 from hrp2_drake.multibody import check_joint_names
 from hrp2_drake.step import Step, StepSystem
 
@@ -158,6 +159,128 @@ class DelayPredictorConfig:
                 raise ValueError(f"{where}.{name}: 1 or {n} values > 0, got {values}")
 
 
+# The constants of DelayPredictorStep (`_constants`, packed once): the scalars n, M,
+# k, H, whether each correction is bounded; then the weights W (2, M, n) and C
+# (2, n) of `_linear_prediction`, and the bounds (lower, upper) of the velocity and
+# of the torque correction (4, n; ±inf where unbounded).
+_S_N, _S_M, _S_K, _S_HORIZON, _S_BOUND_V, _S_BOUND_TAU = range(6)
+_S_COUNT = 6
+# What `_predictor_step` returns on inputs of the wrong size (the step raises).
+_BAD_SIZE = -1
+
+
+@kernel
+def _predictor_step(v, vdot, tau, delta_q, wrench, rate, state, constants):
+    """One period of DelayPredictorStep on its `state` with its packed `constants`
+    (`DelayPredictorStep.step`; `wrench` and `rate` of size k, empty when k = 0).
+    Returns 0, or _BAD_SIZE (nothing changed).
+
+    Elementwise in the order of operations of the numpy version it replaced (bit
+    for bit), and the weighted sum over the M buffered Δq accumulated oldest first
+    from 0, which is np.einsum's order for n >= 2 (bit for bit); for n = 1 einsum
+    sums in another order (measured: up to 3e-13 of τ_pred's magnitude on random
+    Δq, 0 for n >= 2). The other sums only test finiteness.
+    """
+    c = constants
+    n, M, k = int(c[_S_N]), int(c[_S_M]), int(c[_S_K])
+    # The state: v_predicted, tau_predicted, wrench_predicted (k), input_fault,
+    # counters (4), ring (2M, n).
+    fault = 2 * n + k
+    counters = fault + 1
+    ring = counters + 4
+    if (
+        v.shape[0] != n
+        or vdot.shape[0] != n
+        or tau.shape[0] != n
+        or delta_q.shape[0] != n
+        or wrench.shape[0] != k
+        or rate.shape[0] != k
+        or state.shape[0] != ring + 2 * M * n
+    ):
+        return _BAD_SIZE
+    bad = False
+    ready = True
+    row = 0
+    total = 0.0
+    for i in range(n):
+        total += delta_q[i]
+    delta_q_finite = math.isfinite(total)
+    if not delta_q_finite:
+        bad = True  # (also counted without a horizon)
+    if M:
+        # Δq read now into rows r and r + M of the ring (a non-finite entry: that
+        # joint's previous Δq, 0 before any).
+        row = int(state[counters])
+        samples = int(state[counters + 1])
+        newest = (row + 1) % M
+        for i in range(n):
+            value = delta_q[i]
+            if not delta_q_finite and not math.isfinite(value):
+                value = state[ring + row * n + i] if samples else 0.0
+            state[ring + newest * n + i] = value
+            state[ring + (newest + M) * n + i] = value
+        row = newest
+        state[counters] = row
+        samples = min(samples + 1, M)
+        state[counters + 1] = samples
+        ready = samples >= M
+    velocity, acceleration, torque = 0.0, 0.0, 0.0
+    for i in range(n):
+        velocity += v[i]
+        acceleration += vdot[i]
+        torque += tau[i]
+    if not math.isfinite(velocity + acceleration + torque):
+        bad = True  # hold v_predicted and tau_predicted
+    elif ready and M:
+        # [q̇_pred − q̂̇, τ_pred − τ̂] = Σ_j W_j ⊙ Δq_j + C ⊙ q̂̈ over the window of
+        # Δq, oldest first (rows r + 1 .. r + M), bounded; eq. (1) of the module
+        # docstring over the horizon.
+        weights = _S_COUNT
+        vdot_weights = weights + 2 * M * n
+        bounds = vdot_weights + 2 * n
+        window = ring + (row + 1) * n
+        for output in range(2):
+            bounded = c[_S_BOUND_V + output] != 0.0
+            for i in range(n):
+                correction = 0.0
+                w = weights + output * M * n + i
+                for j in range(M):
+                    correction += c[w + j * n] * state[window + j * n + i]
+                correction = correction + c[vdot_weights + output * n + i] * vdot[i]
+                if bounded:
+                    lower = c[bounds + 2 * output * n + i]
+                    upper = c[bounds + (2 * output + 1) * n + i]
+                    correction = min(max(correction, lower), upper)
+                if output == 0:
+                    state[i] = v[i] + correction
+                else:
+                    state[n + i] = tau[i] + correction
+    else:  # the delayed estimates pass through
+        for i in range(n):
+            state[i] = v[i]
+            state[n + i] = tau[i]
+    if k:
+        total = 0.0
+        for i in range(k):
+            total += wrench[i]
+        for i in range(k):
+            total += rate[i]
+        if math.isfinite(total):
+            horizon = c[_S_HORIZON]
+            for i in range(k):
+                state[2 * n + i] = rate[i] * horizon + wrench[i]  # f̂ + H ḟ̂
+        else:
+            bad = True  # hold wrench_predicted
+    consecutive = state[counters + 2]
+    if bad or consecutive != 0.0:
+        # Count a bad tick, or clear the consecutive count on the first good one.
+        consecutive = (consecutive + 1.0) * (1.0 if bad else 0.0)
+        state[counters + 2] = consecutive
+        state[counters + 3] += 1.0 if bad else 0.0
+        state[fault] = consecutive
+    return 0
+
+
 class DelayPredictorStep(Step):
     """The predictor's per-tick arithmetic (module docstring), without Drake.
 
@@ -173,6 +296,9 @@ class DelayPredictorStep(Step):
     (at most M), consecutive bad ticks, total bad ticks), and `ring` ((2M, n), rad;
     only if M > 0): the last M Δq read, each written twice (rows r and r + M) so
     that the window, oldest first, is the contiguous rows r + 1 .. r + M.
+
+    A tick is one numba kernel (`_predictor_step`) on the state and the weights,
+    packed once into one array (`hrp2_drake.kernels`); it allocates nothing.
     """
 
     def __init__(self, motor_model: MotorModel, config: DelayPredictorConfig):
@@ -213,30 +339,37 @@ class DelayPredictorStep(Step):
         self._declare("counters", np.zeros(4))
         if M:
             self._declare("ring", np.zeros((2 * M, n)))
-        # Per-tick work: the corrections [q̇_pred − q̂̇, τ_pred − τ̂] (2, n), the q̂̈
-        # term, and each bounded correction with its (lower, upper) bounds.
-        self._ones_n = np.ones(n)
-        self._ones_k = np.ones(k)
-        self._correction = np.zeros((2, n))
-        self._correction_v, self._correction_tau = self._correction
-        self._vdot_term = np.zeros((2, n))
-        bounds = (
+        # The constants of the kernel, packed once (_S_* scalars, W, C, bounds).
+        bounds = [
             _bounds(config.max_velocity_correction, n),
             _bounds(config.max_torque_correction, n),
-        )
-        self._bounded = [
-            (value, bound)
-            for value, bound in zip(self._correction, bounds)
-            if bound is not None
         ]
+        scalars = np.zeros(_S_COUNT)
+        scalars[[_S_N, _S_M, _S_K, _S_HORIZON]] = n, M, k, self._horizon
+        scalars[[_S_BOUND_V, _S_BOUND_TAU]] = [bound is not None for bound in bounds]
+        unbounded = (np.full(n, -np.inf), np.full(n, np.inf))
+        self._constants = np.concatenate(
+            [scalars, self._prediction_weights.reshape(-1)]
+            + [self._vdot_weights.reshape(-1)]
+            + [side for bound in bounds for side in (bound or unbounded)]
+        )
+        self._no_wrench = np.zeros(0)
         self._finalize()
+        self._check_layout()
 
-    def _views_changed(self) -> None:
-        M = self._steps
+    def _check_layout(self) -> None:
+        """The kernel indexes the state as v_predicted, tau_predicted,
+        wrench_predicted, input_fault, counters, ring."""
+        n, k, M = self._n, self._k, self._steps
+        starts = {"v_predicted": 0, "tau_predicted": n, "input_fault": 2 * n + k,
+                  "counters": 2 * n + k + 1}
+        if k:
+            starts["wrench_predicted"] = 2 * n
         if M:
-            self._rows = list(self.ring)  # a view per ring row
-            # The window of Δq, oldest first, after row r was written: (M, n) views.
-            self._windows = [self.ring[r + 1 : r + 1 + M] for r in range(M)]
+            starts["ring"] = 2 * n + k + 5
+        actual = {name: rows.start for name, rows in self.layout()}
+        if actual != starts or self.state_size != 2 * n + k + 5 + 2 * M * n:
+            raise AssertionError(f"{_WHERE}: the state layout is not the kernel's")
 
     def _linear_prediction(self, steps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The prediction as weights on the buffered Δq and on q̂̈.
@@ -310,67 +443,31 @@ class DelayPredictorStep(Step):
         from `delay` ago, the Δq just sent (n, rad), and with wrench_size k > 0 f̂
         (k, N and N·m) and ḟ̂ (k, N/s and N·m/s) as old, carried to the present in
         place on the state (DelayPredictor's docstring: what bad input does)."""
-        M = self._steps
-        counters = self.counters
-        bad = False
-        ready = True
-        if M:
-            row = int(counters[_NEWEST_ROW])
-            samples = int(counters[_NUM_SAMPLES])
-            if not math.isfinite(delta_q.dot(self._ones_n)):
-                bad = True
-                previous = self._rows[row] if samples else 0.0
-                delta_q = np.where(np.isfinite(delta_q), delta_q, previous)
-            row = (row + 1) % M
-            self._rows[row][:] = delta_q
-            self._rows[row + M][:] = delta_q
-            counters[_NEWEST_ROW] = row
-            counters[_NUM_SAMPLES] = samples = min(samples + 1, M)
-            ready = samples >= M
-        elif not math.isfinite(delta_q.dot(self._ones_n)):
-            bad = True  # unused without a horizon, but counted
-        ones = self._ones_n
-        estimates = (
-            v_estimated.dot(ones) + vdot_estimated.dot(ones) + tau_estimated.dot(ones)
+        code = _predictor_step(
+            v_estimated,
+            vdot_estimated,
+            tau_estimated,
+            delta_q,
+            self._no_wrench if wrench_estimated is None else wrench_estimated,
+            self._no_wrench if wrench_rate is None else wrench_rate,
+            self.state,
+            self._constants,
         )
-        if not math.isfinite(estimates):
-            bad = True  # hold v_predicted and tau_predicted
-        elif ready and M:
-            window = self._windows[row]
-            self._predict(window, v_estimated, vdot_estimated, tau_estimated)
-        else:
-            self.v_predicted[:] = v_estimated
-            self.tau_predicted[:] = tau_estimated
-        if self._k:
-            wrench, rate = wrench_estimated, wrench_rate
-            if math.isfinite(wrench.dot(self._ones_k) + rate.dot(self._ones_k)):
-                predicted = self.wrench_predicted
-                np.multiply(rate, self._horizon, predicted)
-                np.add(predicted, wrench, predicted)  # f̂ + H ḟ̂
-            else:
-                bad = True  # hold wrench_predicted
-        if bad or counters[_CONSECUTIVE_BAD]:
-            # Count a bad tick, or clear the consecutive count on the first good one.
-            counters[_CONSECUTIVE_BAD] = (counters[_CONSECUTIVE_BAD] + 1.0) * bad
-            counters[_TOTAL_BAD] += bad
-            self.input_fault[0] = counters[_CONSECUTIVE_BAD]
+        if code:
+            n, k = self._n, self._k
+            raise ValueError(
+                f"{_WHERE}: v_estimated, vdot_estimated, tau_estimated and delta_q "
+                f"must have {n} entries"
+                + (f", wrench_estimated and wrench_rate {k}" if k else "")
+            )
 
-    def _predict(
-        self, window: np.ndarray, v: np.ndarray, vdot: np.ndarray, tau: np.ndarray
-    ) -> None:
-        """v_predicted, tau_predicted from the Δq window (M, n, oldest first) and the
-        delayed estimates: eq. (1) of the module docstring over the horizon
-        (_linear_prediction), bounded by the max corrections."""
-        correction = self._correction  # [q̇_pred − q̂̇, τ_pred − τ̂], (2, n)
-        np.einsum("kji,ji->ki", self._prediction_weights, window, out=correction)
-        # (Positional outputs: about twice as fast as `out=` on small arrays.)
-        np.multiply(self._vdot_weights, vdot, self._vdot_term)
-        np.add(correction, self._vdot_term, correction)
-        for value, (lower, upper) in self._bounded:
-            np.maximum(value, lower, out=value)
-            np.minimum(value, upper, out=value)
-        np.add(v, self._correction_v, self.v_predicted)
-        np.add(tau, self._correction_tau, self.tau_predicted)
+    def warm_up(self) -> None:
+        """Compiles (or loads from numba's cache) `_predictor_step` for the arrays
+        of a tick (C-contiguous float64 vectors), on a copy of the state: the state
+        is left as it was."""
+        zeros, wrench = np.zeros(self._n), np.zeros(self._k)
+        state, constants = self.state.copy(), self._constants
+        _predictor_step(zeros, zeros, zeros, zeros, wrench, wrench, state, constants)
 
 
 def _bounds(values: list[float], n: int) -> tuple[np.ndarray, np.ndarray] | None:

@@ -45,6 +45,7 @@ from hrp2_drake.control.inverse_dynamics import (
     gain_vector,
 )
 from hrp2_drake.identification.motor_model import MotorModel
+from hrp2_drake.kernels import kernel
 from hrp2_drake.multibody import check_joint_names, eval_finite
 from hrp2_drake.step import Step, StepSystem
 
@@ -170,6 +171,243 @@ class TorqueControllerConfig:
         return out
 
 
+# The state of DeltaQTorqueStep, as the kernels index it: the start of each named
+# array in units of n (the order of its `_declare` calls, checked at construction),
+# then fallback_active, fallback_reason, tau_error_integral at 12 n, 12 n + 1,
+# 12 n + 2.
+_Q_CMD, _DELTA_Q, _DELTA_Q_UNSATURATED, _TAU_COMMANDED = 0, 1, 2, 3
+_FF_TORQUE, _FF_FRICTION, _FB_POSITION, _FB_VELOCITY = 4, 5, 6, 7
+_FB_ACCELERATION, _FB_FORCE, _FB_INTEGRAL, _FB_DISTURBANCE = 8, 9, 10, 11
+_FALLBACK = 12  # fallback_active at 12 n, fallback_reason and the integral after it
+_STATE_ROWS = 13  # the state has 13 n + 2 entries
+# Its constants (`DeltaQTorqueStep._constants`, packed once): rows of n, then the
+# scalars at _C_ROWS n.
+(_C_KP, _C_KI, _C_INTEGRAL_LIMIT, _C_DELTA_Q_LIMIT, _C_FALLBACK_LIMIT, _C_TAU_LIMIT,
+ _C_K_TAU, _C_K_V, _C_K_C, _C_K_TAU_ONE_PLUS_KP, _C_K_TAU_KP, _C_K_TAU_KI) = range(12)
+_C_ROWS = 12
+_S_PERIOD, _S_COULOMB_VELOCITY, _S_INTEGRATES, _S_COMPENSATES, _S_COULOMB, _S_LATCH = (
+    range(6)
+)
+_S_COUNT = 6
+# What the kernels return besides a FALLBACK_REASONS code: the step raises.
+_Q_REF_NOT_FINITE, _NO_DISTURBANCE, _BAD_SIZE = -1, -2, -3
+
+
+@kernel
+def _delta_q_hold(q_measured, q_ref, has_q_ref, fallback, state):
+    """Position control on DeltaQTorqueStep's `state`: q_cmd = q_ref (has_q_ref
+    False: the q_cmd held), Δq = q_cmd − q_measured (0 where not finite), the
+    torque-control arrays zero, fallback_active = fallback. Returns 0, or
+    _Q_REF_NOT_FINITE (nothing changed) or _BAD_SIZE."""
+    n = (state.shape[0] - 2) // _STATE_ROWS
+    if q_measured.shape[0] != n or (has_q_ref and q_ref.shape[0] != n):
+        return _BAD_SIZE
+    if has_q_ref:
+        total = 0.0
+        for i in range(n):
+            total += q_ref[i]
+        if not math.isfinite(total):
+            return _Q_REF_NOT_FINITE
+        for i in range(n):
+            state[_Q_CMD * n + i] = q_ref[i]
+    for i in range(n):
+        delta = state[_Q_CMD * n + i] - q_measured[i]
+        state[_DELTA_Q * n + i] = delta if math.isfinite(delta) else 0.0
+    # delta_q_unsaturated .. feedback_disturbance: zero outside torque control.
+    for j in range(_DELTA_Q_UNSATURATED * n, (_FB_DISTURBANCE + 1) * n):
+        state[j] = 0.0
+    state[_FALLBACK * n] = 1.0 if fallback else 0.0
+    return 0
+
+
+@kernel
+def _delta_q_step(
+    before_start,
+    tau_desired,
+    tau_estimated,
+    v,
+    q_measured,
+    q_ref,
+    has_q_ref,
+    sensor_fault,
+    terms,
+    has_terms,
+    tau_disturbance,
+    has_disturbance,
+    state,
+    constants,
+):
+    """One tick of DeltaQTorqueStep on its `state` with its packed `constants`
+    (`DeltaQTorqueStep.step`: the arguments are its inputs, a flag for each optional
+    one, whose array is then a stand-in). Returns the FALLBACK_REASONS code of a
+    fallback that starts now (else 0), or a negative code on which the step raises.
+
+    Elementwise, in numpy's order of operations (the numbers of the numpy version
+    bit for bit), except K_c tanh(q̂̇ / v_s), libm's tanh where numpy's own SIMD one
+    differs by at most one unit in the last place; the sums only test finiteness.
+    """
+    n = (state.shape[0] - 2) // _STATE_ROWS
+    c = constants
+    if (
+        tau_desired.shape[0] != n
+        or tau_estimated.shape[0] != n
+        or v.shape[0] != n
+        or q_measured.shape[0] != n
+        or (has_q_ref and q_ref.shape[0] != n)
+        or sensor_fault.shape[0] < 1
+        or (has_terms and (terms.shape[0] != 5 or terms.shape[1] != n))
+        or (has_disturbance and tau_disturbance.shape[0] != n)
+        or c.shape[0] != _C_ROWS * n + _S_COUNT
+    ):
+        return _BAD_SIZE
+    scalars = _C_ROWS * n
+    period = c[scalars + _S_PERIOD]
+    integrates = c[scalars + _S_INTEGRATES] != 0.0
+    compensates = c[scalars + _S_COMPENSATES] != 0.0
+    active = _FALLBACK * n  # fallback_active; fallback_reason, tau_error_integral
+    integral_row = active + 2
+    total = 0.0
+    for i in range(n):
+        total += q_measured[i]
+    fallback = False
+    reason = 0
+    if not math.isfinite(total):
+        # No torque command is safe without the encoders: hand back to the servo.
+        reason = 5
+    else:
+        if before_start:
+            return _delta_q_hold(q_measured, q_ref, has_q_ref, False, state)
+        fallback = state[active] != 0.0
+        if fallback and c[scalars + _S_LATCH] != 0.0:
+            return _delta_q_hold(q_measured, q_ref, has_q_ref, True, state)
+        # A bad input (codes 6, 1, 2, 3); the terms through their products with
+        # the gains, finite exactly when the terms are (finite, non-negative gains).
+        if sensor_fault[0] > 0:
+            reason = 6
+        else:
+            total = 0.0
+            for i in range(n):
+                total += tau_estimated[i]
+            if not math.isfinite(total):
+                reason = 1
+            else:
+                for i in range(n):
+                    if abs(tau_estimated[i]) > c[_C_TAU_LIMIT * n + i]:
+                        reason = 2
+                        break
+            if reason == 0:
+                desired = 0.0
+                velocity = 0.0
+                scaled = 0.0
+                for i in range(n):
+                    desired += tau_desired[i]
+                    velocity += v[i]
+                    k_tau_one_plus_kp = c[_C_K_TAU_ONE_PLUS_KP * n + i]
+                    if has_terms:
+                        scaled += (
+                            c[_C_K_TAU * n + i] * terms[0, i]
+                            + k_tau_one_plus_kp * terms[1, i]
+                            + k_tau_one_plus_kp * terms[2, i]
+                            + k_tau_one_plus_kp * terms[3, i]
+                            + c[_C_K_TAU_KP * n + i] * terms[4, i]
+                        )
+                    else:
+                        scaled += c[_C_K_TAU * n + i] * tau_desired[i]
+                if not math.isfinite(desired + velocity + scaled):
+                    reason = 3
+        if reason == 0 and compensates:
+            if not has_disturbance:
+                return _NO_DISTURBANCE
+            total = 0.0
+            for i in range(n):
+                total += tau_disturbance[i]
+            if not math.isfinite(total):
+                reason = 3
+        if reason == 0:
+            # Eq. 11 into tau_commanded, eq. 10 into delta_q_unsaturated, the
+            # friction feedforward; |Δq| beyond delta_q_fallback_limit: code 4.
+            coulomb = c[scalars + _S_COULOMB] != 0.0
+            coulomb_velocity = c[scalars + _S_COULOMB_VELOCITY]
+            for i in range(n):
+                e_tau = tau_desired[i] - tau_estimated[i]
+                integral = _clipped_integral(state[integral_row + i], e_tau, period,
+                                             c[_C_INTEGRAL_LIMIT * n + i])
+                # τ* = τ_d + K_p e_τ + K_i ∫ e_τ dt [− d̂].
+                tau_star = tau_desired[i] + c[_C_KP * n + i] * e_tau
+                if integrates:
+                    tau_star = tau_star + c[_C_KI * n + i] * integral
+                if compensates:
+                    tau_star = tau_star - tau_disturbance[i]
+                state[_TAU_COMMANDED * n + i] = tau_star
+                friction = c[_C_K_V * n + i] * v[i]
+                if coulomb:  # + K_c tanh(q̂̇ / v_s)
+                    friction = friction + c[_C_K_C * n + i] * math.tanh(
+                        v[i] / coulomb_velocity
+                    )
+                state[_FF_FRICTION * n + i] = friction
+                # Eq. 10: Δq = K_τ τ* + K_v q̂̇.
+                delta_q = c[_C_K_TAU * n + i] * tau_star + friction
+                state[_DELTA_Q_UNSATURATED * n + i] = delta_q
+                if abs(delta_q) > c[_C_FALLBACK_LIMIT * n + i]:
+                    reason = 4
+        if reason == 0:
+            # Torque control: the saturated Δq, q_cmd, the components of Δq
+            # (DeltaQTorqueController's docstring; Sec. 4.2 eqs. 13-14, Sec. 5.5),
+            # the integral.
+            for i in range(n):
+                limit = c[_C_DELTA_Q_LIMIT * n + i]
+                delta_q = state[_DELTA_Q_UNSATURATED * n + i]
+                delta_q = min(max(delta_q, -limit), limit)  # (np.maximum, np.minimum)
+                state[_DELTA_Q * n + i] = delta_q
+                state[_Q_CMD * n + i] = q_measured[i] + delta_q
+                k_tau = c[_C_K_TAU * n + i]
+                k_tau_one_plus_kp = c[_C_K_TAU_ONE_PLUS_KP * n + i]
+                k_tau_kp = c[_C_K_TAU_KP * n + i]
+                if has_terms:
+                    feedforward = terms[0, i]
+                    position, velocity, force, error = (
+                        terms[1, i], terms[2, i], terms[3, i], terms[4, i]
+                    )
+                else:  # τ_ff = τ_d, the others zero
+                    feedforward = tau_desired[i]
+                    position = velocity = force = error = 0.0
+                state[_FF_TORQUE * n + i] = k_tau * feedforward  # K_τ τ_ff
+                state[_FB_POSITION * n + i] = k_tau_one_plus_kp * position  # K6 e_q
+                state[_FB_VELOCITY * n + i] = k_tau_one_plus_kp * velocity  # K7 ė_q
+                error = k_tau_kp * error  # K_τ K_p τ_ef
+                state[_FB_FORCE * n + i] = k_tau_one_plus_kp * force + error  # K9 e_f
+                # K_τ K_p (τ_ff − τ̂) − K_τ K_p τ_ef
+                state[_FB_ACCELERATION * n + i] = (
+                    k_tau_kp * (feedforward - tau_estimated[i]) - error
+                )
+                e_tau = tau_desired[i] - tau_estimated[i]
+                integral = _clipped_integral(state[integral_row + i], e_tau, period,
+                                             c[_C_INTEGRAL_LIMIT * n + i])
+                if integrates:  # (else feedback_torque_integral stays zero)
+                    state[_FB_INTEGRAL * n + i] = c[_C_K_TAU_KI * n + i] * integral
+                if compensates:
+                    state[_FB_DISTURBANCE * n + i] = -k_tau * tau_disturbance[i]
+                state[integral_row + i] = integral
+            if fallback:  # not latched: torque control resumes
+                state[active] = 0.0
+            return 0
+    # The fallback to position control for `reason`: its code if it starts now.
+    new = 0 if state[active] != 0.0 else reason
+    code = _delta_q_hold(q_measured, q_ref, has_q_ref, True, state)
+    if code:
+        return code
+    state[active + 1] = reason
+    return new
+
+
+@kernel
+def _clipped_integral(integral, e_tau, period, limit):
+    """The next ∫ e_τ dt (forward Euler), clipped to ±limit (anti-windup)."""
+    integral = integral + e_tau * period
+    # As np.maximum then np.minimum: a NaN stays NaN (the first argument).
+    return min(max(integral, -limit), limit)
+
+
 class DeltaQTorqueStep(Step):
     """Eq. 10-11 for one sample, with the Δq components of Sec. 5.5, the saturation
     and the fallback to position control, outside Drake's systems framework: the
@@ -191,7 +429,10 @@ class DeltaQTorqueStep(Step):
     what a shell must load before a tick. It rewrites the others every tick, except
     `unused`: feedback_torque_integral without K_i, feedback_disturbance without
     config.disturbance_compensation, zero for ever (a shell need neither load nor
-    store them). A tick allocates nothing but numpy scalars.
+    store them).
+
+    A tick is one numba kernel (`_delta_q_step`) on the state and the gains, packed
+    once into one array (`hrp2_drake.kernels`); it allocates nothing.
     """
 
     #: The state arrays that `step` reads or keeps between ticks.
@@ -227,7 +468,6 @@ class DeltaQTorqueStep(Step):
             raise ValueError(f"{_WHERE}: the motor model's k_tau is <= 0 for {bad}")
         n = self._n = len(config.joints)
         self._make_gains()
-        self._make_work_arrays()
         for name in ("q_cmd", "delta_q", "delta_q_unsaturated", "tau_commanded"):
             self._declare(name, np.zeros(n))
         for name in DELTA_Q_COMPONENTS:
@@ -236,6 +476,11 @@ class DeltaQTorqueStep(Step):
         self._declare("fallback_reason", np.zeros(1))
         self._declare("tau_error_integral", np.zeros(n))
         self._finalize()
+        self._check_layout()
+        # Stand-ins for the optional inputs (the kernel's flags say they are absent).
+        self._no_fault = np.zeros(1)
+        self._no_terms = np.zeros((len(TORQUE_COMPONENTS), n))
+        self._no_disturbance = np.zeros(n)
         #: The state arrays that stay zero under this config.
         self.unused: tuple[str, ...] = ()
         if not self._integrates:
@@ -244,65 +489,53 @@ class DeltaQTorqueStep(Step):
             self.unused += ("feedback_disturbance",)
 
     def _make_gains(self) -> None:
-        """The gains, bounds and their products, formed once."""
+        """The gains, bounds and their products, formed once and packed into one
+        array for the kernel (`_constants`: the rows _C_*, then the scalars _S_*)."""
         config, n = self._config, self._n
         vectors = config.vectors()
-        self._kp = vectors["kp"]
-        self._ki = vectors["ki"]
-        self._integral_limit = vectors["integral_limit"]
-        self._delta_q_limit = vectors["delta_q_limit"]
-        self._fallback_limit = vectors["delta_q_fallback_limit"]
-        self._tau_limit = vectors["tau_limit"]
-        self._k_tau = self._motor.k_tau
-        self._minus_k_tau = -self._k_tau
-        self._k_v = self._motor.k_v
-        self._k_c = self._motor.k_c if config.coulomb_compensation else np.zeros(n)
-        self._coulomb = config.coulomb_compensation
-        self._coulomb_velocity = config.coulomb_velocity
-        self._period_n = np.full(n, config.period)  # an array: faster than a float
+        kp, ki = vectors["kp"], vectors["ki"]
+        k_tau = self._motor.k_tau
+        k_c = self._motor.k_c if config.coulomb_compensation else np.zeros(n)
+        self._integrates = bool(np.any(ki != 0.0))  # else ∫ e_τ dt is unused
+        rows = {
+            _C_KP: kp,
+            _C_KI: ki,
+            _C_INTEGRAL_LIMIT: vectors["integral_limit"],
+            _C_DELTA_Q_LIMIT: vectors["delta_q_limit"],
+            _C_FALLBACK_LIMIT: vectors["delta_q_fallback_limit"],
+            _C_TAU_LIMIT: vectors["tau_limit"],
+            _C_K_TAU: k_tau,
+            _C_K_V: self._motor.k_v,
+            _C_K_C: k_c,
+            # The gains of τ_Ks, τ_Kd, τ_Kf and of τ_ef in the components of Δq.
+            _C_K_TAU_ONE_PLUS_KP: k_tau * (1.0 + kp),
+            _C_K_TAU_KP: k_tau * kp,
+            _C_K_TAU_KI: k_tau * ki,
+        }
+        scalars = np.zeros(_S_COUNT)
+        scalars[_S_PERIOD] = config.period
+        scalars[_S_COULOMB_VELOCITY] = config.coulomb_velocity
+        scalars[_S_INTEGRATES] = self._integrates
+        scalars[_S_COMPENSATES] = config.disturbance_compensation
+        scalars[_S_COULOMB] = config.coulomb_compensation
+        scalars[_S_LATCH] = config.latch_fallback
+        self._constants = np.concatenate(
+            [np.asarray(rows[r], dtype=float) for r in range(_C_ROWS)] + [scalars]
+        )
         self._half_period = 0.5 * config.period
         self._start_time = config.start_time
-        self._latch_fallback = config.latch_fallback
-        self._compensates = config.disturbance_compensation
-        k_tau_one_plus_kp = self._k_tau * (1.0 + self._kp)
-        self._k_tau_kp = self._k_tau * self._kp
-        self._k_tau_ki = self._k_tau * self._ki
-        # The gains of τ_ff, τ_Ks, τ_Kd, τ_Kf, τ_ef in the components of Δq.
-        self._term_gains = np.stack(
-            [self._k_tau] + [k_tau_one_plus_kp] * 3 + [self._k_tau_kp]
-        )
-        self._integrates = bool(np.any(self._ki != 0.0))  # else ∫ e_τ dt is unused
-        self._clips_integral = bool(np.any(np.isfinite(self._integral_limit)))
-        self._minus_integral_limit = -self._integral_limit
-        self._minus_delta_q_limit = -self._delta_q_limit
 
-    def _make_work_arrays(self) -> None:
-        n, k = self._n, len(TORQUE_COMPONENTS)
-        self._ones_n = np.ones(n)
-        # The terms without the inverse dynamics's: τ_ff = τ_d (row 0), zeros.
-        self._no_terms = np.zeros((k, n))
-        self._no_terms_ff = self._no_terms[0]
-        # K_τ τ_ff, K_τ (1 + K_p) τ_Ks, ... (one product per tick into these rows).
-        self._scaled = np.zeros((k, n))
-        self._scaled_rows = tuple(self._scaled)
-        self._scaled_pv = self._scaled[1:3]  # K_τ (1 + K_p) [τ_Ks; τ_Kd]
-        self._scaled_flat = self._scaled.reshape(-1)  # a view
-        self._ones_scaled = np.ones(self._scaled.size)
-        self._e_tau = np.zeros(n)
-        self._integral = np.zeros(n)  # the next ∫ e_τ dt, kept if no fallback
-        self._work = np.zeros(n)
-        self._exceeds = np.zeros(n, dtype=bool)
-
-    def _views_changed(self) -> None:
-        # delta_q_unsaturated .. the last component: contiguous rows of the state,
-        # zero outside torque control.
-        first = self.rows("delta_q_unsaturated").start
-        self._zero_outside_torque_control = self.state[
-            first : self.rows(DELTA_Q_COMPONENTS[-1]).stop
-        ]
-        # feedback_position, feedback_velocity: contiguous, one (2, n) copy.
-        rows = self.rows("feedback_position").start, self.rows("feedback_velocity").stop
-        self._feedback_pv = self.state[rows[0] : rows[1]].reshape(2, self._n)
+    def _check_layout(self) -> None:
+        """The kernels index the state by the _Q_CMD .. _FB_DISTURBANCE rows."""
+        n = self._n
+        names = ("q_cmd", "delta_q", "delta_q_unsaturated", "tau_commanded")
+        expected = {name: k * n for k, name in enumerate(names + DELTA_Q_COMPONENTS)}
+        active = _FALLBACK * n
+        expected |= {"fallback_active": active, "fallback_reason": active + 1,
+                     "tau_error_integral": active + 2}
+        actual = {name: rows.start for name, rows in self.layout()}
+        if actual != expected or self.state_size != _STATE_ROWS * n + 2:
+            raise AssertionError(f"{_WHERE}: the state layout is not the kernels'")
 
     # ----------------------------------------------------------------- accessors
 
@@ -339,7 +572,10 @@ class DeltaQTorqueStep(Step):
             ValueError: q_measured or q_ref is not finite.
         """
         _check_finite("q_measured", q_measured, t)
-        self._hold(t, q_measured, q_measured if q_ref is None else q_ref, False)
+        q_ref = q_measured if q_ref is None else q_ref
+        code = _delta_q_hold(q_measured, q_ref, True, False, self.state)
+        if code:
+            self._raise(code, t, q_ref)
 
     def step(
         self,
@@ -372,6 +608,9 @@ class DeltaQTorqueStep(Step):
             tau_disturbance: d̂ (N·m), n, with config.disturbance_compensation
                 (required then; ignored otherwise).
 
+        Every array is float64 (the kernel is compiled for float64 arrays,
+        `warm_up`).
+
         Returns:
             The FALLBACK_REASONS code of a fallback that starts at this tick (the
             previous tick was not in fallback), else 0: what the controller logs
@@ -379,130 +618,59 @@ class DeltaQTorqueStep(Step):
 
         Raises:
             ValueError: q_ref, when it is used (position control), is not finite;
-                tau_disturbance is None with config.disturbance_compensation.
+                tau_disturbance is None with config.disturbance_compensation; an
+                input of the wrong size.
         """
-        if not math.isfinite(q_measured.dot(self._ones_n)):
-            # No torque command is safe without the encoders: hand back to the servo.
-            return self._latch(t, q_measured, q_ref, 5)
-        if t + self._half_period < self._start_time:
-            self._hold(t, q_measured, q_ref, False)
-            return 0
-        fallback = self.fallback_active[0]
-        if fallback and self._latch_fallback:
-            self._hold(t, q_measured, q_ref, True)
-            return 0
-        if terms is None:
-            self._no_terms_ff[:] = tau_desired
-            terms = self._no_terms
-        # K_τ τ_ff, K_τ (1 + K_p) τ_Ks, K_τ (1 + K_p) τ_Kd, K_τ (1 + K_p) τ_Kf,
-        # K_τ K_p τ_ef: one product, finite exactly when the terms are (finite,
-        # non-negative gains).
-        np.multiply(self._term_gains, terms, self._scaled)
-        reason = self._input_fault(tau_desired, tau_estimated, v, sensor_fault)
-        if not reason:
-            reason = self._eq10_11(tau_desired, tau_estimated, v, tau_disturbance)
-        if reason:
-            return self._latch(t, q_measured, q_ref, reason)
-        self._torque_control(tau_estimated, q_measured, terms, tau_disturbance)
-        if fallback:  # not latched: torque control resumes
-            self.fallback_active[0] = 0.0
-        return 0
-
-    def _input_fault(self, tau_desired, tau_estimated, v, sensor_fault) -> int:
-        """The FALLBACK_REASONS code of a bad input (0, 1, 2, 3 or 6); the terms
-        are checked through their products in `_scaled`."""
-        if sensor_fault is not None and sensor_fault[0] > 0:
-            return 6
-        ones = self._ones_n
-        if not math.isfinite(tau_estimated.dot(ones)):
-            return 1
-        magnitude = np.abs(tau_estimated, self._work)
-        if np.count_nonzero(np.greater(magnitude, self._tau_limit, self._exceeds)):
-            return 2
-        scaled = self._scaled_flat.dot(self._ones_scaled)
-        if not math.isfinite(tau_desired.dot(ones) + v.dot(ones) + scaled):
-            return 3
-        return 0
-
-    def _eq10_11(self, tau_desired, tau_estimated, v, tau_disturbance) -> int:
-        """Eq. 11 into tau_commanded (and the next integral), eq. 10 into
-        delta_q_unsaturated, the friction feedforward into feedforward_friction;
-        returns the FALLBACK_REASONS code this finds (0, 3: d̂ not finite, 4: Δq
-        beyond delta_q_fallback_limit)."""
-        e_tau = np.subtract(tau_desired, tau_estimated, self._e_tau)
-        integral = np.multiply(e_tau, self._period_n, self._integral)
-        np.add(self.tau_error_integral, integral, integral)
-        if self._clips_integral:  # anti-windup: |∫ e_τ dt| <= integral_limit
-            np.maximum(integral, self._minus_integral_limit, out=integral)
-            np.minimum(integral, self._integral_limit, out=integral)
-        # Eq. 11: τ* = τ_d + K_p e_τ + K_i ∫ e_τ dt [− d̂].
-        tau_star = np.multiply(self._kp, e_tau, self.tau_commanded)
-        np.add(tau_desired, tau_star, tau_star)
-        work = self._work
-        if self._integrates:
-            np.add(tau_star, np.multiply(self._ki, integral, work), tau_star)
-        if self._compensates:
-            if tau_disturbance is None:
-                raise ValueError(f"{_WHERE}: disturbance_compensation needs d̂")
-            if not math.isfinite(tau_disturbance.dot(self._ones_n)):
-                return 3
-            np.subtract(tau_star, tau_disturbance, tau_star)
-        friction = np.multiply(self._k_v, v, self.feedforward_friction)
-        if self._coulomb:  # + K_c tanh(q̂̇ / v_s)
-            np.tanh(np.divide(v, self._coulomb_velocity, work), work)
-            np.add(friction, np.multiply(self._k_c, work, work), friction)
-        # Eq. 10: Δq = K_τ τ* + K_v q̂̇.
-        delta_q = np.multiply(self._k_tau, tau_star, self.delta_q_unsaturated)
-        np.add(delta_q, friction, delta_q)
-        too_large = np.greater(
-            np.abs(delta_q, work), self._fallback_limit, self._exceeds
+        code = _delta_q_step(
+            t + self._half_period < self._start_time,
+            tau_desired,
+            tau_estimated,
+            v,
+            q_measured,
+            q_measured if q_ref is None else q_ref,
+            q_ref is not None,
+            self._no_fault if sensor_fault is None else sensor_fault,
+            self._no_terms if terms is None else terms,
+            terms is not None,
+            self._no_disturbance if tau_disturbance is None else tau_disturbance,
+            tau_disturbance is not None,
+            self.state,
+            self._constants,
         )
-        return 4 if np.count_nonzero(too_large) else 0
+        if code < 0:
+            self._raise(code, t, q_ref)
+        return code
 
-    def _torque_control(self, tau_estimated, q_measured, terms, tau_disturbance):
-        """After `_eq10_11` without a fallback: the saturated Δq, q_cmd, the
-        components of Δq and the integral."""
-        saturated = np.maximum(
-            self.delta_q_unsaturated, self._minus_delta_q_limit, out=self.delta_q
-        )
-        np.minimum(saturated, self._delta_q_limit, out=saturated)
-        np.add(q_measured, saturated, self.q_cmd)
-        # The components of Δq (DeltaQTorqueController's docstring; Sec. 4.2 eqs.
-        # 13-14, Sec. 5.5), from the products in `_scaled` (`step`).
-        feedforward, _, _, force, error = self._scaled_rows
-        self.feedforward_torque[:] = feedforward
-        self._feedback_pv[:] = self._scaled_pv  # K6 e_q, K7 ė_q
-        np.add(force, error, self.feedback_force)  # K9 e_f
-        # K_τ K_p (τ_ff − τ̂) − K_τ K_p τ_ef
-        acceleration = np.subtract(terms[0], tau_estimated, self.feedback_acceleration)
-        np.multiply(self._k_tau_kp, acceleration, acceleration)
-        np.subtract(acceleration, error, acceleration)
-        if self._integrates:  # (else feedback_torque_integral stays zero)
-            np.multiply(self._k_tau_ki, self._integral, self.feedback_torque_integral)
-        if self._compensates:
-            np.multiply(self._minus_k_tau, tau_disturbance, self.feedback_disturbance)
-        self.tau_error_integral[:] = self._integral
-
-    def _hold(self, t, q_measured, q_ref, fallback: bool) -> None:
-        """Position control: q_cmd = q_ref (None: the q_cmd held), Δq = q_cmd −
-        q_measured (0 where not finite), the torque-control arrays zero, and
-        fallback_active."""
-        if q_ref is not None:
+    def _raise(self, code: int, t: float, q_ref: np.ndarray | None) -> None:
+        """The error of a kernel's negative code."""
+        if code == _Q_REF_NOT_FINITE:
             _check_finite("q_ref", q_ref, t)
-            self.q_cmd[:] = q_ref
-        delta_q = np.subtract(self.q_cmd, q_measured, self.delta_q)
-        if not math.isfinite(delta_q.dot(self._ones_n)):
-            delta_q[~np.isfinite(delta_q)] = 0.0
-        self._zero_outside_torque_control.fill(0.0)
-        self.fallback_active[0] = 1.0 if fallback else 0.0
+            raise ValueError(
+                f"{_WHERE}: input port 'q_ref' is not finite at t = {t:.6g} s"
+            )
+        if code == _NO_DISTURBANCE:
+            raise ValueError(f"{_WHERE}: disturbance_compensation needs d̂")
+        n = self._n
+        raise ValueError(
+            f"{_WHERE}: at t = {t:.6g} s, an input of the wrong size: every joint "
+            f"vector has {n} entries, terms ({len(TORQUE_COMPONENTS)}, {n}), "
+            "sensor_fault 1"
+        )
 
-    def _latch(self, t, q_measured, q_ref, reason: int) -> int:
-        """Fallback to position control for `reason`; returns `reason` if the
-        fallback starts now, else 0."""
-        new = 0 if self.fallback_active[0] else reason
-        self._hold(t, q_measured, q_ref, True)
-        self.fallback_reason[0] = reason
-        return new
+    def warm_up(self) -> None:
+        """Compiles (or loads from numba's cache) `_delta_q_step` and `_delta_q_hold`
+        for the arrays of a tick (C-contiguous float64; terms (5, n)), on copies:
+        the state is left as it was; and `_clipped_integral` for its float64
+        arguments (a kernel that `freeze` disables needs a signature of its own)."""
+        n = self._n
+        state = self.state.copy()
+        zeros = np.zeros(n)
+        _clipped_integral(0.0, 0.0, 0.0, 1.0)
+        _delta_q_hold(zeros, zeros, True, False, state)
+        _delta_q_step(
+            False, zeros, zeros, zeros, zeros, zeros, True, self._no_fault,
+            self._no_terms, True, zeros, True, state, self._constants,
+        )
 
 
 def _check_finite(name: str, value: np.ndarray, t: float) -> None:
