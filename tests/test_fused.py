@@ -132,6 +132,7 @@ def test_message_driven_loop_over_memq_equals_the_fused_controller(station_confi
     transport = DrakeLcmTransport("memq://")
     bridge = RobotBridge(station_config, transport)
     controller = FusedController(parts())
+    controller.warm_up()
     link = LcmLink(robot, transport, LcmChannels(), controller, wait_timeout=1.0)
 
     def pump():

@@ -28,6 +28,7 @@ as they are now. The two shells give the same signals to 1e-12 (tests/test_fused
                                 supervisor (faults, ramps) ◄──┘ ─► q_cmd to the servo
 """
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -156,6 +157,7 @@ class FusedController:
         self.events = np.zeros((256, 3))
         self.num_events = 0
         self.event_counts = {EVENT_CONTROLLER_FALLBACK: 0, EVENT_SUPERVISOR_FAULT: 0}
+        self.warmed_up = False  # (`warm_up`)
 
     # ------------------------------------------------------------------ wiring
 
@@ -348,6 +350,18 @@ class FusedController:
         self._v_friction = friction[parts.friction_velocity]
 
     # ------------------------------------------------------------------ ticks
+
+    def warm_up(self) -> float:
+        """Compiles, or loads from numba's cache, every kernel of the chain's steps
+        (`Step.warm_up`: each called on arrays of a real tick's types, no state
+        changed), before a loop starts; the wall time it took (s). A real-time loop
+        refuses to start before it (`warmed_up`) and forbids compiling while it runs
+        (`hrp2_drake.kernels.freeze`)."""
+        start = time.perf_counter()
+        for step in self._steps.values():
+            step.warm_up()
+        self.warmed_up = True
+        return time.perf_counter() - start
 
     def reset(self) -> None:
         """Every step back to its initial state (before `initialize`)."""

@@ -8,7 +8,10 @@ once. Over LCM (`hardware.lcm_link.LcmLink`) the robot's encoder message is the
 clock; on a Dynamixel bus (`hardware.dynamixel.DynamixelLink`) the loop's own clock,
 one sync read and one sync write per period. No Simulator paces it, and Python's
 garbage collector does not run inside the loop (`gc.freeze()` after start-up, then
-`gc.disable()` until the loop ends).
+`gc.disable()` until the loop ends). It refuses to start before the fused controller's
+kernels are compiled (`FusedController.warm_up`), and nothing compiles while it runs
+(`hrp2_drake.kernels.freeze`: a kernel called with a new signature raises, which ends
+the run in a ramp).
 
 It fails safe. Whatever ends a run (its duration, a malformed or stale message, a
 silent robot or servo, a servo's hardware error, an exception, SIGTERM/SIGINT), the
@@ -40,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hrp2_drake import kernels
 from hrp2_drake.control.fused import (
     EVENT_CONTROLLER_FALLBACK,
     EVENT_SUPERVISOR_FAULT,
@@ -260,6 +264,11 @@ class ControlLoop:
     def run(self) -> dict:
         """Runs until the duration (robot time), a fault, or a signal; ramps out; the
         run's summary (see `summary`)."""
+        if not self.controller.warmed_up:
+            raise RuntimeError(
+                "the control loop refuses to start: its fused controller's kernels are "
+                "not compiled (call FusedController.warm_up() before the loop)"
+            )
         config = self.config.settings
         granted = request_real_time(config.real_time)
         previous = {
@@ -267,7 +276,7 @@ class ControlLoop:
             for sig in (signal.SIGTERM, signal.SIGINT)
         }
         try:
-            with garbage_collector_frozen(config.real_time.freeze_gc):
+            with garbage_collector_frozen(config.real_time.freeze_gc), kernels.compile_disabled():
                 self._loop(config.silence_timeout)
         finally:
             for sig, handler in previous.items():
@@ -642,6 +651,7 @@ class RobotBridge:
                 self.station.GetOutputPort("q_measured").Eval(context).copy(),
                 self._command.copy(),
                 self.holding,
+                self._last_command_k == self.k,  # a new command since the last period
             )
         )
 
@@ -699,11 +709,12 @@ class RobotBridge:
         }
 
     def signals(self) -> dict[str, np.ndarray]:
-        """t, state_true, q_measured, q_cmd (applied), holding: one row per period."""
+        """t, state_true, q_measured, q_cmd (applied), holding, commanded (a new
+        command came since the last period): one row per period."""
         if not self._log:
             return {}
         columns = list(zip(*self._log))
-        names = ("t", "state_true", "q_measured", "q_cmd", "holding")
+        names = ("t", "state_true", "q_measured", "q_cmd", "holding", "commanded")
         return {
             name: np.array(column, dtype=float) for name, column in zip(names, columns)
         }

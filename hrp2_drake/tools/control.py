@@ -193,6 +193,8 @@ def run_control(
         torque_chain_parts(robot, control_reference(config), motor_model, torque_control,
                            period=config.period())
     )
+    say("compiling the controller's kernels (or loading them from numba's cache) ...")
+    warm_up = controller.warm_up()
     link = open_link(config, controller, lcm_url, port, lockstep)
     try:
         say(f"waiting for {robot.name} on {link.name} ...")
@@ -206,6 +208,7 @@ def run_control(
     finally:
         link.close()
     summary["approach_s"] = approach
+    summary["warm_up_s"] = warm_up
     return _report(config, robot, loop, summary, out, torque_control.start_time + approach)
 
 
@@ -288,6 +291,8 @@ def _markdown(robot, config: ControlConfig, summary: dict) -> str:
         f"ones: {summary['longest_overrun_run']}; followed by a fallback within 50 ms: "
         f"{summary['overruns_followed_by_a_fallback']}); {summary['refused_samples']} "
         "samples refused (timestamp not advancing).",
+        f"Kernels compiled, or loaded from numba's cache, before the loop: "
+        f"{summary['warm_up_s']:.2f} s; none compiled while it ran.",
         f"Operating system: CPU {rt.get('cpu')}, scheduler {rt.get('scheduler')}"
         + (f" ({rt['error'].strip('; ')})" if rt.get("error") else "") + "; garbage "
         "collector frozen and disabled in the loop"
@@ -361,7 +366,7 @@ def run_sim_robot(config: StationConfig, lcm_url: str, duration: float, out: Pat
     """The whole `hrp2-drake sim-robot`: `RobotBridge` in real time (or at `rate` times
     it, or in lock step with the controller's commands) for `duration` s (inf: until
     SIGTERM or Ctrl-C); writes its ground truth (sim_robot.npz: t, state_true,
-    q_measured, q_cmd, holding) to `out` on exit."""
+    q_measured, q_cmd, holding, commanded) to `out` on exit."""
     config.validate()
     bridge_config = BridgeConfig(duration=duration, rate=rate, watchdog_periods=watchdog_periods,
                                  lockstep=lockstep)
