@@ -1,3 +1,4 @@
+import contextlib
 import math
 
 import numpy as np
@@ -497,3 +498,132 @@ def test_step_exact_on_a_ramp_and_bound_to_a_buffer():
     np.testing.assert_array_equal(fused[[0, 1, -1]], [-1.0, -1.0, -1.0])
     np.testing.assert_array_equal(step.second_derivative, alone.second_derivative)
     assert step.second_derivative[1] == pytest.approx(2e-3 / PERIOD**2, rel=1e-9)
+
+
+# ------------------------------------------------------------------ the numba kernel
+
+
+def _kernel_samples(num_signals: int, ticks: int, seed: int) -> np.ndarray:
+    """Smooth signals of different scales with noise, a burst of NaN and inf entries,
+    and a bad entry in the very first sample (held at 0)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(ticks) * PERIOD
+    scales = np.logspace(-2, 3, num_signals)
+    samples = scales * (
+        np.sin(2 * np.pi * np.outer(t, rng.uniform(0.5, 3.0, num_signals)))
+        + 1e-3 * rng.normal(size=(ticks, num_signals))
+    )
+    samples[0, 1] = math.nan
+    samples[30:33, [0, 2]] = math.nan
+    samples[31, 3] = -math.inf
+    return samples
+
+
+def _run_step(step: SavitzkyGolayStep, samples: np.ndarray) -> np.ndarray:
+    """initialize, then one step per sample; the whole state after each."""
+    step.initialize(0.0, samples[0])
+    states = []
+    for m, sample in enumerate(samples):
+        step.step(m * PERIOD, sample)
+        states.append(step.state.copy())
+    return np.array(states)
+
+
+_KERNEL_CASES = [
+    (21, 2, None),
+    (9, 1, None),
+    ([11, 5, 21, 21, 7], 2, None),
+    ([7, 3, 9, 9, 3], 1, 13),
+]
+
+
+@pytest.mark.parametrize("window, order, span", _KERNEL_CASES)
+def test_kernel_compiled_equals_interpreted(window, order, span):
+    """The compiled kernel and its Python source give the same states, to the bit
+    (elementwise code, and the same sums in the same order, no fma), through
+    start-up, bad samples and a bound state."""
+    from hrp2_drake import kernels
+
+    samples = _kernel_samples(5, 70, seed=11)
+
+    def make():
+        return SavitzkyGolayStep(5, window, order, PERIOD, "centre", span)
+
+    compiled = _run_step(make(), samples)
+    # (With NUMBA_DISABLE_JIT both are the Python source.)
+    with kernels.interpreted() if kernels.jit_enabled() else contextlib.nullcontext():
+        interpreted = _run_step(make(), samples)
+        bound = make()
+        buffer = np.full(bound.state_size + 7, -3.0)
+        bound.bind(buffer[4:-3])
+        interpreted_bound = _run_step(bound, samples)
+    np.testing.assert_array_equal(compiled, interpreted)
+    np.testing.assert_array_equal(compiled, interpreted_bound)
+    np.testing.assert_array_equal(buffer[[0, 1, 2, 3, -3, -2, -1]], -3.0)
+    assert np.all(np.isfinite(compiled))
+
+
+@pytest.mark.parametrize("window, order, span", _KERNEL_CASES)
+def test_kernel_equals_the_weighted_window(window, order, span):
+    """Each estimate is savgol_coefficients' weights times the signal's own window
+    (centred on the span's centre), as numpy's products computed it before the
+    kernel: equal up to rounding, 1e-14 of the sum of the terms' magnitudes (the
+    difference is rounding in the sum, where weights ~1/dt² cancel)."""
+    k = 5
+    samples = _kernel_samples(k, 70, seed=12)
+    samples[0, 1] = 0.0  # no bad samples here: the window is the samples themselves
+    samples[30:33] = samples[29]
+    step = SavitzkyGolayStep(k, window, order, PERIOD, "centre", span)
+    states = _run_step(step, samples)
+    N, windows = step.window(), step.windows()
+    fit = step.rows("value").start
+    for m in range(N - 1, len(samples)):
+        estimates = states[m, fit : fit + (order + 1) * k].reshape(order + 1, k)
+        for i, n in enumerate(windows):
+            weights = savgol_coefficients(n, order, PERIOD, "centre")
+            newest = m - (N - n) // 2
+            window_samples = samples[newest - n + 1 : newest + 1, i]
+            expected = weights @ window_samples
+            magnitude = np.abs(weights) @ np.abs(window_samples)
+            np.testing.assert_array_less(
+                np.abs(estimates[:, i] - expected), 1e-14 * magnitude + 1e-300
+            )
+
+
+def test_warm_up_then_frozen_a_tick_runs_and_a_new_signature_raises():
+    """warm_up compiles (or loads) the kernel for a tick's types without changing the
+    state; frozen, a step (alone or bound to a larger vector, as the fused controller
+    binds it) runs, a float32 signal raises instead of compiling."""
+    from hrp2_drake import kernels
+    from hrp2_drake.estimation.savitzky_golay import savgol_step
+
+    if not kernels.jit_enabled():
+        pytest.skip("NUMBA_DISABLE_JIT: nothing compiles")
+    step = SavitzkyGolayStep(4, [11, 5, 11, 7], 2, PERIOD, "centre")
+    bound = SavitzkyGolayStep(4, 9, 1, PERIOD, "centre")
+    buffer = np.zeros(bound.state_size + 2)
+    bound.bind(buffer[1:-1])
+    step.initialize(0.0, np.arange(4.0))
+    before = step.state.copy()
+    step.warm_up()
+    bound.warm_up()
+    np.testing.assert_array_equal(step.state, before)
+    kernels.freeze()
+    try:
+        for m in range(12):
+            step.step(m * PERIOD, np.arange(4.0) + m)
+            bound.step(m * PERIOD, np.arange(4.0) - m)
+        np.testing.assert_allclose(step.derivative, [1000.0] * 4, rtol=1e-9)
+        np.testing.assert_allclose(bound.derivative, [-1000.0] * 4, rtol=1e-9)
+        with pytest.raises(TypeError, match="float32"):
+            step.step(0.1, np.zeros(4, dtype=np.float32))
+        with pytest.raises(TypeError):
+            savgol_step(0.1, np.zeros(4), step.state.astype(np.float32), step._constants)
+    finally:
+        kernels.thaw()
+
+
+def test_a_signal_of_the_wrong_size_raises():
+    step = SavitzkyGolayStep(4, 9, 2, PERIOD, "centre")
+    with pytest.raises(ValueError, match="signal's size"):
+        step.step(0.0, np.zeros(5))

@@ -32,12 +32,26 @@ from typing import Sequence
 import numpy as np
 from scipy.ndimage import correlate1d
 
+from hrp2_drake.kernels import kernel
 from hrp2_drake.step import Step, StepSystem
 
 EVALUATION_POINTS = ("centre", "end")
 ORDERS = (1, 2)
 # SavitzkyGolayStep's ring-buffer state: bookkeeping, then the samples.
 _NEWEST_ROW, _NUM_SAMPLES, _CONSECUTIVE_BAD, _TOTAL_BAD, _RING_START = range(5)
+# SavitzkyGolayStep's packed constants (`_pack`): a header, then the weights.
+(
+    _DELAY,  # s
+    _SPAN,  # N, the ring's rows
+    _SIGNALS,  # k
+    _ROWS,  # order + 1 estimates per signal
+    _SHARED,  # 1: one (order + 1, N) weight matrix for every signal; 0: (order + 1, N, k)
+    _RING,  # where the named arrays start in the state: ring,
+    _FIT,  # value (then the derivatives),
+    _TIME,  # evaluation_time,
+    _FAULT,  # input_fault
+    _WEIGHTS,  # then the weights
+) = range(10)
 _ESTIMATES = ("value", "derivative", "second_derivative")  # state and port names
 _FILTER = "SavitzkyGolayFilter"  # the name in error messages
 
@@ -192,6 +206,92 @@ class SavitzkyGolayConfig:
         )
 
 
+@kernel
+def savgol_step(t, signal, state, constants):
+    """`SavitzkyGolayStep.step`'s arithmetic: takes the sample `signal` (k) taken at t
+    into `state` (the step's whole state vector) and writes the estimates there, with
+    the constants `_pack` made (header, then the weights).
+
+    Each estimate is a sum over the window's N samples, oldest to newest, one product
+    and one addition per sample (no fma, numba's default): independent of the ring's
+    position. The previous numpy code summed the same products in ring order, in BLAS
+    (gemm, gemv, with fma): the estimates differ by rounding only (module tests and
+    the step's docstring say how much)."""
+    N = int(constants[_SPAN])
+    k = int(constants[_SIGNALS])
+    rows = int(constants[_ROWS])
+    if signal.shape[0] != k:
+        raise ValueError("SavitzkyGolayStep.step: the signal's size is not num_signals()")
+    # Views with indices from 0 (no wraparound test per access, distinct arrays: the
+    # innermost loops vectorise).
+    ring = int(constants[_RING])
+    book = state[ring : ring + _RING_START]
+    samples = state[ring + _RING_START : ring + _RING_START + N * k].reshape((N, k))
+    fit = int(constants[_FIT])
+    estimates = state[fit : fit + rows * k].reshape((rows, k))
+    num_samples = int(book[_NUM_SAMPLES])
+    previous = int(book[_NEWEST_ROW])
+    row = (previous + 1) % N if num_samples > 0 else N - 1
+    newest = samples[row]
+    good = True
+    for i in range(k):
+        if not math.isfinite(signal[i]):
+            good = False
+            break
+    if good:
+        if book[_CONSECUTIVE_BAD]:
+            book[_CONSECUTIVE_BAD] = 0.0
+            state[int(constants[_FAULT])] = 0.0
+        for i in range(k):
+            newest[i] = signal[i]
+    else:
+        # Each bad entry holds the previous sample's value (0 before any); the
+        # previous sample's row is not the newest's (N >= 2).
+        held = samples[previous]
+        for i in range(k):
+            value = signal[i]
+            if math.isfinite(value):
+                newest[i] = value
+            elif num_samples > 0:
+                newest[i] = held[i]
+            else:
+                newest[i] = 0.0
+        book[_CONSECUTIVE_BAD] += 1.0
+        book[_TOTAL_BAD] += 1.0
+        state[int(constants[_FAULT])] = book[_CONSECUTIVE_BAD]
+    book[_NEWEST_ROW] = row
+    book[_NUM_SAMPLES] = min(num_samples + 1, N)
+    if num_samples == 0:
+        # Start-up: the window is the first sample N times, whose fit is a constant.
+        for r in range(N):
+            if r != row:
+                samples[r, :] = newest
+        estimates[0, :] = newest
+        estimates[1:, :] = 0.0
+    else:
+        estimates[:, :] = 0.0
+        weights = constants[_WEIGHTS:]
+        if constants[_SHARED] != 0.0:
+            shared = weights.reshape((rows, N))
+            for j in range(N):  # window column j (0 = oldest): ring row (row + 1 + j) % N
+                x = samples[(row + 1 + j) % N]
+                for d in range(rows):
+                    w = shared[d, j]
+                    out = estimates[d]
+                    for i in range(k):
+                        out[i] += w * x[i]
+        else:
+            each = weights.reshape((rows, N, k))
+            for j in range(N):
+                x = samples[(row + 1 + j) % N]
+                for d in range(rows):
+                    w = each[d, j]
+                    out = estimates[d]
+                    for i in range(k):
+                        out[i] += w[i] * x[i]
+    state[int(constants[_TIME])] = t - constants[_DELAY]
+
+
 class SavitzkyGolayStep(Step):
     """The per-tick arithmetic of `SavitzkyGolayFilter` (its docstring: start-up, bad
     samples, per-signal windows), on plain arrays: `initialize(t, signal)` and
@@ -207,10 +307,21 @@ class SavitzkyGolayStep(Step):
         evaluation_time (1): the time (s) they refer to, t − delay().
         input_fault (1): consecutive bad (NaN or infinite) samples, held.
 
-    Per step: one dot product checks the sample, then the estimates are written into
-    the state by one (order + 1, N) x (N, k) product with one window, or by at most
-    four calls with several (`_make_weights`), whatever their number (weights kept
-    rolled to the ring's position: no refit, no shift, no allocation).
+    Per step, one numba kernel (`savgol_step`, on the state vector and one array of
+    constants packed at construction, `_pack`): the sample checked entry by entry and
+    written into the ring, then each estimate a weighted sum over the window's N
+    samples, oldest to newest (no refit, no shift, no allocation).
+
+    Rounding: the sums are the only reduction. The numpy code before the kernel
+    (BLAS gemm/gemv over the ring in its own order, with fma) rounded them
+    differently; on HRP-2's closed loop (3 s, the sinusoid), the largest differences
+    were, tuned right leg (windows 4 to 18): values 4e-16 rad, q̇ 5e-14 rad/s, q̈
+    4.3e-11 rad/s² (of |q̈| up to 9.8: 4e-12 relative), F/T and IMU 7e-13 (4e-16
+    relative); one window of 80: q̈ 9e-13 rad/s² (3e-13 relative). That is each
+    method's own rounding (against the exact sums, q̈: 2.4e-11 here, 1.9e-11 BLAS):
+    a 4-sample second derivative weighs samples by about 1/dt² = 1e6 and cancels.
+    Everything else (the ring, the counts, the held entries, start-up,
+    evaluation_time) is elementwise: bitwise.
     """
 
     def __init__(
@@ -239,91 +350,51 @@ class SavitzkyGolayStep(Step):
         self._period = float(period)
         self._evaluation = evaluation
         self._delay = (N - 1) / 2 * self._period if evaluation == "centre" else 0.0
-        self._make_weights()
-        self._ones = np.ones(k)
-        self._finite = np.zeros(k, dtype=bool)  # work arrays of a bad sample
-        self._held = np.zeros(k)
         self._declare("ring", np.zeros(_RING_START + N * k))
         for name in _ESTIMATES[: order + 1]:
             self._declare(name, np.zeros(k))
         self._declare("evaluation_time", np.zeros(1))
         self._declare("input_fault", np.zeros(1))
         self._finalize()
+        self._constants = self._pack()
 
-    def _make_weights(self) -> None:
-        """One weight matrix per distinct window, placed in the ring's N rows so that
-        its centre is the span's (a shorter window skips the (N − N_i) / 2 newest and
-        oldest samples). The newest sample sits at ring row r, the oldest at r + 1
-        (mod N): window column j lives at row (r + 1 + j) % N, hence the roll by
-        r + 1, one matrix per r (`_rolled`).
+    def _pack(self) -> np.ndarray:
+        """The kernel's constants, one float64 vector: the header (`_DELAY`..`_FAULT`:
+        the delay, N, k, order + 1, whether one weight matrix serves every signal, the
+        rows of the named arrays in the state), then the weights.
 
-        With one window, one (order + 1, N) x (N, k) product per step. With several
-        (`_make_products`), the windows shared by several signals are stacked into
-        one product with every signal, and the windows of a single signal into one
-        batched matrix-vector product: four calls whatever the number of windows.
-        They take the BLAS routines (gemm, gemv) of one product per window, each
-        estimate a sum over the N rows in the same order: the same estimates as
-        one product per window, to the bit (with numpy's OpenBLAS)."""
-        N, order = self._window, self._order
-        windows = sorted(set(self._windows))
-        rolled = {}
-        for n in windows:
-            padded = np.zeros((order + 1, N))
+        The weights of each window are savgol_coefficients' (order + 1, N_i), placed
+        in N columns so that its centre is the span's (a shorter window skips the
+        (N − N_i) / 2 newest and oldest samples; zeros there). One window: that
+        (order + 1, N) matrix. Several: (order + 1, N, k), signal i's in [:, :, i]
+        (the kernel's innermost loop runs over the signals)."""
+        N, k, rows = self._window, self._num_signals, self._order + 1
+        padded = {}
+        for n in sorted(set(self._windows)):
+            weights = np.zeros((rows, N))
             start = (N - n) // 2
-            padded[:, start : start + n] = savgol_coefficients(
-                n, order, self._period, self._evaluation
+            weights[:, start : start + n] = savgol_coefficients(
+                n, self._order, self._period, self._evaluation
             )
-            rolled[n] = np.stack([np.roll(padded, r + 1, axis=1) for r in range(N)])
-        self._single_window = len(windows) == 1
-        if self._single_window:
-            self._rolled = list(rolled[windows[0]])  # a (order + 1, N) view per row
-        else:
-            self._make_products(rolled)
-
-    def _make_products(self, rolled: dict[int, np.ndarray]) -> None:
-        """The several-window products (`_make_weights`). Per ring row r:
-        `_stacked[r]` ((order + 1) G, N), the G windows of several signals, times the
-        whole (N, k) ring; `_vector_weights[r]` (V, order + 1, N), the V windows of
-        one signal, times `_vector_samples` (V, N, 1), those signals' columns. Both
-        products land in `_products`; `_gather` picks each estimate from it."""
-        N, k, d = self._window, self._num_signals, self._order + 1
-        windows = self._windows
-        signals = {n: [i for i, w in enumerate(windows) if w == n] for n in rolled}
-        shared = [n for n in rolled if len(signals[n]) > 1]
-        single = [n for n in rolled if len(signals[n]) == 1]
-        # (order + 1) G k stacked estimates, then (order + 1) V matrix-vector ones.
-        self._products = np.zeros(d * len(shared) * k + d * len(single))
-        self._gather = np.zeros((d, k), dtype=np.intp)
-        self._stacked = self._stacked_out = None
+            padded[n] = weights
+        shared = len(padded) == 1
         if shared:
-            stacked = np.concatenate([rolled[n] for n in shared], axis=1)
-            self._stacked = list(stacked)
-            self._stacked_out = self._products[: d * len(shared) * k].reshape(-1, k)
-            for g, n in enumerate(shared):
-                for i in signals[n]:
-                    self._gather[:, i] = (g * d + np.arange(d)) * k + i
-        self._vector_weights = self._vector_columns = None
-        if single:
-            start = d * len(shared) * k
-            # Batched (order + 1, N) x (N, 1) products: gemv, like a window's own.
-            self._vector_weights = list(np.stack([rolled[n] for n in single], axis=1))
-            self._vector_columns = np.array([signals[n][0] for n in single])
-            self._vector_samples = np.zeros((len(single), N, 1))
-            self._vector_rows = self._vector_samples.reshape(len(single), N)
-            self._vector_out = self._products[start:].reshape(len(single), d, 1)
-            for v, n in enumerate(single):
-                self._gather[:, signals[n][0]] = start + v * d + np.arange(d)
-        self._gather = self._gather.reshape(-1)
-
-    def _views_changed(self) -> None:
-        k = self._num_signals
-        self._samples = self.ring[_RING_START:].reshape(self._window, k)
-        # The estimates, contiguous in the state: one (order + 1, k) product target.
-        first, last = self.rows("value"), self.rows(_ESTIMATES[self._order])
-        self._fit = self.state[first.start : last.stop].reshape(self._order + 1, k)
-        self._fit_flat = self._fit.reshape(-1)  # a view
-        # The ring transposed (k, N), a view: the columns of single-window signals.
-        self._samples_t = self._samples.T
+            weights = padded[self._windows[0]]
+        else:
+            weights = np.stack([padded[n] for n in self._windows], axis=2)
+        header = np.zeros(_WEIGHTS)
+        header[[_DELAY, _SPAN, _SIGNALS, _ROWS, _SHARED]] = [
+            self._delay, N, k, rows, float(shared)
+        ]
+        ring, fit = self.rows("ring"), self.rows("value")
+        time, fault = self.rows("evaluation_time"), self.rows("input_fault")
+        if self.rows(_ESTIMATES[self._order]).stop != fit.start + rows * k:
+            # The kernel writes the estimates as one (order + 1, k) block.
+            raise AssertionError("SavitzkyGolayStep: the estimates are not contiguous")
+        header[[_RING, _FIT, _TIME, _FAULT]] = [
+            ring.start, fit.start, time.start, fault.start
+        ]
+        return np.concatenate([header, weights.reshape(-1)])
 
     # ----------------------------------------------------------------- accessors
 
@@ -375,63 +446,15 @@ class SavitzkyGolayStep(Step):
         ring[_NEWEST_ROW] = ring[_NUM_SAMPLES] = 0.0
 
     def step(self, t: float, signal: np.ndarray) -> None:
-        """Takes the sample `signal` (k floats, signal units) taken at t (s) and updates
-        the estimates, in place."""
-        ring, samples = self.ring, self._samples
-        N = self._window
-        num_samples = int(ring[_NUM_SAMPLES])
-        u = signal
-        if math.isfinite(u.dot(self._ones)):
-            if ring[_CONSECUTIVE_BAD]:
-                ring[_CONSECUTIVE_BAD] = 0.0
-                self.input_fault[0] = 0.0
-        else:
-            u = self._hold(signal, num_samples)
-            ring[_CONSECUTIVE_BAD] += 1.0
-            ring[_TOTAL_BAD] += 1.0
-            self.input_fault[0] = ring[_CONSECUTIVE_BAD]
-        row = (int(ring[_NEWEST_ROW]) + 1) % N if num_samples > 0 else N - 1
-        ring[_NEWEST_ROW] = row
-        ring[_NUM_SAMPLES] = min(num_samples + 1, N)
-        fit = self._fit
-        if num_samples == 0:
-            # Start-up: the window is the first sample N times, whose fit is a constant.
-            samples[:] = u
-            fit[0] = u
-            fit[1:] = 0.0
-        else:
-            samples[row] = u
-            # All estimates at once: (order + 1, N) weights times the (N, k) ring;
-            # with several windows, the products of `_make_products`.
-            if self._single_window:
-                np.dot(self._rolled[row], samples, fit)
-            else:
-                self._products_step(row, samples)
-        self.evaluation_time[0] = t - self._delay
+        """Takes the sample `signal` (k floats, signal units: a float64 array) taken
+        at t (s) and updates the estimates, in place (`savgol_step`)."""
+        savgol_step(t, signal, self._state, self._constants)
 
-    def _products_step(self, row: int, samples: np.ndarray) -> None:
-        """The estimates with several windows (`_make_products`), ring row `row`
-        holding the newest sample."""
-        if self._stacked is not None:
-            np.matmul(self._stacked[row], samples, self._stacked_out)
-        if self._vector_weights is not None:
-            self._samples_t.take(
-                self._vector_columns, 0, self._vector_rows, mode="clip"
-            )
-            np.matmul(self._vector_weights[row], self._vector_samples, self._vector_out)
-        self._products.take(self._gather, 0, self._fit_flat, mode="clip")
-
-    def _hold(self, signal: np.ndarray, num_samples: int) -> np.ndarray:
-        """The sample with each bad entry replaced by its previous value (0 before
-        any sample)."""
-        held = self._held
-        if num_samples > 0:
-            held[:] = self._samples[int(self.ring[_NEWEST_ROW])]
-        else:
-            held[:] = 0.0
-        np.isfinite(signal, out=self._finite)
-        np.copyto(held, signal, where=self._finite)
-        return held
+    def warm_up(self) -> None:
+        """Compiles (or loads) `savgol_step` for a tick's types: t a float, the signal
+        and the state C-contiguous float64 vectors (a step's state, bound or not, and
+        the fused controller's signals are), on copies."""
+        savgol_step(0.0, np.zeros(self._num_signals), self._state.copy(), self._constants)
 
 
 class SavitzkyGolayFilter(StepSystem):
@@ -453,9 +476,9 @@ class SavitzkyGolayFilter(StepSystem):
       newest sample minus delay(). Align downstream signals with it.
 
     Every `period` seconds (offset 0) a discrete update reads `signal`, stores it in a
-    ring buffer of the last N samples and computes the outputs with one precomputed
-    weight matrix (savgol_coefficients, kept rolled to the ring's position, so a step
-    neither refits nor shifts nor allocates the buffer). The outputs (and
+    ring buffer of the last N samples and computes the outputs with precomputed
+    weights (savgol_coefficients) read in the window's order from the ring's position,
+    so a step neither refits nor shifts nor allocates the buffer. The outputs (and
     `input_fault`) are discrete state: no direct feedthrough, the one-sample delay of a
     real controller. The arithmetic is `SavitzkyGolayStep`'s (its `initialize` and
     `step`), which this system runs on its context's state.
