@@ -30,6 +30,7 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
 
+from hrp2_drake import kernels
 from hrp2_drake.estimation.torque_estimator import (
     FloatingBaseTorqueEstimator,
     ForceTorqueSensorConfig,
@@ -694,6 +695,47 @@ def test_step_without_imu_and_with_nested_sensors(arm, arm_truth, legs):
     np.testing.assert_allclose(
         result.external_wrenches, sample["external"], rtol=0, atol=TOL
     )
+
+
+def test_step_kernels_compiled_equal_interpreted(arm, arm_truth, legs):
+    """The kernels' other branches, compiled and as Python source, to the bit: no IMU
+    and no F/T sensor (the fixed-base arm), the unknown-wrench link moving relative
+    to the root (its Jacobian: the arm with an IMU on l2), nested sensors with a
+    calibration (the legs)."""
+    sample = arm_truth.sample(np.random.default_rng(54), ("tool",))
+    joints = [sample[k] for k in ("q", "v", "vdot")]
+    leg_truth = _leg_truth(legs["floating"], True)
+    leg_samples = [
+        leg_truth.sample(np.random.default_rng(55 + k), ()) for k in range(2)
+    ]
+    contact = leg_truth.sample(np.random.default_rng(57), ("thigh_lower", "foot"))
+    leg_samples.append(contact)
+    cases = [
+        (arm, _arm_config(sensors={}), [[*joints, None, None, None, None]]),
+        (
+            arm,
+            _arm_config(imu=True),
+            [[*joints, *(np.zeros(3) for _ in IMU_NAMES), sample["readings"]]],
+        ),
+        (
+            legs["floating"],
+            _leg_config(offset_calibration_time=0.002, offset_calibration_start=0.0),
+            [
+                [s[k] for k in ("q", "v", "vdot", *IMU_NAMES, "readings")]
+                for s in leg_samples
+            ],
+        ),
+    ]
+    for plant, config, ticks in cases:
+        compiled = TorqueEstimatorStep(plant, config)
+        interpreted = TorqueEstimatorStep(plant, config)
+        for k, inputs in enumerate(ticks):
+            compiled.step(1e-3 * k, *inputs)
+            with kernels.interpreted():
+                interpreted.step(1e-3 * k, *inputs)
+            np.testing.assert_array_equal(compiled.state, interpreted.state)
+            assert np.any(compiled.tau != 0.0)
+    np.testing.assert_allclose(compiled.tau, leg_samples[-1]["tau"], rtol=0, atol=TOL)
 
 
 def _station(q: np.ndarray, readings: dict[str, np.ndarray]):

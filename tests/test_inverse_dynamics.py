@@ -14,7 +14,9 @@ from pydrake.multibody.math import SpatialForce
 from pydrake.multibody.plant import ExternallyAppliedSpatialForce, MultibodyPlant
 from pydrake.multibody.tree import JacobianWrtVariable, MultibodyForces
 
+from hrp2_drake import kernels
 from hrp2_drake.config import load_config
+from hrp2_drake.control import inverse_dynamics
 from hrp2_drake.control.inverse_dynamics import (
     TORQUE_COMPONENTS,
     InverseDynamicsConfig,
@@ -447,3 +449,106 @@ def test_step_floating_base(floating_plant):
     )
     with pytest.raises(ValueError, match="base_angular_velocity"):
         step.step(0.0, **dict(inputs, base_angular_velocity=np.full(3, np.nan)))
+
+
+def _id_steps(fixed_plant, floating_plant):
+    """Steps of every kernel branch: fixed base with and without the force task (the
+    leg's part model), floating base with the force task; and their inputs."""
+    R_WB = RotationMatrix(RollPitchYaw(0.2, -0.1, 0.4))
+    base = dict(
+        base_orientation=1.02 * R_WB.ToQuaternion().wxyz(),  # normalized in the step
+        base_angular_velocity=np.array([0.3, -0.2, 0.1]),
+    )
+    return [
+        (
+            lambda: InverseDynamicsStep(fixed_plant, _config(), _nominal(fixed_plant)),
+            _inputs(20),
+        ),
+        (
+            lambda: InverseDynamicsStep(
+                fixed_plant, _config(force_frame=""), _nominal(fixed_plant)
+            ),
+            _inputs(21, force=False),
+        ),
+        (
+            lambda: InverseDynamicsStep(
+                floating_plant, _config(floating_base=True), _nominal(floating_plant)
+            ),
+            dict(_inputs(22), **base),
+        ),
+    ]
+
+
+def test_step_kernels_compiled_equal_interpreted(fixed_plant, floating_plant):
+    """The numba kernels give their Python source's numbers to the bit (eq. 12, the
+    floating base's pose, the NaN event)."""
+    for make, inputs in _id_steps(fixed_plant, floating_plant):
+        compiled, interpreted = make(), make()
+        assert compiled.step(0.0, **inputs) is False
+        with kernels.interpreted():
+            assert interpreted.step(0.0, **inputs) is False
+        np.testing.assert_array_equal(compiled.state, interpreted.state)
+        assert np.all(np.isfinite(compiled.state)) and np.any(compiled.state != 0.0)
+        bad = dict(inputs, q=np.full(6, np.nan))
+        assert compiled.step(0.0, **bad) is True
+        with kernels.interpreted():
+            assert interpreted.step(0.0, **bad) is True
+        assert np.all(np.isnan(compiled.state)) and np.all(np.isnan(interpreted.state))
+
+
+def test_step_gravity_as_the_roots_acceleration(fixed_plant):
+    """The part model's root accelerates upward (−g) instead of gravity's forces
+    (CalcForceElementsContribution, one Drake call less): τ_d is the plant's own
+    inverse dynamics with gravity, to rounding."""
+    nominal = _nominal(fixed_plant)
+    step = InverseDynamicsStep(fixed_plant, _config(force_frame=""), nominal)
+    ix = joint_indexing(fixed_plant, LEG)
+    context = fixed_plant.CreateDefaultContext()
+    forces = MultibodyForces(fixed_plant)
+    for seed in range(3):
+        inputs = _inputs(30 + seed, force=False)
+        step.step(0.0, **inputs)
+        q_full = nominal.copy()
+        q_full[ix.q] = inputs["q"]
+        v_full = np.zeros(fixed_plant.num_velocities())
+        v_full[ix.v] = inputs["v"]
+        fixed_plant.SetPositions(context, q_full)
+        fixed_plant.SetVelocities(context, v_full)
+        vdot = np.zeros(fixed_plant.num_velocities())
+        vdot[ix.v] = inputs["vdot_ref"]
+        fixed_plant.CalcForceElementsContribution(context, forces)
+        forces.mutable_generalized_forces()[:] = 0.0  # joint damping: not in ĥ_j
+        expected = fixed_plant.CalcInverseDynamics(context, vdot, forces)[ix.v]
+        scale = np.abs(expected).max()
+        np.testing.assert_allclose(
+            step.tau_feedforward, expected, rtol=0, atol=1e-13 * scale
+        )
+
+
+def test_step_warm_up_then_no_compiling(fixed_plant, floating_plant):
+    """`warm_up` compiles (or loads) the kernels for a tick's arrays without changing
+    the state; frozen, real ticks run and a kernel called with float32 arrays raises
+    instead of compiling."""
+    for make, inputs in _id_steps(fixed_plant, floating_plant):
+        step = make()
+        step.step(0.0, **inputs)
+        before = step.state.copy()
+        step.warm_up()
+        np.testing.assert_array_equal(step.state, before)
+        kernels.freeze()
+        try:
+            step.step(0.001, **inputs)
+            np.testing.assert_array_equal(step.state, before)
+            # From a fused controller's input rows, filled in place.
+            assert step.step(0.002, *step.input_rows) is False
+            assert step.step(0.003, **dict(inputs, v=np.full(6, np.inf))) is True
+            if kernels.jit_enabled():
+                with pytest.raises(TypeError):
+                    inverse_dynamics.inverse_dynamics_inputs(
+                        step.inputs.astype(np.float32),
+                        step._work,
+                        step.state,
+                        step._table,
+                    )
+        finally:
+            kernels.thaw()

@@ -21,6 +21,7 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
 from pydrake.systems.sensors import Accelerometer, Gyroscope
 
+from hrp2_drake import kernels
 from hrp2_drake.estimation.inertial_identification import identify_end_effector_inertia
 from hrp2_drake.estimation.savitzky_golay import savgol_coefficients
 from hrp2_drake.estimation.torque_estimator import (
@@ -473,6 +474,105 @@ def test_step_neglecting_alpha_takes_none_and_names_a_bad_input(plant, truth):
     with pytest.raises(ValueError, match=match):
         step.step(1e-3, *inputs)
     np.testing.assert_array_equal(step.state, before)
+
+
+def _calibrating_step(plant) -> TorqueEstimatorStep:
+    """An HRP-2 step that calibrates its offsets at t < 2 ms, with the unknown wrench on
+    the torso (the experiments' choice) and rotor inertia off: most kernel branches."""
+    config = _config(
+        plant,
+        offset_calibration_time=0.002,
+        offset_calibration_start=0,
+        unknown_wrench_body=hrp2.IMU_BODY,
+        include_rotor_inertia=False,
+    )
+    return TorqueEstimatorStep(plant, config)
+
+
+def test_step_kernels_compiled_equal_interpreted(plant, truth):
+    """The numba kernels (`estimator_inputs`, `estimator_outputs`) give their Python
+    source's numbers to the bit, through a calibration and after it."""
+    rng = np.random.default_rng(80)
+    samples = [truth.sample(rng, contact=False) for _ in range(2)]
+    samples.append(truth.sample(rng, unknown_body=hrp2.IMU_BODY))
+    compiled, interpreted = _calibrating_step(plant), _calibrating_step(plant)
+    for k, sample in enumerate(samples):
+        compiled.step(1e-3 * k, *_step_inputs(sample))
+        with kernels.interpreted():
+            interpreted.step(1e-3 * k, *_step_inputs(sample))
+        np.testing.assert_array_equal(compiled.state, interpreted.state)
+    assert compiled.num_calibration_samples() == 2
+    # Rotor inertia off: the true torque less ρ² I_r q̈.
+    rotor = compiled.reflected_inertia() * samples[-1]["vdot"]
+    np.testing.assert_allclose(
+        compiled.tau, samples[-1]["tau"] - rotor, rtol=0, atol=1e-8
+    )
+
+
+def test_step_jacobians_equal_a_second_inverse_dynamics(plant, truth):
+    """τ̂ and the unknown wrench from one inverse dynamics and the sensors' Jacobians
+    (G − Σ J_mᵀ f_m, RNEA's linearity) equal those of Drake's inverse dynamics with
+    the external wrenches applied to the bodies below the sensors (what the numpy
+    version did) to 1e-13 of their size."""
+    from pydrake.multibody.tree import MultibodyForces
+
+    for body in (None, hrp2.IMU_BODY):
+        sample = truth.sample(np.random.default_rng(81), unknown_body=body)
+        changes = {"unknown_wrench_body": body} if body else {}
+        step = TorqueEstimatorStep(plant, _config(plant, **changes))
+        step.step(0.0, *_step_inputs(sample))
+        # The step's model and context hold this sample's kinematics.
+        model, context = step._model, step._context
+        forces = MultibodyForces(model)
+        for sensor in step._sensors:
+            wrench = getattr(step, f"external_wrench_{sensor.name}")
+            sensor.model_body.AddInForce(
+                context,
+                sensor.p_BoSo_S,
+                SpatialForce(wrench),
+                sensor.model_frame,
+                forces,
+            )
+        G = model.CalcInverseDynamics(context, step._vdot, forces)
+        # [J_uᵀ Sᵀ] [f_u; τ] = G on the root's and the joints' rows (Sec. 2.4).
+        u = model.GetBodyByName(body or hrp2.BASE_BODY).body_frame()
+        J_u = model.CalcJacobianSpatialVelocity(
+            context, kV, u, np.zeros(3), model.world_frame(), u
+        )
+        root = np.arange(model.num_velocities())[step._root_v]
+        rows = np.concatenate([root, step._jv])
+        n = step.num_joints()
+        A = np.hstack([J_u[:, rows].T, np.vstack([np.zeros((6, n)), np.eye(n)])])
+        solution = np.linalg.solve(A, G[rows])
+        scale = np.abs(G).max()
+        np.testing.assert_allclose(step.tau, solution[6:], rtol=0, atol=1e-13 * scale)
+        np.testing.assert_allclose(
+            step.unknown_wrench, solution[:6], rtol=0, atol=1e-13 * scale
+        )
+
+
+def test_step_warm_up_then_no_compiling(plant, truth):
+    """`warm_up` compiles (or loads) the kernels for a tick's arrays without changing
+    the state; frozen, a real tick runs and a kernel called with other arrays (float32)
+    raises instead of compiling."""
+    sample = truth.sample(np.random.default_rng(82))
+    step = _calibrating_step(plant)
+    step.step(0.0, *_step_inputs(sample))
+    before = step.state.copy()
+    step.warm_up()
+    np.testing.assert_array_equal(step.state, before)
+    kernels.freeze()
+    try:
+        step.step(1e-3, *_step_inputs(sample))
+        step.step(5e-3, *_step_inputs(sample))  # after the calibration
+        assert step.num_calibration_samples() == 2
+        if kernels.jit_enabled():
+            single = [np.float32(x) if np.ndim(x) == 0 else np.asarray(x, np.float32)
+                      for x in _step_inputs(sample)]
+            with pytest.raises(TypeError):
+                step.step(6e-3, *single)
+    finally:
+        kernels.thaw()
 
 
 # ------------------------------------------------------------------ bad inputs

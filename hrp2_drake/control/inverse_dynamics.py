@@ -34,8 +34,7 @@ from dataclasses import dataclass, field
 from typing import Callable, NamedTuple
 
 import numpy as np
-from pydrake.common.eigen_geometry import Quaternion
-from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.math import RigidTransform
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import (
     BodyIndex,
@@ -44,7 +43,9 @@ from pydrake.multibody.tree import (
     JacobianWrtVariable,
     ModelInstanceIndex,
     MultibodyForces,
+    QuaternionFloatingJoint,
     RigidBody,
+    SpatialInertia,
     WeldJoint,
 )
 from pydrake.systems.framework import Context, DiscreteValues, InputPort
@@ -57,9 +58,11 @@ from hrp2_drake.multibody import (
     joint_indexing,
     tree_joints,
 )
+from hrp2_drake.kernels import kernel
 from hrp2_drake.step import Step, StepSystem
 
 _WHERE = "InverseDynamicsController"
+_ROOT = "inverse_dynamics_root"  # the part model's massless floating body
 _logger = logging.getLogger(__name__)
 
 #: The components of τ_d (and tau_force_error), in the order of the output ports
@@ -184,13 +187,18 @@ def make_fixed_base_plant(
 
 class _FrameCopies:
     """The copies of a plant's frames in a part model (`_moved_part`), each made once:
-    on the copy of its body, or welded to the world where it is in `context` if its
-    body does not move (has no copy)."""
+    on the copy of its body, or welded to `anchor` (the part's root, at the world's
+    place) where it is in `context` if its body does not move (has no copy)."""
 
     def __init__(
-        self, model: MultibodyPlant, context: Context, bodies: dict[int, RigidBody]
+        self,
+        model: MultibodyPlant,
+        context: Context,
+        bodies: dict[int, RigidBody],
+        anchor: Frame,
     ):
         self._model, self._context, self._bodies = model, context, bodies
+        self._anchor = anchor
         self._copies: dict[int, Frame] = {}
 
     def __call__(self, original: Frame) -> Frame:
@@ -202,11 +210,11 @@ class _FrameCopies:
     def _copy(self, original: Frame) -> Frame:
         model = self._model
         body = self._bodies.get(int(original.body().index()))
-        if body is None:  # does not move: welded to the world where it is
+        if body is None:  # does not move: on the root, where it is in the world
             return model.AddFrame(
                 FixedOffsetFrame(
                     original.name(),
-                    model.world_frame(),
+                    self._anchor,
                     original.CalcPoseInWorld(self._context),
                     original.model_instance(),
                 )
@@ -228,19 +236,23 @@ def _moved_part(
     context: Context,
     joints: list[str],
     frame: Frame | None,
-) -> tuple[MultibodyPlant, Frame | None] | None:
+) -> tuple[MultibodyPlant, Frame | None, RigidBody] | None:
     """A copy of the part of a fixed-base `plant` that `joints` move: the bodies
     outboard of them (with their inertias in `context`), the revolute or prismatic
     `joints` themselves (with their actuators' rotor inertias and gear ratios), every
     other joint between those bodies welded at its pose in `context`, the joints that
-    hold the part welded to the world at their pose in `context`; gravity as in
-    `plant`, no other force element. With the other joints at rest, its M_j, ĥ_j and
-    J_j are exactly those of `plant` at `context`'s positions: a leg's inverse
-    dynamics on 6 bodies instead of the whole robot's.
+    hold the part welded at their pose in `context` to a massless root body, whose
+    6-dof joint (QuaternionFloatingJoint) to the world stays at the identity; gravity as
+    in `plant`, no other force element. With the other joints at rest, its M_j, ĥ_j
+    and J_j are exactly those of `plant` at `context`'s positions: a leg's inverse
+    dynamics on 6 bodies instead of the whole robot's. The root at rest with the
+    proper acceleration −g (an upward acceleration of the whole part, in the world),
+    in an inverse dynamics without gravity's forces, is the part at rest under
+    gravity: an inverse dynamics with gravity in one call (`InverseDynamicsStep`).
 
-    Returns (model, copy of `frame`: on the body's copy, or welded to the world if
-    `frame` is not on a moved body), or None if a joint of `joints` is neither
-    revolute nor prismatic (the caller then uses `plant` itself).
+    Returns (model, copy of `frame`: on the body's copy, or welded to the root if
+    `frame` is not on a moved body, the root), or None if a joint of `joints` is
+    neither revolute nor prismatic (the caller then uses `plant` itself).
     """
     controlled = [plant.GetJointByName(name) for name in joints]
     if any(j.type_name() not in ("revolute", "prismatic") for j in controlled):
@@ -264,6 +276,14 @@ def _moved_part(
     )
     for i in range(2, plant.num_model_instances()):  # 0: world, 1: default
         model.AddModelInstance(plant.GetModelInstanceName(ModelInstanceIndex(i)))
+    root = model.AddRigidBody(
+        _ROOT, model.AddModelInstance(_ROOT), SpatialInertia.Zero()
+    )
+    model.AddJoint(
+        QuaternionFloatingJoint(
+            f"{_ROOT}_joint", model.world_frame(), root.body_frame()
+        )
+    )
     copies = {}
     for b in order:
         if b in moved:
@@ -274,7 +294,7 @@ def _moved_part(
                 body.CalcSpatialInertiaInBodyFrame(context),
             )
 
-    copy_frame = _FrameCopies(model, context, copies)
+    copy_frame = _FrameCopies(model, context, copies, root.body_frame())
 
     indices = {int(j.index()) for j in controlled}
     for b in order:
@@ -297,7 +317,7 @@ def _moved_part(
         copy_joint(model, plant, context, joint, F, M, forward)
     frame_copy = copy_frame(frame) if frame is not None else None
     model.Finalize()
-    return model, frame_copy
+    return model, frame_copy, root
 
 
 class InverseDynamicsTerms(NamedTuple):
@@ -332,27 +352,6 @@ class JointSpaceModel(NamedTuple):
     jacobian: np.ndarray | None
 
 
-class _Inputs(NamedTuple):
-    """Views on a work array of eq. 12's inputs (`InverseDynamicsStep._inputs_of`)."""
-
-    rows: tuple[np.ndarray, ...]  # q_ref, v_ref, vdot_ref, q, v, f_ref, f
-    references: np.ndarray  # (2, n): [q_ref; v_ref]
-    estimates: np.ndarray  # (2, n): [q; v]
-    state: np.ndarray  # (2 n): [q; v]
-
-
-class _Outputs(NamedTuple):
-    """Views on a (6, n) array of eq. 12's outputs (τ_d, then TORQUE_COMPONENTS)."""
-
-    rows: tuple[np.ndarray, ...]  # the six rows
-    feedback: np.ndarray  # (2, n): tau_position_feedback, tau_velocity_feedback
-    force: np.ndarray  # (2, n): tau_force_feedback, tau_force_error
-
-    @staticmethod
-    def of(out: np.ndarray) -> "_Outputs":
-        return _Outputs(tuple(out), out[2:4], out[4:6])
-
-
 def _find_base(plant: MultibodyPlant, floating_base: bool) -> RigidBody | None:
     """The floating base body of `plant` (None with a fixed base), checked against
     config.floating_base."""
@@ -374,6 +373,155 @@ def _find_base(plant: MultibodyPlant, floating_base: bool) -> RigidBody | None:
     return plant.get_body(BodyIndex(bases[0]))
 
 
+# InverseDynamicsStep's index table (`_pack`, int64): a header, then the index lists.
+(
+    _N,  # n, the controlled joints
+    _NQ,  # the model's positions,
+    _NV,  # and velocities
+    _FLAGS,  # _FORCE_TASK
+    _BASE_Q,  # a floating base's quaternion [w, x, y, z] in q (else 0)
+    _BASE_V,  # its velocities [ω_WB; v_WBo] (in W) in v (else 0)
+    # Where each part of the work array starts (x = [q; v] of the model at 0):
+    _W_VDOT,  # v̇ of the model (nv)
+    _W_GAINS,  # K_s (n), K_d (n), K_f (6)
+    _W_FORCE,  # e_f (6), K_f e_f (6)
+    # Where each index list starts in the table:
+    _T_JQ,  # the joints' positions in q (n)
+    _T_JV,  # their velocities in v (n)
+    _HEADER,
+) = range(12)
+_FORCE_TASK = 1
+# What inverse_dynamics_inputs returns: the sample is finite; it is not, and τ_d
+# was (a new NaN event); it is not, nor was τ_d.
+_FINITE, _NEW_NAN, _NAN = 0, 1, 2
+
+
+@kernel
+def inverse_dynamics_inputs(inputs, work, state, table):
+    """`InverseDynamicsStep.step`'s check and scatter: if the sum of `inputs` ([q_ref;
+    v_ref; vdot_ref; q; v (; f_ref; f)]) is not finite, the whole state (the outputs)
+    becomes NaN and the result says whether τ_d was finite (`_NEW_NAN`) or not
+    (`_NAN`); else q, v of the joints go into x = [q; v] of the model and vdot_ref
+    into its v̇ (the other entries stay: nominal positions, zero velocities and
+    accelerations, the root's or base's), and the result is `_FINITE`. Copies only."""
+    n = table[_N]
+    total = 0.0
+    for i in range(inputs.shape[0]):
+        total += inputs[i]
+    if not math.isfinite(total):
+        tau_desired = 0.0
+        for i in range(n):
+            tau_desired += state[i]
+        for i in range(state.shape[0]):
+            state[i] = math.nan
+        return _NEW_NAN if math.isfinite(tau_desired) else _NAN
+    nq = table[_NQ]
+    vd = table[_W_VDOT]
+    jq = table[_T_JQ]
+    jv = table[_T_JV]
+    for i in range(n):
+        work[table[jq + i]] = inputs[3 * n + i]
+    for i in range(n):
+        work[nq + table[jv + i]] = inputs[4 * n + i]
+    for i in range(n):
+        work[vd + table[jv + i]] = inputs[2 * n + i]
+    return _FINITE
+
+
+@kernel
+def inverse_dynamics_base(orientation, angular_velocity, work, table):
+    """A floating base's pose and velocity into x = [q; v] of the model: the
+    quaternion `orientation` [w, x, y, z] divided by its norm, at the origin, and
+    ω_WB = R_WB ω_B (`angular_velocity` in B) with zero linear velocity. Returns the
+    norm; nothing is written unless it is within [0.9, 1.1]. R_WB is Drake's
+    RotationMatrix of the quaternion, to the bit (its formula, its sums' order)."""
+    w = orientation[0]
+    x = orientation[1]
+    y = orientation[2]
+    z = orientation[3]
+    norm = math.sqrt(w * w + x * x + y * y + z * z)
+    if not 0.9 <= norm <= 1.1:
+        return norm
+    w /= norm
+    x /= norm
+    y /= norm
+    z /= norm
+    q = table[_BASE_Q]
+    work[q] = w
+    work[q + 1] = x
+    work[q + 2] = y
+    work[q + 3] = z
+    s = 2.0 / ((x * x + z * z) + (y * y + w * w))
+    sx, sy, sz = s * x, s * y, s * z
+    swx, swy, swz = sx * w, sy * w, sz * w
+    sxx, sxy, sxz = sx * x, sy * x, sz * x
+    syy, syz, szz = sy * y, sz * y, sz * z
+    ax, ay, az = angular_velocity[0], angular_velocity[1], angular_velocity[2]
+    v = table[_NQ] + table[_BASE_V]
+    work[v] = (1.0 - syy - szz) * ax + (sxy - swz) * ay + (sxz + swy) * az
+    work[v + 1] = (sxy + swz) * ax + (1.0 - sxx - szz) * ay + (syz - swx) * az
+    work[v + 2] = (sxz - swy) * ax + (syz + swx) * ay + (1.0 - sxx - syy) * az
+    return norm
+
+
+@kernel
+def inverse_dynamics_outputs(G, J, inputs, work, state, table):
+    """Eq. 12 and its terms into `state` ((6, n): τ_d, then TORQUE_COMPONENTS'
+    order) from G = M v̇ + h of the model (the controlled joints' rows are
+    M_j q̈_d + ĥ_j), J the force frame's Jacobian (6, nv; unused without a force
+    task), `inputs` and the gains in the work array.
+
+    Elementwise as the numpy code before (bitwise): the errors, the gains, the sums of
+    the terms. Reductions: J_jᵀ f_d, J_jᵀ K_f e_f and J_jᵀ e_f, each a loop over the
+    6 rows summing in order without fma (numpy's matmul before)."""
+    n = table[_N]
+    jv = table[_T_JV]
+    ks = table[_W_GAINS]
+    kd = ks + n
+    kf = ks + 2 * n
+    # K_s e_q and K_d ė_q.
+    for i in range(n):
+        state[2 * n + i] = work[ks + i] * (inputs[i] - inputs[3 * n + i])
+    for i in range(n):
+        state[3 * n + i] = work[kd + i] * (inputs[n + i] - inputs[4 * n + i])
+    if not table[_FLAGS] & _FORCE_TASK:
+        # Eq. 12 without a force task: τ_d = M_j q̈_d + ĥ_j + K_s e_q + K_d ė_q.
+        for i in range(n):
+            tau_model = G[table[jv + i]]
+            state[i] = (tau_model + state[2 * n + i]) + state[3 * n + i]
+            state[n + i] = tau_model
+            state[4 * n + i] = 0.0
+            state[5 * n + i] = 0.0
+        return
+    f_ref = 5 * n
+    f = 5 * n + 6
+    e_f = table[_W_FORCE]
+    kf_e_f = e_f + 6
+    for r in range(6):
+        work[e_f + r] = inputs[f_ref + r] - inputs[f + r]
+    for r in range(6):
+        work[kf_e_f + r] = work[kf + r] * work[e_f + r]
+    for i in range(n):
+        c = table[jv + i]
+        jt_f_d = 0.0
+        for r in range(6):
+            jt_f_d += J[r, c] * inputs[f_ref + r]
+        jt_kf_e_f = 0.0
+        for r in range(6):
+            jt_kf_e_f += J[r, c] * work[kf_e_f + r]
+        jt_e_f = 0.0
+        for r in range(6):
+            jt_e_f += J[r, c] * work[e_f + r]
+        # M_j q̈_d + ĥ_j − J_jᵀ f_d, −J_jᵀ K_f e_f and −J_jᵀ e_f.
+        state[n + i] = G[c] - jt_f_d
+        state[4 * n + i] = -jt_kf_e_f
+        state[5 * n + i] = -jt_e_f
+        # Eq. 12: τ_d = M_j q̈_d + ĥ_j − J_jᵀ (f_d + K_f e_f) + K_s e_q + K_d ė_q.
+        state[i] = ((state[n + i] + state[2 * n + i]) + state[3 * n + i]) + state[
+            4 * n + i
+        ]
+
+
 class InverseDynamicsStep(Step):
     """Eq. 12 for one sample, outside Drake's systems framework: the per-tick
     arithmetic of InverseDynamicsController (its docstring has the model, the frames,
@@ -390,8 +538,29 @@ class InverseDynamicsStep(Step):
     `step` rewrites the whole state every tick; it reads only `tau_desired` (to
     report a new NaN event): `carried`, what a shell loads before a tick. Its
     workspace is one private context of the (sub-)model and one MultibodyForces, made
-    here, with every work array; a tick allocates only what Drake's Python bindings
-    return (the inverse dynamics and, with a force task, the Jacobian).
+    here, with the kernels' work array and index table (`_pack`).
+
+    Per tick: a kernel (`inverse_dynamics_inputs`) checks the inputs and writes them
+    into x = [q; v] and v̇ of the model (and `inverse_dynamics_base` the base's pose
+    and ω with a floating base); then Drake: one SetPositionsAndVelocities, one
+    inverse dynamics with gravity (M_j q̈_d + ĥ_j: the model's root, or the floating
+    base, at the proper acceleration −g, no force element; only the plant itself
+    welded to the world takes its gravity as force elements, one call more) and, with
+    a force task, the Jacobian; then a kernel (`inverse_dynamics_outputs`) writes eq.
+    12 and its terms. Pybind calls per tick, the right leg of HRP-2's fixed-base
+    model: 2 (3 with a force task); the numpy version had 3 (4), 9 (10) with a
+    floating base. A tick allocates only what Drake's Python bindings return (the
+    inverse dynamics and, with a force task, the Jacobian).
+
+    Rounding: M_j q̈_d + ĥ_j with gravity as the root's acceleration is Drake's
+    inverse dynamics summing other terms (the numpy version applied gravity's
+    forces); the force task's J_jᵀ products are sums in the kernel (numpy's matmul
+    before); with a floating base, the model's quaternion is the input's over its
+    norm (Drake stored its rotation matrix's, converted back). Measured against the
+    numpy version on HRP-2's closed loop (2 s, tuned right leg), each tick's inputs
+    given to both: τ_d within 3.6e-15 N·m (7e-16 of its largest entry); with a force
+    task at the foot, 1.4e-14 (4e-16); floating base, tilted and rotating, with the
+    force task, 5e-14 (2e-15). The feedback terms are bitwise (elementwise).
     """
 
     #: The state arrays that `step` reads (the rest it rewrites every tick).
@@ -438,6 +607,7 @@ class InverseDynamicsStep(Step):
         for name in TORQUE_COMPONENTS:
             self._declare(name, np.zeros(n))
         self._finalize()
+        self._table = self._pack()
 
     def _make_model(self, nominal_positions: np.ndarray | None) -> None:
         """The model in which eq. 12 is computed (InverseDynamicsController's
@@ -457,11 +627,12 @@ class InverseDynamicsStep(Step):
         moved = None
         if self._base is None:
             moved = _moved_part(plant, plant_context, config.joints, self._force_frame)
+        self._root = None
         if moved is None:
             self._model, self._context = plant, plant_context
             self._model_force_frame = self._force_frame
         else:
-            self._model, self._model_force_frame = moved
+            self._model, self._model_force_frame, self._root = moved
             self._context = self._model.CreateDefaultContext()
         model = self._model
         self._forces = MultibodyForces(model)
@@ -469,23 +640,25 @@ class InverseDynamicsStep(Step):
         indexing = joint_indexing(model, config.joints)
         self._jq = indexing.q
         self._jv = indexing.v
-        nq, nv = model.num_positions(), model.num_velocities()
-        # The controlled joints are the whole model's velocities, in order (a leg's
-        # sub-model): no column or row to select.
-        self._all_v = bool(nv == self._n and np.array_equal(self._jv, np.arange(nv)))
-        # ... and its positions too (no base): x = [q; v], in the joints' order.
-        self._x_is_qv = bool(
-            self._all_v
-            and self._base is None
-            and nq == self._n
-            and np.array_equal(self._jq, np.arange(nq))
-        )
-        # x = [q; v] of the private context; q_full and v_full are views on it.
-        self._x = np.zeros(nq + nv)
-        self._q_full, self._v_full = self._x[:nq], self._x[nq:]
-        self._q_full[:] = model.GetPositions(self._context)
-        self._vdot_full = np.zeros(nv)
-        # Gravity (in ĥ_j) enters the inverse dynamics as the body forces of the
+        # The quaternion floating joint whose proper acceleration −g carries gravity
+        # (the part's root's or the floating base's): its first position and
+        # velocity; None: the plant welded to the world, whose gravity enters as
+        # force elements.
+        self._accelerated = None
+        if self._root is not None:
+            joint = model.GetJointByName(f"{_ROOT}_joint")
+            self._accelerated = (joint.position_start(), joint.velocity_start())
+        elif self._base is not None:
+            if not self._base.has_quaternion_dofs():
+                raise ValueError(
+                    f"{_WHERE}: the floating base '{self._base.name()}' must have a "
+                    "quaternion floating joint (velocities [ω_WB; v_WBo])"
+                )
+            self._accelerated = (
+                self._base.floating_positions_start(),
+                self._base.floating_velocities_start_in_v(),
+            )
+        # Gravity (in ĥ_j) without an accelerated body: the body forces of the
         # model's gravity field when that is its only force element
         # (CalcForceElementsContribution; cheaper than CalcGravityGeneralizedForces),
         # with the joint damping that call adds as generalized forces cleared.
@@ -494,54 +667,95 @@ class InverseDynamicsStep(Step):
             np.any(model.get_joint(j).default_damping_vector() != 0.0)
             for j in model.GetJointIndices()
         )
-        if self._base is not None:
-            self._base_v = np.arange(6) + self._base.floating_velocities_start_in_v()
+        # A view on the forces' generalized forces (no call to clear them).
+        self._generalized_forces = self._forces.mutable_generalized_forces()
 
     def _make_work_arrays(self) -> None:
         n = self._n
+        model = self._model
+        nq, nv = model.num_positions(), model.num_velocities()
         self._zero3 = np.zeros(3)
         self._zero6 = np.zeros(6)
         self._identity_quaternion = np.array([1.0, 0.0, 0.0, 0.0])
-        # Per tick: the inputs land in the rows of one work array (one dot product
-        # checks them all for NaN and infinity).
+        # Per tick: the inputs land in the rows of one work array (one sum checks
+        # them all for NaN and infinity).
         #: The work array [q_ref; v_ref; vdot_ref; q; v (; f_ref; f)] (`_new_inputs`)
         #: and its rows, `input_rows`: a caller may fill them in place and pass the
         #: rows to `step` (which copies an argument only if it is not its row).
         self.inputs = self._new_inputs()
-        self._ones = np.ones(self.inputs.size)
-        self._input_views = self._inputs_of(self.inputs)
-        self.input_rows: tuple[np.ndarray, ...] = self._input_views.rows[
-            : 7 if self._force_frame is not None else 5
+        self.input_rows: tuple[np.ndarray, ...] = tuple(
+            self.inputs[i * n : (i + 1) * n] for i in range(5)
+        ) + (
+            (self.inputs[5 * n : 5 * n + 6], self.inputs[5 * n + 6 :])
+            if self._force_frame is not None
+            else ()
+        )
+        # The kernels' work array: x = [q; v] of the model, its v̇, K_s, K_d, K_f,
+        # e_f, K_f e_f.
+        sizes = [nq + nv, nv, n, n, 6, 6, 6]
+        self._work = np.zeros(sum(sizes))
+        self._work_starts = np.cumsum([0, *sizes[:-1]])
+        x, vdot, ks, kd, kf, _, _ = np.split(self._work, self._work_starts[1:])
+        self._x, self._vdot_full = x, vdot
+        self._q_full = x[:nq]
+        self._q_full[:] = model.GetPositions(self._context)
+        ks[:], kd[:], kf[:] = self._ks, self._kd, self._kf
+        self._base_q = self._base_v = 0
+        if self._accelerated is not None:
+            # At the origin, at rest but for the base's ω (`inverse_dynamics_base`),
+            # accelerating upward: −g, in the world.
+            self._base_q, self._base_v = self._accelerated
+            self._q_full[self._base_q : self._base_q + 7] = [1, 0, 0, 0, 0, 0, 0]
+            g_W = model.gravity_field().gravity_vector()
+            self._vdot_full[self._base_v + 3 : self._base_v + 6] = -g_W
+        self._no_jacobian = np.zeros((6, nv), order="F")  # without a force task
+
+    def _pack(self) -> np.ndarray:
+        """The kernels' index table (int64): the header (`_N`..`_T_JV`: sizes, the
+        flags, the base's rows, where each part of the work array and of the table
+        starts), then the joints' positions and velocities in the model. The state's
+        layout is the kernels': tau_desired, then TORQUE_COMPONENTS."""
+        n = self._n
+        names = [name for name, _ in self.layout()]
+        assert names == ["tau_desired", *TORQUE_COMPONENTS]
+        assert self.state_size == 6 * n
+        header = [
+            n,
+            self._model.num_positions(),
+            self._model.num_velocities(),
+            _FORCE_TASK if self._force_frame is not None else 0,
+            self._base_q,
+            self._base_v,
+            *self._work_starts[1:3],
+            self._work_starts[5],
+            _HEADER,
+            _HEADER + n,
         ]
-        # [K_s; K_d]: e_q and ė_q are rows 2 and 3 of the outputs, one product.
-        self._feedback_gains = np.stack([self._ks, self._kd])
-        self._tau_model = np.zeros(n)  # M_j q̈_d + ĥ_j
-        self._jt_f = np.zeros(n)  # J_jᵀ f_d
-        self._e_f = np.zeros(6)
-        self._kf_e_f = np.zeros(6)
+        assert len(header) == _HEADER
+        return np.concatenate([header, self._jq, self._jv]).astype(np.int64)
+
+    def warm_up(self) -> None:
+        """Compiles (or loads) the kernels for the step's arrays (its inputs and state,
+        Drake's inverse dynamics and Jacobian, F-ordered), on copies of the work
+        array, the inputs and the state."""
+        work, state, inputs = self._work.copy(), self.state.copy(), self.inputs.copy()
+        inverse_dynamics_inputs(inputs, work, state, self._table)
+        if self._base is not None:
+            inverse_dynamics_base(
+                self._identity_quaternion, self._zero3, work, self._table
+            )
+        G = np.zeros(self._model.num_velocities())
+        inverse_dynamics_outputs(G, self._no_jacobian, inputs, work, state, self._table)
 
     def _views_changed(self) -> None:
         n = self._n
         self.outputs = self.state[: 6 * n].reshape(6, n)
         self.terms = self.outputs[1:]
-        self._output_views = _Outputs.of(self.outputs)
 
     def _new_inputs(self) -> np.ndarray:
         """A work array for the inputs: [q_ref; v_ref; vdot_ref; q; v] (n each), then
         [f_ref; f] (6 each) with a force task."""
         return np.zeros(5 * self._n + (12 if self._force_frame is not None else 0))
-
-    def _inputs_of(self, inputs: np.ndarray) -> "_Inputs":
-        """The views on a work array of `_new_inputs` that `_eq12` reads."""
-        n = self._n
-        rows = [inputs[i * n : (i + 1) * n] for i in range(5)]
-        if self._force_frame is not None:
-            rows += [inputs[5 * n : 5 * n + 6], inputs[5 * n + 6 :]]
-        else:  # zero wrenches without a force task
-            rows += [self._zero6, self._zero6]
-        references = inputs[: 2 * n].reshape(2, n)  # [q_ref; v_ref]
-        estimates = inputs[3 * n : 5 * n]  # [q; v]
-        return _Inputs(tuple(rows), references, estimates.reshape(2, n), estimates)
 
     # ----------------------------------------------------------------- accessors
 
@@ -606,123 +820,74 @@ class InverseDynamicsStep(Step):
                 rows[5][:] = self._zero6 if f_ref is None else f_ref
             if f is not rows[6]:
                 rows[6][:] = self._zero6 if f is None else f
-        if not math.isfinite(self.inputs.dot(self._ones)):
-            # NaN in, NaN out.
-            new = math.isfinite(self.tau_desired.sum())
-            self.outputs.fill(math.nan)
-            return new
-        if base_orientation is not None or base_angular_velocity is not None:
-            base_orientation, base_angular_velocity = self._check_base(
-                base_orientation, base_angular_velocity
-            )
-        self._eq12(
-            self._input_views,
-            base_orientation,
-            base_angular_velocity,
-            self._output_views,
+        # NaN in, NaN out (the whole state), or the inputs into the model's x, v̇.
+        status = inverse_dynamics_inputs(
+            self.inputs, self._work, self.state, self._table
         )
+        if status != _FINITE:
+            return status == _NEW_NAN
+        self._set_base(base_orientation, base_angular_velocity)
+        self._evaluate(self.inputs, self.state)
         return False
 
     def _check_base(self, base_orientation, base_angular_velocity):
         if self._base is None:
             raise ValueError(f"{_WHERE}: base arguments need config.floating_base")
         if base_orientation is not None:
-            base_orientation = check_vector(
-                "base_orientation", base_orientation, 4, _WHERE
+            base_orientation = np.ascontiguousarray(
+                check_vector("base_orientation", base_orientation, 4, _WHERE)
             )
         if base_angular_velocity is not None:
-            base_angular_velocity = check_vector(
-                "base_angular_velocity", base_angular_velocity, 3, _WHERE
+            base_angular_velocity = np.ascontiguousarray(
+                check_vector("base_angular_velocity", base_angular_velocity, 3, _WHERE)
             )
         return base_orientation, base_angular_velocity
 
-    def _eq12(
-        self,
-        inputs: "_Inputs",
-        base_orientation: np.ndarray | None,
-        base_angular_velocity: np.ndarray | None,
-        out: "_Outputs",
-    ) -> None:
-        """Eq. 12 and its terms into `out` (views on a (6, n) array: τ_d, then the
-        TORQUE_COMPONENTS order) from `inputs` (views on a work array of
-        `_new_inputs`: q_ref, v_ref, vdot_ref, q, v, f_ref, f), already checked; `out`
-        must not share memory with them."""
-        q_ref, v_ref, vdot_ref, q, v, f_ref, f = inputs.rows
-        tau_desired, feedforward, position, velocity, force_feedback, force_error = (
-            out.rows
-        )
-        plant, context, forces = self._model, self._context, self._forces
-        if self._x_is_qv and base_orientation is None and base_angular_velocity is None:
-            # The model is the controlled joints, in order: x = [q; v] as it is.
-            plant.SetPositionsAndVelocities(context, inputs.state)
-        else:
-            self._set_state(q, v, base_orientation, base_angular_velocity)
-        # M_j q̈_d + ĥ_j: one inverse dynamics with the other accelerations at zero
-        # (CalcInverseDynamics returns M v̇ + C v − τ_applied), gravity applied.
-        if self._all_v:
-            vdot_full = vdot_ref  # the model's v̇ is q̈_d itself
-        else:
-            vdot_full = self._vdot_full
-            vdot_full[self._jv] = vdot_ref
-        if self._gravity_only:
-            plant.CalcForceElementsContribution(context, forces)
-            if self._damped:
-                forces.mutable_generalized_forces()[:] = 0.0
-        else:  # gravity as an applied generalized force, no body forces
-            forces.mutable_generalized_forces()[:] = plant.CalcGravityGeneralizedForces(
-                context
+    def _set_base(self, base_orientation, base_angular_velocity) -> None:
+        """With a floating base, its pose and ω into the model's x (None: identity
+        and zero); base arguments without one raise ValueError."""
+        if base_orientation is not None or base_angular_velocity is not None:
+            base_orientation, base_angular_velocity = self._check_base(
+                base_orientation, base_angular_velocity
             )
-        tau_model = plant.CalcInverseDynamics(context, vdot_full, forces)
-        if not self._all_v:
-            tau_model = tau_model.take(self._jv, 0, self._tau_model, "clip")
-        # K_s e_q and K_d ė_q: rows 2 and 3 of the outputs at once.
-        np.subtract(inputs.references, inputs.estimates, out.feedback)
-        np.multiply(self._feedback_gains, out.feedback, out.feedback)
-        J = self._jacobian()
-        if J is None:
-            # Eq. 12 without a force task: τ_d = M_j q̈_d + ĥ_j + K_s e_q + K_d ė_q.
-            np.add(tau_model, position, tau_desired)
-            np.add(tau_desired, velocity, tau_desired)
-            feedforward[:] = tau_model
-            out.force.fill(0.0)  # tau_force_feedback, tau_force_error
-            return
-        e_f = np.subtract(f_ref, f, self._e_f)
-        # M_j q̈_d + ĥ_j − J_jᵀ f_d
-        np.subtract(tau_model, np.matmul(J.T, f_ref, self._jt_f), feedforward)
-        # −J_jᵀ K_f e_f and −J_jᵀ e_f
-        np.multiply(self._kf, e_f, self._kf_e_f)
-        np.matmul(J.T, self._kf_e_f, force_feedback)
-        np.negative(force_feedback, force_feedback)
-        np.negative(np.matmul(J.T, e_f, force_error), force_error)
-        # Eq. 12: τ_d = M_j q̈_d + ĥ_j − J_jᵀ (f_d + K_f e_f) + K_s e_q + K_d ė_q.
-        np.add(feedforward, position, tau_desired)
-        np.add(tau_desired, velocity, tau_desired)
-        np.add(tau_desired, force_feedback, tau_desired)
-
-    def _set_state(self, q, v, base_orientation, base_angular_velocity) -> None:
-        """Sets the private context: controlled joints from q, v, the rest nominal."""
-        plant, context = self._model, self._context
-        self._q_full[self._jq] = q
-        self._v_full[self._jv] = v
         if self._base is None:
-            plant.SetPositionsAndVelocities(context, self._x)
             return
-        plant.SetPositions(context, self._q_full)
         wxyz = (
             self._identity_quaternion if base_orientation is None else base_orientation
         )
-        norm = float(np.linalg.norm(wxyz))
+        w_B = self._zero3 if base_angular_velocity is None else base_angular_velocity
+        norm = inverse_dynamics_base(wxyz, w_B, self._work, self._table)
         if not 0.9 <= norm <= 1.1:
             raise ValueError(
                 f"{_WHERE}: base_orientation {wxyz} is not a unit quaternion "
                 f"(norm {norm:.3g})"
             )
-        R_WB = RotationMatrix(Quaternion(wxyz / norm))
-        plant.SetFreeBodyPose(context, self._base, RigidTransform(R_WB, self._zero3))
-        w_B = self._zero3 if base_angular_velocity is None else base_angular_velocity
-        self._v_full[self._base_v[:3]] = R_WB.multiply(w_B)  # ω_WB in W
-        self._v_full[self._base_v[3:]] = 0.0
-        plant.SetVelocities(context, self._v_full)
+
+    def _evaluate(self, inputs: np.ndarray, state: np.ndarray) -> None:
+        """Eq. 12 of the model's x and v̇ (the inputs already in them) into `state`
+        (the step's, or one of its layout), from `inputs` (`_new_inputs`' layout):
+        Drake's calls, then `inverse_dynamics_outputs`."""
+        model, context, forces = self._model, self._context, self._forces
+        model.SetPositionsAndVelocities(context, self._x)
+        # M_j q̈_d + ĥ_j: one inverse dynamics with the other accelerations at zero
+        # (CalcInverseDynamics returns M v̇ + C v − τ_applied) and gravity.
+        if self._accelerated is None:  # gravity's forces applied
+            if self._gravity_only:
+                model.CalcForceElementsContribution(context, forces)
+                if self._damped:
+                    self._generalized_forces[:] = 0.0
+            else:  # gravity as an applied generalized force, no body forces
+                self._generalized_forces[:] = model.CalcGravityGeneralizedForces(
+                    context
+                )
+        G = model.CalcInverseDynamics(context, self._vdot_full, forces)
+        J = self._no_jacobian
+        if self._model_force_frame is not None:
+            frame = self._model_force_frame
+            J = model.CalcJacobianSpatialVelocity(
+                context, JacobianWrtVariable.kV, frame, self._zero3, self._world, frame
+            )
+        inverse_dynamics_outputs(G, J, inputs, self._work, state, self._table)
 
     def _jacobian(self) -> np.ndarray | None:
         """J_j: the force frame F's J_V_WF_F, controlled joints' columns (6, n)."""
@@ -737,9 +902,20 @@ class InverseDynamicsStep(Step):
             self._world,
             frame,
         )
-        return J if self._all_v else J[:, self._jv]
+        return J[:, self._jv]
 
     # ----------------------------------------------------------------- one sample
+
+    def _fill(self, q_ref, v_ref, vdot_ref, q, v, f_ref, f) -> np.ndarray:
+        """A new inputs array of these (checked) values."""
+        inputs = self._new_inputs()
+        n = self._n
+        for i, value in enumerate((q_ref, v_ref, vdot_ref, q, v)):
+            inputs[i * n : (i + 1) * n] = value
+        if self._force_frame is not None:
+            inputs[5 * n : 5 * n + 6] = f_ref
+            inputs[5 * n + 6 :] = f
+        return inputs
 
     def joint_space_model(
         self,
@@ -752,8 +928,12 @@ class InverseDynamicsStep(Step):
         n = self._n
         q = check_vector("q", q, n, _WHERE)
         v = np.zeros(n) if v is None else check_vector("v", v, n, _WHERE)
-        self._set_state(q, v, base_orientation, base_angular_velocity)
+        zero = np.zeros(n)
+        inputs = self._fill(zero, zero, zero, q, v, self._zero6, self._zero6)
+        inverse_dynamics_inputs(inputs, self._work, np.zeros(6 * n), self._table)
+        self._set_base(base_orientation, base_angular_velocity)
         plant, context = self._model, self._context
+        plant.SetPositionsAndVelocities(context, self._x)
         mass_matrix = plant.CalcMassMatrix(context)[np.ix_(self._jv, self._jv)]
         # h = C(q, v) v − τ_g(q): CalcBiasTerm leaves gravity out.
         h = plant.CalcBiasTerm(context) - plant.CalcGravityGeneralizedForces(context)
@@ -794,17 +974,11 @@ class InverseDynamicsStep(Step):
             self._zero6 if f_ref is None else check_vector("f_ref", f_ref, 6, _WHERE)
         )
         f = self._zero6 if f is None else check_vector("f", f, 6, _WHERE)
-        if base_orientation is not None or base_angular_velocity is not None:
-            base_orientation, base_angular_velocity = self._check_base(
-                base_orientation, base_angular_velocity
-            )
-        inputs = self._new_inputs()
-        views = self._inputs_of(inputs)
-        for row, value in zip(views.rows, (*args, f_ref, f)):
-            if row is not self._zero6:
-                row[:] = value
+        inputs = self._fill(*args, f_ref, f)
         out = np.zeros((6, n))
-        self._eq12(views, base_orientation, base_angular_velocity, _Outputs.of(out))
+        inverse_dynamics_inputs(inputs, self._work, out.reshape(-1), self._table)
+        self._set_base(base_orientation, base_angular_velocity)
+        self._evaluate(inputs, out.reshape(-1))
         return InverseDynamicsTerms(*out)
 
 
@@ -864,17 +1038,19 @@ class InverseDynamicsController(StepSystem):
     exactly those of the fixed-base model; for a chain hanging from the base, such
     as a leg, they do not depend on the other joints at all. The controller computes
     them on a private copy of the part of `plant` that the controlled joints move
-    (the bodies outboard of them, every other joint welded at `nominal_positions`;
+    (the bodies outboard of them, every other joint welded at `nominal_positions`,
+    hung from a massless root body whose upward acceleration −g stands for gravity;
     e.g. HRP-2's right leg: 6 bodies instead of the robot's 31), which gives the same
-    numbers for less work per update (plant itself if a controlled joint is neither
-    revolute nor prismatic). With config.floating_base the controller keeps one
-    private context of `plant` itself; the base pose is
+    numbers, to rounding, for less work per update (plant itself if a controlled
+    joint is neither revolute nor prismatic). With config.floating_base the
+    controller keeps one private context of `plant` itself; the base pose is
     (base_orientation, zero position) and its spatial velocity is (ω_WB, zero
     linear velocity); M_j, ĥ_j, J_j are the joint rows and columns of the floating-
     base model, so gravity follows the base's tilt and ĥ_j includes the base's
     angular velocity (neither the base position nor its linear velocity affects
     joint torques, paper Sec. 2.3), but the base acceleration is taken as zero (the
-    controller does not know it): eq. 12 as the paper writes it, with the floating
+    controller does not know it; gravity enters as the base's upward acceleration
+    −g, the same joint rows): eq. 12 as the paper writes it, with the floating
     model's joint block.
 
     ĥ_j holds the rigid-body terms only (bias and gravity): the model's force

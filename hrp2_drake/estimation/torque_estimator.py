@@ -39,11 +39,14 @@ plant (the "internal model", see below):
    about So_A in S_A, from the model's kinematics), i.e. the segment's own
    Newton-Euler F_A = S_A − Σ_B X*_AB S_B + Σ_segment Ḣ_b (offsets removed from each
    reading).
-3. Joint torques (Sec. 2.3, eq. 2): a second inverse dynamics (RNEA) of the internal
-   model, on the same kinematics, with each sensor's external wrench applied to the
-   body right below that sensor gives G = M v̇ + h − J_mᵀ f_m (n + 6 generalized forces
-   on the robot's degrees of freedom and the root's; the sensor joints' rows are not
-   used).
+3. Joint torques (Sec. 2.3, eq. 2): the inverse dynamics (RNEA) of the internal model
+   with each sensor's external wrench f_m applied to the body right below that sensor
+   is G = M v̇ + h − Σ_m J_mᵀ f_m (n + 6 generalized forces on the robot's degrees of
+   freedom and the root's; the sensor joints' rows are not used). RNEA is linear in
+   the applied forces, and M v̇ + h is step 2's inverse dynamics without them: so G is
+   that one's minus Σ_m J_mᵀ f_m, with J_m the Jacobian of the sensor frame S at its
+   origin (measured in the model's world, expressed in S), one per sensor on the same
+   kinematics; no second inverse dynamics.
 4. Unknown wrench (Sec. 2.4). The n + 6 equations G = [J_uᵀ Sᵀ] [f_u; τ] are solved for
    the unknown wrench f_u on one link u (the base by default, or a chosen link such as the
    torso) and τ. A = [J_uᵀ Sᵀ] is square; it is checked to have full column rank at
@@ -60,11 +63,12 @@ prismatic, welds) and actuators (rotor inertia, gear ratio), re-rooted at a mass
 welded to the IMU frame (or to the fixed base's frame without IMU; a revolute or
 prismatic joint turned around keeps its q and its generalized force with the opposite
 axis), plus one mount and one 6-dof joint per F/T sensor; the joint that attaches the
-robot to the world (floating or weld) is not copied. Per update: one
-SetPositionsAndVelocities and two inverse dynamics (plus a Jacobian when the
-unknown-wrench link moves relative to the IMU, and one relative pose per nested sensor);
-that is what makes the Python estimator run at 1 kHz with room to spare
-(scripts/bench_estimator.py).
+robot to the world (floating or weld) is not copied. Per update, the Drake calls: one
+SetPositionsAndVelocities, one inverse dynamics, one Jacobian per F/T sensor (plus one
+when the unknown-wrench link moves relative to the IMU, and one relative pose per
+nested sensor); the arithmetic around them is two numba kernels (`estimator_inputs`,
+`estimator_outputs`; hrp2_drake.kernels). That is what makes the Python estimator run
+at 1 kHz with room to spare (scripts/bench_estimator.py).
 
 Reflected rotor inertia: the model's actuators may carry a rotor inertia I_r and a gear
 ratio ρ (Drake adds ρ² I_r to the joint's diagonal of the mass matrix). With
@@ -80,11 +84,11 @@ base's proper acceleration without IMU); τ̂ is the torque the actuators transm
 import copy
 import math
 from dataclasses import dataclass, field
+from itertools import starmap
 from typing import NamedTuple
 
 import numpy as np
 from pydrake.math import RigidTransform
-from pydrake.multibody.math import SpatialForce
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import (
     BodyIndex,
@@ -109,6 +113,7 @@ from pydrake.systems.primitives import Adder, Demultiplexer, Multiplexer
 
 from hrp2_drake.description import RobotDescription
 from hrp2_drake.estimation.savitzky_golay import EVALUATION_POINTS, SavitzkyGolayFilter
+from hrp2_drake.kernels import kernel
 from hrp2_drake.multibody import (
     check_joint_names,
     check_vector,
@@ -350,11 +355,220 @@ class _Sensor:
     rows: np.ndarray | None = None  # its 6 velocities
 
 
+# TorqueEstimatorStep's index table (`_pack`, int64): a header, then the index lists.
+(
+    _N,  # n, the joints
+    _K,  # k, the F/T sensors
+    _NQ,  # the internal model's positions,
+    _NV,  # and velocities
+    _FLAGS,  # _HAS_IMU | _READS_ALPHA | _SUBTRACTS_ROTOR | _MAPS_UNKNOWN
+    _ROOT_V,  # the root's velocities [ω; v] in v (the IMU frame's)
+    _PAIRS,  # the number of nested (outer, inner) sensor pairs
+    # Where each part of the work array starts (x = [q; v] of the model at 0):
+    _W_VDOT,  # v̇ of the model (nv)
+    _W_RAW,  # the F/T readings (k, 6)
+    _W_TOTAL,  # F_total (k, 6)
+    _W_APPLIED,  # Σ_m J_mᵀ f_m on the joints' and the root's rows (n + 6)
+    _W_ROOT,  # G_root (6)
+    _W_POSES,  # X_AB of each pair, (3, 4) [R p] each
+    _W_MAP,  # J_u,rootᵀ⁻¹ (6, 6), when u is welded to the root
+    _W_ROTOR,  # ρ² I_r (n)
+    # Where each index list starts in the table:
+    _T_JQ,  # the joints' positions in q (n)
+    _T_JV,  # their velocities in v (n), then the root's (6)
+    _T_SENSOR_ROWS,  # each sensor joint's velocities (6 k)
+    _T_PAIRS,  # (outer, inner) of each pair
+    _HEADER,
+) = range(20)
+_HAS_IMU, _READS_ALPHA, _SUBTRACTS_ROTOR, _MAPS_UNKNOWN = 1, 2, 4, 8
+
+
+@kernel
+def estimator_inputs(q, v, vdot, acc, gyro, alpha, wrenches, work, table):
+    """`TorqueEstimatorStep.step`'s inputs into the work array (`_pack`'s layout): q, v
+    of the joints and the gyro into x = [q; v] of the internal model, vdot and the
+    IMU's α (if read) and proper acceleration into its v̇, the F/T readings (k, 6);
+    acc, gyro, alpha are zero-length when not read. Returns the sum of x, v̇ and the
+    readings, finite exactly when every entry is (barring an overflow): the step's
+    one check of its inputs. Copies only (bitwise)."""
+    n = table[_N]
+    k = table[_K]
+    nq = table[_NQ]
+    flags = table[_FLAGS]
+    if q.shape[0] != n or v.shape[0] != n or vdot.shape[0] != n:
+        raise ValueError("TorqueEstimatorStep.step: q, v and vdot need n entries each")
+    if wrenches.shape[0] != k or wrenches.shape[1] != 6:
+        raise ValueError("TorqueEstimatorStep.step: wrenches must be (k, 6)")
+    jq = table[_T_JQ]
+    jv = table[_T_JV]
+    vd = table[_W_VDOT]
+    for i in range(n):
+        work[table[jq + i]] = q[i]
+    for i in range(n):
+        work[nq + table[jv + i]] = v[i]
+    for i in range(n):
+        work[vd + table[jv + i]] = vdot[i]
+    if flags & _HAS_IMU:
+        if acc.shape[0] != 3 or gyro.shape[0] != 3:
+            raise ValueError("TorqueEstimatorStep.step: the IMU inputs need 3 entries")
+        root = table[_ROOT_V]
+        for i in range(3):
+            work[nq + root + i] = gyro[i]
+        if flags & _READS_ALPHA:
+            if alpha.shape[0] != 3:
+                raise ValueError(
+                    "TorqueEstimatorStep.step: the IMU inputs need 3 entries"
+                )
+            for i in range(3):
+                work[vd + root + i] = alpha[i]
+        for i in range(3):
+            work[vd + root + 3 + i] = acc[i]
+    raw = table[_W_RAW]
+    for s in range(k):
+        for i in range(6):
+            work[raw + 6 * s + i] = wrenches[s, i]
+    total = 0.0
+    for i in range(table[_W_TOTAL]):
+        total += work[i]
+    return total
+
+
+@kernel
+def estimator_outputs(calibrating, G, jacobians, work, state, table):
+    """`TorqueEstimatorStep.step`'s arithmetic after Drake's calls (module docstring,
+    steps 2 to 4), into `state` (tau, unknown_wrench, the external wrenches, the
+    calibration, in that order): from G = M v̇ + h of the internal model (the inverse
+    dynamics without applied forces), `jacobians` (one (6, nv) J_m per sensor, in S at
+    So, then J_u if u moves; a single unused one when neither), the work array (the
+    readings, v̇, the nested pairs' poses, the constants) and `table` (`_pack`). With
+    `calibrating`, one more sample of the offsets' running mean first.
+
+    Elementwise as the numpy code before (bitwise): F_total, the calibration, the
+    offsets, the copies of G's rows, the rotor term. Reductions, summing products in
+    order without fma: Σ_m J_mᵀ f_m (each sensor's 6 products, then the sensors in
+    order; Drake's second inverse dynamics before), the 3x3 and 6x6 products of the
+    nested poses and the unknown wrench (numpy's matmul before)."""
+    n = table[_N]
+    k = table[_K]
+    flags = table[_FLAGS]
+    raw = table[_W_RAW]
+    tot = table[_W_TOTAL]
+    rows = table[_T_SENSOR_ROWS]
+    unknown = n
+    external = n + 6
+    offsets = n + 6 + 6 * k
+    # Step 2: F_total = S + Σ_b Ḣ_b of every sensor.
+    for j in range(6 * k):
+        work[tot + j] = work[raw + j] + G[table[rows + j]]
+    if calibrating:
+        # The running mean: offsets += (total − offsets) / count.
+        count = state[offsets + 6 * k] + 1.0
+        for j in range(6 * k):
+            mean_step = work[tot + j] - state[offsets + j]
+            mean_step /= count
+            state[offsets + j] += mean_step
+        state[offsets + 6 * k] = count
+    pairs = table[_PAIRS]
+    if pairs == 0:  # each sensor's external wrench is its total
+        for j in range(6 * k):
+            state[external + j] = work[tot + j] - state[offsets + j]
+    else:
+        for j in range(6 * k):
+            work[tot + j] -= state[offsets + j]
+        for j in range(6 * k):
+            state[external + j] = work[tot + j]
+        # F_A −= X*_AB F_B: with X_AB = (R, p), f_A = R f_B, τ_A = R τ_B + p × f_A.
+        for m in range(pairs):
+            a = table[table[_T_PAIRS] + 2 * m]
+            b = table[table[_T_PAIRS] + 2 * m + 1]
+            X = work[table[_W_POSES] + 12 * m : table[_W_POSES] + 12 * (m + 1)]
+            F_b = work[tot + 6 * b : tot + 6 * b + 6]
+            f0 = X[0] * F_b[3] + X[1] * F_b[4] + X[2] * F_b[5]
+            f1 = X[4] * F_b[3] + X[5] * F_b[4] + X[6] * F_b[5]
+            f2 = X[8] * F_b[3] + X[9] * F_b[4] + X[10] * F_b[5]
+            t0 = X[0] * F_b[0] + X[1] * F_b[1] + X[2] * F_b[2]
+            t1 = X[4] * F_b[0] + X[5] * F_b[1] + X[6] * F_b[2]
+            t2 = X[8] * F_b[0] + X[9] * F_b[1] + X[10] * F_b[2]
+            p0, p1, p2 = X[3], X[7], X[11]
+            A = external + 6 * a
+            state[A] -= t0 + (p1 * f2 - p2 * f1)
+            state[A + 1] -= t1 + (p2 * f0 - p0 * f2)
+            state[A + 2] -= t2 + (p0 * f1 - p1 * f0)
+            state[A + 3] -= f0
+            state[A + 4] -= f1
+            state[A + 5] -= f2
+    # Step 3: G − Σ_m J_mᵀ f_m, the joints' rows into tau, the root's into G_root
+    # (each sensor's J_mᵀ f_m a sum over its 6 rows, added to the others' in order).
+    jv = table[_T_JV]
+    root = table[_ROOT_V]
+    groot = table[_W_ROOT]
+    applied = table[_W_APPLIED]
+    for i in range(n + 6):
+        work[applied + i] = 0.0
+    for s in range(k):
+        J = jacobians[s]
+        f = external + 6 * s
+        f0, f1, f2 = state[f], state[f + 1], state[f + 2]
+        f3, f4, f5 = state[f + 3], state[f + 4], state[f + 5]
+        for i in range(n + 6):
+            c = table[jv + i]
+            work[applied + i] += (
+                J[0, c] * f0
+                + J[1, c] * f1
+                + J[2, c] * f2
+                + J[3, c] * f3
+                + J[4, c] * f4
+                + J[5, c] * f5
+            )
+    for i in range(n):
+        state[i] = G[table[jv + i]] - work[applied + i]
+    for r in range(6):
+        work[groot + r] = G[root + r] - work[applied + n + r]
+    # Step 4: the unknown wrench.
+    if flags & _MAPS_UNKNOWN:
+        # u welded to the root: f_u = J_u,rootᵀ⁻¹ G_root, J_u,joints = 0.
+        T = table[_W_MAP]
+        for r in range(6):
+            f = 0.0
+            for c in range(6):
+                f += work[T + 6 * r + c] * work[groot + c]
+            state[unknown + r] = f
+    else:
+        # [J_uᵀ Sᵀ] [f_u; τ] = G (Sec. 2.4): root rows first. Expressed in u, with the
+        # root at the identity pose, J_u,root = [R 0; −R[p]× R] (R = R_uW, p = p_WUo),
+        # whose inverse transpose is [R −R[p]×; 0 R]: no 6x6 solve.
+        J = jacobians[k]
+        for r in range(3):
+            torque = 0.0
+            for c in range(3):
+                torque += J[r, root + c] * work[groot + c]
+            moment = 0.0
+            for c in range(3):
+                moment += J[3 + r, root + c] * work[groot + 3 + c]
+            force = 0.0
+            for c in range(3):
+                force += J[r, root + c] * work[groot + 3 + c]
+            state[unknown + r] = torque + moment
+            state[unknown + 3 + r] = force
+        for i in range(n):
+            c = table[jv + i]
+            projected = 0.0
+            for r in range(6):
+                projected += J[r, c] * state[unknown + r]
+            state[i] -= projected
+    if flags & _SUBTRACTS_ROTOR:
+        vd = table[_W_VDOT]
+        rotor = table[_W_ROTOR]
+        for i in range(n):
+            state[i] -= work[vd + table[jv + i]] * work[rotor + i]
+
+
 class TorqueEstimatorStep(Step):
     """The per-tick arithmetic of `FloatingBaseTorqueEstimator` (its docstring:
     inputs, outputs, units, offset calibration, errors; the method in the module
     docstring), on plain arrays, with everything it precomputes: the internal model,
-    one context of it (a computation workspace), two MultibodyForces, the sensors.
+    one context of it (a computation workspace), a zero MultibodyForces, the sensors,
+    the kernels' work array and index table (`_pack`).
 
     `step(t, q, v, vdot, imu_linear_acceleration, imu_angular_velocity,
     imu_angular_acceleration, wrenches)` updates the state in place. Named state
@@ -366,11 +580,27 @@ class TorqueEstimatorStep(Step):
         calibration (6 k + 1): the F/T offsets in use (k, 6) (N·m, N), then the
             number of calibration samples averaged.
 
-    Per step: one dot product checks the inputs, one SetPositionsAndVelocities, two
-    inverse dynamics, one relative pose per nested sensor and, unless the
-    unknown-wrench link is rigidly attached to the model's root, one Jacobian. Drake
-    returns each inverse dynamics as a new array and takes each external wrench as a
-    SpatialForce (k per step): those are the per-step allocations.
+    Per step: a kernel (`estimator_inputs`) writes the inputs into the work array and
+    sums them (the check for NaN and infinity); then Drake: one
+    SetPositionsAndVelocities, one inverse dynamics, one Jacobian per sensor, one
+    relative pose per nested sensor and, unless the unknown-wrench link is rigidly
+    attached to the model's root, one more Jacobian; then a kernel
+    (`estimator_outputs`) writes the whole state from their results (module docstring,
+    steps 2 to 4). For HRP-2 (4 F/T sensors, u on the torso): 6 pybind calls per step
+    (the numpy version had 12: a second inverse dynamics, k SpatialForce and k
+    AddInForce, a SetZero). Drake returns the inverse dynamics and each Jacobian as a
+    new array: those are the per-step allocations (with the tuple that carries the
+    Jacobians into the kernel).
+
+    Rounding: step 3's Σ_m J_mᵀ f_m is a sum of products in the kernel where it was
+    Drake's second inverse dynamics (the same generalized forces in another order),
+    and the 3x3 and 6x6 products were numpy's matmul. Measured against the numpy
+    version on HRP-2's closed loop (2 s, tuned right leg, hanging, 4 F/T sensors, u
+    on the torso), each tick's inputs given to both: τ̂ within 1.1e-14 N·m (1e-15 of
+    the tick's largest |τ̂|), the unknown wrench within 2.3e-13 (of 568 N); the
+    external wrenches and the calibration bitwise (elementwise). The other layouts
+    (tests/test_estimator_layouts.py: the arm, the nested legs): within 3e-16 of the
+    largest entry.
     """
 
     def __init__(self, plant: MultibodyPlant, config: TorqueEstimatorConfig):
@@ -395,23 +625,19 @@ class TorqueEstimatorStep(Step):
         model, frames = _internal_model(plant, plant_context, root_frame, self._sensors)
         self._model = model
         self._context = model.CreateDefaultContext()
-        self._make_work_arrays(plant, plant_context, config)
+        self._make_work_arrays(plant, plant_context, config, len(nesting))
         # (outer, inner, S_outer, S_inner) for every sensor directly below another.
         self._nesting = [
             (a, b, self._sensors[a].model_frame, self._sensors[b].model_frame)
             for a, b in nesting
         ]
-        self._forces = MultibodyForces(model)
         self._no_forces = MultibodyForces(model)  # stays zero
-        # Per sensor: how its external wrench is applied (see _dynamics).
-        self._external_forces = [
-            (s.model_body.AddInForce, s.p_BoSo_S, s.model_frame) for s in self._sensors
-        ]
         self._world = model.world_frame()
         u = frames[int((unknown_frame or self._base.body_frame()).index())]
         self._check_rank(model, u)
         self._unknown_frame, self._unknown_map = self._unknown_wrench_map(model, u)
         self._set_options(config)
+        self._make_jacobian_calls()
 
         k = len(self._sensors)
         self._declare("tau", np.zeros(self._n))
@@ -421,6 +647,7 @@ class TorqueEstimatorStep(Step):
         # F/T offsets (6 per sensor) then the number of calibration samples.
         self._declare("calibration", np.zeros(6 * k + 1))
         self._finalize()
+        self._table = self._pack()
 
     def _check_robot(
         self, plant: MultibodyPlant, plant_context: Context, config
@@ -454,30 +681,33 @@ class TorqueEstimatorStep(Step):
         return imu, unknown_frame, nesting
 
     def _make_work_arrays(
-        self, plant: MultibodyPlant, plant_context: Context, config
+        self, plant: MultibodyPlant, plant_context: Context, config, num_pairs: int
     ) -> None:
-        """The work arrays and where the inputs go in them (index arrays: the model's
-        order is not the joints'): views on one buffer, x = [q; v] of the model, v̇,
-        the F/T readings (k, 6), which one dot product checks for finiteness."""
+        """The kernels' work array and where the inputs go in it (index arrays: the
+        model's order is not the joints'): x = [q; v] of the model, v̇, the F/T
+        readings (k, 6), F_total (k, 6), G_root (6), the pose (3, 4) of each of the
+        `num_pairs` nested sensor pairs, then constants (`_pack`); views on it."""
         model = self._model
         root = model.GetBodyByName(_ROOT, model.GetModelInstanceByName(_ROOT))
         start = root.floating_velocities_start_in_v()
         nq, nv = model.num_positions(), model.num_velocities()
         indexing = joint_indexing(model, config.joints)
         k = len(self._sensors)
-        self._buffer = np.zeros(nq + 2 * nv + 6 * k)
-        self._x = self._buffer[: nq + nv]
-        self._vdot = self._buffer[nq + nv : nq + 2 * nv]
-        self._raw = self._buffer[nq + 2 * nv :].reshape(k, 6)
-        self._ones = np.ones(self._buffer.size)  # buffer · ones: one finiteness check
+        # x, v̇, readings, F_total, Σ J_mᵀ f_m, G_root, poses, J_u,rootᵀ⁻¹, ρ² I_r.
+        sizes = [nq + nv, nv, 6 * k, 6 * k, self._n + 6, 6, 12 * num_pairs, 36, self._n]
+        self._work = np.zeros(sum(sizes))
+        self._work_starts = np.cumsum([0, *sizes[:-1]])
+        x, vdot, raw, _, _, _, poses, _, _ = np.split(
+            self._work, self._work_starts[1:]
+        )
+        self._x, self._vdot = x, vdot
+        self._raw = raw.reshape(k, 6)
+        self._poses = poses.reshape(num_pairs, 3, 4)
         model.SetFreeBodyPose(self._context, root, RigidTransform())
         self._x[:nq] = model.GetPositions(self._context)  # the identities, for ever
         self._jq = indexing.q
         self._jv = indexing.v
-        self._x_jv = nq + indexing.v
-        self._x_w = slice(nq + start, nq + start + 3)  # ω of the root: the gyro
         self._root_v = slice(start, start + 6)  # [ω; v] of the root (the IMU frame)
-        self._root_w = slice(start, start + 3)  # α of the root: imu α
         self._root_a = slice(start + 3, start + 6)  # a of the root: accelerometer
         if not self._has_imu:
             # Fixed base, gravity known (step 1): the root (the base frame B) is at
@@ -490,10 +720,81 @@ class TorqueEstimatorStep(Step):
             if self._sensors
             else np.zeros(0, dtype=int)
         )
-        self._total = np.zeros((k, 6))  # F_total of each sensor, then minus offsets
-        self._total_flat = self._total.reshape(-1)  # a view
-        self._mean_step = np.zeros((k, 6))  # a calibration step
-        self._rotor = np.zeros(self._n)  # ρ² I_r q̈
+        self._empty = np.zeros(0)  # an input that is not read
+
+    def _make_jacobian_calls(self) -> None:
+        """The arguments of the Jacobians of a step (`_evaluate`): J_m of each sensor
+        frame S at So (measured in the model's world, expressed in S), then J_u if u
+        moves relative to the root; and the stand-in when there is none (a kernel's
+        tuple holds one array at least)."""
+        model, context, world = self._model, self._context, self._world
+        kV, zero = JacobianWrtVariable.kV, self._zero3
+        frames = [sensor.model_frame for sensor in self._sensors]
+        if self._unknown_frame is not None:
+            frames.append(self._unknown_frame)
+        self._jacobian = model.CalcJacobianSpatialVelocity
+        self._jacobian_args = [(context, kV, S, zero, world, S) for S in frames]
+        self._no_jacobians = (np.zeros((6, model.num_velocities()), order="F"),)
+
+    def _pack(self) -> np.ndarray:
+        """The kernels' index table (int64): the header (`_N`..`_T_PAIRS`: sizes, the
+        flags, where each part of the work array and of the table starts), then the
+        joints' positions and velocities in the model, the sensor joints' velocities
+        and the nested pairs; and the constants into the work array (J_u,rootᵀ⁻¹ when u
+        is welded to the root, ρ² I_r). The state's layout is the kernel's: tau,
+        unknown_wrench, the external wrenches (config.sensors order), calibration."""
+        n, k = self._n, len(self._sensors)
+        names = [name for name, _ in self.layout()]
+        assert names == self.output_names() + ["calibration"]
+        assert self.rows("calibration").start == n + 6 + 6 * k
+        flags = (
+            (_HAS_IMU if self._has_imu else 0)
+            | (_READS_ALPHA if self._read_alpha else 0)
+            | (_SUBTRACTS_ROTOR if self._subtract_rotor else 0)
+            | (_MAPS_UNKNOWN if self._unknown_map is not None else 0)
+        )
+        root_v = np.arange(self._root_v.start, self._root_v.stop)
+        lists = [
+            self._jq,
+            np.concatenate([self._jv, root_v]),
+            self._sensor_rows,
+            np.array([index for a, b, _, _ in self._nesting for index in (a, b)]),
+        ]
+        list_starts = _HEADER + np.cumsum([0, *(len(x) for x in lists[:-1])])
+        header = [
+            n,
+            k,
+            self._model.num_positions(),
+            self._model.num_velocities(),
+            flags,
+            self._root_v.start,
+            len(self._nesting),
+            *self._work_starts[1:],
+            *list_starts,
+        ]
+        assert len(header) == _HEADER
+        table = np.concatenate([header, *lists]).astype(np.int64)
+        constants = np.split(self._work, self._work_starts[1:])
+        if self._unknown_map is not None:
+            constants[-2][:] = self._unknown_map.reshape(-1)  # row-major (6, 6)
+        constants[-1][:] = self._reflected_inertia
+        return table
+
+    def warm_up(self) -> None:
+        """Compiles (or loads) `estimator_inputs` and `estimator_outputs` for the
+        step's arrays: inputs as the fused controller and the LeafSystem pass them
+        (C-contiguous float64; wrenches (k, 6)), Drake's own inverse dynamics and
+        Jacobians (F-ordered); on copies of the work array and the state."""
+        n, k, empty = self._n, len(self._sensors), self._empty
+        work, state = self._work.copy(), self.state.copy()
+        imu = np.zeros(3) if self._has_imu else empty
+        alpha = np.zeros(3) if self._read_alpha else empty
+        zeros = np.zeros(n)
+        estimator_inputs(
+            zeros, zeros, zeros, imu, imu, alpha, np.zeros((k, 6)), work, self._table
+        )
+        G = np.zeros(self._model.num_velocities())
+        estimator_outputs(False, G, self._jacobians(), work, state, self._table)
 
     def _set_options(self, config: TorqueEstimatorConfig) -> None:
         self._neglect_alpha = config.angular_acceleration == "neglected"
@@ -511,13 +812,6 @@ class TorqueEstimatorStep(Step):
     def _views_changed(self) -> None:
         k = len(self._sensors)
         self._offsets = self.calibration[:-1].reshape(k, 6)
-        if k:  # the external wrenches, contiguous in the state: one (k, 6) block
-            first = self.rows(f"external_wrench_{self._sensors[0].name}")
-            last = self.rows(f"external_wrench_{self._sensors[-1].name}")
-            self._external = self.state[first.start : last.stop].reshape(k, 6)
-        else:
-            self._external = np.zeros((0, 6))
-        self._external_rows = list(self._external)  # a view per sensor
 
 
     # ----------------------------------------------------------------- construction
@@ -908,19 +1202,22 @@ class TorqueEstimatorStep(Step):
         Raises:
             ValueError: an input read is not finite (named).
         """
-        x, model_vdot = self._x, self._vdot
-        x[self._jq] = q
-        x[self._x_jv] = v
-        model_vdot[self._jv] = vdot
-        if self._has_imu:
-            x[self._x_w] = imu_angular_velocity
-            if self._read_alpha:
-                model_vdot[self._root_w] = imu_angular_acceleration
-            model_vdot[self._root_a] = imu_linear_acceleration
-        if wrenches is not None:
-            self._raw[:] = wrenches
-        # One check for all (the other entries of the buffer are finite).
-        if not math.isfinite(self._buffer.dot(self._ones)):
+        empty = self._empty
+        imu = self._has_imu
+        # The inputs into the work array, and their sum: one check for all (the other
+        # entries of x and v̇ are finite).
+        total = estimator_inputs(
+            q,
+            v,
+            vdot,
+            imu_linear_acceleration if imu else empty,
+            imu_angular_velocity if imu else empty,
+            imu_angular_acceleration if self._read_alpha else empty,
+            self._raw if wrenches is None else wrenches,
+            self._work,
+            self._table,
+        )
+        if not math.isfinite(total):
             self._raise_non_finite(
                 q,
                 v,
@@ -930,25 +1227,34 @@ class TorqueEstimatorStep(Step):
                 imu_angular_acceleration,
                 wrenches,
             )
+        calibrating = (
+            self._calibrates and self._calibration_begin <= t < self._calibration_end
+        )
+        self._evaluate(calibrating, self.state)
+
+    def _evaluate(self, calibrating: bool, state: np.ndarray) -> None:
+        """The estimate of the inputs in the work array, into `state` (the step's or
+        one of its layout): Drake's calls, then `estimator_outputs`."""
+        model, context = self._model, self._context
         # Step 1: the root (the IMU frame) at the identity, with the gyro's angular
         # velocity and the IMU's proper acceleration; or the fixed base at rest with
         # its constant proper acceleration (set at construction).
-        self._model.SetPositionsAndVelocities(self._context, x)
-        total = self._compensate()
-        if self._calibrates and self._calibration_begin <= t < self._calibration_end:
-            calibration, offsets = self.calibration, self._offsets
-            count = calibration[-1] + 1.0
-            # The running mean: offsets += (total − offsets) / count.
-            mean_step = np.subtract(total, offsets, out=self._mean_step)
-            mean_step /= count
-            offsets += mean_step
-            calibration[-1] = count
+        model.SetPositionsAndVelocities(context, self._x)
+        # M v̇ + h, without gravity (proper accelerations carry it): step 2's Σ_b Ḣ_b
+        # of every sensor at once (the sensor joints' rows), and step 3's G before the
+        # external wrenches.
+        G = model.CalcInverseDynamics(context, self._vdot, self._no_forces)
         if self._nesting:
-            np.subtract(total, self._offsets, total)
-            self._segments(total, self._external)
-        else:  # each sensor's external wrench is its total (step 2), in place
-            np.subtract(total, self._offsets, self._external)
-        self._dynamics(self._external_rows, self.tau, self.unknown_wrench)
+            for pose, (_, _, S_a, S_b) in zip(self._poses, self._nesting):
+                pose[:] = model.CalcRelativeTransform(context, S_a, S_b).GetAsMatrix34()
+        jacobians = self._jacobians()
+        estimator_outputs(calibrating, G, jacobians, self._work, state, self._table)
+
+    def _jacobians(self) -> tuple:
+        """J_m of each sensor (and J_u if u moves), at the context's positions."""
+        if not self._jacobian_args:
+            return self._no_jacobians
+        return tuple(starmap(self._jacobian, self._jacobian_args))
 
     def _raise_non_finite(self, q, v, vdot, acc, gyro, alpha, wrenches) -> None:
         """Raises ValueError naming the first input read (in port order) that is not
@@ -994,22 +1300,33 @@ class TorqueEstimatorStep(Step):
             if offsets is None
             else check_vector("offsets", np.ravel(offsets), 6 * k, _WHERE).reshape(k, 6)
         )
-        x, model_vdot = self._x, self._vdot
-        x[self._jq] = q
-        x[self._x_jv] = v
-        model_vdot[self._jv] = vdot
-        if imu is not None:
-            x[self._x_w], model_vdot[self._root_w], model_vdot[self._root_a] = imu
-        self._raw[:] = raw
-        self._model.SetPositionsAndVelocities(self._context, x)
-        total = self._compensate()
-        total -= off
-        result = TorqueEstimate(np.zeros(n), np.zeros(6), np.zeros((k, 6)))
-        self._segments(total, result.external_wrenches)
-        self._dynamics(
-            list(result.external_wrenches), result.tau, result.unknown_wrench
+        empty = self._empty
+        gyro, alpha, acc = (
+            empty if value is None else np.ascontiguousarray(value)
+            for value in (imu or (None, None, None))
         )
-        return result
+        contiguous = np.ascontiguousarray
+        estimator_inputs(
+            contiguous(q),
+            contiguous(v),
+            contiguous(vdot),
+            acc,
+            gyro,
+            alpha if self._read_alpha else empty,
+            contiguous(raw),
+            self._work,
+            self._table,
+        )
+        # On a state of the step's layout, with the given offsets, not calibrating.
+        state = np.zeros(self.state_size)
+        state[self.rows("calibration")][:-1] = off.reshape(-1)
+        self._evaluate(False, state)
+        first = self.rows("unknown_wrench").stop
+        return TorqueEstimate(
+            state[:n].copy(),
+            state[n : n + 6].copy(),
+            state[first : first + 6 * k].reshape(k, 6).copy(),
+        )
 
     def _check_imu(self, acc, gyro, alpha) -> tuple | None:
         """estimate's IMU arguments, checked: (gyro, α, accelerometer), α zero if
@@ -1042,69 +1359,6 @@ class TorqueEstimatorStep(Step):
             else check_vector("imu_angular_acceleration", alpha, 3, _WHERE)
         )
         return gyro, alpha, acc
-
-    def _compensate(self) -> np.ndarray:
-        """Step 2 without the offsets: F_total = S_s + Σ_b Ḣ_b (about So, in S) of every
-        sensor, (k, 6) in self._total, b over all the bodies below it (nested
-        sensors' included), from the readings in self._raw and the model's context.
-        Σ_b Ḣ_b of every sensor at once: the generalized forces of the sensor joints
-        in one inverse dynamics without external wrenches."""
-        G = self._model.CalcInverseDynamics(self._context, self._vdot, self._no_forces)
-        # ndarray.take, not np.take: the same copy without np.take's ~1 us wrapper.
-        G.take(self._sensor_rows, out=self._total_flat, mode="clip")
-        return np.add(self._raw, self._total, out=self._total)
-
-    def _segments(self, total: np.ndarray, external: np.ndarray) -> None:
-        """Step 2, nested sensors (paper Sec. 2.2): the external wrench of each sensor
-        A on its segment, F_A = F_A,total − Σ_B X*_AB F_B,total over the sensors B
-        directly below A, into `external` (k, 6), from the total wrenches (k, 6)
-        (offsets removed). X*_AB moves a wrench about So_B in S_B to about So_A in
-        S_A: with X_AB = (R, p) the pose of S_B in S_A from the model's kinematics,
-        f_A = R f_B and τ_A = R τ_B + p × f_A."""
-        external[:] = total
-        for a, b, S_a, S_b in self._nesting:
-            X_AB = self._model.CalcRelativeTransform(self._context, S_a, S_b)
-            R = X_AB.rotation().matrix()
-            force = R @ total[b, 3:]
-            external[a, :3] -= R @ total[b, :3] + np.cross(X_AB.translation(), force)
-            external[a, 3:] -= force
-
-    def _dynamics(
-        self, external: list[np.ndarray], tau: np.ndarray, unknown: np.ndarray
-    ) -> None:
-        """Steps 3 and 4: tau (n) and the unknown wrench (6), in place, from the
-        external wrenches (k rows of 6)."""
-        model, context, forces = self._model, self._context, self._forces
-        forces.SetZero()
-        # Each sensor's external wrench on the body B right below it, at So, in S.
-        for (add_in_force, p_BoSo_S, frame_S), wrench in zip(
-            self._external_forces, external
-        ):
-            add_in_force(context, p_BoSo_S, SpatialForce(wrench), frame_S, forces)
-        # G = M v̇ + h − J_mᵀ f_m, without gravity (proper accelerations carry it).
-        G = model.CalcInverseDynamics(context, self._vdot, forces)
-        G.take(self._jv, out=tau, mode="clip")
-        G_root = G[self._root_v]
-        if self._unknown_map is not None:
-            # u welded to the root: f_u = J_u,rootᵀ⁻¹ G_root, J_u,joints = 0.
-            np.matmul(self._unknown_map, G_root, unknown)
-        else:
-            frame = self._unknown_frame
-            J_u = model.CalcJacobianSpatialVelocity(
-                context, JacobianWrtVariable.kV, frame, self._zero3, self._world, frame
-            )
-            # [J_uᵀ Sᵀ] [f_u; τ] = G (Sec. 2.4): root rows first. Expressed in u, with
-            # the root at the identity pose, J_u,root = [R 0; −R[p]× R] (R = R_uW, p =
-            # p_WUo), whose inverse transpose is [R −R[p]×; 0 R]: no 6x6 solve.
-            J_root = J_u[:, self._root_v]
-            R = J_root[:3, :3]
-            unknown[:3] = R @ G_root[:3] + J_root[3:, :3] @ G_root[3:]
-            unknown[3:] = R @ G_root[3:]
-            tau -= J_u[:, self._jv].T @ unknown
-        if self._subtract_rotor:
-            rotor = self._vdot.take(self._jv, out=self._rotor, mode="clip")
-            rotor *= self._reflected_inertia
-            tau -= rotor
 
 
 class FloatingBaseTorqueEstimator(StepSystem):
@@ -1185,12 +1439,12 @@ class FloatingBaseTorqueEstimator(StepSystem):
     The arithmetic is `TorqueEstimatorStep`'s, which this system runs on its
     context's state (a fused controller runs the same step without Drake). Allocated
     once at construction: the internal model (module docstring), one context of it and
-    two MultibodyForces; per update only Drake's two inverse dynamics results and one
-    SpatialForce per sensor. Per update: one SetPositionsAndVelocities, two inverse
-    dynamics on the same kinematics (F/T compensation, then τ̂), one relative pose per
-    nested sensor, and a Jacobian of the unknown-wrench link unless it is rigidly
-    attached to the IMU (or the fixed base without IMU) (scripts/bench_estimator.py
-    measures it).
+    one MultibodyForces (zero); per update only Drake's results (an inverse dynamics, a
+    Jacobian per sensor). Per update: one SetPositionsAndVelocities, one inverse
+    dynamics (F/T compensation, and τ̂ by its linearity in the applied wrenches), one
+    Jacobian per sensor, one relative pose per nested sensor, and a Jacobian of the
+    unknown-wrench link unless it is rigidly attached to the IMU (or the fixed base
+    without IMU) (scripts/bench_estimator.py measures it).
     `plant`'s default parameters (masses, inertias, rotor inertias, gear ratios) and,
     for a fixed base without IMU, its gravity and the base's default pose are read at
     construction. `plant` must be a finalized model of the robot alone: a floating
