@@ -522,3 +522,177 @@ def test_calibrated_servo_is_stable_at_1khz(calibrated, plant):
         ]
     )
     assert explicit_stability_margin(calibrated, hrp2.JOINT_NAMES, reflected, 1e-3).max() < 1.0
+
+
+# --- The kernels (hrp2_drake.kernels) ---------------------------------------------
+
+
+def _kernel_servo(calibrated, plant):
+    """The calibrated servo with every mechanism: latency of 1 and 2 periods (1 ms
+    extra), hysteresis on some joints, every third joint's encoder unquantized, the
+    enabled port and a goal quantum."""
+    from dataclasses import replace
+
+    names = hrp2.JOINT_NAMES
+    params = type(calibrated)(
+        {
+            name: (
+                replace(calibrated.joints[name], encoder_resolution=0.0)
+                if k % 3 == 0
+                else calibrated.joints[name]
+            )
+            for k, name in enumerate(names)
+        }
+    )
+    return EmulatedPositionServo(
+        plant, params, names, 1e-3, hrp2.half_sitting(), extra_latency=1e-3,
+        enable_port=True, command_resolution=2e-5,
+    )
+
+
+def _servo_ticks(servo, plant, ticks: int = 40) -> list[bytes]:
+    """What the servo gives over random ticks (its actuation, its motor current, its
+    state after each update, and the public per-joint methods), as bytes."""
+    indexing = hrp2.hrp2_joint_indexing(plant)
+    context = servo.CreateDefaultContext()
+    q0 = hrp2.half_sitting()
+    x = np.zeros(plant.num_positions() + plant.num_velocities())
+    x[indexing.q] = q0
+    servo.get_input_port(0).FixValue(context, q0)
+    servo.get_input_port(1).FixValue(context, x)
+    servo.get_input_port(2).FixValue(context, np.ones(len(q0)))
+    servo.ExecuteInitializationEvents(context)
+    rng = np.random.default_rng(17)
+    out = []
+    for tick in range(ticks):
+        q = q0 + rng.normal(0.0, 2e-3, len(q0))
+        v = rng.normal(0.0, 0.5, len(q0))
+        if tick % 5 == 0:
+            v[::4] = 0.0  # no travel: the direction state holds
+            q[::4] = x[indexing.q][::4]
+        x[indexing.q], x[plant.num_positions() + indexing.v] = q, v
+        q_cmd = q + rng.normal(0.0, 3e-3, len(q0))
+        enabled = (rng.uniform(size=len(q0)) > 0.2).astype(float)
+        servo.get_input_port(0).FixValue(context, q_cmd)
+        servo.get_input_port(1).FixValue(context, x)
+        servo.get_input_port(2).FixValue(context, enabled)
+        out.append(servo.get_output_port().Eval(context).tobytes())
+        out.append(servo.current(context).tobytes())
+        s = context.get_discrete_state(0).get_value()[: len(q0)]
+        out.append(servo.joint_torques(q_cmd, q, v, s, enabled).tobytes())
+        out.append(servo.motor_current(q_cmd, q, v).tobytes())
+        out.append(servo.encoder(q).tobytes())
+        context.SetDiscreteState(servo.EvalUniquePeriodicDiscreteUpdate(context))
+        out.append(context.get_discrete_state(0).get_value().tobytes())
+    return out
+
+
+def test_kernels_compiled_equal_interpreted(calibrated, plant):
+    """The servo's compiled kernels and their Python source give the same outputs
+    and states to the bit (elementwise code), tick after tick, every mechanism on;
+    both refuse a non-finite command."""
+    import contextlib
+
+    from hrp2_drake import kernels
+
+    servo = _kernel_servo(calibrated, plant)
+    compiled = _servo_ticks(servo, plant)
+    # (With NUMBA_DISABLE_JIT both are the Python source.)
+    with kernels.interpreted() if kernels.jit_enabled() else contextlib.nullcontext():
+        interpreted = _servo_ticks(_kernel_servo(calibrated, plant), plant)
+        context = servo.CreateDefaultContext()
+        q_cmd = hrp2.half_sitting()
+        q_cmd[7] = np.nan
+        servo.get_input_port(0).FixValue(context, q_cmd)
+        servo.get_input_port(1).FixValue(
+            context, np.zeros(plant.num_positions() + plant.num_velocities())
+        )
+        servo.get_input_port(2).FixValue(context, np.ones(len(q_cmd)))
+        for evaluate in (
+            servo.get_output_port().Eval,
+            servo.current,
+            servo.EvalUniquePeriodicDiscreteUpdate,
+        ):
+            with pytest.raises(ValueError, match="LLEG_JOINT1"):
+                evaluate(context)
+    assert len(compiled) == len(interpreted)
+    for k, (a, b) in enumerate(zip(compiled, interpreted)):
+        assert a == b, k
+
+
+def test_kernels_give_servo_torque_bit_for_bit_at_the_edges(calibrated, plant):
+    """At the law's edges (zeros of either sign, the voltage limit's ends, infinite
+    speeds, the driver off, NaN inputs) the kernel gives servo_torque's numbers: the
+    same bits, but NaN's sign, which numpy leaves to the CPU."""
+    from hrp2_drake.robot.servo import servo_torque
+
+    names = hrp2.JOINT_NAMES
+    p = calibrated.vectors(names)
+    servo = EmulatedPositionServo(plant, calibrated, names, 1e-3, hrp2.half_sitting())
+    rng = np.random.default_rng(23)
+    specials = np.array([0.0, -0.0, np.inf, -np.inf, np.nan])
+    n = len(names)
+    for trial in range(300):
+        error = rng.normal(0.0, 1e-3, n)
+        error[rng.integers(0, 3, n) == 0] = rng.choice([0.0, -0.0])
+        v = rng.normal(0.0, 1.0, n)
+        pick = rng.integers(0, 6, n)
+        v = np.where(pick == 1, p["no_load_speed"], v)
+        v = np.where(pick == 2, -p["no_load_speed"], v)
+        v = np.where(pick == 3, rng.choice([0.0, -0.0], n), v)
+        direction = rng.uniform(-1.0, 1.0, n)
+        direction[rng.integers(0, 4, n) == 0] = 0.0
+        if trial % 3 == 0:
+            error[rng.integers(n)] = rng.choice(specials)
+            v[rng.integers(n)] = rng.choice(specials)
+            direction[rng.integers(n)] = rng.choice(specials)
+        enabled = rng.choice([0.0, 0.5, 1.0, np.nan], n) if trial % 2 else None
+        with np.errstate(invalid="ignore"):  # inf / inf, inf · 0: NaN
+            expected = servo_torque(p, error, v, direction, enabled)
+            actual = servo._servo_torque(error, v, direction, enabled)
+        nan = np.isnan(expected)
+        np.testing.assert_array_equal(np.isnan(actual), nan)
+        assert actual[~nan].tobytes() == expected[~nan].tobytes(), trial
+
+
+def test_warm_up_then_frozen_the_servo_runs_and_a_new_signature_raises(calibrated, plant):
+    """The constructor compiles (or loads) every kernel for a tick's types; frozen,
+    the servo's output, update and methods run, and a kernel called with float32
+    arrays raises instead of compiling."""
+    from hrp2_drake import kernels
+    from hrp2_drake.robot import servo as servo_module
+
+    if not kernels.jit_enabled():
+        pytest.skip("NUMBA_DISABLE_JIT: nothing compiles")
+    servo = _kernel_servo(calibrated, plant)
+    unlatched = EmulatedPositionServo(
+        plant, calibrated, hrp2.JOINT_NAMES, 1e-3, hrp2.half_sitting(), off=["latency"]
+    )
+    # kernels.freeze() on the servo's kernels (freeze() itself needs every kernel of
+    # the process compiled, those of the modules this test imports and does not run
+    # too): each has its signature after the constructor's warm_up.
+    mine = [
+        dispatcher
+        for dispatcher in kernels.kernels()
+        if dispatcher.py_func.__module__ == servo_module.__name__
+    ]
+    assert len(mine) >= 6 and all(dispatcher.signatures for dispatcher in mine)
+    for dispatcher in mine:
+        dispatcher.disable_compile()
+    try:
+        compiled = _servo_ticks(servo, plant, ticks=3)
+        context = unlatched.CreateDefaultContext()
+        x = np.zeros(plant.num_positions() + plant.num_velocities())
+        unlatched.get_input_port(0).FixValue(context, hrp2.half_sitting())
+        unlatched.get_input_port(1).FixValue(context, x)
+        assert np.all(np.isfinite(unlatched.get_output_port().Eval(context)))
+        context.SetDiscreteState(unlatched.EvalUniquePeriodicDiscreteUpdate(context))
+        servo_module._encoder_readings(servo._constants, np.zeros(30), np.zeros(30))
+        with pytest.raises(TypeError, match="float32"):
+            servo_module._encoder_readings(
+                servo._constants, np.zeros(30, dtype=np.float32), np.zeros(30)
+            )
+    finally:
+        for dispatcher in mine:
+            dispatcher.disable_compile(False)
+    assert compiled == _servo_ticks(_kernel_servo(calibrated, plant), plant, ticks=3)

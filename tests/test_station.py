@@ -315,3 +315,156 @@ def test_sensor_sampler_is_the_separate_sensors_bit_for_bit():
         )
         assert wrenches.tobytes() == read(separate["wrenches"], "measurement"), k
         assert read(fused, "sensor_time") == read(clock, "sensor_time"), k
+
+
+# --- The SensorSampler's kernel (hrp2_drake.kernels) ------------------------------
+
+
+def _hanging_sampler(resolution_of=None):
+    """The hanging HRP-2's SensorSampler (IMU, 4 F/T sensors, a freeze fault), its
+    plant and robot; `resolution_of(resolution)`: the encoders' quanta to use."""
+    config = StationConfig(scenario="hanging")
+    robot, cfg = config.description(), config.sensors_config()
+    plant = MultibodyPlant(0.001)
+    robot.add_model(plant, weld_base=False)
+    plant.Finalize()
+    names = list(robot.joints)
+    resolution = load_servo_params().vectors(names)["encoder_resolution"]
+    if resolution_of is not None:
+        resolution = resolution_of(resolution)
+    readouts = force_torque_readouts(plant, robot)
+    sampler = SensorSampler(
+        plant,
+        names,
+        cfg,
+        initial_joint_positions(config),
+        resolution,
+        imu=True,
+        force_torque=[(s, *r) for s, r in zip(robot.sensor_names(), readouts)],
+        faults=[SensorFault("imu_angular_velocity", "freeze", 0.010, 0.005)],
+    )
+    return sampler, plant, robot
+
+
+def _sampler_updates(sampler, plant, ks=(0, 1, 11, 13, 4095, 4096, 4097)) -> list[bytes]:
+    """Every output of `sampler` after an update at each sample k of random inputs."""
+    context = sampler.CreateDefaultContext()
+    rng = np.random.default_rng(9)
+    period = sampler._period
+    out = []
+    for k in ks:
+        context.SetTime(k * period)
+        x = rng.normal(0.0, 0.3, plant.num_positions() + plant.num_velocities())
+        sampler.GetInputPort("state").FixValue(context, x)
+        sampler.GetInputPort("linear_acceleration").FixValue(context, rng.normal(0, 5, 3))
+        sampler.GetInputPort("angular_velocity").FixValue(context, rng.normal(0, 0.5, 3))
+        sampler.GetInputPort("reaction_forces").FixValue(
+            context,
+            [SpatialForce(rng.normal(0.0, 50.0, 6)) for _ in range(plant.num_joints())],
+        )
+        context.SetDiscreteState(sampler.EvalUniquePeriodicDiscreteUpdate(context))
+        for port in range(sampler.num_output_ports()):
+            out.append(sampler.get_output_port(port).Eval(context).tobytes())
+    return out
+
+
+def test_sensor_sampler_kernel_compiled_equals_interpreted():
+    """The SensorSampler's compiled kernel and its Python source give the same
+    readings and stamps to the bit (elementwise code), across a noise block; both
+    name the channel whose signal is not finite."""
+    import contextlib
+
+    from hrp2_drake import kernels
+
+    sampler, plant, _ = _hanging_sampler()
+    compiled = _sampler_updates(sampler, plant)
+    # (With NUMBA_DISABLE_JIT both are the Python source.)
+    with kernels.interpreted() if kernels.jit_enabled() else contextlib.nullcontext():
+        interpreted_sampler, _, _ = _hanging_sampler()
+        interpreted = _sampler_updates(interpreted_sampler, plant)
+    assert compiled == interpreted
+    for interpret in (False, True):
+        with kernels.interpreted() if interpret else contextlib.nullcontext():
+            context = sampler.CreateDefaultContext()
+            context.SetTime(0.002)
+            sampler.GetInputPort("state").FixValue(
+                context, np.zeros(plant.num_positions() + plant.num_velocities())
+            )
+            sampler.GetInputPort("linear_acceleration").FixValue(context, [0, np.inf, 0])
+            sampler.GetInputPort("angular_velocity").FixValue(context, np.zeros(3))
+            sampler.GetInputPort("reaction_forces").FixValue(
+                context, [SpatialForce(np.zeros(6))] * plant.num_joints()
+            )
+            with pytest.raises(RuntimeError, match="imu_accelerometer: signal not finite"):
+                sampler.EvalUniquePeriodicDiscreteUpdate(context)
+
+
+def test_sensor_sampler_warm_up_then_frozen_updates_and_a_new_signature_raises():
+    """The constructor compiles (or loads) the kernel for an update's types; frozen,
+    updates run, and a call with float32 arrays raises instead of compiling."""
+    from hrp2_drake import kernels
+    from hrp2_drake.robot import sensors
+
+    if not kernels.jit_enabled():
+        pytest.skip("NUMBA_DISABLE_JIT: nothing compiles")
+    sampler, plant, _ = _hanging_sampler()
+    assert sensors._sample_bus.signatures
+    sensors._sample_bus.disable_compile()  # kernels.freeze(), for this module's kernel
+    try:
+        frozen = _sampler_updates(sampler, plant, ks=(0, 1, 2))
+        groups = tuple(group.copy() for group in sampler._groups)
+        arguments = [
+            sampler._constants, sampler._table, np.zeros(80), np.zeros(3), np.zeros(3),
+            sampler._signals.copy(), sampler._noise_block, 0, groups, 0.0, True,
+        ]
+        assert sensors._sample_bus(*arguments)  # the compiled signature
+        arguments[2] = np.zeros(80, dtype=np.float32)
+        with pytest.raises(TypeError, match="float32"):
+            sensors._sample_bus(*arguments)
+    finally:
+        sensors._sample_bus.disable_compile(False)
+    assert frozen == _sampler_updates(sampler, plant, ks=(0, 1, 2))
+
+
+def test_an_encoder_of_resolution_zero_is_not_quantized():
+    """A joint whose encoder resolution is 0 reads its angle unquantized (bias and
+    noise added), in the SensorSampler as in a NoisySampler; the others quantized."""
+    zero = [0, 7]
+
+    def with_zeros(resolution):
+        resolution = resolution.copy()
+        resolution[zero] = 0.0
+        return resolution
+
+    sampler, plant, robot = _hanging_sampler(with_zeros)
+    cfg = StationConfig(scenario="hanging").sensors_config()
+    n = len(robot.joints)
+    resolution = with_zeros(load_servo_params().vectors(list(robot.joints))["encoder_resolution"])
+    separate = NoisySampler(
+        n, cfg.period, *cfg.encoder.vectors(n, "enc"), 1000 * cfg.seed + 1, resolution
+    )
+    indexing = hrp2.hrp2_joint_indexing(plant)
+    x = np.random.default_rng(2).normal(0.0, 0.3, plant.num_positions() + plant.num_velocities())
+    readings = []
+    for system, port, value in ((sampler, "state", x), (separate, "signal", x[indexing.q])):
+        context = system.CreateDefaultContext()
+        context.SetTime(0.003)
+        system.GetInputPort(port).FixValue(context, value)
+        if system is sampler:
+            system.GetInputPort("linear_acceleration").FixValue(context, np.zeros(3))
+            system.GetInputPort("angular_velocity").FixValue(context, np.zeros(3))
+            system.GetInputPort("reaction_forces").FixValue(
+                context, [SpatialForce(np.zeros(6))] * plant.num_joints()
+            )
+        context.SetDiscreteState(system.EvalUniquePeriodicDiscreteUpdate(context))
+        readings.append(context.get_discrete_state(0).get_value().copy())
+    q_measured, expected = readings
+    assert q_measured.tobytes() == expected.tobytes()
+    assert np.all(np.isfinite(q_measured))
+    quantized = np.setdiff1d(np.arange(n), zero)
+    np.testing.assert_allclose(
+        q_measured[quantized] / resolution[quantized],
+        np.round(q_measured[quantized] / resolution[quantized]),
+        atol=1e-6,
+    )
+    assert np.all(q_measured[zero] != np.round(q_measured[zero] / 1e-5) * 1e-5)

@@ -31,13 +31,16 @@ from pydrake.systems.framework import Context, DiscreteValues
 
 # The configs are the robot description's (plain data), imported here for this module's users.
 from hrp2_drake.description.sensors import NoiseConfig, SensorsConfig  # noqa: F401
+from hrp2_drake.kernels import kernel
 from hrp2_drake.multibody import joint_indexing
 from hrp2_drake.robot.faults import SensorFault, freeze_windows, update_stamps
 from hrp2_drake.simulation import WitnessFreeLeafSystem
 
 
 class SampledSignal:
-    """The sampling law of one sensor: measurement = quantize(signal + bias + std n_k).
+    """The sampling law of one sensor: measurement = quantize(signal + bias + std n_k)
+    (quantize: to the nearest multiple of the resolution, half to even; none where the
+    resolution is 0).
 
     The noise n_k of sample k = round(t / period) is a pure function of (seed, k):
     drawn in blocks of `BLOCK` samples from a generator seeded with (seed, block) (the
@@ -60,6 +63,9 @@ class SampledSignal:
         self.bias = np.asarray(bias, float)
         self.noisy = bool(np.any(self.std > 0))
         self.resolution = None if resolution is None else np.asarray(resolution, float)
+        if self.resolution is not None:
+            self._quantized = self.resolution > 0
+            self._divisor = np.where(self._quantized, self.resolution, 1.0)
         self._seed = int(seed)
         self._block_index = -1
         self._block = np.zeros((self.BLOCK, size))
@@ -84,7 +90,9 @@ class SampledSignal:
         if self.noisy:
             y += self.std * self.noise(k)
         if self.resolution is not None:
-            y = np.round(y / self.resolution) * self.resolution
+            y = np.where(
+                self._quantized, np.round(y / self._divisor) * self.resolution, y
+            )
         return y
 
 
@@ -266,6 +274,60 @@ def _sensor_laws(
     return laws
 
 
+# The bus's constants (`SensorSampler._constants`): a row each over the buffer.
+_BIAS, _QUANTUM = 0, 1  # the bias; the quantum (0: none)
+# Its index table (`SensorSampler._table`, int64), a header: where the encoders, the
+# accelerometer and the gyroscope (-1: no IMU) and the noisy channels start in the
+# buffer, the stamps' discrete state group, the number of encoders; then the plant-state
+# row of each encoder's joint; then, for each entry of the buffer, its discrete state
+# group and its row there.
+_ENCODERS, _ACCELEROMETER, _GYROSCOPE, _NOISY, _STAMPS, _NUM_ENCODERS = range(6)
+_HEADER = 6
+
+
+@kernel
+def _sample_bus(c, table, x, acceleration, angular_velocity, signals, noise, row,
+                groups, t, stamp_all):
+    """`SensorSampler._update`'s arithmetic: the encoders' (from the plant's state x)
+    and the IMU's signals into the signal buffer (whose F/T part is filled), then, if
+    every signal is finite, each channel's `SampledSignal` law on the whole buffer,
+    measurement = quantize(signal + bias [+ std n_k, the noisy channels, from row
+    `row` of `noise`, the block of std · n]), written into its discrete state group
+    (`groups`: a view on each group of the sampler's discrete state, in group order),
+    and, with `stamp_all`, every stamp set to t. Elementwise: numpy's numbers bit for
+    bit. Returns False, writing no group, if a signal is not finite."""
+    num_encoders = table[_NUM_ENCODERS]
+    encoders = table[_ENCODERS]
+    for i in range(num_encoders):
+        signals[encoders + i] = x[table[_HEADER + i]]
+    accelerometer = table[_ACCELEROMETER]
+    if accelerometer >= 0:
+        gyroscope = table[_GYROSCOPE]
+        for i in range(3):
+            signals[accelerometer + i] = acceleration[i]
+            signals[gyroscope + i] = angular_velocity[i]
+    size = signals.shape[0]
+    for i in range(size):
+        if not math.isfinite(signals[i]):
+            return False
+    noisy = table[_NOISY]
+    group_of = _HEADER + num_encoders
+    row_of = group_of + size
+    for i in range(size):
+        value = signals[i] + c[_BIAS, i]
+        if i >= noisy:
+            value += noise[row, i - noisy]
+        quantum = c[_QUANTUM, i]
+        if quantum > 0.0:
+            value = np.rint(value / quantum) * quantum
+        groups[table[group_of + i]][table[row_of + i]] = value
+    if stamp_all:
+        stamps = groups[table[_STAMPS]]
+        for i in range(stamps.shape[0]):
+            stamps[i] = t
+    return True
+
+
 class SensorSampler(WitnessFreeLeafSystem):
     """Every sensor of a simulated robot sampled at once each period, as a robot's
     sensor bus delivers them: the encoders, the IMU (if any) and the F/T sensors, each
@@ -295,7 +357,11 @@ class SensorSampler(WitnessFreeLeafSystem):
     Why one system: at 1 kHz every Python event costs its dispatch whatever it
     computes; one event for the whole bus instead of six systems (four samplers, the
     F/T readout, the clock) saves about 15 us per simulated millisecond
-    (scripts/bench_closed_loop.py).
+    (scripts/bench_closed_loop.py). Its arithmetic is one numba kernel
+    (`_sample_bus`), but for the F/T sensors' matrix products, which stay numpy's
+    (BLAS: ForceTorqueReadout's numbers); the kernel writes every reading into a
+    discrete state of the sampler's own, which one call copies into the update's
+    (one pybind11 crossing, not one per output).
     """
 
     def __init__(
@@ -336,68 +402,62 @@ class SensorSampler(WitnessFreeLeafSystem):
             )
         self._offset = (config.period - lead) % config.period
         laws = _sensor_laws(config, len(joint_names), encoder_resolution, imu, names)
-        views = self._make_buffers(laws)
-        self._declare_inputs(plant, joint_names, views, imu, force_torque)
-        self._declare_outputs(views, initial_q, imu, names, faults)
+        starts = self._make_buffers(laws)
+        self._declare_inputs(plant, joint_names, starts, imu, force_torque)
+        self._declare_outputs(starts, initial_q, imu, names, faults)
         self.DeclarePeriodicDiscreteUpdateEvent(config.period, self._offset, self._update)
+        self.warm_up()
 
-    def _make_buffers(
-        self, laws: dict[str, SampledSignal]
-    ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """One buffer of every clean signal and one of every measurement, channel
-        after channel (the noisy ones last), with views per channel: one finite check,
-        one bias addition and one noise addition for the whole bus. Returns the
-        (signal, measurement) views of each channel."""
+    def _make_buffers(self, laws: dict[str, SampledSignal]) -> dict[str, int]:
+        """One buffer of every clean signal, channel after channel (the noisy ones
+        last): one finite check, one bias addition and one noise addition for the
+        whole bus. Returns where each channel starts in it."""
         order = sorted(laws, key=lambda name: laws[name].noisy)  # stable
         size = sum(law.size for law in laws.values())
-        self._signals, self._measurements = np.zeros(size), np.zeros(size)
-        self._bias = np.concatenate([laws[name].bias for name in order])
-        self._ones = np.ones(size)  # finite check: x·1 is finite iff every x_i is
-        self._channels = []  # (name, law, signal view, measurement view)
+        self._signals = np.zeros(size)
+        self._constants = np.zeros((_QUANTUM + 1, size))
+        self._constants[_BIAS] = np.concatenate([laws[name].bias for name in order])
+        self._constants[_QUANTUM] = np.concatenate(
+            [
+                np.zeros(laws[name].size)
+                if laws[name].resolution is None
+                else np.broadcast_to(laws[name].resolution, (laws[name].size,))
+                for name in order
+            ]
+        )
+        self._channels = []  # (name, signal view)
+        starts = {}
         start = 0
         for name in order:
-            rows = slice(start, start + laws[name].size)
-            self._channels.append(
-                (name, laws[name], self._signals[rows], self._measurements[rows])
-            )
+            starts[name] = start
+            self._channels.append((name, self._signals[start : start + laws[name].size]))
             start += laws[name].size
         # The noisy channels in the seeds' order, which the stable sort kept.
         self._noisy_laws = [law for law in laws.values() if law.noisy]
         noisy_size = sum(law.size for law in self._noisy_laws)
-        self._noisy_measurements = self._measurements[size - noisy_size :]
+        self._noisy_start = size - noisy_size
         self._noise_block_index = -1
         self._noise_block = np.zeros((SampledSignal.BLOCK, noisy_size))
-        self._quantized = [
-            (law, m) for _, law, _, m in self._channels if law.resolution is not None
-        ]
-        return {
-            name: (signal, measurement)
-            for name, _, signal, measurement in self._channels
-        }
+        return starts
 
     def _declare_inputs(
         self,
         plant: MultibodyPlant,
         joint_names: Sequence[str],
-        views: dict[str, tuple[np.ndarray, np.ndarray]],
+        starts: dict[str, int],
         imu: bool,
         force_torque: Sequence[tuple[str, str, str, str]],
     ) -> None:
-        """The input ports, and where each one's signal goes (its channel's view)."""
+        """The input ports (each one's signal goes to its channel in the buffer)."""
         self._state = self.DeclareVectorInputPort(
             "state", plant.num_positions() + plant.num_velocities()
         )
         self._q_rows = joint_indexing(plant, joint_names).q
-        self._encoder_signal = views["encoders"][0]
-        self._imu = []  # (input port, signal view)
+        self._imu = []  # the two input ports
         if imu:
-            for port, channel in (
-                ("linear_acceleration", "imu_accelerometer"),
-                ("angular_velocity", "imu_gyroscope"),
-            ):
-                self._imu.append(
-                    (self.DeclareVectorInputPort(port, 3), views[channel][0])
-                )
+            for port in ("linear_acceleration", "angular_velocity"):
+                self._imu.append(self.DeclareVectorInputPort(port, 3))
+        self._no_imu = np.zeros(0)
         self._reaction = None
         if force_torque:
             self._reaction = self.DeclareAbstractInputPort(
@@ -409,72 +469,111 @@ class SensorSampler(WitnessFreeLeafSystem):
             # The F/T signals as k 6x1 columns: one matmul maps every sensor's
             # reaction force (numpy applies the same product to each, so the numbers
             # are ForceTorqueReadout's).
-            self._force_torque_signal = views["force_torque"][0].reshape(-1, 6, 1)
+            start = starts["force_torque"]
+            self._force_torque_signal = self._signals[
+                start : start + 6 * len(force_torque)
+            ].reshape(-1, 6, 1)
 
     def _declare_outputs(
         self,
-        views: dict[str, tuple[np.ndarray, np.ndarray]],
+        starts: dict[str, int],
         initial_q: np.ndarray,
         imu: bool,
         names: Sequence[str],
         faults: Sequence[SensorFault],
     ) -> None:
         """A discrete state group and an output port per sensor port (its channel's
-        measurement view), then the stamps."""
-        self._outputs = []  # (group, measurement view)
-        ports = [("q_measured", views["encoders"][1], np.asarray(initial_q, float))]
+        entries of the buffer), then the stamps; the kernel's table, and the sampler's
+        own discrete state that the kernel writes."""
+        initial_q = np.asarray(initial_q, float)
+        ports = [("q_measured", starts["encoders"], initial_q)]
         if imu:
             ports += [
-                ("imu_linear_acceleration", views["imu_accelerometer"][1], np.zeros(3)),
-                ("imu_angular_velocity", views["imu_gyroscope"][1], np.zeros(3)),
+                ("imu_linear_acceleration", starts["imu_accelerometer"], np.zeros(3)),
+                ("imu_angular_velocity", starts["imu_gyroscope"], np.zeros(3)),
             ]
         for k, sensor in enumerate(names):
-            wrench = views["force_torque"][1][6 * k : 6 * k + 6]
-            ports.append((f"wrench_{sensor}", wrench, np.zeros(6)))
-        for port, measurement, initial in ports:
+            ports.append((f"wrench_{sensor}", starts["force_torque"] + 6 * k, np.zeros(6)))
+        size = self._signals.size
+        group_of, row_of = np.zeros(size, dtype=np.int64), np.zeros(size, dtype=np.int64)
+        for port, start, initial in ports:
             group = self.DeclareDiscreteState(initial)
             self.DeclareStateOutputPort(port, group)
-            self._outputs.append((int(group), measurement))
+            group_of[start : start + initial.size] = int(group)
+            row_of[start : start + initial.size] = np.arange(initial.size)
         # The stamps, in the same order (the station's sensor_sizes).
         self._freezes = freeze_windows([port for port, _, _ in ports], faults)
         stamps = self.DeclareDiscreteState(len(ports))
         self._stamps_group = int(stamps)
         self.DeclareStateOutputPort("sensor_time", stamps)
+        header = np.zeros(_HEADER, dtype=np.int64)
+        header[_ENCODERS] = starts["encoders"]
+        header[_ACCELEROMETER] = starts.get("imu_accelerometer", -1)
+        header[_GYROSCOPE] = starts.get("imu_gyroscope", -1)
+        header[_NOISY] = self._noisy_start
+        header[_STAMPS] = self._stamps_group
+        header[_NUM_ENCODERS] = len(self._q_rows)
+        self._table = np.concatenate([header, self._q_rows, group_of, row_of])
+        # What an update computes, written by the kernel into the groups of a discrete
+        # state of our own (views on each, in group order), then copied into the
+        # update's by one call (DiscreteValues.SetFrom). Every group is written at
+        # every update (the stamps a freeze holds: from the update's own), so nothing
+        # carries over from one context to another.
+        self._scratch = self.AllocateDiscreteVariables()
+        self._groups = tuple(
+            self._scratch.get_mutable_value(group)
+            for group in range(self._scratch.num_groups())
+        )
+
+    def warm_up(self) -> None:
+        """Compiles (or loads from numba's cache) `_sample_bus` for an update's types
+        (the inputs' values and the discrete state groups: 1-D C-contiguous float64;
+        the buffers; the noise block, 2-D), on copies, so that
+        `hrp2_drake.kernels.freeze()` can follow. The constructor calls it (see
+        `EmulatedPositionServo.warm_up`)."""
+        x = np.zeros(int(self._q_rows.max(initial=-1)) + 1)
+        imu = np.zeros(3) if self._imu else self._no_imu
+        groups = tuple(group.copy() for group in self._groups)
+        _sample_bus(
+            self._constants, self._table, x, imu, imu, self._signals.copy(),
+            self._noise_block, 0, groups, 0.0, True,
+        )
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
         t = context.get_time()
-        np.take(self._state.Eval(context), self._q_rows, out=self._encoder_signal)
-        for port, signal in self._imu:
-            signal[:] = port.Eval(context)
+        x = self._state.Eval(context)
+        acceleration = angular_velocity = self._no_imu
+        if self._imu:
+            acceleration = self._imu[0].Eval(context)
+            angular_velocity = self._imu[1].Eval(context)
         if self._reaction is not None:
             forces = self._reaction.Eval(context)
             reactions = np.array([forces[j].get_coeffs() for j in self._joints])
             np.matmul(self._maps, reactions[:, :, None], out=self._force_torque_signal)
-        if not math.isfinite(self._signals.dot(self._ones)):
-            for name, _, signal, _ in self._channels:
-                if not np.all(np.isfinite(signal)):
-                    _raise_not_finite(name, signal, t)
         # SampledSignal.sample of every channel, operation by operation on the whole
         # bus (each entry sees the same operations, so the numbers are the same).
-        k = round((t - self._offset) / self._period)
-        measurements = self._measurements
-        np.add(self._signals, self._bias, out=measurements)
-        if self._noisy_laws:
-            self._noisy_measurements += self._noise(k)
-        for law, measurement in self._quantized:
-            # (np.rint is np.round, without np.round's Python layer.)
-            measurement[:] = np.rint(measurement / law.resolution) * law.resolution
-        for group, measurement in self._outputs:
-            state.set_value(group, measurement)
-        update_stamps(state.get_mutable_value(self._stamps_group), t, self._freezes)
+        row = self._noise_row(round((t - self._offset) / self._period))
+        if not _sample_bus(
+            self._constants, self._table, x, acceleration, angular_velocity,
+            self._signals, self._noise_block, row, self._groups, t, not self._freezes,
+        ):
+            for name, signal in self._channels:
+                if not np.all(np.isfinite(signal)):
+                    _raise_not_finite(name, signal, t)
+        if self._freezes:
+            stamps = self._groups[self._stamps_group]
+            stamps[:] = state.get_value(self._stamps_group)
+            update_stamps(stamps, t, self._freezes)
+        state.SetFrom(self._scratch)
 
-    def _noise(self, k: int) -> np.ndarray:
-        """std · n_k of every noisy channel, side by side in the buffer's order: a row
-        of a block of BLOCK samples, made once per block (the channels share k)."""
+    def _noise_row(self, k: int) -> int:
+        """The row of sample k in the noise block (std · n of every noisy channel,
+        side by side in the buffer's order, BLOCK samples: made once per block, the
+        channels share k), the block made if it is a new one."""
         block, row = divmod(k, SampledSignal.BLOCK)
-        if block != self._noise_block_index:
+        if self._noisy_laws and block != self._noise_block_index:
             self._noise_block = np.concatenate(
                 [law.std * law.noise_block(block) for law in self._noisy_laws], axis=1
             )
             self._noise_block_index = block
-        return self._noise_block[row]
+        return row

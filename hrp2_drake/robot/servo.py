@@ -60,6 +60,7 @@ from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.framework import BasicVector, Context, DiscreteValues
 
 from hrp2_drake.config import load_config
+from hrp2_drake.kernels import kernel
 from hrp2_drake.multibody import JointIndexing, joint_indexing
 from hrp2_drake.simulation import WitnessFreeLeafSystem
 
@@ -355,6 +356,205 @@ def dahl_step(s: np.ndarray, dq: np.ndarray, width: np.ndarray) -> np.ndarray:
     return np.where(dq == 0, s, target + (s - target) * decay)
 
 
+# --- The per-step arithmetic: numba kernels (hrp2_drake.kernels) -------------------
+#
+# `servo_torque` and `dahl_step` above are the law in numpy, the reference; the kernels
+# below are what the servo runs, operation for operation the same numbers (every
+# operation is elementwise: no reduction, no fma; tests/test_servo.py compares them bit
+# for bit). Two operations stay in numpy, outside the kernels: tanh and exp. numpy's
+# float64 tanh is its own SIMD code (AVX2, AVX-512), which differs from the C
+# library's (what a kernel calls) in the last bit for about a third of the arguments
+# (measured on an AVX2 machine), and on AVX-512 machines its float64 exp is its own
+# too; so the servo computes tanh(q̇ / v_s) and the Dahl decay exp(-|Δq| / δ) with
+# numpy, and the kernels take them as arrays.
+
+# Rows of the servo's constants (`EmulatedPositionServo._constants`, one float64 row
+# per parameter over the joints).
+_K1, _ASYMMETRY, _K2, _K3, _K4, _K5 = 0, 1, 2, 3, 4, 5
+_DEADZONE, _I_MAX, _STALL, _NO_LOAD, _LOAD_FRICTION = 6, 7, 8, 9, 10
+_RESOLUTION, _WIDTH = 11, 12  # encoder quantum (0: none); hysteresis width (0: tanh)
+# Rows of its index table (`EmulatedPositionServo._rows`, int64 over the joints).
+_Q_ROW, _V_ROW = 0, 1  # q and v of the joint in the plant's state
+_TRANSIT_ROW = 2  # its applied command in the discrete state (-1: no latency)
+_U_ROW = 3  # its actuator in the plant's actuation vector
+
+
+@kernel
+def _np_sign(x):
+    """np.sign of a float: 1, -1, 0.0 for either zero, NaN for NaN."""
+    if x > 0.0:
+        return 1.0
+    if x < 0.0:
+        return -1.0
+    if x == 0.0:
+        return 0.0
+    return x
+
+
+@kernel
+def _np_maximum(a, b):
+    """np.maximum(a, b) of floats: NaN if either is, b on a tie (its zero's sign)."""
+    if a > b or math.isnan(a):
+        return a
+    return b
+
+
+@kernel
+def _np_minimum(a, b):
+    """np.minimum(a, b) of floats: NaN if either is, b on a tie (its zero's sign)."""
+    if a < b or math.isnan(a):
+        return a
+    return b
+
+
+@kernel
+def _encoder_reading(c, j, q):
+    """What joint j's encoder reads of angle q: rint(q / quantum) · quantum (rint:
+    half to even), q itself without quantization."""
+    quantum = c[_RESOLUTION, j]
+    if quantum > 0.0:
+        return np.rint(q / quantum) * quantum
+    return q
+
+
+@kernel
+def _joint_current(c, j, error, v, on):
+    """servo_torque's current i (A) of joint j: position error `error` (rad), velocity
+    v, driver on (`on`) or off (0)."""
+    u = c[_K4, j] * error - c[_K5, j] * v
+    current = _np_sign(u) * _np_maximum(abs(u) - c[_DEADZONE, j], 0.0)
+    back_emf = v / c[_NO_LOAD, j]
+    upper = _np_minimum(c[_I_MAX, j], c[_STALL, j] * (1.0 - back_emf))
+    lower = _np_maximum(-c[_I_MAX, j], -c[_STALL, j] * (1.0 + back_emf))
+    current = _np_minimum(upper, _np_maximum(lower, current))  # np.clip's numbers
+    if not on:
+        return 0.0
+    return current
+
+
+@kernel
+def _joint_torque(c, j, current, v, direction):
+    """servo_torque's τ (N·m) of joint j driving `current` at velocity v, in the
+    direction state `direction`."""
+    drive = c[_K1, j] * (1.0 + c[_ASYMMETRY, j] * direction) * current
+    coulomb = c[_K3, j] + c[_LOAD_FRICTION, j] * abs(drive)
+    return drive - c[_K2, j] * v - coulomb * direction
+
+
+@kernel
+def _servo_law(c, q_cmd, q, v, direction, enabled, torque, out):
+    """The law on joint vectors (`joint_torques`, `motor_current`): out[j] = τ_j
+    (`torque`) or i_j for the command q_cmd (after the latency), the joint angles q
+    (through the encoder; a zero-length q: q_cmd is the position error itself), the
+    velocities v and the direction states; `enabled` > 0.5 on (zero-length: all on)."""
+    error_given = q.shape[0] == 0
+    all_on = enabled.shape[0] == 0
+    for j in range(out.shape[0]):
+        error = q_cmd[j] if error_given else q_cmd[j] - _encoder_reading(c, j, q[j])
+        on = all_on or enabled[j] > 0.5
+        current = _joint_current(c, j, error, v[j], on)
+        if torque:
+            out[j] = _joint_torque(c, j, current, v[j], direction[j])
+        else:
+            out[j] = current
+
+
+@kernel
+def _encoder_readings(c, q, out):
+    """out[j]: what joint j's encoder reads of q[j] (`EmulatedPositionServo.encoder`)."""
+    for j in range(out.shape[0]):
+        out[j] = _encoder_reading(c, j, q[j])
+
+
+@kernel
+def _command_finite(q_cmd):
+    """Whether every entry of q_cmd is finite."""
+    for j in range(q_cmd.shape[0]):
+        if not math.isfinite(q_cmd[j]):
+            return False
+    return True
+
+
+@kernel
+def _servo_output(c, rows, x, q_cmd, servo_state, tanh_v, enabled, quantum, torque, out):
+    """The servo's output now (`EmulatedPositionServo._calc`, `current`): with
+    `torque`, the actuation (out: the plant's actuation vector, zero where no joint
+    of the servo drives), else the motor current of each joint (out: joint order).
+
+    x: the plant's state; q_cmd: the command input; servo_state: the discrete state
+    (direction states, last positions, commands in transit); tanh_v: tanh(q̇ / v_s) of
+    each joint (read for the joints without hysteresis); enabled: as `_servo_law`;
+    quantum: the goal's quantum (0: none). Returns False, computing nothing, if q_cmd
+    is not finite."""
+    if not _command_finite(q_cmd):
+        return False
+    if torque:
+        out[:] = 0.0
+    for j in range(c.shape[1]):
+        command = q_cmd[j]
+        if quantum > 0.0:
+            command = np.rint(command / quantum) * quantum
+        transit = rows[_TRANSIT_ROW, j]
+        if transit >= 0:
+            command = servo_state[transit]
+        v = x[rows[_V_ROW, j]]
+        error = command - _encoder_reading(c, j, x[rows[_Q_ROW, j]])
+        on = enabled.shape[0] == 0 or enabled[j] > 0.5
+        current = _joint_current(c, j, error, v, on)
+        if torque:
+            direction = servo_state[j] if c[_WIDTH, j] > 0.0 else tanh_v[j]
+            out[rows[_U_ROW, j]] = _joint_torque(c, j, current, v, direction)
+        else:
+            out[j] = current
+    return True
+
+
+@kernel
+def _dahl_exponents(c, rows, x, servo_state, out):
+    """out[j] = -|q_j - q_j(last update)| / δ_j, the Dahl decay's exponent, for the
+    joints with hysteresis (the others: 0)."""
+    n = c.shape[1]
+    for j in range(n):
+        width = c[_WIDTH, j]
+        if width > 0.0:
+            out[j] = -abs(x[rows[_Q_ROW, j]] - servo_state[n + j]) / width
+        else:
+            out[j] = 0.0
+
+
+@kernel
+def _servo_update(c, rows, x, q_cmd, servo_state, decay, quantum, depth):
+    """The servo's periodic update, in place on its discrete state (`servo_state`):
+    the direction states (`dahl_step`'s numbers with decay = exp of
+    `_dahl_exponents`; 0 without hysteresis), the last positions, and, with a latency
+    (`depth` periods), the commands in transit shifted by one period with q_cmd
+    (quantized to `quantum`, 0: none) entering. Returns False, changing nothing, if
+    there is a latency and q_cmd is not finite."""
+    n = c.shape[1]
+    if depth > 0 and not _command_finite(q_cmd):
+        return False
+    for j in range(n):
+        q = x[rows[_Q_ROW, j]]
+        if c[_WIDTH, j] > 0.0:
+            travel = q - servo_state[n + j]
+            if travel != 0.0:  # dq == 0 (or NaN != 0: NaN, as np.where gives)
+                target = _np_sign(travel)
+                servo_state[j] = target + (servo_state[j] - target) * decay[j]
+        else:
+            servo_state[j] = 0.0
+        servo_state[n + j] = q
+    if depth > 0:
+        # Newest first: each row moves one period back (from the oldest).
+        for i in range(servo_state.shape[0] - 1, 3 * n - 1, -1):
+            servo_state[i] = servo_state[i - n]
+        for j in range(n):
+            command = q_cmd[j]
+            if quantum > 0.0:
+                command = np.rint(command / quantum) * quantum
+            servo_state[2 * n + j] = command
+    return True
+
+
 def _applied_parameters(
     params: ServoParams,
     joint_names: Sequence[str],
@@ -425,6 +625,13 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
     The encoder quantization (`encoder_resolution`) applies to the position error,
     like the real servo; the velocity is the plant's (a real servo differentiates
     motor-side encoder counts at a high rate).
+
+    Per plant step (the output, then the update) the arithmetic is numba kernels
+    (`_servo_output`, `_dahl_exponents` and `_servo_update`, on the ports' values and
+    the discrete state as they are: no copy, no gather in Python), with numpy's tanh
+    and exp between them; `servo_torque`'s numbers bit for bit (the comment above the
+    kernels). The constructor compiles them, or loads them from numba's cache
+    (`warm_up`).
     """
 
     def __init__(
@@ -462,7 +669,6 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
         self._p = p
         self._delays = delays
         self._dahl = p["hysteresis_width"] > 0
-        self._width = np.where(self._dahl, p["hysteresis_width"], 1.0)
         self._n = len(joint_names)
         self._declare_ports_and_state(plant, period, initial_q_cmd, enable_port)
         self._precompute_step_constants(plant)
@@ -496,44 +702,84 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
         # and the commands in transit, newest first (depth x n).
         initial_state = np.concatenate([np.zeros(2 * n), np.tile(initial, depth)])
         self._x = int(self.DeclareDiscreteState(initial_state))
-        self._s_rows = slice(0, n)
         self._last_q_rows = slice(n, 2 * n)
-        self._transit_rows = slice(2 * n, None)
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
         self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
         self.DeclareVectorOutputPort("actuation", plant.num_actuators(), self._calc)
 
     def _precompute_step_constants(self, plant: MultibodyPlant) -> None:
-        """What the servo's law and state need per step, computed once.
-
-        The servo runs at every plant step: the arithmetic is `joint_torques`' and
-        `servo_torque`'s, operation for operation (tests/test_servo.py compares them bit
-        for bit). Constants are arrays (numpy takes longer to broadcast a Python float
-        than to read an array) and constant masks are index arrays (cheaper than where).
-        """
+        """What the servo's kernels need per step, packed once: one float64 array of
+        the parameters (a row each, `_K1`..`_WIDTH`), one int64 table of where each
+        joint's values are (`_Q_ROW`..`_U_ROW`), and the buffers of the two numpy
+        operations (module comment above the kernels: tanh, exp)."""
         n, p, delays = self._n, self._p, self._delays
-        self._state_q = self._indexing.q
-        self._state_v = plant.num_positions() + self._indexing.v
-        self._ones = np.ones(n)  # also the finite check: x·1 is finite iff every x_i is
-        self._zeros = np.zeros(n)
-        self._minus_i_max = -p["i_max"]
-        self._minus_stall_current = -p["stall_current"]
-        resolution = p["encoder_resolution"]
-        quantized = resolution > 0
-        self._unquantized = np.flatnonzero(~quantized)
-        self._quantum_divisor = np.where(quantized, resolution, 1.0)
-        self._dahl_joints = np.flatnonzero(self._dahl)
-        self._dahl_width = self._width[self._dahl_joints]
-        self._smooth_joints = np.flatnonzero(~self._dahl)
+        constants = np.zeros((_WIDTH + 1, n))
+        for row, name in (
+            (_K1, "k1"), (_ASYMMETRY, "k1_asymmetry"), (_K2, "k2"), (_K3, "k3"),
+            (_K4, "k4"), (_K5, "k5"), (_DEADZONE, "i_deadzone"), (_I_MAX, "i_max"),
+            (_STALL, "stall_current"), (_NO_LOAD, "no_load_speed"),
+            (_LOAD_FRICTION, "load_friction"), (_RESOLUTION, "encoder_resolution"),
+        ):
+            constants[row] = p[name]
+        constants[_WIDTH] = np.where(self._dahl, p["hysteresis_width"], 0.0)
+        self._constants = constants
+        rows = np.zeros((_U_ROW + 1, n), dtype=np.int64)
+        rows[_Q_ROW] = self._indexing.q
+        rows[_V_ROW] = plant.num_positions() + self._indexing.v
         # Applied command of joint j: the transit entry of row delays[j] - 1, or
         # q_cmd itself (delay 0).
-        self._delayed = np.flatnonzero(delays > 0)
-        self._transit_index = (2 * n + (delays - 1) * n + np.arange(n))[self._delayed]
-        # Joint order -> actuation order (every actuator of the plant is a joint's).
-        self._actuation_order = None
-        if sorted(self._indexing.u) == list(range(plant.num_actuators())):
-            self._actuation_order = np.argsort(self._indexing.u)
+        rows[_TRANSIT_ROW] = np.where(
+            delays > 0, 2 * n + (delays - 1) * n + np.arange(n), -1
+        )
+        rows[_U_ROW] = self._indexing.u
+        self._rows = rows
+        self._state_q = self._indexing.q
+        self._state_v = plant.num_positions() + self._indexing.v
+        self._dahl_joints = np.flatnonzero(self._dahl)
+        self._any_smooth = bool(np.any(~self._dahl))
+        self._any_dahl = bool(np.any(self._dahl))
+        self._v_coulomb = p["v_coulomb"]
+        self._tanh_v = np.zeros(n)  # tanh(q̇ / v_s) of every joint, per step
+        self._decay = np.zeros(n)  # the Dahl decay of the joints with hysteresis
+        # A zero-length vector: no `enabled` input (every joint on), no q (q_cmd is
+        # the position error), no command (no latency), for the kernels.
+        self._empty = np.zeros(0)
+        self._quantum = float(self._command_resolution or 0.0)
         self._num_actuators = plant.num_actuators()
+        self.warm_up()
+
+    def warm_up(self) -> None:
+        """Compiles (or loads from numba's cache) every kernel the servo calls, on
+        arrays of a step's types and layouts (1-D C-contiguous float64: the inputs'
+        values, the output's, the discrete state writable in an update and read-only
+        in an output calc), so that `hrp2_drake.kernels.freeze()` can follow. The
+        constructor calls it: the servo runs in the processes of loops that freeze
+        (the in-process and bus runs), which warm their own steps only."""
+        n, c = self._n, self._constants
+        # The scalar kernels the others call (compiled into them, but a kernel loaded
+        # from the cache leaves them uncompiled: `freeze` needs each compiled).
+        _np_sign(0.0)
+        _np_maximum(0.0, 0.0)
+        _np_minimum(0.0, 0.0)
+        _encoder_reading(c, 0, 0.0)
+        _joint_current(c, 0, 0.0, 0.0, True)
+        _joint_torque(c, 0, 0.0, 0.0, 0.0)
+        _command_finite(np.zeros(n))
+        x = np.zeros(int(self._rows[:_V_ROW + 1].max(initial=-1)) + 1)
+        q_cmd = np.zeros(n)
+        servo_state = np.zeros(2 * n + self._depth * n)
+        read_only = servo_state.copy()
+        read_only.flags.writeable = False
+        out = np.zeros(self._num_actuators)
+        for enabled in (self._empty, np.ones(n)):
+            _servo_output(
+                c, self._rows, x, q_cmd, read_only, self._tanh_v, enabled, 0.0, True, out
+            )
+            _servo_law(c, q_cmd, q_cmd, q_cmd, q_cmd, enabled, True, np.zeros(n))
+        _dahl_exponents(c, self._rows, x, servo_state, np.zeros(n))
+        _servo_update(c, self._rows, x, q_cmd, servo_state, np.zeros(n), 0.0, 0)
+        _encoder_readings(c, q_cmd, np.zeros(n))
+
     @property
     def joint_names(self) -> tuple[str, ...]:
         return self._indexing.names
@@ -542,6 +788,14 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
     def latency_periods(self) -> np.ndarray:
         """Command latency of each joint in servo periods."""
         return self._delays.copy()
+
+    def _vector(self, values) -> np.ndarray:
+        """`values` (one per joint, or one for all) as a new float64 joint vector:
+        the type the kernels are compiled for."""
+        return np.array(np.broadcast_to(np.asarray(values, dtype=float), (self._n,)))
+
+    def _enabled_vector(self, enabled: np.ndarray | None) -> np.ndarray:
+        return self._empty if enabled is None else self._vector(enabled)
 
     def joint_torques(
         self,
@@ -560,18 +814,22 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
                 others, which use tanh(q̇ / v_s)); None: tanh for every joint.
             enabled: per joint, > 0.5 on, otherwise off (friction only); None: on.
         """
-        p = self._p
-        direction = np.tanh(v / p["v_coulomb"])
+        v = self._vector(v)
+        direction = np.tanh(v / self._v_coulomb)
         if s is not None:
-            direction[self._dahl_joints] = s[self._dahl_joints]
-        return self._servo_torque(q_cmd - self.encoder(q), v, direction, enabled)
+            direction[self._dahl_joints] = self._vector(s)[self._dahl_joints]
+        tau = np.empty(self._n)
+        _servo_law(
+            self._constants, self._vector(q_cmd), self._vector(q), v, direction,
+            self._enabled_vector(enabled), True, tau,
+        )
+        return tau
 
     def encoder(self, q: np.ndarray) -> np.ndarray:
         """What the servo's own encoder reads of the joint angles q (rad): q
         quantized at each joint's encoder_resolution (none where it is 0)."""
-        # np.round(x) is np.rint(x) (half to even), without np.round's Python layer.
-        q_encoder = np.rint(q / self._quantum_divisor) * self._p["encoder_resolution"]
-        q_encoder[self._unquantized] = q[self._unquantized]
+        q_encoder = np.empty(self._n)
+        _encoder_readings(self._constants, self._vector(q), q_encoder)
         return q_encoder
 
     def motor_current(
@@ -581,7 +839,13 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
         """The motor current i (A) the servo drives for the command it acts on
         (after the latency), as `joint_torques` computes it: what a servo reports as
         its present current."""
-        return self._drive_current(q_cmd - self.encoder(q), v, enabled)
+        v = self._vector(v)
+        current = np.empty(self._n)
+        _servo_law(
+            self._constants, self._vector(q_cmd), self._vector(q), v, v,
+            self._enabled_vector(enabled), False, current,
+        )
+        return current
 
     def _servo_torque(
         self,
@@ -590,62 +854,53 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
         direction: np.ndarray,
         enabled: np.ndarray | None = None,
     ) -> np.ndarray:
-        """servo_torque(self's parameters, error, v, direction): the same operations
-        on the same numbers, with array constants."""
-        p, one = self._p, self._ones
-        current = self._drive_current(error, v, enabled)
-        drive = p["k1"] * (one + p["k1_asymmetry"] * direction) * current
-        coulomb = p["k3"] + p["load_friction"] * np.abs(drive)
-        return drive - p["k2"] * v - coulomb * direction
+        """servo_torque(self's parameters, error, v, direction): the same numbers
+        (the servo's kernel on the position error itself)."""
+        tau = np.empty(self._n)
+        _servo_law(
+            self._constants, self._vector(error), self._empty, self._vector(v),
+            self._vector(direction), self._enabled_vector(enabled), True, tau,
+        )
+        return tau
 
     def _drive_current(
         self, error: np.ndarray, v: np.ndarray, enabled: np.ndarray | None = None
     ) -> np.ndarray:
-        """The motor current i (A) of the servo law (module docstring). np.clip(x, lo,
-        hi) is written np.minimum(hi, np.maximum(lo, x)), which returns what clip
-        returns (ties included), about 1 us less."""
-        p, one = self._p, self._ones
-        u = p["k4"] * error - p["k5"] * v
-        current = np.sign(u) * np.maximum(np.abs(u) - p["i_deadzone"], self._zeros)
-        back_emf = v / p["no_load_speed"]
-        upper = np.minimum(p["i_max"], p["stall_current"] * (one - back_emf))
-        lower = np.maximum(
-            self._minus_i_max, self._minus_stall_current * (one + back_emf)
+        """The motor current i (A) of the servo law (module docstring) for the
+        position error `error`."""
+        v = self._vector(v)
+        current = np.empty(self._n)
+        _servo_law(
+            self._constants, self._vector(error), self._empty, v, v,
+            self._enabled_vector(enabled), False, current,
         )
-        current = np.minimum(upper, np.maximum(lower, current))
-        if enabled is not None:
-            current = np.where(enabled > 0.5, current, self._zeros)
         return current
 
     def _joint_state(self, context: Context) -> tuple[np.ndarray, np.ndarray]:
         x = self._state.Eval(context)
         return x[self._state_q], x[self._state_v]
 
-    def _checked_command(self, context: Context) -> np.ndarray:
-        q_cmd = self._q_cmd.Eval(context)
-        if not math.isfinite(q_cmd.dot(self._ones)):
-            bad = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(q_cmd))]
-            raise ValueError(f"EmulatedPositionServo: q_cmd is not finite for {bad}")
-        if self._command_resolution is not None:
-            return np.rint(q_cmd / self._command_resolution) * self._command_resolution
-        return q_cmd
+    def _raise_not_finite(self, q_cmd: np.ndarray) -> None:
+        bad = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(q_cmd))]
+        raise ValueError(f"EmulatedPositionServo: q_cmd is not finite for {bad}")
+
+    def _enabled_input(self, context: Context) -> np.ndarray:
+        if self._enabled is None:
+            return self._empty
+        return self._enabled.Eval(context)
 
     def current(self, context: Context) -> np.ndarray:
         """The motor current (A) in `context` (this system's), as the servo drives it
         now: what a servo reports as its present current."""
-        x = context.get_discrete_state(self._x).get_value()
-        q_cmd = self._applied_command(self._checked_command(context), x)
-        q, v = self._joint_state(context)
-        enabled = None if self._enabled is None else self._enabled.Eval(context)
-        return self.motor_current(q_cmd, q, v, enabled)
-
-    def _applied_command(self, q_cmd: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """The command each joint acts on: q_cmd delayed by its latency (x: the
-        discrete state)."""
-        if self._depth:
-            q_cmd = q_cmd.copy()
-            q_cmd[self._delayed] = x[self._transit_index]
-        return q_cmd
+        q_cmd = self._q_cmd.Eval(context)
+        current = np.empty(self._n)
+        if not _servo_output(
+            self._constants, self._rows, self._state.Eval(context), q_cmd,
+            context.get_discrete_state(self._x).get_value(), self._tanh_v,
+            self._enabled_input(context), self._quantum, False, current,
+        ):
+            self._raise_not_finite(q_cmd)
+        return current
 
     def _initialize(self, context: Context, state: DiscreteValues) -> None:
         # (state holds the current discrete state on entry.)
@@ -654,31 +909,31 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
         # In place on `state`, which holds the current discrete state on entry.
-        q, _ = self._joint_state(context)
-        x = state.get_mutable_value(self._x)
-        s = x[self._s_rows]
-        travel = q - x[self._last_q_rows]
-        dahl = self._dahl_joints
-        s[dahl] = dahl_step(s[dahl], travel[dahl], self._dahl_width)
-        s[self._smooth_joints] = 0.0
-        x[self._last_q_rows] = q
-        if self._depth:
-            transit = x[self._transit_rows]
-            transit[self._n :] = transit[: -self._n]  # overlapping: numpy copies first
-            transit[: self._n] = self._checked_command(context)
+        x = self._state.Eval(context)
+        servo_state = state.get_mutable_value(self._x)
+        if self._any_dahl:
+            decay = self._decay
+            _dahl_exponents(self._constants, self._rows, x, servo_state, decay)
+            np.exp(decay, decay)
+        q_cmd = self._q_cmd.Eval(context) if self._depth else self._empty
+        if not _servo_update(
+            self._constants, self._rows, x, q_cmd, servo_state, self._decay,
+            self._quantum, self._depth,
+        ):
+            self._raise_not_finite(q_cmd)
 
     def _calc(self, context: Context, output: BasicVector) -> None:
-        x = context.get_discrete_state(self._x).get_value()
-        q_cmd = self._applied_command(self._checked_command(context), x)
-        q, v = self._joint_state(context)
-        enabled = None if self._enabled is None else self._enabled.Eval(context)
-        tau = self.joint_torques(q_cmd, q, v, x[self._s_rows], enabled)
-        if self._actuation_order is not None:
-            output.set_value(tau[self._actuation_order])
-            return
-        actuation = np.zeros(self._num_actuators)
-        actuation[self._indexing.u] = tau
-        output.set_value(actuation)
+        x = self._state.Eval(context)
+        if self._any_smooth:  # (positional out: faster than out=)
+            np.tanh(x.take(self._state_v) / self._v_coulomb, self._tanh_v)
+        q_cmd = self._q_cmd.Eval(context)
+        if not _servo_output(
+            self._constants, self._rows, x, q_cmd,
+            context.get_discrete_state(self._x).get_value(), self._tanh_v,
+            self._enabled_input(context), self._quantum, True,
+            output.get_mutable_value(),
+        ):
+            self._raise_not_finite(q_cmd)
 
 
 def __getattr__(name: str):
