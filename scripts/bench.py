@@ -23,13 +23,14 @@ Sections (all by default; pick with --only):
              simulated s of the per-system run, default 4).
   fused      the fused controller's tick on HRP-2 in closed loop (30 joints, IMU, 4 F/T,
              right leg, observer, supervisor), p50/p99, and its ratio to Drake's
-             CalcInverseDynamics on the full HRP-2 in the same run (goal <= 5;
+             CalcInverseDynamics on the full HRP-2 in the same run (goal <= 6;
              scripts/bench_fused.py).
   lcm        the controller over LCM in real time (fused controller, message-driven
              loop) against `hrp2-drake sim-robot` in another process, through the tcpq
              hub on 127.0.0.1 (scripts/bench_lcm.py; --lcm-duration, default 60 s):
              receive-to-publish latency p50/p99/p99.9/max (goal p99 <= 250 us),
-             overruns of the 1 ms period, torque-control share, fallbacks.
+             overruns of the 1 ms period, torque-control share, fallbacks; in real
+             time and with the robot in lock step (the controller without a late robot).
   bus        the Dynamixel bus loop through the emulated servos (`sim-servo`), back to
              back: cycle p50/p99 and the achieved rate for 1, 6 and 12 XL330s at 1, 2
              and 4 Mbit/s, beside the wire-time budget and what a USB adapter's 1 ms
@@ -454,8 +455,11 @@ def main() -> int:
 
         print("lcm", file=sys.stderr)
         results["lcm"] = [
-            bench_lcm(robot, args.lcm_duration, Path("out/bench_lcm") / robot)
+            bench_lcm(robot, args.lcm_duration,
+                      Path("out/bench_lcm") / (robot + ("_lockstep" if lockstep else "")),
+                      lockstep=lockstep)
             for robot in ("hrp2", "iiwa14")
+            for lockstep in (False, True)
         ]
     if "bus" in sections:
         from bench_bus import SERVOS, BAUDS, bench_bus
