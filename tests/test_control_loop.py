@@ -232,7 +232,8 @@ def test_a_listener_that_is_not_a_hub(tmp_path):
         start = time.monotonic()
         with pytest.raises(ConnectionError, match="did not answer as an LCM tcpq hub"):
             open_transport(f"tcpq://127.0.0.1:{port}", timeout=0.3)
-        assert time.monotonic() - start < 2.0
+        # It gives up instead of waiting forever: a bound for a hang, not a speed.
+        assert time.monotonic() - start < 30.0
 
 
 @pytest.mark.parametrize(
