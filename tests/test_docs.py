@@ -1,0 +1,202 @@
+"""The README and docs/ pages: every relative link resolves, the README stays short and
+keeps CI's test command, and scripts/update_readme_results.py writes its pages between
+their markers from a reproduce run."""
+
+import importlib.util
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PAGES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+
+LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
+CODE_SPAN = re.compile(r"`[^`]*`")
+
+
+def _slug(heading: str) -> str:
+    """GitHub's anchor for a heading: lower case, punctuation dropped, spaces to '-'."""
+    text = CODE_SPAN.sub(lambda m: m.group(0)[1:-1], heading).strip().lower()
+    return re.sub(r"[^\w\- ]", "", text).replace(" ", "-")
+
+
+def _anchors(page: Path) -> set[str]:
+    """The anchors of a markdown page's headings (a repeated one gets -1, -2, ...)."""
+    anchors: set[str] = set()
+    fenced = False
+    for line in page.read_text().splitlines():
+        if line.startswith("```"):
+            fenced = not fenced
+        elif not fenced and line.startswith("#"):
+            slug = _slug(line.lstrip("#"))
+            anchor, n = slug, 0
+            while anchor in anchors:
+                n += 1
+                anchor = f"{slug}-{n}"
+            anchors.add(anchor)
+    return anchors
+
+
+def broken_links(page: Path) -> list[str]:
+    """'page:line: target (why)' for every relative link of `page` that does not
+    resolve: a missing file or folder, or an anchor no heading of its page has."""
+    broken = []
+    fenced = False
+    for number, line in enumerate(page.read_text().splitlines(), 1):
+        if line.startswith("```"):
+            fenced = not fenced
+            continue
+        if fenced:
+            continue
+        for target in LINK.findall(CODE_SPAN.sub("", line)):
+            if re.match(r"[a-z]+:", target):  # https:, mailto:
+                continue
+            path, _, anchor = target.partition("#")
+            resolved = (page.parent / path).resolve() if path else page
+            where = f"{page.name}:{number}: {target}"
+            if not resolved.exists():
+                broken.append(f"{where} (no {resolved})")
+            elif anchor and resolved.suffix == ".md" and anchor not in _anchors(
+                resolved
+            ):
+                broken.append(f"{where} (no heading '#{anchor}' in {resolved.name})")
+    return broken
+
+
+def test_every_relative_link_of_readme_and_docs_resolves():
+    assert len(PAGES) > 5
+    broken = [link for page in PAGES for link in broken_links(page)]
+    assert broken == []
+
+
+def test_a_broken_link_is_found(tmp_path):
+    (tmp_path / "other.md").write_text("# Other page\n\n## A `code` section, here\n")
+    page = tmp_path / "page.md"
+    page.write_text(
+        "# Page\n\n"
+        "[ok](other.md) [ok](other.md#a-code-section-here) ![ok](other.md)\n"
+        "[ok](#page)\n"
+        "[web](https://example.org/x) `[not a link](nowhere.md)`\n"
+        "```\n[in a fence](nowhere.md)\n```\n"
+        "[missing](nowhere.md) [bad anchor](other.md#nothing) ![figure](gone.png)\n"
+    )
+    broken = broken_links(page)
+    assert [b.split(" (")[0] for b in broken] == [
+        "page.md:9: nowhere.md",
+        "page.md:9: other.md#nothing",
+        "page.md:9: gone.png",
+    ]
+
+
+def test_readme_is_short_and_keeps_ci_test_command():
+    readme = (REPO / "README.md").read_text()
+    assert len(readme.splitlines()) <= 200
+    ci = (REPO / ".ci" / "run").read_text().splitlines()
+    command = ci[ci.index(next(line for line in ci if "command 2" in line)) + 1]
+    assert command == ".venv/bin/python -m pytest -q"
+    set_up = readme.split("## Set-up", 1)[1].split("```bash\n", 1)[1].split("```", 1)[0]
+    assert set_up.splitlines()[-1] == command
+
+
+# scripts/update_readme_results.py
+
+
+@pytest.fixture(scope="module")
+def update_script():
+    spec = importlib.util.spec_from_file_location(
+        "update_readme_results", REPO / "scripts" / "update_readme_results.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _table(title: str, value: str) -> str:
+    table = f"| a | b |\n| --- | ---: |\n| x | {value} |\n"
+    return f"## {title}\n\nsome text\n\n{table}\nafter\n"
+
+
+def _fake_run(run: Path) -> None:
+    """A reproduce run's files with one small table where the script looks for each."""
+    for folder in ("identify", "motion", "force"):
+        (run / folder).mkdir(parents=True)
+    (run / "results.json").write_text(json.dumps({"total_seconds": 120.0}))
+    (run / "report.md").write_text(_table("Predictions beside the paper", "p1"))
+    (run / "identify" / "identification.md").write_text(_table("Table 1: motor", "t1"))
+    (run / "motion" / "motion.md").write_text(
+        _table("Table 2: average", "t2")
+        + _table("Table 3: maximum", "t3")
+        + _table("K6 = 1 with the estimates where", "k6")
+    )
+    (run / "force" / "force.md").write_text(_table("Why: variants", "f1"))
+    (run / "motion" / "figure4_tracking_error.png").write_bytes(b"figure 4")
+    (run / "force" / "figure5_force_tracking.png").write_bytes(b"figure 5")
+
+
+def _fake_repo(root: Path, update_script) -> None:
+    (root / "docs").mkdir(parents=True)
+    begin, end = update_script.RESULTS
+    (root / "docs" / "results.md").write_text(
+        f"# Results\n\nkept\n\n{begin}\nOLD TEXT\n{end}\n\ntail\n"
+    )
+    begin, end = update_script.HEADLINE
+    (root / "README.md").write_text(
+        f"# Readme\n\n{begin}\nOLD TEXT\n{end}\n\n## Licence\n"
+    )
+
+
+def test_update_writes_both_pages_between_their_markers(tmp_path, update_script):
+    run, root = tmp_path / "run", tmp_path / "repo"
+    _fake_run(run)
+    _fake_repo(root, update_script)
+    assert update_script.main([str(run), "--root", str(root)]) == 0
+    results = (root / "docs" / "results.md").read_text()
+    assert results.startswith("# Results\n\nkept\n\n<!-- RESULTS:BEGIN -->\n\n")
+    assert results.endswith("\n\n<!-- RESULTS:END -->\n\ntail\n")
+    assert "(2.0 min on a\n2-core machine)" in results
+    for cell in ("t1", "t2", "t3", "k6", "p1"):
+        assert f"| x | {cell} |" in results
+    assert "OLD TEXT" not in results
+    assert "| x | f1 |" not in results  # force variants come with "Beyond the paper"
+    assert "![Figure 4](figure4_tracking_error.png)" in results  # relative to docs/
+    readme = (root / "README.md").read_text()
+    assert readme.startswith("# Readme\n\n<!-- HEADLINE:BEGIN -->\n")
+    assert readme.endswith("<!-- HEADLINE:END -->\n\n## Licence\n")
+    assert "](docs/figure4_tracking_error.png)" in readme and "OLD TEXT" not in readme
+    assert (root / "docs" / "figure4_tracking_error.png").read_bytes() == b"figure 4"
+    assert (root / "docs" / "figure5_force_tracking.png").read_bytes() == b"figure 5"
+
+
+def test_update_refuses_a_folder_that_is_not_a_run(tmp_path, update_script, capsys):
+    _fake_repo(tmp_path / "repo", update_script)
+    readme = (tmp_path / "repo" / "README.md").read_text()
+    assert update_script.main([str(tmp_path), "--root", str(tmp_path / "repo")]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1
+    assert "not a reproduce run: no results.json, report.md" in error
+    assert (tmp_path / "repo" / "README.md").read_text() == readme
+
+
+def test_update_refuses_a_page_without_its_markers(tmp_path, update_script, capsys):
+    run, root = tmp_path / "run", tmp_path / "repo"
+    _fake_run(run)
+    _fake_repo(root, update_script)
+    (root / "README.md").write_text("# Readme without markers\n")
+    results = (root / "docs" / "results.md").read_text()
+    assert update_script.main([str(run), "--root", str(root)]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1
+    assert "README.md: needs one '<!-- HEADLINE:BEGIN -->'" in error
+    assert (root / "docs" / "results.md").read_text() == results  # nothing half-written
+
+
+def test_update_refuses_a_report_without_its_table(tmp_path, update_script, capsys):
+    run, root = tmp_path / "run", tmp_path / "repo"
+    _fake_run(run)
+    _fake_repo(root, update_script)
+    (run / "motion" / "motion.md").write_text(_table("Table 2: average", "t2"))
+    assert update_script.main([str(run), "--root", str(root)]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "motion.md: no heading with 'Table 3'" in error
