@@ -157,3 +157,48 @@ def test_message_driven_loop_over_memq_equals_the_fused_controller(station_confi
     np.testing.assert_array_equal(bridge.signals()["q_cmd"][1:], signals["q_cmd"][: ticks - 1])
     # Torque control took over (the supervisor's ramp completed).
     assert loop.controller.torque_active() == 1.0
+
+
+def test_the_layout_names_the_station_rows_once():
+    """The fused controller's layout gives the station's sensor ports in its order
+    and sizes, the IMU's two signals in one channel, a stamp per signal; the
+    LeafSystem's ports are its signals."""
+    from hrp2_drake.control.fused import ControllerLayout, FusedTorqueController
+    from hrp2_drake.robot.station import sensor_sizes
+
+    robot = HRP2.description()
+    config = ControlConfig(robot=HRP2.robot, duration=1.0)
+    parts = torque_chain_parts(robot, control_reference(config), true_motor_model(robot),
+                               config.torque_control, period=config.period())
+    layout = FusedController(parts).layout
+    assert layout == ControllerLayout.of_robot(robot, stamped=True)
+    sizes = sensor_sizes(robot)
+    signals = layout.signals()
+    assert list(signals) == list(sizes)
+    assert [s.stop - s.start for s in signals.values()] == list(sizes.values())
+    N, k = len(robot.joints), len(robot.sensor_names())
+    assert (layout.values, layout.stamps) == (
+        slice(N, N + 6 + 6 * k), slice(N + 6 + 6 * k, N + 6 + 6 * k + 3 + k)
+    )
+    channels = layout.channels()
+    assert [c.signals for c in channels][:2] == [
+        ("q_measured",), ("imu_linear_acceleration", "imu_angular_velocity")
+    ]
+    assert channels[1].rows == slice(N, N + 6)
+    assert channels[1].stamp_rows == slice(layout.stamps.start + 1, layout.stamps.start + 3)
+    assert channels[2].stamp_rows == slice(layout.stamps.start + 3, layout.stamps.start + 4)
+    assert layout.q_measured_stamp == slice(layout.stamps.start, layout.stamps.start + 1)
+    system = FusedTorqueController(parts)
+    inputs = [system.get_input_port(i).get_name() for i in range(system.num_input_ports())]
+    assert inputs[: len(sizes) + 1] == [*sizes, "sensor_time"]
+    # Unstamped (no supervisor): no stamp rows anywhere.
+    bare = ControllerLayout.of_robot(robot, stamped=False)
+    assert bare.size == N + 6 + 6 * k
+    assert all(c.stamp_rows.start == c.stamp_rows.stop for c in bare.channels())
+
+
+def test_a_layout_with_a_wrong_number_of_stamps_is_refused():
+    from hrp2_drake.control.fused import ControllerLayout
+
+    with pytest.raises(ValueError, match=r"^ControllerLayout: 2 sensor stamps for 4 signals"):
+        ControllerLayout(num_joints=7, has_imu=True, sensor_names=("wrist",), num_stamps=2)

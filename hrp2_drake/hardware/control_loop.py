@@ -44,11 +44,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hrp2_drake import kernels
-from hrp2_drake.control.fused import (
-    EVENT_CONTROLLER_FALLBACK,
-    EVENT_SUPERVISOR_FAULT,
-    FusedController,
-)
+from hrp2_drake.control.fused import ControllerLayout, EventKind, FusedController
 from hrp2_drake.control.safety import describe_faults
 from hrp2_drake.control.torque_controller import FALLBACK_REASONS
 from hrp2_drake.hardware.lcm_station import LcmChannels
@@ -347,9 +343,10 @@ class ControlLoop:
         period_us = self.config.period * 1e6
         controller = self.controller
         # Start-up: position control until start_time, then the supervisor's ramp.
+        supervisor = controller.parts.supervisor
         start = controller.parts.controller_config.start_time
-        if controller.parts.supervisor is not None:
-            start += controller.parts.supervisor[1].ramp_time
+        if supervisor is not None:
+            start += supervisor.config.ramp_time
         after = self.log_t[:k] >= start
         share = (
             float(np.mean(self.log_mode[:k][after] >= 1.0)) if np.any(after) else 0.0
@@ -358,12 +355,8 @@ class ControlLoop:
         percentile = (
             (lambda x, p: float(np.percentile(x, p))) if k else (lambda x, p: math.nan)
         )
-        gave_up = False
-        if controller.supervisor is not None:
-            cfg = controller.parts.supervisor[1]
-            gave_up = (
-                controller.event_counts[EVENT_SUPERVISOR_FAULT] > cfg.max_reentries
-            )
+        faults = controller.event_counts[EventKind.SUPERVISOR_FAULT]
+        gave_up = supervisor is not None and faults > supervisor.config.max_reentries
         return {
             "ticks": int(self.ticks),
             "refused_samples": int(self.refused),
@@ -385,10 +378,8 @@ class ControlLoop:
             "torque_share": share,
             "events": self._events(),
             "event_counts": {
-                "controller_fallback": controller.event_counts[
-                    EVENT_CONTROLLER_FALLBACK
-                ],
-                "supervisor_fault": controller.event_counts[EVENT_SUPERVISOR_FAULT],
+                kind.name.lower(): count
+                for kind, count in controller.event_counts.items()
             },
             "gave_up": bool(gave_up),
             "fault": str(self.fault) if self.fault else "",
@@ -404,7 +395,7 @@ class ControlLoop:
     def _events(self) -> list[dict]:
         events = []
         for t, kind, code in self.controller.recorded_events():
-            if kind == EVENT_CONTROLLER_FALLBACK:
+            if kind == EventKind.CONTROLLER_FALLBACK:
                 events.append(
                     {
                         "t": t,
@@ -412,7 +403,7 @@ class ControlLoop:
                         "reason": FALLBACK_REASONS.get(code, str(code)),
                     }
                 )
-            elif kind == EVENT_SUPERVISOR_FAULT:
+            elif kind == EventKind.SUPERVISOR_FAULT:
                 events.append(
                     {
                         "t": t,
@@ -533,12 +524,15 @@ class RobotBridge:
         self._home = initial_joint_positions(station_config)
         self._command = self._home.copy()
         self._q_cmd_port.FixValue(self._context, self._command)
-        self._codecs = list(zip(channels.sensors(robot), channels.codecs(robot)))
-        ports = ["q_measured"]
-        if robot.has_imu():
-            ports.append(("imu_linear_acceleration", "imu_angular_velocity"))
-        ports += [f"wrench_{name}" for name in robot.sensor_names()]
-        self._ports = ports
+        # One message per channel, of its station ports (the IMU's two in one).
+        layout = ControllerLayout.of_robot(robot, stamped=False)
+        self._messages = [
+            ([self.station.GetOutputPort(port) for port in channel.signals], name, codec)
+            for channel, name, codec in zip(
+                layout.channels(), channels.sensors(robot), channels.codecs(robot),
+                strict=True,
+            )
+        ]
         self._cmd_codec = SignalCodec(robot.joints, channels.q_cmd)
         self.k = 0
         self._last_command_k = -1
@@ -621,13 +615,12 @@ class RobotBridge:
         t = self._context.get_time()
         context = self._context
         messages = []
-        for port, (channel, codec) in zip(self._ports, self._codecs):
-            if isinstance(port, tuple):
-                values = np.concatenate(
-                    [self.station.GetOutputPort(p).Eval(context) for p in port]
-                )
-            else:
-                values = self.station.GetOutputPort(port).Eval(context)
+        for ports, channel, codec in self._messages:
+            values = (
+                np.concatenate([port.Eval(context) for port in ports])
+                if len(ports) > 1
+                else ports[0].Eval(context)
+            )
             messages.append((channel, codec.encode(values, t)))
         self.transport.publish_many(messages[1:] + messages[:1])
 
@@ -732,21 +725,23 @@ def run_in_process(
     per tick."""
     from pydrake.systems.analysis import Simulator
 
-    from hrp2_drake.robot.station import (
-        initial_joint_positions,
-        make_station,
-        sensor_sizes,
-    )
+    from hrp2_drake.robot.station import initial_joint_positions, make_station
 
     robot = station_config.description()
     period = station_config.sensors_config().period
     station = make_station(station_config)
     simulator = Simulator(station)
     context = simulator.get_mutable_context()
-    sizes = sensor_sizes(robot)
-    rows = np.cumsum([0] + list(sizes.values()))
-    sensor_ports = [station.GetOutputPort(name) for name in sizes]
-    stamp_port = station.GetOutputPort("sensor_time")
+    layout = controller.layout
+    buffer = controller.sensor_buffer
+    # The station's sensor ports (and its stamps, if the controller takes them),
+    # each with its rows of the controller's sensor buffer.
+    sensors = [
+        (station.GetOutputPort(name), buffer[rows])
+        for name, rows in layout.signals().items()
+    ]
+    if layout.num_stamps:
+        sensors.append((station.GetOutputPort("sensor_time"), controller.sensor_time))
     q_cmd_port = station.GetInputPort("q_cmd")
     q_cmd_port.FixValue(context, initial_joint_positions(station_config))
     command = np.zeros(len(robot.joints))
@@ -755,9 +750,8 @@ def run_in_process(
     for k in range(ticks):
         if k:
             simulator.AdvanceTo(k * period)
-        for port, a, b in zip(sensor_ports, rows[:-1], rows[1:]):
-            controller.sensor_buffer[a:b] = port.Eval(context)
-        controller.sensor_time[:] = stamp_port.Eval(context)
+        for port, rows in sensors:
+            rows[:] = port.Eval(context)
         _tick_in_process(controller, reference, k * period, k == 0, on_tick, command)
         q_cmd_port.FixValue(context, command)
         out.append((command.copy(), controller.estimator.tau.copy()))
@@ -810,7 +804,7 @@ def run_on_bus_in_process(
         t = k * period
         servos.advance_to(t)
         controller.q_measured[:] = bus.quantized(servos.present().position)
-        controller.sensor_time[0] = t
+        controller.q_measured_time[:] = t
         _tick_in_process(controller, reference, t, k == 0, on_tick, command)
         servos.advance_to(t + delay)
         servos.set_goal(bus.quantized(command))

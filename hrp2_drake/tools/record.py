@@ -114,7 +114,7 @@ def record_one(robot: RobotDescription, port: str, gain: float, config: RecordCo
     counters and why it stopped ("" at its end)."""
     bus = robot.bus
     n = len(robot.joints)
-    buffers = SimpleNamespace(q_measured=np.zeros(n), sensor_time=np.zeros(1))
+    buffers = SimpleNamespace(q_measured=np.zeros(n), q_measured_time=np.zeros(1))
     link = DynamixelLink(robot, port, lockstep=lockstep, gain=gain, skip_late=True)
     try:
         start = link.connect(buffers)
