@@ -1,5 +1,6 @@
 """The fused controller (hrp2_drake/control/fused.py) against the diagram of separate
-systems, and the message-driven loop (hardware/control_loop.py) over memq:// against
+systems, and the message-driven loop (hardware/control_loop.py, the robot's side in
+hardware/robot_bridge.py) over memq:// against
 the fused controller in process: the same steps, the same signals."""
 
 from dataclasses import replace
@@ -25,12 +26,9 @@ from hrp2_drake.assembly.torque_control import (
 )
 from hrp2_drake.tools.ground_truth import true_motor_model
 from hrp2_drake.tools.control import ControlConfig, control_reference
-from hrp2_drake.hardware.control_loop import (
-    ControlLoop,
-    LoopConfig,
-    RobotBridge,
-    run_in_process,
-)
+from hrp2_drake.hardware.control_loop import ControlLoop, LoopConfig
+from hrp2_drake.hardware.in_process import run_in_process
+from hrp2_drake.hardware.robot_bridge import RobotBridge
 from hrp2_drake.hardware.lcm_link import LcmLink
 from hrp2_drake.hardware.lcm_station import LcmChannels
 from hrp2_drake.hardware.transport import DrakeLcmTransport

@@ -10,7 +10,8 @@ import pytest
 from hrp2_drake import kernels
 from hrp2_drake.assembly.builders import torque_chain_parts
 from hrp2_drake.control.fused import FusedController
-from hrp2_drake.hardware.control_loop import ControlLoop, LoopConfig, run_in_process
+from hrp2_drake.hardware.control_loop import ControlLoop, LoopConfig
+from hrp2_drake.hardware.in_process import run_in_process
 from hrp2_drake.hardware.link import RobotLink
 from hrp2_drake.robot.station import StationConfig
 from hrp2_drake.tools.control import ControlConfig, control_reference

@@ -185,7 +185,7 @@ def test_control_and_sim_robot_across_processes(tmp_path, motor_model):
     are measured in scripts/bench_lcm.py)."""
     from hrp2_drake.assembly.builders import torque_chain_parts
     from hrp2_drake.control.fused import FusedController
-    from hrp2_drake.hardware.control_loop import run_in_process
+    from hrp2_drake.hardware.in_process import run_in_process
     from hrp2_drake.identification.motor_model import MotorModel
 
     port = _free_port()

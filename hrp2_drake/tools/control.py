@@ -33,13 +33,8 @@ from hrp2_drake.assembly.builders import (
 from hrp2_drake.assembly.torque_control import EstimatorSettings, at_period
 from hrp2_drake.description import RobotDescription, load_robot_description
 from hrp2_drake.tools.track import TrackConfig, check_sinusoid, sinusoid_reference
-from hrp2_drake.hardware.control_loop import (
-    BridgeConfig,
-    ControlLoop,
-    LoopConfig,
-    LoopSettings,
-    RobotBridge,
-)
+from hrp2_drake.hardware.control_loop import ControlLoop, LoopConfig, LoopSettings
+from hrp2_drake.hardware.robot_bridge import BridgeConfig, RobotBridge
 from hrp2_drake.hardware.lcm_station import LcmChannels
 from hrp2_drake.hardware.link import RobotLink
 from hrp2_drake.hardware.transport import open_transport
