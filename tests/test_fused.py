@@ -26,7 +26,7 @@ from hrp2_drake.assembly.torque_control import (
 )
 from hrp2_drake.tools.ground_truth import true_motor_model
 from hrp2_drake.tools.control import ControlConfig, control_reference
-from hrp2_drake.hardware.control_loop import ControlLoop, LoopConfig
+from hrp2_drake.hardware.control_loop import ControlLoop
 from hrp2_drake.hardware.in_process import run_in_process
 from hrp2_drake.hardware.robot_bridge import RobotBridge
 from hrp2_drake.hardware.lcm_link import LcmLink
@@ -140,7 +140,7 @@ def test_message_driven_loop_over_memq_equals_the_fused_controller(station_confi
     bridge.step()  # the robot's first messages: the controller's first period
     pump()
     link.connect(controller)
-    loop = ControlLoop(controller, link, reference, config=LoopConfig(duration=1.0))
+    loop = ControlLoop(controller, link, reference, duration=1.0)
     for k in range(ticks):
         if k:
             bridge.step()

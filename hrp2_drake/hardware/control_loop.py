@@ -64,8 +64,10 @@ class LoopSettings:
     real_time: RealTimeConfig = field(default_factory=RealTimeConfig)
 
     def validate(self, period: float = 0.0, where: str = "LoopSettings") -> None:
-        """Raises ValueError naming `where`.<field>: each time finite and > 0, and
-        silence_timeout at least two control periods (`period`, s; 0: unknown)."""
+        """Raises ValueError naming `where`.<field>: each time finite and > 0,
+        silence_timeout at least two control periods (`period`, s; 0: unknown), and a
+        CPU and priority the machine can grant (`RealTimeConfig.validate`)."""
+        self.real_time.validate(f"{where}.real_time")
         for name in ("wait_timeout", "silence_timeout", "ramp_time"):
             check_time(getattr(self, name), f"{where}.{name}")
         if self.silence_timeout < 2 * period:
@@ -73,26 +75,6 @@ class LoopSettings:
                 f"{where}.silence_timeout: {self.silence_timeout} s is shorter than "
                 f"two periods ({2 * period} s)"
             )
-
-
-@dataclass
-class LoopConfig:
-    """The controller loop's settings for one run.
-
-    Args:
-        duration: seconds of robot time to run (from the first encoder message).
-        period: the robot's sensor period (s): the tick's budget.
-        settings: the loop's own settings (timeouts, ramp, real time).
-    """
-
-    duration: float = 5.0
-    period: float = 0.001
-    settings: LoopSettings = field(default_factory=LoopSettings)
-
-    def validate(self) -> None:
-        for name in ("duration", "period"):
-            check_time(getattr(self, name), f"LoopConfig.{name}")
-        self.settings.validate(self.period, "LoopConfig.settings")
 
 
 class ControlLoop:
@@ -103,7 +85,12 @@ class ControlLoop:
         link: the robot (`RobotLink`), connected (`RobotLink.connect`).
         reference: a `JointReference` (q, v, vdot of every joint over time).
         force_reference: f_ref(t) (6) of a force task, or None.
-        config: the loop's settings.
+        settings: the loop's own settings, validated where they were loaded
+            (`LoopSettings.validate`); None: the defaults.
+        duration: seconds of robot time to run (from the first period).
+
+    The period (the tick's budget, s) is the controller's (`parts.period`: the
+    robot's sensor period).
     """
 
     def __init__(
@@ -112,21 +99,23 @@ class ControlLoop:
         link: RobotLink,
         reference,
         force_reference=None,
-        config: LoopConfig | None = None,
+        settings: LoopSettings | None = None,
+        duration: float = 5.0,
     ):
         self.controller = controller
         self.link = link
         self.reference = reference
         self.force_reference = force_reference
-        self.config = config = config or LoopConfig()
-        config.validate()
+        self.settings = settings or LoopSettings()
+        self.duration = duration
+        self.period = controller.parts.period
         N = len(controller.q_measured)
         self._q_cmd = np.zeros(N)
         self.t = 0.0
         self.ticks = 0
         self.fault: LoopFault | None = None
         self.fault_time = math.nan
-        capacity = int(config.duration / config.period * 1.2) + 1000
+        capacity = int(duration / self.period * 1.2) + 1000
         self.latency_ns = np.zeros(capacity, dtype=np.int64)
         self.cycle_ns = np.zeros(capacity, dtype=np.int64)
         self.receive_gap_ns = np.zeros(capacity, dtype=np.int64)
@@ -179,7 +168,7 @@ class ControlLoop:
             self.log_mode[k] = controller.torque_active()
         self._last_receive = received
         self.ticks = k + 1
-        if t >= self.config.duration:
+        if t >= self.duration:
             self._stop = True
 
     def _set_reference(self, t: float) -> None:
@@ -200,15 +189,18 @@ class ControlLoop:
                 "the control loop refuses to start: its fused controller's kernels are "
                 "not compiled (call FusedController.warm_up() before the loop)"
             )
-        config = self.config.settings
-        granted = request_real_time(config.real_time)
+        settings = self.settings
+        granted = request_real_time(settings.real_time)
         previous = {
             sig: signal.signal(sig, self._on_signal)
             for sig in (signal.SIGTERM, signal.SIGINT)
         }
         try:
-            with garbage_collector_frozen(config.real_time.freeze_gc), kernels.compile_disabled():
-                self._loop(config.silence_timeout)
+            with (
+                garbage_collector_frozen(settings.real_time.freeze_gc),
+                kernels.compile_disabled(),
+            ):
+                self._loop(settings.silence_timeout)
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
@@ -243,12 +235,12 @@ class ControlLoop:
         period: each after the period's samples where they still come (a lock-step
         robot's clock is its traffic), on the wall clock where they do not (the robot
         may have gone silent)."""
-        period = self.config.period
+        period = self.period
         q_from = self._q_cmd.copy()
         q_hold = self.controller.q_measured.copy()
         if not np.all(np.isfinite(q_hold)):
             q_hold = q_from
-        steps = max(1, int(round(self.config.settings.ramp_time / period)))
+        steps = max(1, int(round(self.settings.ramp_time / period)))
         start = time.perf_counter()
         try:
             for k in range(1, steps + 1):
@@ -275,7 +267,7 @@ class ControlLoop:
         k = min(self.ticks, len(self.latency_ns))
         latency = self.latency_ns[:k] * 1e-3
         cycle = self.cycle_ns[:k] * 1e-3
-        period_us = self.config.period * 1e6
+        period_us = self.period * 1e6
         controller = self.controller
         # Start-up: position control until start_time, then the supervisor's ramp.
         supervisor = controller.parts.supervisor
