@@ -259,15 +259,16 @@ def _start_in(array: np.ndarray, view: np.ndarray) -> int:
 class FusedController:
     """The whole torque-control chain as one plain object (module docstring).
 
-    Inputs of a tick (arrays, SI units, the robot description's joint order):
-    `sensors` = [q_measured (N); imu_linear_acceleration (3); imu_angular_velocity (3);
-    wrench_<s> (6 each)] as the station outputs them (the IMU only if the robot has
-    one); `sensor_time` (the time of each sensor signal's latest sample, station order);
-    the reference q_ref, v_ref, vdot_ref (N each) at t, and f_ref (6) with a force
-    task. Write them into `inputs` views (`sensor_buffer`, ...) or pass arrays.
+    Inputs of a tick (arrays, SI units, the robot description's joint order), written
+    into its buffers before `tick`: `sensor_buffer` = [q_measured (N);
+    imu_linear_acceleration (3); imu_angular_velocity (3); wrench_<s> (6 each);
+    sensor_time (the time of each signal's latest sample, if supervised)] as the
+    station outputs them, its rows named by `layout` (views: `q_measured`,
+    `sensor_values`, `sensor_time`, `q_measured_time`); the reference `q_ref`, `v_ref`,
+    `vdot_ref` (N each) at t, and `f_ref` (6) with a force task.
 
     After a tick, `command(q_ref, out)` is the position command for the servo, and the
-    steps' state arrays hold every signal the diagram logs (`signal(name)`).
+    steps' state arrays hold every signal the diagram logs (`signals()`).
     """
 
     def __init__(self, parts: TorqueChainParts):
