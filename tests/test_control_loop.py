@@ -302,7 +302,9 @@ def test_a_cpu_or_priority_that_cannot_be_granted_is_refused_at_load():
                  f"SCHED_FIFO's range 1..{high}")
 
 
-def test_control_refuses_a_cpu_it_cannot_have_in_one_line(tmp_path, capsys, monkeypatch):
+def test_control_refuses_a_cpu_it_cannot_have_in_one_line(
+    tmp_path, capsys, monkeypatch
+):
     """`control --config` with `loop.real_time.cpu` beyond the machine's CPUs: exit
     code 2 and one line naming the file and the key, before any robot is reached."""
     from hrp2_drake.cli import main
@@ -320,8 +322,12 @@ def test_control_refuses_a_cpu_it_cannot_have_in_one_line(tmp_path, capsys, monk
         f"k_v: [{', '.join(['1e-2'] * len(joints))}]\n"
     )
     (tmp_path / "control.yaml").write_text("loop: {real_time: {cpu: 4096}}\n")
-    code = main(["control", "--lcm", "memq://", "--motor-model", str(tmp_path / "motor.yaml"),
-                 "--config", str(tmp_path / "control.yaml"), "--out", str(tmp_path / "out")])
+    code = main([
+        "control", "--lcm", "memq://",
+        "--motor-model", str(tmp_path / "motor.yaml"),
+        "--config", str(tmp_path / "control.yaml"),
+        "--out", str(tmp_path / "out"),
+    ])
     lines = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(lines) == 1, lines
     assert "control.yaml" in lines[0] and "loop.real_time.cpu: 4096" in lines[0], lines

@@ -166,8 +166,10 @@ def test_the_layout_names_the_station_rows_once():
 
     robot = HRP2.description()
     config = ControlConfig(robot=HRP2.robot, duration=1.0)
-    parts = torque_chain_parts(robot, control_reference(config), true_motor_model(robot),
-                               config.torque_control, period=config.period())
+    parts = torque_chain_parts(
+        robot, control_reference(config), true_motor_model(robot),
+        config.torque_control, period=config.period(),
+    )
     layout = FusedController(parts).layout
     assert layout == ControllerLayout.of_robot(robot, stamped=True)
     sizes = sensor_sizes(robot)
@@ -182,12 +184,14 @@ def test_the_layout_names_the_station_rows_once():
     assert [c.signals for c in channels][:2] == [
         ("q_measured",), ("imu_linear_acceleration", "imu_angular_velocity")
     ]
+    stamp = layout.stamps.start
     assert channels[1].rows == slice(N, N + 6)
-    assert channels[1].stamp_rows == slice(layout.stamps.start + 1, layout.stamps.start + 3)
-    assert channels[2].stamp_rows == slice(layout.stamps.start + 3, layout.stamps.start + 4)
-    assert layout.q_measured_stamp == slice(layout.stamps.start, layout.stamps.start + 1)
+    assert channels[1].stamp_rows == slice(stamp + 1, stamp + 3)
+    assert channels[2].stamp_rows == slice(stamp + 3, stamp + 4)
+    assert layout.q_measured_stamp == slice(stamp, stamp + 1)
     system = FusedTorqueController(parts)
-    inputs = [system.get_input_port(i).get_name() for i in range(system.num_input_ports())]
+    count = system.num_input_ports()
+    inputs = [system.get_input_port(i).get_name() for i in range(count)]
     assert inputs[: len(sizes) + 1] == [*sizes, "sensor_time"]
     # Unstamped (no supervisor): no stamp rows anywhere.
     bare = ControllerLayout.of_robot(robot, stamped=False)
@@ -198,5 +202,8 @@ def test_the_layout_names_the_station_rows_once():
 def test_a_layout_with_a_wrong_number_of_stamps_is_refused():
     from hrp2_drake.control.fused import ControllerLayout
 
-    with pytest.raises(ValueError, match=r"^ControllerLayout: 2 sensor stamps for 4 signals"):
-        ControllerLayout(num_joints=7, has_imu=True, sensor_names=("wrist",), num_stamps=2)
+    message = r"^ControllerLayout: 2 sensor stamps for 4 signals"
+    with pytest.raises(ValueError, match=message):
+        ControllerLayout(
+            num_joints=7, has_imu=True, sensor_names=("wrist",), num_stamps=2
+        )

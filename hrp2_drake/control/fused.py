@@ -74,13 +74,13 @@ class EventKind(IntEnum):
 
 @dataclass(frozen=True)
 class ControllerLayout:
-    """The rows of the fused controller's sensor buffer (`FusedController.sensor_buffer`),
-    named once for every shell that fills it: the LeafSystem's ports, the LCM link's
+    """The rows of the fused controller's sensor buffer
+    (`FusedController.sensor_buffer`), named once for every shell that fills it: the LeafSystem's ports, the LCM link's
     messages, the bus link's reads, the in-process runs and the robot's bridge.
 
     The buffer is what the station outputs, in its order (`robot.station.sensor_sizes`):
-    [q_measured (N); imu_linear_acceleration (3); imu_angular_velocity (3) (with an IMU);
-    wrench_<s> (6 each); sensor_time (one stamp per signal, if stamped)].
+    [q_measured (N); imu_linear_acceleration (3); imu_angular_velocity (3) (with an
+    IMU); wrench_<s> (6 each); sensor_time (one stamp per signal, if stamped)].
 
     Args:
         num_joints: N, the robot's joints.

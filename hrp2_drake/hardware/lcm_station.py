@@ -2,8 +2,9 @@
 with the simulated station's port names, so that the controller does not change
 between simulation and hardware (the LCM iiwa driver next to `SimIiwaDriver` in
 Drake). Two sides of the same channels: the controller's loop
-(`hardware.lcm_link.LcmLink`) and the robot's bridge (`hardware.robot_bridge.RobotBridge`,
-`hrp2-drake sim-robot`, the reference for a real robot's bridge). Which rows of the
+(`hardware.lcm_link.LcmLink`) and the robot's bridge
+(`hardware.robot_bridge.RobotBridge`, `hrp2-drake sim-robot`, the reference for a real
+robot's bridge). Which rows of the
 fused controller's sensor buffer each channel fills: `control.fused.ControllerLayout`.
 
 Channels (`LcmChannels`, prefix P = the robot's name in capitals by default), all at

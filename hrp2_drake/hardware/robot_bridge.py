@@ -93,8 +93,9 @@ class RobotBridge:
         self._q_cmd_port.FixValue(self._context, self._command)
         # One message per channel, of its station ports (the IMU's two in one).
         layout = ControllerLayout.of_robot(robot, stamped=False)
+        port = self.station.GetOutputPort
         self._messages = [
-            ([self.station.GetOutputPort(port) for port in channel.signals], name, codec)
+            ([port(signal) for signal in channel.signals], name, codec)
             for channel, name, codec in zip(
                 layout.channels(), channels.sensors(robot), channels.codecs(robot),
                 strict=True,
