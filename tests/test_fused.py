@@ -207,3 +207,48 @@ def test_a_layout_with_a_wrong_number_of_stamps_is_refused():
         ControllerLayout(
             num_joints=7, has_imu=True, sensor_names=("wrist",), num_stamps=2
         )
+
+
+@pytest.mark.slow
+def test_an_unsupervised_controller_runs_on_every_shell():
+    """Without a supervisor the controller takes no stamps (`layout.num_stamps` 0):
+    the LCM loop and the in-process runs leave the stamps out instead of writing a
+    row that does not exist (an IndexError before the layout), and agree."""
+    config = ControlConfig(robot=IIWA.robot, duration=1.0)
+    torque_control = replace(config.torque_control, supervised=False)
+    robot = IIWA.description()
+    reference = control_reference(config)
+    motor_model = true_motor_model(robot)
+
+    def controller():
+        parts = torque_chain_parts(robot, reference, motor_model, torque_control,
+                                   period=config.period())
+        return FusedController(parts)
+
+    ticks = 200
+    direct = run_in_process(IIWA, controller(), reference, ticks)
+    transport = DrakeLcmTransport("memq://")
+    bridge = RobotBridge(IIWA, transport)
+    fused = controller()
+    assert fused.layout.num_stamps == 0 and fused.sensor_time.size == 0
+    fused.warm_up()
+    link = LcmLink(robot, transport, LcmChannels(), fused, wait_timeout=1.0)
+
+    def pump():
+        while transport.handle(0.0):
+            pass
+
+    bridge.step()
+    pump()
+    link.connect(fused)
+    loop = ControlLoop(fused, link, reference, duration=1.0)
+    for k in range(ticks):
+        if k:
+            bridge.step()
+        assert loop.step(0.0)
+        pump()
+    q_cmd = loop.signals()["q_cmd"]
+    np.testing.assert_allclose(q_cmd, [c for c, _ in direct], rtol=0, atol=1e-12)
+    # Not a trivial run: the estimator saw the arm's weight, in both shells alike.
+    np.testing.assert_allclose(fused.estimator.tau, direct[-1][1], rtol=0, atol=1e-12)
+    assert np.abs(direct[-1][1]).max() > 1.0
