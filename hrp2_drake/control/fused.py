@@ -52,16 +52,17 @@ from hrp2_drake.control.torque_controller import (
     DeltaQTorqueStep,
     TorqueControllerConfig,
 )
+from hrp2_drake.description import RobotDescription
 from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayStep
 from hrp2_drake.estimation.torque_estimator import (
     TorqueEstimatorConfig,
     TorqueEstimatorStep,
     filter_windows,
 )
-from hrp2_drake.description import RobotDescription
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.simulation import WitnessFreeLeafSystem
 from hrp2_drake.step import Step
+
 
 class EventKind(IntEnum):
     """What the fused controller records of a tick's events (`FusedController.events`,
@@ -75,8 +76,9 @@ class EventKind(IntEnum):
 @dataclass(frozen=True)
 class ControllerLayout:
     """The rows of the fused controller's sensor buffer
-    (`FusedController.sensor_buffer`), named once for every shell that fills it: the LeafSystem's ports, the LCM link's
-    messages, the bus link's reads, the in-process runs and the robot's bridge.
+    (`FusedController.sensor_buffer`), named once for every shell that fills it: the
+    LeafSystem's ports, the LCM link's messages, the bus link's reads, the in-process
+    runs and the robot's bridge.
 
     The buffer is what the station outputs, in its order (`robot.station.sensor_sizes`):
     [q_measured (N); imu_linear_acceleration (3); imu_angular_velocity (3) (with an
@@ -182,8 +184,8 @@ class SensorChannel:
     Args:
         signals: the station's ports it carries (one, or the IMU's two).
         rows: their rows of the sensor buffer.
-        stamp_rows: their rows of the sensor buffer's `sensor_time` (empty if not
-            stamped).
+        stamp_rows: their stamps' rows of the sensor buffer (within its `stamps`;
+            empty if not stamped).
     """
 
     signals: tuple[str, ...]
