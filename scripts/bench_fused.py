@@ -71,7 +71,8 @@ def bench_fused_tick(duration: float = 3.0) -> list[dict]:
     from hrp2_drake.tools.ground_truth import true_motor_model
     from hrp2_drake.tools.control import ControlConfig, control_reference
     from hrp2_drake import kernels
-    from hrp2_drake.hardware.control_loop import garbage_collector_frozen, run_in_process
+    from hrp2_drake.hardware.in_process import run_in_process
+    from hrp2_drake.hardware.real_time import garbage_collector_frozen
     from hrp2_drake.robot.station import StationConfig, make_station
 
     station = StationConfig(scenario="hanging")

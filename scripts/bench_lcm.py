@@ -63,7 +63,7 @@ def in_process_errors(robot_name: str, duration: float, config_path: Path,
     from hrp2_drake.control.fused import FusedController
     from hrp2_drake.assembly.builders import torque_chain_parts
     from hrp2_drake.tools.control import ControlConfig, control_reference
-    from hrp2_drake.hardware.control_loop import run_in_process
+    from hrp2_drake.hardware.in_process import run_in_process
     from hrp2_drake.identification.motor_model import MotorModel
     from hrp2_drake.robot.station import StationConfig
 

@@ -267,3 +267,68 @@ def test_the_hub_with_a_bad_or_busy_port_is_one_line():
         done = subprocess.run(hub + [str(port)], capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and "cannot listen on 127.0.0.1" in done.stderr
     assert len(done.stderr.strip().splitlines()) == 1
+
+
+# ------------------------------------------------ what the machine cannot grant
+
+
+def _refused(config, *words: str) -> None:
+    with pytest.raises(ValueError) as info:
+        config.validate(0.001, "ControlConfig.loop")
+    line = str(info.value)
+    assert "\n" not in line
+    for word in words:
+        assert word in line, line
+
+
+def test_a_cpu_or_priority_that_cannot_be_granted_is_refused_at_load():
+    """A CPU the process may not run on, and a SCHED_FIFO priority out of its range,
+    are one line naming the key, before any loop starts; the defaults and what the
+    machine has are accepted."""
+    import os
+
+    from hrp2_drake.hardware.control_loop import LoopSettings
+    from hrp2_drake.hardware.real_time import RealTimeConfig
+
+    cpus = sorted(os.sched_getaffinity(0))
+    high = os.sched_get_priority_max(os.SCHED_FIFO)
+    LoopSettings().validate(0.001, "ControlConfig.loop")
+    LoopSettings(real_time=RealTimeConfig(cpu=cpus[-1], priority=high)).validate(0.001)
+    for cpu in (max(cpus) + 1, 4096, -2):
+        _refused(LoopSettings(real_time=RealTimeConfig(cpu=cpu)),
+                 "ControlConfig.loop.real_time.cpu", f"{cpu}", "-1: no pinning")
+    for priority in (high + 1, -1):
+        _refused(LoopSettings(real_time=RealTimeConfig(priority=priority)),
+                 "ControlConfig.loop.real_time.priority", f"{priority}",
+                 f"SCHED_FIFO's range 1..{high}")
+
+
+def test_control_refuses_a_cpu_it_cannot_have_in_one_line(
+    tmp_path, capsys, monkeypatch
+):
+    """`control --config` with `loop.real_time.cpu` beyond the machine's CPUs: exit
+    code 2 and one line naming the file and the key, before any robot is reached."""
+    from hrp2_drake.cli import main
+    from hrp2_drake.paper import hrp2
+    from hrp2_drake.tools import control
+
+    def not_run(*args, **kwargs):
+        raise AssertionError("ran despite a bad config")
+
+    monkeypatch.setattr(control, "run_control", not_run)
+    joints = hrp2.RIGHT_LEG
+    (tmp_path / "motor.yaml").write_text(
+        f"joint_names: [{', '.join(joints)}]\n"
+        f"k_tau: [{', '.join(['1e-4'] * len(joints))}]\n"
+        f"k_v: [{', '.join(['1e-2'] * len(joints))}]\n"
+    )
+    (tmp_path / "control.yaml").write_text("loop: {real_time: {cpu: 4096}}\n")
+    code = main([
+        "control", "--lcm", "memq://",
+        "--motor-model", str(tmp_path / "motor.yaml"),
+        "--config", str(tmp_path / "control.yaml"),
+        "--out", str(tmp_path / "out"),
+    ])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, lines
+    assert "control.yaml" in lines[0] and "loop.real_time.cpu: 4096" in lines[0], lines

@@ -29,7 +29,7 @@ def test_every_step_at_the_control_period(period):
     parts = _parts(period)
     assert parts.period == period
     for config in (parts.estimator_config, parts.id_config, parts.controller_config,
-                   parts.supervisor[1]):
+                   parts.supervisor.config):
         assert config.period == pytest.approx(period, rel=1e-12)
     # The same 80 ms window as at 1 kHz, in samples of this period.
     assert parts.estimator_config.window * period == pytest.approx(0.08, abs=period)

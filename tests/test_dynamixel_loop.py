@@ -20,7 +20,7 @@ import pytest
 
 from hrp2_drake.assembly.builders import torque_chain_parts
 from hrp2_drake.control.fused import FusedController
-from hrp2_drake.hardware.control_loop import run_on_bus_in_process
+from hrp2_drake.hardware.in_process import run_on_bus_in_process
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.robot.station import StationConfig
 from hrp2_drake.tools.control import ControlConfig, control_reference

@@ -1,5 +1,6 @@
 """The fused controller (hrp2_drake/control/fused.py) against the diagram of separate
-systems, and the message-driven loop (hardware/control_loop.py) over memq:// against
+systems, and the message-driven loop (hardware/control_loop.py, the robot's side in
+hardware/robot_bridge.py) over memq:// against
 the fused controller in process: the same steps, the same signals."""
 
 from dataclasses import replace
@@ -25,12 +26,9 @@ from hrp2_drake.assembly.torque_control import (
 )
 from hrp2_drake.tools.ground_truth import true_motor_model
 from hrp2_drake.tools.control import ControlConfig, control_reference
-from hrp2_drake.hardware.control_loop import (
-    ControlLoop,
-    LoopConfig,
-    RobotBridge,
-    run_in_process,
-)
+from hrp2_drake.hardware.control_loop import ControlLoop
+from hrp2_drake.hardware.in_process import run_in_process
+from hrp2_drake.hardware.robot_bridge import RobotBridge
 from hrp2_drake.hardware.lcm_link import LcmLink
 from hrp2_drake.hardware.lcm_station import LcmChannels
 from hrp2_drake.hardware.transport import DrakeLcmTransport
@@ -142,7 +140,7 @@ def test_message_driven_loop_over_memq_equals_the_fused_controller(station_confi
     bridge.step()  # the robot's first messages: the controller's first period
     pump()
     link.connect(controller)
-    loop = ControlLoop(controller, link, reference, config=LoopConfig(duration=1.0))
+    loop = ControlLoop(controller, link, reference, duration=1.0)
     for k in range(ticks):
         if k:
             bridge.step()
@@ -157,3 +155,100 @@ def test_message_driven_loop_over_memq_equals_the_fused_controller(station_confi
     np.testing.assert_array_equal(bridge.signals()["q_cmd"][1:], signals["q_cmd"][: ticks - 1])
     # Torque control took over (the supervisor's ramp completed).
     assert loop.controller.torque_active() == 1.0
+
+
+def test_the_layout_names_the_station_rows_once():
+    """The fused controller's layout gives the station's sensor ports in its order
+    and sizes, the IMU's two signals in one channel, a stamp per signal; the
+    LeafSystem's ports are its signals."""
+    from hrp2_drake.control.fused import ControllerLayout, FusedTorqueController
+    from hrp2_drake.robot.station import sensor_sizes
+
+    robot = HRP2.description()
+    config = ControlConfig(robot=HRP2.robot, duration=1.0)
+    parts = torque_chain_parts(
+        robot, control_reference(config), true_motor_model(robot),
+        config.torque_control, period=config.period(),
+    )
+    layout = FusedController(parts).layout
+    assert layout == ControllerLayout.of_robot(robot, stamped=True)
+    sizes = sensor_sizes(robot)
+    signals = layout.signals()
+    assert list(signals) == list(sizes)
+    assert [s.stop - s.start for s in signals.values()] == list(sizes.values())
+    N, k = len(robot.joints), len(robot.sensor_names())
+    assert (layout.values, layout.stamps) == (
+        slice(N, N + 6 + 6 * k), slice(N + 6 + 6 * k, N + 6 + 6 * k + 3 + k)
+    )
+    channels = layout.channels()
+    assert [c.signals for c in channels][:2] == [
+        ("q_measured",), ("imu_linear_acceleration", "imu_angular_velocity")
+    ]
+    stamp = layout.stamps.start
+    assert channels[1].rows == slice(N, N + 6)
+    assert channels[1].stamp_rows == slice(stamp + 1, stamp + 3)
+    assert channels[2].stamp_rows == slice(stamp + 3, stamp + 4)
+    assert layout.q_measured_stamp == slice(stamp, stamp + 1)
+    system = FusedTorqueController(parts)
+    count = system.num_input_ports()
+    inputs = [system.get_input_port(i).get_name() for i in range(count)]
+    assert inputs[: len(sizes) + 1] == [*sizes, "sensor_time"]
+    # Unstamped (no supervisor): no stamp rows anywhere.
+    bare = ControllerLayout.of_robot(robot, stamped=False)
+    assert bare.size == N + 6 + 6 * k
+    assert all(c.stamp_rows.start == c.stamp_rows.stop for c in bare.channels())
+
+
+def test_a_layout_with_a_wrong_number_of_stamps_is_refused():
+    from hrp2_drake.control.fused import ControllerLayout
+
+    message = r"^ControllerLayout: 2 sensor stamps for 4 signals"
+    with pytest.raises(ValueError, match=message):
+        ControllerLayout(
+            num_joints=7, has_imu=True, sensor_names=("wrist",), num_stamps=2
+        )
+
+
+@pytest.mark.slow
+def test_an_unsupervised_controller_runs_on_every_shell():
+    """Without a supervisor the controller takes no stamps (`layout.num_stamps` 0):
+    the LCM loop and the in-process runs leave the stamps out instead of writing a
+    row that does not exist (an IndexError before the layout), and agree."""
+    config = ControlConfig(robot=IIWA.robot, duration=1.0)
+    torque_control = replace(config.torque_control, supervised=False)
+    robot = IIWA.description()
+    reference = control_reference(config)
+    motor_model = true_motor_model(robot)
+
+    def controller():
+        parts = torque_chain_parts(robot, reference, motor_model, torque_control,
+                                   period=config.period())
+        return FusedController(parts)
+
+    ticks = 200
+    direct = run_in_process(IIWA, controller(), reference, ticks)
+    transport = DrakeLcmTransport("memq://")
+    bridge = RobotBridge(IIWA, transport)
+    fused = controller()
+    assert fused.layout.num_stamps == 0 and fused.sensor_time.size == 0
+    fused.warm_up()
+    link = LcmLink(robot, transport, LcmChannels(), fused, wait_timeout=1.0)
+
+    def pump():
+        while transport.handle(0.0):
+            pass
+
+    bridge.step()
+    pump()
+    link.connect(fused)
+    loop = ControlLoop(fused, link, reference, duration=1.0)
+    for k in range(ticks):
+        if k:
+            bridge.step()
+        assert loop.step(0.0)
+        pump()
+    q_cmd = loop.signals()["q_cmd"]
+    np.testing.assert_allclose(q_cmd, [c for c, _ in direct], rtol=0, atol=1e-12)
+    # Not a trivial run: the estimator saw the arm's weight, in both shells alike.
+    np.testing.assert_allclose(fused.estimator.tau, direct[-1][1], rtol=0, atol=1e-12)
+    assert np.abs(direct[-1][1]).max() > 1.0

@@ -10,7 +10,8 @@ import pytest
 from hrp2_drake import kernels
 from hrp2_drake.assembly.builders import torque_chain_parts
 from hrp2_drake.control.fused import FusedController
-from hrp2_drake.hardware.control_loop import ControlLoop, LoopConfig, run_in_process
+from hrp2_drake.hardware.control_loop import ControlLoop
+from hrp2_drake.hardware.in_process import run_in_process
 from hrp2_drake.hardware.link import RobotLink
 from hrp2_drake.robot.station import StationConfig
 from hrp2_drake.tools.control import ControlConfig, control_reference
@@ -30,7 +31,7 @@ def _controller() -> tuple[FusedController, object]:
 
 def test_the_loop_refuses_to_start_before_the_kernels_are_compiled():
     controller, reference = _controller()
-    loop = ControlLoop(controller, RobotLink(), reference, config=LoopConfig(duration=1.0))
+    loop = ControlLoop(controller, RobotLink(), reference, duration=1.0)
     with pytest.raises(RuntimeError, match="refuses to start.*warm_up"):
         loop.run()
     assert controller.warm_up() >= 0.0 and controller.warmed_up

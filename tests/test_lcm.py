@@ -17,12 +17,9 @@ from pydrake.systems.analysis import Simulator
 from hrp2_drake.cli import main
 from hrp2_drake.assembly.builders import build_torque_control
 from hrp2_drake.tools.control import ControlConfig, control_reference
-from hrp2_drake.hardware.lcm_station import (
-    make_lcm_station,
-    make_sim_robot,
-)
 from hrp2_drake.hardware.messages import SignalCodec, WrenchCodec
 from hrp2_drake.robot.station import StationConfig, make_station
+from lcm_helpers import make_lcm_station, make_sim_robot
 
 IIWA = StationConfig(robot="iiwa14", scenario="fixed_base")
 
@@ -185,7 +182,7 @@ def test_control_and_sim_robot_across_processes(tmp_path, motor_model):
     are measured in scripts/bench_lcm.py)."""
     from hrp2_drake.assembly.builders import torque_chain_parts
     from hrp2_drake.control.fused import FusedController
-    from hrp2_drake.hardware.control_loop import run_in_process
+    from hrp2_drake.hardware.in_process import run_in_process
     from hrp2_drake.identification.motor_model import MotorModel
 
     port = _free_port()

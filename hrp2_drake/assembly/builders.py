@@ -14,7 +14,8 @@
 
 Both take the robot as data (its `RobotDescription`) and its station as a Diagram: a
 simulated one (`simulated_station(StationConfig)`, which also gives the control
-period) or a robot over LCM (`hardware.make_lcm_station`). Both return a
+period), or any Diagram with its ports (a real robot runs the same chain without a
+Diagram: `hardware.control_loop.ControlLoop`). Both return a
 `ControlDiagram`: the diagram, which exports every signal an experiment logs as a
 named output port (`ControlDiagram.output_names`), and its station.
 """
@@ -43,7 +44,12 @@ from hrp2_drake.control.disturbance_observer import (
     DisturbanceObserver,
     DisturbanceObserverConfig,
 )
-from hrp2_drake.control.fused import FusedTorqueController, TorqueChainParts
+from hrp2_drake.control.fused import (
+    FusedTorqueController,
+    ObserverParts,
+    SupervisorParts,
+    TorqueChainParts,
+)
 from hrp2_drake.control.predictor import DelayPredictor, DelayPredictorConfig
 from hrp2_drake.control.safety import SafetySupervisor, supervisor_sensors
 from hrp2_drake.control.torque_controller import (
@@ -321,8 +327,8 @@ def build_position_control(
 
     Args:
         robot: the robot of `station`.
-        station: a station Diagram with `make_station`'s ports: a simulated one
-            (`simulated_station`) or a robot over LCM (`hardware.make_lcm_station`).
+        station: a station Diagram with `make_station`'s ports (a simulated one:
+            `simulated_station`).
         reference: the joint reference of every joint of `robot`.
         command_period: the period at which the servo gets its goal (s; a bus
             writes it once per period: q_ref held from each multiple of it); 0: the
@@ -424,7 +430,7 @@ def _torque_controller_config(
 def _observer_parts(
     config: TorqueControlConfig, joints: list[str], controller_model: MotorModel, delay: float,
     period: float,
-) -> tuple[MotorModel, DisturbanceObserverConfig] | None:
+) -> ObserverParts | None:
     """The disturbance observer's model and config (None without one); `delay`: the
     estimation chain's (s); `period`: the control period (s)."""
     bandwidth = config.observer.disturbance_observer
@@ -432,25 +438,27 @@ def _observer_parts(
         return None
     # The observer inverts the controller's own model: no Coulomb term (the
     # controller sends none), so what friction the model misses is d̂'s.
-    return (
-        MotorModel(
+    return ObserverParts(
+        model=MotorModel(
             joints, controller_model.k_tau, controller_model.k_v, np.zeros(len(joints))
         ),
-        DisturbanceObserverConfig(
+        config=DisturbanceObserverConfig(
             joints=joints, bandwidth=bandwidth, delay=delay, period=period
         ),
     )
 
 
-def _supervisor_parts(robot: RobotDescription, config: TorqueControlConfig) -> tuple | None:
-    """The safety supervisor's (monitored sensors, config, number of sensor stamps),
-    None if `config` is not supervised."""
+def _supervisor_parts(
+    robot: RobotDescription, config: TorqueControlConfig
+) -> SupervisorParts | None:
+    """The safety supervisor's monitored sensors, config and number of sensor stamps
+    (one per station signal), None if `config` is not supervised."""
     if not config.supervised:
         return None
-    return (
-        supervisor_sensors(robot.sensor_names(), imu=robot.has_imu()),
-        replace(config.supervisor, start_time=config.start_time),
-        len(sensor_sizes(robot)),
+    return SupervisorParts(
+        monitored=supervisor_sensors(robot.sensor_names(), imu=robot.has_imu()),
+        config=replace(config.supervisor, start_time=config.start_time),
+        num_stamps=len(sensor_sizes(robot)),
     )
 
 
@@ -534,9 +542,9 @@ def build_torque_control(
 
     Args:
         robot: the robot of `station`.
-        station: a station Diagram with `make_station`'s ports: a simulated one
-            (`simulated_station`) or a robot over LCM (`hardware.make_lcm_station`:
-            the same controller on hardware).
+        station: a station Diagram with `make_station`'s ports (a simulated one:
+            `simulated_station`); on hardware the same chain runs as the fused
+            controller in `hardware.control_loop.ControlLoop`.
         reference: the joint reference of every joint of `robot`.
         motor_model: the controller's model of the actuators.
         config: the torque control; its supervisor's period must be `control_period`.
@@ -698,7 +706,8 @@ def _add_disturbance_observer(builder, parts, selected: dict[str, OutputPort], t
     """The disturbance observer of `parts.observer`, in a loop with the torque
     controller: d̂ from Δq, q̂̇ and τ̂."""
     observer = builder.AddNamedSystem(
-        "disturbance_observer", DisturbanceObserver(*parts.observer)
+        "disturbance_observer",
+        DisturbanceObserver(parts.observer.model, parts.observer.config),
     )
     builder.Connect(torque.GetOutputPort("delta_q"), observer.GetInputPort("delta_q"))
     builder.Connect(selected["v_estimate"], observer.GetInputPort("v"))
@@ -717,10 +726,15 @@ def _add_command(builder, station, parts, blocks, torque) -> dict[str, OutputPor
     builder.Connect(torque.GetOutputPort("q_cmd"), merger.GetInputPort("q_controlled"))
     if parts.supervisor is None:
         return {"q_cmd": merger.get_output_port()}
-    monitored, safety, num_stamps = parts.supervisor
+    monitored = parts.supervisor.monitored
     supervisor = builder.AddNamedSystem(
         "safety_supervisor",
-        SafetySupervisor(len(parts.all_joints), monitored, safety, num_sensor_stamps=num_stamps),
+        SafetySupervisor(
+            len(parts.all_joints),
+            monitored,
+            parts.supervisor.config,
+            num_sensor_stamps=parts.supervisor.num_stamps,
+        ),
     )
     builder.Connect(merger.get_output_port(), supervisor.GetInputPort("q_torque"))
     builder.Connect(blocks["q_ref"], supervisor.GetInputPort("q_position"))

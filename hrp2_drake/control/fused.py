@@ -30,6 +30,7 @@ as they are now. The two shells give the same signals to 1e-12 (tests/test_fused
 
 import time
 from dataclasses import dataclass, field
+from enum import IntEnum
 
 import numpy as np
 from pydrake.multibody.plant import MultibodyPlant
@@ -51,6 +52,7 @@ from hrp2_drake.control.torque_controller import (
     DeltaQTorqueStep,
     TorqueControllerConfig,
 )
+from hrp2_drake.description import RobotDescription
 from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayStep
 from hrp2_drake.estimation.torque_estimator import (
     TorqueEstimatorConfig,
@@ -61,8 +63,153 @@ from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.simulation import WitnessFreeLeafSystem
 from hrp2_drake.step import Step
 
-#: What the fused controller records of a tick's events (`FusedController.events`).
-EVENT_CONTROLLER_FALLBACK, EVENT_SUPERVISOR_FAULT = 1, 2
+
+class EventKind(IntEnum):
+    """What the fused controller records of a tick's events (`FusedController.events`,
+    column 1); the code in column 2 is a `FallbackReason` or the supervisor's fault
+    bits (`control.safety.describe_faults`)."""
+
+    CONTROLLER_FALLBACK = 1
+    SUPERVISOR_FAULT = 2
+
+
+@dataclass(frozen=True)
+class ControllerLayout:
+    """The rows of the fused controller's sensor buffer
+    (`FusedController.sensor_buffer`), named once for every shell that fills it: the
+    LeafSystem's ports, the LCM link's messages, the bus link's reads, the in-process
+    runs and the robot's bridge.
+
+    The buffer is what the station outputs, in its order (`robot.station.sensor_sizes`):
+    [q_measured (N); imu_linear_acceleration (3); imu_angular_velocity (3) (with an
+    IMU); wrench_<s> (6 each); sensor_time (one stamp per signal, if stamped)].
+
+    Args:
+        num_joints: N, the robot's joints.
+        has_imu: whether the robot has an IMU.
+        sensor_names: the F/T sensors, in the robot's order.
+        num_stamps: the size of `sensor_time`: one per signal (the safety supervisor
+            checks them), or 0 (not stamped: no supervisor).
+    """
+
+    num_joints: int
+    has_imu: bool
+    sensor_names: tuple[str, ...]
+    num_stamps: int
+
+    def __post_init__(self):
+        if self.num_stamps not in (0, len(self.signals())):
+            raise ValueError(
+                f"ControllerLayout: {self.num_stamps} sensor stamps for "
+                f"{len(self.signals())} signals (one per signal, or 0)"
+            )
+
+    @property
+    def num_values(self) -> int:
+        """The other sensors' values (IMU, F/T) after q_measured."""
+        return (6 if self.has_imu else 0) + 6 * len(self.sensor_names)
+
+    @property
+    def size(self) -> int:
+        return self.num_joints + self.num_values + self.num_stamps
+
+    @property
+    def q_measured(self) -> slice:
+        return slice(0, self.num_joints)
+
+    @property
+    def values(self) -> slice:
+        """The IMU's and the F/T sensors' values (what the sensor filter smooths)."""
+        return slice(self.num_joints, self.num_joints + self.num_values)
+
+    @property
+    def stamps(self) -> slice:
+        """`sensor_time`: the time of each signal's latest sample (s)."""
+        start = self.num_joints + self.num_values
+        return slice(start, start + self.num_stamps)
+
+    @property
+    def q_measured_stamp(self) -> slice:
+        """The encoders' row of `sensor_time` (empty if not stamped)."""
+        start = self.stamps.start
+        return slice(start, start + 1) if self.num_stamps else slice(start, start)
+
+    def signals(self) -> dict[str, slice]:
+        """The station's sensor ports (their names) and their rows, in its order."""
+        N = self.num_joints
+        rows = {"q_measured": slice(0, N)}
+        if self.has_imu:
+            rows["imu_linear_acceleration"] = slice(N, N + 3)
+            rows["imu_angular_velocity"] = slice(N + 3, N + 6)
+        start = N + (6 if self.has_imu else 0)
+        for k, name in enumerate(self.sensor_names):
+            rows[f"wrench_{name}"] = slice(start + 6 * k, start + 6 * k + 6)
+        return rows
+
+    def channels(self) -> list["SensorChannel"]:
+        """The robot's sensor messages, one per channel (the order of
+        `hardware.lcm_station.LcmChannels.sensors`): the encoders, the IMU (its two
+        signals in one message), each F/T sensor."""
+        signals = self.signals()
+        groups = [("q_measured",)]
+        if self.has_imu:
+            groups.append(("imu_linear_acceleration", "imu_angular_velocity"))
+        groups += [(f"wrench_{name}",) for name in self.sensor_names]
+        out, stamp = [], 0
+        for group in groups:
+            first, last = signals[group[0]], signals[group[-1]]
+            stamps = self.stamps.start + stamp
+            stamp_rows = slice(stamps, stamps + (len(group) if self.num_stamps else 0))
+            out.append(SensorChannel(group, slice(first.start, last.stop), stamp_rows))
+            stamp += len(group)
+        return out
+
+    @classmethod
+    def of_robot(cls, robot: RobotDescription, stamped: bool) -> "ControllerLayout":
+        """The layout of `robot`'s station, with a stamp per signal if `stamped`."""
+        imu, names = robot.has_imu(), tuple(robot.sensor_names())
+        num_stamps = 1 + (2 if imu else 0) + len(names) if stamped else 0
+        return cls(len(robot.joints), imu, names, num_stamps)
+
+    def in_values(self, rows: slice) -> slice:
+        """`rows` of the buffer as rows of `values` (the sensor filter's rows)."""
+        start = self.values.start
+        return slice(rows.start - start, rows.stop - start)
+
+
+@dataclass(frozen=True)
+class SensorChannel:
+    """One sensor message of the robot (`ControllerLayout.channels`).
+
+    Args:
+        signals: the station's ports it carries (one, or the IMU's two).
+        rows: their rows of the sensor buffer.
+        stamp_rows: their stamps' rows of the sensor buffer (within its `stamps`;
+            empty if not stamped).
+    """
+
+    signals: tuple[str, ...]
+    rows: slice
+    stamp_rows: slice
+
+
+@dataclass(frozen=True)
+class ObserverParts:
+    """The disturbance observer's model (the controller's, without Coulomb friction)
+    and config."""
+
+    model: MotorModel
+    config: DisturbanceObserverConfig
+
+
+@dataclass(frozen=True)
+class SupervisorParts:
+    """The safety supervisor's monitored sensors ({station port: kind}), config, and
+    the number of sensor stamps it checks (`sensor_time`, one per signal)."""
+
+    monitored: dict[str, str]
+    config: SafetyConfig
+    num_stamps: int
 
 
 @dataclass
@@ -79,8 +226,8 @@ class TorqueChainParts:
         controller_model, controller_config: the Δq controller (eq. 10-11).
         observer: the disturbance observer's model and config, or None.
         predictor: the delay predictor's config (model: controller_model), or None.
-        supervisor: (monitored sensors {port: kind}, SafetyConfig, number of sensor
-            stamps), or None: the Δq controller's latched fallback alone.
+        supervisor: the safety supervisor's parts, or None: the Δq controller's
+            latched fallback alone.
         position_source: "encoders" or "estimate" (q of eq. 12).
         feedback_velocity, friction_velocity: "estimate" or "reference".
         force_sensor: the F/T sensor whose f̂ feeds the force task ("" = none).
@@ -94,20 +241,14 @@ class TorqueChainParts:
     id_config: InverseDynamicsConfig
     controller_model: MotorModel
     controller_config: TorqueControllerConfig
-    observer: tuple[MotorModel, DisturbanceObserverConfig] | None = None
+    observer: ObserverParts | None = None
     predictor: DelayPredictorConfig | None = None
-    supervisor: tuple[dict[str, str], SafetyConfig, int] | None = None
+    supervisor: SupervisorParts | None = None
     position_source: str = "encoders"
     feedback_velocity: str = "reference"
     friction_velocity: str = "reference"
     force_sensor: str = ""
     period: float = field(default=0.001)
-
-    def chain_delay(self) -> float:
-        """Seconds between the instant the estimates describe and their output: the
-        filters' evaluation point plus two periods (EstimationChain.delay)."""
-        config = self.estimator_config
-        return (config.delay_samples() + 2) * config.period
 
 
 def _start_in(array: np.ndarray, view: np.ndarray) -> int:
@@ -120,15 +261,16 @@ def _start_in(array: np.ndarray, view: np.ndarray) -> int:
 class FusedController:
     """The whole torque-control chain as one plain object (module docstring).
 
-    Inputs of a tick (arrays, SI units, the robot description's joint order):
-    `sensors` = [q_measured (N); imu_linear_acceleration (3); imu_angular_velocity (3);
-    wrench_<s> (6 each)] as the station outputs them (the IMU only if the robot has
-    one); `sensor_time` (the time of each sensor signal's latest sample, station order);
-    the reference q_ref, v_ref, vdot_ref (N each) at t, and f_ref (6) with a force
-    task. Write them into `inputs` views (`sensor_buffer`, ...) or pass arrays.
+    Inputs of a tick (arrays, SI units, the robot description's joint order), written
+    into its buffers before `tick`: `sensor_buffer` = [q_measured (N);
+    imu_linear_acceleration (3); imu_angular_velocity (3); wrench_<s> (6 each);
+    sensor_time (the time of each signal's latest sample, if supervised)] as the
+    station outputs them, its rows named by `layout` (views: `q_measured`,
+    `sensor_values`, `sensor_time`, `q_measured_time`); the reference `q_ref`, `v_ref`,
+    `vdot_ref` (N each) at t, and `f_ref` (6) with a force task.
 
     After a tick, `command(q_ref, out)` is the position command for the servo, and the
-    steps' state arrays hold every signal the diagram logs (`signal(name)`).
+    steps' state arrays hold every signal the diagram logs (`signals()`).
     """
 
     def __init__(self, parts: TorqueChainParts):
@@ -144,10 +286,13 @@ class FusedController:
                 "FusedController: the estimator's joints must be the robot's joints, "
                 "in its order"
             )
-        self._has_imu = bool(econfig.imu_frame)
-        self._sensor_names = list(econfig.sensors)
-        k = len(self._sensor_names)
-        self._num_sensor_values = (6 if self._has_imu else 0) + 6 * k
+        #: The rows of `sensor_buffer`, for every shell that fills it.
+        self.layout = ControllerLayout(
+            num_joints=self._N,
+            has_imu=bool(econfig.imu_frame),
+            sensor_names=tuple(econfig.sensors),
+            num_stamps=parts.supervisor.num_stamps if parts.supervisor else 0,
+        )
         self._make_steps()
         self._make_state()
         self._make_buffers()
@@ -156,7 +301,7 @@ class FusedController:
         # Events: (t, kind, code) rows, a ring of the latest ones, and counts.
         self.events = np.zeros((256, 3))
         self.num_events = 0
-        self.event_counts = {EVENT_CONTROLLER_FALLBACK: 0, EVENT_SUPERVISOR_FAULT: 0}
+        self.event_counts = {kind: 0 for kind in EventKind}
         self.warmed_up = False  # (`warm_up`)
 
     # ------------------------------------------------------------------ wiring
@@ -169,36 +314,41 @@ class FusedController:
         self.encoder_filter = SavitzkyGolayStep(
             N, encoder_windows, 2, econfig.period, econfig.evaluation, span=econfig.span()
         )
+        num_values = self.layout.num_values
         self.sensor_filter = (
             SavitzkyGolayStep(
-                self._num_sensor_values,
+                num_values,
                 sensor_windows,
                 1,
                 econfig.period,
                 econfig.evaluation,
                 span=econfig.span(),
             )
-            if self._num_sensor_values
+            if num_values
             else None
         )
         self.estimator = TorqueEstimatorStep(parts.estimator_plant, econfig)
         self.inverse_dynamics = InverseDynamicsStep(parts.id_plant, parts.id_config)
         self.torque = DeltaQTorqueStep(parts.controller_model, parts.controller_config)
+        observer = parts.observer
         self.observer = (
-            DisturbanceObserverStep(*parts.observer) if parts.observer else None
+            DisturbanceObserverStep(observer.model, observer.config)
+            if observer
+            else None
         )
         self.predictor = (
             DelayPredictorStep(parts.controller_model, parts.predictor)
             if parts.predictor
             else None
         )
+        supervisor = parts.supervisor
         self.supervisor = (
-            SafetySupervisorStep(N, parts.supervisor[0], parts.supervisor[1],
-                                 parts.supervisor[2])
-            if parts.supervisor
+            SafetySupervisorStep(
+                N, supervisor.monitored, supervisor.config, supervisor.num_stamps
+            )
+            if supervisor
             else None
         )
-        self._num_stamps = parts.supervisor[2] if parts.supervisor else 0
 
     def _make_state(self) -> None:
         """One state vector for all steps (each step bound to its rows), and its copy
@@ -227,22 +377,23 @@ class FusedController:
 
     def _make_buffers(self) -> None:
         N, n = self._N, self._n
-        m = self._num_sensor_values
+        layout = self.layout
         # Everything a tick reads, in one buffer (`_sources`): the state at the start
-        # of the tick (`_previous`), the station's signals [q_measured; imu;
-        # wrenches; stamps] (`sensor_buffer`), q_ref, v_ref, vdot_ref, f_ref, and six
-        # zeros (no force reading), so that `take`s with precomputed rows select the
-        # controlled joints' inputs (`_make_gathers`).
-        sizes = [self.state.size, N + m + self._num_stamps, N, N, N, 6, 6]
+        # of the tick (`_previous`), the station's signals (`sensor_buffer`, rows:
+        # `layout`), q_ref, v_ref, vdot_ref, f_ref, and six zeros (no force reading),
+        # so that `take`s with precomputed rows select the controlled joints' inputs
+        # (`_make_gathers`).
+        sizes = [self.state.size, layout.size, N, N, N, 6, 6]
         self._sources = np.zeros(sum(sizes))
         ends = np.cumsum(sizes)
         (self._previous, self.sensor_buffer, self.q_ref, self.v_ref, self.vdot_ref,
          self.f_ref, self._no_force) = (
             self._sources[end - size : end] for size, end in zip(sizes, ends)
         )
-        self.q_measured = self.sensor_buffer[:N]
-        self.sensor_values = self.sensor_buffer[N : N + m]
-        self.sensor_time = self.sensor_buffer[N + m :]
+        self.q_measured = self.sensor_buffer[layout.q_measured]
+        self.sensor_values = self.sensor_buffer[layout.values]
+        self.sensor_time = self.sensor_buffer[layout.stamps]
+        self.q_measured_time = self.sensor_buffer[layout.q_measured_stamp]
         # Selections of the controlled joints, previous and now (`_make_gathers`).
         names = ("q_measured", "q_hat", "v_hat", "vdot_hat", "tau_hat")
         self._gathered = np.zeros(len(names) * n)
@@ -271,12 +422,23 @@ class FusedController:
             values = p("sensor_filter", "value")
             rates = p("sensor_filter", "derivative")
             self._p_sensor_fault = p("sensor_filter", "input_fault")
-            imu = 6 if self._has_imu else 0
-            self._p_acc = values[0:3] if imu else None
-            self._p_gyro = values[3:6] if imu else None
-            self._p_alpha = rates[3:6] if imu else None
-            k = len(self._sensor_names)
-            self._p_wrenches = values[imu:].reshape(k, 6) if k else None
+            layout = self.layout
+            rows = {
+                name: layout.in_values(signal)
+                for name, signal in layout.signals().items()
+                if name != "q_measured"
+            }
+            imu = layout.has_imu
+            acc, gyro = "imu_linear_acceleration", "imu_angular_velocity"
+            self._p_acc = values[rows[acc]] if imu else None
+            self._p_gyro = values[rows[gyro]] if imu else None
+            self._p_alpha = rates[rows[gyro]] if imu else None
+            names = layout.sensor_names
+            self._p_wrenches = (
+                values[rows[f"wrench_{names[0]}"].start :].reshape(len(names), 6)
+                if names
+                else None
+            )
         else:
             self._p_acc = self._p_gyro = self._p_alpha = self._p_wrenches = None
         self._p_tau = p("estimator", "tau")
@@ -411,7 +573,7 @@ class FusedController:
             q_measured, q_ref, fault, self._p_terms, self._p_disturbance,
         )
         if reason:
-            self._record(t, EVENT_CONTROLLER_FALLBACK, reason)
+            self._record(t, EventKind.CONTROLLER_FALLBACK, reason)
         if self.observer is not None:
             self.observer.step(t, self._p_delta_q, v_hat, tau_hat)
         if self.predictor is not None:
@@ -425,7 +587,7 @@ class FusedController:
                 None, self._p_fallback, self.sensor_time,
             )
             if bits:
-                self._record(t, EVENT_SUPERVISOR_FAULT, bits)
+                self._record(t, EventKind.SUPERVISOR_FAULT, bits)
 
     def command(self, q_ref: np.ndarray, out: np.ndarray) -> np.ndarray:
         """The position command for the servo (all joints) after a tick, with the
@@ -470,8 +632,9 @@ class FusedController:
             "delta_q": self.torque.delta_q,
             "fallback_active": self.torque.fallback_active,
         }
-        for name in self._sensor_names:
-            out[f"external_wrench_{name}"] = getattr(self.estimator, f"external_wrench_{name}")
+        for name in self.layout.sensor_names:
+            wrench = f"external_wrench_{name}"
+            out[wrench] = getattr(self.estimator, wrench)
         for name in DELTA_Q_COMPONENTS[:6]:
             out[name] = getattr(self.torque, name)
         if self.supervisor is not None:
@@ -505,24 +668,20 @@ class FusedTorqueController(WitnessFreeLeafSystem):
         super().__init__()
         self._fused = fused = FusedController(parts)
         N = len(parts.all_joints)
-        self._sensor_ports = [self.DeclareVectorInputPort("q_measured", N)]
-        if fused._has_imu:
-            self._sensor_ports += [
-                self.DeclareVectorInputPort("imu_linear_acceleration", 3),
-                self.DeclareVectorInputPort("imu_angular_velocity", 3),
-            ]
-        for name in fused._sensor_names:
-            self._sensor_ports.append(self.DeclareVectorInputPort(f"wrench_{name}", 6))
+        layout = fused.layout
+        # The station's sensor ports, each with its rows of the sensor buffer.
+        self._sensor_ports = [
+            (
+                self.DeclareVectorInputPort(name, rows.stop - rows.start),
+                fused.sensor_buffer[rows],
+            )
+            for name, rows in layout.signals().items()
+        ]
         self._stamp_port = (
-            self.DeclareVectorInputPort("sensor_time", fused._num_stamps)
-            if fused._num_stamps
+            self.DeclareVectorInputPort("sensor_time", layout.num_stamps)
+            if layout.num_stamps
             else None
         )
-        sizes = [port.size() for port in self._sensor_ports]
-        ends = np.cumsum(sizes)
-        self._sensor_rows = [
-            fused.sensor_buffer[end - size : end] for size, end in zip(sizes, ends)
-        ]
         self._reference_ports = [
             (self.DeclareVectorInputPort(name, N), getattr(fused, name))
             for name in ("q_ref", "v_ref", "vdot_ref")
@@ -566,12 +725,9 @@ class FusedTorqueController(WitnessFreeLeafSystem):
         start = _start_in(self._fused.state, view)
         return slice(start, start + view.size)
 
-    def fused_controller(self) -> FusedController:
-        return self._fused
-
     def _read_inputs(self, context: Context) -> None:
-        for port, row in zip(self._sensor_ports, self._sensor_rows):
-            row[:] = port.Eval(context)
+        for port, rows in self._sensor_ports:
+            rows[:] = port.Eval(context)
         fused = self._fused
         if self._stamp_port is not None:
             fused.sensor_time[:] = self._stamp_port.Eval(context)

@@ -28,6 +28,7 @@ Sec. 4.2: with τ_d from eq. 12 and τ̂ = M_j q̂̈ + ĥ_j − J_jᵀ f̂, Δq 
 import logging
 import math
 from dataclasses import dataclass, field
+from enum import IntEnum
 from typing import NamedTuple, Sequence
 
 import numpy as np
@@ -66,16 +67,31 @@ DELTA_Q_COMPONENTS: tuple[str, ...] = (
     "feedback_disturbance",
 )
 
-#: Why the controller fell back to position control (`fallback_reason`), by code.
+class FallbackReason(IntEnum):
+    """Why the controller fell back to position control (`fallback_reason`): the
+    codes the step's kernel returns (`_delta_q_step`)."""
+
+    NONE = 0
+    TAU_ESTIMATED_NOT_FINITE = 1
+    TAU_LIMIT = 2
+    INPUT_NOT_FINITE = 3
+    DELTA_Q_FALLBACK_LIMIT = 4
+    Q_MEASURED_NOT_FINITE = 5
+    SENSOR_FAULT = 6
+
+
+#: Each FallbackReason in words.
 FALLBACK_REASONS: dict[int, str] = {
-    0: "",
-    1: "tau_estimated is not finite",
-    2: "|tau_estimated| exceeds tau_limit",
-    3: "tau_desired, v, tau_disturbance or a torque component of the inverse dynamics "
-    "is not finite",
-    4: "|delta_q| before saturation exceeds delta_q_fallback_limit",
-    5: "q_measured is not finite",
-    6: "sensor_fault: the estimation filters hold a NaN or infinite sample",
+    FallbackReason.NONE: "",
+    FallbackReason.TAU_ESTIMATED_NOT_FINITE: "tau_estimated is not finite",
+    FallbackReason.TAU_LIMIT: "|tau_estimated| exceeds tau_limit",
+    FallbackReason.INPUT_NOT_FINITE: "tau_desired, v, tau_disturbance or a torque "
+    "component of the inverse dynamics is not finite",
+    FallbackReason.DELTA_Q_FALLBACK_LIMIT: "|delta_q| before saturation exceeds "
+    "delta_q_fallback_limit",
+    FallbackReason.Q_MEASURED_NOT_FINITE: "q_measured is not finite",
+    FallbackReason.SENSOR_FAULT: "sensor_fault: the estimation filters hold a NaN or "
+    "infinite sample",
 }
 
 

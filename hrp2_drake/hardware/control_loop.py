@@ -1,17 +1,16 @@
-"""The controller's real-time loop, one for every robot link, and the simulated robot
-over LCM.
+"""The controller's real-time loop, one for every robot link.
 
 `ControlLoop` (the controller, `hrp2-drake control`): each period, the link
 (`hardware.link.RobotLink`) writes the period's samples into the fused controller's
-buffers, one tick of the `FusedController` runs, and the link sends the command at
-once. Over LCM (`hardware.lcm_link.LcmLink`) the robot's encoder message is the
-clock; on a Dynamixel bus (`hardware.dynamixel.DynamixelLink`) the loop's own clock,
-one sync read and one sync write per period. No Simulator paces it, and Python's
-garbage collector does not run inside the loop (`gc.freeze()` after start-up, then
-`gc.disable()` until the loop ends). It refuses to start before the fused controller's
-kernels are compiled (`FusedController.warm_up`), and nothing compiles while it runs
-(`hrp2_drake.kernels.freeze`: a kernel called with a new signature raises, which ends
-the run in a ramp).
+buffers (their rows: `FusedController.layout`), one tick of the `FusedController`
+runs, and the link sends the command at once. Over LCM (`hardware.lcm_link.LcmLink`)
+the robot's encoder message is the clock; on a Dynamixel bus
+(`hardware.dynamixel.DynamixelLink`) the loop's own clock, one sync read and one sync
+write per period. No Simulator paces it, and Python's garbage collector does not run
+inside the loop (`hardware.real_time.garbage_collector_frozen`). It refuses to start
+before the fused controller's kernels are compiled (`FusedController.warm_up`), and
+nothing compiles while it runs (`hrp2_drake.kernels.freeze`: a kernel called with a
+new signature raises, which ends the run in a ramp).
 
 It fails safe. Whatever ends a run (its duration, a malformed or stale message, a
 silent robot or servo, a servo's hardware error, an exception, SIGTERM/SIGINT), the
@@ -21,97 +20,29 @@ time, and the process ends with one line. Where the link itself is gone nothing 
 be sent: the loop ends cleanly and the robot's own watchdog (or its servos' position
 loop) holds the pose.
 
-`RobotBridge` (the robot, `hrp2-drake sim-robot`): the reference for a real robot's
-LCM bridge. Every period it publishes the sensors (F/T and IMU first, the encoders
-last, stamped with the robot's clock), applies the latest command, and guards itself:
-after `watchdog_periods` without a new command it holds the measured pose until
-commands come again.
-
-`run_in_process` and `run_on_bus_in_process`: the fused controller on the simulated
-robot in one process with the LCM loop's and the bus loop's timing, what the loops
-are tested against.
+The robot's side is elsewhere: the simulated robot over LCM in
+`hardware.robot_bridge`, and the in-process runs the loops are tested against in
+`hardware.in_process`.
 """
 
-import contextlib
-import gc
 import math
-import os
 import signal
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from hrp2_drake import kernels
-from hrp2_drake.control.fused import (
-    EVENT_CONTROLLER_FALLBACK,
-    EVENT_SUPERVISOR_FAULT,
-    FusedController,
-)
+from hrp2_drake.control.fused import EventKind, FusedController
 from hrp2_drake.control.safety import describe_faults
 from hrp2_drake.control.torque_controller import FALLBACK_REASONS
-from hrp2_drake.hardware.lcm_station import LcmChannels
 from hrp2_drake.hardware.link import LinkClosed, LoopFault, RobotLink
-from hrp2_drake.hardware.messages import SignalCodec
-from hrp2_drake.hardware.transport import Transport, TransportClosed
-
-
-@dataclass
-class RealTimeConfig:
-    """How the loop asks the operating system for real time.
-
-    Args:
-        cpu: pin the process to this CPU (-1: leave it).
-        priority: ask for SCHED_FIFO at this priority (0: the normal scheduler).
-        freeze_gc: collect and freeze the garbage collector's objects after start-up
-            and disable it while the loop runs.
-    """
-
-    cpu: int = -1
-    priority: int = 0
-    freeze_gc: bool = True
-
-
-def request_real_time(config: RealTimeConfig) -> dict:
-    """Pins the CPU and asks for SCHED_FIFO as configured; what was granted."""
-    granted = {"cpu": None, "scheduler": "SCHED_OTHER", "error": ""}
-    if config.cpu >= 0:
-        try:
-            os.sched_setaffinity(0, {config.cpu})
-            granted["cpu"] = config.cpu
-        except OSError as error:
-            granted["error"] += f"cpu {config.cpu}: {error.strerror}; "
-    if config.priority > 0:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(config.priority))
-            granted["scheduler"] = f"SCHED_FIFO {config.priority}"
-        except (OSError, AttributeError) as error:
-            granted["error"] += f"SCHED_FIFO: {getattr(error, 'strerror', error)}; "
-    return granted
-
-
-@contextlib.contextmanager
-def garbage_collector_frozen(freeze: bool = True) -> Iterator[None]:
-    """Within it, Python's garbage collector does not run (the objects of start-up
-    collected and frozen first): a collection of a process that imported Drake takes
-    tens of ms, more than a period. Everything the same without `freeze`."""
-    if freeze:
-        gc.collect()
-        gc.freeze()
-        gc.disable()
-    try:
-        yield
-    finally:
-        if freeze:
-            gc.enable()
-            gc.unfreeze()
-
-
-def _check_time(value, name: str) -> None:
-    """Raises ValueError naming `name` unless `value` is a time: finite, > 0 (s)."""
-    if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-        raise ValueError(f"{name}: {value!r} must be a finite number > 0 (s)")
+from hrp2_drake.hardware.real_time import (
+    RealTimeConfig,
+    check_time,
+    garbage_collector_frozen,
+    request_real_time,
+)
 
 
 @dataclass
@@ -133,35 +64,17 @@ class LoopSettings:
     real_time: RealTimeConfig = field(default_factory=RealTimeConfig)
 
     def validate(self, period: float = 0.0, where: str = "LoopSettings") -> None:
-        """Raises ValueError naming `where`.<field>: each time finite and > 0, and
-        silence_timeout at least two control periods (`period`, s; 0: unknown)."""
+        """Raises ValueError naming `where`.<field>: each time finite and > 0,
+        silence_timeout at least two control periods (`period`, s; 0: unknown), and a
+        CPU and priority the machine can grant (`RealTimeConfig.validate`)."""
+        self.real_time.validate(f"{where}.real_time")
         for name in ("wait_timeout", "silence_timeout", "ramp_time"):
-            _check_time(getattr(self, name), f"{where}.{name}")
+            check_time(getattr(self, name), f"{where}.{name}")
         if self.silence_timeout < 2 * period:
             raise ValueError(
                 f"{where}.silence_timeout: {self.silence_timeout} s is shorter than "
                 f"two periods ({2 * period} s)"
             )
-
-
-@dataclass
-class LoopConfig:
-    """The controller loop's settings for one run.
-
-    Args:
-        duration: seconds of robot time to run (from the first encoder message).
-        period: the robot's sensor period (s): the tick's budget.
-        settings: the loop's own settings (timeouts, ramp, real time).
-    """
-
-    duration: float = 5.0
-    period: float = 0.001
-    settings: LoopSettings = field(default_factory=LoopSettings)
-
-    def validate(self) -> None:
-        for name in ("duration", "period"):
-            _check_time(getattr(self, name), f"LoopConfig.{name}")
-        self.settings.validate(self.period, "LoopConfig.settings")
 
 
 class ControlLoop:
@@ -172,7 +85,12 @@ class ControlLoop:
         link: the robot (`RobotLink`), connected (`RobotLink.connect`).
         reference: a `JointReference` (q, v, vdot of every joint over time).
         force_reference: f_ref(t) (6) of a force task, or None.
-        config: the loop's settings.
+        settings: the loop's own settings, validated where they were loaded
+            (`LoopSettings.validate`); None: the defaults.
+        duration: seconds of robot time to run (from the first period).
+
+    The period (the tick's budget, s) is the controller's (`parts.period`: the
+    robot's sensor period).
     """
 
     def __init__(
@@ -181,21 +99,23 @@ class ControlLoop:
         link: RobotLink,
         reference,
         force_reference=None,
-        config: LoopConfig | None = None,
+        settings: LoopSettings | None = None,
+        duration: float = 5.0,
     ):
         self.controller = controller
         self.link = link
         self.reference = reference
         self.force_reference = force_reference
-        self.config = config = config or LoopConfig()
-        config.validate()
+        self.settings = settings or LoopSettings()
+        self.duration = duration
+        self.period = controller.parts.period
         N = len(controller.q_measured)
         self._q_cmd = np.zeros(N)
         self.t = 0.0
         self.ticks = 0
         self.fault: LoopFault | None = None
         self.fault_time = math.nan
-        capacity = int(config.duration / config.period * 1.2) + 1000
+        capacity = int(duration / self.period * 1.2) + 1000
         self.latency_ns = np.zeros(capacity, dtype=np.int64)
         self.cycle_ns = np.zeros(capacity, dtype=np.int64)
         self.receive_gap_ns = np.zeros(capacity, dtype=np.int64)
@@ -248,7 +168,7 @@ class ControlLoop:
             self.log_mode[k] = controller.torque_active()
         self._last_receive = received
         self.ticks = k + 1
-        if t >= self.config.duration:
+        if t >= self.duration:
             self._stop = True
 
     def _set_reference(self, t: float) -> None:
@@ -269,15 +189,18 @@ class ControlLoop:
                 "the control loop refuses to start: its fused controller's kernels are "
                 "not compiled (call FusedController.warm_up() before the loop)"
             )
-        config = self.config.settings
-        granted = request_real_time(config.real_time)
+        settings = self.settings
+        granted = request_real_time(settings.real_time)
         previous = {
             sig: signal.signal(sig, self._on_signal)
             for sig in (signal.SIGTERM, signal.SIGINT)
         }
         try:
-            with garbage_collector_frozen(config.real_time.freeze_gc), kernels.compile_disabled():
-                self._loop(config.silence_timeout)
+            with (
+                garbage_collector_frozen(settings.real_time.freeze_gc),
+                kernels.compile_disabled(),
+            ):
+                self._loop(settings.silence_timeout)
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
@@ -312,12 +235,12 @@ class ControlLoop:
         period: each after the period's samples where they still come (a lock-step
         robot's clock is its traffic), on the wall clock where they do not (the robot
         may have gone silent)."""
-        period = self.config.period
+        period = self.period
         q_from = self._q_cmd.copy()
         q_hold = self.controller.q_measured.copy()
         if not np.all(np.isfinite(q_hold)):
             q_hold = q_from
-        steps = max(1, int(round(self.config.settings.ramp_time / period)))
+        steps = max(1, int(round(self.settings.ramp_time / period)))
         start = time.perf_counter()
         try:
             for k in range(1, steps + 1):
@@ -344,12 +267,13 @@ class ControlLoop:
         k = min(self.ticks, len(self.latency_ns))
         latency = self.latency_ns[:k] * 1e-3
         cycle = self.cycle_ns[:k] * 1e-3
-        period_us = self.config.period * 1e6
+        period_us = self.period * 1e6
         controller = self.controller
         # Start-up: position control until start_time, then the supervisor's ramp.
+        supervisor = controller.parts.supervisor
         start = controller.parts.controller_config.start_time
-        if controller.parts.supervisor is not None:
-            start += controller.parts.supervisor[1].ramp_time
+        if supervisor is not None:
+            start += supervisor.config.ramp_time
         after = self.log_t[:k] >= start
         share = (
             float(np.mean(self.log_mode[:k][after] >= 1.0)) if np.any(after) else 0.0
@@ -358,12 +282,8 @@ class ControlLoop:
         percentile = (
             (lambda x, p: float(np.percentile(x, p))) if k else (lambda x, p: math.nan)
         )
-        gave_up = False
-        if controller.supervisor is not None:
-            cfg = controller.parts.supervisor[1]
-            gave_up = (
-                controller.event_counts[EVENT_SUPERVISOR_FAULT] > cfg.max_reentries
-            )
+        faults = controller.event_counts[EventKind.SUPERVISOR_FAULT]
+        gave_up = supervisor is not None and faults > supervisor.config.max_reentries
         return {
             "ticks": int(self.ticks),
             "refused_samples": int(self.refused),
@@ -385,10 +305,8 @@ class ControlLoop:
             "torque_share": share,
             "events": self._events(),
             "event_counts": {
-                "controller_fallback": controller.event_counts[
-                    EVENT_CONTROLLER_FALLBACK
-                ],
-                "supervisor_fault": controller.event_counts[EVENT_SUPERVISOR_FAULT],
+                kind.name.lower(): count
+                for kind, count in controller.event_counts.items()
             },
             "gave_up": bool(gave_up),
             "fault": str(self.fault) if self.fault else "",
@@ -404,7 +322,7 @@ class ControlLoop:
     def _events(self) -> list[dict]:
         events = []
         for t, kind, code in self.controller.recorded_events():
-            if kind == EVENT_CONTROLLER_FALLBACK:
+            if kind == EventKind.CONTROLLER_FALLBACK:
                 events.append(
                     {
                         "t": t,
@@ -412,7 +330,7 @@ class ControlLoop:
                         "reason": FALLBACK_REASONS.get(code, str(code)),
                     }
                 )
-            elif kind == EVENT_SUPERVISOR_FAULT:
+            elif kind == EventKind.SUPERVISOR_FAULT:
                 events.append(
                     {
                         "t": t,
@@ -458,361 +376,3 @@ def _longest_run(indices: np.ndarray) -> int:
     starts = np.concatenate([[0], breaks + 1])
     ends = np.concatenate([breaks, [len(indices) - 1]])
     return int((ends - starts).max() + 1)
-
-
-# ------------------------------------------------------------------ the robot's side
-
-
-@dataclass
-class BridgeConfig:
-    """The simulated robot's bridge (`RobotBridge`).
-
-    Args:
-        duration: seconds of robot time (inf: until SIGTERM or SIGINT).
-        rate: the real-time rate (1 on a robot; < 1 slows the robot's clock).
-        watchdog_periods: hold the measured pose after this many of its own periods
-            without a new command (once commands have come).
-        lockstep: the robot advances a period only once the command for the last
-            one has come, or after `lockstep_timeout` s without one: a clock that
-            does not depend on the machine, for tests (a real robot never waits).
-        lockstep_timeout: how long a lock-step robot waits for a command (s of wall
-            time): before the first command, and when the controller is gone.
-    """
-
-    duration: float = math.inf
-    rate: float = 1.0
-    watchdog_periods: int = 5
-    lockstep: bool = False
-    lockstep_timeout: float = 0.2
-
-    def validate(self) -> None:
-        if not (self.duration > 0):
-            raise ValueError(f"BridgeConfig.duration: {self.duration} must be > 0 (s)")
-        if not (math.isfinite(self.rate) and self.rate > 0):
-            raise ValueError(
-                f"BridgeConfig.rate: {self.rate} must be a finite number > 0"
-            )
-        if not (isinstance(self.watchdog_periods, int) and self.watchdog_periods >= 1):
-            raise ValueError(
-                f"BridgeConfig.watchdog_periods: {self.watchdog_periods!r} must be an "
-                "integer >= 1"
-            )
-        _check_time(self.lockstep_timeout, "BridgeConfig.lockstep_timeout")
-
-
-class RobotBridge:
-    """The simulated robot behind the LCM channels (module docstring).
-
-    Each period k: the station advances to t_k (its discrete updates at t_{k−1} used
-    the command in force), its sensors at t_k are published (F/T, IMU, then the
-    encoders, stamped t_k), and every command that arrives before the next period is
-    applied at once. The ground truth is logged for evaluation only.
-    """
-
-    def __init__(
-        self,
-        station_config,
-        transport: Transport,
-        channels: LcmChannels | None = None,
-        config: BridgeConfig | None = None,
-    ):
-        from pydrake.systems.analysis import Simulator
-
-        from hrp2_drake.robot.station import initial_joint_positions, make_station
-
-        self.config = config = config or BridgeConfig()
-        config.validate()
-        robot = self.robot = station_config.description()
-        self.channels = channels = (channels or LcmChannels()).resolved(robot)
-        self.transport = transport
-        self.period = station_config.sensors_config().period
-        self.station = make_station(station_config)
-        self.simulator = Simulator(self.station)
-        self._context = self.simulator.get_mutable_context()
-        self._q_cmd_port = self.station.GetInputPort("q_cmd")
-        self._home = initial_joint_positions(station_config)
-        self._command = self._home.copy()
-        self._q_cmd_port.FixValue(self._context, self._command)
-        self._codecs = list(zip(channels.sensors(robot), channels.codecs(robot)))
-        ports = ["q_measured"]
-        if robot.has_imu():
-            ports.append(("imu_linear_acceleration", "imu_angular_velocity"))
-        ports += [f"wrench_{name}" for name in robot.sensor_names()]
-        self._ports = ports
-        self._cmd_codec = SignalCodec(robot.joints, channels.q_cmd)
-        self.k = 0
-        self._last_command_k = -1
-        self._last_command_stamp = -1
-        self.watchdog_trips = 0
-        self.late_periods = 0  # periods that started over a period behind real time
-        self.holding = False
-        self.malformed_commands = 0
-        self.refused_commands = 0
-        self.fault = ""
-        self._log: list[tuple] = []
-        transport.subscribe(channels.q_cmd, self._on_command)
-
-    def _on_command(self, data: bytes) -> None:
-        stamp = SignalCodec.timestamp(data)
-        if stamp <= self._last_command_stamp and self._last_command_stamp >= 0:
-            self.refused_commands += 1
-            return
-        try:
-            values = self._cmd_codec.values(data)
-        except ValueError:
-            self.malformed_commands += 1
-            return
-        if not np.all(np.isfinite(values)):
-            self.malformed_commands += 1
-            return
-        self._last_command_stamp = stamp
-        self._last_command_k = self.k
-        self.holding = False
-        self._command[:] = values
-        self._q_cmd_port.FixValue(self._context, self._command)
-
-    def _watchdog(self) -> None:
-        """Holds the measured pose once no new command has come for watchdog_periods
-        of the robot's own periods (once commands have come): a robot that runs
-        late counts its periods all the same."""
-        if self._last_command_k < 0 or self.holding:
-            return
-        if self.k - self._last_command_k > self.config.watchdog_periods:
-            self.hold()
-            self.watchdog_trips += 1
-
-    def _wait_for_command(self, stopped) -> bool:
-        """Lock step: handles messages until a command newer than the last period's
-        has come, or, once commands have come, lockstep_timeout s of wall time (the
-        controller gone: the watchdog counts these periods). Before the first
-        command it waits as long as it takes, sending its first sample again every
-        lockstep_timeout (the controller ticks on it); holding its pose (the watchdog tripped) it
-        waits for nothing. False if `stopped()` says so meanwhile."""
-        timeout = self.config.lockstep_timeout
-        deadline = time.perf_counter() + timeout
-        self.transport.handle(0.0)  # at least once: a command that came meanwhile
-        if self.holding:
-            return True  # nothing to wait for: on at full speed until commands come
-        while self._last_command_k < self.k:
-            if stopped():
-                return False
-            if self._last_command_k < 0:
-                # Nobody has answered yet: the sample again, for a controller that
-                # subscribed after it went out (the same stamps: not a new period).
-                self.transport.handle(timeout)
-                if self._last_command_k < 0:
-                    self.publish_sensors()
-                continue
-            remaining = deadline - time.perf_counter()
-            if remaining <= 0:
-                break
-            self.transport.handle(remaining)
-        return True
-
-    def hold(self) -> None:
-        """Holds the measured pose (the servo in position control)."""
-        q = self.station.GetOutputPort("q_measured").Eval(self._context)
-        self._command[:] = q
-        self._q_cmd_port.FixValue(self._context, self._command)
-        self.holding = True
-
-    def publish_sensors(self) -> None:
-        """The sensors at the current time: F/T and IMU first, the encoders last."""
-        t = self._context.get_time()
-        context = self._context
-        messages = []
-        for port, (channel, codec) in zip(self._ports, self._codecs):
-            if isinstance(port, tuple):
-                values = np.concatenate(
-                    [self.station.GetOutputPort(p).Eval(context) for p in port]
-                )
-            else:
-                values = self.station.GetOutputPort(port).Eval(context)
-            messages.append((channel, codec.encode(values, t)))
-        self.transport.publish_many(messages[1:] + messages[:1])
-
-    def step(self) -> None:
-        """One period: advance to the next sample time, publish (`run` adds the
-        watchdog and the real-time pacing; a lock-step test calls this alone)."""
-        if self.k == 0:
-            self.simulator.Initialize()
-        else:
-            self.simulator.AdvanceTo(self.k * self.period)
-        self.publish_sensors()
-        self._record()
-        self.k += 1
-
-    def _record(self) -> None:
-        context = self._context
-        self._log.append(
-            (
-                context.get_time(),
-                self.station.GetOutputPort("state_true").Eval(context).copy(),
-                self.station.GetOutputPort("q_measured").Eval(context).copy(),
-                self._command.copy(),
-                self.holding,
-                self._last_command_k == self.k,  # a new command since the last period
-            )
-        )
-
-    def run(self) -> dict:
-        """Real time until the duration, a signal, or the transport's end."""
-        stop = {"now": False}
-
-        def terminate(signum, frame):
-            stop["now"] = True
-
-        previous = {
-            s: signal.signal(s, terminate) for s in (signal.SIGTERM, signal.SIGINT)
-        }
-        wall_period = self.period / self.config.rate
-        if self.k == 0:
-            self.step()  # initialization: not timed against the clock
-        start = time.perf_counter() - self.k * wall_period
-        try:
-            with garbage_collector_frozen():
-                while not stop["now"] and self.k * self.period <= self.config.duration:
-                    if self.config.lockstep:
-                        if not self._wait_for_command(lambda: stop["now"]):
-                            break
-                        self._watchdog()
-                        self.step()
-                        continue
-                    self.step()
-                    deadline = start + self.k * wall_period
-                    self.transport.handle(0.0)  # at least once: behind schedule too
-                    while True:
-                        remaining = deadline - time.perf_counter()
-                        if remaining <= 0:
-                            self.late_periods += remaining < -wall_period
-                            break
-                        self.transport.handle(remaining)
-                    self._watchdog()
-        except TransportClosed as error:
-            self.fault = f"the transport is gone at t = {self._context.get_time():.3f} s ({error})"
-            self.hold()
-        finally:
-            for s, handler in previous.items():
-                signal.signal(s, handler)
-        return self.summary()
-
-    def summary(self) -> dict:
-        return {
-            "robot": self.robot.name,
-            "simulated": float(self._context.get_time()),
-            "watchdog_trips": int(self.watchdog_trips),
-            "late_periods": int(self.late_periods),
-            "holding": bool(self.holding),
-            "malformed_commands": int(self.malformed_commands),
-            "refused_commands": int(self.refused_commands),
-            "fault": self.fault,
-        }
-
-    def signals(self) -> dict[str, np.ndarray]:
-        """t, state_true, q_measured, q_cmd (applied), holding, commanded (a new
-        command came since the last period): one row per period."""
-        if not self._log:
-            return {}
-        columns = list(zip(*self._log))
-        names = ("t", "state_true", "q_measured", "q_cmd", "holding", "commanded")
-        return {
-            name: np.array(column, dtype=float) for name, column in zip(names, columns)
-        }
-
-
-def run_in_process(
-    station_config, controller: FusedController, reference, ticks: int, on_tick=None
-) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The fused controller on the simulated station in one process, without messages,
-    with the LCM loop's timing: the station's sample k (k >= 0; 0 at initialization,
-    as the robot's bridge sends it) is the controller's tick at t = k period, and the
-    command is applied at once. What the message-driven loop is tested against
-    (tests/test_fused.py, tests/test_lcm.py with a lock-step robot), and the bench's
-    closed-loop tick (`on_tick(tick)` wraps each tick: a timer). Returns (q_cmd, τ̂)
-    per tick."""
-    from pydrake.systems.analysis import Simulator
-
-    from hrp2_drake.robot.station import (
-        initial_joint_positions,
-        make_station,
-        sensor_sizes,
-    )
-
-    robot = station_config.description()
-    period = station_config.sensors_config().period
-    station = make_station(station_config)
-    simulator = Simulator(station)
-    context = simulator.get_mutable_context()
-    sizes = sensor_sizes(robot)
-    rows = np.cumsum([0] + list(sizes.values()))
-    sensor_ports = [station.GetOutputPort(name) for name in sizes]
-    stamp_port = station.GetOutputPort("sensor_time")
-    q_cmd_port = station.GetInputPort("q_cmd")
-    q_cmd_port.FixValue(context, initial_joint_positions(station_config))
-    command = np.zeros(len(robot.joints))
-    simulator.Initialize()
-    out = []
-    for k in range(ticks):
-        if k:
-            simulator.AdvanceTo(k * period)
-        for port, a, b in zip(sensor_ports, rows[:-1], rows[1:]):
-            controller.sensor_buffer[a:b] = port.Eval(context)
-        controller.sensor_time[:] = stamp_port.Eval(context)
-        _tick_in_process(controller, reference, k * period, k == 0, on_tick, command)
-        q_cmd_port.FixValue(context, command)
-        out.append((command.copy(), controller.estimator.tau.copy()))
-    return out
-
-
-def _tick_in_process(controller: FusedController, reference, t: float, first: bool,
-                     on_tick, command: np.ndarray) -> None:
-    """One tick of an in-process run at t (s): the reference at t, the chain's
-    initialization on the `first`, the tick and its command into `command`, wrapped
-    by `on_tick(step)` if given (a timer)."""
-    controller.q_ref[:], controller.v_ref[:], controller.vdot_ref[:] = reference.at(t)
-    if first:
-        controller.initialize(t)
-
-    def step():
-        controller.tick(t)
-        controller.command(controller.q_ref, command)
-
-    (on_tick or (lambda tick: tick()))(step)
-
-
-def run_on_bus_in_process(
-    station_config, controller: FusedController, reference, ticks: int, on_tick=None
-) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The fused controller on the simulated robot's servos (`SimulatedServos`) in one
-    process, without a wire, with the bus loop's timing: what `DynamixelLink` and a
-    lock-step emulator (`hardware.sim_servo`) do, call for call.
-
-    Start-up at robot time 0, as `DynamixelBus.start`: the P gain set
-    (`position_loop.gain`), the present pose read (through the goal register's
-    pulses) and made the goal, torque on. Then period k: the servos sample at k·T,
-    one tick at t = k·T, and the command, in pulses, reaches them at k·T + d (d: the
-    bus's `read_to_write`). `on_tick(step)` wraps each tick (a timer). Returns
-    (q_cmd, τ̂) per tick.
-    """
-    from hrp2_drake.robot.bus_servos import SimulatedServos
-
-    servos = SimulatedServos(station_config)
-    robot = servos.robot
-    bus = robot.bus
-    period = station_config.sensors_config().period
-    delay = bus.timing().read_to_write
-    servos.set_gain(robot.position_loop.gain)
-    servos.set_goal(bus.quantized(servos.present().position))
-    servos.set_enabled(np.ones(len(robot.joints)))
-    command = np.zeros(len(robot.joints))
-    out = []
-    for k in range(ticks):
-        t = k * period
-        servos.advance_to(t)
-        controller.q_measured[:] = bus.quantized(servos.present().position)
-        controller.sensor_time[0] = t
-        _tick_in_process(controller, reference, t, k == 0, on_tick, command)
-        servos.advance_to(t + delay)
-        servos.set_goal(bus.quantized(command))
-        out.append((command.copy(), controller.estimator.tau.copy()))
-    return out

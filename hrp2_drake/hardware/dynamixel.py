@@ -416,7 +416,7 @@ class DynamixelLink(RobotLink):
         self._tally(reading, t)
         controller.q_measured[:] = reading.position
         if reading.complete:
-            controller.sensor_time[0] = t
+            controller.q_measured_time[:] = t
         else:
             self.incomplete += 1
         self._k += 1

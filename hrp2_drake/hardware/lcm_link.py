@@ -18,17 +18,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from hrp2_drake.description import RobotDescription
-from hrp2_drake.hardware.lcm_station import IMU_COORDS, LcmChannels
+from hrp2_drake.hardware.lcm_station import LcmChannels
 from hrp2_drake.hardware.link import LoopFault, RobotLink
-from hrp2_drake.hardware.messages import SignalCodec, WrenchCodec
+from hrp2_drake.hardware.messages import SignalCodec
 from hrp2_drake.hardware.transport import Transport
 
 
 @dataclass
 class _SensorChannel:
     """An IMU or F/T channel of the controller: its codec, the rows of the fused
-    controller's sensor values and stamps it writes, the stamp's unit (s), its latest
-    message and its stamp (-1: none yet), and the message its values hold now."""
+    controller's sensor buffer it writes (its values and its stamps:
+    `ControllerLayout.channels`), the stamp's unit (s), its latest message and its
+    stamp (-1: none yet), and the message its values hold now."""
 
     codec: object
     values: np.ndarray
@@ -61,22 +62,20 @@ class LcmLink(RobotLink):
         self._controller = controller
         self._q_codec = SignalCodec(robot.joints, channels.q_measured)
         self._cmd_codec = SignalCodec(robot.joints, channels.q_cmd)
-        # The other sensor channels, each writing into the controller's buffers.
-        values = controller.sensor_values
-        stamps = controller.sensor_time
-        self._others: list[_SensorChannel] = []
-        row, stamp_row = 0, 1
-        if robot.has_imu():
-            codec = SignalCodec(IMU_COORDS, channels.imu)
-            # The IMU's one message stamps its two signals (accelerometer, gyro).
-            self._others.append(_SensorChannel(codec, values[0:6], stamps[1:3], 1e-6))
-            row, stamp_row = 6, 3
-        for name in robot.sensor_names():
-            codec = WrenchCodec(channels.wrench(name))
-            self._others.append(_SensorChannel(
-                codec, values[row : row + 6], stamps[stamp_row : stamp_row + 1], 1e-3
-            ))
-            row, stamp_row = row + 6, stamp_row + 1
+        # The other sensor channels, each writing its rows of the controller's
+        # sensor buffer (the IMU's one message stamps its two signals).
+        buffer = controller.sensor_buffer
+        encoders, *others = controller.layout.channels()
+        self._q_stamp = buffer[encoders.stamp_rows]
+        self._others: list[_SensorChannel] = [
+            _SensorChannel(
+                codec,
+                buffer[channel.rows],
+                buffer[channel.stamp_rows],
+                1e-6 if isinstance(codec, SignalCodec) else 1e-3,  # µs or ms
+            )
+            for channel, codec in zip(others, channels.codecs(robot)[1:], strict=True)
+        ]
         # New encoder messages not yet taken, oldest first, with their arrival and the
         # other channels' latest messages then: every one is a period, in order, with
         # its own sensors, even when the loop falls behind.
@@ -174,7 +173,7 @@ class LcmLink(RobotLink):
         self._apply(others)
         self._last_stamp = stamp
         t = (stamp - self._first_stamp) * 1e-6
-        controller.sensor_time[0] = t
+        self._q_stamp[:] = t
         return t
 
     def send(self, q_cmd: np.ndarray, t: float) -> None:

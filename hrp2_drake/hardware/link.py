@@ -29,8 +29,9 @@ class LinkClosed(ConnectionError):
 
 class RobotLink:
     """The robot as a control loop sees it (module docstring). A link writes each
-    period's samples into the fused controller's buffers (`sensor_buffer`: q_measured,
-    the other sensors' values, their stamps) and sends its command.
+    period's samples into the fused controller's buffers (`sensor_buffer`, its rows
+    named by `FusedController.layout`: q_measured, the other sensors' values, their
+    stamps) and sends its command.
 
     Attributes:
         name: where the robot is, for reports ("lcm tcpq://...", "/dev/ttyUSB0").

@@ -1,12 +1,7 @@
 """Drake's `lcmt_drake_signal` and `lcmt_force_torque` on the wire, encoded and decoded
-with numpy, and carried through the LCM systems as raw bytes.
-
-pydrake's `PySerializer` hands Python message objects through the diagram, and the
-framework deep-copies such objects whenever it stores or caches one (several times per
-message and tick). `BytesSerializer` lets `LcmSubscriberSystem`/`LcmPublisherSystem`
-carry the encoded bytes instead (immutable: copying them is free), and the codecs
-read and write the few fields we use directly: the same messages on the wire, readable
-by any LCM tool (`lcm-spy` decodes them as Drake's types).
+with numpy: the codecs read and write the few fields we use directly, the same
+messages on the wire, readable by any LCM tool (`lcm-spy` decodes them as Drake's
+types).
 """
 
 import struct
@@ -14,27 +9,6 @@ from typing import Sequence
 
 import numpy as np
 from drake import lcmt_drake_signal, lcmt_force_torque
-from pydrake.common.value import AbstractValue
-from pydrake.systems.lcm import SerializerInterface
-
-
-class BytesSerializer(SerializerInterface):
-    """An LCM serializer whose AbstractValue is the message's bytes (empty: none yet)."""
-
-    def __init__(self):
-        SerializerInterface.__init__(self)
-
-    def __repr__(self) -> str:
-        return "BytesSerializer()"
-
-    def CreateDefaultValue(self) -> AbstractValue:
-        return AbstractValue.Make(b"")
-
-    def Deserialize(self, buffer, abstract_value: AbstractValue) -> None:
-        abstract_value.set_value(bytes(buffer))
-
-    def Serialize(self, abstract_value: AbstractValue) -> bytes:
-        return abstract_value.get_value()
 
 
 class SignalCodec:

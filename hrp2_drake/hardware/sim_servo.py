@@ -82,7 +82,7 @@ not follow the wall clock, and replies go out at once, after the physics took wh
 the instruction wrote (in real time the statuses go first, since a new gain costs
 a station rebuild; the physics takes the writes at the instruction's time all the
 same). The contract, which the controller's in-process twin
-(`hardware.control_loop.run_on_bus_in_process`) reproduces call for call:
+(`hardware.in_process.run_on_bus_in_process`) reproduces call for call:
 
 - the k-th SYNC_READ (k = 0, 1, ...) whose block contains Present Position is
   control period k: `advance_to(k*T)`, then `present()` (T: the description's

@@ -1,6 +1,6 @@
 """The simulated robot's servos as a servo bus sees them (`SimulatedServos`): what the
 emulated Protocol 2.0 servos (`hardware.sim_servo`) stand on, and what the in-process
-run with a bus's timing drives (`hardware.control_loop.run_on_bus_in_process`).
+run with a bus's timing drives (`hardware.in_process.run_on_bus_in_process`).
 
 A bus servo is a set of registers over a physical joint. Here the joint is the
 robot's simulated station (MultibodyPlant, the emulated position servo: for a real

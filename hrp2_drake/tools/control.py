@@ -16,7 +16,7 @@ ground truth for evaluation. Start-up order: the robot (or `sim-robot`, or
 """
 
 import json
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -33,13 +33,8 @@ from hrp2_drake.assembly.builders import (
 from hrp2_drake.assembly.torque_control import EstimatorSettings, at_period
 from hrp2_drake.description import RobotDescription, load_robot_description
 from hrp2_drake.tools.track import TrackConfig, check_sinusoid, sinusoid_reference
-from hrp2_drake.hardware.control_loop import (
-    BridgeConfig,
-    ControlLoop,
-    LoopConfig,
-    LoopSettings,
-    RobotBridge,
-)
+from hrp2_drake.hardware.control_loop import ControlLoop, LoopSettings
+from hrp2_drake.hardware.robot_bridge import BridgeConfig, RobotBridge
 from hrp2_drake.hardware.lcm_station import LcmChannels
 from hrp2_drake.hardware.link import RobotLink
 from hrp2_drake.hardware.transport import open_transport
@@ -130,10 +125,6 @@ class ControlConfig:
         check_finite(self.approach_speed, f"{where}.approach_speed", 0.0)
         self.loop.validate(self.period(), f"{where}.loop")
 
-    def loop_config(self) -> LoopConfig:
-        """The loop's settings for this run: `loop`, `duration` and the robot's period."""
-        return LoopConfig(duration=self.duration, period=self.period(), settings=self.loop)
-
 
 def control_reference(config: ControlConfig, start: np.ndarray | None = None) -> JointReference:
     """The run's reference: home for `settle` s, then `motion`; after a move from
@@ -201,8 +192,8 @@ def run_control(
         start = link.connect(controller)
         reference = control_reference(config, start)
         approach = reference.approach_time
-        loop_config = replace(config.loop_config(), duration=config.duration + approach)
-        loop = ControlLoop(controller, link, reference, config=loop_config)
+        loop = ControlLoop(controller, link, reference, settings=config.loop,
+                           duration=config.duration + approach)
         say(f"running {config.duration} s" + (f" after a {approach:.1f} s move home" if approach else ""))
         summary = loop.run()
     finally:
