@@ -15,10 +15,8 @@ import argparse
 from pathlib import Path
 
 from hrp2_drake.description import load_robot_description
-from hrp2_drake.estimation.torque_estimator import (
-    FloatingBaseTorqueEstimator,
-    estimator_config,
-)
+from hrp2_drake.estimation.estimator_config import estimator_config
+from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
 from hrp2_drake.identification.dataset import noncausal_estimates
 from hrp2_drake.identification.excitation import collect, make_plan
 from hrp2_drake.identification.fitting import check_identified, fit_asymmetric

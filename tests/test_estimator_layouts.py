@@ -31,13 +31,13 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
 
 from hrp2_drake import kernels
-from hrp2_drake.estimation.torque_estimator import (
-    FloatingBaseTorqueEstimator,
+from hrp2_drake.estimation.estimation_chain import add_estimator
+from hrp2_drake.estimation.estimator_config import (
     ForceTorqueSensorConfig,
     TorqueEstimatorConfig,
-    TorqueEstimatorStep,
-    add_estimator,
 )
+from hrp2_drake.estimation.estimator_step import TorqueEstimatorStep
+from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
 
 kV = JacobianWrtVariable.kV
 TOL = 1e-8

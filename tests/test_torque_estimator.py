@@ -24,13 +24,13 @@ from pydrake.systems.sensors import Accelerometer, Gyroscope
 from hrp2_drake import kernels
 from hrp2_drake.estimation.inertial_identification import identify_end_effector_inertia
 from hrp2_drake.estimation.savitzky_golay import savgol_coefficients
-from hrp2_drake.estimation.torque_estimator import (
-    FloatingBaseTorqueEstimator,
+from hrp2_drake.estimation.estimation_chain import add_estimator
+from hrp2_drake.estimation.estimator_config import (
     ForceTorqueSensorConfig,
     TorqueEstimatorConfig,
-    TorqueEstimatorStep,
-    add_estimator,
 )
+from hrp2_drake.estimation.estimator_step import TorqueEstimatorStep
+from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
 from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.sensors import SensorsConfig
 from hrp2_drake.robot.station import (

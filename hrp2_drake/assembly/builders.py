@@ -62,8 +62,8 @@ from hrp2_drake.control.torque_controller import (
     make_joint_selector,
 )
 from hrp2_drake.description import RobotDescription
-from hrp2_drake.estimation import torque_estimator
-from hrp2_drake.estimation.torque_estimator import add_estimator
+from hrp2_drake.estimation import estimator_config as estimation_config
+from hrp2_drake.estimation.estimation_chain import add_estimator
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import joint_indexing
 from hrp2_drake.robot.station import StationConfig, make_station, sensor_sizes
@@ -484,7 +484,7 @@ def torque_chain_parts(
     # The controllers' model of the robot (with errors, if asked: a fault).
     errors = dict(model_error=config.faults.model_error, seed=config.faults.model_error_seed)
     estimator = config.estimator
-    estimator_config = torque_estimator.estimator_config(
+    estimator_config = estimation_config.estimator_config(
         robot,
         estimator.window,
         windows=dict(estimator.windows),

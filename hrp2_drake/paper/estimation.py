@@ -34,7 +34,7 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import TrajectorySource
 
 from hrp2_drake import console
-from hrp2_drake.estimation.torque_estimator import add_estimator
+from hrp2_drake.estimation.estimation_chain import add_estimator
 from hrp2_drake.paper import hrp2
 from hrp2_drake.paper.claims import GOAL_RMS_OVER_PEAK
 from hrp2_drake.report import markdown_table, pyplot, save_figure

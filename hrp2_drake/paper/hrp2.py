@@ -16,8 +16,8 @@ from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import ModelInstanceIndex
 
 from hrp2_drake.description import RobotDescription, load_robot_description
-from hrp2_drake.estimation import torque_estimator
-from hrp2_drake.estimation.torque_estimator import TorqueEstimatorConfig
+from hrp2_drake.estimation import estimator_config as estimation_config
+from hrp2_drake.estimation.estimator_config import TorqueEstimatorConfig
 from hrp2_drake.identification.excitation import CollectionConfig
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.tools import ground_truth
@@ -117,11 +117,11 @@ def half_sitting() -> np.ndarray:
 
 
 def estimator_config(window: int = 80, **options) -> TorqueEstimatorConfig:
-    """The paper's estimator for HRP-2 (`torque_estimator.estimator_config`): 30
+    """The paper's estimator for HRP-2 (`estimation_config.estimator_config`): 30
     joints, torso IMU, four F/T sensors, and the unknown wrench on the torso (paper
     Sec. 2.4: "we always assume to have an external wrench on the torso"; the hanging
     robot's strings pull there)."""
-    return torque_estimator.estimator_config(description(), window, **options)
+    return estimation_config.estimator_config(description(), window, **options)
 
 
 def estimator_plant(add_model=add_hrp2) -> MultibodyPlant:

@@ -29,7 +29,7 @@ from hrp2_drake.assembly.builders import (
 )
 from hrp2_drake.assembly.torque_control import EstimatorSettings
 from hrp2_drake.config import field_at, replace_fields
-from hrp2_drake.estimation.torque_estimator import TorqueEstimatorConfig
+from hrp2_drake.estimation.estimator_config import TorqueEstimatorConfig
 from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.paper import hrp2

@@ -18,10 +18,8 @@ from typing import Sequence
 
 import numpy as np
 
-from hrp2_drake.estimation.torque_estimator import (
-    FloatingBaseTorqueEstimator,
-    estimator_config,
-)
+from hrp2_drake.estimation.estimator_config import estimator_config
+from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
 from hrp2_drake.config import check_finite
 from hrp2_drake.identification.dataset import (
     IdentificationData,
