@@ -31,18 +31,18 @@ from hrp2_drake.control.inverse_dynamics import (
     InverseDynamicsController,
     make_fixed_base_plant,
 )
+from hrp2_drake.control.gains import inverse_dynamics_gains_for_k6
 from hrp2_drake.control.torque_controller import (
     DELTA_Q_COMPONENTS,
     FALLBACK_REASONS,
     DeltaQTorqueController,
     DeltaQTorqueStep,
-    JointCommandMerger,
     TorqueControllerConfig,
+)
+from hrp2_drake.control.wiring import (
+    JointCommandMerger,
     connect_inverse_dynamics,
-    gains_from_user,
-    inverse_dynamics_gains_for_k6,
     make_joint_selector,
-    user_from_gains,
 )
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import joint_indexing
@@ -53,6 +53,8 @@ from hrp2_drake.robot.station import (
     initial_joint_positions,
     make_station,
 )
+
+from gain_algebra import gains_from_user, user_from_gains
 
 LEG = list(hrp2.RIGHT_LEG)
 FOOT = hrp2.FT_SENSOR_BODIES["right_foot"]

@@ -52,13 +52,15 @@ from hrp2_drake.control.fused import (
 )
 from hrp2_drake.control.predictor import DelayPredictor, DelayPredictorConfig
 from hrp2_drake.control.safety import SafetySupervisor, supervisor_sensors
+from hrp2_drake.control.gains import inverse_dynamics_gains_for_k6
 from hrp2_drake.control.torque_controller import (
     DELTA_Q_COMPONENTS,
     DeltaQTorqueController,
-    JointCommandMerger,
     TorqueControllerConfig,
+)
+from hrp2_drake.control.wiring import (
+    JointCommandMerger,
     connect_inverse_dynamics,
-    inverse_dynamics_gains_for_k6,
     make_joint_selector,
 )
 from hrp2_drake.description import RobotDescription

@@ -114,7 +114,7 @@ class InverseDynamicsConfig:
 
     Every gain is diagonal and given as a list of one value (the same for every joint
     or axis) or of one value per joint (per wrench axis for kf); in Python a plain
-    number is accepted too. `inverse_dynamics_gains_for_k6` (torque_controller.py)
+    number is accepted too. `inverse_dynamics_gains_for_k6` (gains.py)
     computes ks and kd from the paper's K6.
 
     Args:
