@@ -502,7 +502,7 @@ def torque_chain_parts(
     ks, kd = inverse_dynamics_gains_for_k6(
         controller_model.k_tau, gains.k6, inertia, gains.kp, gains.damping_ratio
     )
-    delay = (estimator_config.delay_samples() + 2) * estimator_config.period
+    delay = estimation_config.estimation_delay(estimator_config)
     predictor = None
     if config.observer.predictor:
         predictor = DelayPredictorConfig(

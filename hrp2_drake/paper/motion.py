@@ -29,6 +29,7 @@ from hrp2_drake.assembly.builders import (
 )
 from hrp2_drake.assembly.torque_control import EstimatorSettings
 from hrp2_drake.config import field_at, replace_fields
+from hrp2_drake.estimation import estimator_config as estimation_config
 from hrp2_drake.estimation.estimator_config import TorqueEstimatorConfig
 from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
 from hrp2_drake.identification.motor_model import MotorModel
@@ -313,15 +314,16 @@ def motion_reference(config: MotionConfig, time_scale: float = 1.0) -> JointRefe
 
 
 def estimation_delay(config: TorqueControlConfig, period: float = 0.001) -> float:
-    """The delay of the estimation chain `config` builds (EstimationChain.delay): its
-    filters' evaluation point plus two periods."""
+    """The delay of the estimation chain `config` builds at `period` (s):
+    `estimator_config.estimation_delay` of its filters."""
     estimator = config.estimator
     filters = TorqueEstimatorConfig(
         window=estimator.window,
         windows=dict(estimator.windows),
         evaluation=estimator.evaluation,
+        period=period,
     )
-    return (filters.delay_samples() + 2) * period
+    return estimation_config.estimation_delay(filters)
 
 
 def _time_scaled(
