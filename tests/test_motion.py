@@ -326,13 +326,10 @@ def test_motion_reference_is_what_it_was_built_whole(time_scale):
 
     motion = whole(*_climbing_samples(config.smoothing, 3.0, 5.5))
     if time_scale != 1.0:
-        n = motion.rows() // 3
         grid = np.arange(0.0, motion.end_time() * time_scale + 5e-4, 0.001)
         values = motion.vector_values(np.minimum(grid / time_scale, motion.end_time())).T
-        motion = whole(
-            grid, values[:, :n], values[:, n : 2 * n] / time_scale,
-            values[:, 2 * n :] / time_scale**2,
-        )
+        q, v, a = JointReference.split(values)
+        motion = whole(grid, q, v / time_scale, a / time_scale**2)
     first = motion.value(0.0)
     motion.shiftRight(0.7)
     expected = PiecewisePolynomial.FirstOrderHold([0.0, 0.7], np.hstack([first, first]))

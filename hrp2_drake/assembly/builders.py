@@ -180,10 +180,18 @@ class JointReference:
         values = np.vstack([np.hstack(move.at(t)), samples])
         return JointReference(first_order_hold(times, values.T), approach_time=move.duration)
 
+    @staticmethod
+    def split(
+        values: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """q, q̇, q̈ (views) of reference values [q; q̇; q̈]: 3n entries along the last
+        axis (one sample, or one row per sample). The one place the layout is read."""
+        n = values.shape[-1] // 3
+        return values[..., :n], values[..., n : 2 * n], values[..., 2 * n :]
+
     def at(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        x = self.trajectory.value(t).ravel()
-        n = len(x) // 3
-        return x[:n], x[n : 2 * n], x[2 * n :]
+        """q, q̇, q̈ at the time t (s), n each."""
+        return JointReference.split(self.trajectory.value(t).ravel())
 
     def end_time(self) -> float:
         return self.trajectory.end_time()

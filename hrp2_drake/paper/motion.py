@@ -332,10 +332,9 @@ def _time_scaled(
     """The samples (t, q, q̇, q̈ at 1 kHz) of the same path in `scale` times the time:
     q(t / scale), its derivatives scaled (`JointReference.from_samples` of them)."""
     traj = motion.trajectory  # rows [q; q̇; q̈]
-    n = traj.rows() // 3
     grid = np.arange(0.0, traj.end_time() * scale + 5e-4, 0.001)
     values = traj.vector_values(np.minimum(grid / scale, traj.end_time())).T
-    q, v, a = values[:, :n], values[:, n : 2 * n], values[:, 2 * n :]
+    q, v, a = JointReference.split(values)
     return grid, q, v / scale, a / scale**2
 
 
