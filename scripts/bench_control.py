@@ -23,11 +23,11 @@ from hrp2_drake.control.torque_controller import (
 )
 from hrp2_drake.paper import hrp2
 from hrp2_drake.assembly.builders import (
-    TorqueControlConfig,
     build_position_control,
     build_torque_control,
     simulated_station,
 )
+from hrp2_drake.assembly.torque_control import TorqueControlConfig
 from hrp2_drake.paper.motion import MotionConfig, motion_reference
 
 PERIOD = 1e-3

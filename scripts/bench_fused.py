@@ -51,7 +51,7 @@ def tuned_config(station):
     from pydrake.common.yaml import yaml_load_typed
 
     from hrp2_drake.control.safety import SafetyConfig
-    from hrp2_drake.assembly.builders import TorqueControlConfig
+    from hrp2_drake.assembly.torque_control import TorqueControlConfig
 
     config = yaml_load_typed(
         schema=TorqueControlConfig,

@@ -17,12 +17,12 @@ import numpy as np
 from pydrake.systems.analysis import Simulator
 
 from hrp2_drake.description import load_robot_description
-from hrp2_drake.assembly.builders import (
+from hrp2_drake.assembly.builders import build_position_control, build_torque_control
+from hrp2_drake.assembly.torque_control import (
+    ControllerSettings,
+    EstimatorSettings,
     TorqueControlConfig,
-    build_position_control,
-    build_torque_control,
 )
-from hrp2_drake.assembly.torque_control import ControllerSettings, EstimatorSettings
 from hrp2_drake.tools.track import TrackConfig, sinusoid_reference
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import joint_indexing

@@ -10,11 +10,14 @@ from pydrake.systems.framework import DiagramBuilder
 from hrp2_drake.paper import hrp2
 from hrp2_drake.assembly.builders import (
     JointReference,
-    TorqueControlConfig,
     build_torque_control,
     simulated_station,
 )
-from hrp2_drake.assembly.torque_control import ControllerSettings, EstimatorSettings
+from hrp2_drake.assembly.torque_control import (
+    ControllerSettings,
+    EstimatorSettings,
+    TorqueControlConfig,
+)
 from hrp2_drake.paper.motion import run_controller
 from hrp2_drake.robot.faults import FaultInjector, SensorFault
 from hrp2_drake.robot.station import StationConfig, initial_joint_positions

@@ -14,7 +14,6 @@ from pydrake.trajectories import PiecewisePolynomial
 
 from hrp2_drake.control.fused import FusedController
 from hrp2_drake.assembly.builders import (
-    TorqueControlConfig,
     build_torque_control,
     simulated_station,
     torque_chain_parts,
@@ -23,6 +22,7 @@ from hrp2_drake.assembly.torque_control import (
     ControllerSettings,
     EstimatorSettings,
     ObserverSettings,
+    TorqueControlConfig,
 )
 from hrp2_drake.tools.ground_truth import true_motor_model
 from hrp2_drake.tools.control import ControlConfig, control_reference

@@ -7,8 +7,12 @@ import numpy as np
 import pytest
 
 from hrp2_drake.cli import main
-from hrp2_drake.assembly.builders import JointReference, TorqueControlConfig
-from hrp2_drake.assembly.torque_control import ControllerSettings, EstimatorSettings
+from hrp2_drake.assembly.builders import JointReference
+from hrp2_drake.assembly.torque_control import (
+    ControllerSettings,
+    EstimatorSettings,
+    TorqueControlConfig,
+)
 from hrp2_drake.paper.motion import (
     PAPER_K6,
     PAPER_TABLE2,

@@ -12,7 +12,7 @@ pytest.importorskip("distributed")
 
 from hrp2_drake.cli import main
 from hrp2_drake.config import load_config
-from hrp2_drake.assembly.builders import TorqueControlConfig
+from hrp2_drake.assembly.torque_control import TorqueControlConfig
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.paper.tune import (
     FAILED_COST,

@@ -26,12 +26,15 @@ from hrp2_drake.config import check_finite
 from hrp2_drake.control.safety import describe_faults
 from hrp2_drake.paper import hrp2
 from hrp2_drake.assembly.builders import (
-    TorqueControlConfig,
     build_position_control,
     build_torque_control,
     simulated_station,
 )
-from hrp2_drake.assembly.torque_control import ControllerSettings, EstimatorSettings
+from hrp2_drake.assembly.torque_control import (
+    ControllerSettings,
+    EstimatorSettings,
+    TorqueControlConfig,
+)
 from hrp2_drake.config import replace_fields
 from hrp2_drake.paper.force import ForceConfig, run_force
 from hrp2_drake.paper.motion import MotionConfig, motion_reference, run_controller

@@ -63,11 +63,10 @@ from pydrake.trajectories import PiecewisePolynomial
 from hrp2_drake.assembly.builders import (
     COMPONENTS,
     JointReference,
-    TorqueControlConfig,
     build_torque_control,
     simulated_station,
 )
-from hrp2_drake.assembly.torque_control import ControllerSettings
+from hrp2_drake.assembly.torque_control import ControllerSettings, TorqueControlConfig
 from hrp2_drake.config import field_at, replace_fields
 from hrp2_drake.paper.motion import (
     IMPROVED_FILE,

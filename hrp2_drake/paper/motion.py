@@ -21,13 +21,12 @@ from hrp2_drake.config import check_finite
 from hrp2_drake.assembly.builders import (
     ControlDiagram,
     JointReference,
-    TorqueControlConfig,
     build_position_control,
     build_torque_control,
     first_order_hold,
     simulated_station,
 )
-from hrp2_drake.assembly.torque_control import EstimatorSettings
+from hrp2_drake.assembly.torque_control import EstimatorSettings, TorqueControlConfig
 from hrp2_drake.config import field_at, replace_fields
 from hrp2_drake.estimation import estimator_config as estimation_config
 from hrp2_drake.estimation.estimator_config import TorqueEstimatorConfig

@@ -64,11 +64,14 @@ import numpy as np
 
 from hrp2_drake.assembly.builders import (
     JointReference,
-    TorqueControlConfig,
     build_torque_control,
     simulated_station,
 )
-from hrp2_drake.assembly.torque_control import ControllerSettings, EstimatorSettings
+from hrp2_drake.assembly.torque_control import (
+    ControllerSettings,
+    EstimatorSettings,
+    TorqueControlConfig,
+)
 from hrp2_drake.paper.motion import run_controller
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import joint_indexing

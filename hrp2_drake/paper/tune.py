@@ -51,8 +51,7 @@ import numpy as np
 
 from hrp2_drake import console
 from hrp2_drake.config import check_finite, one_line
-from hrp2_drake.assembly.builders import TorqueControlConfig
-from hrp2_drake.assembly.torque_control import EstimatorSettings
+from hrp2_drake.assembly.torque_control import EstimatorSettings, TorqueControlConfig
 from hrp2_drake.config import field_at, field_type, replace_fields, set_field_at
 from hrp2_drake.paper.motion import estimation_delay
 from hrp2_drake.identification.motor_model import MotorModel

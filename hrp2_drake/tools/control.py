@@ -26,11 +26,14 @@ from hrp2_drake.control.fused import FusedController
 from hrp2_drake.control.safety import SafetyConfig
 from hrp2_drake.assembly.builders import (
     JointReference,
-    TorqueControlConfig,
     check_control_period,
     torque_chain_parts,
 )
-from hrp2_drake.assembly.torque_control import EstimatorSettings, at_period
+from hrp2_drake.assembly.torque_control import (
+    EstimatorSettings,
+    TorqueControlConfig,
+    at_period,
+)
 from hrp2_drake.description import RobotDescription, load_robot_description
 from hrp2_drake.tools.track import TrackConfig, check_sinusoid, sinusoid_reference
 from hrp2_drake.hardware.control_loop import ControlLoop, LoopSettings

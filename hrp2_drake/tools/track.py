@@ -46,12 +46,15 @@ from hrp2_drake.description import RobotDescription, joint_limits
 from hrp2_drake.description.bus import bus_for_period
 from hrp2_drake.assembly.builders import (
     JointReference,
-    TorqueControlConfig,
     build_position_control,
     build_torque_control,
     check_control_period,
 )
-from hrp2_drake.assembly.torque_control import EstimatorSettings, at_period
+from hrp2_drake.assembly.torque_control import (
+    EstimatorSettings,
+    TorqueControlConfig,
+    at_period,
+)
 from hrp2_drake.config import replace_fields
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import is_strictly_below, joint_indexing, tree_parents
