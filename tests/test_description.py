@@ -13,7 +13,7 @@ from hrp2_drake.cli import main
 from hrp2_drake.description import load_robot_description, robot_file
 from hrp2_drake.tools.simulate import SimulateConfig, run_simulate
 from hrp2_drake.paper import hrp2
-from hrp2_drake.robot.sensors import SensorsConfig
+from hrp2_drake.description.sensors import SensorsConfig
 from hrp2_drake.robot.station import StationConfig, make_station, sensor_sizes
 
 MODELS = Path(__file__).resolve().parents[1] / "models"

@@ -17,7 +17,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.trajectories import PiecewisePolynomial
 
 from hrp2_drake.paper import hrp2
-from hrp2_drake.robot.sensors import SensorsConfig
+from hrp2_drake.description.sensors import SensorsConfig
 from hrp2_drake.robot.servo import (
     EmulatedPositionServo,
     effective_motor_parameters,

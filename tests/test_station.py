@@ -15,13 +15,8 @@ from hrp2_drake.config import load_config
 from hrp2_drake.tools.simulate import SimulateConfig, run_simulate
 from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.faults import SensorClock, SensorFault
-from hrp2_drake.robot.sensors import (
-    ForceTorqueReadout,
-    NoiseConfig,
-    NoisySampler,
-    SensorSampler,
-    SensorsConfig,
-)
+from hrp2_drake.description.sensors import NoiseConfig, SensorsConfig
+from hrp2_drake.robot.sensors import ForceTorqueReadout, NoisySampler, SensorSampler
 from hrp2_drake.robot.servo import load_servo_params
 from hrp2_drake.robot.station import (
     GRAVITY,

@@ -32,7 +32,7 @@ from hrp2_drake.estimation.estimator_config import (
 from hrp2_drake.estimation.estimator_step import TorqueEstimatorStep
 from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
 from hrp2_drake.paper import hrp2
-from hrp2_drake.robot.sensors import SensorsConfig
+from hrp2_drake.description.sensors import SensorsConfig
 from hrp2_drake.robot.station import (
     StationConfig,
     initial_joint_positions,

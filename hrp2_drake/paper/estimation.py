@@ -40,7 +40,7 @@ from hrp2_drake.paper.claims import GOAL_RMS_OVER_PEAK
 from hrp2_drake.report import markdown_table, pyplot, save_figure
 from hrp2_drake.tools.simulate import joint_reference
 from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
-from hrp2_drake.robot.sensors import SensorsConfig
+from hrp2_drake.description.sensors import SensorsConfig
 from hrp2_drake.robot.station import (
     StationConfig,
     initial_joint_positions,

@@ -29,8 +29,7 @@ from pydrake.multibody.math import SpatialForce
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.framework import Context, DiscreteValues
 
-# The configs are the robot description's (plain data), imported here for this module's users.
-from hrp2_drake.description.sensors import NoiseConfig, SensorsConfig  # noqa: F401
+from hrp2_drake.description.sensors import SensorsConfig
 from hrp2_drake.kernels import kernel
 from hrp2_drake.multibody import joint_indexing
 from hrp2_drake.robot.faults import SensorFault, freeze_windows, update_stamps

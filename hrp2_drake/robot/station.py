@@ -71,9 +71,10 @@ from hrp2_drake.description import (
     check_joint_positions,
     load_robot_description,
 )
+from hrp2_drake.description.sensors import SensorsConfig
 from hrp2_drake.multibody import JointIndexing, joint_indexing, tree_joints
 from hrp2_drake.robot.faults import FaultInjector, SensorFault
-from hrp2_drake.robot.sensors import SensorSampler, SensorsConfig
+from hrp2_drake.robot.sensors import SensorSampler
 from hrp2_drake.robot.servo import (
     SERVO_MECHANISMS,
     EmulatedPositionServo,
