@@ -8,14 +8,17 @@ Joint vectors of this project are always in HRP-2 order (`JOINT_NAMES`): right l
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import ModelInstanceIndex
 
-from hrp2_drake.description import RobotDescription, load_robot_description
+from hrp2_drake.description import (
+    RobotDescription,
+    load_robot_description,
+    models_root,
+)
 from hrp2_drake.estimation import estimator_config as estimation_config
 from hrp2_drake.estimation.estimator_config import TorqueEstimatorConfig
 from hrp2_drake.identification.excitation import CollectionConfig
@@ -25,13 +28,13 @@ from hrp2_drake.multibody import JointIndexing, joint_indexing
 
 
 def models_dir() -> Path:
-    """models/hrp2 of the source tree, or $HRP2_DRAKE_MODELS if set."""
-    env = os.environ.get("HRP2_DRAKE_MODELS")
-    path = Path(env) if env else Path(__file__).resolve().parents[2] / "models" / "hrp2"
+    """models/hrp2 of the models folder (`description.models_root`: models/ of the
+    source tree, or $HRP2_DRAKE_MODELS_ROOT if set)."""
+    path = models_root() / "hrp2"
     if not (path / "robot.yaml").is_file():
         raise FileNotFoundError(
             f"HRP-2 model not found in {path}: install hrp2_drake in editable mode "
-            "(pip install -e .) or set HRP2_DRAKE_MODELS to the models/hrp2 folder"
+            "(pip install -e .) or set HRP2_DRAKE_MODELS_ROOT to the models folder"
         )
     return path
 
