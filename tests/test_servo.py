@@ -130,6 +130,15 @@ def test_deprecated_name_warns_and_builds_the_same_servo(calibrated, plant):
     assert np.any(torques[0] != 0)
 
 
+def dahl_step(s: np.ndarray, dq: np.ndarray, width: np.ndarray) -> np.ndarray:
+    """Direction state after the joint moved dq (rad): the exact solution of Dahl's
+    ds/dq = (1 - s sign(dq)) / width over the step; stays in [-1, 1] (the reference
+    the servo's kernels are held to; moved here from robot/servo.py, issue 28)."""
+    decay = np.exp(-np.abs(dq) / width)
+    target = np.sign(dq)
+    return np.where(dq == 0, s, target + (s - target) * decay)
+
+
 def test_each_joint_follows_its_own_mechanisms_tick_by_tick(calibrated, plant):
     """The calibrated servo mixes joints with and without latency and hysteresis; with
     every third joint's encoder quantization off too, each tick's actuation is the
@@ -137,7 +146,7 @@ def test_each_joint_follows_its_own_mechanisms_tick_by_tick(calibrated, plant):
     the quantized encoder, the Dahl state moved by the last tick's travel), exactly."""
     from dataclasses import replace
 
-    from hrp2_drake.robot.servo import dahl_step, servo_torque
+    from hrp2_drake.robot.servo import servo_torque
 
     names = hrp2.JOINT_NAMES
     params = type(calibrated)(

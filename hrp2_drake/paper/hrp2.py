@@ -47,7 +47,6 @@ def description() -> RobotDescription:
 _HRP2 = description()
 URDF_FILE = _HRP2.model_file
 SERVO_FILE = _HRP2.servo_file
-TRAJECTORY_FILE = _HRP2.trajectory_file
 
 JOINT_NAMES: tuple[str, ...] = tuple(_HRP2.joints)
 NUM_JOINTS = len(JOINT_NAMES)
@@ -70,11 +69,6 @@ FT_SENSORS: dict[str, str] = {
 FT_SENSOR_BODIES: dict[str, str] = {
     name: sensor.body for name, sensor in _HRP2.force_torque_sensors.items()
 }
-SOLE_FRAMES: dict[str, str] = dict(zip(("right_foot", "left_foot"), _HRP2.scenarios.soles))
-#: Shoulder points (CHEST_LINK1 frame, m) where the hanging strings are tied.
-SHOULDERS: dict[str, tuple[float, float, float]] = dict(
-    zip(("right", "left"), map(tuple, _HRP2.scenarios.hanging.points))
-)
 
 
 def add_hrp2(plant: MultibodyPlant) -> ModelInstanceIndex:

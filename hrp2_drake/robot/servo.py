@@ -189,20 +189,12 @@ class ServoParams:
             joint.validate(f"{prefix}joints.{name}")
 
 
-def servo_file_path(path: str | Path | None = None, robot: str | Path | None = None) -> Path:
-    """The servo data file: a path, a preset of the robot description (e.g. "ideal"),
-    or None / "" / "calibrated" for the robot's `servo_file` (`robot` as
-    `load_robot_description`: None for the default robot)."""
-    from hrp2_drake.description import load_robot_description
-
-    return load_robot_description(robot, check=False).servo_path(str(path or ""))
-
-
 def load_servo_params(
     path: str | Path | None = None, robot: str | Path | None = None
 ) -> ServoParams:
     """Loads a servo data file: a path, a preset name ("ideal", "calibrated"), or None
-    (the robot's calibrated servo); see `servo_file_path`.
+    (the robot's calibrated servo), as `RobotDescription.servo_path` finds it (`robot`
+    as `load_robot_description`: None for the default robot).
 
     Raises:
         FileNotFoundError, IsADirectoryError: no such file (naming the robot's presets).
@@ -348,20 +340,12 @@ def servo_torque(
     return drive - p["k2"] * v - coulomb * direction
 
 
-def dahl_step(s: np.ndarray, dq: np.ndarray, width: np.ndarray) -> np.ndarray:
-    """Direction state after the joint moved dq (rad): the exact solution of Dahl's
-    ds/dq = (1 - s sign(dq)) / width over the step; stays in [-1, 1]."""
-    decay = np.exp(-np.abs(dq) / width)
-    target = np.sign(dq)
-    return np.where(dq == 0, s, target + (s - target) * decay)
-
-
 # --- The per-step arithmetic: numba kernels (hrp2_drake.kernels) -------------------
 #
-# `servo_torque` and `dahl_step` above are the law in numpy, the reference; the kernels
-# below are what the servo runs, operation for operation the same numbers (every
-# operation is elementwise: no reduction, no fma; tests/test_servo.py compares them bit
-# for bit). Two operations stay in numpy, outside the kernels: tanh and exp. numpy's
+# `servo_torque` above (and tests/test_servo.py's `dahl_step`) are the law in numpy,
+# the reference; the kernels below are what the servo runs, operation for operation
+# the same numbers (every operation is elementwise: no reduction, no fma;
+# tests/test_servo.py compares them bit for bit). Two operations stay in numpy, outside the kernels: tanh and exp. numpy's
 # float64 tanh is its own SIMD code (AVX2, AVX-512), which differs from the C
 # library's (what a kernel calls) in the last bit for about a third of the arguments
 # (measured on an AVX2 machine), and on AVX-512 machines its float64 exp is its own
@@ -525,8 +509,8 @@ def _dahl_exponents(c, rows, x, servo_state, out):
 @kernel
 def _servo_update(c, rows, x, q_cmd, servo_state, decay, quantum, depth):
     """The servo's periodic update, in place on its discrete state (`servo_state`):
-    the direction states (`dahl_step`'s numbers with decay = exp of
-    `_dahl_exponents`; 0 without hysteresis), the last positions, and, with a latency
+    the direction states (tests/test_servo.py's `dahl_step`'s numbers with decay =
+    exp of `_dahl_exponents`; 0 without hysteresis), the last positions, and, with a latency
     (`depth` periods), the commands in transit shifted by one period with q_cmd
     (quantized to `quantum`, 0: none) entering. Returns False, changing nothing, if
     there is a latency and q_cmd is not finite."""
@@ -862,19 +846,6 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
             self._vector(direction), self._enabled_vector(enabled), True, tau,
         )
         return tau
-
-    def _drive_current(
-        self, error: np.ndarray, v: np.ndarray, enabled: np.ndarray | None = None
-    ) -> np.ndarray:
-        """The motor current i (A) of the servo law (module docstring) for the
-        position error `error`."""
-        v = self._vector(v)
-        current = np.empty(self._n)
-        _servo_law(
-            self._constants, self._vector(error), self._empty, v, v,
-            self._enabled_vector(enabled), False, current,
-        )
-        return current
 
     def _joint_state(self, context: Context) -> tuple[np.ndarray, np.ndarray]:
         x = self._state.Eval(context)

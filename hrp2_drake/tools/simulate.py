@@ -16,7 +16,7 @@ from pydrake.systems.primitives import ConstantVectorSource, TrajectorySource, V
 from pydrake.trajectories import PiecewisePolynomial
 
 from hrp2_drake.config import check_finite
-from hrp2_drake.description import RobotDescription, check_joint_positions, joint_limits
+from hrp2_drake.description import RobotDescription, check_joint_positions
 from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
 from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
 
@@ -66,13 +66,6 @@ class SimulateConfig:
         robot = self.station.description()
         if self.trajectory:
             load_joint_trajectory(self.trajectory, robot)
-
-
-def joint_position_limits(robot: RobotDescription | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(lower, upper) position limits (rad) of the robot's joints (default: HRP-2), in
-    its joint order, as the MultibodyPlant reads them from the model."""
-    lower, upper, _ = joint_limits(robot or StationConfig().description())
-    return lower, upper
 
 
 def check_joint_limits(
