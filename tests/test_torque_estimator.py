@@ -22,7 +22,6 @@ from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
 from pydrake.systems.sensors import Accelerometer, Gyroscope
 
 from hrp2_drake import kernels
-from hrp2_drake.estimation.inertial_identification import identify_end_effector_inertia
 from hrp2_drake.estimation.savitzky_golay import savgol_coefficients
 from hrp2_drake.estimation.estimation_chain import add_estimator
 from hrp2_drake.estimation.estimator_config import (
@@ -38,6 +37,8 @@ from hrp2_drake.robot.station import (
     initial_joint_positions,
     make_station,
 )
+
+from inertial_identification import identify_end_effector_inertia
 
 kV = JacobianWrtVariable.kV
 SENSORS = list(hrp2.FT_SENSORS)

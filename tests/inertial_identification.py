@@ -13,6 +13,9 @@ squares. The gravity direction in the sensor frame comes from the kinematics (e.
 IMU's accelerometer at rest reads −g in the IMU frame: rotate it into the sensor frame
 and negate). Rotational inertia is not observable statically; a moving link below the
 sensor (a gripper) is identified as one rigid load in its current configuration.
+
+Test-only: no library code, script or command uses it; tests/test_torque_estimator.py
+does (moved here from hrp2_drake/estimation/, issue 28).
 """
 
 from typing import NamedTuple
