@@ -910,8 +910,10 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
 def __getattr__(name: str):
     """The deprecated name `Hrp2ServoEmulation` (the class was renamed
     `EmulatedPositionServo`, which drives any robot): importing it warns once per
-    place that imports it, and gives `EmulatedPositionServo` itself. It goes in the
-    next release."""
+    place that imports it, and gives `EmulatedPositionServo` itself.
+
+    Why it stays: deprecated on 2026-11-25 (issue 19) with the promise of one more
+    release; it goes in the release after 0.1.0 (0.2.0), and this function with it."""
     if name == "Hrp2ServoEmulation":
         warnings.warn(
             "hrp2_drake.robot.servo.Hrp2ServoEmulation is deprecated: use "
