@@ -76,8 +76,8 @@ def test_paper_claims_and_project_goals_are_judged_apart_by_one_rule():
                    "improved": {
                        "goal": {"claim": "K6 = 0.1 torque control at least as accurate as "
                                 "position control"},
-                       "rows": [{"label": "improved K6=0.1: all (tuned)", "fallback_time": None,
-                                 "misses": ["ankle roll maximum 4.71 > 4.52 mrad"]}],
+                       "tuned": {"label": "improved K6=0.1: all (tuned)", "fallback_time": None,
+                                 "misses": ["ankle roll maximum 4.71 > 4.52 mrad"]},
                    }},
     }
     rows = verdicts(results)

@@ -423,7 +423,7 @@ def _motion_verdicts(results: dict) -> list[Verdict]:
         "each of 10 cells (5 joints × average, maximum error) no higher than "
         "position control's, and no fallback"
     )
-    tuned = next(r for r in improved["rows"] if r["label"].endswith("all (tuned)"))
+    tuned = improved["tuned"]
     goals = [
         (
             "The paper's future work, tuned: " + improved["goal"]["claim"]
