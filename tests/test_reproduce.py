@@ -100,3 +100,34 @@ def test_paper_claims_and_project_goals_are_judged_apart_by_one_rule():
     assert "**The paper's claims, as written**" in tables
     assert "**This project's goals**" in tables
     assert "claim of the paper" not in tables.split("**This project's goals**")[1]
+
+
+def test_the_goals_find_their_rows_by_key_not_by_label():
+    """The tuned motion row is the summary's "tuned", and the force experiment's
+    improved variant is the one named "improved" (its ABLATIONS key): a row whose
+    display label reads "improved ..." but has another key is not judged."""
+    from hrp2_drake.paper.claims import verdicts
+
+    def metrics(rms, overshoot):
+        return {"ft_reading": {"rms_error": rms, "overshoot": overshoot, "lag_ms": 5.0,
+                               "amplitude_ratio": 0.95, "coupling_x": 0.1}}
+
+    tuned = {"label": "any display text", "fallback_time": None, "misses": []}
+    results = {
+        "motion": {"ok": True, "verdicts": {}, "improved": {
+            "goal": {"claim": "K6 = 0.1 as accurate as position control"},
+            "rows": [{"label": "improved K6=0.1: all (tuned)", "fallback_time": 1.0,
+                      "misses": ["a", "b", "c"]}],
+            "tuned": tuned,
+        }},
+        "force": {"ok": True, "baseline": {"metrics": metrics(10.0, 0.05)}, "variants": [
+            {"name": "improved_observer_only", "label": "improved, but the observer alone",
+             "metrics": metrics(50.0, 0.5), "fallback_time": 1.0},
+            {"name": "improved", "label": "the tuned controller",
+             "metrics": metrics(9.0, 0.05), "fallback_time": None},
+        ]},
+    }
+    goals = {r.claim.split(":")[0]: r for r in verdicts(results) if r.kind == "goal"}
+    assert goals["The paper's future work, tuned"].verdict == "holds"
+    force_goal = goals["The paper's future work, tuned on the motion"]
+    assert force_goal.verdict == "holds" and "RMS error 9.0 N" in force_goal.evidence

@@ -477,7 +477,7 @@ def _force_verdicts(results: dict) -> list[Verdict]:
             "paper's 10%)",
         ),
     ]
-    improved = [v for v in force.get("variants", []) if v["label"].startswith("improved")]
+    improved = [v for v in force.get("variants", []) if v["name"] == "improved"]
     if not improved:
         return rows
     # The motion-tuned controller on a task it was not tuned on: no worse than the

@@ -489,6 +489,8 @@ class ForceRun:
         fallback_time: when the torque controller fell back to position control (s),
             or None.
         posture_gain: G (30, rad/N) of a compatible reference, or None.
+        name: its key in ABLATIONS ("" for the paper's settings): what readers match
+            on, never the label.
     """
 
     label: str
@@ -499,6 +501,7 @@ class ForceRun:
     metrics: dict[str, dict]
     fallback_time: float | None
     posture_gain: np.ndarray | None = None
+    name: str = ""
 
 
 @dataclass
@@ -619,9 +622,10 @@ def run_force_all(config: ForceConfig, motor_model: MotorModel) -> ForceResult:
         variant = change(config)
         same_plant = variant.station == config.station
         gain = baseline.posture_gain if variant.compatible_reference and same_plant else None
-        variants.append(
-            run_force(variant, motor_model, label, static if same_plant else None, gain)
-        )
+        shared = static if same_plant else None
+        run = run_force(variant, motor_model, label, shared, gain)
+        run.name = name
+        variants.append(run)
     return ForceResult(baseline, variants)
 
 
@@ -635,6 +639,7 @@ def summarize(result: ForceResult) -> dict:
         c = run.config
         return {
             "label": run.label,
+            "name": run.name,
             "k6": c.torque_control.controller.k6,
             "kf": list(c.torque_control.controller.kf),
             "kp": list(c.torque_control.controller.kp),
