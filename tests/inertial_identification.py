@@ -99,8 +99,8 @@ def identify_end_effector_inertia(
         raise ValueError(
             f"{_WHERE}: the {m} orientations do not excite the 10 parameters "
             f"(singular values of the scaled regressor down to {singular[-1]:.3g}, "
-            f"largest {singular[0]:.3g}): use at least three different gravity directions "
-            "in the sensor frame"
+            f"largest {singular[0]:.3g}): use at least three different gravity "
+            "directions in the sensor frame"
         )
     x = np.linalg.lstsq(A / scale, b, rcond=None)[0] / scale
     mass = float(x[0])

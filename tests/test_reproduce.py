@@ -76,7 +76,8 @@ def test_paper_claims_and_project_goals_are_judged_apart_by_one_rule():
                    "improved": {
                        "goal": {"claim": "K6 = 0.1 torque control at least as accurate as "
                                 "position control"},
-                       "tuned": {"label": "improved K6=0.1: all (tuned)", "fallback_time": None,
+                       "tuned": {"label": "improved K6=0.1: all (tuned)",
+                                 "fallback_time": None,
                                  "misses": ["ankle roll maximum 4.71 > 4.52 mrad"]},
                    }},
     }
@@ -120,12 +121,16 @@ def test_the_goals_find_their_rows_by_key_not_by_label():
                       "misses": ["a", "b", "c"]}],
             "tuned": tuned,
         }},
-        "force": {"ok": True, "baseline": {"metrics": metrics(10.0, 0.05)}, "variants": [
-            {"name": "improved_observer_only", "label": "improved, but the observer alone",
-             "metrics": metrics(50.0, 0.5), "fallback_time": 1.0},
-            {"name": "improved", "label": "the tuned controller",
-             "metrics": metrics(9.0, 0.05), "fallback_time": None},
-        ]},
+        "force": {
+            "ok": True,
+            "baseline": {"metrics": metrics(10.0, 0.05)},
+            "variants": [
+                {"name": "improved_observer_only", "label": "improved, observer alone",
+                 "metrics": metrics(50.0, 0.5), "fallback_time": 1.0},
+                {"name": "improved", "label": "the tuned controller",
+                 "metrics": metrics(9.0, 0.05), "fallback_time": None},
+            ],
+        },
     }
     goals = {r.claim.split(":")[0]: r for r in verdicts(results) if r.kind == "goal"}
     assert goals["The paper's future work, tuned"].verdict == "holds"

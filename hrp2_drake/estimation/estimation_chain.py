@@ -103,7 +103,9 @@ def add_estimator(
     sensor_ports = imu_ports + [wrench_prefix + s for s in config.sensors]
     _check_station_ports(station, config, encoders, sensor_ports)
     estimator = builder.AddNamedSystem(name, FloatingBaseTorqueEstimator(plant, config))
-    encoder_filter = _add_encoder_filter(builder, station, estimator, config, encoders, name)
+    encoder_filter = _add_encoder_filter(
+        builder, station, estimator, config, encoders, name
+    )
     faults = [encoder_filter.GetOutputPort("input_fault")]
     sensor_filter = _add_sensor_filter(
         builder, station, estimator, config, sensor_ports, name
@@ -119,7 +121,10 @@ def add_estimator(
 
 
 def _check_station_ports(
-    station: System, config: TorqueEstimatorConfig, encoders: str, sensor_ports: list[str]
+    station: System,
+    config: TorqueEstimatorConfig,
+    encoders: str,
+    sensor_ports: list[str],
 ) -> None:
     """add_estimator's first step: `station` has the encoder port, of one entry per
     joint, and every sensor port (a KeyError, a ValueError naming them otherwise)."""
@@ -127,7 +132,8 @@ def _check_station_ports(
     missing = [p for p in ports if not station.HasOutputPort(p)]
     if missing:
         raise KeyError(
-            f"add_estimator: station '{station.get_name()}' has no output ports {missing}"
+            f"add_estimator: station '{station.get_name()}' has no output ports "
+            f"{missing}"
         )
     n = len(config.joints)
     if station.GetOutputPort(encoders).size() != n:
@@ -212,8 +218,12 @@ def _add_sensor_filter(
     for k, target in enumerate(targets):
         builder.Connect(values.get_output_port(k), estimator.GetInputPort(target))
     if num_imu_ports:
-        rates = builder.AddNamedSystem(f"{name}_sensor_derivatives", Demultiplexer(sizes))
-        builder.Connect(sensor_filter.GetOutputPort("derivative"), rates.get_input_port())
+        rates = builder.AddNamedSystem(
+            f"{name}_sensor_derivatives", Demultiplexer(sizes)
+        )
+        builder.Connect(
+            sensor_filter.GetOutputPort("derivative"), rates.get_input_port()
+        )
         builder.Connect(
             rates.get_output_port(1),
             estimator.GetInputPort("imu_angular_acceleration"),

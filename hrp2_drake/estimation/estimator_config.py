@@ -210,7 +210,8 @@ def filter_windows(config: TorqueEstimatorConfig) -> tuple[list[int], list[int]]
     sensor (6, config.sensors order)]."""
     encoders = [config.window_of(j) for j in config.joints]
     imu = [config.window_of("imu")] * (6 if config.imu_frame else 0)
-    return encoders, imu + [config.window_of(s) for s in config.sensors for _ in range(6)]
+    sensors = [config.window_of(s) for s in config.sensors for _ in range(6)]
+    return encoders, imu + sensors
 
 
 def estimation_delay(config: TorqueEstimatorConfig) -> float:

@@ -508,7 +508,8 @@ class TorqueEstimatorStep(Step):
         if rank < A.shape[1]:
             raise ValueError(
                 f"{WHERE}: A = [J_uᵀ Sᵀ] has rank {rank} < {A.shape[1]}: the unknown "
-                f"wrench on '{frame.body().name()}' and the torques are not identifiable"
+                f"wrench on '{frame.body().name()}' and the torques are not "
+                "identifiable"
             )
 
 

@@ -55,8 +55,9 @@ def internal_model(
     sensors: list[ModelSensor],
 ) -> tuple[MultibodyPlant, dict[int, object]]:
     """The estimator's internal model of `plant` (torque_estimator's docstring): its
-    bodies (with their inertias in `context`), frames, joints and actuators (rotor inertias and
-    gear ratios in `context`), without geometry, force elements or gravity, with
+    bodies (with their inertias in `context`), frames, joints and actuators (rotor
+    inertias and gear ratios in `context`), without geometry, force elements or
+    gravity, with
     - a massless floating root body welded to `root_frame` (the IMU frame, or the
       fixed base's frame without IMU), every joint of the robot's tree oriented away
       from it (a revolute or prismatic joint turned around keeps its q and generalized

@@ -57,27 +57,27 @@ plant (the "internal model", see below):
    origin (measured in the model's world, expressed in S), one per sensor on the same
    kinematics; no second inverse dynamics.
 4. Unknown wrench (Sec. 2.4). The n + 6 equations G = [J_uᵀ Sᵀ] [f_u; τ] are solved for
-   the unknown wrench f_u on one link u (the base by default, or a chosen link such as the
-   torso) and τ. A = [J_uᵀ Sᵀ] is square; it is checked to have full column rank at
+   the unknown wrench f_u on one link u (the base by default, or a chosen link such as
+   the torso) and τ. A = [J_uᵀ Sᵀ] is square; it is checked to have full column rank at
    construction (it always has for a tree: its root rows hold the invertible 6x6
-   J_u,rootᵀ), so the least-squares solution is exact:
-   f_u = J_u,root⁻ᵀ G_root, τ = G_joints − J_u,jointsᵀ f_u. With u on the IMU's body (the
-   torso for HRP-2, the paper's choice) J_u is constant and J_u,joints = 0, so τ = S G;
-   the estimate does not depend on which body is the model's base, so for u = the
-   robot's base this is eq. 2. For a fixed base the model's root keeps its 6 degrees of
-   freedom: f_u on the base is then the wrench the mounting exerts on it.
+   J_u,rootᵀ), so the least-squares solution is exact: f_u = J_u,root⁻ᵀ G_root, τ =
+   G_joints − J_u,jointsᵀ f_u. With u on the IMU's body (the torso for HRP-2, the
+   paper's choice) J_u is constant and J_u,joints = 0, so τ = S G; the estimate does not
+   depend on which body is the model's base, so for u = the robot's base this is eq. 2.
+   For a fixed base the model's root keeps its 6 degrees of freedom: f_u on the base is
+   then the wrench the mounting exerts on it.
 
 The internal model is a copy of the plant's bodies (inertias), frames, joints (revolute,
-prismatic, welds) and actuators (rotor inertia, gear ratio), re-rooted at a massless body
-welded to the IMU frame (or to the fixed base's frame without IMU; a revolute or
+prismatic, welds) and actuators (rotor inertia, gear ratio), re-rooted at a massless
+body welded to the IMU frame (or to the fixed base's frame without IMU; a revolute or
 prismatic joint turned around keeps its q and its generalized force with the opposite
 axis), plus one mount and one 6-dof joint per F/T sensor; the joint that attaches the
 robot to the world (floating or weld) is not copied. Per update, the Drake calls: one
 SetPositionsAndVelocities, one inverse dynamics, one Jacobian per F/T sensor (plus one
-when the unknown-wrench link moves relative to the IMU, and one relative pose per
-nested sensor); the arithmetic around them is two numba kernels (`estimator_inputs`,
-`estimator_outputs`; hrp2_drake.kernels). That is what makes the Python estimator run
-at 1 kHz with room to spare (scripts/bench_estimator.py).
+when the unknown-wrench link moves relative to the IMU, and one relative pose per nested
+sensor); the arithmetic around them is two numba kernels (`estimator_inputs`,
+`estimator_outputs`; hrp2_drake.kernels). That is what makes the Python estimator run at
+1 kHz with room to spare (scripts/bench_estimator.py).
 
 Reflected rotor inertia: the model's actuators may carry a rotor inertia I_r and a gear
 ratio ρ (Drake adds ρ² I_r to the joint's diagonal of the mass matrix). With

@@ -345,12 +345,12 @@ def servo_torque(
 # `servo_torque` above (and tests/test_servo.py's `dahl_step`) are the law in numpy,
 # the reference; the kernels below are what the servo runs, operation for operation
 # the same numbers (every operation is elementwise: no reduction, no fma;
-# tests/test_servo.py compares them bit for bit). Two operations stay in numpy, outside the kernels: tanh and exp. numpy's
-# float64 tanh is its own SIMD code (AVX2, AVX-512), which differs from the C
-# library's (what a kernel calls) in the last bit for about a third of the arguments
-# (measured on an AVX2 machine), and on AVX-512 machines its float64 exp is its own
-# too; so the servo computes tanh(q̇ / v_s) and the Dahl decay exp(-|Δq| / δ) with
-# numpy, and the kernels take them as arrays.
+# tests/test_servo.py compares them bit for bit). Two operations stay in numpy,
+# outside the kernels: tanh and exp. numpy's float64 tanh is its own SIMD code (AVX2,
+# AVX-512), which differs from the C library's (what a kernel calls) in the last bit
+# for about a third of the arguments (measured on an AVX2 machine), and on AVX-512
+# machines its float64 exp is its own too; so the servo computes tanh(q̇ / v_s) and
+# the Dahl decay exp(-|Δq| / δ) with numpy, and the kernels take them as arrays.
 
 # Rows of the servo's constants (`EmulatedPositionServo._constants`, one float64 row
 # per parameter over the joints).
@@ -510,10 +510,10 @@ def _dahl_exponents(c, rows, x, servo_state, out):
 def _servo_update(c, rows, x, q_cmd, servo_state, decay, quantum, depth):
     """The servo's periodic update, in place on its discrete state (`servo_state`):
     the direction states (tests/test_servo.py's `dahl_step`'s numbers with decay =
-    exp of `_dahl_exponents`; 0 without hysteresis), the last positions, and, with a latency
-    (`depth` periods), the commands in transit shifted by one period with q_cmd
-    (quantized to `quantum`, 0: none) entering. Returns False, changing nothing, if
-    there is a latency and q_cmd is not finite."""
+    exp of `_dahl_exponents`; 0 without hysteresis), the last positions, and, with a
+    latency (`depth` periods), the commands in transit shifted by one period with
+    q_cmd (quantized to `quantum`, 0: none) entering. Returns False, changing
+    nothing, if there is a latency and q_cmd is not finite."""
     n = c.shape[1]
     if depth > 0 and not _command_finite(q_cmd):
         return False
