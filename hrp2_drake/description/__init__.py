@@ -306,6 +306,7 @@ class RobotDescription:
         self.sensors.validate(len(self.joints), list(self.force_torque_sensors))
         self.logs.validate(len(self.joints))
         self.position_loop.validate()
+        self.identification.validate()
         self._validate_bus()
         for joint, values in self.published_motor_model.items():
             if joint not in self.joints:

@@ -800,6 +800,7 @@ def run_tune(
     writes tuned.yaml, tune.md, history.png and importances.png there.
 
     Args:
+        config: validated where it was loaded (`validate_config`).
         log: called with one line per finished trial (default: stderr).
     """
     optuna = _require("optuna")
@@ -807,7 +808,6 @@ def run_tune(
     from pydrake.common.yaml import yaml_dump_typed
 
     log = log or console.say
-    config.validate()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     robot = config.station.description()

@@ -181,8 +181,8 @@ def run_control(
     """The whole `hrp2-drake control`: build the fused controller, connect to the
     robot (over LCM at `lcm_url`, or on its bus at `port`), move to home and run the
     control loop, report (control.md with a latency histogram, control.json,
-    control.npz). The summary says why the run ended ("fault")."""
-    config.validate()
+    control.npz). The summary says why the run ended ("fault"). `config` is validated
+    where it was loaded (`validate_config`)."""
     robot = config.description()
     torque_control = config.torque_control_at_period()
     if motor_model.gain:  # a model stated at a servo gain: at the gain the robot runs at
@@ -366,8 +366,8 @@ def run_sim_robot(config: StationConfig, lcm_url: str, duration: float, out: Pat
     """The whole `hrp2-drake sim-robot`: `RobotBridge` in real time (or at `rate` times
     it, or in lock step with the controller's commands) for `duration` s (inf: until
     SIGTERM or Ctrl-C); writes its ground truth (sim_robot.npz: t, state_true,
-    q_measured, q_cmd, holding, commanded) to `out` on exit."""
-    config.validate()
+    q_measured, q_cmd, holding, commanded) to `out` on exit. `config` is validated
+    where it was loaded (`validate_config`)."""
     bridge_config = BridgeConfig(duration=duration, rate=rate, watchdog_periods=watchdog_periods,
                                  lockstep=lockstep)
     bridge_config.validate()

@@ -545,8 +545,8 @@ def _plot_force(t, desired, achieved, estimate, config: TrackConfig, path: Path)
 
 
 def run_track(config: TrackConfig, motor_model: MotorModel, out: Path) -> dict:
-    """The whole `hrp2-drake track`: tracking, the force task, report and plots."""
-    config.validate()
+    """The whole `hrp2-drake track`: tracking, the force task, report and plots.
+    `config` is validated where it was loaded (`validate_config`)."""
     robot = config.station.description()
     out.mkdir(parents=True, exist_ok=True)
     # The one place where track reads the motor model: at the station's servo gain.
