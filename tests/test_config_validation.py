@@ -10,6 +10,7 @@ import pkgutil
 import pytest
 
 import hrp2_drake
+from hrp2_drake.cli import main
 from hrp2_drake.config import _callable_without_arguments, nested_configs
 from hrp2_drake.description import load_robot_description
 from hrp2_drake.tools.record import RecordConfig
@@ -80,3 +81,126 @@ def test_a_config_validates_every_config_nested_in_it(monkeypatch, schema, confi
     config.validate()
     missing = [where for where, child in nested if id(child) not in called]
     assert not missing, f"{schema.__name__}.validate() does not validate {missing}"
+
+
+# ------------------------------------------- bad input through the command line
+def refused(capsys, argv: list[str], *culprits: str) -> str:
+    """Runs the command; asserts exit code 2 and ONE error line naming `culprits`, no
+    traceback; returns the line."""
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert code == 2, err
+    assert len(lines) == 1, err
+    assert lines[0].startswith(f"hrp2-drake {argv[0]}: error: "), lines[0]
+    for culprit in culprits:
+        assert culprit in lines[0], lines[0]
+    return lines[0]
+
+
+def simulated(*args, **kwargs):
+    raise AssertionError("simulated despite bad input")
+
+
+@pytest.fixture
+def no_simulation(monkeypatch):
+    """Any simulation (or robot connection) fails the test: bad input is refused
+    before one starts."""
+    from hrp2_drake.tools import control, identify, simulate, track
+
+    monkeypatch.setattr(simulate, "run_simulate", simulated)
+    monkeypatch.setattr(track, "run_track", simulated)
+    monkeypatch.setattr(control, "run_control", simulated)
+    monkeypatch.setattr(identify, "collect_log", simulated)
+
+
+def motor_model(joints: list[str]) -> str:
+    n = len(joints)
+    return (
+        f"joint_names: [{', '.join(joints)}]\nk_tau: [{', '.join(['1e-4'] * n)}]\n"
+        f"k_v: [{', '.join(['1e-2'] * n)}]\n"
+    )
+
+
+RIGHT_LEG = [f"RLEG_JOINT{k}" for k in range(6)]
+IIWA = [f"iiwa_joint_{k}" for k in range(1, 8)]
+SIMULATE = ["simulate", "--config", "{d}/config.yaml"]
+TRACK = ["track", "--motor-model", "{d}/motor.yaml", "--config", "{d}/config.yaml"]
+CONTROL = ["control", "--lcm", "memq://", "--motor-model", "{d}/motor.yaml"]
+CONTROL += ["--config", "{d}/config.yaml"]
+TUNE = ["tune", "--motor-model", "{d}/motor.yaml", "--config", "{d}/config.yaml"]
+
+
+def case(name, argv, config, *culprits, motor=RIGHT_LEG):
+    return pytest.param(argv, config, motor, culprits, id=name)
+
+
+@pytest.mark.parametrize(
+    "argv, config, motor, culprits",
+    [
+        # A scenario given is never replaced (was: fixed_base, silently).
+        case("unknown scenario, fixed robot", SIMULATE + ["--robot", "iiwa14"],
+             "station: {scenario: flying}\n",
+             "config.yaml", "StationConfig.scenario", "'flying'",
+             "robot 'iiwa14': fixed_base)"),
+        case("unknown scenario, fixed robot in the file", SIMULATE,
+             "station: {robot: iiwa14, scenario: flying}\n",
+             "StationConfig.scenario", "'flying'", "'hanging'", "iiwa14': fixed_base)"),
+        case("floating scenario, fixed robot", SIMULATE + ["--robot", "iiwa14"],
+             "station: {scenario: hanging}\n",
+             "StationConfig.scenario", "'hanging'", "only 'fixed_base'"),
+        case("track: unknown scenario, floating robot", TRACK + ["--robot", "hrp2"],
+             "station: {scenario: flying}\n", "StationConfig.scenario", "'flying'",
+             "robot 'hrp2': fixed_base, hanging, standing, standing_on_block)"),
+        # The scene: NaN, inf and negative numbers.
+        case("NaN string stiffness", SIMULATE,
+             "station: {hanging: {stiffness: .nan}}\n",
+             "StationConfig.hanging.stiffness", "finite"),
+        case("negative sway damping", SIMULATE,
+             "station: {hanging: {sway_damping: [5.0, -1.0]}}\n",
+             "StationConfig.hanging.sway_damping[1]", ">= 0"),
+        case("negative block height", SIMULATE, "station: {block_height: -0.05}\n",
+             "StationConfig.block_height", "> 0"),
+        case("infinite obstacle", SIMULATE,
+             "station: {obstacles: [{size: [1.0, 1.0, .inf]}]}\n",
+             "StationConfig.obstacles[0].size", "finite"),
+        case("negative obstacle friction", SIMULATE,
+             "station: {obstacles: [{friction: -0.5}]}\n",
+             "StationConfig.obstacles[0].friction", ">= 0"),
+        # Windows: the config's key, the samples and the time.
+        case("control: a window of 1 sample", CONTROL,
+             "torque_control: {estimator: {window: 1}}\n",
+             "config.yaml", "TorqueControlConfig.estimator.window", "1 sample",
+             "1 ms", "3 or more"),
+        case("control: a per-joint window of 1 sample", CONTROL,
+             "torque_control: {estimator: {windows: {RLEG_JOINT3: 1}}}\n",
+             "TorqueControlConfig.estimator.windows['RLEG_JOINT3']", "1 sample",
+             "1 ms"),
+        # Joints: names and the sequences that must match them.
+        case("control: unknown joint", CONTROL,
+             "torque_control: {joints: [RLEG_JOINT0, KNEE]}\n",
+             "ControlConfig.torque_control.joints", "'KNEE'", "'hrp2'"),
+        case("control: a joint twice", CONTROL,
+             "torque_control: {joints: [RLEG_JOINT0, RLEG_JOINT0]}\n",
+             "ControlConfig.torque_control.joints", "more than once"),
+        case("control: kp of 2 values for 6 joints", CONTROL,
+             "torque_control: {controller: {kp: [1.0, 2.0]}}\n",
+             "ControlConfig.torque_control.controller.kp", "2 values", "one or 6"),
+        case("track: kp of 3 values for 7 joints", TRACK,
+             "torque_control: {controller: {kp: [1.0, 2.0, 3.0]}}\n",
+             "TrackConfig.torque_control.controller.kp", "one or 7", motor=IIWA),
+        case("track: a force that pulls", TRACK, "press: 5.0\nforce_amplitude: 8.0\n",
+             "TrackConfig.force_amplitude", "pull", motor=IIWA),
+        case("tune: kp of 2 values", TUNE,
+             "torque_control: {controller: {kp: [1.0, 2.0]}}\n",
+             "TuneConfig.torque_control.controller.kp", "one or 6"),
+    ],
+)
+def test_bad_config_is_one_line_naming_the_key(
+    tmp_path, capsys, no_simulation, argv, config, motor, culprits
+):
+    (tmp_path / "config.yaml").write_text(config)
+    (tmp_path / "motor.yaml").write_text(motor_model(motor))
+    argv = [a.replace("{d}", str(tmp_path)) for a in argv]
+    refused(capsys, argv + ["--out", str(tmp_path / "out")], *culprits)

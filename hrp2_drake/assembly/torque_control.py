@@ -61,14 +61,28 @@ class EstimatorSettings:
         """Raises ValueError naming the bad field (the windows' names and parities are
         checked against the robot when the estimator is built)."""
         where = f"{_WHERE}.estimator"
-        if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window < 3:
-            raise ValueError(f"{where}.window: {self.window!r} must be an integer >= 3")
+        _check_window(self.window, f"{where}.window")
+        for name, window in self.windows.items():
+            _check_window(window, f"{where}.windows['{name}']")
         if self.evaluation not in EVALUATION_POINTS:
             raise ValueError(
                 f"{where}.evaluation: '{self.evaluation}', expected one of {EVALUATION_POINTS}"
             )
         check_finite(
             self.offset_calibration_time, f"{where}.offset_calibration_time", 0.0, False
+        )
+
+
+def _check_window(window: int, where: str) -> None:
+    """Raises ValueError naming `where` unless `window` is a Savitzky-Golay window of
+    3 samples or more (the encoders' parabola), stated at 1 kHz (`at_period`)."""
+    if isinstance(window, bool) or not isinstance(window, int):
+        raise ValueError(f"{where}: {window!r}, expected a number of samples (integer)")
+    if window < 3:
+        raise ValueError(
+            f"{where}: {window} sample{'' if window == 1 else 's'} "
+            f"({window * REFERENCE_PERIOD * 1e3:g} ms at 1 kHz), expected 3 or more "
+            "(the encoders' filter fits a parabola)"
         )
 
 
@@ -301,6 +315,29 @@ def check_control_period(config: TorqueControlConfig, period: float, where: str 
             "period (the robot's sensor period, sensors.period) is "
             f"{period:g} s: the supervisor runs once per control tick; leave "
             f"supervisor.period out or set it to {period:g}"
+        )
+
+
+def check_for_robot(config: TorqueControlConfig, robot: RobotDescription, where: str) -> None:
+    """Raises ValueError naming `where`.<field> (the path of `config` in the user's
+    file, e.g. "ControlConfig.torque_control") unless `config` fits `robot`: its
+    joints are the robot's, each once; `controller.kp` has one value or one per
+    torque-controlled joint."""
+    unknown = [name for name in config.joints if name not in robot.joints]
+    if unknown:
+        raise ValueError(
+            f"{where}.joints: {unknown} not joints of robot '{robot.name}' (e.g. "
+            f"{robot.joints[:3]})"
+        )
+    repeated = sorted({name for name in config.joints if config.joints.count(name) > 1})
+    if repeated:
+        raise ValueError(f"{where}.joints: {repeated} given more than once")
+    n = len(config.controlled_joints(robot))
+    kp = config.controller.kp
+    if isinstance(kp, list) and len(kp) not in (1, n):
+        raise ValueError(
+            f"{where}.controller.kp: {len(kp)} values, expected one or {n} (one per "
+            "torque-controlled joint)"
         )
 
 

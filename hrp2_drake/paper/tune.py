@@ -52,7 +52,7 @@ import numpy as np
 from hrp2_drake import console
 from hrp2_drake.config import check_finite, one_line
 from hrp2_drake.assembly.builders import TorqueControlConfig
-from hrp2_drake.assembly.torque_control import EstimatorSettings
+from hrp2_drake.assembly.torque_control import EstimatorSettings, check_for_robot
 from hrp2_drake.config import field_at, field_type, replace_fields, set_field_at
 from hrp2_drake.paper.motion import estimation_delay
 from hrp2_drake.identification.motor_model import MotorModel
@@ -429,6 +429,9 @@ class TuneConfig:
                 f"TuneConfig.start, end: {self.start}-{self.end} s must be a part (1 ms "
                 f"or more) of the climbing motion, 0-{motion_end:g} s"
             )
+        check_for_robot(
+            self.torque_control, self.station.description(), "TuneConfig.torque_control"
+        )
         if self.settle < self.torque_control.start_time:
             raise ValueError(
                 f"TuneConfig.settle = {self.settle} s must be >= torque_control."

@@ -30,7 +30,11 @@ from hrp2_drake.assembly.builders import (
     check_control_period,
     torque_chain_parts,
 )
-from hrp2_drake.assembly.torque_control import EstimatorSettings, at_period
+from hrp2_drake.assembly.torque_control import (
+    EstimatorSettings,
+    at_period,
+    check_for_robot,
+)
 from hrp2_drake.description import RobotDescription, load_robot_description
 from hrp2_drake.tools.track import TrackConfig, check_sinusoid, sinusoid_reference
 from hrp2_drake.hardware.control_loop import (
@@ -118,6 +122,7 @@ class ControlConfig:
         robot = self.description()
         self.torque_control.validate()
         where = "ControlConfig"
+        check_for_robot(self.torque_control, robot, f"{where}.torque_control")
         check_control_period(
             self.torque_control_at_period(), self.period(), f"{where}.torque_control"
         )

@@ -51,7 +51,11 @@ from hrp2_drake.assembly.builders import (
     build_torque_control,
     check_control_period,
 )
-from hrp2_drake.assembly.torque_control import EstimatorSettings, at_period
+from hrp2_drake.assembly.torque_control import (
+    EstimatorSettings,
+    at_period,
+    check_for_robot,
+)
 from hrp2_drake.config import replace_fields
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import is_strictly_below, joint_indexing, tree_parents
@@ -148,7 +152,13 @@ class TrackConfig:
             self.amplitude, self.frequency, self.settle, where,
         )
         control = f"{where}.torque_control"
+        check_for_robot(self.torque_control, robot, control)
         check_control_period(self.torque_control_at_period(), self.period(), control)
+        if self.force_amplitude > self.press:
+            raise ValueError(
+                f"{where}.force_amplitude: {self.force_amplitude:g} N around press "
+                f"{self.press:g} N: the tool would pull on the table (at most press)"
+            )
         for k, rate in enumerate(self.rates):
             check_finite(rate, f"{where}.rates[{k}]", 0.0)
         if self.force_task and robot.base == "fixed" and not can_press(robot):
