@@ -6,7 +6,10 @@ import copy
 import dataclasses
 import importlib
 import pkgutil
+import shutil
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 import hrp2_drake
@@ -204,3 +207,47 @@ def test_bad_config_is_one_line_naming_the_key(
     (tmp_path / "motor.yaml").write_text(motor_model(motor))
     argv = [a.replace("{d}", str(tmp_path)) for a in argv]
     refused(capsys, argv + ["--out", str(tmp_path / "out")], *culprits)
+
+
+def test_a_model_with_a_kinematic_loop_names_the_model_file(
+    tmp_path, capsys, no_simulation
+):
+    folder = tmp_path / "looped"
+    shutil.copytree(Path(hrp2_drake.__file__).parents[1] / "models" / "iiwa14", folder)
+    urdf = folder / "iiwa14.urdf"
+    loop = (
+        '<joint name="loop" type="fixed"><parent link="iiwa_link_7"/>'
+        '<child link="iiwa_link_2"/></joint>\n</robot>'
+    )
+    urdf.write_text(urdf.read_text().replace("</robot>", loop))
+    argv = ["simulate", "--robot", str(folder / "robot.yaml")]
+    refused(
+        capsys, argv + ["--out", str(tmp_path / "out")],
+        "robot.yaml: model_file", f"'{urdf}'", "loops",
+    )
+
+
+def test_a_log_label_of_the_wrong_shape_is_one_line(tmp_path, capsys, no_simulation):
+    """A 2-D `phase` (was a numpy broadcasting error)."""
+    from hrp2_drake.paper import hrp2
+
+    m = 3000
+    t = np.arange(m) * 1e-3
+    q = np.tile(hrp2.half_sitting(), (m, 1))
+    q[:, :6] += 0.1 * np.sin(2 * np.pi * t)[:, np.newaxis]
+    np.savez(
+        tmp_path / "log.npz",
+        t=t,
+        joint_names=np.array(hrp2.JOINT_NAMES),
+        q_measured=q,
+        q_cmd=q + 1e-4,
+        imu_linear_acceleration=np.tile([0.0, 0.0, 9.81], (m, 1)),
+        imu_angular_velocity=np.zeros((m, 3)),
+        phase=np.zeros((m, 2)),
+        **{f"wrench_{name}": np.zeros((m, 6)) for name in hrp2.FT_SENSORS},
+    )
+    argv = ["identify", "--log", str(tmp_path / "log.npz")]
+    refused(
+        capsys, argv + ["--out", str(tmp_path / "out")],
+        "log.npz", "'phase'", f"({m}, 2)", f"expected ({m},)",
+    )

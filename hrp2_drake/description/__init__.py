@@ -35,7 +35,7 @@ from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import BodyIndex, ModelInstanceIndex, RigidBody
 
-from hrp2_drake.config import load_config
+from hrp2_drake.config import load_config, one_line
 from hrp2_drake.description.bus import BusDescription, check_bus_period
 from hrp2_drake.description.excitation import CollectionConfig
 from hrp2_drake.description.logs import LogFormat
@@ -716,7 +716,15 @@ def _load(path: str, mtime: int, check: bool) -> RobotDescription:
         )
     if check:
         try:
-            description.check_model(description.make_plant())
+            plant = description.make_plant()
+        except RuntimeError as error:  # Drake's: the parser's, or a kinematic loop
+            raise ValueError(
+                f"{path}: model_file '{description.model_path()}': {one_line(error)}"
+            ) from error
+        except ValueError as error:
+            raise ValueError(f"{path}: {error}") from error
+        try:
+            description.check_model(plant)
         except (ValueError, RuntimeError) as error:
             raise ValueError(f"{path}: {error}") from error
     return description
