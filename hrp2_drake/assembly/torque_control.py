@@ -139,26 +139,35 @@ class ControllerSettings:
     kf: list[float] = field(default_factory=lambda: [0.0])
     delta_q_limit: float = 0.0
 
+    def __post_init__(self):
+        """A plain number for `kp` or `kf` (from Python code: YAML gives lists)
+        becomes a list of one, when the settings are made, not when validated."""
+        if isinstance(self.kp, (int, float)):
+            self.kp = [float(self.kp)]
+        if isinstance(self.kf, (int, float)):
+            self.kf = [float(self.kf)]
+
     def validate(self) -> None:
         """Raises ValueError naming the bad field: the signals' sources, and gains that
-        are finite and of a sign a controller can use (a plain number for `kp` or `kf`,
-        from Python code, becomes a list of one)."""
+        are finite and of a sign a controller can use. It changes nothing."""
         where = f"{_WHERE}.controller"
         if self.position_source not in ("encoders", "estimate"):
             raise ValueError(f"{where}.position_source: '{self.position_source}'")
         for name in ("feedback_velocity", "friction_velocity"):
             if getattr(self, name) not in ("estimate", "reference"):
                 raise ValueError(f"{where}.{name}: '{getattr(self, name)}'")
-        if isinstance(self.kp, (int, float)):  # a plain number from Python code
-            self.kp = [float(self.kp)]
+        for name in ("kp", "kf"):
+            if not isinstance(getattr(self, name), list):
+                raise ValueError(
+                    f"{where}.{name}: {getattr(self, name)!r}, expected a list (one "
+                    "value, or one per joint / axis)"
+                )
         if not self.kp or not all(math.isfinite(k) and k >= 0 for k in self.kp):
             raise ValueError(
                 f"{where}.kp: {self.kp}: one value or one per joint, each finite and >= 0"
             )
         check_finite(self.k6, f"{where}.k6", 0.0, strict=False)
         check_finite(self.delta_q_limit, f"{where}.delta_q_limit", 0.0, strict=False)
-        if isinstance(self.kf, (int, float)):  # a plain number from Python code
-            self.kf = [float(self.kf)]
         if len(self.kf) not in (1, 6):
             raise ValueError(
                 f"{where}.kf: {len(self.kf)} values, expected one or 6 (one per axis of "
