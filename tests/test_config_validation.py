@@ -147,8 +147,11 @@ def simulated(*args, **kwargs):
 def no_simulation(monkeypatch):
     """Any simulation (or robot connection) fails the test: bad input is refused
     before one starts."""
+    from hrp2_drake.paper import estimation, stability
     from hrp2_drake.tools import control, identify, simulate, track
 
+    monkeypatch.setattr(estimation, "run_estimation_experiment", simulated)
+    monkeypatch.setattr(stability, "run_stability_experiment", simulated)
     monkeypatch.setattr(simulate, "run_simulate", simulated)
     monkeypatch.setattr(track, "run_track", simulated)
     monkeypatch.setattr(control, "run_control", simulated)
@@ -170,6 +173,9 @@ TRACK = ["track", "--motor-model", "{d}/motor.yaml", "--config", "{d}/config.yam
 CONTROL = ["control", "--lcm", "memq://", "--motor-model", "{d}/motor.yaml"]
 CONTROL += ["--config", "{d}/config.yaml"]
 TUNE = ["tune", "--motor-model", "{d}/motor.yaml", "--config", "{d}/config.yaml"]
+ESTIMATION = ["experiment", "estimation", "--config", "{d}/config.yaml"]
+STABILITY = ["experiment", "stability", "--motor-model", "{d}/motor.yaml"]
+STABILITY += ["--config", "{d}/config.yaml"]
 
 
 def case(name, argv, config, *culprits, motor=RIGHT_LEG):
@@ -217,6 +223,13 @@ def case(name, argv, config, *culprits, motor=RIGHT_LEG):
              "torque_control: {estimator: {windows: {RLEG_JOINT3: 1}}}\n",
              "TorqueControlConfig.estimator.windows['RLEG_JOINT3']", "1 sample",
              "1 ms"),
+        case("estimation: a per-signal window of 1 sample", ESTIMATION,
+             "per_signal_window: 1\n", "config.yaml",
+             "EstimationConfig.per_signal_window: 1 sample (1 ms at 1 kHz)"),
+        case("estimation: a window of 2 samples", ESTIMATION,
+             "windows: [80, 2]\n", "EstimationConfig.windows[1]: 2 samples (2 ms"),
+        case("stability: a window of 1 sample", STABILITY, "window: 1\n",
+             "StabilityConfig.window: 1 sample (1 ms at 1 kHz)"),
         # Joints: names and the sequences that must match them.
         case("control: unknown joint", CONTROL,
              "torque_control: {joints: [RLEG_JOINT0, KNEE]}\n",

@@ -61,9 +61,9 @@ class EstimatorSettings:
         """Raises ValueError naming the bad field (the windows' names and parities are
         checked against the robot when the estimator is built)."""
         where = f"{_WHERE}.estimator"
-        _check_window(self.window, f"{where}.window")
+        check_window(self.window, f"{where}.window")
         for name, window in self.windows.items():
-            _check_window(window, f"{where}.windows['{name}']")
+            check_window(window, f"{where}.windows['{name}']")
         if self.evaluation not in EVALUATION_POINTS:
             raise ValueError(
                 f"{where}.evaluation: '{self.evaluation}', expected one of {EVALUATION_POINTS}"
@@ -73,9 +73,10 @@ class EstimatorSettings:
         )
 
 
-def _check_window(window: int, where: str) -> None:
-    """Raises ValueError naming `where` unless `window` is a Savitzky-Golay window of
-    3 samples or more (the encoders' parabola), stated at 1 kHz (`at_period`)."""
+def check_window(window: int, where: str) -> None:
+    """Raises ValueError naming `where` (the key in the user's file) unless `window`
+    is a Savitzky-Golay window of 3 samples or more (the encoders' parabola), stated
+    at 1 kHz (`at_period`): the message gives the samples and the time."""
     if isinstance(window, bool) or not isinstance(window, int):
         raise ValueError(f"{where}: {window!r}, expected a number of samples (integer)")
     if window < 3:

@@ -68,7 +68,11 @@ from hrp2_drake.assembly.builders import (
     build_torque_control,
     simulated_station,
 )
-from hrp2_drake.assembly.torque_control import ControllerSettings, EstimatorSettings
+from hrp2_drake.assembly.torque_control import (
+    ControllerSettings,
+    EstimatorSettings,
+    check_window,
+)
 from hrp2_drake.paper.motion import run_controller
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import joint_indexing
@@ -148,6 +152,7 @@ class StabilityConfig:
             raise ValueError(f"{where}.joint='{self.joint}' is not a right-leg joint")
         if self.direction not in (1.0, -1.0):
             raise ValueError(f"{where}.direction={self.direction} must be +1 or -1")
+        check_window(self.window, f"{where}.window")
         if not self.push_velocities or not all(
             math.isfinite(v) and v > 0 for v in self.push_velocities
         ):
