@@ -168,6 +168,7 @@ class ControllerSettings:
                 f"{where}.kp: {self.kp}: one value or one per joint, each finite and >= 0"
             )
         check_finite(self.k6, f"{where}.k6", 0.0, strict=False)
+        check_finite(self.damping_ratio, f"{where}.damping_ratio", 0.0, strict=False)
         check_finite(self.delta_q_limit, f"{where}.delta_q_limit", 0.0, strict=False)
         if len(self.kf) not in (1, 6):
             raise ValueError(
@@ -332,7 +333,8 @@ def check_for_robot(config: TorqueControlConfig, robot: RobotDescription, where:
     """Raises ValueError naming `where`.<field> (the path of `config` in the user's
     file, e.g. "ControlConfig.torque_control") unless `config` fits `robot`: its
     joints are the robot's, each once; `controller.kp` has one value or one per
-    torque-controlled joint."""
+    torque-controlled joint; the estimator's per-signal windows name a joint, an F/T
+    sensor or "imu" of the robot; `controller.force_frame` is a frame of its model."""
     unknown = [name for name in config.joints if name not in robot.joints]
     if unknown:
         raise ValueError(
@@ -348,6 +350,20 @@ def check_for_robot(config: TorqueControlConfig, robot: RobotDescription, where:
         raise ValueError(
             f"{where}.controller.kp: {len(kp)} values, expected one or {n} (one per "
             "torque-controlled joint)"
+        )
+    signals = [*robot.joints, *robot.force_torque_sensors]
+    signals += ["imu"] if robot.has_imu() else []
+    unknown = [name for name in config.estimator.windows if name not in signals]
+    if unknown:
+        raise ValueError(
+            f"{where}.estimator.windows: {unknown} not a joint, an F/T sensor or 'imu' "
+            f"of robot '{robot.name}' (e.g. {signals[:2] + signals[-2:]})"
+        )
+    frame = config.controller.force_frame
+    if frame and not robot.make_plant().HasFrameNamed(frame):
+        raise ValueError(
+            f"{where}.controller.force_frame: no frame '{frame}' in robot "
+            f"'{robot.name}''s model"
         )
 
 

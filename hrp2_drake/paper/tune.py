@@ -429,9 +429,21 @@ class TuneConfig:
                 f"TuneConfig.start, end: {self.start}-{self.end} s must be a part (1 ms "
                 f"or more) of the climbing motion, 0-{motion_end:g} s"
             )
-        check_for_robot(
-            self.torque_control, self.station.description(), "TuneConfig.torque_control"
-        )
+        robot = self.station.description()
+        if robot.name != "hrp2":
+            raise ValueError(
+                f"TuneConfig.station.robot: '{robot.name}', but tune searches on HRP-2's "
+                "climbing swing (its right leg): for another robot, `hrp2-drake track`"
+            )
+        check_for_robot(self.torque_control, robot, "TuneConfig.torque_control")
+        joints = self.torque_control.controlled_joints(robot)
+        try:
+            active_space(self, joints)
+        except ValueError as error:
+            raise ValueError(
+                f"TuneConfig.torque_control.joints: {error}: control them, or leave "
+                "the parameter out (exclude)"
+            ) from None
         if self.settle < self.torque_control.start_time:
             raise ValueError(
                 f"TuneConfig.settle = {self.settle} s must be >= torque_control."

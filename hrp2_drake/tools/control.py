@@ -132,6 +132,12 @@ class ControlConfig:
             )
         check_sinusoid(robot, self.home(), self.amplitude, self.frequency, self.settle, where)
         check_finite(self.duration, f"{where}.duration", 0.0)
+        if self.torque_control.start_time >= self.duration:
+            raise ValueError(
+                f"{where}.torque_control.start_time: {self.torque_control.start_time:g}"
+                f" s, not before the run's end (duration {self.duration:g} s): torque "
+                "control would never start"
+            )
         check_finite(self.approach_speed, f"{where}.approach_speed", 0.0)
         self.loop.validate(self.period(), f"{where}.loop")
 
