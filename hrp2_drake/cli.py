@@ -37,7 +37,13 @@ import numpy as np
 import yaml
 
 from hrp2_drake import console
-from hrp2_drake.config import load_config, one_line, validate_config
+from hrp2_drake.config import (
+    load_config,
+    one_line,
+    parse_yaml,
+    read_yaml_text,
+    validate_config,
+)
 from hrp2_drake.robot.station import SCENARIOS
 
 #: What bad input raises: reported on one line with exit code 2 (--debug: re-raised).
@@ -60,11 +66,17 @@ def _config(schema, args: argparse.Namespace):
 
 
 def _config_sets(args: argparse.Namespace, key: str) -> bool:
-    """Whether the --config file sets the top-level `key` (else: the default holds)."""
-    if not args.config:
+    """Whether the --config file sets `key`, a field's path ("force_task",
+    "station.scenario"); else the default holds."""
+    path = getattr(args, "config", None)
+    if not path:
         return False
-    raw = yaml.safe_load(Path(args.config).read_text())
-    return isinstance(raw, dict) and key in raw
+    raw = parse_yaml(read_yaml_text(path), path)
+    for name in key.split("."):
+        if not isinstance(raw, dict) or name not in raw:
+            return False
+        raw = raw[name]
+    return True
 
 
 def _validate(config, args: argparse.Namespace) -> None:
@@ -91,13 +103,23 @@ def _output_folder(path: str) -> Path:
     return out
 
 
-def _use_robot(station, args: argparse.Namespace) -> None:
-    """--robot into a StationConfig; a fixed robot gets the "fixed_base" scenario
-    unless --scenario says otherwise."""
+def _use_robot(
+    station, args: argparse.Namespace, key: str = "station", floating: str = ""
+) -> None:
+    """--robot and --scenario into the StationConfig at `key` of the --config file,
+    before it is validated. Its scenario is the first given of: --scenario, the
+    file's, the robot's default (a fixed robot: "fixed_base"; a floating one:
+    `floating`, if given, else the config's default). A scenario given is never
+    replaced: one the robot cannot have is refused by the validation."""
     if args.robot:
         station.robot = args.robot
-    if not getattr(args, "scenario", None) and station.description().base == "fixed":
-        station.scenario = "fixed_base"
+    if getattr(args, "scenario", None):
+        station.scenario = args.scenario
+    elif not _config_sets(args, f"{key}.scenario"):
+        if station.description().base == "fixed":
+            station.scenario = "fixed_base"
+        elif floating:
+            station.scenario = floating
 
 
 def _set_given(config, args: argparse.Namespace, *names: str, **fields: str) -> None:
@@ -130,7 +152,6 @@ def _simulate(args: argparse.Namespace) -> int:
 
     config = _config(SimulateConfig, args)
     _use_robot(config.station, args)
-    _set_given(config.station, args, "scenario")
     _set_given(config, args, "duration", "trajectory")
     if args.seed is not None:
         config.station.sensors = dataclasses.replace(
@@ -223,11 +244,10 @@ def _track(args: argparse.Namespace) -> int:
     from hrp2_drake.tools.track import TrackConfig, can_press, run_track
 
     config = _config(TrackConfig, args)
-    if args.robot:
-        config.station.robot = args.robot
+    # --robot R, floating: hanging unless the file says otherwise (the iiwa's default
+    # station is fixed_base).
+    _use_robot(config.station, args, floating="hanging" if args.robot else "")
     robot = config.station.description()
-    if args.robot and robot.base == "floating":
-        config.station.scenario = "hanging"
     if robot.base == "fixed" and not can_press(robot):
         # Nothing to press with (no tool_frame and force_sensor): unless asked for.
         config.force_task = config.force_task and _config_sets(args, "force_task")
@@ -277,7 +297,6 @@ def _sim_robot(args: argparse.Namespace) -> int:
 
     station = StationConfig()
     _use_robot(station, args)
-    _set_given(station, args, "scenario")
     validate_config(station)
     out = _output_folder(args.out) if args.out else None
     summary = run_sim_robot(station, args.lcm, args.duration, out, rate=args.realtime_rate,

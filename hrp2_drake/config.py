@@ -5,7 +5,9 @@ reads it). `load_config` reads YAML into it and reports every problem as a one-l
 ValueError that names the source file and the key's full path (e.g.
 `sensors.accelerometer.stdd`): a YAML syntax error (with its line and column), a
 duplicated key, an unknown key, a value of the wrong type; then `validate_config` runs
-the `validate()` of the config and of every config nested in it.
+the config's `validate()`, once. A config is validated where it is loaded (a command:
+once its options are applied) and not changed after; a config's `validate()` checks
+every config nested in it (`nested_configs`), so that nothing is validated twice.
 
 Note: modules that define config dataclasses must not use
 `from __future__ import annotations` (yaml_load_typed needs real types), and
@@ -254,8 +256,12 @@ def _callable_without_arguments(method) -> bool:
 
 
 def validate_config(config: Any, source: str | None = None, path: str = "") -> None:
-    """Runs `config.validate()`, then that of every config nested in it (fields,
-    list items, dict values), so that nothing is checked only once a simulation runs.
+    """Validates a config once, where it is loaded (`load_config`, or a command once
+    its options are applied): its `validate()`, which validates every config nested
+    in it (`nested_configs`: a config's `validate()` is complete, a test holds every
+    config to it); a config without a `validate()` of its own, that of each config
+    nested in it (fields, list items, dict values). Nothing is checked only once a
+    simulation runs, and nothing twice.
 
     Raises:
         ValueError: the first problem found, prefixed with `source` (a file) and the
@@ -273,8 +279,17 @@ def validate_config(config: Any, source: str | None = None, path: str = "") -> N
             if not prefix:
                 raise
             raise ValueError(f"{prefix}{message}") from error
-    if not dataclasses.is_dataclass(config) or isinstance(config, type):
         return
+    for child_path, child in nested_configs(config, path):
+        validate_config(child, source, child_path)
+
+
+def nested_configs(config: Any, path: str = "") -> list[tuple[str, Any]]:
+    """(path, config) of each config (dataclass) nested in `config`: its fields, the
+    items of its lists and the values of its dicts that are dataclasses."""
+    if not dataclasses.is_dataclass(config) or isinstance(config, type):
+        return []
+    out = []
     for item in dataclasses.fields(config):
         value = getattr(config, item.name)
         where = f"{path}.{item.name}" if path else item.name
@@ -285,9 +300,8 @@ def validate_config(config: Any, source: str | None = None, path: str = "") -> N
             children = [(f"{where}.{k}", v) for k, v in value.items()]
         elif isinstance(value, list):
             children = [(f"{where}[{i}]", v) for i, v in enumerate(value)]
-        for child_path, child in children:
-            if dataclasses.is_dataclass(child):
-                validate_config(child, source, child_path)
+        out += [(p, c) for p, c in children if dataclasses.is_dataclass(c)]
+    return out
 
 
 def field_at(config: Any, path: str) -> Any:

@@ -61,14 +61,29 @@ class EstimatorSettings:
         """Raises ValueError naming the bad field (the windows' names and parities are
         checked against the robot when the estimator is built)."""
         where = f"{_WHERE}.estimator"
-        if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window < 3:
-            raise ValueError(f"{where}.window: {self.window!r} must be an integer >= 3")
+        check_window(self.window, f"{where}.window")
+        for name, window in self.windows.items():
+            check_window(window, f"{where}.windows['{name}']")
         if self.evaluation not in EVALUATION_POINTS:
             raise ValueError(
                 f"{where}.evaluation: '{self.evaluation}', expected one of {EVALUATION_POINTS}"
             )
         check_finite(
             self.offset_calibration_time, f"{where}.offset_calibration_time", 0.0, False
+        )
+
+
+def check_window(window: int, where: str) -> None:
+    """Raises ValueError naming `where` (the key in the user's file) unless `window`
+    is a Savitzky-Golay window of 3 samples or more (the encoders' parabola), stated
+    at 1 kHz (`at_period`): the message gives the samples and the time."""
+    if isinstance(window, bool) or not isinstance(window, int):
+        raise ValueError(f"{where}: {window!r}, expected a number of samples (integer)")
+    if window < 3:
+        raise ValueError(
+            f"{where}: {window} sample{'' if window == 1 else 's'} "
+            f"({window * REFERENCE_PERIOD * 1e3:g} ms at 1 kHz), expected 3 or more "
+            "(the encoders' filter fits a parabola)"
         )
 
 
@@ -125,26 +140,36 @@ class ControllerSettings:
     kf: list[float] = field(default_factory=lambda: [0.0])
     delta_q_limit: float = 0.0
 
+    def __post_init__(self):
+        """A plain number for `kp` or `kf` (from Python code: YAML gives lists)
+        becomes a list of one, when the settings are made, not when validated."""
+        if isinstance(self.kp, (int, float)):
+            self.kp = [float(self.kp)]
+        if isinstance(self.kf, (int, float)):
+            self.kf = [float(self.kf)]
+
     def validate(self) -> None:
         """Raises ValueError naming the bad field: the signals' sources, and gains that
-        are finite and of a sign a controller can use (a plain number for `kp` or `kf`,
-        from Python code, becomes a list of one)."""
+        are finite and of a sign a controller can use. It changes nothing."""
         where = f"{_WHERE}.controller"
         if self.position_source not in ("encoders", "estimate"):
             raise ValueError(f"{where}.position_source: '{self.position_source}'")
         for name in ("feedback_velocity", "friction_velocity"):
             if getattr(self, name) not in ("estimate", "reference"):
                 raise ValueError(f"{where}.{name}: '{getattr(self, name)}'")
-        if isinstance(self.kp, (int, float)):  # a plain number from Python code
-            self.kp = [float(self.kp)]
+        for name in ("kp", "kf"):
+            if not isinstance(getattr(self, name), list):
+                raise ValueError(
+                    f"{where}.{name}: {getattr(self, name)!r}, expected a list (one "
+                    "value, or one per joint / axis)"
+                )
         if not self.kp or not all(math.isfinite(k) and k >= 0 for k in self.kp):
             raise ValueError(
                 f"{where}.kp: {self.kp}: one value or one per joint, each finite and >= 0"
             )
         check_finite(self.k6, f"{where}.k6", 0.0, strict=False)
+        check_finite(self.damping_ratio, f"{where}.damping_ratio", 0.0, strict=False)
         check_finite(self.delta_q_limit, f"{where}.delta_q_limit", 0.0, strict=False)
-        if isinstance(self.kf, (int, float)):  # a plain number from Python code
-            self.kf = [float(self.kf)]
         if len(self.kf) not in (1, 6):
             raise ValueError(
                 f"{where}.kf: {len(self.kf)} values, expected one or 6 (one per axis of "
@@ -301,6 +326,44 @@ def check_control_period(config: TorqueControlConfig, period: float, where: str 
             "period (the robot's sensor period, sensors.period) is "
             f"{period:g} s: the supervisor runs once per control tick; leave "
             f"supervisor.period out or set it to {period:g}"
+        )
+
+
+def check_for_robot(config: TorqueControlConfig, robot: RobotDescription, where: str) -> None:
+    """Raises ValueError naming `where`.<field> (the path of `config` in the user's
+    file, e.g. "ControlConfig.torque_control") unless `config` fits `robot`: its
+    joints are the robot's, each once; `controller.kp` has one value or one per
+    torque-controlled joint; the estimator's per-signal windows name a joint, an F/T
+    sensor or "imu" of the robot; `controller.force_frame` is a frame of its model."""
+    unknown = [name for name in config.joints if name not in robot.joints]
+    if unknown:
+        raise ValueError(
+            f"{where}.joints: {unknown} not joints of robot '{robot.name}' (e.g. "
+            f"{robot.joints[:3]})"
+        )
+    repeated = sorted({name for name in config.joints if config.joints.count(name) > 1})
+    if repeated:
+        raise ValueError(f"{where}.joints: {repeated} given more than once")
+    n = len(config.controlled_joints(robot))
+    kp = config.controller.kp
+    if isinstance(kp, list) and len(kp) not in (1, n):
+        raise ValueError(
+            f"{where}.controller.kp: {len(kp)} values, expected one or {n} (one per "
+            "torque-controlled joint)"
+        )
+    signals = [*robot.joints, *robot.force_torque_sensors]
+    signals += ["imu"] if robot.has_imu() else []
+    unknown = [name for name in config.estimator.windows if name not in signals]
+    if unknown:
+        raise ValueError(
+            f"{where}.estimator.windows: {unknown} not a joint, an F/T sensor or 'imu' "
+            f"of robot '{robot.name}' (e.g. {signals[:2] + signals[-2:]})"
+        )
+    frame = config.controller.force_frame
+    if frame and not robot.make_plant().HasFrameNamed(frame):
+        raise ValueError(
+            f"{where}.controller.force_frame: no frame '{frame}' in robot "
+            f"'{robot.name}''s model"
         )
 
 

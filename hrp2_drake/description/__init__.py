@@ -35,7 +35,7 @@ from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import BodyIndex, ModelInstanceIndex, RigidBody
 
-from hrp2_drake.config import load_config
+from hrp2_drake.config import load_config, one_line
 from hrp2_drake.description.bus import BusDescription, check_bus_period
 from hrp2_drake.description.excitation import CollectionConfig
 from hrp2_drake.description.logs import LogFormat
@@ -306,6 +306,7 @@ class RobotDescription:
         self.sensors.validate(len(self.joints), list(self.force_torque_sensors))
         self.logs.validate(len(self.joints))
         self.position_loop.validate()
+        self.identification.validate()
         self._validate_bus()
         for joint, values in self.published_motor_model.items():
             if joint not in self.joints:
@@ -715,7 +716,15 @@ def _load(path: str, mtime: int, check: bool) -> RobotDescription:
         )
     if check:
         try:
-            description.check_model(description.make_plant())
+            plant = description.make_plant()
+        except RuntimeError as error:  # Drake's: the parser's, or a kinematic loop
+            raise ValueError(
+                f"{path}: model_file '{description.model_path()}': {one_line(error)}"
+            ) from error
+        except ValueError as error:
+            raise ValueError(f"{path}: {error}") from error
+        try:
+            description.check_model(plant)
         except (ValueError, RuntimeError) as error:
             raise ValueError(f"{path}: {error}") from error
     return description

@@ -68,6 +68,9 @@ _LOG_WIDTHS = {
     "imu_angular_velocity": (3, "axes"),
 }
 
+#: The per-sample arrays of a log besides "t": one value per sample, 1-D.
+_LOG_LABELS = {"phase": "phase label", "excited_joint": "joint index", "valid": "flag"}
+
 #: Largest relative deviation of a log's sampling period from its median: the
 #: Savitzky-Golay filters assume a constant period.
 MAX_PERIOD_JITTER = 0.1
@@ -254,6 +257,11 @@ def check_log(
             width, what = n, "joints"
         elif key.startswith("wrench_"):
             width, what = 6, "[torque; force]"
+        elif key in _LOG_LABELS and np.shape(value) != (t.size,):
+            raise ValueError(
+                f"{source}: array '{key}' has shape {np.shape(value)}, expected "
+                f"({t.size},) (one {_LOG_LABELS[key]} per sample)"
+            )
         if width is not None and np.shape(value) != (t.size, width):
             raise ValueError(
                 f"{source}: array '{key}' has shape {np.shape(value)}, expected "

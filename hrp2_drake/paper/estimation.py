@@ -34,6 +34,7 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import TrajectorySource
 
 from hrp2_drake import console
+from hrp2_drake.assembly.torque_control import check_window
 from hrp2_drake.estimation.estimation_chain import add_estimator
 from hrp2_drake.paper import hrp2
 from hrp2_drake.paper.claims import GOAL_RMS_OVER_PEAK
@@ -180,13 +181,14 @@ class EstimationConfig:
             raise ValueError(f"{where}.scenarios: {self.scenarios}, use {SCENARIOS}")
         if PAPER_WINDOW not in self.windows:
             raise ValueError(f"{where}.windows must include the paper's {PAPER_WINDOW}")
-        if any(
-            isinstance(w, bool) or not isinstance(w, int) or w < 3 for w in self.windows
-        ):
-            raise ValueError(f"{where}.windows: integers >= 3, got {self.windows}")
+        for k, window in enumerate(self.windows):
+            check_window(window, f"{where}.windows[{k}]")
         if len(set(self.windows)) != len(self.windows):
             raise ValueError(f"{where}.windows: duplicates in {self.windows}")
         if self.per_signal_window:
+            check_window(self.per_signal_window, f"{where}.per_signal_window")
+            for name, window in self.per_signal_windows.items():
+                check_window(window, f"{where}.per_signal_windows['{name}']")
             try:
                 hrp2.estimator_config(
                     self.per_signal_window, windows=dict(self.per_signal_windows)

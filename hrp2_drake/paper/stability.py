@@ -71,6 +71,7 @@ from hrp2_drake.assembly.torque_control import (
     ControllerSettings,
     EstimatorSettings,
     TorqueControlConfig,
+    check_window,
 )
 from hrp2_drake.paper.motion import run_controller
 from hrp2_drake.identification.motor_model import MotorModel
@@ -151,6 +152,7 @@ class StabilityConfig:
             raise ValueError(f"{where}.joint='{self.joint}' is not a right-leg joint")
         if self.direction not in (1.0, -1.0):
             raise ValueError(f"{where}.direction={self.direction} must be +1 or -1")
+        check_window(self.window, f"{where}.window")
         if not self.push_velocities or not all(
             math.isfinite(v) and v > 0 for v in self.push_velocities
         ):

@@ -51,7 +51,11 @@ import numpy as np
 
 from hrp2_drake import console
 from hrp2_drake.config import check_finite, one_line
-from hrp2_drake.assembly.torque_control import EstimatorSettings, TorqueControlConfig
+from hrp2_drake.assembly.torque_control import (
+    EstimatorSettings,
+    TorqueControlConfig,
+    check_for_robot,
+)
 from hrp2_drake.config import field_at, field_type, replace_fields, set_field_at
 from hrp2_drake.paper.motion import estimation_delay
 from hrp2_drake.identification.motor_model import MotorModel
@@ -428,6 +432,21 @@ class TuneConfig:
                 f"TuneConfig.start, end: {self.start}-{self.end} s must be a part (1 ms "
                 f"or more) of the climbing motion, 0-{motion_end:g} s"
             )
+        robot = self.station.description()
+        if robot.name != "hrp2":
+            raise ValueError(
+                f"TuneConfig.station.robot: '{robot.name}', but tune searches on HRP-2's "
+                "climbing swing (its right leg): for another robot, `hrp2-drake track`"
+            )
+        check_for_robot(self.torque_control, robot, "TuneConfig.torque_control")
+        joints = self.torque_control.controlled_joints(robot)
+        try:
+            active_space(self, joints)
+        except ValueError as error:
+            raise ValueError(
+                f"TuneConfig.torque_control.joints: {error}: control them, or leave "
+                "the parameter out (exclude)"
+            ) from None
         if self.settle < self.torque_control.start_time:
             raise ValueError(
                 f"TuneConfig.settle = {self.settle} s must be >= torque_control."
@@ -799,6 +818,7 @@ def run_tune(
     writes tuned.yaml, tune.md, history.png and importances.png there.
 
     Args:
+        config: validated where it was loaded (`validate_config`).
         log: called with one line per finished trial (default: stderr).
     """
     optuna = _require("optuna")
@@ -806,7 +826,6 @@ def run_tune(
     from pydrake.common.yaml import yaml_dump_typed
 
     log = log or console.say
-    config.validate()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     robot = config.station.description()

@@ -257,33 +257,52 @@ class StationConfig:
             fault.validate(f"StationConfig.faults[{k}]", sensor_sizes(robot))
         self.sensors_config().validate(len(robot.joints), robot.sensor_names())
         self.servo_params()
+        self._validate_scene()
+
+    def _validate_scene(self) -> None:
+        """The strings, the block and the obstacles: finite numbers of their sign."""
+        where = "StationConfig.hanging"
+        for name, strict in (
+            ("string_length", True),
+            ("stiffness", True),
+            ("damping", False),
+            ("feet_clearance", False),
+        ):
+            check_finite(getattr(self.hanging, name), f"{where}.{name}", 0.0, strict)
+        for k, value in enumerate(self.hanging.sway_damping):
+            check_finite(value, f"{where}.sway_damping[{k}]", 0.0, False)
+        check_finite(self.block_height, "StationConfig.block_height", 0.0)
         for k, box in enumerate(self.obstacles):
-            if len(box.size) != 3 or not all(v > 0 for v in box.size):
-                raise ValueError(
-                    f"StationConfig.obstacles[{k}].size: 3 lengths > 0, got {box.size}"
-                )
+            where = f"StationConfig.obstacles[{k}]"
+            if len(box.size) != 3 or not all(
+                math.isfinite(v) and v > 0 for v in box.size
+            ):
+                raise ValueError(f"{where}.size: 3 finite lengths > 0, got {box.size}")
             if len(box.pose) != 6 or not np.all(np.isfinite(box.pose)):
                 raise ValueError(
-                    f"StationConfig.obstacles[{k}].pose: [x, y, z, roll, pitch, yaw], "
-                    f"got {box.pose}"
+                    f"{where}.pose: [x, y, z, roll, pitch, yaw], got {box.pose}"
                 )
+            check_finite(box.friction, f"{where}.friction", 0.0, False)
 
     def _validate_scenario(self, robot: RobotDescription) -> None:
+        needs = {
+            "hanging": robot.scenarios.hanging.body,
+            "standing": robot.scenarios.soles,
+            "standing_on_block": robot.scenarios.block.sole and robot.scenarios.soles,
+        }
         if self.scenario not in SCENARIOS:
+            fits = [s for s in SCENARIOS if s == "fixed_base" or (
+                robot.base != "fixed" and needs[s]
+            )]
             raise ValueError(
-                f"StationConfig.scenario: unknown scenario '{self.scenario}', "
-                f"expected one of {SCENARIOS}"
+                f"StationConfig.scenario: unknown scenario '{self.scenario}', expected "
+                f"one of {SCENARIOS} (robot '{robot.name}': {', '.join(fits)})"
             )
         if robot.base == "fixed" and self.scenario != "fixed_base":
             raise ValueError(
                 f"StationConfig.scenario: '{self.scenario}', but robot '{robot.name}' is "
                 "fixed-base: only 'fixed_base'"
             )
-        needs = {
-            "hanging": robot.scenarios.hanging.body,
-            "standing": robot.scenarios.soles,
-            "standing_on_block": robot.scenarios.block.sole and robot.scenarios.soles,
-        }
         if self.scenario in needs and not needs[self.scenario]:
             raise ValueError(
                 f"StationConfig.scenario: '{self.scenario}' needs the robot description's "

@@ -33,6 +33,7 @@ from hrp2_drake.assembly.torque_control import (
     EstimatorSettings,
     TorqueControlConfig,
     at_period,
+    check_for_robot,
 )
 from hrp2_drake.description import RobotDescription, load_robot_description
 from hrp2_drake.tools.track import TrackConfig, check_sinusoid, sinusoid_reference
@@ -116,6 +117,7 @@ class ControlConfig:
         robot = self.description()
         self.torque_control.validate()
         where = "ControlConfig"
+        check_for_robot(self.torque_control, robot, f"{where}.torque_control")
         check_control_period(
             self.torque_control_at_period(), self.period(), f"{where}.torque_control"
         )
@@ -125,6 +127,12 @@ class ControlConfig:
             )
         check_sinusoid(robot, self.home(), self.amplitude, self.frequency, self.settle, where)
         check_finite(self.duration, f"{where}.duration", 0.0)
+        if self.torque_control.start_time >= self.duration:
+            raise ValueError(
+                f"{where}.torque_control.start_time: {self.torque_control.start_time:g}"
+                f" s, not before the run's end (duration {self.duration:g} s): torque "
+                "control would never start"
+            )
         check_finite(self.approach_speed, f"{where}.approach_speed", 0.0)
         self.loop.validate(self.period(), f"{where}.loop")
 
@@ -175,8 +183,8 @@ def run_control(
     """The whole `hrp2-drake control`: build the fused controller, connect to the
     robot (over LCM at `lcm_url`, or on its bus at `port`), move to home and run the
     control loop, report (control.md with a latency histogram, control.json,
-    control.npz). The summary says why the run ended ("fault")."""
-    config.validate()
+    control.npz). The summary says why the run ended ("fault"). `config` is validated
+    where it was loaded (`validate_config`)."""
     robot = config.description()
     torque_control = config.torque_control_at_period()
     if motor_model.gain:  # a model stated at a servo gain: at the gain the robot runs at
@@ -360,8 +368,8 @@ def run_sim_robot(config: StationConfig, lcm_url: str, duration: float, out: Pat
     """The whole `hrp2-drake sim-robot`: `RobotBridge` in real time (or at `rate` times
     it, or in lock step with the controller's commands) for `duration` s (inf: until
     SIGTERM or Ctrl-C); writes its ground truth (sim_robot.npz: t, state_true,
-    q_measured, q_cmd, holding, commanded) to `out` on exit."""
-    config.validate()
+    q_measured, q_cmd, holding, commanded) to `out` on exit. `config` is validated
+    where it was loaded (`validate_config`)."""
     bridge_config = BridgeConfig(duration=duration, rate=rate, watchdog_periods=watchdog_periods,
                                  lockstep=lockstep)
     bridge_config.validate()

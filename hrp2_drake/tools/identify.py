@@ -125,6 +125,7 @@ class IdentifyConfig:
     def validate(self) -> None:
         """Raises ValueError naming the bad field (yaml_load_typed does not call it)."""
         self.station.validate()
+        self.collection.validate()
         robot = self.station.description()
         joints = self.identified_joints()
         if not joints:

@@ -175,8 +175,8 @@ class SimulationResult:
 def build_simulation(
     config: SimulateConfig, meshcat=None
 ) -> tuple[Diagram, Diagram, dict[str, VectorLogSink]]:
-    """(diagram, station, loggers) for `config`: station + q_cmd source + loggers."""
-    config.validate()
+    """(diagram, station, loggers) for `config` (validated where it was loaded,
+    `validate_config`): station + q_cmd source + loggers."""
     builder = DiagramBuilder()
     station = builder.AddNamedSystem("station", make_station(config.station, meshcat))
     robot = config.station.description()

@@ -54,6 +54,7 @@ from hrp2_drake.assembly.torque_control import (
     EstimatorSettings,
     TorqueControlConfig,
     at_period,
+    check_for_robot,
 )
 from hrp2_drake.config import replace_fields
 from hrp2_drake.identification.motor_model import MotorModel
@@ -151,7 +152,13 @@ class TrackConfig:
             self.amplitude, self.frequency, self.settle, where,
         )
         control = f"{where}.torque_control"
+        check_for_robot(self.torque_control, robot, control)
         check_control_period(self.torque_control_at_period(), self.period(), control)
+        if self.force_amplitude > self.press:
+            raise ValueError(
+                f"{where}.force_amplitude: {self.force_amplitude:g} N around press "
+                f"{self.press:g} N: the tool would pull on the table (at most press)"
+            )
         for k, rate in enumerate(self.rates):
             check_finite(rate, f"{where}.rates[{k}]", 0.0)
         if self.force_task and robot.base == "fixed" and not can_press(robot):
@@ -548,8 +555,8 @@ def _plot_force(t, desired, achieved, estimate, config: TrackConfig, path: Path)
 
 
 def run_track(config: TrackConfig, motor_model: MotorModel, out: Path) -> dict:
-    """The whole `hrp2-drake track`: tracking, the force task, report and plots."""
-    config.validate()
+    """The whole `hrp2-drake track`: tracking, the force task, report and plots.
+    `config` is validated where it was loaded (`validate_config`)."""
     robot = config.station.description()
     out.mkdir(parents=True, exist_ok=True)
     # The one place where track reads the motor model: at the station's servo gain.
