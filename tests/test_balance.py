@@ -3,6 +3,7 @@ at its solution, its τ and f satisfy Drake's inverse dynamics, the CoM task tra
 step in closed loop on the standing HRP-2, an infeasible problem is a fault without
 NaN; the configs' and the contacts description's one-line errors."""
 
+import contextlib
 import copy
 
 import numpy as np
@@ -318,3 +319,25 @@ def test_a_missing_pip_solver_is_one_line(monkeypatch, step):
     monkeypatch.setattr(builtins, "__import__", no_daqp)
     with pytest.raises(ValueError, match=r"'daqp' is not installed: pip install"):
         make_qp_backend(copy.deepcopy(step.qp), "daqp")
+
+
+def test_the_compiled_kernels_equal_their_python_source(robot, standing):
+    """The QP's assembly and outputs (balance_assemble, balance_outputs) compiled
+    and as Python (`kernels.interpreted`), on the same states: equal to 1e-12 of τ's
+    size (loop-order sums both ways; daqp and OSQP see the same numbers)."""
+    from hrp2_drake import kernels
+
+    plant = standing[0]
+    home = robot.home_positions()
+    results = []
+    for interpreted in (False, True):
+        step = BalanceStep(plant, BalanceConfig(joints=robot.joints), robot.contacts)
+        context = kernels.interpreted() if interpreted else contextlib.nullcontext()
+        with context:
+            for x, ref in perturbed_states(standing, 2, seed=3):
+                assert step.step(0.0, x, home, ref) == BalanceFault.NONE
+                qp = step.qp
+                results.append((qp.H.copy(), qp.A_in.copy(), step.state.copy()))
+    for compiled, python in zip(results[:2], results[2:]):
+        for a, b in zip(compiled, python):
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * np.abs(a).max())

@@ -46,6 +46,7 @@ good torque (or, before any, the static torque that holds the robot still with t
 least-norm contact forces) and outputs no NaN; a non-finite input is a fault too.
 """
 
+import copy
 import math
 from dataclasses import dataclass, field
 from enum import IntEnum
@@ -56,6 +57,7 @@ from pydrake.multibody.tree import BodyIndex, JacobianWrtVariable
 from pydrake.systems.framework import Context, DiscreteValues
 
 from hrp2_drake.description.contacts import ContactsDescription
+from hrp2_drake.kernels import kernel
 from hrp2_drake.multibody import check_joint_names, get_frame, joint_indexing
 from hrp2_drake.step import Step, StepSystem
 
@@ -349,6 +351,144 @@ def make_qp_backend(qp: QpData, solver: str) -> QpBackend:
     raise ValueError(f"BalanceConfig.solver: '{solver}', expected one of {QP_SOLVERS}")
 
 
+# The kernels' index table (`BalanceStep._pack`, int64): a header, then the joints'
+# positions in q and velocities in v.
+(
+    _NV,  # the plant's velocities
+    _NJ,  # the joints, n
+    _NQ,  # the plant's positions
+    _BASE_Q,  # the base's quaternion [w, x, y, z] in q
+    _BASE_V,  # its velocities [ω_WB; v_WBo] (in W) in v
+    _NF,  # the corner forces' components
+    _NS,  # the soles
+    _HEADER,
+) = range(8)
+# The kernels' constants (`BalanceStep._pack`, float64), then τ_max (n).
+(
+    _MASS,
+    _GX,  # the gravity vector (3)
+    _COM_KP,
+    _COM_KD,
+    _COM_W,
+    _BASE_KP,
+    _BASE_KD,
+    _BASE_W,
+    _POST_KP,
+    _POST_KD,
+    _POST_W,
+    _CONSTANTS,
+) = (0, 1, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13)
+
+
+@kernel
+def balance_assemble(
+    M, h, Jf, com, x, q_ref, com_ref, constants, table, H0, J_com, a_com, qp_arrays
+):
+    """`BalanceStep`'s QP from Drake's terms (M, h = C v − τ_g, the corners'
+    Jacobian J_f, the CoM's position) at the state x, with the references: the
+    base's rows of the dynamics, the torque rows and their bounds, H and g (the
+    module docstring). `qp_arrays` is (H, g, A_eq, b_eq, A_in, l_in, u_in); the
+    soles' contact rows are the caller's. Sums in loop order (no BLAS)."""
+    H, g, A_eq, b_eq, A_in, l_in, u_in = qp_arrays
+    nv, n, nq = table[_NV], table[_NJ], table[_NQ]
+    bq, bv, nf = table[_BASE_Q], table[_BASE_V], table[_NF]
+    jq, jv = _HEADER, _HEADER + n
+    # The base's rows of M v̇ + h = Sᵀ τ + J_fᵀ f: M_b v̇ − J_fbᵀ f = −h_b.
+    for r in range(6):
+        for c in range(nv):
+            A_eq[r, c] = M[bv + r, c]
+        for k in range(nf):
+            A_eq[r, nv + k] = -Jf[k, bv + r]
+        b_eq[r] = -h[bv + r]
+    # τ = M_j v̇ + h_j − J_fjᵀ f within ±τ_max.
+    for i in range(n):
+        row = table[jv + i]
+        for c in range(nv):
+            A_in[i, c] = M[row, c]
+        for k in range(nf):
+            A_in[i, nv + k] = -Jf[k, row]
+        tau_max = constants[_CONSTANTS + i]
+        l_in[i] = -tau_max - h[row]
+        u_in[i] = tau_max - h[row]
+    # The CoM: J_com = M_lin / m, J̇_com v = h_lin / m + g (`BalanceStep._cost`).
+    mass = constants[_MASS]
+    for r in range(3):
+        jv_r = 0.0
+        for c in range(nv):
+            J_com[r, c] = M[bv + 3 + r, c] / mass
+            jv_r += J_com[r, c] * x[nq + c]
+        bias = h[bv + 3 + r] / mass + constants[_GX + r]
+        a_com[r] = (
+            com_ref[6 + r]
+            + constants[_COM_KP] * (com_ref[r] - com[r])
+            + constants[_COM_KD] * (com_ref[3 + r] - jv_r)
+            - bias
+        )
+    w = constants[_COM_W]
+    size = H.shape[0]
+    for i in range(size):
+        for j in range(size):
+            H[i, j] = H0[i, j]
+        g[i] = 0.0
+    for i in range(nv):
+        for j in range(nv):
+            H[i, j] += w * (
+                J_com[0, i] * J_com[0, j]
+                + J_com[1, i] * J_com[1, j]
+                + J_com[2, i] * J_com[2, j]
+            )
+        g[i] = -w * (
+            J_com[0, i] * a_com[0] + J_com[1, i] * a_com[1] + J_com[2, i] * a_com[2]
+        )
+    # The base: e_R = −2 w [x, y, z] of its quaternion; ω_WB in the world.
+    quaternion_w = x[bq]
+    for r in range(3):
+        alpha = (
+            -2.0 * quaternion_w * constants[_BASE_KP] * x[bq + 1 + r]
+            - constants[_BASE_KD] * x[nq + bv + r]
+        )
+        g[bv + r] -= constants[_BASE_W] * alpha
+    # The posture.
+    for i in range(n):
+        q_i, v_i = x[table[jq + i]], x[nq + table[jv + i]]
+        a_j = constants[_POST_KP] * (q_ref[i] - q_i) - constants[_POST_KD] * v_i
+        g[table[jv + i]] -= constants[_POST_W] * a_j
+
+
+@kernel
+def balance_outputs(M, h, Jf, solution, corners, table, tau, vdot, forces, wrenches):
+    """τ = M_j v̇ + h_j − J_fjᵀ f from a solution [v̇; f], and each sole's wrench
+    [Σ p × f; Σ f] about its origin (`corners`: (soles, 4, 3), in its frame)."""
+    nv, n, nf = table[_NV], table[_NJ], table[_NF]
+    jv = _HEADER + n
+    for c in range(nv):
+        vdot[c] = solution[c]
+    for k in range(nf):
+        forces[k] = solution[nv + k]
+    for i in range(n):
+        row = table[jv + i]
+        total = h[row]
+        for c in range(nv):
+            total += M[row, c] * vdot[c]
+        for k in range(nf):
+            total -= Jf[k, row] * forces[k]
+        tau[i] = total
+    for s in range(table[_NS]):
+        for r in range(6):
+            wrenches[6 * s + r] = 0.0
+        for c in range(4):
+            p = corners[s, c]
+            f0 = forces[12 * s + 3 * c]
+            f1 = forces[12 * s + 3 * c + 1]
+            f2 = forces[12 * s + 3 * c + 2]
+            wrenches[6 * s] += p[1] * f2 - p[2] * f1
+            wrenches[6 * s + 1] += p[2] * f0 - p[0] * f2
+            wrenches[6 * s + 2] += p[0] * f1 - p[1] * f0
+            wrenches[6 * s + 3] += f0
+            wrenches[6 * s + 4] += f1
+            wrenches[6 * s + 5] += f2
+
+
 def _floating_base(plant: MultibodyPlant):
     """The plant's one floating base body, with a quaternion floating joint."""
     bases = sorted(int(b) for b in plant.GetFloatingBaseBodies())
@@ -387,9 +527,11 @@ class BalanceStep(Step):
 
     Per tick: one private context of the plant; Drake's calls: the state, the mass
     matrix, the bias and gravity terms, per sole its spatial Jacobian, bias
-    acceleration and corner Jacobian, the CoM's position (11 on two soles); the
-    QP's arrays are rewritten in place and the backend's
-    coefficients updated (never rebuilt), then one solve.
+    acceleration and corner Jacobian, the CoM's position (11 on two soles); then
+    a kernel (`balance_assemble`) rewrites the QP's arrays in place, the backend's
+    coefficients are updated (never rebuilt), one solve, and a kernel
+    (`balance_outputs`) writes τ and the wrenches. A tick allocates only what
+    Drake's bindings and the solver's return.
     """
 
     def __init__(
@@ -505,18 +647,69 @@ class BalanceStep(Step):
         # Work arrays, allocated once.
         self._x = np.zeros(self._plant.num_positions() + nv)
         self._Jf = np.zeros((nf, nv))
-        self._Mj = np.zeros((n, nv))
-        self._hj = np.zeros(n)
+        self._M = np.zeros((nv, nv))
+        self._h = np.zeros(nv)
         self._a_com = np.zeros(3)
         self._J_com = np.zeros((3, nv))
-        self._mass = self._plant.CalcTotalMass(self._context)
-        self._gravity = self._plant.gravity_field().gravity_vector()  # g (m/s²)
         self._zero3 = np.zeros(3)
         self._world = self._plant.world_frame()
+        self._corner_array = np.array(self._corners)
+        self._qp_arrays = (qp.H, qp.g, qp.A_eq, qp.b_eq, qp.A_in, qp.l_in, qp.u_in)
+        self._table, self._constants = self._pack()
+
+    def _pack(self) -> tuple[np.ndarray, np.ndarray]:
+        """The kernels' index table (int64) and constants (float64)."""
+        plant, config = self._plant, self._config
+        header = [
+            self._nv,
+            self._n,
+            plant.num_positions(),
+            self._base_q,
+            self._base_v,
+            self._nf,
+            len(self._soles),
+        ]
+        assert len(header) == _HEADER
+        table = np.concatenate([header, self._indexing.q, self._indexing.v])
+        constants = [
+            plant.CalcTotalMass(self._context),
+            *plant.gravity_field().gravity_vector(),
+            config.com_kp,
+            config.com_kd,
+            config.com_weight,
+            config.base_kp,
+            config.base_kd,
+            config.base_weight,
+            config.posture_kp,
+            config.posture_kd,
+            config.posture_weight,
+        ]
+        assert len(constants) == _CONSTANTS
+        return table.astype(np.int64), np.r_[constants, self._tau_max]
 
     def warm_up(self) -> None:
-        """No kernels: the arithmetic is numpy on preallocated arrays (the QP's
-        assembly is a few 36 × 60 copies and one 36 × 36 product per tick)."""
+        """Compiles (or loads) the two kernels on copies of the step's arrays."""
+        x = np.zeros_like(self._x)
+        x[self._base_q] = 1.0
+        qp = copy.deepcopy(self.qp)
+        arrays = (qp.H, qp.g, qp.A_eq, qp.b_eq, qp.A_in, qp.l_in, qp.u_in)
+        balance_assemble(
+            self._M, self._h, self._Jf, self._zero3, x, np.zeros(self._n),
+            np.zeros(9), self._constants, self._table, self._H0,
+            self._J_com.copy(), self._a_com.copy(), arrays,
+        )
+        state = self.state.copy()
+        balance_outputs(
+            self._M, self._h, self._Jf, np.zeros(self._nv + self._nf),
+            self._corner_array, self._table, *self._output_views(state),
+        )
+
+    def _output_views(self, state: np.ndarray) -> tuple[np.ndarray, ...]:
+        """τ, v̇, the corner forces and the soles' wrenches: views on `state`."""
+        return tuple(
+            state[self.rows(name)]
+            for name in ("tau_desired", "vdot", "contact_forces", "sole_wrenches")
+        )
 
     # ----------------------------------------------------------------- accessors
 
@@ -563,51 +756,14 @@ class BalanceStep(Step):
             fault = BalanceFault.SOLUTION_NOT_FINITE
         if fault != BalanceFault.NONE:
             return self._fault(fault)
-        self._accept(x[: self._nv], x[self._nv :])
+        self._accept(x)
         self.solved[0] = 1.0
         self.fault[0] = BalanceFault.NONE
         return BalanceFault.NONE
 
     def _assemble(self, q_ref: np.ndarray, com_ref: np.ndarray) -> None:
-        """Drake's terms at the state in self._x, written into the QP's arrays."""
-        plant, context = self._plant, self._context
-        qp, nv, n = self.qp, self._nv, self._n
-        kV, world = JacobianWrtVariable.kV, self._world
-        plant.SetPositionsAndVelocities(context, self._x)
-        M = plant.CalcMassMatrix(context)
-        h = plant.CalcBiasTerm(context) - plant.CalcGravityGeneralizedForces(context)
-        b = slice(self._base_v, self._base_v + 6)
-        jv = self._indexing.v
-        for k, (frame, corners) in enumerate(zip(self._frames, self._corners)):
-            rows = slice(6 + 6 * k, 12 + 6 * k)
-            qp.A_eq[rows, :nv] = plant.CalcJacobianSpatialVelocity(
-                context, kV, frame, self._zero3, world, world
-            )
-            bias = plant.CalcBiasSpatialAcceleration(
-                context, kV, frame, self._zero3, world, world
-            )
-            qp.b_eq[rows] = -bias.get_coeffs()
-            self._Jf[12 * k : 12 * k + 12] = plant.CalcJacobianTranslationalVelocity(
-                context, kV, frame, corners.T, world, frame
-            )
-        # The base's rows of M v̇ + h = Sᵀ τ + J_fᵀ f: M_b v̇ − J_fbᵀ f = −h_b.
-        # (h = C v − τ_g; its linear rows' gravity part is −m g.)
-        qp.A_eq[:6, :nv] = M[b]
-        qp.A_eq[:6, nv:] = -self._Jf[:, b].T
-        qp.b_eq[:6] = -h[b]
-        # τ = M_j v̇ + h_j − J_fjᵀ f within ±τ_max.
-        np.take(M, jv, axis=0, out=self._Mj)
-        np.take(h, jv, out=self._hj)
-        qp.A_in[:n, :nv] = self._Mj
-        qp.A_in[:n, nv:] = -self._Jf[:, jv].T
-        np.subtract(-self._tau_max, self._hj, out=qp.l_in[:n])
-        np.subtract(self._tau_max, self._hj, out=qp.u_in[:n])
-        self._cost(M, h, q_ref, com_ref)
-
-    def _cost(
-        self, M: np.ndarray, h: np.ndarray, q_ref: np.ndarray, com_ref: np.ndarray
-    ) -> None:
-        """H and g: the constant part and the CoM's, base's and posture's targets.
+        """Drake's terms at the state in self._x, written into the QP's arrays: the
+        soles' rows here, the rest by `balance_assemble`.
 
         The CoM's Jacobian and bias come from the base's translational rows of
         M v̇ + C v (the robot's linear momentum rate, m a_com, with the base's
@@ -616,52 +772,40 @@ class BalanceStep(Step):
         CalcJacobianCenterOfMassTranslationalVelocity and
         CalcBiasCenterOfMassTranslationalAcceleration to rounding (2e-16; the
         latter costs ~150 µs a call on HRP-2)."""
-        plant, context, config = self._plant, self._context, self._config
+        plant, context = self._plant, self._context
         qp, nv = self.qp, self._nv
-        x = self._x
-        v = x[plant.num_positions() :]
+        kV, world = JacobianWrtVariable.kV, self._world
+        plant.SetPositionsAndVelocities(context, self._x)
+        self._M = M = plant.CalcMassMatrix(context)
+        h = plant.CalcBiasTerm(context)
+        h -= plant.CalcGravityGeneralizedForces(context)
+        self._h = h
+        for k, (frame, corners) in enumerate(zip(self._frames, self._corners)):
+            rows = slice(6 + 6 * k, 12 + 6 * k)
+            qp.A_eq[rows, :nv] = plant.CalcJacobianSpatialVelocity(
+                context, kV, frame, self._zero3, world, world
+            )
+            bias = plant.CalcBiasSpatialAcceleration(
+                context, kV, frame, self._zero3, world, world
+            )
+            qp.b_eq[rows] = bias.get_coeffs()
+            np.negative(qp.b_eq[rows], out=qp.b_eq[rows])
+            self._Jf[12 * k : 12 * k + 12] = plant.CalcJacobianTranslationalVelocity(
+                context, kV, frame, corners.T, world, frame
+            )
         com = plant.CalcCenterOfMassPositionInWorld(context)
-        lin = slice(self._base_v + 3, self._base_v + 6)
-        J = self._J_com
-        np.multiply(M[lin], 1.0 / self._mass, out=J)
-        bias = h[lin] / self._mass + self._gravity
         self.com[:] = com
-        # a_com* − J̇ v: the CoM's row target.
-        a = self._a_com
-        a[:] = (
-            com_ref[6:9]
-            + config.com_kp * (com_ref[0:3] - com)
-            + config.com_kd * (com_ref[3:6] - J @ v)
-            - bias
+        balance_assemble(
+            M, h, self._Jf, com, self._x, q_ref, com_ref, self._constants,
+            self._table, self._H0, self._J_com, self._a_com, self._qp_arrays,
         )
-        qp.H[:] = self._H0
-        qp.H[:nv, :nv] += config.com_weight * (J.T @ J)
-        g = qp.g
-        g[:] = 0.0
-        g[:nv] = -config.com_weight * (J.T @ a)
-        # The base: e_R = sin θ · axis of the rotation from R_WB to upright, from its
-        # quaternion [w, x, y, z] (−2 w [x, y, z]); ω_WB in the world.
-        bq, bv = self._base_q, self._base_v
-        w = x[bq]
-        omega = v[bv : bv + 3]
-        alpha = -2.0 * w * config.base_kp * x[bq + 1 : bq + 4] - config.base_kd * omega
-        g[bv : bv + 3] -= config.base_weight * alpha
-        jv = self._indexing.v
-        q_j = x[self._indexing.q]
-        a_j = config.posture_kp * (q_ref - q_j) - config.posture_kd * v[jv]
-        g[jv] -= config.posture_weight * a_j
 
-    def _accept(self, vdot: np.ndarray, f: np.ndarray) -> None:
-        """τ from the solution (its joint rows) and the soles' wrenches."""
-        self.vdot[:] = vdot
-        self.contact_forces[:] = f
-        # τ = M_j v̇ + h_j − J_fjᵀ f.
-        jv = self._indexing.v
-        self.tau_desired[:] = self._Mj @ vdot + self._hj - self._Jf[:, jv].T @ f
-        for k, corners in enumerate(self._corners):
-            forces = f[12 * k : 12 * k + 12].reshape(_CORNERS, 3)
-            self.sole_wrenches[6 * k : 6 * k + 3] = np.cross(corners, forces).sum(0)
-            self.sole_wrenches[6 * k + 3 : 6 * k + 6] = forces.sum(0)
+    def _accept(self, solution: np.ndarray) -> None:
+        """τ from a solution [v̇; f] (its joint rows) and the soles' wrenches."""
+        balance_outputs(
+            self._M, self._h, self._Jf, solution, self._corner_array, self._table,
+            self.tau_desired, self.vdot, self.contact_forces, self.sole_wrenches,
+        )
 
     def _fault(self, fault: int) -> int:
         """A fault: counted; τ stays the last good one, or, before any, the static
@@ -679,8 +823,7 @@ class BalanceStep(Step):
             return
         b = slice(self._base_v, self._base_v + 6)
         f = np.linalg.lstsq(self._Jf[:, b].T, -self.qp.b_eq[:6], rcond=None)[0]
-        self._accept(np.zeros(self._nv), f)
-        self.vdot[:] = 0.0
+        self._accept(np.r_[np.zeros(self._nv), f])
 
 
 class WholeBodyBalanceController(StepSystem):
