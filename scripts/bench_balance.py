@@ -291,8 +291,10 @@ def bench(robot, solvers, ticks):
     rows = []
     for b, solver in enumerate(solvers):
         solve = solve_ns[b, skip:] * 1e-3
-        rows.append({"solver": solver, "solve": stats(solve), "step": stats(solve + rest),
-                     "faults": int(faults[b]), "tau_gap": float(tau_gap[b])})
+        rows.append({
+            "solver": solver, "solve": stats(solve), "step": stats(solve + rest),
+            "faults": int(faults[b]), "tau_gap": float(tau_gap[b]),
+        })
     return rows, stats(rest), stats(rnea)
 
 
@@ -322,10 +324,10 @@ def main() -> int:
           f"36 velocities, gravity) p50 {rnea['p50_us']:.1f} µs, p99 "
           f"{rnea['p99_us']:.1f} µs: the unit (ID)")
     print(f"the step without the solve (Drake's terms, the kernels): p50 "
-          f"{rest['p50_us']:.0f} µs ({rest['p50']:.1f} ID), p99 {rest['p99_us']:.0f} µs "
-          f"({rest['p99']:.1f} ID)\n")
-    print("| solver | solve p50 / p99 (µs) | solve p50 / p99 (ID) | step p50 / p99 (ID) "
-          "| faults | max abs τ gap to the first (N·m) |")
+          f"{rest['p50_us']:.0f} µs ({rest['p50']:.1f} ID), p99 "
+          f"{rest['p99_us']:.0f} µs ({rest['p99']:.1f} ID)\n")
+    print("| solver | solve p50 / p99 (µs) | solve p50 / p99 (ID) "
+          "| step p50 / p99 (ID) | faults | max abs τ gap to the first (N·m) |")
     print("| --- | --- | --- | --- | --- | --- |")
     for row in rows:
         solve, whole = row["solve"], row["step"]
