@@ -260,6 +260,7 @@ def test_the_shell_outputs_the_steps_numbers(robot, standing, step):
         ({"acceleration_weight": 0.0}, "acceleration_weight: must be > 0"),
         ({"joints": []}, "BalanceConfig.joints is empty"),
         ({"soles": ["r_foot"]}, r"BalanceConfig.soles: \['r_foot'\] have no rectangle"),
+        ({"friction": 1.5}, "BalanceConfig.friction: 1.5 exceeds the description's"),
     ],
 )
 def test_config_errors_name_the_field(robot, standing, change, message):

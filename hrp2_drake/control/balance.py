@@ -563,7 +563,8 @@ class BalanceStep(Step):
             contacts: the description's soles and friction.
 
         Raises:
-            ValueError: a bad config or contacts description, a plant whose
+            ValueError: a bad config or contacts description, a friction above the
+                description's, a plant whose
                 one-dof joints are not all in config.joints, a sole without its
                 rectangle, a pip solver not installed.
             KeyError: an unknown joint or sole frame.
@@ -595,6 +596,12 @@ class BalanceStep(Step):
             raise ValueError(
                 f"BalanceConfig.soles: {missing} have no rectangle in the "
                 f"description's contacts.soles {sorted(contacts.soles)}"
+            )
+        if config.friction > contacts.friction:
+            raise ValueError(
+                f"BalanceConfig.friction: {config.friction} exceeds the description's "
+                f"contacts.friction {contacts.friction}: the QP would count on "
+                "friction the ground does not give"
             )
         self._frames = [get_frame(plant, s, "sole frame") for s in self._soles]
         self._corners = [contacts.soles[s].corners() for s in self._soles]
