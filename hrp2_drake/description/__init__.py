@@ -37,6 +37,7 @@ from pydrake.multibody.tree import BodyIndex, ModelInstanceIndex, RigidBody
 
 from hrp2_drake.config import load_config, one_line
 from hrp2_drake.description.bus import BusDescription, check_bus_period
+from hrp2_drake.description.contacts import ContactsDescription
 from hrp2_drake.description.excitation import CollectionConfig
 from hrp2_drake.description.logs import LogFormat
 from hrp2_drake.description.sensors import SensorsConfig
@@ -182,6 +183,8 @@ class RobotDescription:
         trajectory_file: a reference motion (text or .gz: time, then the joint
             angles), or empty.
         scenarios: what the legged scenarios need.
+        contacts: the soles' rectangles and friction (`description.contacts`), for
+            a whole-body controller with contacts; empty: none.
         identification: the excitation of `hrp2-drake identify` (pushes on a body
             and one increasing sinusoid per controlled joint); empty: none (identify
             then needs a collection of its own).
@@ -220,6 +223,7 @@ class RobotDescription:
     initial_positions: list[float] = field(default_factory=list)
     trajectory_file: str = ""
     scenarios: ScenariosDescription = field(default_factory=ScenariosDescription)
+    contacts: ContactsDescription = field(default_factory=ContactsDescription)
     identification: CollectionConfig = field(default_factory=CollectionConfig)
     logs: LogFormat = field(default_factory=LogFormat)
     position_loop: PositionLoopDescription = field(default_factory=PositionLoopDescription)
