@@ -163,7 +163,11 @@ def _identify(args: argparse.Namespace) -> int:
     _set_given(config, args, "duration_scale")
     if args.fit is not None:
         config.fit = args.fit.replace("-", "_")
-    out = _validated_out(config, args)
+    if args.log:  # the robot's description and the fitting keys; no simulation
+        _validate_alone(config, args)
+        out = _output_folder(args.out)
+    else:
+        out = _validated_out(config, args)
     summary = run_identify(config, out, [Path(p) for p in args.log or []])
     gain = f" at servo gain {summary['gain']:g}" if summary["gain"] else ""
     print(
@@ -181,6 +185,17 @@ def _identify(args: argparse.Namespace) -> int:
             line += f" (vs emulator {e['k_tau'] * 100:+.1f}%, {e['k_v'] * 100:+.1f}%)"
         print(line)
     return 0
+
+
+def _validate_alone(config, args: argparse.Namespace) -> None:
+    """`config.validate()` without its nested configs (`_validate` checks them all):
+    `identify --log` reads the robot's logs, not a simulated station's servo file."""
+    try:
+        config.validate()
+    except ValueError as error:
+        if not args.config:
+            raise
+        raise ValueError(f"{args.config}: {error}") from error
 
 
 def _estimate(args: argparse.Namespace) -> int:
@@ -752,9 +767,10 @@ def _add_estimate(commands: _Commands) -> None:
         "estimate",
         _estimate,
         "offline torque estimation of a recorded log (.npz: t, q_measured, the IMU, "
-        "wrench_<sensor>): τ̂, compensated and unknown wrenches, plot",
+        "wrench_<sensor>; or the robot's own log format): τ̂, compensated and unknown "
+        "wrenches, plot",
         robot=True,
-        log={"required": True, "help": "the log (.npz, see README)"},
+        log={"required": True, "help": "the log (.npz, see README, or the robot's format)"},
         window={"type": _number(int, 3), "default": 81, "help": "Savitzky-Golay window (odd)"},
         calibrate_offsets={
             "metavar": "START:END",

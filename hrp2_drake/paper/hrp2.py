@@ -18,7 +18,7 @@ from pydrake.multibody.tree import ModelInstanceIndex
 from hrp2_drake.description import RobotDescription, load_robot_description
 from hrp2_drake.estimation import torque_estimator
 from hrp2_drake.estimation.torque_estimator import TorqueEstimatorConfig
-from hrp2_drake.identification.excitation import CollectionConfig
+from hrp2_drake.description.excitation import CollectionConfig
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.tools import ground_truth
 from hrp2_drake.multibody import JointIndexing, joint_indexing

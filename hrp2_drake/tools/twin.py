@@ -45,9 +45,10 @@ import scipy.optimize
 
 from hrp2_drake import console
 from hrp2_drake.description import RobotDescription, load_robot_description
+from hrp2_drake.identification.joint_fits import FitConfig, identify_logs
 from hrp2_drake.identification.logs import RobotLog, read_robot_log
 from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure
-from hrp2_drake.robot.rollout import emulated_servo, model_servo, rollout, rollout_errors
+from hrp2_drake.robot.rollout import model_servo, rollout, rollout_errors, twin_servo
 from hrp2_drake.robot.servo import ServoParams, load_servo_params, save_servo_params
 
 #: The fitted parameters: name -> (lower, upper, scale): "log" parameters move by
@@ -180,12 +181,6 @@ def _rollout_error(args: tuple) -> np.ndarray:
     return _position_error(_WORKER["robot"], _WORKER["logs"][k], params)
 
 
-def twin_servo(params: ServoParams, log: RobotLog):
-    """The servo factory of the twin replaying `log`: the emulated servo at the log's
-    gain, its latency buffer holding the log's first command."""
-    return emulated_servo(params, log.gain, initial_q_cmd=log.q_cmd[0])
-
-
 def _position_error(robot: RobotDescription, log: RobotLog, params: ServoParams) -> np.ndarray:
     """q_sim − q_measured of one rollout (rad), one row every RESIDUAL_PERIOD."""
     q_sim = rollout(robot, log, twin_servo(params, log)).q_sim
@@ -302,19 +297,7 @@ def model_errors(
 
 def least_squares_model(robot: RobotDescription, logs: Sequence[RobotLog]):
     """The least-squares motor model (`identify --fit least-squares`) of `logs`."""
-    from hrp2_drake.tools.identify import IdentifyConfig, identify_segments
-    from hrp2_drake.identification.dataset import LogSegment
-    from hrp2_drake.robot.station import StationConfig
-
-    scenario = "fixed_base" if robot.base == "fixed" else "hanging"
-    config = IdentifyConfig(
-        station=StationConfig(robot=robot.source_file, scenario=scenario), fit="least_squares"
-    )
-    segments = [
-        LogSegment(log.arrays(), log.joint_names, log.gain, log.source, log.longest_gap)
-        for log in logs
-    ]
-    return identify_segments(config, segments).identified
+    return identify_logs(robot, FitConfig(fit="least_squares"), logs).identified
 
 
 @dataclass
