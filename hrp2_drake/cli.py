@@ -787,10 +787,15 @@ def _add_validate(commands: _Commands) -> None:
         commands,
         "validate",
         _validate_logs,
-        "judge a motor model by rollout on real logs: the model's servo replays each "
-        "logged command; position MAE and max error (mrad), plots, validate.md",
+        "judge a motor model or a digital twin by rollout on real logs: its servo "
+        "replays each logged command; position MAE and max error (mrad), plots, "
+        "validate.md",
         robot=True,
-        motor_model={"required": True, "help": "MotorModel YAML"},
+        motor_model={
+            "required": True,
+            "help": "a MotorModel YAML (identify), or a servo file: the digital twin "
+            "(calibrate --log's servo.yaml, e.g. models/<robot>/servo.yaml)",
+        },
         log={"required": True, "nargs": "+", "help": "the robot's logs (its logs format)"},
         out=True,
     )
