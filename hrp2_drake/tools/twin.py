@@ -74,6 +74,9 @@ DEFAULT_PARAMETERS = (
 )
 #: The residuals' sampling: one error every `RESIDUAL_PERIOD` seconds of each log.
 RESIDUAL_PERIOD = 0.01
+#: Fewest position residuals per fitted parameter: fewer, and the least-squares
+#: problem is (nearly) underdetermined: any twin fits a few samples.
+MIN_RESIDUALS_PER_PARAMETER = 10
 
 
 @dataclass
@@ -181,6 +184,30 @@ def _rollout_error(args: tuple) -> np.ndarray:
     return _position_error(_WORKER["robot"], _WORKER["logs"][k], params)
 
 
+def _residual_count(log: RobotLog) -> int:
+    """How many position residuals `_position_error` gives of `log`."""
+    every = max(1, int(round(RESIDUAL_PERIOD / log.period)))
+    return len(log.t[::every]) * len(log.joint_names)
+
+
+def check_enough_data(logs: Sequence[RobotLog], config: "TwinConfig") -> None:
+    """Raises ValueError unless the logs give `MIN_RESIDUALS_PER_PARAMETER` position
+    residuals per fitted parameter (a twin of a 57 ms log fits anything)."""
+    joints = len(logs[0].joint_names) if logs else 0
+    parameters = len(config.parameters) * joints
+    residuals = sum(_residual_count(log) for log in logs)
+    needed = MIN_RESIDUALS_PER_PARAMETER * parameters
+    if residuals < needed:
+        seconds = sum(float(log.t[-1]) for log in logs)
+        raise ValueError(
+            f"calibrate --log: {seconds:.3g} s of logs give {residuals} position "
+            f"residuals (one every {RESIDUAL_PERIOD * 1e3:g} ms per joint) for "
+            f"{parameters} parameters; a twin needs at least "
+            f"{MIN_RESIDUALS_PER_PARAMETER} per parameter ({needed}, about "
+            f"{needed / joints * RESIDUAL_PERIOD:.2g} s of logs)"
+        )
+
+
 def _position_error(robot: RobotDescription, log: RobotLog, params: ServoParams) -> np.ndarray:
     """q_sim − q_measured of one rollout (rad), one row every RESIDUAL_PERIOD."""
     q_sim = rollout(robot, log, twin_servo(params, log)).q_sim
@@ -220,8 +247,12 @@ def fit_twin(
     config: TwinConfig = TwinConfig(),
     label: str = "twin",
 ) -> TwinFit:
-    """Fits the emulated servo's parameters to `logs` by rollout (module docstring)."""
-    config.validate()
+    """Fits the emulated servo's parameters to `logs` by rollout (module docstring).
+
+    Raises:
+        ValueError: too little data for the parameters (`check_enough_data`).
+    """
+    check_enough_data(logs, config)
     space = _Space(prior, robot.joints, config.parameters)
     rollouts = Rollouts(robot, logs, config.workers)
     evaluations = [0]
@@ -349,9 +380,13 @@ def run_calibrate_logs(
     if not log_paths:
         raise ValueError("--log: no log given")
     logs = [read_robot_log(path, robot.logs, robot.joints) for path in log_paths]
+    several = _gains(logs) > 1
+    check_enough_data(logs, config)  # before the first rollout, as every fit does
+    for gain in sorted({log.gain for log in logs if log.gain is not None}) * several:
+        check_enough_data([log for log in logs if log.gain == gain], config)
     prior = load_servo_params("", robot.source_file)
     out.mkdir(parents=True, exist_ok=True)
-    cross = cross_validate(robot, logs, prior, config) if _gains(logs) > 1 else []
+    cross = cross_validate(robot, logs, prior, config) if several else []
     final = fit_twin(robot, logs, prior, config, label="twin on every log")
     fitted_mae = {k: v["mae"] for k, v in twin_errors(robot, logs, final.params).items()}
     header = [
