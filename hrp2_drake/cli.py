@@ -515,7 +515,8 @@ def _calibrate(args: argparse.Namespace) -> int:
 def _calibrate_from_logs(args: argparse.Namespace) -> int:
     """`calibrate --robot R --log ...`: any robot's twin from its logs."""
     from hrp2_drake.description import load_robot_description
-    from hrp2_drake.tools.twin import TwinConfig, run_calibrate_logs
+    from hrp2_drake.robot.twin_calibration import TwinConfig
+    from hrp2_drake.tools.twin import run_calibrate_logs
 
     robot = load_robot_description(args.robot)
     if not args.log:

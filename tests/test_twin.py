@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from hrp2_drake.description import load_robot_description
-from hrp2_drake.tools.twin import TwinConfig, fit_twin
+from hrp2_drake.robot.twin_calibration import TwinConfig, fit_twin
 from hrp2_drake.identification.logs import read_robot_log
 from hrp2_drake.robot.rollout import emulated_servo, rollout
 
@@ -52,12 +52,14 @@ def test_a_twin_of_a_57_ms_log_is_refused_before_any_rollout(tmp_path, capsys, m
     import json
 
     from hrp2_drake import cli
+    from hrp2_drake.robot import twin_calibration
     from hrp2_drake.tools import twin
 
     def no_rollout(*args, **kwargs):
         raise AssertionError("rolled out despite too little data")
 
-    monkeypatch.setattr(twin, "rollout", no_rollout)
+    for module in (twin, twin_calibration):
+        monkeypatch.setattr(module, "rollout", no_rollout)
     document = json.loads((LOGS / "xl330_kp400_sin_sin.json").read_text())
     t0 = document["entries"][0]["timestamp"]
     document["entries"] = [

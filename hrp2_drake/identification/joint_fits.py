@@ -6,8 +6,8 @@ joint, on the training blocks of the logs, validated on their held-out blocks.
 of q̇ (`v`), q̈ and τ̂ (`dataset.estimate_logs`), then per joint the least-squares
 (eq. 7), asymmetric (eq. 8), Coulomb and two-stage (Sec. 3.3.1) fits, the
 piecewise-linear model of Sec. 3.2 (for comparison), a sweep of the asymmetric
-weight w and, for logs of several servo gains, each gain's own fits. Commands
-(`tools/identify.py`, `tools/twin.py`) call it and write its report.
+weight w and, for logs of several servo gains, each gain's own fits. `tools/identify.py`
+calls it and writes its report; `robot/twin_calibration.py` compares a twin with it.
 
 Δq = q_cmd − q is `delta_q` throughout, q̇ is `v`.
 """
