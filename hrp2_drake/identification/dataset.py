@@ -38,7 +38,8 @@ class IdentificationData:
         delta_q: Δq = q_cmd − q, smoothed by the same window (rad), (m, n).
         phase, excited_joint: the log's labels (see excitation.py), (m,); -1 where
             the log has none.
-        tau_true: ground-truth joint torques if the log has them (simulation), else None.
+        tau_true: ground-truth joint torques if the log has them (simulation), else
+            None.
         segment: the index of the log each sample comes from (`estimate_logs`).
         gain: the servo gain of each sample's log (NaN: the log states none).
         usable: inside its log's filter edges with its whole window valid (servo on).
@@ -76,8 +77,8 @@ def noncausal_torques(
     """The estimator's `TorqueEstimate` at each of `samples` (indices), from centred
     Savitzky-Golay estimates of the log's encoders (`columns`: the estimator's joints,
     order 2), IMU (if the estimator has one) and F/T sensors (order 1); also
-    (q, q̇, q̈) at those samples. `offsets` (k, 6): the F/T sensors' biases, subtracted
-    from their compensated readings (as the online calibration does).
+    (q, q̇, q̈) at those samples. `offsets` (k, 6): the F/T sensors' biases,
+    subtracted from their compensated readings (as the online calibration does).
 
     Raises:
         ValueError: the log is shorter than the window, or lacks a signal the
@@ -85,7 +86,9 @@ def noncausal_torques(
     """
     t = log.t
     if len(t) < window:
-        raise ValueError(f"the log has {len(t)} samples, fewer than the window {window}")
+        raise ValueError(
+            f"the log has {len(t)} samples, fewer than the window {window}"
+        )
     config = estimator.config()
     imu = bool(config.imu_frame)
     signals = ["imu_linear_acceleration", "imu_angular_velocity"] if imu else []
@@ -97,7 +100,9 @@ def noncausal_torques(
     q, v, vdot = savgol_filter_offline(log.q_measured[:, columns], dt, window, 2)
     if imu:  # else a fixed base: the estimator knows its motion (none) and gravity
         sensors = log.sensors
-        acc = savgol_filter_offline(sensors["imu_linear_acceleration"], dt, window, 1)[0]
+        acc = savgol_filter_offline(
+            sensors["imu_linear_acceleration"], dt, window, 1
+        )[0]
         gyro, alpha, _ = savgol_filter_offline(
             sensors["imu_angular_velocity"], dt, window, 1
         )
@@ -248,12 +253,16 @@ def _concatenate(parts: Sequence[IdentificationData]) -> IdentificationData:
     joined = {}
     for name in names:
         values = [getattr(p, name) for p in parts]
-        joined[name] = None if any(v is None for v in values) else np.concatenate(values)
+        missing = any(v is None for v in values)
+        joined[name] = None if missing else np.concatenate(values)
     return IdentificationData(**joined)
 
 
-def split_blocks(t: np.ndarray, block: float = 1.0, held_out_every: int = 3) -> np.ndarray:
+def split_blocks(
+    t: np.ndarray, block: float = 1.0, held_out_every: int = 3
+) -> np.ndarray:
     """Boolean mask of held-out samples: every `held_out_every`-th block of `block`
     seconds (contiguous blocks, so held-out samples are not neighbours of training
     ones)."""
-    return (np.floor((t - t[0]) / block).astype(int) % held_out_every) == held_out_every - 1
+    blocks = np.floor((t - t[0]) / block).astype(int)
+    return blocks % held_out_every == held_out_every - 1

@@ -50,9 +50,10 @@ _logger = logging.getLogger(__name__)
 #: The fits `FitConfig.fit` may pick for motor_model.yaml, and what each is for.
 FITS = ("asymmetric", "least_squares", "coulomb", "two_stage")
 FIT_PURPOSE = {
-    "asymmetric": "conservative (rarely over-estimates |Δq|): for the torque controller's "
-    "feedforward, as the paper uses it",
-    "least_squares": "the smallest prediction error: for prediction, rollouts and simulation",
+    "asymmetric": "conservative (rarely over-estimates |Δq|): for the torque "
+    "controller's feedforward, as the paper uses it",
+    "least_squares": "the smallest prediction error: for prediction, rollouts and "
+    "simulation",
     "coulomb": "least squares with a Coulomb term Kc sign(q̇): prediction where dry "
     "friction shows",
     "two_stage": "Kτ from near-zero-velocity samples, then Kv (Sec. 3.3.1)",
@@ -102,7 +103,9 @@ class FitConfig:
     fit: str = "asymmetric"
     saturation_margin: float = 0.9
     w: float = 1000.0
-    w_sweep: list[float] = field(default_factory=lambda: [1.0, 10.0, 100.0, 1000.0, 10000.0])
+    w_sweep: list[float] = field(
+        default_factory=lambda: [1.0, 10.0, 100.0, 1000.0, 10000.0]
+    )
     zero_velocity_threshold: float = 0.05
     held_out_block: float = 1.0
     held_out_every: int = 3
@@ -123,7 +126,9 @@ class FitConfig:
                     f"{name}s are in seconds (81 samples at 1 kHz: 0.081)"
                 )
         if self.fit not in FITS:
-            raise ValueError(f"{self._name()}.fit: '{self.fit}', expected one of {FITS}")
+            raise ValueError(
+                f"{self._name()}.fit: '{self.fit}', expected one of {FITS}"
+            )
         check_finite(self.saturation_margin, f"{self._name()}.saturation_margin", 0.0)
         if self.held_out_every < 2:
             raise ValueError(
@@ -181,7 +186,8 @@ class IdentificationResult:
     config: FitConfig
     robot: RobotDescription
     identified: MotorModel  # the fit of config.fit: what motor_model.yaml holds
-    estimation_rms: np.ndarray | None = None  # τ̂ vs truth (N·m), if the log has truth
+    #: τ̂ vs truth (N·m), if the log has truth
+    estimation_rms: np.ndarray | None = None
     estimation_peak: np.ndarray | None = None
     #: the servo gain the models hold at (logs that state one), else 0
     gain: float = 0.0
@@ -199,9 +205,9 @@ def identify_logs(
 
     Logs that state the servo's gain pool into one gain-aware model: each sample's Δq
     is brought to the reference gain (the smallest of the logs) by Δq · gain /
-    reference (a P-controlled servo's output is gain · Δq), and the models hold at that
-    gain (`MotorModel.gain`). Samples where the servo is off, or its output near its
-    documented limit, are left out.
+    reference (a P-controlled servo's output is gain · Δq), and the models hold at
+    that gain (`MotorModel.gain`). Samples where the servo is off, or its output near
+    its documented limit, are left out.
 
     Raises:
         ValueError: one line naming the log or the joint (`check_logs`, the
@@ -222,7 +228,9 @@ def identify_logs(
     held = np.zeros(len(data.t), bool)
     for k in range(len(logs)):
         rows = data.segment == k
-        held[rows] = split_blocks(data.t[rows], config.held_out_block, config.held_out_every)
+        held[rows] = split_blocks(
+            data.t[rows], config.held_out_block, config.held_out_every
+        )
     usable = data.usable & (data.phase != PHASE_TRANSITION)
     columns = {name: i for i, name in enumerate(estimator.config().joints)}
     results = [
@@ -238,11 +246,14 @@ def identify_logs(
         peak = np.abs(data.tau_true[data.usable]).max(axis=0)
     excluded = {
         "servo off or filter edges": int(np.count_nonzero(~data.usable)),
-        "output saturated": int(np.count_nonzero(data.usable & data.saturated.any(axis=1))),
+        "output saturated": int(
+            np.count_nonzero(data.usable & data.saturated.any(axis=1))
+        ),
     }
     train = usable & ~held & ~data.saturated.any(axis=1)  # of every joint
     return IdentificationResult(
-        results, data, held, train, config, robot, chosen, rms, peak, reference, excluded
+        results, data, held, train, config, robot, chosen, rms, peak, reference,
+        excluded,
     )
 
 
@@ -280,7 +291,11 @@ def _identify_joint(
     validation = {}
     static_h = test & (data.phase == PHASE_HIGH_TORQUE if labelled else static)
     for method, fitted in list(models.items()) + [("piecewise_linear", piecewise)]:
-        samples = data.joint(j, static_h) if method == "piecewise_linear" else (tau_h, v_h, delta_q_h)
+        samples = (
+            data.joint(j, static_h)
+            if method == "piecewise_linear"
+            else (tau_h, v_h, delta_q_h)
+        )
         if fitted is None or samples[0].size == 0:
             continue
         residual = fitted.predict(*samples[:2]) - samples[2]
@@ -330,7 +345,9 @@ def _fits(config, tau, v, delta_q, name: str, gain: float) -> dict[str, MotorMod
 
 
 def _rms(model: MotorModel, tau, v, delta_q) -> float:
-    return float(np.sqrt(np.mean((model.predict(tau, v) - delta_q) ** 2))) if tau.size else math.nan
+    if not tau.size:
+        return math.nan
+    return float(np.sqrt(np.mean((model.predict(tau, v) - delta_q) ** 2)))
 
 
 def _fit_piecewise(samples, name: str):
@@ -345,16 +362,21 @@ def _fit_piecewise(samples, name: str):
     tau = samples[0]
     peak = float(np.percentile(np.abs(tau), 95)) if tau.size else 0.0
     guesses = PIECEWISE_INITIAL_BREAKPOINTS + tuple(
-        (-f * peak, f * peak) for f in (0.1, 0.3) if f * peak < PIECEWISE_INITIAL_BREAKPOINTS[0][1]
+        (-f * peak, f * peak)
+        for f in (0.1, 0.3)
+        if f * peak < PIECEWISE_INITIAL_BREAKPOINTS[0][1]
     )
     failed = []
     for guess in guesses:
         try:
-            fitted = fit_piecewise_linear(*samples, initial_breakpoints=guess, joint_name=name)
+            fitted = fit_piecewise_linear(
+                *samples, initial_breakpoints=guess, joint_name=name
+            )
         except ValueError as error:
             failed.append((guess, _reason(error)))
             continue
-        note = f"from {_breakpoints(guess)} N·m" + (f"; {_failures(failed)}" if failed else "")
+        note = f"from {_breakpoints(guess)} N·m"
+        note += f"; {_failures(failed)}" if failed else ""
         _logger.debug("%s: piecewise-linear model (for comparison only) %s", name, note)
         return fitted, note
     note = f"not fitted: {_failures(failed)}"

@@ -69,7 +69,8 @@ MIN_RAW_SAMPLES_PER_WINDOW = 3
 MIN_SAMPLES = 10
 #: Signals every identification log holds (besides "t", "phase", "excited_joint"):
 #: what a real robot records, rad. A robot with an IMU adds its
-#: `IMU_LOG_SIGNALS` (m/s², rad/s), and every F/T sensor s its "wrench_<s>" ([N·m; N]).
+#: `IMU_LOG_SIGNALS` (m/s², rad/s), and every F/T sensor s its "wrench_<s>"
+#: ([N·m; N]).
 IDENTIFICATION_LOG_SIGNALS = ("q_cmd", "q_measured")
 IMU_LOG_SIGNALS = ("imu_linear_acceleration", "imu_angular_velocity")
 
@@ -139,7 +140,9 @@ class RobotLog:
         t = np.asarray(arrays["t"], float)
         valid = arrays.get("valid")
         truth = arrays.get("joint_torque_true")
-        labels = {k: np.asarray(arrays[k]) for k in ("phase", "excited_joint") if k in arrays}
+        labels = {
+            k: np.asarray(arrays[k]) for k in ("phase", "excited_joint") if k in arrays
+        }
         return cls(
             source=source,
             t=t - t[0],
@@ -255,17 +258,25 @@ def read_csv(path: Path, log_format: LogFormat) -> RawLog:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
         raise ValueError(f"{path}: not a text (UTF-8) file, expected CSV") from None
-    rows = [r for r in csv.reader(line for line in text.splitlines()
-                                  if line.strip() and not line.lstrip().startswith("#"))]
+    lines = [
+        line for line in text.splitlines()
+        if line.strip() and not line.lstrip().startswith("#")
+    ]
+    rows = list(csv.reader(lines))
     if len(rows) < 2:
-        raise ValueError(f"{path}: expected a header row and samples, got {len(rows)} rows")
+        raise ValueError(
+            f"{path}: expected a header row and samples, got {len(rows)} rows"
+        )
     header = [h.strip() for h in rows[0]]
     for k, row in enumerate(rows[1:], start=2):
         if len(row) != len(header):
             raise ValueError(
-                f"{path}: row {k} has {len(row)} values, the header {len(header)} columns"
+                f"{path}: row {k} has {len(row)} values, the header "
+                f"{len(header)} columns"
             )
-    columns = {name: [row[i].strip() for row in rows[1:]] for i, name in enumerate(header)}
+    columns = {
+        name: [row[i].strip() for row in rows[1:]] for i, name in enumerate(header)
+    }
     return RawLog({k: _numbers(path, k, v) for k, v in columns.items()})
 
 
@@ -388,7 +399,9 @@ def _column(raw: RawLog, key: str, source: str, field_name: str) -> np.ndarray:
     return values.copy()
 
 
-def _joint_columns(raw: RawLog, keys: Sequence[str], source: str, field_name: str) -> np.ndarray:
+def _joint_columns(
+    raw: RawLog, keys: Sequence[str], source: str, field_name: str
+) -> np.ndarray:
     return np.column_stack(
         [_column(raw, key, source, f"{field_name}[{k}]") for k, key in enumerate(keys)]
     )
@@ -397,7 +410,8 @@ def _joint_columns(raw: RawLog, keys: Sequence[str], source: str, field_name: st
 def _check_time(t: np.ndarray, source: str, key: str) -> None:
     if len(t) < MIN_SAMPLES:
         raise ValueError(
-            f"{source}: {len(t)} samples, fewer than {MIN_SAMPLES}: not a log to identify from"
+            f"{source}: {len(t)} samples, fewer than {MIN_SAMPLES}: not a log to "
+            "identify from"
         )
     steps = np.diff(t)
     if np.any(steps <= 0):
@@ -672,7 +686,9 @@ def log_columns(log_joint_names: Sequence[str], joints: Sequence[str]) -> list[i
 
 
 
-def save_log(path: str | Path, log: dict[str, np.ndarray], joint_names: Sequence[str]) -> None:
+def save_log(
+    path: str | Path, log: dict[str, np.ndarray], joint_names: Sequence[str]
+) -> None:
     """Writes an identification log (.npz, one array per signal, plus joint names)."""
     np.savez_compressed(path, joint_names=np.array(list(joint_names)), **log)
 
@@ -706,7 +722,9 @@ def load_log(
     m, n = len(log["t"]), len(names)
     for key, value in log.items():
         if value.shape[0] != m:
-            raise ValueError(f"{path}: '{key}' has {value.shape[0]} samples, 't' has {m}")
+            raise ValueError(
+                f"{path}: '{key}' has {value.shape[0]} samples, 't' has {m}"
+            )
     for key in ("q_cmd", "q_measured"):
         if key in log and log[key].shape != (m, n):
             raise ValueError(
@@ -752,7 +770,9 @@ def write_robot_log(
     needed += [log_format.valid] if log_format.valid else []
     missing = [key for key in needed if key not in columns]
     if missing:
-        raise ValueError(f"write_robot_log: columns {missing} missing (the log format's)")
+        raise ValueError(
+            f"write_robot_log: columns {missing} missing (the log format's)"
+        )
     meta = dict(meta or {})
     names = list(columns)
     if log_format.format == "json":

@@ -135,7 +135,9 @@ class _Space:
         self.entries = [(j, n) for j in joints for n in names]
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        lower = [-1.0 if TWIN_PARAMETERS[n][0] == "log" else 0.0 for _, n in self.entries]
+        lower = [
+            -1.0 if TWIN_PARAMETERS[n][0] == "log" else 0.0 for _, n in self.entries
+        ]
         return np.array(lower), np.ones(len(self.entries))
 
     def start(self) -> np.ndarray:
@@ -206,7 +208,9 @@ def check_enough_data(logs: Sequence[RobotLog], config: "TwinConfig") -> None:
         )
 
 
-def _position_error(robot: RobotDescription, log: RobotLog, params: ServoParams) -> np.ndarray:
+def _position_error(
+    robot: RobotDescription, log: RobotLog, params: ServoParams
+) -> np.ndarray:
     """q_sim − q_measured of one rollout (rad), one row every RESIDUAL_PERIOD."""
     q_sim = rollout(robot, log, twin_servo(params, log)).q_sim
     every = max(1, int(round(RESIDUAL_PERIOD / log.period)))
@@ -223,8 +227,10 @@ class Rollouts:
         self._pool = None
         if workers > 1 and len(self.logs) > 1:
             self._pool = ProcessPoolExecutor(
-                max_workers=min(workers, len(self.logs)), mp_context=get_context("spawn"),
-                initializer=_init_worker, initargs=(console.program(), robot.source_file, self.logs),
+                max_workers=min(workers, len(self.logs)),
+                mp_context=get_context("spawn"),
+                initializer=_init_worker,
+                initargs=(console.program(), robot.source_file, self.logs),
             )
 
     def errors(self, params: ServoParams) -> list[np.ndarray]:
@@ -268,7 +274,8 @@ def fit_twin(
             best.update(cost=cost, x=x.copy())
         if evaluations[0] % 10 == 1:
             console.say(
-                f"{label}: rollout {evaluations[0]} of at most {config.max_evaluations}, "
+                f"{label}: rollout {evaluations[0]} of at most "
+                f"{config.max_evaluations}, "
                 f"best RMS error {math.sqrt(best['cost'] / len(logs)) * 1e3:.1f} mrad"
             )
         return r
@@ -281,7 +288,9 @@ def fit_twin(
         )
         message = result.message
     except _BudgetSpent:
-        message = f"stopped after {config.max_evaluations} rollouts of every log (the budget)"
+        message = (
+            f"stopped after {config.max_evaluations} rollouts of every log (the budget)"
+        )
     finally:
         rollouts.close()
     params = space.params(best["x"])
@@ -304,8 +313,11 @@ def rollout_table(
     out = {}
     for log in logs:
         e = rollout_errors(log, rollout(robot, log, servo_of_log(log)).q_sim)
-        out[log.name] = {"mae": float(np.mean(e.mae)), "max": float(np.mean(e.max_error)),
-                         "mae_servo_on": float(np.mean(e.mae_servo_on))}
+        out[log.name] = {
+            "mae": float(np.mean(e.mae)),
+            "max": float(np.mean(e.max_error)),
+            "mae_servo_on": float(np.mean(e.mae_servo_on)),
+        }
     return out
 
 
@@ -340,7 +352,10 @@ class CrossValidation:
 
 
 def cross_validate(
-    robot: RobotDescription, logs: Sequence[RobotLog], prior: ServoParams, config: TwinConfig
+    robot: RobotDescription,
+    logs: Sequence[RobotLog],
+    prior: ServoParams,
+    config: TwinConfig,
 ) -> list[CrossValidation]:
     """For each gain of the logs: the twin and the least-squares motor model fitted
     on that gain's logs, rolled out on the logs of the other gains."""
@@ -352,6 +367,7 @@ def cross_validate(
         twin = fit_twin(robot, train, prior, config, label=f"twin on gain {gain:g}")
         model = least_squares_model(robot, train)
         results.append(CrossValidation(
-            gain, twin, twin_errors(robot, test, twin.params), model_errors(robot, test, model)
+            gain, twin, twin_errors(robot, test, twin.params),
+            model_errors(robot, test, model),
         ))
     return results
