@@ -184,7 +184,11 @@ def _identify(args: argparse.Namespace) -> int:
     _set_given(config, args, "duration_scale")
     if args.fit is not None:
         config.fit = args.fit.replace("-", "_")
-    out = _validated_out(config, args)
+    if args.log:  # the robot's description and the fitting keys; no simulation
+        _validate_alone(config, args)
+        out = _output_folder(args.out)
+    else:
+        out = _validated_out(config, args)
     summary = run_identify(config, out, [Path(p) for p in args.log or []])
     gain = f" at servo gain {summary['gain']:g}" if summary["gain"] else ""
     print(
@@ -202,6 +206,17 @@ def _identify(args: argparse.Namespace) -> int:
             line += f" (vs emulator {e['k_tau'] * 100:+.1f}%, {e['k_v'] * 100:+.1f}%)"
         print(line)
     return 0
+
+
+def _validate_alone(config, args: argparse.Namespace) -> None:
+    """`config.validate()` without its nested configs (`_validate` checks them all):
+    `identify --log` reads the robot's logs, not a simulated station's servo file."""
+    try:
+        config.validate()
+    except ValueError as error:
+        if not args.config:
+            raise
+        raise ValueError(f"{args.config}: {error}") from error
 
 
 def _estimate(args: argparse.Namespace) -> int:
@@ -519,7 +534,8 @@ def _calibrate(args: argparse.Namespace) -> int:
 def _calibrate_from_logs(args: argparse.Namespace) -> int:
     """`calibrate --robot R --log ...`: any robot's twin from its logs."""
     from hrp2_drake.description import load_robot_description
-    from hrp2_drake.tools.twin import TwinConfig, run_calibrate_logs
+    from hrp2_drake.robot.twin_calibration import TwinConfig
+    from hrp2_drake.tools.twin import run_calibrate_logs
 
     robot = load_robot_description(args.robot)
     if not args.log:
@@ -771,9 +787,10 @@ def _add_estimate(commands: _Commands) -> None:
         "estimate",
         _estimate,
         "offline torque estimation of a recorded log (.npz: t, q_measured, the IMU, "
-        "wrench_<sensor>): τ̂, compensated and unknown wrenches, plot",
+        "wrench_<sensor>; or the robot's own log format): τ̂, compensated and unknown "
+        "wrenches, plot",
         robot=True,
-        log={"required": True, "help": "the log (.npz, see README)"},
+        log={"required": True, "help": "the log (.npz, see README, or the robot's format)"},
         window={"type": _number(int, 3), "default": 81, "help": "Savitzky-Golay window (odd)"},
         calibrate_offsets={
             "metavar": "START:END",
@@ -790,10 +807,15 @@ def _add_validate(commands: _Commands) -> None:
         commands,
         "validate",
         _validate_logs,
-        "judge a motor model by rollout on real logs: the model's servo replays each "
-        "logged command; position MAE and max error (mrad), plots, validate.md",
+        "judge a motor model or a digital twin by rollout on real logs: its servo "
+        "replays each logged command; position MAE and max error (mrad), plots, "
+        "validate.md",
         robot=True,
-        motor_model={"required": True, "help": "MotorModel YAML"},
+        motor_model={
+            "required": True,
+            "help": "a MotorModel YAML (identify), or a servo file: the digital twin "
+            "(calibrate --log's servo.yaml, e.g. models/<robot>/servo.yaml)",
+        },
         log={"required": True, "nargs": "+", "help": "the robot's logs (its logs format)"},
         out=True,
     )

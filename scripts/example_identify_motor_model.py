@@ -7,8 +7,8 @@ collected on its simulated station, composing the library's pieces by hand.
 Steps: the description's excitation (pushes + increasing sinusoids) run on the station
 (`collect`), non-causal estimates of q̇ and τ̂ (`noncausal_estimates`: centred
 Savitzky-Golay filters + the torque estimator), then one asymmetric fit per joint
-(MathematicalProgram). On a real robot, record the same log (`save_log` format) and
-start from `noncausal_estimates`.
+(MathematicalProgram). On a real robot, read its log with `read_robot_log` (this
+project's `save_log` format, or the robot's own) and start from `noncausal_estimates`.
 """
 
 import argparse
@@ -20,6 +20,7 @@ from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
 from hrp2_drake.identification.dataset import noncausal_estimates
 from hrp2_drake.identification.excitation import collect, make_plan
 from hrp2_drake.identification.fitting import check_identified, fit_asymmetric
+from hrp2_drake.identification.logs import RobotLog
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
 
@@ -45,10 +46,11 @@ def main() -> None:
     excitation = robot.identification.scaled(args.duration_scale)
     plan = make_plan(excitation, robot.joints, initial_joint_positions(config))
     push_body = plant.GetBodyByName(excitation.pushes.body).index()
-    log = collect(station, plan, push_body, excitation.pushes.point)
+    arrays = collect(station, plan, push_body, excitation.pushes.point)
+    log = RobotLog.from_arrays(arrays, robot.joints, robot.joints, source="collected")
 
     estimator = FloatingBaseTorqueEstimator(robot.make_plant(), estimator_config(robot))
-    data = noncausal_estimates(log, robot.joints, estimator, window=81, stride=5)
+    data = noncausal_estimates(log, estimator, window=81, stride=5)
     fits = {}
     for name in robot.controlled_joints:
         j = robot.joints.index(name)

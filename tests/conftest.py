@@ -12,11 +12,8 @@ def short_identification():
     shared by the tests that need data or an identified motor model.
 
     Returns (config, log, joint_names, result)."""
-    from hrp2_drake.tools.identify import (
-        IdentifyConfig,
-        collect_log,
-        identify,
-    )
+    from hrp2_drake.identification.joint_fits import identify_logs
+    from hrp2_drake.tools.identify import IdentifyConfig, collect_log, collected_log
 
     from hrp2_drake.robot.station import StationConfig
 
@@ -26,7 +23,8 @@ def short_identification():
         duration_scale=0.5, station=StationConfig(scenario="hanging", servo_file="ideal")
     )
     log, names = collect_log(config, progress=False)
-    return config, log, names, identify(config, log, names)
+    result = identify_logs(config.robot(), config, [collected_log(config, log, names)])
+    return config, log, names, result
 
 
 @pytest.fixture(scope="session")

@@ -254,6 +254,18 @@ def test_log_file_errors_name_the_file_and_array(tmp_path, capsys):
     assert not (tmp_path / "out" / "motor_model.yaml").exists()
 
 
+def test_a_window_the_collection_cannot_fill_is_refused_before_collecting(
+    tmp_path, capsys
+):
+    """A window of 0.5 ms spans fewer than 3 samples of the collection's 1 ms log:
+    refused before collecting (issue 28: after 50 s of it); `collect_log` fails the
+    test if called."""
+    config = tmp_path / "identify.yaml"
+    config.write_text("window: 0.0005\n")
+    refused(capsys, ["identify", "--config", str(config), "--out", str(tmp_path)],
+            "IdentifyConfig.window", "0.0005 s spans fewer than 3 samples of 1 ms")
+
+
 def test_identification_refuses_noise_and_writes_no_model(tmp_path, capsys):
     # Δq is pure noise: the fit found Kτ ≈ -2e-9 and wrote it, exit 0.
     path = identification_log(tmp_path / "noise.npz")

@@ -2,6 +2,7 @@
 about without `--calibrate-offsets`, removed with it; bad segments get one line."""
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -47,3 +48,34 @@ def test_bad_segments_are_one_line(iiwa_log, tmp_path, capsys, segment, words):
                  str(tmp_path), "--calibrate-offsets", segment])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and words in err[0] and "--calibrate-offsets" in err[0]
+
+
+def test_estimate_reads_a_robots_own_log(tmp_path):
+    """`estimate --robot xl330_pendulum --log` its own BAM JSON (issue 28: refused as
+    "a text file, expected an .npz archive"): read like `identify` and `validate`
+    read it (resampled to 1 kHz), τ̂ that of the pendulum's closed form,
+    (m l² + ρ² I_r) q̈ + m g l sin q on the same centred filters."""
+    import numpy as np
+
+    from hrp2_drake.description import load_robot_description
+    from hrp2_drake.estimation.savitzky_golay import savgol_filter_offline
+    from hrp2_drake.identification.logs import read_robot_log
+
+    robot = load_robot_description("xl330_pendulum")
+    source = Path(robot.source_file).parent / "logs" / "xl330_kp400_sin_sin.json"
+    document = json.loads(source.read_text())
+    document["entries"] = document["entries"][:300]  # 1.6 s
+    path = tmp_path / "sin_sin.json"
+    path.write_text(json.dumps(document))
+    out = tmp_path / "out"
+    assert main(["estimate", "--robot", "xl330_pendulum", "--log", str(path),
+                 "--out", str(out)]) == 0
+    log = read_robot_log(path, robot.logs, robot.joints)
+    result = np.load(out / "estimate.npz")
+    assert json.loads((out / "estimate.json").read_text())["samples"] == len(log.t)
+    q, v, vdot = (x[:, 0] for x in savgol_filter_offline(log.q_measured, 1e-3, 81, 2))
+    inertia = 0.49 * 0.1**2 + 1e-8 + 288.35**2 * 2.1648e-8
+    tau = inertia * vdot + 0.49 * 9.81 * 0.1 * np.sin(q)
+    np.testing.assert_allclose(result["v"][:, 0], v, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(result["tau"][:, 0], tau, rtol=0, atol=1e-6)
+    assert np.abs(tau).max() > 0.1  # the pendulum swings: a torque to check

@@ -179,7 +179,7 @@ def test_piecewise_linear_raises_without_central_samples():
     tau = rng.choice([-1.0, 1.0], 1000) * rng.uniform(1.0, 30.0, 1000)
     dq = rng.choice([-1.0, 1.0], 1000)
     with pytest.raises(
-        ValueError, match=r"'knee', branch dq > 0: segment 2.* 0 samples"
+        ValueError, match=r"'knee', branch v > 0: segment 2.* 0 samples"
     ):
         fit_piecewise_linear(tau, dq, 1e-4 * tau, joint_name="knee")
 
@@ -201,7 +201,7 @@ def _bad_logs():
     nan_dq[5] = np.nan
     return {
         "mismatched lengths": ((tau, dq[:-1], delta_q), "mismatched lengths"),
-        "nan": ((tau, nan_dq, delta_q), "dq has 1 NaN or inf"),
+        "nan": ((tau, nan_dq, delta_q), "v has 1 NaN or inf"),
         "no motion": ((tau, 1e-5 * dq, delta_q), "no motion"),
         "no torque": ((0 * tau, dq, delta_q), "no torque"),
         "rank deficiency": ((3 * dq, dq, delta_q), "rank-deficient"),

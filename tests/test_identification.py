@@ -8,15 +8,14 @@ import pytest
 
 from hrp2_drake.cli import main
 from hrp2_drake.paper import hrp2
+from hrp2_drake.description.excitation import SinusoidConfig
 from hrp2_drake.identification.excitation import (
     PHASE_HIGH_TORQUE,
     PHASE_HIGH_VELOCITY,
-    SinusoidConfig,
     increasing_sinusoid,
-    load_log,
     make_plan,
-    save_log,
 )
+from hrp2_drake.identification.logs import load_log, save_log
 
 
 def test_increasing_sinusoid_is_the_papers_and_ends_at_rest():

@@ -11,11 +11,9 @@ import pytest
 
 from hrp2_drake.cli import main
 from hrp2_drake.description import load_robot_description
-from hrp2_drake.tools.identify import (
-    IdentifyConfig,
-    identify_segments,
-    read_segments,
-)
+from hrp2_drake.identification.dataset import check_logs
+from hrp2_drake.identification.joint_fits import identify_logs
+from hrp2_drake.tools.identify import IdentifyConfig, read_logs
 from hrp2_drake.identification.logs import read_robot_log, window_samples
 from hrp2_drake.robot.station import StationConfig
 
@@ -79,10 +77,10 @@ def test_windows_in_seconds_are_odd_sample_counts():
 
 
 def test_identification_leaves_out_servo_off_and_saturated_samples(robot):
-    segments, rows = read_segments(
+    logs, rows = read_logs(
         [LOGS / "xl330_kp400_lift_and_drop.json", LOGS / "xl330_kp400_sin_sin.json"], robot
     )
-    result = identify_segments(_config(), segments)
+    result = identify_logs(robot, _config(), logs)
     data = result.data
     assert [r["log"] for r in rows] == ["xl330_kp400_lift_and_drop", "xl330_kp400_sin_sin"]
     assert set(np.unique(data.segment)) == {0, 1}
@@ -95,8 +93,8 @@ def test_identification_leaves_out_servo_off_and_saturated_samples(robot):
 
 def test_logs_of_two_gains_pool_into_one_gain_aware_model(robot):
     paths = [LOGS / f"xl330_kp{kp}_sin_sin.json" for kp in (100, 400)]
-    segments, _ = read_segments(paths, robot)
-    result = identify_segments(_config(), segments)
+    logs, _ = read_logs(paths, robot)
+    result = identify_logs(robot, _config(), logs)
     model = result.identified
     assert model.gain == 100.0 and model.fit == "least_squares"
     per_gain = result.joints[0].per_gain
@@ -187,3 +185,58 @@ def test_identify_a_bam_log_as_it_is(tmp_path, capsys):
     for fit in ("least_squares", "asymmetric", "coulomb", "two_stage"):
         assert (out / f"motor_model_{fit}.yaml").is_file()
     assert (out / "figure1_torque_vs_delta_q.png").is_file()
+
+
+def _every(document: dict, k: int) -> dict:
+    """The log with every k-th sample only: a robot that logs k times slower."""
+    document["entries"] = document["entries"][::k]
+    return document
+
+
+def test_the_lowest_rate_follows_from_the_window(robot, tmp_path, capsys):
+    """A log at 47.5 Hz (every 4th sample of a 190 Hz BAM log; BAM's Feetech logs are
+    at 48.7 Hz) fills the 81 ms window with 3.9 raw samples: accepted. At 23.7 Hz it
+    holds 1.9: refused on one line with the numbers, not as a time-unit error."""
+    slow = _write(tmp_path, "slow", _every(_bam("xl330_kp400_sin_sin"), 4))
+    log = read_robot_log(slow, robot.logs, robot.joints)
+    assert 45 < log.raw_rate < 50
+    check_logs([log], 0.081, "IdentifyConfig.window")  # no error
+    slower = _write(tmp_path, "slower", _every(_bam("xl330_kp400_sin_sin"), 8))
+    rate = read_robot_log(slower, robot.logs, robot.joints).raw_rate
+    code = main(["identify", "--robot", ROBOT, "--log", str(slower), "--out",
+                 str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    line = err[0]
+    assert f"slower.json: sampled at {rate:.4g} Hz" in line, line
+    assert f"window 0.081 s (IdentifyConfig.window) spans {0.081 * rate:.2f} raw" in line
+    assert "fewer than the 3 a window needs" in line, line
+    assert f">= {3 / 0.081:.4g} Hz" in line and f">= {3 / rate:.4g} s" in line, line
+    assert "time_unit" not in line
+
+
+def test_identify_validates_its_config_once_and_reads_no_servo_file(
+    tmp_path, capsys, monkeypatch
+):
+    """`identify --log`: IdentifyConfig.validate runs once (it ran three times), and
+    no simulated station is validated (its servo file): logs need the robot's
+    description only."""
+    from hrp2_drake.robot import station
+
+    calls = {"identify": 0, "station": 0}
+    validate = IdentifyConfig.validate
+
+    def counted(self):
+        calls["identify"] += 1
+        validate(self)
+
+    def station_validated(self):
+        calls["station"] += 1
+
+    monkeypatch.setattr(IdentifyConfig, "validate", counted)
+    monkeypatch.setattr(station.StationConfig, "validate", station_validated)
+    path = _write(tmp_path, "slice", _sliced("xl330_kp400_sin_time_square", 1100))
+    assert main(["identify", "--robot", ROBOT, "--log", str(path), "--fit",
+                 "least-squares", "--out", str(tmp_path / "out")]) == 0
+    assert calls == {"identify": 1, "station": 0}
+    capsys.readouterr()

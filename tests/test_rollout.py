@@ -22,11 +22,13 @@ from hrp2_drake.robot.rollout import (
     model_servo,
     rollout,
     rollout_errors,
+    twin_servo,
 )
 from hrp2_drake.robot.servo import (
     SERVO_MECHANISMS,
     EmulatedPositionServo,
     effective_motor_parameters,
+    load_servo_params,
     servo_torque,
 )
 
@@ -329,3 +331,30 @@ def test_validate_bad_inputs_are_one_line(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert code == 2, err
         assert len(err) == 1 and expected in err[0], err
+
+
+def test_validate_rolls_out_the_shipped_twin(robot, tmp_path, capsys):
+    """`validate --motor-model` a servo file (issue 28): the shipped digital twin
+    (models/xl330_pendulum/servo.yaml, `calibrate --log`'s) judged on a log in one
+    command; its errors are those of the twin's own rollout (`twin_servo`)."""
+    servo_file = LOGS.parent / "servo.yaml"
+    log_path = _sliced_json(
+        LOGS / "xl330_kp100_sin_sin.json", tmp_path / "sin_sin.json", 1.0
+    )
+    out = tmp_path / "out"
+    argv = ["validate", "--robot", ROBOT, "--motor-model", str(servo_file),
+            "--log", str(log_path), "--out", str(out)]
+    assert cli.main(argv) == 0
+    summary = json.loads((out / "validate.json").read_text())
+    assert summary["model_kind"] == "servo file" and summary["model_gain"] is None
+    log = read_robot_log(log_path, robot.logs, robot.joints)
+    params = load_servo_params(servo_file, robot.source_file)
+    errors = rollout_errors(log, rollout(robot, log, twin_servo(params, log)).q_sim)
+    row = summary["logs"][0]
+    assert row["mae_mrad"]["servo"] == pytest.approx(errors.mae[0] * 1e3, rel=1e-9)
+    assert row["max_error_mrad"]["servo"] == pytest.approx(
+        errors.max_error[0] * 1e3, rel=1e-9
+    )
+    assert 0 < row["mae_mrad"]["servo"] < 40  # measured: 31.4 mrad on this second
+    assert "Digital twin (servo file)" in (out / "validate.md").read_text()
+    capsys.readouterr()

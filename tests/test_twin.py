@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from hrp2_drake.description import load_robot_description
-from hrp2_drake.tools.twin import TwinConfig, fit_twin
+from hrp2_drake.robot.twin_calibration import TwinConfig, fit_twin
 from hrp2_drake.identification.logs import read_robot_log
 from hrp2_drake.robot.rollout import emulated_servo, rollout
 
@@ -44,3 +44,38 @@ def test_calibration_recovers_a_known_servo(xl330_prior):
     for name in ("k4", "stall_current", "k3"):
         assert getattr(got, name) == pytest.approx(getattr(want, name), rel=0.05), name
     assert fit.cost_end < 0.01 * fit.cost_start
+
+
+def test_a_twin_of_a_57_ms_log_is_refused_before_any_rollout(tmp_path, capsys, monkeypatch):
+    """A twin calibrated from 57 ms of log fits anything (issue 28: accepted without
+    a word): refused on one line with the numbers, before the first rollout."""
+    import json
+
+    from hrp2_drake import cli
+    from hrp2_drake.robot import twin_calibration
+    from hrp2_drake.tools import twin
+
+    def no_rollout(*args, **kwargs):
+        raise AssertionError("rolled out despite too little data")
+
+    for module in (twin, twin_calibration):
+        monkeypatch.setattr(module, "rollout", no_rollout)
+    document = json.loads((LOGS / "xl330_kp400_sin_sin.json").read_text())
+    t0 = document["entries"][0]["timestamp"]
+    document["entries"] = [
+        e for e in document["entries"] if e["timestamp"] - t0 <= 0.057
+    ]
+    path = tmp_path / "short.json"
+    path.write_text(json.dumps(document))
+    code = cli.main(["calibrate", "--robot", ROBOT, "--log", str(path), "--out",
+                     str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    # 57 ms on the 1 kHz grid: one residual every 10 ms, 6 of them, for 9 parameters
+    # (DEFAULT_PARAMETERS of one joint): 90 needed.
+    robot = load_robot_description(ROBOT)
+    seconds = read_robot_log(path, robot.logs, robot.joints).t[-1]
+    assert 0.05 < seconds < 0.057
+    assert f"{seconds:.3g} s of logs give 6 position residuals" in err[0], err[0]
+    assert "for 9 parameters" in err[0] and "(90, about 0.9 s of logs)" in err[0], err[0]
+    assert not (tmp_path / "out" / "servo.yaml").exists()

@@ -18,11 +18,8 @@ import numpy as np
 import pytest
 
 from hrp2_drake.cli import main
-from hrp2_drake.tools.identify import (
-    IdentifyConfig,
-    identify_segments,
-    read_segments,
-)
+from hrp2_drake.identification.joint_fits import identify_logs
+from hrp2_drake.tools.identify import IdentifyConfig, read_logs
 from hrp2_drake.tools.track import motor_model_at_station_gain
 from hrp2_drake.identification.logs import RobotLog
 from hrp2_drake.identification.motor_model import MotorModel
@@ -131,10 +128,10 @@ def test_windows_in_seconds_give_the_same_fit_at_any_rate(tmp_path):
     for rate in (50.0, 200.0, 1000.0):
         path = tmp_path / f"xl330_{rate:g}hz.csv"
         _synthetic_csv(path, rate, seed=0)
-        segments, rows = read_segments([path], csv_robot)
+        logs, rows = read_logs([path], csv_robot)
         assert rows[0]["raw_rate_hz"] == pytest.approx(rate, rel=0.02)
-        assert segments[0].gain == GAIN
-        result = identify_segments(config, segments)
+        assert logs[0].gain == GAIN
+        result = identify_logs(robot, config, logs)
         model = result.joints[0].models["least_squares"]
         assert model.gain == GAIN
         fits[rate] = (model.k_tau[0], model.k_v[0])

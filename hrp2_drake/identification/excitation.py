@@ -11,8 +11,8 @@ Two kinds of excitation, run on a robot held in the air (the "hanging" scenario)
   joint of the leg sees large torques of both signs.
 
 The result is an identification log: what a real robot would record (see
-`IDENTIFICATION_LOG_SIGNALS` and `save_log`), plus, in simulation only, ground truth
-for evaluation. Nothing here reads the servo's parameters.
+`logs.IDENTIFICATION_LOG_SIGNALS` and `logs.save_log`), plus, in simulation only,
+ground truth for evaluation. Nothing here reads the servo's parameters.
 
 A station is any Diagram with the ports of docs/architecture.md: input `q_cmd` and
 `applied_spatial_force`, outputs `q_measured`, `imu_linear_acceleration`,
@@ -20,7 +20,6 @@ A station is any Diagram with the ports of docs/architecture.md: input `q_cmd` a
 """
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -33,22 +32,17 @@ from pydrake.systems.framework import Context, Diagram, DiagramBuilder, LeafSyst
 from pydrake.systems.primitives import TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
-# The configs are the robot description's (plain data), imported here for this module's users.
-from hrp2_drake.description.excitation import (  # noqa: F401
+from hrp2_drake.description.excitation import (
     CollectionConfig,
     PushConfig,
     SinusoidConfig,
 )
+from hrp2_drake.identification.logs import IDENTIFICATION_LOG_SIGNALS, IMU_LOG_SIGNALS
 from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
 
 # Phases of an identification log, per sample.
 PHASE_TRANSITION, PHASE_HIGH_TORQUE, PHASE_HIGH_VELOCITY = 0, 1, 2
 
-#: Signals every identification log holds (besides "t", "phase", "excited_joint"):
-#: what a real robot records, rad. A robot with an IMU adds its
-#: `IMU_LOG_SIGNALS` (m/s², rad/s), and every F/T sensor s its "wrench_<s>" ([N·m; N]).
-IDENTIFICATION_LOG_SIGNALS = ("q_cmd", "q_measured")
-IMU_LOG_SIGNALS = ("imu_linear_acceleration", "imu_angular_velocity")
 
 
 @dataclass
@@ -295,32 +289,3 @@ def collect(
     return log
 
 
-def save_log(path: str | Path, log: dict[str, np.ndarray], joint_names: Sequence[str]) -> None:
-    """Writes an identification log (.npz, one array per signal, plus joint names)."""
-    np.savez_compressed(path, joint_names=np.array(list(joint_names)), **log)
-
-
-def load_log(path: str | Path) -> tuple[dict[str, np.ndarray], list[str]]:
-    """Reads a log written by `save_log` or by a real robot in the same format.
-
-    Raises:
-        FileNotFoundError, IsADirectoryError: `path` is not a file.
-        ValueError: not a readable .npz archive (`dataset.read_npz`), a required
-            signal is missing, or sizes disagree.
-    """
-    from hrp2_drake.identification.dataset import read_npz
-
-    log = read_npz(path, "identification log")
-    required = ("t", "joint_names", *IDENTIFICATION_LOG_SIGNALS)
-    missing = [key for key in required if key not in log]
-    if missing:
-        raise ValueError(f"{path}: identification log lacks {missing}")
-    names = [str(n) for n in log.pop("joint_names")]
-    m, n = len(log["t"]), len(names)
-    for key, value in log.items():
-        if value.shape[0] != m:
-            raise ValueError(f"{path}: '{key}' has {value.shape[0]} samples, 't' has {m}")
-    for key in ("q_cmd", "q_measured"):
-        if log[key].shape != (m, n):
-            raise ValueError(f"{path}: '{key}' has shape {log[key].shape}, expected ({m}, {n})")
-    return log, names

@@ -45,7 +45,7 @@ MIN_EXPLAINED = 0.2
 
 def fit_least_squares(
     tau: np.ndarray,
-    dq: np.ndarray,
+    v: np.ndarray,
     delta_q: np.ndarray,
     coulomb: bool = False,
     joint_name: str = "joint",
@@ -54,24 +54,24 @@ def fit_least_squares(
 
     Args:
         tau: Joint torques, N·m, shape (m,).
-        dq: Joint velocities, rad/s, shape (m,).
+        v: Joint velocities, rad/s, shape (m,).
         delta_q: Position errors q_cmd - q, rad, shape (m,).
         coulomb: Also fit the Coulomb term k_c (the paper drops it).
         joint_name: Name of the joint in the returned model.
     """
     where = f"joint {joint_name!r}"
-    tau, dq, delta_q = _check_data(tau, dq, delta_q, where)
-    A = _regressor(tau, dq, coulomb, where)
+    tau, v, delta_q = _check_data(tau, v, delta_q, where)
+    A = _regressor(tau, v, coulomb, where)
     A_hat, b_hat, scale = _scaled_problem(A, delta_q, where)
     x_hat = np.linalg.lstsq(A_hat, b_hat, rcond=None)[0]  # eq. 7
     return _linear_model(
-        joint_name, x_hat * scale, "least_squares", 0, tau, dq, delta_q
+        joint_name, x_hat * scale, "least_squares", 0, tau, v, delta_q
     )
 
 
 def fit_asymmetric(
     tau: np.ndarray,
-    dq: np.ndarray,
+    v: np.ndarray,
     delta_q: np.ndarray,
     w: float = 100.0,
     method: str = "newton",
@@ -85,7 +85,7 @@ def fit_asymmetric(
     the fit minimises Σ Φ(z) with Φ(z) = w z² if z > 0 else z².
 
     Args:
-        tau, dq, delta_q, coulomb, joint_name: As in `fit_least_squares`.
+        tau, v, delta_q, coulomb, joint_name: As in `fit_least_squares`.
         w: Weight of over-estimation, >= 1 (the paper uses 100; w = 1 is least squares).
         method: "newton": Newton's method on the convex eq. 8, each step a weighted
             least-squares solve of 2 (3) unknowns with numpy; fast for 10^6 samples.
@@ -93,19 +93,19 @@ def fit_asymmetric(
             through Drake's MathematicalProgram; same optimum, slow beyond 10^5.
     """
     where = f"joint {joint_name!r}"
-    tau, dq, delta_q = _check_data(tau, dq, delta_q, where)
-    A = _regressor(tau, dq, coulomb, where)
+    tau, v, delta_q = _check_data(tau, v, delta_q, where)
+    A = _regressor(tau, v, coulomb, where)
     x, iterations = _solve_asymmetric(
         A, delta_q, _overestimation_sign(delta_q), w, method, where
     )
     return _linear_model(
-        joint_name, x, f"asymmetric {method}", iterations, tau, dq, delta_q
+        joint_name, x, f"asymmetric {method}", iterations, tau, v, delta_q
     )
 
 
 def fit_two_stage(
     tau: np.ndarray,
-    dq: np.ndarray,
+    v: np.ndarray,
     delta_q: np.ndarray,
     zero_velocity_threshold: float,
     w: float = 100.0,
@@ -121,31 +121,31 @@ def fit_two_stage(
     "over-estimation" keeps meaning |k_tau τ + k_v q̇| > |Δq| in stage 2.
 
     Args:
-        tau, dq, delta_q, w, method, coulomb, joint_name: As in `fit_asymmetric`.
+        tau, v, delta_q, w, method, coulomb, joint_name: As in `fit_asymmetric`.
         zero_velocity_threshold: |q̇| below which a sample is static, rad/s.
     """
     where = f"joint {joint_name!r}"
-    tau, dq, delta_q = _check_data(tau, dq, delta_q, where)
+    tau, v, delta_q = _check_data(tau, v, delta_q, where)
     if not zero_velocity_threshold > 0:
         raise ValueError(
             f"{where}: zero_velocity_threshold must be > 0 rad/s, "
             f"got {zero_velocity_threshold}"
         )
-    static = np.abs(dq) < zero_velocity_threshold
+    static = np.abs(v) < zero_velocity_threshold
     sign = _overestimation_sign(delta_q)
 
     threshold = f"{zero_velocity_threshold} rad/s"
-    stage = f"{where}, stage 1 ({np.count_nonzero(static)} samples |dq| < {threshold})"
-    _check_data(tau[static], dq[static], delta_q[static], stage)
+    stage = f"{where}, stage 1 ({np.count_nonzero(static)} samples |v| < {threshold})"
+    _check_data(tau[static], v[static], delta_q[static], stage)
     A1 = _regressor(tau[static], None, False, stage)
     (k_tau,), iterations_1 = _solve_asymmetric(
         A1, delta_q[static], sign[static], w, method, stage
     )
 
     moving = ~static
-    stage = f"{where}, stage 2 ({np.count_nonzero(moving)} samples |dq| >= {threshold})"
-    _check_data(tau[moving], dq[moving], delta_q[moving], stage)
-    A2 = _regressor(None, dq[moving], coulomb, stage)
+    stage = f"{where}, stage 2 ({np.count_nonzero(moving)} samples |v| >= {threshold})"
+    _check_data(tau[moving], v[moving], delta_q[moving], stage)
+    A2 = _regressor(None, v[moving], coulomb, stage)
     b2 = delta_q[moving] - k_tau * tau[moving]
     x2, iterations_2 = _solve_asymmetric(A2, b2, sign[moving], w, method, stage)
 
@@ -156,14 +156,14 @@ def fit_two_stage(
         f"two_stage {method}",
         iterations_1 + iterations_2,
         tau,
-        dq,
+        v,
         delta_q,
     )
 
 
 def fit_piecewise_linear(
     tau: np.ndarray,
-    dq: np.ndarray,
+    v: np.ndarray,
     delta_q: np.ndarray,
     initial_breakpoints: tuple[float, float] = (-0.5, 0.5),
     max_iterations: int = 10,
@@ -183,7 +183,7 @@ def fit_piecewise_linear(
     the paper notes the algorithm needs a good initial guess.
 
     Args:
-        tau, dq, delta_q, joint_name: As in `fit_least_squares`.
+        tau, v, delta_q, joint_name: As in `fit_least_squares`.
         initial_breakpoints: Initial (τ1, τ2), N·m; the paper's (-0.5, 0.5) (legs).
         max_iterations: The paper's 10.
         central_slope_bounds: Bounds of the central slope k_τ2, rad/(N·m). The central
@@ -194,14 +194,14 @@ def fit_piecewise_linear(
         tolerance: Breakpoint change below which the fit has converged, N·m.
     """
     where = f"joint {joint_name!r}"
-    tau, dq, delta_q = _check_data(tau, dq, delta_q, where)
+    tau, v, delta_q = _check_data(tau, v, delta_q, where)
     if not initial_breakpoints[0] < initial_breakpoints[1]:
         raise ValueError(f"{where}: initial breakpoints must satisfy τ1 < τ2")
     if not central_slope_bounds[0] <= central_slope_bounds[1]:
         raise ValueError(f"{where}: central_slope_bounds must be (low, high)")
     if max_iterations < 1:
         raise ValueError(f"{where}: max_iterations must be >= 1")
-    masks = {"positive": dq > 0, "negative": dq < 0}
+    masks = {"positive": v > 0, "negative": v < 0}
     fits = {
         name: _fit_branch(
             tau[mask],
@@ -210,7 +210,7 @@ def fit_piecewise_linear(
             max_iterations,
             central_slope_bounds,
             tolerance,
-            f"{where}, branch dq {'>' if name == 'positive' else '<'} 0",
+            f"{where}, branch v {'>' if name == 'positive' else '<'} 0",
         )
         for name, mask in masks.items()
     }
@@ -224,7 +224,7 @@ def fit_piecewise_linear(
             f"piecewise_linear {name}",
             iterations,
             tau[mask],
-            dq[mask],
+            v[mask],
             delta_q[mask],
             converged,
         )
@@ -234,7 +234,7 @@ def fit_piecewise_linear(
 def overestimation_share(
     model,
     tau: np.ndarray,
-    dq: np.ndarray,
+    v: np.ndarray,
     delta_q: np.ndarray,
     tolerance: float = 1e-12,
 ):
@@ -243,13 +243,13 @@ def overestimation_share(
     A sample is over-estimated when the prediction lies beyond the data in the direction
     of the data's sign, sign(Δq) (Δq̂ - Δq) > tolerance, with Δq = 0 counted as positive
     as in the split of eq. 8. The tolerance (rad) only absorbs round-off on exact data.
-    Works for any model with `predict(tau, dq)`.
+    Works for any model with `predict(tau, v)`.
 
     Returns:
         A float for 1-D data; a (n,) array, one share per joint, for (m, n) data.
     """
     delta_q = np.asarray(delta_q, dtype=float)
-    predicted = model.predict(tau, dq)
+    predicted = model.predict(tau, v)
     if predicted.shape != delta_q.shape:
         raise ValueError(
             f"overestimation_share: delta_q {delta_q.shape} does not match the "
@@ -261,13 +261,13 @@ def overestimation_share(
 
 
 def explained_share(
-    model, tau: np.ndarray, dq: np.ndarray, delta_q: np.ndarray
+    model, tau: np.ndarray, v: np.ndarray, delta_q: np.ndarray
 ) -> float:
     """1 - Σ(Δq̂ - Δq)² / ΣΔq²: the share of Δq's mean square (about zero: eq. 6 has
     no intercept) that a one-joint model explains; 0 or less for no better than
     Δq̂ = 0."""
     delta_q = np.asarray(delta_q, dtype=float)
-    residual = model.predict(tau, dq) - delta_q
+    residual = model.predict(tau, v) - delta_q
     total = float(np.sum(delta_q**2))
     return 1.0 - float(np.sum(residual**2)) / total if total > 0 else 0.0
 
@@ -275,7 +275,7 @@ def explained_share(
 def check_identified(
     model: MotorModel,
     tau: np.ndarray,
-    dq: np.ndarray,
+    v: np.ndarray,
     delta_q: np.ndarray,
     min_explained: float | None = MIN_EXPLAINED,
 ) -> None:
@@ -301,7 +301,7 @@ def check_identified(
         if not value > 0
     ]
     if min_explained is not None:
-        share = explained_share(model, tau, dq, delta_q)
+        share = explained_share(model, tau, v, delta_q)
         if share < min_explained:
             problems.append(
                 f"the model explains {share:.1%} of delta_q's mean square "
@@ -317,14 +317,14 @@ def check_identified(
 def fit_joints(
     fit: Callable[..., MotorModel],
     tau: np.ndarray,
-    dq: np.ndarray,
+    v: np.ndarray,
     delta_q: np.ndarray,
     joint_names: Sequence[str],
     **kwargs,
 ) -> MotorModel:
     """Applies a one-joint fit to every column of (m, n) arrays; returns one model."""
-    tau, dq, delta_q = (np.asarray(a, dtype=float) for a in (tau, dq, delta_q))
-    for name, value in (("tau", tau), ("dq", dq), ("delta_q", delta_q)):
+    tau, v, delta_q = (np.asarray(a, dtype=float) for a in (tau, v, delta_q))
+    for name, value in (("tau", tau), ("v", v), ("delta_q", delta_q)):
         if value.ndim != 2 or value.shape[1] != len(joint_names):
             raise ValueError(
                 f"fit_joints: {name} must have shape (m, {len(joint_names)}), "
@@ -332,7 +332,7 @@ def fit_joints(
             )
     return MotorModel.from_joints(
         {
-            name: fit(tau[:, j], dq[:, j], delta_q[:, j], joint_name=name, **kwargs)
+            name: fit(tau[:, j], v[:, j], delta_q[:, j], joint_name=name, **kwargs)
             for j, name in enumerate(joint_names)
         }
     )
@@ -341,9 +341,9 @@ def fit_joints(
 # --- data checks and the regressor of eq. 7 ---
 
 
-def _check_data(tau, dq, delta_q, where: str):
+def _check_data(tau, v, delta_q, where: str):
     """Returns float arrays; raises unless 1-D, equally long, finite, with some Δq."""
-    arrays = {"tau": tau, "dq": dq, "delta_q": delta_q}
+    arrays = {"tau": tau, "v": v, "delta_q": delta_q}
     arrays = {name: np.asarray(value, dtype=float) for name, value in arrays.items()}
     for name, value in arrays.items():
         if value.ndim != 1:
@@ -364,20 +364,20 @@ def _check_data(tau, dq, delta_q, where: str):
         raise ValueError(
             f"{where}: delta_q is zero everywhere, no position error to fit"
         )
-    return arrays["tau"], arrays["dq"], arrays["delta_q"]
+    return arrays["tau"], arrays["v"], arrays["delta_q"]
 
 
-def _regressor(tau, dq, coulomb: bool, where: str) -> np.ndarray:
+def _regressor(tau, v, coulomb: bool, where: str) -> np.ndarray:
     """The matrix A of eq. 7: columns τ, q̇, sign(q̇) (those given, k_c if coulomb)."""
     columns = []
     if tau is not None:
         _check_excited(tau, "no torque", "tau", "N·m", MIN_TORQUE, "k_tau", where)
         columns.append(tau)
-    if dq is not None:
-        _check_excited(dq, "no motion", "dq", "rad/s", MIN_VELOCITY, "k_v", where)
-        columns.append(dq)
+    if v is not None:
+        _check_excited(v, "no motion", "v", "rad/s", MIN_VELOCITY, "k_v", where)
+        columns.append(v)
         if coulomb:
-            columns.append(np.sign(dq))
+            columns.append(np.sign(v))
     return np.column_stack(columns)
 
 
@@ -414,7 +414,7 @@ def _scaled_problem(A: np.ndarray, b: np.ndarray, where: str):
     if condition > MAX_CONDITION:
         raise ValueError(
             f"{where}: rank-deficient regressor (condition number {condition:.3g} > "
-            f"{MAX_CONDITION:.0g}): tau, dq (and sign(dq)) are not independent"
+            f"{MAX_CONDITION:.0g}): tau, v (and sign(v)) are not independent"
         )
     return A_hat, b / b_rms, b_rms / column_rms
 
@@ -591,21 +591,21 @@ def _fit_line(tau, delta_q, slope_bounds) -> tuple[float, float]:
 # --- the returned model and its report ---
 
 
-def _linear_model(joint_name, x, method, iterations, tau, dq, delta_q) -> MotorModel:
+def _linear_model(joint_name, x, method, iterations, tau, v, delta_q) -> MotorModel:
     """One-joint MotorModel from x = (k_tau, k_v[, k_c]), with its FitReport."""
     k_c = x[2] if len(x) > 2 else 0.0
     model = MotorModel([joint_name], [x[0]], [x[1]], [k_c])
-    model.reports[joint_name] = _report(model, method, iterations, tau, dq, delta_q)
+    model.reports[joint_name] = _report(model, method, iterations, tau, v, delta_q)
     return model
 
 
-def _report(model, method, iterations, tau, dq, delta_q, converged=True) -> FitReport:
-    residual = model.predict(tau, dq) - delta_q
+def _report(model, method, iterations, tau, v, delta_q, converged=True) -> FitReport:
+    residual = model.predict(tau, v) - delta_q
     return FitReport(
         method=method,
         samples=int(tau.size),
         residual_rms=float(np.sqrt(np.mean(residual**2))),
-        overestimation_share=overestimation_share(model, tau, dq, delta_q),
+        overestimation_share=overestimation_share(model, tau, v, delta_q),
         iterations=int(iterations),
         converged=bool(converged),
     )

@@ -1,4 +1,8 @@
-"""Robot logs as they come from a robot: any rate, jitter, servo off, several files.
+"""Every log the project reads, in one place: this project's npz logs, a robot's own
+JSON or CSV logs (its description's `LogFormat`), all read into one `RobotLog` on a
+uniform grid. `identify`, `estimate`, `validate` and `calibrate --log` read their
+`--log` files with `read_robot_log`; `excitation.collect`'s arrays become a
+`RobotLog` with `RobotLog.from_arrays`.
 
 A real robot records timestamped samples at its own rate (a Dynamixel bus at about
 190 Hz, a motor board at 1 kHz), with jitter, and with stretches where the servo is
@@ -12,6 +16,9 @@ off. `read_robot_log` reads one such file through the robot description's
   or before each grid point (zero-order hold: what the servo received between two
   writes). Filter windows and strides are given in seconds (`window_samples`), so one
   config works at any rate.
+- **The lowest rate.** What a filter window needs: a window (s) must span at least
+  `MIN_RAW_SAMPLES_PER_WINDOW` raw samples (`check_window_rate`); a rate outside
+  `PLAUSIBLE_RATES` is a timestamp read in the wrong unit.
 - **The valid mask.** True where the servo is on (the `valid` column; no column:
   always). Identification keeps a sample only if its whole filter window is valid.
 - **The gain.** A log may state the servo's gain (`gain`: a top-level key of a JSON
@@ -24,33 +31,48 @@ Importers, by `LogFormat.format`:
   BAM's "entries"), or, with `samples` empty, one list per column; top-level scalars
   (the gain) beside them.
 - "csv": a header row of column names, then one row per sample (`#` comments).
-- "npz": this project's own identification logs (`excitation.save_log`), already on
-  a constant grid.
+- "npz": this project's own logs (`save_log`; any file ending in .npz), already on a
+  constant grid, with the robot's sensors under their station port names.
 
 Another format: write `def read_xyz(path: Path) -> RawLog` (columns as 1-D arrays,
 top-level scalars in `meta`) and add it to `IMPORTERS` under its `format` name.
 
 Every problem of a file is one ValueError naming the file and the column: an
 unknown column (with the ones it has), text or NaN where numbers belong, a timestamp
-going backwards, no valid sample, a rate outside 50 Hz to 10 kHz, too few samples.
+going backwards, no valid sample, too few samples, a rate too low for the windows.
 """
 
+import codecs
 import csv
+import dataclasses
 import json
 import math
+import os
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-# The format is the robot description's (plain data), imported here for this module's users.
-from hrp2_drake.description.logs import FORMATS, LogFormat  # noqa: F401
+from hrp2_drake.description.logs import LogFormat
 
-#: Raw sampling rates a log may have (Hz): below, a servo's motion is not resolved.
-MIN_RAW_RATE, MAX_RAW_RATE = 50.0, 10_000.0
+#: Raw sampling rates (Hz) outside which a log's timestamps are in another unit than
+#: `logs.time_unit` says (ms read as s: 1000 times too slow; s read as ms: too fast).
+PLAUSIBLE_RATES = (1.0, 10_000.0)
+#: Fewest raw samples a filter window may span (as on the grid, `window_samples`):
+#: between 2 raw samples the grid is a straight line (interpolated), so a window
+#: spanning fewer than 3 sees no curvature (q̈ = 0) and nothing of the motion.
+MIN_RAW_SAMPLES_PER_WINDOW = 3
 #: Fewest samples of a log.
 MIN_SAMPLES = 10
+#: Signals every identification log holds (besides "t", "phase", "excited_joint"):
+#: what a real robot records, rad. A robot with an IMU adds its
+#: `IMU_LOG_SIGNALS` (m/s², rad/s), and every F/T sensor s its "wrench_<s>"
+#: ([N·m; N]).
+IDENTIFICATION_LOG_SIGNALS = ("q_cmd", "q_measured")
+IMU_LOG_SIGNALS = ("imu_linear_acceleration", "imu_angular_velocity")
 
 
 @dataclass
@@ -64,12 +86,13 @@ class RawLog:
 
 @dataclass
 class RobotLog:
-    """One log on the framework's uniform grid (one segment).
+    """One log on a uniform grid (one segment), whatever file it came from.
 
     Attributes:
         source: the file.
         t: grid times (s), from 0, (m,).
-        q_measured, q_cmd: joint positions and commands (rad), (m, n), joint order.
+        q_measured, q_cmd: joint positions and commands (rad), (m, n), joint order
+            (a log without commands, read for estimation only: q_cmd = q_measured).
         valid: True where the servo is on, (m,).
         gain: the servo gain the log states (its own units), or None.
         joint_names: the columns' joints.
@@ -77,6 +100,12 @@ class RobotLog:
         longest_gap: the longest interval between two raw samples (s) and where it
             starts (s on the grid).
         meta: the file's top-level scalars (JSON).
+        sensors: the IMU's and F/T sensors' readings under their station port names
+            (`IMU_LOG_SIGNALS`: (m, 3); "wrench_<sensor>": (m, 6), [N·m; N]).
+        phase, excited_joint: the collection's labels per sample (`excitation`),
+            (m,), or None (an unlabelled log).
+        tau_true: ground-truth joint torques (N·m), (m, n), joint order, or None
+            (simulation only, for evaluation).
     """
 
     source: str
@@ -89,6 +118,48 @@ class RobotLog:
     raw_rate: float
     longest_gap: tuple[float, float] = (0.0, 0.0)
     meta: dict[str, object] = field(default_factory=dict)
+    sensors: dict[str, np.ndarray] = field(default_factory=dict)
+    phase: np.ndarray | None = None
+    excited_joint: np.ndarray | None = None
+    tau_true: np.ndarray | None = None
+
+    @classmethod
+    def from_arrays(
+        cls,
+        arrays: Mapping[str, np.ndarray],
+        log_joint_names: Sequence[str],
+        joint_names: Sequence[str],
+        gain: float | None = None,
+        source: str = "the log",
+    ) -> "RobotLog":
+        """A log of this project's arrays ("t", "q_measured", "q_cmd", optional
+        "valid", the sensors, labels and truth; `excitation.collect`, `load_log`),
+        checked (`check_log`), its joint columns taken in `joint_names` order."""
+        check_log(arrays, log_joint_names, source, joint_names)
+        columns = log_columns(log_joint_names, joint_names)
+        t = np.asarray(arrays["t"], float)
+        valid = arrays.get("valid")
+        truth = arrays.get("joint_torque_true")
+        labels = {
+            k: np.asarray(arrays[k]) for k in ("phase", "excited_joint") if k in arrays
+        }
+        return cls(
+            source=source,
+            t=t - t[0],
+            q_measured=np.asarray(arrays["q_measured"], float)[:, columns],
+            q_cmd=np.asarray(arrays["q_cmd"], float)[:, columns],
+            valid=np.ones(len(t), bool) if valid is None else np.asarray(valid) != 0,
+            gain=gain,
+            joint_names=list(joint_names),
+            raw_rate=float(1.0 / np.median(np.diff(t))),
+            sensors={
+                k: np.asarray(v, float) for k, v in arrays.items()
+                if k in IMU_LOG_SIGNALS or k.startswith("wrench_")
+            },
+            phase=labels.get("phase"),
+            excited_joint=labels.get("excited_joint"),
+            tau_true=None if truth is None else np.asarray(truth, float)[:, columns],
+        )
 
     @property
     def period(self) -> float:
@@ -98,16 +169,6 @@ class RobotLog:
     def name(self) -> str:
         return Path(self.source).stem
 
-    def arrays(self) -> dict[str, np.ndarray]:
-        """The log as this project's identification log: "t", "q_cmd",
-        "q_measured" and "valid" (`dataset.noncausal_estimates` reads it)."""
-        return {
-            "t": self.t,
-            "q_cmd": self.q_cmd,
-            "q_measured": self.q_measured,
-            "valid": self.valid.astype(np.int8),
-        }
-
     def window_samples(self, seconds: float, what: str = "window") -> int:
         """An odd number of grid samples spanning `seconds` (at least 3)."""
         return window_samples(seconds, self.period, what)
@@ -115,10 +176,31 @@ class RobotLog:
     def slice(self, start: float, end: float) -> "RobotLog":
         """The part of the log between `start` and `end` (s), re-zeroed."""
         keep = (self.t >= start) & (self.t <= end)
-        return RobotLog(
-            self.source, self.t[keep] - self.t[keep][0], self.q_measured[keep],
-            self.q_cmd[keep], self.valid[keep], self.gain, self.joint_names,
-            self.raw_rate, self.longest_gap, self.meta,
+
+        def part(array):
+            return None if array is None else array[keep]
+
+        return dataclasses.replace(
+            self, t=self.t[keep] - self.t[keep][0], q_measured=self.q_measured[keep],
+            q_cmd=self.q_cmd[keep], valid=self.valid[keep],
+            sensors={k: v[keep] for k, v in self.sensors.items()},
+            phase=part(self.phase), excited_joint=part(self.excited_joint),
+            tau_true=part(self.tau_true),
+        )
+
+
+def check_window_rate(log: RobotLog, window: float, what: str) -> None:
+    """Raises ValueError unless the filter window `window` (s, named `what`) spans at
+    least `MIN_RAW_SAMPLES_PER_WINDOW` of the log's raw samples: the lowest rate a
+    log may have is what its windows need."""
+    spanned = window * log.raw_rate
+    if spanned < MIN_RAW_SAMPLES_PER_WINDOW:
+        raise ValueError(
+            f"{log.source}: sampled at {log.raw_rate:.4g} Hz (median), so the filter "
+            f"window {window:g} s ({what}) spans {spanned:.2f} raw samples, fewer than "
+            f"the {MIN_RAW_SAMPLES_PER_WINDOW} a window needs: log at "
+            f">= {MIN_RAW_SAMPLES_PER_WINDOW / window:.4g} Hz or widen the window to "
+            f">= {MIN_RAW_SAMPLES_PER_WINDOW / log.raw_rate:.4g} s"
         )
 
 
@@ -176,17 +258,25 @@ def read_csv(path: Path, log_format: LogFormat) -> RawLog:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
         raise ValueError(f"{path}: not a text (UTF-8) file, expected CSV") from None
-    rows = [r for r in csv.reader(line for line in text.splitlines()
-                                  if line.strip() and not line.lstrip().startswith("#"))]
+    lines = [
+        line for line in text.splitlines()
+        if line.strip() and not line.lstrip().startswith("#")
+    ]
+    rows = list(csv.reader(lines))
     if len(rows) < 2:
-        raise ValueError(f"{path}: expected a header row and samples, got {len(rows)} rows")
+        raise ValueError(
+            f"{path}: expected a header row and samples, got {len(rows)} rows"
+        )
     header = [h.strip() for h in rows[0]]
     for k, row in enumerate(rows[1:], start=2):
         if len(row) != len(header):
             raise ValueError(
-                f"{path}: row {k} has {len(row)} values, the header {len(header)} columns"
+                f"{path}: row {k} has {len(row)} values, the header "
+                f"{len(header)} columns"
             )
-    columns = {name: [row[i].strip() for row in rows[1:]] for i, name in enumerate(header)}
+    columns = {
+        name: [row[i].strip() for row in rows[1:]] for i, name in enumerate(header)
+    }
     return RawLog({k: _numbers(path, k, v) for k, v in columns.items()})
 
 
@@ -223,9 +313,20 @@ def _numbers(path: Path, key: str, values: Sequence) -> np.ndarray:
 
 # ---------------------------------------------------------------------- assembly
 def read_robot_log(
-    path: str | Path, log_format: LogFormat, joint_names: Sequence[str]
+    path: str | Path,
+    log_format: LogFormat,
+    joint_names: Sequence[str],
+    command: bool = True,
 ) -> RobotLog:
-    """Reads one log file and resamples it to the uniform grid (module docstring).
+    """Reads one log file, any format, into a `RobotLog` (module docstring): a file
+    ending in .npz (or a robot whose format is "npz") as this project's log, any other
+    through `log_format`, resampled to its uniform grid.
+
+    Args:
+        joint_names: the robot's joints, the log's columns in this order.
+        command: whether the log must hold the commanded positions; without
+            (estimation), an npz log may also leave out `joint_names` (then its
+            columns are `joint_names`).
 
     Raises:
         FileNotFoundError, IsADirectoryError: `path` is not a file.
@@ -236,8 +337,8 @@ def read_robot_log(
         raise IsADirectoryError(f"log '{path}' is a folder, expected a log file")
     if not path.is_file():
         raise FileNotFoundError(f"log '{path}' not found")
-    if log_format.format == "npz":
-        return _from_npz(path, log_format, joint_names)
+    if log_format.format == "npz" or path.suffix.lower() == ".npz":
+        return _from_npz(path, joint_names, command)
     raw = IMPORTERS[log_format.format](path, log_format)
     return resample(raw, log_format, joint_names, str(path))
 
@@ -298,7 +399,9 @@ def _column(raw: RawLog, key: str, source: str, field_name: str) -> np.ndarray:
     return values.copy()
 
 
-def _joint_columns(raw: RawLog, keys: Sequence[str], source: str, field_name: str) -> np.ndarray:
+def _joint_columns(
+    raw: RawLog, keys: Sequence[str], source: str, field_name: str
+) -> np.ndarray:
     return np.column_stack(
         [_column(raw, key, source, f"{field_name}[{k}]") for k, key in enumerate(keys)]
     )
@@ -307,7 +410,8 @@ def _joint_columns(raw: RawLog, keys: Sequence[str], source: str, field_name: st
 def _check_time(t: np.ndarray, source: str, key: str) -> None:
     if len(t) < MIN_SAMPLES:
         raise ValueError(
-            f"{source}: {len(t)} samples, fewer than {MIN_SAMPLES}: not a log to identify from"
+            f"{source}: {len(t)} samples, fewer than {MIN_SAMPLES}: not a log to "
+            "identify from"
         )
     steps = np.diff(t)
     if np.any(steps <= 0):
@@ -318,11 +422,12 @@ def _check_time(t: np.ndarray, source: str, key: str) -> None:
             f"{t[k - 1]:.6g} s"
         )
     rate = 1.0 / float(np.median(steps))
-    if not 0.98 * MIN_RAW_RATE <= rate <= 1.02 * MAX_RAW_RATE:  # 2%: clock jitter
+    low, high = PLAUSIBLE_RATES
+    if not 0.98 * low <= rate <= 1.02 * high:  # 2%: clock jitter
         raise ValueError(
-            f"{source}: sampled at {rate:.4g} Hz (median), outside the "
-            f"{MIN_RAW_RATE:g} Hz to {MAX_RAW_RATE:g} Hz a log may have: is "
-            "logs.time_unit right?"
+            f"{source}: sampled at {rate:.4g} Hz (median), outside the {low:g} Hz to "
+            f"{high:g} Hz of a robot's log: are its timestamps in the unit "
+            f"logs.time_unit says?"
         )
 
 
@@ -351,45 +456,289 @@ def _gain(raw: RawLog, log_format: LogFormat, source: str) -> float | None:
     return float(value)
 
 
-def _from_npz(path: Path, log_format: LogFormat, joint_names: Sequence[str]) -> RobotLog:
-    """This project's identification log (already on a constant grid)."""
-    from hrp2_drake.identification.dataset import check_log
-    from hrp2_drake.identification.excitation import load_log
-
-    log, names = load_log(path)
-    check_log(log, names, str(path), joint_names)
-    columns = [names.index(j) for j in joint_names]
-    t = np.asarray(log["t"], float)
-    valid = np.asarray(log["valid"]) != 0 if "valid" in log else np.ones(len(t), bool)
-    gain = log.get("gain")
-    return RobotLog(
-        source=str(path),
-        t=t - t[0],
-        q_measured=np.asarray(log["q_measured"], float)[:, columns],
-        q_cmd=np.asarray(log["q_cmd"], float)[:, columns],
-        valid=valid,
-        gain=float(gain[0]) if gain is not None else None,
-        joint_names=list(joint_names),
-        raw_rate=float(1.0 / np.median(np.diff(t))),
+def _from_npz(path: Path, joint_names: Sequence[str], command: bool) -> RobotLog:
+    """This project's log (already on a constant grid): `load_log`, then
+    `RobotLog.from_arrays` (which checks it)."""
+    log, names = load_log(path, None if command else joint_names, command)
+    gain = log.pop("gain", None)
+    if "q_cmd" not in log:  # estimation only: the estimator reads no command
+        log["q_cmd"] = log["q_measured"]
+    return RobotLog.from_arrays(
+        log, names, joint_names, None if gain is None else float(np.ravel(gain)[0]),
+        str(path),
     )
 
 
-def check_gains(logs: Sequence[RobotLog], needed: bool) -> None:
-    """Raises ValueError naming the first log without a gain when `needed` (pooling
-    logs of several gains, or transferring a model to another gain needs each one)."""
-    if not needed:
-        return
-    missing = [log.source for log in logs if log.gain is None]
-    if missing:
+# ---------------------------------------------------------------------- npz
+#: Arrays of a log with a known number of columns (and what they are).
+_LOG_WIDTHS = {
+    "imu_linear_acceleration": (3, "axes"),
+    "imu_angular_velocity": (3, "axes"),
+}
+
+#: The per-sample arrays of a log besides "t": one value per sample, 1-D.
+_LOG_LABELS = {"phase": "phase label", "excited_joint": "joint index", "valid": "flag"}
+
+#: Largest relative deviation of a log's sampling period from its median: the
+#: Savitzky-Golay filters assume a constant period.
+MAX_PERIOD_JITTER = 0.1
+
+
+def read_npz(
+    path: str | Path, what: str = "log", scalars: bool = False
+) -> dict[str, np.ndarray]:
+    """The arrays of an .npz archive (numpy.savez), read without pickle. Every problem
+    of the file is one error naming it and, where one is to blame, the array: not
+    found, a folder, not an .npz archive (text, a lone .npy, a truncated zip), an
+    entry that is not an array, an array whose header declares more data than the
+    archive holds (or than this machine's memory), Python objects, damaged data.
+
+    Args:
+        what: what the file is, for the messages ("log", "identification log").
+        scalars: accept 0-d arrays (a log's arrays hold one value per sample: no).
+
+    Raises:
+        FileNotFoundError, IsADirectoryError, ValueError.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{what} '{path}' is a folder, expected an .npz file")
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} '{path}' not found")
+    if not zipfile.is_zipfile(path):
         raise ValueError(
-            f"{missing[0]}: states no servo gain (logs.gain), but pooling logs of "
-            "several gains needs each log's gain"
+            f"{path}: {_not_npz(path)}, expected an .npz archive (numpy.savez)"
+        )
+    arrays = {}
+    damaged = (OSError, EOFError, zipfile.BadZipFile, zlib.error)
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for info in archive.infolist():
+                _check_npz_entry(path, archive, info)
+        with np.load(path, allow_pickle=False) as data:
+            for key in data.files:
+                try:
+                    arrays[key] = data[key]
+                except (ValueError, *damaged) as error:
+                    raise ValueError(f"{path}: array '{key}' cannot be read: {error}")
+    except damaged as error:
+        raise ValueError(f"{path}: a damaged .npz archive: {error}") from None
+    single = [key for key, value in arrays.items() if value.ndim == 0]
+    if single and not scalars:
+        raise ValueError(
+            f"{path}: array '{single[0]}' is a scalar, expected one value per sample"
+        )
+    return arrays
+
+
+def _not_npz(path: Path) -> str:
+    """What a file that is no zip archive seems to be."""
+    with open(path, "rb") as file:
+        head = file.read(512)
+    if head.startswith(b"\x93NUMPY"):
+        return "a single .npy array"
+    if head.startswith(b"PK"):
+        return "a truncated or damaged zip file"
+    if not head:
+        return "an empty file"
+    try:
+        codecs.getincrementaldecoder("utf-8")().decode(head)  # may end mid-character
+    except UnicodeDecodeError:
+        return "not a zip file"
+    return "not a zip file" if b"\0" in head else "a text file"
+
+
+def _check_npz_entry(
+    path: Path, archive: zipfile.ZipFile, info: zipfile.ZipInfo
+) -> None:
+    """Raises ValueError unless the archive entry is a .npy array of numbers whose
+    header agrees with the bytes the archive holds (and fits in memory)."""
+    name = info.filename
+    if info.is_dir() or not name.endswith(".npy"):
+        raise ValueError(
+            f"{path}: entry '{name}' is not an array (.npy): an .npz log holds "
+            "arrays only"
+        )
+    key = name[: -len(".npy")]
+    with archive.open(info) as entry:
+        try:
+            version = np.lib.format.read_magic(entry)
+            read_header = (
+                np.lib.format.read_array_header_1_0
+                if version == (1, 0)
+                else np.lib.format.read_array_header_2_0
+            )
+            shape, _, dtype = read_header(entry)
+            header_bytes = entry.tell()
+        except ValueError as error:
+            raise ValueError(
+                f"{path}: array '{key}' is not a .npy array: {error}"
+            ) from None
+    if dtype.hasobject:
+        raise ValueError(
+            f"{path}: array '{key}' holds Python objects (pickled data), expected "
+            "numbers"
+        )
+    declared = math.prod(shape) * dtype.itemsize
+    held = info.file_size - header_bytes
+    if declared != held:
+        raise ValueError(
+            f"{path}: array '{key}': its header declares shape {shape} "
+            f"({_bytes(declared)}), the archive holds {_bytes(held)} of it"
+        )
+    memory = _physical_memory()
+    if memory and declared > memory:
+        raise ValueError(
+            f"{path}: array '{key}' of shape {shape} needs {_bytes(declared)}, more "
+            f"than this machine's memory ({_bytes(memory)})"
         )
 
 
-def gains_differ(logs: Sequence[RobotLog]) -> bool:
-    """Whether the logs state more than one gain (or some state one and some not)."""
-    return len({log.gain for log in logs}) > 1
+def _bytes(n: int) -> str:
+    for unit in ("bytes", "kB", "MB", "GB", "TB"):
+        if abs(n) < 1000 or unit == "TB":
+            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.3g} {unit}"
+        n /= 1000
+    return f"{n} TB"
+
+
+def _physical_memory() -> int | None:
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def check_log(
+    log: Mapping[str, np.ndarray],
+    log_joint_names: Sequence[str],
+    source: str = "the log",
+    joints: Sequence[str] = (),
+) -> None:
+    """Raises ValueError naming `source` and the array unless the log can be filtered.
+
+    Every array must hold finite numbers (not text or objects); "t" must be 1-D and
+    strictly increasing on a constant grid (each period within MAX_PERIOD_JITTER of
+    the median); "q_cmd", "q_measured" and "joint_torque_true" must be (samples,
+    joints), the IMU's arrays (samples, 3), each "wrench_<sensor>" (samples, 6);
+    `joints` must all be among `log_joint_names`.
+    """
+    for key, value in log.items():
+        array = np.asarray(value)
+        if array.dtype.kind not in "biuf":
+            kind = "text" if array.dtype.kind in "US" else f"'{array.dtype}' values"
+            raise ValueError(f"{source}: array '{key}' holds {kind}, expected numbers")
+        if array.dtype.kind == "f" and not np.all(np.isfinite(array)):
+            bad = ~np.isfinite(array.reshape(len(array), -1) if array.ndim else array)
+            first = int(np.argwhere(bad)[0][0]) if array.ndim else 0
+            raise ValueError(
+                f"{source}: array '{key}' has {np.count_nonzero(bad)} NaN or inf "
+                f"values (first at sample {first})"
+            )
+    t = np.asarray(log["t"])
+    if t.ndim != 1 or t.size < 2:
+        raise ValueError(
+            f"{source}: array 't' must be 1-D with 2 or more samples, "
+            f"got shape {t.shape}"
+        )
+    steps = np.diff(t.astype(float))
+    if np.any(steps <= 0):
+        k = int(np.flatnonzero(steps <= 0)[0]) + 1
+        raise ValueError(
+            f"{source}: array 't' must be strictly increasing, sample {k} has "
+            f"t = {t[k]:.6g} s after {t[k - 1]:.6g} s"
+        )
+    period = float(np.median(steps))
+    jitter = np.abs(steps - period) > MAX_PERIOD_JITTER * period
+    if np.any(jitter):
+        k = int(np.flatnonzero(jitter)[0]) + 1
+        raise ValueError(
+            f"{source}: array 't' is not sampled at a constant period: step "
+            f"{steps[k - 1]:.6g} s before sample {k}, median {period:.6g} s "
+            f"({np.count_nonzero(jitter)} steps off by more than "
+            f"{MAX_PERIOD_JITTER:.0%})"
+        )
+    n = len(log_joint_names)
+    for key, value in log.items():
+        width, what = _LOG_WIDTHS.get(key, (None, ""))
+        if key in ("q_cmd", "q_measured", "joint_torque_true"):
+            width, what = n, "joints"
+        elif key.startswith("wrench_"):
+            width, what = 6, "[torque; force]"
+        elif key in _LOG_LABELS and np.shape(value) != (t.size,):
+            raise ValueError(
+                f"{source}: array '{key}' has shape {np.shape(value)}, expected "
+                f"({t.size},) (one {_LOG_LABELS[key]} per sample)"
+            )
+        if width is not None and np.shape(value) != (t.size, width):
+            raise ValueError(
+                f"{source}: array '{key}' has shape {np.shape(value)}, expected "
+                f"({t.size}, {width}) (samples, {what})"
+            )
+    missing = [j for j in joints if j not in log_joint_names]
+    if missing:
+        shown = ", ".join(missing[:3]) + (", ..." if len(missing) > 3 else "")
+        raise ValueError(
+            f"{source}: array 'joint_names' lacks {len(missing)} of the "
+            f"{len(joints)} joints needed ({shown})"
+        )
+
+
+def log_columns(log_joint_names: Sequence[str], joints: Sequence[str]) -> list[int]:
+    """The log's column of each of `joints`; KeyError naming the missing ones."""
+    column = {name: i for i, name in enumerate(log_joint_names)}
+    missing = [j for j in joints if j not in column]
+    if missing:
+        raise KeyError(f"the log has no column for joints {missing}")
+    return [column[j] for j in joints]
+
+
+
+def save_log(
+    path: str | Path, log: dict[str, np.ndarray], joint_names: Sequence[str]
+) -> None:
+    """Writes an identification log (.npz, one array per signal, plus joint names)."""
+    np.savez_compressed(path, joint_names=np.array(list(joint_names)), **log)
+
+
+def load_log(
+    path: str | Path,
+    default_names: Sequence[str] | None = None,
+    command: bool = True,
+) -> tuple[dict[str, np.ndarray], list[str]]:
+    """Reads a log written by `save_log` or by a real robot in the same format: its
+    arrays and its joint names.
+
+    Args:
+        default_names: the joint names of a log without `joint_names` (None: it must
+            have them).
+        command: whether "q_cmd" must be there (estimation needs none).
+
+    Raises:
+        FileNotFoundError, IsADirectoryError: `path` is not a file.
+        ValueError: not a readable .npz archive (`read_npz`), a required signal is
+            missing, or sizes disagree.
+    """
+    what = "identification log" if command else "log"
+    log = read_npz(path, what)
+    required = ["t", "q_measured"] + ["q_cmd"] * command
+    required += ["joint_names"] * (default_names is None)
+    missing = [key for key in required if key not in log]
+    if missing:
+        raise ValueError(f"{path}: {what} lacks {missing}")
+    names = [str(n) for n in log.pop("joint_names", default_names)]
+    m, n = len(log["t"]), len(names)
+    for key, value in log.items():
+        if value.shape[0] != m:
+            raise ValueError(
+                f"{path}: '{key}' has {value.shape[0]} samples, 't' has {m}"
+            )
+    for key in ("q_cmd", "q_measured"):
+        if key in log and log[key].shape != (m, n):
+            raise ValueError(
+                f"{path}: '{key}' has shape {log[key].shape}, expected ({m}, {n})"
+            )
+    return log, names
 
 
 def describe(logs: Sequence[RobotLog]) -> list[Mapping[str, object]]:
@@ -422,14 +771,16 @@ def write_robot_log(
 
     Raises:
         ValueError: the format is this project's npz (written by
-            `excitation.save_log`), or a column the format names is missing.
+            `save_log`), or a column the format names is missing.
     """
     path = Path(path)
     needed = [log_format.time, *log_format.position, *log_format.command]
     needed += [log_format.valid] if log_format.valid else []
     missing = [key for key in needed if key not in columns]
     if missing:
-        raise ValueError(f"write_robot_log: columns {missing} missing (the log format's)")
+        raise ValueError(
+            f"write_robot_log: columns {missing} missing (the log format's)"
+        )
     meta = dict(meta or {})
     names = list(columns)
     if log_format.format == "json":
@@ -455,6 +806,6 @@ def write_robot_log(
     else:
         raise ValueError(
             f"write_robot_log: format '{log_format.format}' is this project's own log "
-            "(identification.excitation.save_log)"
+            "(save_log)"
         )
     return path

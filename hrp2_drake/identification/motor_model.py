@@ -142,11 +142,11 @@ class MotorModel:
             gain=float(gain),
         )
 
-    def torque(self, delta_q: np.ndarray, dq: np.ndarray) -> np.ndarray:
+    def torque(self, delta_q: np.ndarray, v: np.ndarray) -> np.ndarray:
         """The torque (N·m) a servo obeying the model gives at position error Δq and
         velocity q̇: eq. 6 solved for τ, τ = (Δq − k_v q̇ − k_c sign(q̇)) / k_tau."""
         return (
-            np.asarray(delta_q, float) - self.k_v * dq - self.k_c * np.sign(dq)
+            np.asarray(delta_q, float) - self.k_v * v - self.k_c * np.sign(v)
         ) / self.k_tau
 
     def sign_errors(self) -> list[str]:
@@ -180,24 +180,24 @@ class MotorModel:
     def num_joints(self) -> int:
         return len(self.joint_names)
 
-    def predict(self, tau: np.ndarray, dq: np.ndarray) -> np.ndarray:
+    def predict(self, tau: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Returns Δq (rad) for torques τ (N·m) and velocities q̇ (rad/s), eq. 6.
 
-        tau and dq have shape (n,) for one sample or (m, n) for m samples. For a
+        tau and v have shape (n,) for one sample or (m, n) for m samples. For a
         one-joint model a 1-D array is read as m samples of that joint.
         """
         tau = np.asarray(tau, dtype=float)
-        dq = np.asarray(dq, dtype=float)
+        v = np.asarray(v, dtype=float)
         n = self.num_joints
-        if tau.shape != dq.shape:
-            raise ValueError(f"predict: tau {tau.shape} and dq {dq.shape} differ")
+        if tau.shape != v.shape:
+            raise ValueError(f"predict: tau {tau.shape} and v {v.shape} differ")
         one_sample_or_one_joint = tau.ndim == 1 and n in (1, tau.size)
         if not (one_sample_or_one_joint or (tau.ndim == 2 and tau.shape[1] == n)):
             raise ValueError(
                 f"predict: expected shape (n,) or (m, n) with n={n}, got {tau.shape}"
             )
         # eq. 6
-        return self.k_tau * tau + self.k_v * dq + self.k_c * np.sign(dq)
+        return self.k_tau * tau + self.k_v * v + self.k_c * np.sign(v)
 
     def for_joint(self, name: str) -> JointMotorParameters:
         """Returns (k_tau, k_v, k_c) of the named joint."""
@@ -355,11 +355,11 @@ class PiecewiseLinearMotorModel:
         default_factory=dict, compare=False, repr=False
     )
 
-    def predict(self, tau: np.ndarray, dq: np.ndarray) -> np.ndarray:
+    def predict(self, tau: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Returns Δq (rad) for torques τ (N·m) and velocities q̇ (rad/s) (any shape)."""
         tau = np.asarray(tau, dtype=float)
-        dq = np.asarray(dq, dtype=float)
-        if tau.shape != dq.shape:
-            raise ValueError(f"predict: tau {tau.shape} and dq {dq.shape} differ")
+        v = np.asarray(v, dtype=float)
+        if tau.shape != v.shape:
+            raise ValueError(f"predict: tau {tau.shape} and v {v.shape} differ")
         f_p, f_n = self.positive(tau), self.negative(tau)
-        return np.where(dq > 0, f_p, np.where(dq < 0, f_n, 0.5 * (f_p + f_n)))
+        return np.where(v > 0, f_p, np.where(v < 0, f_n, 0.5 * (f_p + f_n)))

@@ -232,6 +232,13 @@ def emulated_servo(
     return factory
 
 
+def twin_servo(params: ServoParams, log: RobotLog) -> ServoFactory:
+    """The servo factory of a digital twin (a servo file's `params`) replaying `log`:
+    the emulated servo at the log's gain, its latency buffer holding the log's first
+    command."""
+    return emulated_servo(params, log.gain, initial_q_cmd=log.q_cmd[0])
+
+
 @dataclass
 class RolloutResult:
     """One rollout.

@@ -1,13 +1,15 @@
 """`hrp2-drake estimate --robot FILE --log LOG`: offline torque estimation of a
 recorded log (paper Sec. 2 with the non-causal filters of Sec. 3.4.3).
 
-The log is robot-independent (README, "Log format"): an .npz with `t` (s), `q_measured`
-(rad, one column per joint of the description, or the columns named by `joint_names`),
-and the robot's sensors under their station port names: `imu_linear_acceleration`
-(m/s²) and `imu_angular_velocity` (rad/s) if it has an IMU, `wrench_<sensor>` ([N·m;
-N], sensor frame) per F/T sensor. `hrp2-drake simulate` and `identify` write such logs;
-a real robot's logger writes the same arrays. If the log holds `joint_torque_true`
-(simulation), the report compares τ̂ with it (evaluation only).
+The log is any log the project reads (`identification.logs.read_robot_log`): this
+project's .npz (README, "Log format": `t` (s), `q_measured` (rad, one column per joint
+of the description, or the columns named by `joint_names`), and the robot's sensors
+under their station port names: `imu_linear_acceleration` (m/s²) and
+`imu_angular_velocity` (rad/s) if it has an IMU, `wrench_<sensor>` ([N·m; N], sensor
+frame) per F/T sensor), or the robot's own format (its description's `logs`: BAM's
+JSON for the XL330), resampled to its grid. `hrp2-drake simulate` and `identify`
+write .npz logs. If the log holds `joint_torque_true` (simulation), the report
+compares τ̂ with it (evaluation only).
 
 F/T sensors carry a bias. `--calibrate-offsets START:END` estimates it from a still
 stretch of the log where nothing touches them (the mean compensated reading, as the
@@ -26,51 +28,33 @@ import numpy as np
 from hrp2_drake.description import RobotDescription
 from hrp2_drake.estimation.estimator_config import estimator_config
 from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
-from hrp2_drake.identification.dataset import (
-    check_log,
+from hrp2_drake.identification.dataset import noncausal_torques
+from hrp2_drake.identification.logs import (
+    RobotLog,
+    check_window_rate,
     log_columns,
-    noncausal_torques,
-    read_npz,
+    read_robot_log,
 )
 from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure
 
 
-def read_estimation_log(path: str | Path, robot: RobotDescription) -> tuple[dict, list[str]]:
-    """The log's arrays and its joint names (the description's if it names none); one
-    ValueError naming the file and the array for anything the estimator cannot use."""
-    path = Path(path)
-    log = read_npz(path, "log")
-    names = [str(n) for n in log.pop("joint_names", robot.joints)]
-    needed = ["t", "q_measured"]
-    if robot.has_imu():
-        needed += ["imu_linear_acceleration", "imu_angular_velocity"]
+def read_estimation_log(path: str | Path, robot: RobotDescription) -> RobotLog:
+    """The log (`read_robot_log`, without commands), checked: one ValueError naming
+    the file and the array for anything the estimator cannot use."""
+    log = read_robot_log(path, robot.logs, robot.joints, command=False)
+    needed = ["imu_linear_acceleration", "imu_angular_velocity"] if robot.has_imu() else []
     needed += [f"wrench_{name}" for name in robot.force_torque_sensors]
-    missing = [key for key in needed if key not in log]
+    missing = [key for key in needed if key not in log.sensors]
     if missing:
         raise ValueError(
             f"{path}: the log lacks {missing}, which robot '{robot.name}' needs"
         )
-    m = len(log["t"])
-    for key in needed[1:] + (["joint_torque_true"] if "joint_torque_true" in log else []):
-        if log[key].ndim != 2 or log[key].shape[0] != m:
-            raise ValueError(
-                f"{path}: '{key}' has shape {log[key].shape}, expected ({m}, columns)"
-            )
-    if log["q_measured"].shape[1] != len(names):
-        raise ValueError(
-            f"{path}: 'q_measured' has {log['q_measured'].shape[1]} columns for "
-            f"{len(names)} joint names"
-        )
-    if "q_cmd" not in log:  # check_log wants it; the estimator does not
-        log["q_cmd"] = log["q_measured"]
-    check_log(log, names, str(path), robot.joints)
-    return log, names
+    return log
 
 
 def estimate_log(
     robot: RobotDescription,
-    log: dict,
-    names: list[str],
+    log: RobotLog,
     window: int = 81,
     offsets: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
@@ -80,14 +64,14 @@ def estimate_log(
     (k, 6): the F/T sensors' biases (`calibrate_offsets`)."""
     if window % 2 == 0 or window < 3:
         raise ValueError(f"--window must be odd and >= 3, got {window}")
-    t = np.asarray(log["t"], float)
+    check_window_rate(log, window * log.period, f"--window {window} samples")
     estimator = FloatingBaseTorqueEstimator(robot.make_plant(), estimator_config(robot))
-    columns = log_columns(names, robot.joints)
+    columns = log_columns(log.joint_names, robot.joints)
     estimates, (_, v, _) = noncausal_torques(
-        log, columns, estimator, window, np.arange(len(t)), offsets
+        log, columns, estimator, window, np.arange(len(log.t)), offsets
     )
     out = {
-        "t": t,
+        "t": log.t,
         "v": v,
         "tau": np.array([e.tau for e in estimates]),
         "unknown_wrench": np.array([e.unknown_wrench for e in estimates]),
@@ -97,14 +81,14 @@ def estimate_log(
     return out
 
 
-def parse_segment(text: str, log: dict, where: str = "--calibrate-offsets") -> slice:
+def parse_segment(text: str, log: RobotLog, where: str = "--calibrate-offsets") -> slice:
     """'START:END' (s, log time) as the log's sample indices; a ValueError naming
     `where` if it is malformed, empty, or outside the log."""
     try:
         start, end = (float(x) for x in text.split(":"))
     except ValueError:
         raise ValueError(f"{where} '{text}': expected START:END in seconds, e.g. 0.2:0.5") from None
-    t = np.asarray(log["t"], float)
+    t = log.t
     if not (np.isfinite(start) and np.isfinite(end) and start < end):
         raise ValueError(f"{where} '{text}': START must be < END, both finite")
     if start < t[0] or end > t[-1]:
@@ -179,13 +163,13 @@ def run_estimate(
     """The whole `hrp2-drake estimate`: read, estimate (with the F/T offsets of the
     still segment `calibrate`, 'START:END', if given), write the arrays, the report
     and the plot; returns the summary."""
-    log, names = read_estimation_log(log_path, robot)
+    log = read_estimation_log(log_path, robot)
     segment = parse_segment(calibrate, log) if calibrate else None
-    result = estimate_log(robot, log, names, window)
+    result = estimate_log(robot, log, window)
     offsets = None
     if segment is not None:
         offsets = calibrate_offsets(robot, result, segment)
-        result = estimate_log(robot, log, names, window, offsets)
+        result = estimate_log(robot, log, window, offsets)
     np.savez_compressed(out / "estimate.npz", joint_names=np.array(robot.joints), **result)
     margin = window  # the ends are fitted, not centred
     summary = {
@@ -201,27 +185,26 @@ def run_estimate(
         "bias_warnings": [] if offsets is not None else bias_warnings(robot, result, margin),
     }
     inside = slice(margin, len(result["t"]) - margin)
-    if "joint_torque_true" in log:
-        columns = [names.index(j) for j in robot.joints]
-        error = result["tau"][inside] - log["joint_torque_true"][inside][:, columns]
+    if log.tau_true is not None:
+        error = result["tau"][inside] - log.tau_true[inside]
         summary["rms_error_vs_truth"] = dict(
             zip(robot.joints, np.sqrt(np.mean(error**2, axis=0)).tolist())
         )
     (out / "estimate.json").write_text(json.dumps(summary, indent=2))
-    _plot(robot, result, log, names, out / "estimate_torques.png")
+    _plot(robot, result, log, out / "estimate_torques.png")
     (out / "estimate.md").write_text(_markdown(robot, summary))
     return summary
 
 
-def _plot(robot: RobotDescription, result: dict, log: dict, names: list[str], path: Path):
+def _plot(robot: RobotDescription, result: dict, log: RobotLog, path: Path):
     joints = robot.controlled_joints or robot.joints
     fig, axes = pyplot().subplots(len(joints), 1, figsize=(9, 1.8 * len(joints)), sharex=True)
     axes = np.atleast_1d(axes)
     labels = dict(zip(robot.controlled_joints, robot.labels()))
     for ax, joint in zip(axes, joints):
         j = robot.joints.index(joint)
-        if "joint_torque_true" in log:
-            ax.plot(result["t"], log["joint_torque_true"][:, names.index(joint)],
+        if log.tau_true is not None:
+            ax.plot(result["t"], log.tau_true[:, j],
                     color="0.6", lw=2, label="true (simulation)")
         ax.plot(result["t"], result["tau"][:, j], lw=1, label="τ̂")
         ax.set_ylabel(f"{labels.get(joint, joint)}\n(N·m)")

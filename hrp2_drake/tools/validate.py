@@ -1,13 +1,15 @@
 """`hrp2-drake validate --robot R --motor-model M.yaml --log L [L ...]`: an identified
-motor model judged by rollout on real logs (issue 18, item 3).
+motor model, or a digital twin (a servo file, `calibrate --log`'s servo.yaml), judged
+by rollout on real logs (issue 18, item 3; issue 28).
 
 For each log, the servo that obeys the model at the log's gain (`MotorModel.at_gain`,
-`rollout.MotorModelServo`, saturated where the robot's position loop saturates)
-replays the logged command open loop from the logged initial position
-(`rollout.rollout`); the simulated position is compared with the measured one: MAE
-and maximum |error| (mrad) over the whole log and over its servo-on samples (where
-the servo is off the model has nothing to say: the joint falls freely, with no
-friction). The way BAM and PACE report an actuator model.
+`rollout.MotorModelServo`, saturated where the robot's position loop saturates), or
+the emulated servo with the servo file's parameters at the log's gain
+(`rollout.twin_servo`), replays the logged command open loop from the logged initial
+position (`rollout.rollout`); the simulated position is compared with the measured
+one: MAE and maximum |error| (mrad) over the whole log and over its servo-on samples
+(where the servo is off a motor model has nothing to say: the joint falls freely,
+with no friction). The way BAM and PACE report an actuator model.
 
 Outputs, in the output folder: `validate_<log>.png` (per log: measured and
 simulated position, the command, servo-off stretches shaded), `validate.md` (a
@@ -22,9 +24,10 @@ import, a model that holds at a gain with a log that states none: one ValueError
 import json
 import time
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
+import yaml
 
 from hrp2_drake import console
 from hrp2_drake.description import RobotDescription
@@ -34,40 +37,81 @@ from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure
 from hrp2_drake.robot.rollout import (
     RolloutErrors,
     RolloutResult,
+    ServoFactory,
     model_servo,
     rollout,
     rollout_errors,
+    twin_servo,
 )
+from hrp2_drake.robot.servo import ServoParams, load_servo_params
+
+#: What `validate` rolls out: an identified motor model, or a servo file (a twin).
+Model = MotorModel | ServoParams
+
+
+def is_servo_file(path: str | Path) -> bool:
+    """Whether the YAML file is a servo file (its parameters under `joints`, the
+    emulated servo's: a digital twin), not a motor model (`joint_names`, `k_tau`)."""
+    try:
+        document = yaml.safe_load(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return False  # MotorModel.load names the problem
+    return isinstance(document, dict) and "joints" in document
+
+
+def load_model(robot: RobotDescription, path: str | Path) -> Model:
+    """The motor model or the servo file at `path`, for the robot's joints.
+
+    Raises:
+        FileNotFoundError, IsADirectoryError: the file is missing.
+        ValueError: naming the file: malformed, or without a joint of the robot.
+    """
+    path = Path(path)
+    if is_servo_file(path):
+        params = load_servo_params(path, robot.source_file)
+        modelled = list(params.joints)
+        kind = "servo file"
+    else:
+        model = MotorModel.load(path)
+        modelled = model.joint_names
+        kind = "motor model"
+    missing = [j for j in robot.joints if j not in modelled]
+    if missing:
+        raise ValueError(
+            f"{kind} {path}: has no joints {missing} of robot '{robot.name}' (it "
+            f"models {modelled}; a rollout needs every joint of {list(robot.joints)})"
+        )
+    return params if kind == "servo file" else model.subset(list(robot.joints))
+
+
+def servo_of_log(robot: RobotDescription, model: Model) -> Callable[[RobotLog], ServoFactory]:
+    """The servo that replays a log: the motor model's at the log's gain, or the
+    twin's (the emulated servo with the servo file's parameters)."""
+    if isinstance(model, ServoParams):
+        return lambda log: twin_servo(model, log)
+    return lambda log: model_servo(robot, model, log.gain)
 
 
 def load_validation_inputs(
     robot: RobotDescription, model_path: str | Path, log_paths: Sequence[str | Path]
-) -> tuple[MotorModel, list[RobotLog]]:
-    """The motor model (the robot's joints, in its order) and the logs, checked.
+) -> tuple[Model, list[RobotLog]]:
+    """The motor model or servo file (`load_model`) and the logs, checked.
 
     Raises:
         FileNotFoundError, IsADirectoryError: a file is missing.
         ValueError: naming the file: a malformed model or log, a model without
-            every joint of the robot, a model with a gain and a log without.
+            every joint of the robot, a motor model with a gain and a log without.
     """
-    model_path = Path(model_path)
-    model = MotorModel.load(model_path)
-    missing = [j for j in robot.joints if j not in model.joint_names]
-    if missing:
-        raise ValueError(
-            f"motor model {model_path}: has no joints {missing} of robot "
-            f"'{robot.name}' (it models {model.joint_names}; a rollout needs every "
-            f"joint of {list(robot.joints)})"
-        )
-    model = model.subset(list(robot.joints))
+    model = load_model(robot, model_path)
     if not log_paths:
         raise ValueError("--log: no log given")
     logs = [read_robot_log(path, robot.logs, robot.joints) for path in log_paths]
+    gain = getattr(model, "gain", 0.0)  # a motor model's; a twin's is per joint
     for log in logs:
-        if model.gain and log.gain is None:
+        if gain and log.gain is None:
             raise ValueError(
                 f"log {log.source}: states no servo gain, but motor model {model_path} "
-                f"holds at gain {model.gain:g}: its parameters at the log's gain are "
+                f"holds at gain {gain:g}: its parameters at the log's gain are "
                 f"unknown (robot '{robot.name}' logs.gain names where a log states it)"
             )
     return model, logs
@@ -83,6 +127,7 @@ def run_validate(
     """The whole `hrp2-drake validate` (module docstring); returns the summary that
     validate.json holds (errors in mrad, wall times in s)."""
     model, logs = load_validation_inputs(robot, model_path, log_paths)
+    servo = servo_of_log(robot, model)
     names = _file_names([log.name for log in logs])
     rows = []
     for k, (log, name) in enumerate(zip(logs, names), start=1):
@@ -91,10 +136,10 @@ def run_validate(
             f"{'none' if log.gain is None else f'{log.gain:g}'})"
         )
         start = time.perf_counter()
-        result = rollout(robot, log, model_servo(robot, model, log.gain), time_step)
+        result = rollout(robot, log, servo(log), time_step)
         errors = rollout_errors(log, result.q_sim)
         figure = out / f"validate_{name}.png"
-        _plot(robot, result, errors, figure)
+        _plot(robot, result, errors, figure, _kind(model))
         rows.append(_row(log, result, errors, figure, time.perf_counter() - start))
         console.say(
             f"rollout {k}/{len(logs)}: MAE {_joined(rows[-1], 'mae_mrad')} mrad, "
@@ -104,7 +149,8 @@ def run_validate(
     summary = {
         "robot": robot.name,
         "motor_model": str(model_path),
-        "model_gain": model.gain or None,
+        "model_kind": "servo file" if isinstance(model, ServoParams) else "motor model",
+        "model_gain": getattr(model, "gain", 0.0) or None,
         "joints": list(robot.joints),
         "time_step": time_step,
         "logs": rows,
@@ -189,8 +235,17 @@ def _servo_off_stretches(t: np.ndarray, valid: np.ndarray) -> list[tuple[float, 
     return [(float(t[a]), float(t[b])) for a, b in zip(starts, ends)]
 
 
+def _kind(model: Model) -> str:
+    """What is rolled out, in a figure's words."""
+    return "twin" if isinstance(model, ServoParams) else "motor model"
+
+
 def _plot(
-    robot: RobotDescription, result: RolloutResult, errors: RolloutErrors, path: Path
+    robot: RobotDescription,
+    result: RolloutResult,
+    errors: RolloutErrors,
+    path: Path,
+    kind: str = "motor model",
 ):
     log = result.log
     n = len(log.joint_names)
@@ -202,7 +257,8 @@ def _plot(
             ax.axvspan(a, b, color="0.9", lw=0, label="servo off" if k == 0 else None)
         ax.plot(log.t, log.q_cmd[:, j], "--", color="0.4", lw=1, label="command")
         ax.plot(log.t, log.q_measured[:, j], color="C0", lw=1.5, label="measured")
-        ax.plot(log.t, result.q_sim[:, j], color="C1", lw=1, label="simulated (model)")
+        simulated = "twin" if kind == "twin" else "model"
+        ax.plot(log.t, result.q_sim[:, j], color="C1", lw=1, label=f"simulated ({simulated})")
         ax.set_ylabel(f"{labels.get(joint, joint)}\n(rad)")
         ax.set_title(
             f"MAE {errors.mae[j] * 1e3:.1f} mrad, max {errors.max_error[j] * 1e3:.1f} "
@@ -213,11 +269,11 @@ def _plot(
     legend_beside(axes[0, 0])
     axes[-1, 0].set_xlabel("t (s)")
     gain = "" if log.gain is None else f", gain {log.gain:g}"
-    fig.suptitle(f"{robot.name}: rollout of the motor model on {log.name}{gain}")
+    fig.suptitle(f"{robot.name}: rollout of the {kind} on {log.name}{gain}")
     save_figure(fig, path, dpi=100, tight=True)
 
 
-def _markdown(robot: RobotDescription, model: MotorModel, summary: dict) -> str:
+def _markdown(robot: RobotDescription, model: Model, summary: dict) -> str:
     def errors(values: dict, joint: str) -> list[str]:
         """The joint's MAE and maximum error, whole log and servo on (mrad)."""
         return [
@@ -227,18 +283,27 @@ def _markdown(robot: RobotDescription, model: MotorModel, summary: dict) -> str:
             ))
         ]
 
-    gain = (
-        f" (at servo gain {model.gain:g}, rescaled to each log's)" if model.gain else ""
-    )
+    if isinstance(model, ServoParams):
+        what = (
+            f"Digital twin (servo file) `{summary['motor_model']}`: the emulated servo "
+            "with its parameters at each log's gain"
+        )
+    else:
+        gain = (
+            f" (at servo gain {model.gain:g}, rescaled to each log's)" if model.gain else ""
+        )
+        what = (
+            f"Motor model `{summary['motor_model']}`{gain}, eq. 6 solved for the torque, "
+            "Δq clamped where the servo's output saturates"
+        )
     lines = [
         f"# Rollout validation: {robot.name}",
         "",
-        f"Motor model `{summary['motor_model']}`{gain}, eq. 6 solved for the torque, "
-        "Δq clamped where the servo's output saturates; each log's command replayed "
+        f"{what}; each log's command replayed "
         f"open loop from its first measured position at rest (plant step "
         f"{summary['time_step'] * 1e3:g} ms). Errors: |q_sim − q_measured| in mrad, "
-        "over the whole log and over its servo-on samples (servo off, the model's joint "
-        "is free: no friction).",
+        "over the whole log and over its servo-on samples (servo off, a motor model's "
+        "joint is free: no friction).",
         "",
     ]
     rows = [
