@@ -69,9 +69,20 @@ def _composite_defaults():
     return out
 
 
+#: Nested configs validated where they are used, not by their parent, and why.
+VALIDATED_WHERE_USED = {
+    ("IdentifyConfig", "station"): "a simulation's: validated by make_station when "
+    "identify collects (without --log); a real robot's logs need only its description",
+}
+
+
 @pytest.mark.parametrize("schema, config", _composite_defaults())
 def test_a_config_validates_every_config_nested_in_it(monkeypatch, schema, config):
-    nested = _validated_below(config)
+    nested = [
+        (where, child)
+        for where, child in _validated_below(config)
+        if (schema.__name__, where) not in VALIDATED_WHERE_USED
+    ]
     called = set()
     for _, child in nested:
         original = type(child).validate

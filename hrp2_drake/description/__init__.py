@@ -292,6 +292,7 @@ class RobotDescription:
                 f"initial_positions: {len(self.initial_positions)} values for "
                 f"{len(self.joints)} joints"
             )
+        self.contacts.validate()
         if not self.initial_positions and not self.trajectory_file:
             raise ValueError(
                 "initial_positions: empty and no trajectory_file to take the home pose from"
@@ -469,6 +470,7 @@ class RobotDescription:
         below = self._check_force_torque_sensors(plant, base, parent)
         self._check_imu(plant, parent, below)
         self._check_other_names(plant)
+        self.contacts.check_model(plant)
         self._check_home(plant)
 
     def _check_base(self, plant: MultibodyPlant) -> RigidBody:

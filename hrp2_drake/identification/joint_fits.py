@@ -23,10 +23,8 @@ import numpy as np
 
 from hrp2_drake.config import check_finite
 from hrp2_drake.description import RobotDescription
-from hrp2_drake.estimation.torque_estimator import (
-    FloatingBaseTorqueEstimator,
-    estimator_config,
-)
+from hrp2_drake.estimation.estimator_config import estimator_config
+from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
 from hrp2_drake.identification.dataset import (
     IdentificationData,
     check_logs,
