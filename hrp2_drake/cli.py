@@ -30,8 +30,8 @@ import math
 import os
 import sys
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import yaml
@@ -307,8 +307,8 @@ def _control(args: argparse.Namespace) -> int:
 
 
 def _sim_robot(args: argparse.Namespace) -> int:
-    from hrp2_drake.tools.control import run_sim_robot
     from hrp2_drake.robot.station import StationConfig
+    from hrp2_drake.tools.control import run_sim_robot
 
     station = StationConfig()
     _use_robot(station, args)
@@ -514,9 +514,8 @@ def _experiment(args: argparse.Namespace) -> int:
 
 
 def _calibrate(args: argparse.Namespace) -> int:
-    from hrp2_drake.paper.calibrate import CalibrationConfig, calibrate
-
     from hrp2_drake.description import load_robot_description
+    from hrp2_drake.paper.calibrate import CalibrationConfig, calibrate
 
     if args.log or (args.robot and load_robot_description(args.robot).name != "hrp2"):
         return _calibrate_from_logs(args)
@@ -586,8 +585,8 @@ def _reproduce(args: argparse.Namespace) -> int:
 
 
 def _tune(args: argparse.Namespace) -> int:
-    from hrp2_drake.tools.identify import IdentifyConfig
     from hrp2_drake.paper.tune import TuneConfig, check_environment, run_tune
+    from hrp2_drake.tools.identify import IdentifyConfig
 
     config = _config(TuneConfig, args)
     if args.quick:

@@ -7,14 +7,19 @@ of positions and velocities (which, for a floating base, is not the URDF order).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Sequence
-
 import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from pydrake.multibody.plant import MultibodyPlant
-from pydrake.multibody.tree import Frame, JointIndex, PrismaticJoint, RevoluteJoint, WeldJoint
+from pydrake.multibody.tree import (
+    Frame,
+    JointIndex,
+    PrismaticJoint,
+    RevoluteJoint,
+    WeldJoint,
+)
 from pydrake.systems.framework import Context, InputPort
 
 
@@ -41,7 +46,7 @@ class JointIndexing:
     def positions(self, plant_q: np.ndarray) -> np.ndarray:
         return plant_q[self.q]
 
-    def subset(self, names: Sequence[str]) -> "JointIndexing":
+    def subset(self, names: Sequence[str]) -> JointIndexing:
         """The indexing of `names`, which must be among these joints."""
         rows = [self.index_of(n) for n in names]
         return JointIndexing(tuple(names), self.q[rows], self.v[rows], self.u[rows])

@@ -5,8 +5,8 @@ shows progress.
 
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 from pydrake.systems.analysis import Simulator

@@ -19,7 +19,7 @@ Two shells run the same steps:
   with no Drake at all.
 """
 
-from typing import Iterator
+from collections.abc import Iterator
 
 import numpy as np
 from pydrake.systems.framework import DiscreteValues

@@ -462,8 +462,9 @@ def main() -> int:
             for lockstep in (False, True)
         ]
     if "bus" in sections:
-        from bench_bus import SERVOS, BAUDS, bench_bus
         import tempfile
+
+        from bench_bus import BAUDS, SERVOS, bench_bus
 
         print("bus", file=sys.stderr)
         with tempfile.TemporaryDirectory() as folder:

@@ -38,8 +38,8 @@ closed_loop)
 
 import functools
 import sys
-import types
 import time
+import types
 from collections import defaultdict
 from contextlib import contextmanager
 from dataclasses import replace
@@ -50,14 +50,13 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantVectorSource
 
-from hrp2_drake.paper import hrp2
-from hrp2_drake.paper import motion
 from hrp2_drake.assembly.builders import (
     build_position_control,
     build_torque_control,
     simulated_station,
 )
 from hrp2_drake.identification.motor_model import MotorModel
+from hrp2_drake.paper import hrp2, motion
 from hrp2_drake.robot.station import (
     StationConfig,
     add_scenario_plant,

@@ -11,6 +11,12 @@ import time
 import numpy as np
 from pydrake.systems.analysis import Simulator
 
+from hrp2_drake.assembly.builders import (
+    build_position_control,
+    build_torque_control,
+    simulated_station,
+)
+from hrp2_drake.assembly.torque_control import TorqueControlConfig
 from hrp2_drake.control.inverse_dynamics import (
     InverseDynamicsConfig,
     InverseDynamicsController,
@@ -22,12 +28,6 @@ from hrp2_drake.control.torque_controller import (
     TorqueControllerConfig,
 )
 from hrp2_drake.paper import hrp2
-from hrp2_drake.assembly.builders import (
-    build_position_control,
-    build_torque_control,
-    simulated_station,
-)
-from hrp2_drake.assembly.torque_control import TorqueControlConfig
 from hrp2_drake.paper.motion import MotionConfig, motion_reference
 
 PERIOD = 1e-3

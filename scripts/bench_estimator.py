@@ -31,13 +31,13 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantVectorSource
 
+from hrp2_drake.estimation.estimation_chain import add_estimator
 from hrp2_drake.estimation.estimator_config import (
     ForceTorqueSensorConfig,
     TorqueEstimatorConfig,
 )
-from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
 from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayFilter
-from hrp2_drake.estimation.estimation_chain import add_estimator
+from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
 from hrp2_drake.paper import hrp2
 
 PERIOD = 1e-3  # s

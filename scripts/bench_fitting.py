@@ -58,16 +58,20 @@ def bench_fitting(sizes=(10**3, 10**4, 10**5, 10**6)) -> list[dict]:
     rows = []
     for m in sizes:
         log = synthetic_log(m)
-        seconds, _ = _best_time(lambda: fit_least_squares(*log), 3)
+        seconds, _ = _best_time(lambda log=log: fit_least_squares(*log), 3)
         rows.append({"name": "fit_least_squares", "samples": m, "seconds": seconds})
-        seconds, newton = _best_time(lambda: fit_asymmetric(*log, method="newton"), 3)
+        seconds, newton = _best_time(
+            lambda log=log: fit_asymmetric(*log, method="newton"), 3
+        )
         rows.append({"name": "fit_asymmetric newton", "samples": m, "seconds": seconds})
         row = {"name": "fit_asymmetric qp", "samples": m, "seconds": None}
         if m > QP_MAX_SAMPLES:
             row["note"] = f"skipped: the QP is run up to {QP_MAX_SAMPLES} samples"
         else:
             repeats = 3 if m < QP_MAX_SAMPLES else 1
-            seconds, qp = _best_time(lambda: fit_asymmetric(*log, method="qp"), repeats)
+            seconds, qp = _best_time(
+                lambda log=log: fit_asymmetric(*log, method="qp"), repeats
+            )
             row["seconds"] = seconds
             row["relative_difference"] = float(
                 max(

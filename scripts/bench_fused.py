@@ -50,8 +50,8 @@ def drake_calls(controller):
 def tuned_config(station):
     from pydrake.common.yaml import yaml_load_typed
 
-    from hrp2_drake.control.safety import SafetyConfig
     from hrp2_drake.assembly.torque_control import TorqueControlConfig
+    from hrp2_drake.control.safety import SafetyConfig
 
     config = yaml_load_typed(
         schema=TorqueControlConfig,
@@ -66,14 +66,14 @@ def tuned_config(station):
 def bench_fused_tick(duration: float = 3.0) -> list[dict]:
     from pydrake.multibody.tree import MultibodyForces
 
-    from hrp2_drake.control.fused import FusedController
-    from hrp2_drake.assembly.builders import torque_chain_parts
-    from hrp2_drake.tools.ground_truth import true_motor_model
-    from hrp2_drake.tools.control import ControlConfig, control_reference
     from hrp2_drake import kernels
+    from hrp2_drake.assembly.builders import torque_chain_parts
+    from hrp2_drake.control.fused import FusedController
     from hrp2_drake.hardware.in_process import run_in_process
     from hrp2_drake.hardware.real_time import garbage_collector_frozen
     from hrp2_drake.robot.station import StationConfig, make_station
+    from hrp2_drake.tools.control import ControlConfig, control_reference
+    from hrp2_drake.tools.ground_truth import true_motor_model
 
     station = StationConfig(scenario="hanging")
     config = ControlConfig(robot=station.robot, duration=duration,

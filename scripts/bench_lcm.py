@@ -30,7 +30,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-
 P99_GOAL_US = 250.0
 
 
@@ -60,12 +59,12 @@ def in_process_errors(robot_name: str, duration: float, config_path: Path,
     import numpy as np
     from pydrake.common.yaml import yaml_load_typed
 
-    from hrp2_drake.control.fused import FusedController
     from hrp2_drake.assembly.builders import torque_chain_parts
-    from hrp2_drake.tools.control import ControlConfig, control_reference
+    from hrp2_drake.control.fused import FusedController
     from hrp2_drake.hardware.in_process import run_in_process
     from hrp2_drake.identification.motor_model import MotorModel
     from hrp2_drake.robot.station import StationConfig
+    from hrp2_drake.tools.control import ControlConfig, control_reference
 
     config = yaml_load_typed(schema=ControlConfig, filename=str(config_path),
                              defaults=ControlConfig())

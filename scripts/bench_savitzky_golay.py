@@ -15,7 +15,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantVectorSource
@@ -87,7 +86,9 @@ def bench_savitzky_golay(
         )
         for order in (2, 1):
             label = f"SavitzkyGolayFilter k={k} order={order} window={WINDOW}"
-            make = lambda: SavitzkyGolayFilter(k, WINDOW, order, PERIOD)  # noqa: E731
+            make = lambda k=k, order=order: SavitzkyGolayFilter(  # noqa: E731
+                k, WINDOW, order, PERIOD
+            )
             rows.append(
                 {
                     "name": f"{label} (update)",

@@ -20,7 +20,11 @@ from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
 from hrp2_drake.description import load_robot_description
 from hrp2_drake.estimation.estimation_chain import add_estimator
 from hrp2_drake.estimation.estimator_config import estimator_config
-from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
+from hrp2_drake.robot.station import (
+    StationConfig,
+    initial_joint_positions,
+    make_station,
+)
 
 
 def main() -> None:

@@ -22,7 +22,11 @@ from hrp2_drake.identification.excitation import collect, make_plan
 from hrp2_drake.identification.fitting import check_identified, fit_asymmetric
 from hrp2_drake.identification.logs import RobotLog
 from hrp2_drake.identification.motor_model import MotorModel
-from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
+from hrp2_drake.robot.station import (
+    StationConfig,
+    initial_joint_positions,
+    make_station,
+)
 
 
 def main() -> None:

@@ -16,17 +16,21 @@ import argparse
 import numpy as np
 from pydrake.systems.analysis import Simulator
 
-from hrp2_drake.description import load_robot_description
 from hrp2_drake.assembly.builders import build_position_control, build_torque_control
 from hrp2_drake.assembly.torque_control import (
     ControllerSettings,
     EstimatorSettings,
     TorqueControlConfig,
 )
-from hrp2_drake.tools.track import TrackConfig, sinusoid_reference
+from hrp2_drake.description import load_robot_description
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import joint_indexing
-from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
+from hrp2_drake.robot.station import (
+    StationConfig,
+    initial_joint_positions,
+    make_station,
+)
+from hrp2_drake.tools.track import TrackConfig, sinusoid_reference
 
 
 def max_errors(control, duration: float, robot) -> np.ndarray:

@@ -13,9 +13,8 @@ def short_identification():
 
     Returns (config, log, joint_names, result)."""
     from hrp2_drake.identification.joint_fits import identify_logs
-    from hrp2_drake.tools.identify import IdentifyConfig, collect_log, collected_log
-
     from hrp2_drake.robot.station import StationConfig
+    from hrp2_drake.tools.identify import IdentifyConfig, collect_log, collected_log
 
     # The `ideal` servo: these tests check the machinery against the exact linear law;
     # `reproduce` reports what the calibrated servo costs.

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 
 from hrp2_drake.cli import main
+from hrp2_drake.paper import hrp2
 from hrp2_drake.paper.calibrate import (
     PWL_FITS,
     CalibrationConfig,
     build_servo,
     pwl_priors,
 )
-from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.servo import (
     effective_motor_parameters,
     load_servo_params,

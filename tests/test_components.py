@@ -10,6 +10,7 @@ import pytest
 
 from hrp2_drake.assembly.builders import COMPONENTS
 from hrp2_drake.assembly.torque_control import TorqueControlConfig
+from hrp2_drake.paper import hrp2
 from hrp2_drake.paper.claims import PANELS, check_panel
 from hrp2_drake.paper.components import (
     analyse_components,
@@ -20,7 +21,6 @@ from hrp2_drake.paper.components import (
 )
 from hrp2_drake.paper.force import ForceConfig, run_force
 from hrp2_drake.paper.motion import MotionConfig, run_motion
-from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.station import StationConfig
 
 

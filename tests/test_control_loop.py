@@ -180,7 +180,7 @@ def test_a_replayed_sample_is_refused_and_a_malformed_stream_ramps_out(rig):
     robot = rig.robot()
     control = rig.control(duration=10.0)
     time.sleep(1.5)
-    joints = ["iiwa_joint_%d" % k for k in range(1, 8)]
+    joints = [f"iiwa_joint_{k}" for k in range(1, 8)]
     old = SignalCodec(joints, "IIWA14_Q_MEASURED").encode(np.zeros(7), 0.0005)
     _publish_from_a_third_client(rig.url, "IIWA14_Q_MEASURED", old)
     time.sleep(0.3)

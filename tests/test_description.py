@@ -11,10 +11,10 @@ import pytest
 
 from hrp2_drake.cli import main
 from hrp2_drake.description import load_robot_description, robot_file
-from hrp2_drake.tools.simulate import SimulateConfig, run_simulate
-from hrp2_drake.paper import hrp2
 from hrp2_drake.description.sensors import SensorsConfig
+from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.station import StationConfig, make_station, sensor_sizes
+from hrp2_drake.tools.simulate import SimulateConfig, run_simulate
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
 
@@ -50,7 +50,7 @@ def _write(tmp_path: Path, source: str, edit) -> Path:
     folder = MODELS / source
     text = (folder / "robot.yaml").read_text()
     for key in ("model_file", "trajectory_file", "servo_file"):
-        text = re.sub(rf"^{key}: (\S+)", lambda m: f"{key}: {folder / m.group(1)}", text,
+        text = re.sub(rf"^{key}: (\S+)", lambda m, key=key: f"{key}: {folder / m.group(1)}", text,
                       flags=re.M)
     path = tmp_path / "robot.yaml"
     path.write_text(edit(text))

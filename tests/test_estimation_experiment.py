@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from pydrake.common.yaml import yaml_load_typed
 
+from hrp2_drake.paper import hrp2
 from hrp2_drake.paper.claims import GOAL_RMS_OVER_PEAK
 from hrp2_drake.paper.estimation import (
     EstimationConfig,
@@ -16,7 +17,6 @@ from hrp2_drake.paper.estimation import (
     shifted,
     sinusoid_reference,
 )
-from hrp2_drake.paper import hrp2
 
 LEG = [hrp2.JOINT_NAMES.index(j) for j in hrp2.RIGHT_LEG]
 

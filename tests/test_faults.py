@@ -7,7 +7,6 @@ import pytest
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 
-from hrp2_drake.paper import hrp2
 from hrp2_drake.assembly.builders import (
     JointReference,
     build_torque_control,
@@ -18,6 +17,7 @@ from hrp2_drake.assembly.torque_control import (
     EstimatorSettings,
     TorqueControlConfig,
 )
+from hrp2_drake.paper import hrp2
 from hrp2_drake.paper.motion import run_controller
 from hrp2_drake.robot.faults import FaultInjector, SensorFault
 from hrp2_drake.robot.station import StationConfig, initial_joint_positions

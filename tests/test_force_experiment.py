@@ -9,6 +9,7 @@ import json
 import numpy as np
 import pytest
 
+from hrp2_drake.assembly.builders import COMPONENTS
 from hrp2_drake.config import load_config
 from hrp2_drake.paper.force import (
     FX,
@@ -23,7 +24,6 @@ from hrp2_drake.paper.force import (
     tracking_metrics,
     write_force_report,
 )
-from hrp2_drake.assembly.builders import COMPONENTS
 from hrp2_drake.robot.station import StationConfig
 
 F0 = np.array([-1.4, -1.3, -0.2, 3.0, 9.9, 265.0])  # a static wrench, [N·m; N]

@@ -12,7 +12,6 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.trajectories import PiecewisePolynomial
 
-from hrp2_drake.control.fused import FusedController
 from hrp2_drake.assembly.builders import (
     build_torque_control,
     simulated_station,
@@ -24,16 +23,17 @@ from hrp2_drake.assembly.torque_control import (
     ObserverSettings,
     TorqueControlConfig,
 )
-from hrp2_drake.tools.ground_truth import true_motor_model
-from hrp2_drake.tools.control import ControlConfig, control_reference
+from hrp2_drake.control.fused import FusedController
 from hrp2_drake.hardware.control_loop import ControlLoop
 from hrp2_drake.hardware.in_process import run_in_process
-from hrp2_drake.hardware.robot_bridge import RobotBridge
 from hrp2_drake.hardware.lcm_link import LcmLink
 from hrp2_drake.hardware.lcm_station import LcmChannels
+from hrp2_drake.hardware.robot_bridge import RobotBridge
 from hrp2_drake.hardware.transport import DrakeLcmTransport
 from hrp2_drake.robot.station import StationConfig
 from hrp2_drake.simulation import add_loggers, logs_to_arrays
+from hrp2_drake.tools.control import ControlConfig, control_reference
+from hrp2_drake.tools.ground_truth import true_motor_model
 
 HRP2 = StationConfig()
 IIWA = StationConfig(robot="iiwa14", scenario="fixed_base")

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from hrp2_drake.cli import main
-from hrp2_drake.paper import hrp2
 from hrp2_drake.description.excitation import SinusoidConfig
 from hrp2_drake.identification.excitation import (
     PHASE_HIGH_TORQUE,
@@ -16,6 +15,7 @@ from hrp2_drake.identification.excitation import (
     make_plan,
 )
 from hrp2_drake.identification.logs import load_log, save_log
+from hrp2_drake.paper import hrp2
 
 
 def test_increasing_sinusoid_is_the_papers_and_ends_at_rest():

@@ -11,15 +11,15 @@ import time
 import numpy as np
 import pytest
 from drake import lcmt_drake_signal, lcmt_force_torque
+from lcm_helpers import make_lcm_station, make_sim_robot
 from pydrake.lcm import DrakeLcm
 from pydrake.systems.analysis import Simulator
 
-from hrp2_drake.cli import main
 from hrp2_drake.assembly.builders import build_torque_control
-from hrp2_drake.tools.control import ControlConfig, control_reference
+from hrp2_drake.cli import main
 from hrp2_drake.hardware.messages import SignalCodec, WrenchCodec
 from hrp2_drake.robot.station import StationConfig, make_station
-from lcm_helpers import make_lcm_station, make_sim_robot
+from hrp2_drake.tools.control import ControlConfig, control_reference
 
 IIWA = StationConfig(robot="iiwa14", scenario="fixed_base")
 

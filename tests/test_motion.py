@@ -6,13 +6,15 @@ import json
 import numpy as np
 import pytest
 
-from hrp2_drake.cli import main
 from hrp2_drake.assembly.builders import JointReference
 from hrp2_drake.assembly.torque_control import (
     ControllerSettings,
     EstimatorSettings,
     TorqueControlConfig,
 )
+from hrp2_drake.cli import main
+from hrp2_drake.paper import hrp2
+from hrp2_drake.paper.claims import judge_claim
 from hrp2_drake.paper.motion import (
     PAPER_K6,
     PAPER_TABLE2,
@@ -25,8 +27,6 @@ from hrp2_drake.paper.motion import (
     run_motion,
     write_motion_report,
 )
-from hrp2_drake.paper import hrp2
-from hrp2_drake.paper.claims import judge_claim
 from hrp2_drake.robot.station import StationConfig
 
 

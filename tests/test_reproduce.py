@@ -59,7 +59,12 @@ def test_paper_claims_and_project_goals_are_judged_apart_by_one_rule():
     """The report's two kinds of row, each with the threshold it is judged by, and
     one rule for partial results: one missed cell of ten reads the same for a claim
     of the paper and for a goal of this project."""
-    from hrp2_drake.paper.claims import judge_claim, partial_verdict, verdict_tables, verdicts
+    from hrp2_drake.paper.claims import (
+        judge_claim,
+        partial_verdict,
+        verdict_tables,
+        verdicts,
+    )
 
     position = [1.0] * 5
     torque = [2.0, 2.0, 1.1, 2.0, 2.0]  # K6 = 0.1: the knee's average is higher

@@ -4,7 +4,6 @@ import math
 import numpy as np
 import pytest
 import scipy.signal
-
 from pydrake.common.yaml import yaml_load_typed
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem

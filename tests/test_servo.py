@@ -4,6 +4,7 @@ and each mechanism of the calibrated servo (latency, voltage limit, hysteresis).
 
 import numpy as np
 import pytest
+from pydrake.common.value import AbstractValue
 from pydrake.multibody.math import SpatialForce
 from pydrake.multibody.plant import ExternallyAppliedSpatialForce, MultibodyPlant
 from pydrake.systems.analysis import Simulator
@@ -13,18 +14,21 @@ from pydrake.systems.primitives import (
     ConstantVectorSource,
     TrajectorySource,
 )
-from pydrake.common.value import AbstractValue
 from pydrake.trajectories import PiecewisePolynomial
 
-from hrp2_drake.paper import hrp2
 from hrp2_drake.description.sensors import SensorsConfig
+from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.servo import (
     EmulatedPositionServo,
     effective_motor_parameters,
     explicit_stability_margin,
     load_servo_params,
 )
-from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
+from hrp2_drake.robot.station import (
+    StationConfig,
+    initial_joint_positions,
+    make_station,
+)
 
 # The paper's Table 1 (Kτ in rad/(N·m), Kv in s), right leg.
 TABLE1_K_TAU = np.array([0.212, 0.030, 0.12, 0.051, 0.177, 0.240]) * 1e-3

@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 
 from hrp2_drake.config import load_config
+from hrp2_drake.identification.motor_model import MotorModel
+from hrp2_drake.paper import hrp2
 from hrp2_drake.paper.stability import (
     StabilityConfig,
     models_from_identification,
@@ -20,8 +22,6 @@ from hrp2_drake.paper.stability import (
     with_delay_compensation,
     write_stability_report,
 )
-from hrp2_drake.identification.motor_model import MotorModel
-from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.station import StationConfig
 
 JOINT = "RLEG_JOINT4"  # ankle pitch

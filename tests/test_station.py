@@ -12,10 +12,9 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
 
 from hrp2_drake.config import load_config
-from hrp2_drake.tools.simulate import SimulateConfig, run_simulate
+from hrp2_drake.description.sensors import NoiseConfig, SensorsConfig
 from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.faults import SensorClock, SensorFault
-from hrp2_drake.description.sensors import NoiseConfig, SensorsConfig
 from hrp2_drake.robot.sensors import ForceTorqueReadout, NoisySampler, SensorSampler
 from hrp2_drake.robot.servo import load_servo_params
 from hrp2_drake.robot.station import (
@@ -26,6 +25,7 @@ from hrp2_drake.robot.station import (
     make_station,
     sensor_sizes,
 )
+from hrp2_drake.tools.simulate import SimulateConfig, run_simulate
 
 
 def _run(config: StationConfig, duration: float, q_offset=None):
@@ -283,7 +283,7 @@ def test_sensor_sampler_is_the_separate_sensors_bit_for_bit():
             "imu_linear_acceleration": acc,
             "imu_angular_velocity": gyro,
         }
-        for system, context in contexts.items():
+        for context in contexts.values():
             context.SetTime(k * cfg.period)
         readout.get_input_port().FixValue(contexts[readout], forces)
         signals["wrenches"] = readout.get_output_port().Eval(contexts[readout])

@@ -11,6 +11,7 @@ import logging
 
 import numpy as np
 import pytest
+from gain_algebra import gains_from_user, user_from_gains
 from pydrake.multibody.tree import JacobianWrtVariable
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
@@ -25,13 +26,13 @@ from pydrake.trajectories import PiecewisePolynomial
 from hrp2_drake import kernels
 from hrp2_drake.config import load_config
 from hrp2_drake.control import torque_controller
+from hrp2_drake.control.gains import inverse_dynamics_gains_for_k6
 from hrp2_drake.control.inverse_dynamics import (
     TORQUE_COMPONENTS,
     InverseDynamicsConfig,
     InverseDynamicsController,
     make_fixed_base_plant,
 )
-from hrp2_drake.control.gains import inverse_dynamics_gains_for_k6
 from hrp2_drake.control.torque_controller import (
     DELTA_Q_COMPONENTS,
     FALLBACK_REASONS,
@@ -53,8 +54,6 @@ from hrp2_drake.robot.station import (
     initial_joint_positions,
     make_station,
 )
-
-from gain_algebra import gains_from_user, user_from_gains
 
 LEG = list(hrp2.RIGHT_LEG)
 FOOT = hrp2.FT_SENSOR_BODIES["right_foot"]

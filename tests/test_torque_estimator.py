@@ -11,6 +11,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from inertial_identification import identify_end_effector_inertia
 from pydrake.common.yaml import yaml_load_typed
 from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 from pydrake.multibody.math import SpatialForce, SpatialVelocity
@@ -22,23 +23,21 @@ from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
 from pydrake.systems.sensors import Accelerometer, Gyroscope
 
 from hrp2_drake import kernels
-from hrp2_drake.estimation.savitzky_golay import savgol_coefficients
+from hrp2_drake.description.sensors import SensorsConfig
 from hrp2_drake.estimation.estimation_chain import add_estimator
 from hrp2_drake.estimation.estimator_config import (
     ForceTorqueSensorConfig,
     TorqueEstimatorConfig,
 )
 from hrp2_drake.estimation.estimator_step import TorqueEstimatorStep
+from hrp2_drake.estimation.savitzky_golay import savgol_coefficients
 from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
 from hrp2_drake.paper import hrp2
-from hrp2_drake.description.sensors import SensorsConfig
 from hrp2_drake.robot.station import (
     StationConfig,
     initial_joint_positions,
     make_station,
 )
-
-from inertial_identification import identify_end_effector_inertia
 
 kV = JacobianWrtVariable.kV
 SENSORS = list(hrp2.FT_SENSORS)
@@ -714,7 +713,7 @@ sensors:
   left_foot: {frame: LLEG_FOOT}
 unknown_wrench_body: CHEST_LINK1
 offset_calibration_time: 0.5
-""" % ", ".join(hrp2.JOINT_NAMES)
+""" % ", ".join(hrp2.JOINT_NAMES)  # noqa: UP031
     config = yaml_load_typed(schema=TorqueEstimatorConfig, data=text)
     assert config.sensors["left_foot"] == ForceTorqueSensorConfig("LLEG_FOOT", "")
     estimator = FloatingBaseTorqueEstimator(plant, config)

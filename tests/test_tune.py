@@ -10,24 +10,24 @@ import pytest
 pytest.importorskip("optuna")
 pytest.importorskip("distributed")
 
+from hrp2_drake.assembly.torque_control import TorqueControlConfig
 from hrp2_drake.cli import main
 from hrp2_drake.config import load_config
-from hrp2_drake.assembly.torque_control import TorqueControlConfig
 from hrp2_drake.identification.motor_model import MotorModel
+from hrp2_drake.paper import hrp2
 from hrp2_drake.paper.tune import (
     FAILED_COST,
     STUDY_FILE,
     MissingDependencyError,
     TuneConfig,
-    _require,
     _requeue,
+    _require,
     active_space,
     apply_params,
     base_params,
     run_tune,
     trial_cost,
 )
-from hrp2_drake.paper import hrp2
 
 LEG = list(hrp2.RIGHT_LEG)
 

@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 
 from hrp2_drake.description import load_robot_description
-from hrp2_drake.robot.twin_calibration import TwinConfig, fit_twin
 from hrp2_drake.identification.logs import read_robot_log
 from hrp2_drake.robot.rollout import emulated_servo, rollout
+from hrp2_drake.robot.twin_calibration import TwinConfig, fit_twin
 
 ROBOT = "xl330_pendulum"
 LOGS = Path(__file__).resolve().parents[1] / "models" / ROBOT / "logs"

@@ -35,10 +35,10 @@ from pydrake.trajectories import (
     Trajectory,
 )
 
-from hrp2_drake.control.inverse_dynamics import (
-    InverseDynamicsConfig,
-    InverseDynamicsController,
-    make_fixed_base_plant,
+from hrp2_drake.assembly.torque_control import (
+    TorqueControlConfig,
+    check_control_period,
+    delta_q_limit,
 )
 from hrp2_drake.control.disturbance_observer import (
     DisturbanceObserver,
@@ -50,9 +50,14 @@ from hrp2_drake.control.fused import (
     SupervisorParts,
     TorqueChainParts,
 )
+from hrp2_drake.control.gains import inverse_dynamics_gains_for_k6
+from hrp2_drake.control.inverse_dynamics import (
+    InverseDynamicsConfig,
+    InverseDynamicsController,
+    make_fixed_base_plant,
+)
 from hrp2_drake.control.predictor import DelayPredictor, DelayPredictorConfig
 from hrp2_drake.control.safety import SafetySupervisor, supervisor_sensors
-from hrp2_drake.control.gains import inverse_dynamics_gains_for_k6
 from hrp2_drake.control.torque_controller import (
     DELTA_Q_COMPONENTS,
     DeltaQTorqueController,
@@ -69,11 +74,6 @@ from hrp2_drake.estimation.estimation_chain import add_estimator
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import joint_indexing
 from hrp2_drake.robot.station import StationConfig, make_station, sensor_sizes
-from hrp2_drake.assembly.torque_control import (
-    TorqueControlConfig,
-    check_control_period,
-    delta_q_limit,
-)
 
 #: The six components of Δq of paper Sec. 5.5 (the controller's seventh, the torque
 #: integral, is zero with the paper's K_i = 0).

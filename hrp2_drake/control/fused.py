@@ -53,9 +53,9 @@ from hrp2_drake.control.torque_controller import (
     TorqueControllerConfig,
 )
 from hrp2_drake.description import RobotDescription
-from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayStep
 from hrp2_drake.estimation.estimator_config import TorqueEstimatorConfig, filter_windows
 from hrp2_drake.estimation.estimator_step import TorqueEstimatorStep
+from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayStep
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.simulation import WitnessFreeLeafSystem
 from hrp2_drake.step import Step

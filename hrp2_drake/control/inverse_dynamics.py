@@ -30,8 +30,9 @@ controller can split its Δq into the six components of paper Sec. 5.5 (see
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 from pydrake.math import RigidTransform
@@ -50,6 +51,7 @@ from pydrake.multibody.tree import (
 )
 from pydrake.systems.framework import Context, DiscreteValues, InputPort
 
+from hrp2_drake.kernels import kernel
 from hrp2_drake.multibody import (
     check_joint_names,
     check_vector,
@@ -58,7 +60,6 @@ from hrp2_drake.multibody import (
     joint_indexing,
     tree_joints,
 )
-from hrp2_drake.kernels import kernel
 from hrp2_drake.step import Step, StepSystem
 
 _WHERE = "InverseDynamicsController"

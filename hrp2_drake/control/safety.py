@@ -47,8 +47,8 @@ is), two numba kernels (`hrp2_drake.kernels`): `_supervise` (its `step`) and
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from pydrake.systems.framework import BasicVector, Context, DiscreteValues, InputPort

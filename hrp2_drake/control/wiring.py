@@ -5,7 +5,7 @@ and `connect_inverse_dynamics` connects the inverse dynamics' τ_d and its terms
 Δq controller of the same joints.
 """
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from pydrake.systems.framework import DiagramBuilder

@@ -4,8 +4,8 @@ the systems that sample a robot's sensors.
 """
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 

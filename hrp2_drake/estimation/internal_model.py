@@ -82,7 +82,7 @@ def internal_model(
     holder = tree_joints(plant, root_frame.body().index())
     root_instance = _add_root(model, plant, root_frame, frames, set(holder))
     by_body = {int(sensor.body.index()): sensor for sensor in sensors}
-    for child, (parent_index, joint) in sorted(holder.items()):
+    for child, (_, joint) in sorted(holder.items()):
         forward = int(joint.child_body().index()) == child
         on_parent, on_child = (
             (joint.frame_on_parent(), joint.frame_on_child())

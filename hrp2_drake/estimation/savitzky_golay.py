@@ -26,8 +26,8 @@ and describes its centre wherever the fit is evaluated.
 """
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from scipy.ndimage import correlate1d

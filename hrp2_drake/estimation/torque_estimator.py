@@ -101,6 +101,7 @@ from hrp2_drake.estimation.internal_model import WHERE
 from hrp2_drake.multibody import eval_finite
 from hrp2_drake.step import StepSystem
 
+
 class FloatingBaseTorqueEstimator(StepSystem):
     """Joint torques, external wrenches and the unknown wrench of a robot, floating-base
     or welded to the world, from encoders, one IMU (optional for a fixed base) and k

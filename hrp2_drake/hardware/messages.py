@@ -5,7 +5,7 @@ types).
 """
 
 import struct
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from drake import lcmt_drake_signal, lcmt_force_torque

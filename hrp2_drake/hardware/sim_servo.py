@@ -313,7 +313,7 @@ class ServoGroup:
         self.physics = physics
         self.bus = bus
         self.model = bus.servo_model()
-        self.members: list["EmulatedServo"] = []
+        self.members: list[EmulatedServo] = []
         self.gain_disagreements = 0
         self._counts: dict[str, np.ndarray] | None = None
         self._counts_time = -1.0

@@ -23,7 +23,8 @@ import selectors
 import socket
 import struct
 import time
-from typing import Callable, Protocol
+from collections.abc import Callable
+from typing import Protocol
 from urllib.parse import urlparse
 
 from hrp2_drake.hardware.link import LinkClosed

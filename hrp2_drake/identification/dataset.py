@@ -11,8 +11,8 @@ In this module q̇ is `v` and q̈ `vdot` (the estimator's names); Δq = q_cmd �
 
 import dataclasses
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
 
 import numpy as np
 

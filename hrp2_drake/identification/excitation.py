@@ -19,8 +19,8 @@ A station is any Diagram with the ports of docs/architecture.md: input `q_cmd` a
 `imu_angular_velocity`, `wrench_<sensor>`; `joint_torque_true` is logged if present.
 """
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from pydrake.common.value import AbstractValue

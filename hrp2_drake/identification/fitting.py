@@ -18,7 +18,7 @@ to unit RMS, so that solver tolerances and the rank test do not depend on units.
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import scipy.sparse

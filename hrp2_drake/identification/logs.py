@@ -50,9 +50,9 @@ import math
 import os
 import zipfile
 import zlib
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -520,7 +520,9 @@ def read_npz(
                 try:
                     arrays[key] = data[key]
                 except (ValueError, *damaged) as error:
-                    raise ValueError(f"{path}: array '{key}' cannot be read: {error}")
+                    raise ValueError(
+                        f"{path}: array '{key}' cannot be read: {error}"
+                    ) from None
     except damaged as error:
         raise ValueError(f"{path}: a damaged .npz archive: {error}") from None
     single = [key for key, value in arrays.items() if value.ndim == 0]

@@ -15,9 +15,10 @@ and abandoned (its torque control was unstable); it is kept to reproduce that re
 
 import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Mapping, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 from pydrake.common.yaml import yaml_dump_typed

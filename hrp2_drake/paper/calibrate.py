@@ -41,6 +41,7 @@ import numpy as np
 
 from hrp2_drake import console
 from hrp2_drake.assembly.builders import build_position_control, simulated_station
+from hrp2_drake.paper import hrp2
 from hrp2_drake.paper.claims import MOVING_JOINTS, MOVING_LABELS
 from hrp2_drake.paper.motion import (
     PAPER_TABLE2,
@@ -50,7 +51,6 @@ from hrp2_drake.paper.motion import (
     paper_sample_count,
     run_controller,
 )
-from hrp2_drake.paper import hrp2
 from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure
 from hrp2_drake.robot.servo import (
     ServoJointParams,

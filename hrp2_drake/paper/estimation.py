@@ -35,18 +35,18 @@ from pydrake.systems.primitives import TrajectorySource
 
 from hrp2_drake import console
 from hrp2_drake.assembly.torque_control import check_window
+from hrp2_drake.description.sensors import SensorsConfig
 from hrp2_drake.estimation.estimation_chain import add_estimator
 from hrp2_drake.paper import hrp2
 from hrp2_drake.paper.claims import GOAL_RMS_OVER_PEAK
 from hrp2_drake.report import markdown_table, pyplot, save_figure
-from hrp2_drake.tools.simulate import joint_reference
-from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
-from hrp2_drake.description.sensors import SensorsConfig
 from hrp2_drake.robot.station import (
     StationConfig,
     initial_joint_positions,
     make_station,
 )
+from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
+from hrp2_drake.tools.simulate import joint_reference
 
 SCENARIOS = ("hanging", "standing")
 PAPER_WINDOW = 80  # samples (paper Sec. 5.1)

@@ -22,9 +22,6 @@ from pathlib import Path
 import numpy as np
 
 from hrp2_drake import console
-from hrp2_drake.config import check_finite
-from hrp2_drake.control.safety import describe_faults
-from hrp2_drake.paper import hrp2
 from hrp2_drake.assembly.builders import (
     build_position_control,
     build_torque_control,
@@ -35,10 +32,12 @@ from hrp2_drake.assembly.torque_control import (
     EstimatorSettings,
     TorqueControlConfig,
 )
-from hrp2_drake.config import replace_fields
+from hrp2_drake.config import check_finite, replace_fields
+from hrp2_drake.control.safety import describe_faults
+from hrp2_drake.identification.motor_model import MotorModel
+from hrp2_drake.paper import hrp2
 from hrp2_drake.paper.force import ForceConfig, run_force
 from hrp2_drake.paper.motion import MotionConfig, motion_reference, run_controller
-from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.report import markdown_table, pyplot, save_figure
 from hrp2_drake.robot.faults import SensorFault
 from hrp2_drake.robot.station import StationConfig

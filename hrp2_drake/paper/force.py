@@ -53,9 +53,9 @@ starts; the result is the same.
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
@@ -68,6 +68,9 @@ from hrp2_drake.assembly.builders import (
 )
 from hrp2_drake.assembly.torque_control import ControllerSettings, TorqueControlConfig
 from hrp2_drake.config import field_at, replace_fields
+from hrp2_drake.identification.motor_model import MotorModel
+from hrp2_drake.paper import hrp2
+from hrp2_drake.paper.claims import PAPER_COUPLING_X, PAPER_OVERSHOOT, force_verdict
 from hrp2_drake.paper.motion import (
     IMPROVED_FILE,
     IMPROVEMENTS,
@@ -75,9 +78,6 @@ from hrp2_drake.paper.motion import (
     load_improved,
     run_controller,
 )
-from hrp2_drake.identification.motor_model import MotorModel
-from hrp2_drake.paper import hrp2
-from hrp2_drake.paper.claims import PAPER_COUPLING_X, PAPER_OVERSHOOT, force_verdict
 from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure
 from hrp2_drake.robot.station import StationConfig, initial_joint_positions
 

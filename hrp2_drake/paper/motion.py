@@ -9,15 +9,14 @@ move) with the paper's formulas.
 
 import functools
 import json
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 from pydrake.systems.analysis import Simulator
 from pydrake.trajectories import PiecewisePolynomial
 
-from hrp2_drake.config import check_finite
 from hrp2_drake.assembly.builders import (
     ControlDiagram,
     JointReference,
@@ -27,10 +26,9 @@ from hrp2_drake.assembly.builders import (
     simulated_station,
 )
 from hrp2_drake.assembly.torque_control import EstimatorSettings, TorqueControlConfig
-from hrp2_drake.config import field_at, replace_fields
+from hrp2_drake.config import check_finite, field_at, replace_fields
 from hrp2_drake.estimation import estimator_config as estimation_config
 from hrp2_drake.estimation.estimator_config import TorqueEstimatorConfig
-from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.paper import hrp2
 from hrp2_drake.paper.claims import (
@@ -43,6 +41,7 @@ from hrp2_drake.paper.claims import (
 )
 from hrp2_drake.report import markdown_table, pyplot, save_figure
 from hrp2_drake.robot.station import StationConfig
+from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
 
 #: The paper's Table 2 (average error, rad·10³, its formula) and Table 3 (maximum
 #: error, rad·10³): rows hip roll, hip pitch, knee, ankle pitch, ankle roll; columns

@@ -18,11 +18,11 @@ import json
 import logging
 import time
 import traceback
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -92,13 +92,13 @@ def step_identify(out: Path, quick: bool) -> dict:
 def step_motion(out: Path, model_path: Path, quick: bool, replays: bool) -> dict:
     from dataclasses import replace
 
+    from hrp2_drake.identification.motor_model import MotorModel
     from hrp2_drake.paper.motion import (
         FIGURE4_RUNS,
         MotionConfig,
         run_motion,
         write_motion_report,
     )
-    from hrp2_drake.identification.motor_model import MotorModel
 
     config = MotionConfig(end=16.0)
     if quick:
@@ -161,9 +161,13 @@ def step_force(out: Path, model_path: Path, quick: bool, replays: bool) -> dict:
 
     from pydrake.geometry import Meshcat
 
-    from hrp2_drake.paper.force import ForceConfig, run_force, run_force_all
-    from hrp2_drake.paper.force import write_force_report
     from hrp2_drake.identification.motor_model import MotorModel
+    from hrp2_drake.paper.force import (
+        ForceConfig,
+        run_force,
+        run_force_all,
+        write_force_report,
+    )
 
     config = ForceConfig()
     if quick:
@@ -188,8 +192,8 @@ def step_force(out: Path, model_path: Path, quick: bool, replays: bool) -> dict:
 def step_stability(out: Path, model_path: Path, quick: bool, replays: bool) -> dict:
     from dataclasses import replace
 
-    from hrp2_drake.paper.stability import StabilityConfig, run_stability_experiment
     from hrp2_drake.identification.motor_model import MotorModel
+    from hrp2_drake.paper.stability import StabilityConfig, run_stability_experiment
 
     config = StabilityConfig()
     if quick:

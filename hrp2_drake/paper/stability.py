@@ -73,10 +73,10 @@ from hrp2_drake.assembly.torque_control import (
     TorqueControlConfig,
     check_window,
 )
-from hrp2_drake.paper.motion import run_controller
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import joint_indexing
 from hrp2_drake.paper import hrp2
+from hrp2_drake.paper.motion import run_controller
 from hrp2_drake.report import markdown_table, pyplot, save_figure
 from hrp2_drake.robot.station import (
     StationConfig,

@@ -50,16 +50,22 @@ from pathlib import Path
 import numpy as np
 
 from hrp2_drake import console
-from hrp2_drake.config import check_finite, one_line
 from hrp2_drake.assembly.torque_control import (
     EstimatorSettings,
     TorqueControlConfig,
     check_for_robot,
 )
-from hrp2_drake.config import field_at, field_type, replace_fields, set_field_at
-from hrp2_drake.paper.motion import estimation_delay
+from hrp2_drake.config import (
+    check_finite,
+    field_at,
+    field_type,
+    one_line,
+    replace_fields,
+    set_field_at,
+)
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.paper import hrp2
+from hrp2_drake.paper.motion import estimation_delay
 from hrp2_drake.report import markdown_table, pyplot, save_figure
 from hrp2_drake.robot.station import StationConfig
 

@@ -14,8 +14,8 @@ exactly as before. Ground truth (`joint_torque_true`, `state_true`) is never alt
 """
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 from pydrake.systems.framework import BasicVector, Context, DiscreteValues

@@ -27,8 +27,8 @@ logs).
 
 import math
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
 
 import numpy as np
 from pydrake.multibody.plant import MultibodyPlant

@@ -21,7 +21,7 @@ same laws as separate systems, for other diagrams; they give the same numbers
 """
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from pydrake.common.value import AbstractValue

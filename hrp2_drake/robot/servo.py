@@ -51,9 +51,9 @@ import copy
 import functools
 import math
 import warnings
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 from pydrake.multibody.plant import MultibodyPlant

@@ -42,8 +42,8 @@ index (`SampledSignal`), so every run of a config repeats the same noise. One
 
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 from pydrake.geometry import (

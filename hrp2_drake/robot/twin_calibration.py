@@ -34,10 +34,10 @@ model identified on the same logs (`identify --fit least-squares`).
 import copy
 import math
 import time
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from multiprocessing import get_context
-from typing import Sequence
 
 import numpy as np
 import scipy.optimize
@@ -248,7 +248,7 @@ def fit_twin(
     robot: RobotDescription,
     logs: Sequence[RobotLog],
     prior: ServoParams,
-    config: TwinConfig = TwinConfig(),
+    config: TwinConfig | None = None,
     label: str = "twin",
 ) -> TwinFit:
     """Fits the emulated servo's parameters to `logs` by rollout (module docstring).
@@ -256,6 +256,7 @@ def fit_twin(
     Raises:
         ValueError: too little data for the parameters (`check_enough_data`).
     """
+    config = config or TwinConfig()
     check_enough_data(logs, config)
     space = _Space(prior, robot.joints, config.parameters)
     rollouts = Rollouts(robot, logs, config.workers)

@@ -20,10 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from hrp2_drake.config import check_finite, moved_keys
-from hrp2_drake.console import say
-from hrp2_drake.control.fused import FusedController
-from hrp2_drake.control.safety import SafetyConfig
+
 from hrp2_drake.assembly.builders import (
     JointReference,
     check_control_period,
@@ -35,16 +32,20 @@ from hrp2_drake.assembly.torque_control import (
     at_period,
     check_for_robot,
 )
+from hrp2_drake.config import check_finite, moved_keys
+from hrp2_drake.console import say
+from hrp2_drake.control.fused import FusedController
+from hrp2_drake.control.safety import SafetyConfig
 from hrp2_drake.description import RobotDescription, load_robot_description
-from hrp2_drake.tools.track import TrackConfig, check_sinusoid, sinusoid_reference
 from hrp2_drake.hardware.control_loop import ControlLoop, LoopSettings
-from hrp2_drake.hardware.robot_bridge import BridgeConfig, RobotBridge
 from hrp2_drake.hardware.lcm_station import LcmChannels
 from hrp2_drake.hardware.link import RobotLink
+from hrp2_drake.hardware.robot_bridge import BridgeConfig, RobotBridge
 from hrp2_drake.hardware.transport import open_transport
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure
 from hrp2_drake.robot.station import StationConfig
+from hrp2_drake.tools.track import TrackConfig, check_sinusoid, sinusoid_reference
 
 
 @moved_keys(

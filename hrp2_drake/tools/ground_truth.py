@@ -1,7 +1,7 @@
 """Ground truth of a simulated robot, for evaluation only: what the emulated servo's
 hidden parameters imply. Estimators, identification and controllers never read it."""
 
-from typing import Sequence
+from collections.abc import Sequence
 
 from hrp2_drake.description import RobotDescription
 from hrp2_drake.identification.motor_model import MotorModel

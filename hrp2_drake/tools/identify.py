@@ -9,9 +9,9 @@ the validation table, Figures 1 and 3 and `motor_model.yaml`.
 
 import functools
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -36,7 +36,11 @@ from hrp2_drake.identification.logs import (
 )
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.report import markdown_table, pyplot, save_figure
-from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
+from hrp2_drake.robot.station import (
+    StationConfig,
+    initial_joint_positions,
+    make_station,
+)
 from hrp2_drake.tools.ground_truth import true_motor_model
 
 #: The period of the collection's log (s): `excitation.collect`'s.

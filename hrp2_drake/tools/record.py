@@ -29,9 +29,9 @@ from hrp2_drake.config import check_finite
 from hrp2_drake.console import say
 from hrp2_drake.description import RobotDescription, load_robot_description
 from hrp2_drake.hardware.control_loop import LoopSettings
-from hrp2_drake.hardware.real_time import garbage_collector_frozen
 from hrp2_drake.hardware.dynamixel import DynamixelLink
 from hrp2_drake.hardware.link import LinkClosed, LoopFault
+from hrp2_drake.hardware.real_time import garbage_collector_frozen
 from hrp2_drake.identification.excitation import make_plan
 from hrp2_drake.identification.logs import write_robot_log
 from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure

@@ -12,12 +12,20 @@ from pathlib import Path
 import numpy as np
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder
-from pydrake.systems.primitives import ConstantVectorSource, TrajectorySource, VectorLogSink
+from pydrake.systems.primitives import (
+    ConstantVectorSource,
+    TrajectorySource,
+    VectorLogSink,
+)
 from pydrake.trajectories import PiecewisePolynomial
 
 from hrp2_drake.config import check_finite
 from hrp2_drake.description import RobotDescription, check_joint_positions
-from hrp2_drake.robot.station import StationConfig, initial_joint_positions, make_station
+from hrp2_drake.robot.station import (
+    StationConfig,
+    initial_joint_positions,
+    make_station,
+)
 from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
 
 

@@ -41,9 +41,6 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Context, DiagramBuilder, LeafSystem
 from pydrake.trajectories import PiecewisePolynomial
 
-from hrp2_drake.config import check_finite
-from hrp2_drake.description import RobotDescription, joint_limits
-from hrp2_drake.description.bus import bus_for_period
 from hrp2_drake.assembly.builders import (
     JointReference,
     build_position_control,
@@ -56,7 +53,9 @@ from hrp2_drake.assembly.torque_control import (
     at_period,
     check_for_robot,
 )
-from hrp2_drake.config import replace_fields
+from hrp2_drake.config import check_finite, replace_fields
+from hrp2_drake.description import RobotDescription, joint_limits
+from hrp2_drake.description.bus import bus_for_period
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import is_strictly_below, joint_indexing, tree_parents
 from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure

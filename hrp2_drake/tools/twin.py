@@ -8,8 +8,8 @@ writes servo.yaml, calibrate.md, calibrate.json and a figure per gain.
 
 import json
 import math
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -39,13 +39,14 @@ def run_calibrate_logs(
     robot: RobotDescription,
     log_paths: Sequence[str | Path],
     out: Path,
-    config: TwinConfig = TwinConfig(),
+    config: TwinConfig | None = None,
     install: bool = False,
 ) -> dict:
     """The whole `hrp2-drake calibrate --robot R --log ...`: cross-validation across
     the logs' gains (if they have several), then the twin fitted on every log, written
     as out/servo.yaml (and the robot's servo file with `install`), with
     calibrate.md, calibrate.json and a figure per gain."""
+    config = config or TwinConfig()
     config.validate()
     if not log_paths:
         raise ValueError("--log: no log given")

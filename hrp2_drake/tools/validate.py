@@ -23,8 +23,8 @@ import, a model that holds at a gain with a log that states none: one ValueError
 
 import json
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 import yaml
