@@ -225,7 +225,9 @@ def _estimate(args: argparse.Namespace) -> int:
 
     robot = load_robot_description(args.robot or None)
     out = _output_folder(args.out)
-    summary = run_estimate(robot, Path(args.log), out, args.window, args.calibrate_offsets)
+    summary = run_estimate(
+        robot, Path(args.log), out, args.window, args.calibrate_offsets
+    )
     print(f"report: {out / 'estimate.md'}; arrays: {out / 'estimate.npz'}")
     for warning in summary["bias_warnings"]:
         print(f"  warning: {warning}")
@@ -271,7 +273,9 @@ def _track(args: argparse.Namespace) -> int:
     out = _validated_out(config, args)
     from hrp2_drake.tools.identify import IdentifyConfig
 
-    identify = IdentifyConfig(station=config.station, duration_scale=0.5 if args.quick else 1.0)
+    identify = IdentifyConfig(
+        station=config.station, duration_scale=0.5 if args.quick else 1.0
+    )
     summary = run_track(config, _motor_model(args, out, config, identify), out)
     print(f"report: {out / 'track.md'}")
     for name, errors in summary["tracking"].items():
@@ -291,10 +295,18 @@ def _control(args: argparse.Namespace) -> int:
     if bool(args.lcm) == bool(args.port):
         raise ValueError("give the robot's link: --lcm URL or --port DEV (one of them)")
     if args.lockstep and not args.port:
-        raise ValueError("--lockstep: only with --port (a lock-step robot behind a bus)")
+        raise ValueError(
+            "--lockstep: only with --port (a lock-step robot behind a bus)"
+        )
     out = _validated_out(config, args)
-    summary = run_control(config, _motor_model(args, out, config), out, lcm_url=args.lcm,
-                          port=args.port, lockstep=args.lockstep)
+    summary = run_control(
+        config,
+        _motor_model(args, out, config),
+        out,
+        lcm_url=args.lcm,
+        port=args.port,
+        lockstep=args.lockstep,
+    )
     lat = summary["latency_us"]
     print(
         f"report: {out / 'control.md'}; {summary['ticks']} ticks, latency p50 "
@@ -314,14 +326,22 @@ def _sim_robot(args: argparse.Namespace) -> int:
     _use_robot(station, args)
     validate_config(station)
     out = _output_folder(args.out) if args.out else None
-    summary = run_sim_robot(station, args.lcm, args.duration, out, rate=args.realtime_rate,
-                            lockstep=args.lockstep)
+    summary = run_sim_robot(
+        station,
+        args.lcm,
+        args.duration,
+        out,
+        rate=args.realtime_rate,
+        lockstep=args.lockstep,
+    )
     print(
         f"sim-robot: {summary['simulated']:.2f} s simulated; command watchdog tripped "
         f"{summary['watchdog_trips']} times"
         + (", holding the measured pose at the end" if summary["holding"] else "")
     )
-    return _stopped(f"{summary['fault']}; held the measured pose" if summary["fault"] else None)
+    return _stopped(
+        f"{summary['fault']}; held the measured pose" if summary["fault"] else None
+    )
 
 
 def _record(args: argparse.Namespace) -> int:
@@ -335,7 +355,9 @@ def _record(args: argparse.Namespace) -> int:
     out = _validated_out(config, args)
     summary = run_record(config, args.port, out, lockstep=args.lockstep)
     for log in summary["logs"]:
-        print(f"  {out / log['log']}: {log['samples']} samples at P gain {log['gain']:g}")
+        print(
+            f"  {out / log['log']}: {log['samples']} samples at P gain {log['gain']:g}"
+        )
     print(f"report: {out / 'record.md'}")
     faults = [log["fault"] for log in summary["logs"] if log["fault"]]
     return _stopped(faults[0] if faults else None)
@@ -348,8 +370,13 @@ def _sim_servo(args: argparse.Namespace) -> int:
     ids = [int(x) for x in args.ids.split(",")] if args.ids else None
     out = _output_folder(args.out) if args.out else None
     summary = run_sim_servo(
-        args.robot or "", lockstep=args.lockstep, rate=args.realtime_rate,
-        duration=args.duration, faults=faults, ids=ids, out=out,
+        args.robot or "",
+        lockstep=args.lockstep,
+        rate=args.realtime_rate,
+        duration=args.duration,
+        faults=faults,
+        ids=ids,
+        out=out,
     )
     stopped = summary.get("stopped", "")
     return _stopped(stopped if stopped and "closed" in stopped else None)
@@ -378,7 +405,9 @@ def _motor_model(args: argparse.Namespace, out: Path, config=None, identify=None
         torque_control = getattr(config, "torque_control", None)
         if torque_control is not None:
             station = getattr(config, "station", None)  # ControlConfig: its robot
-            robot = station.description() if station is not None else config.description()
+            robot = (
+                station.description() if station is not None else config.description()
+            )
             needed = torque_control.controlled_joints(robot)
         else:
             needed = [config.joint] if hasattr(config, "joint") else []
@@ -574,13 +603,19 @@ def _reproduce(args: argparse.Namespace) -> int:
     from hrp2_drake.paper.claims import verdicts
     from hrp2_drake.paper.reproduce import ReproduceConfig, run_reproduce
 
-    config = ReproduceConfig(jobs=args.jobs, quick=args.quick, replays=not args.no_replays)
+    config = ReproduceConfig(
+        jobs=args.jobs, quick=args.quick, replays=not args.no_replays
+    )
     validate_config(config)
     results = run_reproduce(config, _output_folder(args.out))
     for row in verdicts(results):  # the paper's claims, then this project's goals
         kind = "paper" if row.kind == "paper" else "project goal"
-        print(f"  [{row.verdict}] {kind}: {row.claim} ({row.threshold}): {row.evidence}")
-    failed = [s for s, r in results.items() if isinstance(r, dict) and r.get("ok") is False]
+        print(
+            f"  [{row.verdict}] {kind}: {row.claim} ({row.threshold}): {row.evidence}"
+        )
+    failed = [
+        s for s, r in results.items() if isinstance(r, dict) and r.get("ok") is False
+    ]
     return 1 if failed else 0
 
 
@@ -663,14 +698,21 @@ _COUNT = _number(int, 1, strict=False)
 #: add_argument keywords they have in common, which a command completes or overrides
 #: (`_add_options`).
 _SHARED_OPTIONS = {
-    "robot": {"help": "robot description: a robot.yaml or a name in models/ (default: hrp2)"},
+    "robot": {
+        "help": "robot description: a robot.yaml or a name in models/ (default: hrp2)"
+    },
     "config": {},
     "motor_model": {"help": "MotorModel YAML (default: identify one)"},
     "log": {},
-    "port": {"help": "the robot on its Dynamixel bus: the serial port (e.g. /dev/ttyUSB0, "
-             "or the path sim-servo prints)"},
-    "lockstep": {"action": "store_true", "help": "the robot behind the port is a lock-step "
-                 "simulation (sim-servo --lockstep): nothing waits for the wall clock"},
+    "port": {
+        "help": "the robot on its Dynamixel bus: the serial port (e.g. /dev/ttyUSB0, "
+        "or the path sim-servo prints)"
+    },
+    "lockstep": {
+        "action": "store_true",
+        "help": "the robot behind the port is a lock-step "
+        "simulation (sim-servo --lockstep): nothing waits for the wall clock",
+    },
     "lcm": {
         "required": True,
         "help": "LCM URL, e.g. udpm://239.255.76.67:7667?ttl=0 on a robot's network, "
@@ -703,7 +745,9 @@ def _add_options(
         elif isinstance(value, dict):
             keywords.update(value)
         elif value is not True:
-            raise TypeError(f"_add_options: --{name}: expected True, a help or keywords")
+            raise TypeError(
+                f"_add_options: --{name}: expected True, a help or keywords"
+            )
         parser.add_argument("--" + name.replace("_", "-"), **keywords)
 
 
@@ -789,8 +833,15 @@ def _add_estimate(commands: _Commands) -> None:
         "wrench_<sensor>; or the robot's own log format): τ̂, compensated and unknown "
         "wrenches, plot",
         robot=True,
-        log={"required": True, "help": "the log (.npz, see README, or the robot's format)"},
-        window={"type": _number(int, 3), "default": 81, "help": "Savitzky-Golay window (odd)"},
+        log={
+            "required": True,
+            "help": "the log (.npz, see README, or the robot's format)",
+        },
+        window={
+            "type": _number(int, 3),
+            "default": 81,
+            "help": "Savitzky-Golay window (odd)",
+        },
         calibrate_offsets={
             "metavar": "START:END",
             "default": "",
@@ -815,7 +866,11 @@ def _add_validate(commands: _Commands) -> None:
             "help": "a MotorModel YAML (identify), or a servo file: the digital twin "
             "(calibrate --log's servo.yaml, e.g. models/<robot>/servo.yaml)",
         },
-        log={"required": True, "nargs": "+", "help": "the robot's logs (its logs format)"},
+        log={
+            "required": True,
+            "nargs": "+",
+            "help": "the robot's logs (its logs format)",
+        },
         out=True,
     )
 
@@ -844,8 +899,11 @@ def _add_control(commands: _Commands) -> None:
         "per encoder message) or on its Dynamixel bus (a serial port, or sim-servo's: "
         "one sync read, one tick, one sync write per period), with per-tick timing",
         robot=True,
-        lcm={"required": False, "default": "", "help": "the robot over LCM: its URL "
-             "(see sim-robot --lcm)"},
+        lcm={
+            "required": False,
+            "default": "",
+            "help": "the robot over LCM: its URL (see sim-robot --lcm)",
+        },
         port={"default": ""},
         lockstep=True,
         motor_model={"required": True, "help": "MotorModel YAML"},
@@ -866,9 +924,13 @@ def _add_record(commands: _Commands) -> None:
         "P gain, in the robot's log format (for identify, validate, calibrate)",
         robot=True,
         port={"required": True},
-        gain={"type": _number(int, 0), "action": "append", "default": None,
-              "help": "a position P gain to record at (repeat for several; default: the "
-              "description's position_loop.gain)"},
+        gain={
+            "type": _number(int, 0),
+            "action": "append",
+            "default": None,
+            "help": "a position P gain to record at (repeat for several; default: the "
+            "description's position_loop.gain)",
+        },
         lockstep=True,
         config="RecordConfig YAML file",
         out=True,
@@ -884,17 +946,35 @@ def _add_sim_servo(commands: _Commands) -> None:
         "the robot's physics behind every ID, wire time and return delays honoured): "
         "prints the port's path",
         robot=True,
-        lockstep={"action": "store_true", "help": "the robot's clock is the bus traffic "
-                  "(one period per sync read): deterministic, for tests"},
-        realtime_rate={"type": _number(float, 0.0), "default": 1.0,
-                       "help": "target real-time rate (default 1)"},
-        duration={"default": float("inf"), "help": "seconds (default: until Ctrl-C or SIGTERM)"},
-        fault={"action": "append", "help": "inject a fault, e.g. silent:1@2.0, crc:1@1.5x20, "
-               "hardware:1@2.0:overload, close@3.0, wrong_model:1:XM430-W350 (repeat for "
-               "several)"},
-        ids={"default": "", "help": "serve these IDs instead of the description's "
-             "(comma-separated), e.g. to test a wrong ID"},
-        out={"default": None, "help": "write a report (sim_servo.md, sim_servo.json) here on exit"},
+        lockstep={
+            "action": "store_true",
+            "help": "the robot's clock is the bus traffic "
+            "(one period per sync read): deterministic, for tests",
+        },
+        realtime_rate={
+            "type": _number(float, 0.0),
+            "default": 1.0,
+            "help": "target real-time rate (default 1)",
+        },
+        duration={
+            "default": float("inf"),
+            "help": "seconds (default: until Ctrl-C or SIGTERM)",
+        },
+        fault={
+            "action": "append",
+            "help": "inject a fault, e.g. silent:1@2.0, crc:1@1.5x20, "
+            "hardware:1@2.0:overload, close@3.0, wrong_model:1:XM430-W350 (repeat for "
+            "several)",
+        },
+        ids={
+            "default": "",
+            "help": "serve these IDs instead of the description's "
+            "(comma-separated), e.g. to test a wrong ID",
+        },
+        out={
+            "default": None,
+            "help": "write a report (sim_servo.md, sim_servo.json) here on exit",
+        },
     )
 
 
@@ -908,18 +988,27 @@ def _add_sim_robot(commands: _Commands) -> None:
         robot=True,
         lcm=True,
         scenario="default: hanging (fixed robots: fixed_base)",
-        duration={"default": float("inf"), "help": "seconds (default: until Ctrl-C or SIGTERM)"},
+        duration={
+            "default": float("inf"),
+            "help": "seconds (default: until Ctrl-C or SIGTERM)",
+        },
         realtime_rate={
             "type": _number(float, 0.0),
             "default": 1.0,
             "help": "target real-time rate (default 1; < 1 slows the robot's clock, for "
             "tests)",
         },
-        lockstep={"action": "store_true", "help": "advance a period only once the "
-                  "controller's command for the last one has come (after the first "
-                  "command: or 0.2 s without one): a clock independent of the machine, "
-                  "for tests"},
-        out={"default": None, "help": "write the ground truth (sim_robot.npz) here on exit"},
+        lockstep={
+            "action": "store_true",
+            "help": "advance a period only once the "
+            "controller's command for the last one has come (after the first "
+            "command: or 0.2 s without one): a clock independent of the machine, "
+            "for tests",
+        },
+        out={
+            "default": None,
+            "help": "write the ground truth (sim_robot.npz) here on exit",
+        },
     )
 
 
@@ -1003,7 +1092,10 @@ def _add_experiment(commands: _Commands) -> None:
         "experiment",
         config="the experiment's config YAML file",
         motor_model=True,
-        end={"type": _number(float, 0.0), "help": "motion: stop the climbing motion at (s)"},
+        end={
+            "type": _number(float, 0.0),
+            "help": "motion: stop the climbing motion at (s)",
+        },
         out=True,
     )
 

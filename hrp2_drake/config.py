@@ -160,7 +160,9 @@ def _unknown_keys(
     return out
 
 
-def _moved_keys_line(unknown: list[tuple[str, list[str], tuple[str, str] | None]]) -> str:
+def _moved_keys_line(
+    unknown: list[tuple[str, list[str], tuple[str, str] | None]],
+) -> str:
     """The moved keys among `unknown` (`_unknown_keys`) on one line, by the config they
     are in (e.g. "torque_control: TorqueControlConfig: 'k6' moved to 'controller.k6'");
     "" if none moved."""
@@ -337,7 +339,9 @@ def field_type(schema: type, path: str) -> Any:
     """The type of the field at `path` (as `field_at`) of the dataclass `schema`;
     None if it has no such field."""
     for name in path.split("."):
-        hints = typing.get_type_hints(schema) if dataclasses.is_dataclass(schema) else {}
+        hints = (
+            typing.get_type_hints(schema) if dataclasses.is_dataclass(schema) else {}
+        )
         if name not in hints:
             return None
         schema = hints[name]

@@ -67,7 +67,9 @@ def template(message: str) -> str:
 def one_line(message: str) -> str:
     """The message's lines joined by a space (a Python warning has its source line
     on a second one)."""
-    return " ".join(part.strip() for part in message.strip().splitlines() if part.strip())
+    return " ".join(
+        part.strip() for part in message.strip().splitlines() if part.strip()
+    )
 
 
 class _Formatter(logging.Formatter):
@@ -91,7 +93,9 @@ class _Handler(logging.Handler):
         self.counts: dict[str, int] = {}  # template -> records after the first
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if record.levelno < logging.WARNING and not record.name.startswith("hrp2_drake"):
+        if record.levelno < logging.WARNING and not record.name.startswith(
+            "hrp2_drake"
+        ):
             return False
         if record.levelno < logging.WARNING:
             return True  # progress is never counted
@@ -136,7 +140,9 @@ def print_repeats(repeats: dict[str, int], context: str = "", stream=None) -> No
     for key, n in repeats.items():
         level, _, text = key.partition(": ")
         words = f"repeated {n} more {'time' if n == 1 else 'times'}: {text}"
-        stream.write(": ".join([p for p in (_PROGRAM, context, level) if p] + [words]) + "\n")
+        stream.write(
+            ": ".join([p for p in (_PROGRAM, context, level) if p] + [words]) + "\n"
+        )
     stream.flush()
 
 

@@ -101,7 +101,9 @@ def interpreted() -> Iterator[None]:
     swapped = []
     for module_name, name, dispatcher in _KERNELS:
         module = sys.modules[module_name]
-        if getattr(module, name) is dispatcher:  # (with NUMBA_DISABLE_JIT: the function)
+        if (
+            getattr(module, name) is dispatcher
+        ):  # (with NUMBA_DISABLE_JIT: the function)
             setattr(module, name, getattr(dispatcher, "py_func", dispatcher))
             swapped.append((module, name, dispatcher))
     try:

@@ -105,7 +105,9 @@ def check_vector(name: str, value: np.ndarray, size: int, where: str) -> np.ndar
     """Raises ValueError if `value` is not a finite vector of `size` entries."""
     value = np.asarray(value, dtype=float)
     if value.shape != (size,):
-        raise ValueError(f"{where}: '{name}' has shape {value.shape}, expected ({size},)")
+        raise ValueError(
+            f"{where}: '{name}' has shape {value.shape}, expected ({size},)"
+        )
     bad = np.flatnonzero(~np.isfinite(value))
     if bad.size:
         raise ValueError(f"{where}: '{name}' is not finite at entries {bad.tolist()}")
@@ -205,7 +207,9 @@ def copy_joint(
     elif kind == "prismatic":
         copy = PrismaticJoint(joint.name(), F, M, sign * joint.translation_axis())
     elif kind == "weld":
-        copy = WeldJoint(joint.name(), F, M, joint.X_FM() if forward else joint.X_FM().inverse())
+        copy = WeldJoint(
+            joint.name(), F, M, joint.X_FM() if forward else joint.X_FM().inverse()
+        )
     else:
         raise ValueError(
             f"joint '{joint.name()}' is a {kind} joint; only revolute, prismatic and "
@@ -215,7 +219,9 @@ def copy_joint(
     for index in plant.GetJointActuatorIndices():
         actuator = plant.get_joint_actuator(index)
         if actuator.joint().index() == joint.index():
-            added = model.AddJointActuator(actuator.name(), copy, actuator.effort_limit())
+            added = model.AddJointActuator(
+                actuator.name(), copy, actuator.effort_limit()
+            )
             added.set_default_rotor_inertia(actuator.rotor_inertia(context))
             added.set_default_gear_ratio(actuator.gear_ratio(context))
     return copy

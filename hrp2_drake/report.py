@@ -86,7 +86,9 @@ def legend_beside(ax, fontsize: float = 8, **kwargs):
     return ax.legend(fontsize=fontsize, **(LEGEND_BESIDE | kwargs))
 
 
-def save_figure(fig, path: str | Path, dpi: float = FIGURE_DPI, tight: bool = False) -> None:
+def save_figure(
+    fig, path: str | Path, dpi: float = FIGURE_DPI, tight: bool = False
+) -> None:
     """Writes `fig` to `path` at `dpi` (laid out by `fig.tight_layout()` first with
     `tight`) and closes it."""
     if tight:

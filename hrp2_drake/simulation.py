@@ -117,7 +117,9 @@ def run_with_progress(
             f"{duration * k / steps / max(wall, 1e-9):5.2f}x real time"
         )
         # One write per line: whole lines when processes share the stream.
-        stream.write(prefix + console.line(message) + ("" if tty and k < steps else "\n"))
+        stream.write(
+            prefix + console.line(message) + ("" if tty and k < steps else "\n")
+        )
         stream.flush()
         if on_step is not None:
             on_step(simulator.get_context().get_time())

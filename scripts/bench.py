@@ -393,7 +393,9 @@ def main() -> int:
     parser.add_argument("--json", type=Path, help="also write the rows here")
     parser.add_argument("--rounds", type=int, default=41, help="tick: rounds (median)")
     parser.add_argument("--lcm-duration", type=float, default=60.0, help="lcm: seconds")
-    parser.add_argument("--bus-cycles", type=int, default=2000, help="bus: cycles per bus")
+    parser.add_argument(
+        "--bus-cycles", type=int, default=2000, help="bus: cycles per bus"
+    )
     parser.add_argument(
         "--closed-loop-duration",
         type=float,
@@ -455,9 +457,12 @@ def main() -> int:
 
         print("lcm", file=sys.stderr)
         results["lcm"] = [
-            bench_lcm(robot, args.lcm_duration,
-                      Path("out/bench_lcm") / (robot + ("_lockstep" if lockstep else "")),
-                      lockstep=lockstep)
+            bench_lcm(
+                robot,
+                args.lcm_duration,
+                Path("out/bench_lcm") / (robot + ("_lockstep" if lockstep else "")),
+                lockstep=lockstep,
+            )
             for robot in ("hrp2", "iiwa14")
             for lockstep in (False, True)
         ]
@@ -471,7 +476,8 @@ def main() -> int:
             results["bus"] = [
                 {"name": f"{n} x XL330 at {baud / 1e6:g} Mbit/s"}
                 | bench_bus(n, baud, args.bus_cycles, Path(folder))
-                for n in SERVOS for baud in BAUDS
+                for n in SERVOS
+                for baud in BAUDS
             ]
 
     for section, rows in results.items():

@@ -57,8 +57,18 @@ class PipOsqp:
         self._fill(qp)
         A = sparse.csc_matrix(np.ones_like(self._A))
         self._solver = osqp.OSQP()
-        self._solver.setup(P, qp.g, A, self._l, self._u, eps_abs=1e-9, eps_rel=1e-9,
-                           verbose=False, polishing=True, max_iter=20000)
+        self._solver.setup(
+            P,
+            qp.g,
+            A,
+            self._l,
+            self._u,
+            eps_abs=1e-9,
+            eps_rel=1e-9,
+            verbose=False,
+            polishing=True,
+            max_iter=20000,
+        )
         self._P = P
         self._x = np.zeros(n)
 
@@ -76,9 +86,13 @@ class PipOsqp:
 
     def update(self, qp):
         self._fill(qp)
-        self._solver.update(q=qp.g, l=self._l, u=self._u,
-                            Px=qp.H[self._rows, self._cols],
-                            Ax=self._A.reshape(-1, order="F"))
+        self._solver.update(
+            q=qp.g,
+            l=self._l,
+            u=self._u,
+            Px=qp.H[self._rows, self._cols],
+            Ax=self._A.reshape(-1, order="F"),
+        )
 
     def solve(self):
         result = self._solver.solve()
@@ -173,7 +187,6 @@ class ProxsuiteQp:
         ):
             return 2, self._x
         return 3, self._x
-
 
 
 def standing(robot):
@@ -291,16 +304,25 @@ def bench(robot, solvers, ticks):
     rows = []
     for b, solver in enumerate(solvers):
         solve = solve_ns[b, skip:] * 1e-3
-        rows.append({
-            "solver": solver, "solve": stats(solve), "step": stats(solve + rest),
-            "faults": int(faults[b]), "tau_gap": float(tau_gap[b]),
-        })
+        rows.append(
+            {
+                "solver": solver,
+                "solve": stats(solve),
+                "step": stats(solve + rest),
+                "faults": int(faults[b]),
+                "tau_gap": float(tau_gap[b]),
+            }
+        )
     return rows, stats(rest), stats(rnea)
 
 
 def available(solver):
-    module = {"daqp": "daqp", "proxsuite": "proxsuite", "osqp_pip": "osqp",
-              "quadprog": "quadprog"}.get(solver)
+    module = {
+        "daqp": "daqp",
+        "proxsuite": "proxsuite",
+        "osqp_pip": "osqp",
+        "quadprog": "quadprog",
+    }.get(solver)
     if module is None:
         return True
     try:
@@ -320,21 +342,29 @@ def main() -> int:
     robot = load_robot_description("hrp2")
     solvers = [s for s in args.solvers.split(",") if available(s)]
     rows, rest, rnea = bench(robot, solvers, args.ticks)
-    print(f"HRP-2 double support, {args.ticks} ticks; CalcInverseDynamics (full HRP-2, "
-          f"36 velocities, gravity) p50 {rnea['p50_us']:.1f} µs, p99 "
-          f"{rnea['p99_us']:.1f} µs: the unit (ID)")
-    print(f"the step without the solve (Drake's terms, the kernels): p50 "
-          f"{rest['p50_us']:.0f} µs ({rest['p50']:.1f} ID), p99 "
-          f"{rest['p99_us']:.0f} µs ({rest['p99']:.1f} ID)\n")
-    print("| solver | solve p50 / p99 (µs) | solve p50 / p99 (ID) "
-          "| step p50 / p99 (ID) | faults | max abs τ gap to the first (N·m) |")
+    print(
+        f"HRP-2 double support, {args.ticks} ticks; CalcInverseDynamics (full HRP-2, "
+        f"36 velocities, gravity) p50 {rnea['p50_us']:.1f} µs, p99 "
+        f"{rnea['p99_us']:.1f} µs: the unit (ID)"
+    )
+    print(
+        f"the step without the solve (Drake's terms, the kernels): p50 "
+        f"{rest['p50_us']:.0f} µs ({rest['p50']:.1f} ID), p99 "
+        f"{rest['p99_us']:.0f} µs ({rest['p99']:.1f} ID)\n"
+    )
+    print(
+        "| solver | solve p50 / p99 (µs) | solve p50 / p99 (ID) "
+        "| step p50 / p99 (ID) | faults | max abs τ gap to the first (N·m) |"
+    )
     print("| --- | --- | --- | --- | --- | --- |")
     for row in rows:
         solve, whole = row["solve"], row["step"]
-        print(f"| {row['solver']} | {solve['p50_us']:.0f} / {solve['p99_us']:.0f} "
-              f"| {solve['p50']:.1f} / {solve['p99']:.1f} "
-              f"| {whole['p50']:.1f} / {whole['p99']:.1f} "
-              f"| {row['faults']} | {row['tau_gap']:.1e} |")
+        print(
+            f"| {row['solver']} | {solve['p50_us']:.0f} / {solve['p99_us']:.0f} "
+            f"| {solve['p50']:.1f} / {solve['p99']:.1f} "
+            f"| {whole['p50']:.1f} / {whole['p99']:.1f} "
+            f"| {row['faults']} | {row['tau_gap']:.1e} |"
+        )
     return 0
 
 

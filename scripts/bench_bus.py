@@ -52,31 +52,49 @@ def _rack(folder: Path, servos: int, baud: int) -> Path:
     urdf = (source / "xl330_pendulum.urdf").read_text()
     head, _, rest = urdf.partition('<link name="pendulum">')
     pendulum, _, tail = rest.partition("</link>")
-    joint = tail[tail.index('<joint name="servo"'):tail.index("</transmission>") + len("</transmission>")]
+    joint = tail[
+        tail.index('<joint name="servo"') : tail.index("</transmission>")
+        + len("</transmission>")
+    ]
     parts = [head]
     for k in range(1, servos + 1):
         parts.append(f'<link name="pendulum{k}">{pendulum}</link>\n')
         parts.append(
             joint.replace('name="servo"', f'name="servo{k}"')
-            .replace('<child link="pendulum"/>', f'<child link="pendulum{k}"/>\n    <origin xyz="0 {0.1 * k} 0"/>')
+            .replace(
+                '<child link="pendulum"/>',
+                f'<child link="pendulum{k}"/>\n    <origin xyz="0 {0.1 * k} 0"/>',
+            )
             .replace('name="servo_transmission"', f'name="servo{k}_transmission"')
-            .replace('name="xl330"', f'name="xl330_{k}"') + "\n"
+            .replace('name="xl330"', f'name="xl330_{k}"')
+            + "\n"
         )
     parts.append("</robot>\n")
     (target / "rack.urdf").write_text("".join(parts))
     description = yaml.safe_load((source / "robot.yaml").read_text())
     names = [f"servo{k}" for k in range(1, servos + 1)]
     description |= {
-        "name": f"xl330_rack_{servos}", "model_file": "rack.urdf", "joints": names,
-        "controlled_joints": names, "joint_labels": [], "initial_positions": [0.0] * servos,
-        "identification": {}, "logs": {"format": "npz"},
+        "name": f"xl330_rack_{servos}",
+        "model_file": "rack.urdf",
+        "joints": names,
+        "controlled_joints": names,
+        "joint_labels": [],
+        "initial_positions": [0.0] * servos,
+        "identification": {},
+        "logs": {"format": "npz"},
     }
-    description["bus"] |= {"ids": list(range(1, servos + 1)), "baud": baud,
-                           "adapter_latency": 0.0, "compute_time": 0.0}
+    description["bus"] |= {
+        "ids": list(range(1, servos + 1)),
+        "baud": baud,
+        "adapter_latency": 0.0,
+        "compute_time": 0.0,
+    }
     description["sensors"]["period"] = 0.05  # a period the slowest bus here carries
     (target / "robot.yaml").write_text(yaml.safe_dump(description, sort_keys=False))
     twin = yaml.safe_load((source / "servo.yaml").read_text())["joints"]["servo"]
-    (target / "servo.yaml").write_text(yaml.safe_dump({"joints": {n: twin for n in names}}))
+    (target / "servo.yaml").write_text(
+        yaml.safe_dump({"joints": {n: twin for n in names}})
+    )
     return target / "robot.yaml"
 
 
@@ -85,8 +103,17 @@ def bench_bus(servos: int, baud: int, cycles: int, folder: Path) -> dict:
 
     robot_file = _rack(folder, servos, baud)
     emulator = subprocess.Popen(
-        [sys.executable, "-m", "hrp2_drake.cli", "sim-servo", "--robot", str(robot_file)],
-        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+        [
+            sys.executable,
+            "-m",
+            "hrp2_drake.cli",
+            "sim-servo",
+            "--robot",
+            str(robot_file),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
     )
     try:
         line = emulator.stdout.readline()
@@ -108,23 +135,31 @@ def bench_bus(servos: int, baud: int, cycles: int, folder: Path) -> dict:
         emulator.wait(30)
     timing = robot.bus.timing()
     return {
-        "servos": servos, "baud": baud, "cycles": cycles,
-        "p50_us": float(np.percentile(cycle, 50)), "p99_us": float(np.percentile(cycle, 99)),
+        "servos": servos,
+        "baud": baud,
+        "cycles": cycles,
+        "p50_us": float(np.percentile(cycle, 50)),
+        "p99_us": float(np.percentile(cycle, 99)),
         "rate_hz": float(1e6 / np.percentile(cycle, 50)),
-        "budget_us": timing.cycle * 1e6, "budget_rate_hz": 1.0 / timing.cycle,
+        "budget_us": timing.cycle * 1e6,
+        "budget_rate_hz": 1.0 / timing.cycle,
         "with_usb_rate_hz": 1.0 / (timing.cycle + USB_LATENCY),
         "missing_statuses": missing,
     }
 
 
 def print_rows(rows: list[dict]) -> None:
-    print("| servos | Mbit/s | cycle p50 (µs) | p99 (µs) | achieved (Hz) | wire budget (µs) | "
-          "budget rate (Hz) | with a USB adapter (Hz) | statuses missing |")
+    print(
+        "| servos | Mbit/s | cycle p50 (µs) | p99 (µs) | achieved (Hz) | wire budget (µs) | "
+        "budget rate (Hz) | with a USB adapter (Hz) | statuses missing |"
+    )
     print("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     for r in rows:
-        print(f"| {r['servos']} | {r['baud'] / 1e6:g} | {r['p50_us']:.0f} | {r['p99_us']:.0f} | "
-              f"{r['rate_hz']:.0f} | {r['budget_us']:.0f} | {r['budget_rate_hz']:.0f} | "
-              f"{r['with_usb_rate_hz']:.0f} | {r['missing_statuses']} |")
+        print(
+            f"| {r['servos']} | {r['baud'] / 1e6:g} | {r['p50_us']:.0f} | {r['p99_us']:.0f} | "
+            f"{r['rate_hz']:.0f} | {r['budget_us']:.0f} | {r['budget_rate_hz']:.0f} | "
+            f"{r['with_usb_rate_hz']:.0f} | {r['missing_statuses']} |"
+        )
 
 
 def main(argv=None) -> list[dict]:
@@ -138,8 +173,11 @@ def main(argv=None) -> list[dict]:
             for baud in BAUDS:
                 rows.append(bench_bus(servos, baud, args.cycles, Path(folder)))
                 r = rows[-1]
-                print(f"bus: {servos} servo(s) at {baud / 1e6:g} Mbit/s: p50 {r['p50_us']:.0f} µs, "
-                      f"p99 {r['p99_us']:.0f} µs (budget {r['budget_us']:.0f} µs)", file=sys.stderr)
+                print(
+                    f"bus: {servos} servo(s) at {baud / 1e6:g} Mbit/s: p50 {r['p50_us']:.0f} µs, "
+                    f"p99 {r['p99_us']:.0f} µs (budget {r['budget_us']:.0f} µs)",
+                    file=sys.stderr,
+                )
     print_rows(rows)
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)

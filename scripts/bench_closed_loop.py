@@ -106,8 +106,13 @@ def _diagrams(duration: float | None):
     def torque_control(torque_config, fused: bool = False):
         robot, station, period = simulated_station(config.station)
         return build_torque_control(
-            robot, station, reference, motor_model, torque_config,
-            control_period=period, fused=fused,
+            robot,
+            station,
+            reference,
+            motor_model,
+            torque_config,
+            control_period=period,
+            fused=fused,
         )
 
     def position_control():

@@ -50,8 +50,13 @@ def bench_controller_stack(ticks: int = 2000) -> list[dict]:
         InverseDynamicsConfig(joints=joints, ks=[3000.0], kd=[50.0]),
     )
     context = inverse_dynamics.CreateDefaultContext()
-    for name, value in (("q_ref", q), ("v_ref", np.full(n, 0.3)), ("vdot_ref", np.ones(n)),
-                        ("q", q + 1e-3), ("v", np.full(n, 0.25))):
+    for name, value in (
+        ("q_ref", q),
+        ("v_ref", np.full(n, 0.3)),
+        ("vdot_ref", np.ones(n)),
+        ("q", q + 1e-3),
+        ("v", np.full(n, 0.25)),
+    ):
         inverse_dynamics.GetInputPort(name).FixValue(context, value)
     id_us = _us_per_update(inverse_dynamics, context, ticks)
 
@@ -59,8 +64,12 @@ def bench_controller_stack(ticks: int = 2000) -> list[dict]:
         hrp2.true_motor_model(joints), TorqueControllerConfig(joints=joints)
     )
     context = torque.CreateDefaultContext()
-    for name, value in (("tau_desired", np.full(n, 10.0)), ("tau_estimated", np.full(n, 9.0)),
-                        ("v", np.full(n, 0.2)), ("q_measured", q)):
+    for name, value in (
+        ("tau_desired", np.full(n, 10.0)),
+        ("tau_estimated", np.full(n, 9.0)),
+        ("v", np.full(n, 0.2)),
+        ("q_measured", q),
+    ):
         torque.GetInputPort(name).FixValue(context, value)
     dq_us = _us_per_update(torque, context, ticks)
 
@@ -73,7 +82,11 @@ def bench_controller_stack(ticks: int = 2000) -> list[dict]:
     context = supervisor.CreateDefaultContext()
     rng = np.random.default_rng(0)
     q30 = hrp2.half_sitting()
-    for name, value in (("q_torque", q30 + 1e-3), ("q_position", q30), ("q_measured", q30)):
+    for name, value in (
+        ("q_torque", q30 + 1e-3),
+        ("q_position", q30),
+        ("q_measured", q30),
+    ):
         supervisor.GetInputPort(name).FixValue(context, value)
     sizes = {name: 6 if kind == "wrench" else 3 for name, kind in sensors.items()}
     supervisor.GetInputPort("sensor_time").FixValue(context, np.zeros(7))
@@ -84,20 +97,27 @@ def bench_controller_stack(ticks: int = 2000) -> list[dict]:
     for tick in range(ticks):
         # Healthy inputs (fresh noisy samples and stamps), set outside the timing.
         context.SetTime(tick * PERIOD)
-        supervisor.GetInputPort("sensor_time").FixValue(context, np.full(7, (tick - 1) * PERIOD))
+        supervisor.GetInputPort("sensor_time").FixValue(
+            context, np.full(7, (tick - 1) * PERIOD)
+        )
         for name, size in sizes.items():
             supervisor.GetInputPort(name).FixValue(context, rng.normal(0, 1, size))
         start = time.perf_counter()
         context.SetDiscreteState(supervisor.EvalUniquePeriodicDiscreteUpdate(context))
         supervisor.GetOutputPort("q_cmd").Eval(context)
         elapsed += time.perf_counter() - start
-    assert supervisor.GetOutputPort("fault").Eval(context)[0] == 0, "bench inputs must be healthy"
+    assert supervisor.GetOutputPort("fault").Eval(context)[0] == 0, (
+        "bench inputs must be healthy"
+    )
     sup_us = elapsed / ticks * 1e6
     return [
         {"name": "InverseDynamicsController update (6 joints)", "us_per_tick": id_us},
         {"name": "DeltaQTorqueController update (6 joints)", "us_per_tick": dq_us},
         {"name": "controller stack (both)", "us_per_tick": id_us + dq_us},
-        {"name": "SafetySupervisor update + q_cmd (30 joints, 6 sensors)", "us_per_tick": sup_us},
+        {
+            "name": "SafetySupervisor update + q_cmd (30 joints, 6 sensors)",
+            "us_per_tick": sup_us,
+        },
     ]
 
 
@@ -109,7 +129,11 @@ def bench_motion_experiment(duration: float = 2.0) -> list[dict]:
     position = build_position_control(robot, station, reference)
     robot, station, period = simulated_station(config.station)
     torque = build_torque_control(
-        robot, station, reference, hrp2.true_motor_model(), TorqueControlConfig(),
+        robot,
+        station,
+        reference,
+        hrp2.true_motor_model(),
+        TorqueControlConfig(),
         control_period=period,
     )
     for label, control in (
@@ -120,7 +144,12 @@ def bench_motion_experiment(duration: float = 2.0) -> list[dict]:
         simulator.Initialize()
         start = time.perf_counter()
         simulator.AdvanceTo(duration)
-        rows.append({"name": label, "real_time_factor": duration / (time.perf_counter() - start)})
+        rows.append(
+            {
+                "name": label,
+                "real_time_factor": duration / (time.perf_counter() - start),
+            }
+        )
     return rows
 
 

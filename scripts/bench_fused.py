@@ -42,7 +42,9 @@ def drake_calls(controller):
         model.SetPositionsAndVelocities(context, inverse_dynamics._x)
         if inverse_dynamics._accelerated is None and inverse_dynamics._gravity_only:
             model.CalcForceElementsContribution(context, inverse_dynamics._forces)
-        model.CalcInverseDynamics(context, inverse_dynamics._vdot_full, inverse_dynamics._forces)
+        model.CalcInverseDynamics(
+            context, inverse_dynamics._vdot_full, inverse_dynamics._forces
+        )
 
     return replay
 
@@ -59,7 +61,9 @@ def tuned_config(station):
         defaults=TorqueControlConfig(),
     )
     return replace(
-        config, start_time=0.5, supervisor=SafetyConfig(stale_time=0.010, stale_samples=12)
+        config,
+        start_time=0.5,
+        supervisor=SafetyConfig(stale_time=0.010, stale_samples=12),
     )
 
 
@@ -76,13 +80,19 @@ def bench_fused_tick(duration: float = 3.0) -> list[dict]:
     from hrp2_drake.tools.ground_truth import true_motor_model
 
     station = StationConfig(scenario="hanging")
-    config = ControlConfig(robot=station.robot, duration=duration,
-                              torque_control=tuned_config(station))
+    config = ControlConfig(
+        robot=station.robot, duration=duration, torque_control=tuned_config(station)
+    )
     robot = station.description()
     reference = control_reference(config)
     controller = FusedController(
-        torque_chain_parts(robot, reference, true_motor_model(robot), config.torque_control,
-                           period=config.period())
+        torque_chain_parts(
+            robot,
+            reference,
+            true_motor_model(robot),
+            config.torque_control,
+            period=config.period(),
+        )
     )
     warm_up = controller.warm_up()
     make_station(station)  # its servo's and sensors' kernels too, before freezing
@@ -119,23 +129,44 @@ def bench_fused_tick(duration: float = 3.0) -> list[dict]:
     drake = drake_ns[active] * 1e-3
     ratio = float(np.median(fused) / np.median(rnea))
     rows = [
-        {"name": "fused tick (HRP-2, 30 joints, IMU, 4 F/T, right leg, observer, supervisor)",
-         "p50_us": float(np.median(fused)), "p99_us": float(np.percentile(fused, 99)),
-         "ticks": int(active.sum())},
-        {"name": "CalcInverseDynamics, full HRP-2 (36 velocities, gravity)",
-         "p50_us": float(np.median(rnea)), "p99_us": float(np.percentile(rnea, 99)),
-         "ticks": int(active.sum())},
-        {"name": "the tick's Drake calls alone (the floor)",
-         "p50_us": float(np.median(drake)), "p99_us": float(np.percentile(drake, 99)),
-         "ratio": float(np.median(drake) / np.median(rnea)), "ticks": int(active.sum())},
-        {"name": f"fused tick / CalcInverseDynamics (p50; goal <= {GOAL_RATIO:g})",
-         "ratio": ratio, "verdict": "PASS" if ratio <= GOAL_RATIO else "FAIL"},
-        {"name": "kernels compiled or loaded before the first tick (s)",
-         "warm_up_s": warm_up},
+        {
+            "name": "fused tick (HRP-2, 30 joints, IMU, 4 F/T, right leg, observer, supervisor)",
+            "p50_us": float(np.median(fused)),
+            "p99_us": float(np.percentile(fused, 99)),
+            "ticks": int(active.sum()),
+        },
+        {
+            "name": "CalcInverseDynamics, full HRP-2 (36 velocities, gravity)",
+            "p50_us": float(np.median(rnea)),
+            "p99_us": float(np.percentile(rnea, 99)),
+            "ticks": int(active.sum()),
+        },
+        {
+            "name": "the tick's Drake calls alone (the floor)",
+            "p50_us": float(np.median(drake)),
+            "p99_us": float(np.percentile(drake, 99)),
+            "ratio": float(np.median(drake) / np.median(rnea)),
+            "ticks": int(active.sum()),
+        },
+        {
+            "name": f"fused tick / CalcInverseDynamics (p50; goal <= {GOAL_RATIO:g})",
+            "ratio": ratio,
+            "verdict": "PASS" if ratio <= GOAL_RATIO else "FAIL",
+        },
+        {
+            "name": "kernels compiled or loaded before the first tick (s)",
+            "warm_up_s": warm_up,
+        },
     ]
     for row in rows:
-        print("  " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
-                               for k, v in row.items()), file=sys.stderr)
+        print(
+            "  "
+            + ", ".join(
+                f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
+                for k, v in row.items()
+            ),
+            file=sys.stderr,
+        )
     return rows
 
 

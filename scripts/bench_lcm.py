@@ -46,13 +46,20 @@ def _control_config(robot_name: str, path: Path) -> None:
     tuned = robot.path("torque_control_k6_0.1.yaml")
     if tuned.exists():
         torque = yaml.safe_load(tuned.read_text())
-    torque |= {"start_time": 0.5, "supervisor": {"stale_time": 0.010, "stale_samples": 12}}
-    config = {"torque_control": torque, "loop": {"real_time": {"cpu": 0, "priority": 50}}}
+    torque |= {
+        "start_time": 0.5,
+        "supervisor": {"stale_time": 0.010, "stale_samples": 12},
+    }
+    config = {
+        "torque_control": torque,
+        "loop": {"real_time": {"cpu": 0, "priority": 50}},
+    }
     path.write_text(yaml.safe_dump(config))
 
 
-def in_process_errors(robot_name: str, duration: float, config_path: Path,
-                      model_path: Path) -> list[float]:
+def in_process_errors(
+    robot_name: str, duration: float, config_path: Path, model_path: Path
+) -> list[float]:
     """The maximum tracking error (mrad, q_ref − q_measured of the controlled joints
     after start_time + 0.1 s) of the same controller on the same simulated robot in
     one process (`run_in_process`: no transport, the command applied at once)."""
@@ -66,8 +73,9 @@ def in_process_errors(robot_name: str, duration: float, config_path: Path,
     from hrp2_drake.robot.station import StationConfig
     from hrp2_drake.tools.control import ControlConfig, control_reference
 
-    config = yaml_load_typed(schema=ControlConfig, filename=str(config_path),
-                             defaults=ControlConfig())
+    config = yaml_load_typed(
+        schema=ControlConfig, filename=str(config_path), defaults=ControlConfig()
+    )
     # The robot's scenario as `sim-robot` runs it (hanging; a fixed robot: fixed_base).
     station = StationConfig(robot=robot_name)
     if station.description().base == "fixed":
@@ -76,10 +84,18 @@ def in_process_errors(robot_name: str, duration: float, config_path: Path,
     config.duration = duration
     robot = config.description()
     reference = control_reference(config)
-    controller = FusedController(torque_chain_parts(
-        robot, reference, MotorModel.load(model_path), config.torque_control,
-        period=config.period()))
-    cols = [robot.joints.index(j) for j in config.torque_control.controlled_joints(robot)]
+    controller = FusedController(
+        torque_chain_parts(
+            robot,
+            reference,
+            MotorModel.load(model_path),
+            config.torque_control,
+            period=config.period(),
+        )
+    )
+    cols = [
+        robot.joints.index(j) for j in config.torque_control.controlled_joints(robot)
+    ]
     start = config.torque_control.start_time + 0.1
     worst = np.zeros(len(cols))
     ticks = {"k": 0}
@@ -95,8 +111,13 @@ def in_process_errors(robot_name: str, duration: float, config_path: Path,
     return (worst * 1e3).tolist()
 
 
-def bench_lcm(robot_name: str, duration: float, out: Path, motor_model: str = "",
-              lockstep: bool = False) -> dict:
+def bench_lcm(
+    robot_name: str,
+    duration: float,
+    out: Path,
+    motor_model: str = "",
+    lockstep: bool = False,
+) -> dict:
     """Runs the hub, `sim-robot` (in lock step if asked) and `control`; returns the
     controller's figures."""
     from hrp2_drake.description import load_robot_description
@@ -115,27 +136,58 @@ def bench_lcm(robot_name: str, duration: float, out: Path, motor_model: str = ""
     url = f"tcpq://127.0.0.1:{port}"
     cli = [sys.executable, "-m", "hrp2_drake.cli"]
     cpus = sorted(os.sched_getaffinity(0))
-    controller_cpu, robot_cpu = ({cpus[0]}, {cpus[1]}) if len(cpus) > 1 else (None, None)
+    controller_cpu, robot_cpu = (
+        ({cpus[0]}, {cpus[1]}) if len(cpus) > 1 else (None, None)
+    )
 
     def pinned(cpu):
         return None if cpu is None else (lambda: os.sched_setaffinity(0, cpu))
 
     # The hub beside the controller: the controller sleeps most of each period, and
     # the simulated robot needs most of its own core to keep the 1 kHz clock.
-    hub = subprocess.Popen([sys.executable, "-m", "hrp2_drake.hardware.tcpq_hub", "--port", str(port)],
-                           stdout=subprocess.PIPE, text=True, preexec_fn=pinned(controller_cpu))
+    hub = subprocess.Popen(
+        [sys.executable, "-m", "hrp2_drake.hardware.tcpq_hub", "--port", str(port)],
+        stdout=subprocess.PIPE,
+        text=True,
+        preexec_fn=pinned(controller_cpu),
+    )
     hub.stdout.readline()
-    sim = subprocess.Popen(cli + ["sim-robot", "--robot", robot_name, "--lcm", url,
-                                  "--out", str(out / "robot")]
-                           + (["--lockstep"] if lockstep else []),
-                           stderr=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                           preexec_fn=pinned(robot_cpu))
+    sim = subprocess.Popen(
+        cli
+        + [
+            "sim-robot",
+            "--robot",
+            robot_name,
+            "--lcm",
+            url,
+            "--out",
+            str(out / "robot"),
+        ]
+        + (["--lockstep"] if lockstep else []),
+        stderr=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        preexec_fn=pinned(robot_cpu),
+    )
     try:
         done = subprocess.run(
-            cli + ["control", "--robot", robot_name, "--lcm", url, "--motor-model", str(model),
-                   "--config", str(out / "control.yaml"), "--duration", str(duration),
-                   "--out", str(out)],
-            capture_output=True, text=True,
+            cli
+            + [
+                "control",
+                "--robot",
+                robot_name,
+                "--lcm",
+                url,
+                "--motor-model",
+                str(model),
+                "--config",
+                str(out / "control.yaml"),
+                "--duration",
+                str(duration),
+                "--out",
+                str(out),
+            ],
+            capture_output=True,
+            text=True,
         )
         if done.returncode:
             raise RuntimeError(done.stderr[-2000:])
@@ -169,16 +221,23 @@ def bench_lcm(robot_name: str, duration: float, out: Path, motor_model: str = ""
         "scheduler": summary["real_time"].get("scheduler", ""),
         "robot_late_periods": robot_side["late_periods"],
         "robot_watchdog_trips": robot_side["watchdog_trips"],
-        "goal": "PASS" if latency["p99"] <= P99_GOAL_US and per_10k <= 1
-        and summary["torque_share"] == 1.0 and error_ratio <= 1.5 else "FAIL",
+        "goal": "PASS"
+        if latency["p99"] <= P99_GOAL_US
+        and per_10k <= 1
+        and summary["torque_share"] == 1.0
+        and error_ratio <= 1.5
+        else "FAIL",
     }
-    print(f"  {row['name']}: latency p50 {row['p50_us']:.0f} µs, p99 {row['p99_us']:.0f} µs, "
-          f"p99.9 {row['p99.9_us']:.0f} µs, max {row['max_us']:.0f} µs; {row['overruns']} "
-          f"overruns in {row['ticks']} ticks; torque control {row['torque_share'] * 100:.1f}%, "
-          f"{row['fallbacks']} fallbacks; {row['scheduler']}; the robot: "
-          f"{row['robot_late_periods']} late periods, watchdog tripped "
-          f"{row['robot_watchdog_trips']} times; maximum error {row['max_error_mrad']:.2f} mrad "
-          f"({error_ratio:.2f}x in process): {row['goal']}", file=sys.stderr)
+    print(
+        f"  {row['name']}: latency p50 {row['p50_us']:.0f} µs, p99 {row['p99_us']:.0f} µs, "
+        f"p99.9 {row['p99.9_us']:.0f} µs, max {row['max_us']:.0f} µs; {row['overruns']} "
+        f"overruns in {row['ticks']} ticks; torque control {row['torque_share'] * 100:.1f}%, "
+        f"{row['fallbacks']} fallbacks; {row['scheduler']}; the robot: "
+        f"{row['robot_late_periods']} late periods, watchdog tripped "
+        f"{row['robot_watchdog_trips']} times; maximum error {row['max_error_mrad']:.2f} mrad "
+        f"({error_ratio:.2f}x in process): {row['goal']}",
+        file=sys.stderr,
+    )
     return row
 
 
@@ -187,10 +246,14 @@ def main() -> int:
     parser.add_argument("--robot", default="hrp2")
     parser.add_argument("--duration", type=float, default=60.0)
     parser.add_argument("--out", default="out/bench_lcm")
-    parser.add_argument("--motor-model", default="", help="default: the emulator's effective model")
+    parser.add_argument(
+        "--motor-model", default="", help="default: the emulator's effective model"
+    )
     parser.add_argument("--lockstep", action="store_true", help="sim-robot --lockstep")
     args = parser.parse_args()
-    bench_lcm(args.robot, args.duration, Path(args.out), args.motor_model, args.lockstep)
+    bench_lcm(
+        args.robot, args.duration, Path(args.out), args.motor_model, args.lockstep
+    )
     return 0
 
 

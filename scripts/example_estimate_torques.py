@@ -44,7 +44,9 @@ def main() -> None:
     )
     builder.Connect(hold.get_output_port(), station.GetInputPort("q_cmd"))
     chain = add_estimator(
-        builder, station, robot.make_plant(),
+        builder,
+        station,
+        robot.make_plant(),
         estimator_config(robot, window=41, offset_calibration_time=0.3),
     )
     n = len(robot.joints)
@@ -59,14 +61,18 @@ def main() -> None:
     simulator.AdvanceTo(args.duration)
 
     context = simulator.get_context()
-    tau_hat, tau_true = (logs[k].FindLog(context).data().T for k in ("tau_hat", "tau_true"))
+    tau_hat, tau_true = (
+        logs[k].FindLog(context).data().T for k in ("tau_hat", "tau_true")
+    )
     # The estimate describes the robot chain.delay() seconds ago, after the filters
     # filled and the offsets were calibrated (0.5 s).
     lag = round(chain.delay() / 0.001)
     start = 600
     error = tau_hat[start:] - tau_true[start - lag : len(tau_true) - lag]
     rms = np.sqrt(np.mean(error**2, axis=0))
-    print(f"{robot.name}: τ̂ vs the servo's torque (RMS over {args.duration - 0.6:.1f} s, N·m)")
+    print(
+        f"{robot.name}: τ̂ vs the servo's torque (RMS over {args.duration - 0.6:.1f} s, N·m)"
+    )
     for name, value, peak in zip(robot.joints, rms, np.abs(tau_true).max(axis=0)):
         print(f"  {name:>16}: {value:8.4f}   (|τ| up to {peak:7.2f})")
 

@@ -54,7 +54,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--robot", default="iiwa14", help="robot description")
     parser.add_argument("--motor-model", required=True, help="MotorModel YAML")
-    parser.add_argument("--k6", type=float, default=1.0, help="position gain (Sec. 4.2)")
+    parser.add_argument(
+        "--k6", type=float, default=1.0, help="position gain (Sec. 4.2)"
+    )
     parser.add_argument("--duration", type=float, default=3.0, help="simulated seconds")
     args = parser.parse_args()
 
@@ -67,11 +69,16 @@ def main() -> None:
     motor_model = MotorModel.load(args.motor_model)
 
     position = max_errors(
-        build_position_control(robot, make_station(station), reference), args.duration, robot
+        build_position_control(robot, make_station(station), reference),
+        args.duration,
+        robot,
     )
     torque = max_errors(
         build_torque_control(
-            robot, make_station(station), reference, motor_model,
+            robot,
+            make_station(station),
+            reference,
+            motor_model,
             TorqueControlConfig(
                 start_time=0.5,
                 controller=ControllerSettings(k6=args.k6),
@@ -79,10 +86,13 @@ def main() -> None:
             ),
             control_period=station.sensors_config().period,
         ),
-        args.duration, robot,
+        args.duration,
+        robot,
     )
-    print(f"{robot.name}: maximum tracking error (mrad), position servo vs torque control "
-          f"K6 = {args.k6:g}")
+    print(
+        f"{robot.name}: maximum tracking error (mrad), position servo vs torque control "
+        f"K6 = {args.k6:g}"
+    )
     for name, p, t in zip(robot.labels(), position, torque):
         print(f"  {name:>12}: {p * 1e3:7.2f}  {t * 1e3:7.2f}")
 

@@ -103,7 +103,9 @@ def other_actuators() -> dict[str, Actuator]:
     head = Actuator(120.0, SMALL_ROTOR, 0.012, 2.0e-3, 10.0e-3, 0.2, 0.2, 10.0, 0.05)
     shoulder = Actuator(160.0, ARM_ROTOR, 0.020, 0.5e-3, 8.0e-3, 2.0, 0.3, 20.0, 0.05)
     wrist = Actuator(120.0, SMALL_ROTOR, 0.012, 2.0e-3, 10.0e-3, 0.2, 0.2, 10.0, 0.05)
-    gripper = Actuator(100.0, GRIPPER_ROTOR, 0.010, 20.0e-3, 50.0e-3, 0.05, 0.1, 5.0, 0.0)
+    gripper = Actuator(
+        100.0, GRIPPER_ROTOR, 0.010, 20.0e-3, 50.0e-3, 0.05, 0.1, 5.0, 0.0
+    )
     arm = [shoulder] * 4 + [wrist] * 2 + [gripper]
     out = {"CHEST_JOINT0": chest, "CHEST_JOINT1": chest}
     out |= {"HEAD_JOINT0": head, "HEAD_JOINT1": head}
@@ -181,14 +183,33 @@ def rob_links(rob: dict[str, list[str]]) -> list[Link]:
     for i in range(base + 1, len(names)):
         link_name[i] = names[i].replace("JOINT", "LINK")
     links = [
-        Link("BODY", None, None, np.zeros(3), (0, 0, 0), np.zeros(3), 0, 0,
-             mass[base], com[base], sym(inertia[base]))
+        Link(
+            "BODY",
+            None,
+            None,
+            np.zeros(3),
+            (0, 0, 0),
+            np.zeros(3),
+            0,
+            0,
+            mass[base],
+            com[base],
+            sym(inertia[base]),
+        )
     ]
     for i in range(base + 1, len(names)):
         links.append(
             Link(
-                link_name[i], link_name[parents[i]], names[i], tparent[i, 9:],
-                (0.0, 0.0, 0.0), axis[i], qmin[i], qmax[i], mass[i], com[i],
+                link_name[i],
+                link_name[parents[i]],
+                names[i],
+                tparent[i, 9:],
+                (0.0, 0.0, 0.0),
+                axis[i],
+                qmin[i],
+                qmax[i],
+                mass[i],
+                com[i],
                 sym(inertia[i]),
             )
         )
@@ -250,8 +271,8 @@ def inertial_xml(m: float, com, inertia: np.ndarray) -> str:
     return (
         f'    <inertial>\n      <origin xyz="{v3(com)}" rpy="0 0 0"/>\n'
         f'      <mass value="{f(m)}"/>\n'
-        f'      <inertia ixx="{f(i[0,0])}" ixy="{f(i[0,1])}" ixz="{f(i[0,2])}" '
-        f'iyy="{f(i[1,1])}" iyz="{f(i[1,2])}" izz="{f(i[2,2])}"/>\n    </inertial>\n'
+        f'      <inertia ixx="{f(i[0, 0])}" ixy="{f(i[0, 1])}" ixz="{f(i[0, 2])}" '
+        f'iyy="{f(i[1, 1])}" iyz="{f(i[1, 2])}" izz="{f(i[2, 2])}"/>\n    </inertial>\n'
     )
 
 
@@ -291,9 +312,7 @@ def box_visual(p, size, color: str, rpy=(0, 0, 0)) -> str:
 def sole_collisions(z_sole: float) -> str:
     r = CONTACT_SPHERE_RADIUS
     out = ""
-    for k, (x, y) in enumerate(
-        [(x, y) for x in SOLE_X for y in SOLE_Y]
-    ):
+    for k, (x, y) in enumerate([(x, y) for x in SOLE_X for y in SOLE_Y]):
         out += (
             f'    <collision name="sole_corner_{k}">\n'
             f'      <origin xyz="{v3((x, y, z_sole + r))}" rpy="0 0 0"/>\n'
@@ -341,8 +360,9 @@ def write_urdf(links: list[Link], servo: dict[str, dict]) -> str:
         visuals = ""
         color = "blue" if "LEG" in link.name or "ARM" in link.name else "grey"
         for ch in children.get(link.name, []):
-            visuals += segment_visual((0, 0, 0), ch.xyz, 0.035 if "LEG" in link.name
-                                      else 0.03, color)
+            visuals += segment_visual(
+                (0, 0, 0), ch.xyz, 0.035 if "LEG" in link.name else 0.03, color
+            )
         if link.name == "BODY":
             visuals += box_visual((-0.01, 0, 0.12), (0.2, 0.24, 0.2), "grey")
         elif link.name == "CHEST_LINK1":
@@ -373,8 +393,11 @@ def write_urdf(links: list[Link], servo: dict[str, dict]) -> str:
                 yaw = WRIST_FT_YAW
                 lower = f"{side}_HAND"
             rz = np.array(
-                [[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0],
-                 [0, 0, 1]]
+                [
+                    [math.cos(yaw), -math.sin(yaw), 0],
+                    [math.sin(yaw), math.cos(yaw), 0],
+                    [0, 0, 1],
+                ]
             )
             # Lower part, expressed in the sensor frame (origin p_s, rotation rz).
             com_s = rz.T @ (com_l - p_s)
@@ -398,8 +421,9 @@ def write_urdf(links: list[Link], servo: dict[str, dict]) -> str:
             if kind == "foot":
                 sole_link = f"{side[0].lower()}_sole"
                 out.append(f'  <link name="{sole_link}"/>\n')
-                extra.append(fixed_joint(f"{sole_link}_joint", lower, sole_link,
-                                         (0, 0, sole)))
+                extra.append(
+                    fixed_joint(f"{sole_link}_joint", lower, sole_link, (0, 0, sole))
+                )
             # Re-parent the children (the gripper) onto the lower part, keeping their
             # pose: joint frame expressed in the sensor frame.
             for ch in children.get(link.name, []):
@@ -416,7 +440,11 @@ def write_urdf(links: list[Link], servo: dict[str, dict]) -> str:
         a = link.actuator
         # Never reached by the servo: Drake clamps actuation at the effort limit, so
         # leave room for motor torque plus friction while braking at 2x velmax.
-        effort = sp["k1"] * (1 + sp["k1_asymmetry"]) * sp["i_max"] + 6.0 * sp["k2"] + sp["k3"]
+        effort = (
+            sp["k1"] * (1 + sp["k1_asymmetry"]) * sp["i_max"]
+            + 6.0 * sp["k2"]
+            + sp["k3"]
+        )
         out.append(
             f'  <joint name="{link.joint}" type="revolute">\n'
             f'    <parent link="{link.parent}"/>\n    <child link="{link.name}"/>\n'
@@ -485,8 +513,10 @@ def main() -> None:
     traj = np.loadtxt(args.data / "hrp2_climbing32.pos")[:, :31]
     with gzip.GzipFile(out / "climbing32.pos.gz", "wb", mtime=0) as stream:
         np.savetxt(stream, traj, fmt="%.7g")  # mtime=0: reproducible bytes
-    print(f"wrote {out}/hrp2.urdf, servo_ideal.yaml, climbing32.pos.gz "
-          f"({len(joints)} joints, {sum(l.mass for l in links):.3f} kg)")
+    print(
+        f"wrote {out}/hrp2.urdf, servo_ideal.yaml, climbing32.pos.gz "
+        f"({len(joints)} joints, {sum(l.mass for l in links):.3f} kg)"
+    )
 
 
 if __name__ == "__main__":

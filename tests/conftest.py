@@ -19,7 +19,8 @@ def short_identification():
     # The `ideal` servo: these tests check the machinery against the exact linear law;
     # `reproduce` reports what the calibrated servo costs.
     config = IdentifyConfig(
-        duration_scale=0.5, station=StationConfig(scenario="hanging", servo_file="ideal")
+        duration_scale=0.5,
+        station=StationConfig(scenario="hanging", servo_file="ideal"),
     )
     log, names = collect_log(config, progress=False)
     result = identify_logs(config.robot(), config, [collected_log(config, log, names)])
@@ -40,8 +41,19 @@ def xl330_prior():
     the prior of `calibrate --robot xl330_pendulum --log`."""
     from hrp2_drake.robot.servo import ServoJointParams, ServoParams
 
-    return ServoParams(joints={"servo": ServoJointParams(
-        k1=0.386695764, k2=0.00366167228, k3=0.0128327204, k4=2.12020866,
-        k5=0.0962621498, v_coulomb=0.05, encoder_resolution=0.00153398079,
-        stall_current=1.84211628, no_load_speed=19.1365325, gain=400.0,
-    )})
+    return ServoParams(
+        joints={
+            "servo": ServoJointParams(
+                k1=0.386695764,
+                k2=0.00366167228,
+                k3=0.0128327204,
+                k4=2.12020866,
+                k5=0.0962621498,
+                v_coulomb=0.05,
+                encoder_resolution=0.00153398079,
+                stall_current=1.84211628,
+                no_load_speed=19.1365325,
+                gain=400.0,
+            )
+        }
+    )

@@ -96,7 +96,9 @@ class SensorDecoder(LeafSystem):
     channel.
     """
 
-    def __init__(self, robot: RobotDescription, channels: LcmChannels, period: float = 0.001):
+    def __init__(
+        self, robot: RobotDescription, channels: LcmChannels, period: float = 0.001
+    ):
         super().__init__()
         self._codecs = channels.codecs(robot)
         n = len(robot.joints)
@@ -107,29 +109,44 @@ class SensorDecoder(LeafSystem):
         if robot.has_imu():
             self._inputs.append(_bytes_port(self, "imu_message"))
             self.DeclareVectorOutputPort(
-                "imu_linear_acceleration", 3, lambda c, o: o.SetFromVector(self._values(c, 1, 6)[:3])
+                "imu_linear_acceleration",
+                3,
+                lambda c, o: o.SetFromVector(self._values(c, 1, 6)[:3]),
             )
             self.DeclareVectorOutputPort(
-                "imu_angular_velocity", 3, lambda c, o: o.SetFromVector(self._values(c, 1, 6)[3:])
+                "imu_angular_velocity",
+                3,
+                lambda c, o: o.SetFromVector(self._values(c, 1, 6)[3:]),
             )
         for name in robot.sensor_names():
             k = len(self._inputs)
             self._inputs.append(_bytes_port(self, f"wrench_{name}_message"))
             self.DeclareVectorOutputPort(
-                f"wrench_{name}", 6, lambda c, o, k=k: o.SetFromVector(self._values(c, k, 6))
+                f"wrench_{name}",
+                6,
+                lambda c, o, k=k: o.SetFromVector(self._values(c, k, 6)),
             )
         k = len(self._inputs)
         # [arrival time of the latest new sample (k); its timestamp (k)].
-        state = self.DeclareDiscreteState(np.concatenate([np.zeros(k), np.full(k, -1.0)]))
+        state = self.DeclareDiscreteState(
+            np.concatenate([np.zeros(k), np.full(k, -1.0)])
+        )
         self._stamps = int(state)
         self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
         # sensor_time follows the simulated station's order (`sensor_sizes`), where
         # the IMU is two signals: both carry the IMU channel's stamp.
-        rows = [0] + ([1, 1] if robot.has_imu() else []) + list(range(k - len(robot.sensor_names()), k))
+        rows = (
+            [0]
+            + ([1, 1] if robot.has_imu() else [])
+            + list(range(k - len(robot.sensor_names()), k))
+        )
         self._rows = np.array(rows)
         self.DeclareVectorOutputPort(
-            "sensor_time", len(rows),
-            lambda c, o: o.SetFromVector(c.get_discrete_state(self._stamps).get_value()[self._rows]),
+            "sensor_time",
+            len(rows),
+            lambda c, o: o.SetFromVector(
+                c.get_discrete_state(self._stamps).get_value()[self._rows]
+            ),
         )
 
     def _values(self, context: Context, channel: int, size: int) -> np.ndarray:
@@ -164,7 +181,8 @@ class CommandEncoder(LeafSystem):
         self._codec = SignalCodec(joints, channel)
         self._q = self.DeclareVectorInputPort("q_cmd", len(joints))
         self.DeclareAbstractOutputPort(
-            "q_cmd_message", lambda: AbstractValue.Make(b""),
+            "q_cmd_message",
+            lambda: AbstractValue.Make(b""),
             lambda c, o: o.set_value(self._codec.encode(self._q.Eval(c), c.get_time())),
         )
 
@@ -183,7 +201,9 @@ def make_lcm_station(
     channels = (channels or LcmChannels()).resolved(robot)
     builder = DiagramBuilder()
     interface = builder.AddNamedSystem("lcm", LcmInterfaceSystem(lcm))
-    decoder = builder.AddNamedSystem("sensor_decoder", SensorDecoder(robot, channels, period))
+    decoder = builder.AddNamedSystem(
+        "sensor_decoder", SensorDecoder(robot, channels, period)
+    )
     for k, channel in enumerate(channels.sensors(robot)):
         subscriber = builder.AddNamedSystem(
             f"subscribe_{channel}",
@@ -193,10 +213,14 @@ def make_lcm_station(
     for i in range(decoder.num_output_ports()):
         port = decoder.get_output_port(i)
         builder.ExportOutput(port, port.get_name())
-    encoder = builder.AddNamedSystem("command_encoder", CommandEncoder(robot.joints, channels.q_cmd))
+    encoder = builder.AddNamedSystem(
+        "command_encoder", CommandEncoder(robot.joints, channels.q_cmd)
+    )
     publisher = builder.AddNamedSystem(
         "publish_q_cmd",
-        LcmPublisherSystem(channels.q_cmd, BytesSerializer(), interface, publish_period=period),
+        LcmPublisherSystem(
+            channels.q_cmd, BytesSerializer(), interface, publish_period=period
+        ),
     )
     builder.Connect(encoder.get_output_port(), publisher.get_input_port())
     builder.ExportInput(encoder.get_input_port(), "q_cmd")
@@ -252,7 +276,8 @@ class SensorEncoder(LeafSystem):
         codecs = channels.codecs(robot)
         q = self.DeclareVectorInputPort("q_measured", len(robot.joints))
         self.DeclareAbstractOutputPort(
-            "q_measured_message", lambda: AbstractValue.Make(b""),
+            "q_measured_message",
+            lambda: AbstractValue.Make(b""),
             lambda c, o: o.set_value(codecs[0].encode(q.Eval(c), c.get_time())),
         )
         k = 1
@@ -260,22 +285,29 @@ class SensorEncoder(LeafSystem):
             acc = self.DeclareVectorInputPort("imu_linear_acceleration", 3)
             gyro = self.DeclareVectorInputPort("imu_angular_velocity", 3)
             self.DeclareAbstractOutputPort(
-                "imu_message", lambda: AbstractValue.Make(b""),
+                "imu_message",
+                lambda: AbstractValue.Make(b""),
                 lambda c, o, imu=codecs[1]: o.set_value(
-                    imu.encode(np.concatenate([acc.Eval(c), gyro.Eval(c)]), c.get_time())
+                    imu.encode(
+                        np.concatenate([acc.Eval(c), gyro.Eval(c)]), c.get_time()
+                    )
                 ),
             )
             k = 2
         for name, codec in zip(robot.sensor_names(), codecs[k:]):
             port = self.DeclareVectorInputPort(f"wrench_{name}", 6)
             self.DeclareAbstractOutputPort(
-                f"wrench_{name}_message", lambda: AbstractValue.Make(b""),
-                lambda c, o, p=port, w=codec: o.set_value(w.encode(p.Eval(c), c.get_time())),
+                f"wrench_{name}_message",
+                lambda: AbstractValue.Make(b""),
+                lambda c, o, p=port, w=codec: o.set_value(
+                    w.encode(p.Eval(c), c.get_time())
+                ),
             )
 
 
-def make_sim_robot(config, lcm: DrakeLcmInterface, channels: LcmChannels | None = None,
-                   meshcat=None) -> Diagram:
+def make_sim_robot(
+    config, lcm: DrakeLcmInterface, channels: LcmChannels | None = None, meshcat=None
+) -> Diagram:
     """The simulated robot behind the LCM channels (`hrp2-drake sim-robot`): the
     station of `config` (a StationConfig), its command from P_Q_CMD (the home pose
     until the first message), its sensors published every sensor period. Ground truth
@@ -289,7 +321,8 @@ def make_sim_robot(config, lcm: DrakeLcmInterface, channels: LcmChannels | None 
     interface = builder.AddNamedSystem("lcm", LcmInterfaceSystem(lcm))
     station = builder.AddNamedSystem("station", make_station(config, meshcat))
     subscriber = builder.AddNamedSystem(
-        "subscribe_q_cmd", LcmSubscriberSystem(channels.q_cmd, BytesSerializer(), interface)
+        "subscribe_q_cmd",
+        LcmSubscriberSystem(channels.q_cmd, BytesSerializer(), interface),
     )
     decoder = builder.AddNamedSystem(
         "command_decoder",
@@ -304,7 +337,9 @@ def make_sim_robot(config, lcm: DrakeLcmInterface, channels: LcmChannels | None 
     for i, channel in enumerate(channels.sensors(robot)):
         publisher = builder.AddNamedSystem(
             f"publish_{channel}",
-            LcmPublisherSystem(channel, BytesSerializer(), interface, publish_period=period),
+            LcmPublisherSystem(
+                channel, BytesSerializer(), interface, publish_period=period
+            ),
         )
         builder.Connect(encoder.get_output_port(i), publisher.get_input_port())
     for name in ("state_true", "joint_torque_true", "q_measured"):

@@ -31,29 +31,41 @@ from hrp2_drake.description.bus import (
 
 
 def _xl330(**changes) -> BusDescription:
-    return BusDescription(**({"kind": "dynamixel", "ids": [1], "model": "XL330-M288"} | changes))
+    return BusDescription(
+        **({"kind": "dynamixel", "ids": [1], "model": "XL330-M288"} | changes)
+    )
 
 
 def test_the_control_tables_hold_the_e_manuals_facts():
     xl330, xm430 = dynamixel_model("XL330-M288"), dynamixel_model("XM430-W350")
     assert (xl330.model_number, xm430.model_number) == (1200, 1020)
     for model in (xl330, xm430):
-        assert (model.register("goal_position").address, model.register("goal_position").size) == (116, 4)
+        assert (
+            model.register("goal_position").address,
+            model.register("goal_position").size,
+        ) == (116, 4)
         assert model.register("present_position").address == 132
         assert model.register("return_delay_time").unit == 2e-6
         assert model.register("torque_enable").address == 64
         assert model.register("hardware_error_status").address == 70
         assert model.register("position_p_gain").address == 84
         # 0.229 rev/min per count.
-        assert model.register("present_velocity").unit == pytest.approx(0.229 * 2 * math.pi / 60)
+        assert model.register("present_velocity").unit == pytest.approx(
+            0.229 * 2 * math.pi / 60
+        )
     assert xl330.register("present_current").unit == 0.001
     assert xm430.register("present_current").unit == 0.00269
     assert xl330.register("position_p_gain").initial == 400
     assert xm430.register("position_p_gain").initial == 800
     assert xm430.baud_rates[7] == 4_500_000 and len(xl330.baud_rates) == 7
-    assert xl330.describe_hardware_error(0b100101) == "input voltage error, overheating, overload"
+    assert (
+        xl330.describe_hardware_error(0b100101)
+        == "input voltage error, overheating, overload"
+    )
     # Signed items: two's complement over their size.
-    assert xl330.si("present_velocity", 2**32 - 1) == pytest.approx(-0.229 * 2 * math.pi / 60)
+    assert xl330.si("present_velocity", 2**32 - 1) == pytest.approx(
+        -0.229 * 2 * math.pi / 60
+    )
     assert xl330.si("present_current", 2**16 - 5) == pytest.approx(-0.005)
     assert sorted(dynamixel_models()) == ["XL330-M288", "XM430-W350"]
 
@@ -62,8 +74,12 @@ def test_the_wire_time_budget_counts_every_byte():
     # One XL330 at 1 Mbit/s reading [velocity, position] (8 bytes): the instruction
     # 10 + 4 + 1 bytes, the status 10 + 1 + 8, the sync write 10 + 4 + 5.
     assert (sync_read_bytes(1), status_bytes(8), sync_write_bytes(1, 4)) == (15, 19, 19)
-    bus = _xl330(read=["present_velocity", "present_position"], return_delay=20e-6,
-                 adapter_latency=0.001, compute_time=0.0005)
+    bus = _xl330(
+        read=["present_velocity", "present_position"],
+        return_delay=20e-6,
+        adapter_latency=0.001,
+        compute_time=0.0005,
+    )
     timing = bus.timing()
     assert bus.read_block() == (128, 8)
     assert timing.read_instruction == pytest.approx(150e-6)
@@ -73,8 +89,13 @@ def test_the_wire_time_budget_counts_every_byte():
     assert timing.cycle == pytest.approx(150e-6 + timing.read_to_write)
     # Six servos at 4 Mbit/s with the factory's 500 µs return delay spend 3 ms on
     # return delays alone (DynamixelSDK issue 302: over 4 ms a sync read with USB).
-    six = BusDescription(kind="dynamixel", ids=list(range(1, 7)), model="XL330-M288",
-                         baud=4_000_000, return_delay=500e-6)
+    six = BusDescription(
+        kind="dynamixel",
+        ids=list(range(1, 7)),
+        model="XL330-M288",
+        baud=4_000_000,
+        return_delay=500e-6,
+    )
     assert six.timing().statuses == pytest.approx(6 * (500e-6 + wire_time(15, 4e6)))
 
 
@@ -94,17 +115,35 @@ def test_a_period_the_bus_cannot_carry_is_one_line_with_the_budget():
         bus_for_period(bus, 0.0005)
 
 
-@pytest.mark.parametrize("changes, message", [
-    ({"model": "XL999"}, "bus.model: unknown servo model 'XL999' (known: ['XL330-M288', 'XM430-W350'])"),
-    ({"baud": 4_500_000}, "bus.baud: 4500000 bit/s is not a rate of the XL330-M288"),
-    ({"ids": [1, 1]}, "bus.ids: IDs listed twice [1]"),
-    ({"ids": [253]}, "bus.ids: [253] are not servo IDs"),
-    ({"return_delay": 3e-6}, "bus.return_delay: 3e-06 s is not a whole number of 2 µs"),
-    ({"read": ["present_current"]}, "bus.read: ['present_current'] must include present_position"),
-    ({"read": ["present_position", "goal_speed"]}, "bus.read: 'goal_speed' is not an item"),
-    ({"direction": [2]}, "bus.direction: [2], each +1 or -1"),
-    ({"kind": "feetech"}, "bus.kind: 'feetech', expected one of ('dynamixel',)"),
-])
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        (
+            {"model": "XL999"},
+            "bus.model: unknown servo model 'XL999' (known: ['XL330-M288', 'XM430-W350'])",
+        ),
+        (
+            {"baud": 4_500_000},
+            "bus.baud: 4500000 bit/s is not a rate of the XL330-M288",
+        ),
+        ({"ids": [1, 1]}, "bus.ids: IDs listed twice [1]"),
+        ({"ids": [253]}, "bus.ids: [253] are not servo IDs"),
+        (
+            {"return_delay": 3e-6},
+            "bus.return_delay: 3e-06 s is not a whole number of 2 µs",
+        ),
+        (
+            {"read": ["present_current"]},
+            "bus.read: ['present_current'] must include present_position",
+        ),
+        (
+            {"read": ["present_position", "goal_speed"]},
+            "bus.read: 'goal_speed' is not an item",
+        ),
+        ({"direction": [2]}, "bus.direction: [2], each +1 or -1"),
+        ({"kind": "feetech"}, "bus.kind: 'feetech', expected one of ('dynamixel',)"),
+    ],
+)
 def test_a_bad_bus_is_one_line_naming_the_field(changes, message):
     with pytest.raises(ValueError) as error:
         _xl330(**changes).validate(len(_xl330(**changes).ids))
@@ -114,7 +153,9 @@ def test_a_bad_bus_is_one_line_naming_the_field(changes, message):
 def test_a_robot_whose_gain_the_servos_cannot_take_is_refused():
     robot = copy.deepcopy(load_robot_description("xl330_pendulum"))
     robot.position_loop.gain = 400.5
-    with pytest.raises(ValueError, match="position_loop.gain: 400.5, but a robot on a bus"):
+    with pytest.raises(
+        ValueError, match="position_loop.gain: 400.5, but a robot on a bus"
+    ):
         robot.validate()
     robot.position_loop.gain = 400
     robot.sensors.period = 0.001
@@ -128,7 +169,9 @@ def test_positions_go_through_whole_pulses_as_the_servo_rounds_them():
     q = np.array([0.3])
     pulses = bus.to_pulses(q)
     assert pulses[0] == 1000 - round(0.3 / quantum)
-    np.testing.assert_allclose(bus.to_radians(pulses), np.rint(q / quantum) * quantum, atol=1e-15)
+    np.testing.assert_allclose(
+        bus.to_radians(pulses), np.rint(q / quantum) * quantum, atol=1e-15
+    )
     # The default zero is half a turn (BAM's XL330 logs: 0 rad at pulse 2048).
     assert _xl330().to_pulses(np.array([-quantum]))[0] == 2047
     # Rounding twice is rounding once.
@@ -150,9 +193,18 @@ def test_the_simulated_servo_takes_its_goal_in_pulses():
     quantum = 2 * math.pi / 4096
     base = 65 * quantum
     torques = []
-    for q_cmd in (base, base + 0.3 * quantum, base - 0.3 * quantum, base + 0.7 * quantum):
+    for q_cmd in (
+        base,
+        base + 0.3 * quantum,
+        base - 0.3 * quantum,
+        base + 0.7 * quantum,
+    ):
         station.GetInputPort("q_cmd").FixValue(context, [q_cmd])
-        torques.append(servo.GetOutputPort("actuation").Eval(servo.GetMyContextFromRoot(context))[0])
+        torques.append(
+            servo.GetOutputPort("actuation").Eval(servo.GetMyContextFromRoot(context))[
+                0
+            ]
+        )
     assert torques[0] == torques[1] == torques[2] != torques[3]
 
 

@@ -62,9 +62,7 @@ def test_committed_servo_is_what_calibrate_writes(tmp_path):
     """models/hrp2/servo.yaml = build_servo(defaults, its own no-load speeds): nothing
     in it was edited by hand."""
     committed = load_servo_params()
-    speeds = {
-        j: committed.joints[j].no_load_speed for j in hrp2.RIGHT_LEG[1:]
-    }
+    speeds = {j: committed.joints[j].no_load_speed for j in hrp2.RIGHT_LEG[1:]}
     rebuilt = build_servo(CalibrationConfig(), speeds)
     path = tmp_path / "servo.yaml"
     save_servo_params(rebuilt, path, ["test"])
@@ -95,7 +93,11 @@ def test_calibrate_command_end_to_end(tmp_path):
     assert np.all(np.isfinite(servo.vectors(hrp2.RIGHT_LEG[1:])["no_load_speed"]))
     report = (out / "calibration.md").read_text()
     assert "## Fit per joint" in report and "## Table 2's N" in report
-    for figure in ("calibration_history.png", "calibration_fit.png", "calibration_knee_error.png"):
+    for figure in (
+        "calibration_history.png",
+        "calibration_fit.png",
+        "calibration_knee_error.png",
+    ):
         assert (out / figure).stat().st_size > 10000
         assert f"({figure})" in report
     summary = json.loads((out / "calibration.json").read_text())
@@ -103,4 +105,7 @@ def test_calibrate_command_end_to_end(tmp_path):
     assert len(summary["history"]) == 2  # the point and its finite-difference neighbour
     knee = 2
     assert summary["max_error"][knee] > 1.5 * summary["ideal"]["max"][knee]
-    assert summary["ablation"]["voltage_limit off"]["max"][knee] < summary["max_error"][knee]
+    assert (
+        summary["ablation"]["voltage_limit off"]["max"][knee]
+        < summary["max_error"][knee]
+    )

@@ -107,13 +107,19 @@ def short_runs(identified_model):
     # The `ideal` servo (the analysis is the subject; reproduce runs the calibrated one).
     config = MotionConfig(
         station=StationConfig(scenario="hanging", servo_file="ideal"),
-        start=3.0, end=4.0, settle=0.7, k6=[1.0, 0.1],
+        start=3.0,
+        end=4.0,
+        settle=0.7,
+        k6=[1.0, 0.1],
     )
     config.torque_control = TorqueControlConfig(start_time=0.5)
     motion = run_motion(config, motor_model, include_variants=False)
     force = ForceConfig(
         station=StationConfig(scenario="standing_on_block", servo_file="ideal"),
-        settle=0.6, static_average=0.2, hold=0.3, periods=1.0,
+        settle=0.6,
+        static_average=0.2,
+        hold=0.3,
+        periods=1.0,
     )
     force.ablations = []
     return motion.signals, run_force(force, motor_model).signals

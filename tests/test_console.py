@@ -7,11 +7,16 @@ import warnings
 from hrp2_drake import console
 
 
-def _fallback(logger: logging.Logger, t: float, reason: str = "|tau_estimated| exceeds tau_limit"):
+def _fallback(
+    logger: logging.Logger, t: float, reason: str = "|tau_estimated| exceeds tau_limit"
+):
     # The message of DeltaQTorqueController's shell, as it logs it.
     logger.warning(
         "%s %s: falling back to position control at t = %.6g s: %s",
-        "DeltaQTorqueController", "::_::control::torque_controller", t, reason,
+        "DeltaQTorqueController",
+        "::_::control::torque_controller",
+        t,
+        reason,
     )
 
 
@@ -48,14 +53,20 @@ def test_a_repeated_warning_is_printed_once_then_counted(capsys):
     ]
     # The session is over: logging is as it was (Python's last resort for warnings).
     assert console.current() is None and console.line("x") == "x"
-    assert not [h for h in logging.getLogger().handlers if isinstance(h, console._Handler)]
+    assert not [
+        h for h in logging.getLogger().handlers if isinstance(h, console._Handler)
+    ]
 
 
 def test_counts_of_a_worker_are_printed_by_the_parent_at_the_end(capsys):
     logger = logging.getLogger("hrp2_drake.control.safety")
-    with console.session("hrp2-drake reproduce", context="motion", summary=False) as worker:
+    with console.session(
+        "hrp2-drake reproduce", context="motion", summary=False
+    ) as worker:
         for k in range(7):
-            logger.warning("SafetySupervisor x: fault at t = %.6g s (encoder jump)", 1.0 + k)
+            logger.warning(
+                "SafetySupervisor x: fault at t = %.6g s (encoder jump)", 1.0 + k
+            )
         counts = worker.repeats()  # what a worker returns in its step's summary
     assert counts == {"warning: SafetySupervisor x: fault at t = … s (encoder jump)": 6}
     assert capsys.readouterr().err.splitlines() == [
@@ -74,11 +85,17 @@ def test_counts_of_a_worker_are_printed_by_the_parent_at_the_end(capsys):
 def test_python_warnings_take_the_same_format_and_are_counted(capsys):
     with console.session("hrp2-drake identify"):
         for _ in range(3):
-            warnings.warn_explicit("rank deficient at 3 samples", UserWarning, "fit.py", 12)
+            warnings.warn_explicit(
+                "rank deficient at 3 samples", UserWarning, "fit.py", 12
+            )
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 2
-    assert err[0].startswith("hrp2-drake identify: warning: fit.py:12: UserWarning: rank")
-    assert err[1].startswith("hrp2-drake identify: warning: repeated 2 more times: fit.py:")
+    assert err[0].startswith(
+        "hrp2-drake identify: warning: fit.py:12: UserWarning: rank"
+    )
+    assert err[1].startswith(
+        "hrp2-drake identify: warning: repeated 2 more times: fit.py:"
+    )
 
 
 def test_template_keeps_names_and_masks_numbers():
@@ -112,7 +129,11 @@ def test_a_line_is_one_write_so_processes_sharing_stderr_keep_it_whole():
     stream = Writes()
     with console.session("hrp2-drake experiment", context="motion", summary=False):
         console.say("hanging: best window 40", stream)
-        run_with_progress(Simulator(ConstantVectorSource([1.0])), 0.01, "run", stream, steps=2)
+        run_with_progress(
+            Simulator(ConstantVectorSource([1.0])), 0.01, "run", stream, steps=2
+        )
     assert stream.calls[0] == "hrp2-drake experiment: motion: hanging: best window 40\n"
     assert len(stream.calls) == 3 and all(c.endswith("\n") for c in stream.calls)
-    assert stream.calls[1].startswith("hrp2-drake experiment: motion: run:   0.01/0.01 s")
+    assert stream.calls[1].startswith(
+        "hrp2-drake experiment: motion: run:   0.01/0.01 s"
+    )

@@ -33,8 +33,9 @@ class _Process:
     """A child process whose stderr is collected by a thread."""
 
     def __init__(self, argv):
-        self.popen = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                      text=True)
+        self.popen = subprocess.Popen(
+            argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
         self.lines: list[str] = []
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
@@ -71,8 +72,11 @@ def rig(tmp_path):
 
     model = tmp_path / "motor_model.yaml"
     true_motor_model(load_robot_description(ROBOT)).save(model)
-    hub = subprocess.Popen([sys.executable, "-m", "hrp2_drake.hardware.tcpq_hub",
-                            "--port", str(port)], stdout=subprocess.PIPE, text=True)
+    hub = subprocess.Popen(
+        [sys.executable, "-m", "hrp2_drake.hardware.tcpq_hub", "--port", str(port)],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     assert "hub on" in hub.stdout.readline()
     processes = {"hub": hub}
 
@@ -82,8 +86,21 @@ def rig(tmp_path):
 
         def robot(self, duration=30.0):
             # In lock step: its clock is the controller's commands, not the machine's.
-            robot = _Process(CLI + ["sim-robot", "--robot", ROBOT, "--lcm", url, "--lockstep",
-                                    "--duration", str(duration), "--out", str(tmp_path / "robot")])
+            robot = _Process(
+                CLI
+                + [
+                    "sim-robot",
+                    "--robot",
+                    ROBOT,
+                    "--lcm",
+                    url,
+                    "--lockstep",
+                    "--duration",
+                    str(duration),
+                    "--out",
+                    str(tmp_path / "robot"),
+                ]
+            )
             processes["robot"] = robot
             robot.wait_for("sim-robot: iiwa14 on")
             self.robot_process = robot
@@ -92,9 +109,24 @@ def rig(tmp_path):
         def control(self, duration=3.0):
             config = tmp_path / "control.yaml"
             config.write_text("loop: {wait_timeout: 20.0}\n")
-            control = _Process(CLI + ["control", "--robot", ROBOT, "--lcm", url,
-                                      "--motor-model", str(model), "--config", str(config),
-                                      "--duration", str(duration), "--out", str(tmp_path / "control")])
+            control = _Process(
+                CLI
+                + [
+                    "control",
+                    "--robot",
+                    ROBOT,
+                    "--lcm",
+                    url,
+                    "--motor-model",
+                    str(model),
+                    "--config",
+                    str(config),
+                    "--duration",
+                    str(duration),
+                    "--out",
+                    str(tmp_path / "control"),
+                ]
+            )
             processes["control"] = control
             control.wait_for("control: running")
             return control
@@ -150,7 +182,10 @@ def test_a_run_ends_with_a_ramp_and_a_report(rig):
     assert report["ticks"] == 2001 and report["approach_s"] == 0.0
     assert report["torque_share"] == 1.0
     assert (rig.out / "control" / "latency.png").stat().st_size > 1000
-    assert "How the run ended:** its duration" in (rig.out / "control" / "control.md").read_text()
+    assert (
+        "How the run ended:** its duration"
+        in (rig.out / "control" / "control.md").read_text()
+    )
     # The robot's watchdog held the pose once the controller had gone: 6 of its own
     # periods after its last command (watchdog_periods 5), whatever the machine.
     assert rig.robot_process.finish(120) == 0
@@ -185,7 +220,9 @@ def test_a_replayed_sample_is_refused_and_a_malformed_stream_ramps_out(rig):
     _publish_from_a_third_client(rig.url, "IIWA14_Q_MEASURED", old)
     time.sleep(0.3)
     other = SignalCodec([f"other_{k}" for k in range(7)], "IIWA14_Q_MEASURED")
-    _publish_from_a_third_client(rig.url, "IIWA14_Q_MEASURED", other.encode(np.zeros(7), 1e6))
+    _publish_from_a_third_client(
+        rig.url, "IIWA14_Q_MEASURED", other.encode(np.zeros(7), 1e6)
+    )
     assert control.finish() == 1, control.lines
     report = rig.report()
     assert report["refused_samples"] >= 1
@@ -209,7 +246,9 @@ def test_the_robot_killed(rig):
     assert "went silent" in control.lines[-1]
     # The report's tracking stops at the last real sample (no frozen encoders in it).
     text = (rig.out / "control" / "control.md").read_text()
-    assert "the robot went silent" in text and f"t = {report['fault_time']:.3f} s" in text
+    assert (
+        "the robot went silent" in text and f"t = {report['fault_time']:.3f} s" in text
+    )
 
 
 @pytest.mark.slow
@@ -264,7 +303,9 @@ def test_the_hub_with_a_bad_or_busy_port_is_one_line():
     assert "Traceback" not in done.stderr
     with socket.create_server(("127.0.0.1", 0)) as busy:
         port = busy.getsockname()[1]
-        done = subprocess.run(hub + [str(port)], capture_output=True, text=True, timeout=60)
+        done = subprocess.run(
+            hub + [str(port)], capture_output=True, text=True, timeout=60
+        )
     assert done.returncode == 2 and "cannot listen on 127.0.0.1" in done.stderr
     assert len(done.stderr.strip().splitlines()) == 1
 
@@ -295,12 +336,19 @@ def test_a_cpu_or_priority_that_cannot_be_granted_is_refused_at_load():
     LoopSettings().validate(0.001, "ControlConfig.loop")
     LoopSettings(real_time=RealTimeConfig(cpu=cpus[-1], priority=high)).validate(0.001)
     for cpu in (max(cpus) + 1, 4096, -2):
-        _refused(LoopSettings(real_time=RealTimeConfig(cpu=cpu)),
-                 "ControlConfig.loop.real_time.cpu", f"{cpu}", "-1: no pinning")
+        _refused(
+            LoopSettings(real_time=RealTimeConfig(cpu=cpu)),
+            "ControlConfig.loop.real_time.cpu",
+            f"{cpu}",
+            "-1: no pinning",
+        )
     for priority in (high + 1, -1):
-        _refused(LoopSettings(real_time=RealTimeConfig(priority=priority)),
-                 "ControlConfig.loop.real_time.priority", f"{priority}",
-                 f"SCHED_FIFO's range 1..{high}")
+        _refused(
+            LoopSettings(real_time=RealTimeConfig(priority=priority)),
+            "ControlConfig.loop.real_time.priority",
+            f"{priority}",
+            f"SCHED_FIFO's range 1..{high}",
+        )
 
 
 def test_control_refuses_a_cpu_it_cannot_have_in_one_line(
@@ -323,12 +371,19 @@ def test_control_refuses_a_cpu_it_cannot_have_in_one_line(
         f"k_v: [{', '.join(['1e-2'] * len(joints))}]\n"
     )
     (tmp_path / "control.yaml").write_text("loop: {real_time: {cpu: 4096}}\n")
-    code = main([
-        "control", "--lcm", "memq://",
-        "--motor-model", str(tmp_path / "motor.yaml"),
-        "--config", str(tmp_path / "control.yaml"),
-        "--out", str(tmp_path / "out"),
-    ])
+    code = main(
+        [
+            "control",
+            "--lcm",
+            "memq://",
+            "--motor-model",
+            str(tmp_path / "motor.yaml"),
+            "--config",
+            str(tmp_path / "control.yaml"),
+            "--out",
+            str(tmp_path / "out"),
+        ]
+    )
     lines = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(lines) == 1, lines
     assert "control.yaml" in lines[0] and "loop.real_time.cpu: 4096" in lines[0], lines

@@ -17,7 +17,9 @@ from hrp2_drake.identification.motor_model import MotorModel
 
 def _parts(period: float):
     robot = load_robot_description("xl330_pendulum")
-    robot = dataclasses.replace(robot, sensors=dataclasses.replace(robot.sensors, period=period))
+    robot = dataclasses.replace(
+        robot, sensors=dataclasses.replace(robot.sensors, period=period)
+    )
     model = MotorModel(["servo"], np.array([1.44]), np.array([0.06]), np.zeros(1))
     reference = JointReference.hold(np.zeros(1), 2.0)
     config = at_period(TorqueControlConfig(), period)
@@ -28,8 +30,12 @@ def _parts(period: float):
 def test_every_step_at_the_control_period(period):
     parts = _parts(period)
     assert parts.period == period
-    for config in (parts.estimator_config, parts.id_config, parts.controller_config,
-                   parts.supervisor.config):
+    for config in (
+        parts.estimator_config,
+        parts.id_config,
+        parts.controller_config,
+        parts.supervisor.config,
+    ):
         assert config.period == pytest.approx(period, rel=1e-12)
     # The same 80 ms window as at 1 kHz, in samples of this period.
     assert parts.estimator_config.window * period == pytest.approx(0.08, abs=period)

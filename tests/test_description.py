@@ -50,8 +50,12 @@ def _write(tmp_path: Path, source: str, edit) -> Path:
     folder = MODELS / source
     text = (folder / "robot.yaml").read_text()
     for key in ("model_file", "trajectory_file", "servo_file"):
-        text = re.sub(rf"^{key}: (\S+)", lambda m, key=key: f"{key}: {folder / m.group(1)}", text,
-                      flags=re.M)
+        text = re.sub(
+            rf"^{key}: (\S+)",
+            lambda m, key=key: f"{key}: {folder / m.group(1)}",
+            text,
+            flags=re.M,
+        )
     path = tmp_path / "robot.yaml"
     path.write_text(edit(text))
     return path
@@ -60,36 +64,92 @@ def _write(tmp_path: Path, source: str, edit) -> Path:
 @pytest.mark.parametrize(
     "source, old, new, message",
     [
-        ("iiwa14", "frame: ft_sensor_link", "frame: no_such_frame",
-         r"force_torque_sensors\.wrist\.frame: no frame 'no_such_frame'"),
+        (
+            "iiwa14",
+            "frame: ft_sensor_link",
+            "frame: no_such_frame",
+            r"force_torque_sensors\.wrist\.frame: no frame 'no_such_frame'",
+        ),
         # The body above the sensor's weld: not "beyond" its frame.
-        ("iiwa14", "body: ft_sensor_link", "body: iiwa_link_7",
-         r"force_torque_sensors\.wrist\.body: 'iiwa_link_7' is above its frame"),
-        ("iiwa14", "iiwa_joint_1", "iiwa_joint_0",  # everywhere: a joint the model lacks
-         r"joints\[0\]: no joint 'iiwa_joint_0'"),
-        ("iiwa14", "controlled_joints: [iiwa_joint_1,", "controlled_joints: [elbow,",
-         r"controlled_joints: \['elbow'\] are not in joints"),
-        ("hrp2", "imu_frame: imu", "imu_frame: r_sole",
-         r"imu_frame: 'r_sole' is below F/T sensor 'right_foot'"),
-        ("hrp2", "imu_frame: imu ", "imu_frame: '' ",
-         r"imu_frame: empty, but a floating-base robot needs an IMU"),
-        ("hrp2", "climbing32.pos.gz", "missing.pos.gz",
-         r"trajectory_file: '.*missing.pos.gz' not found"),
-        ("iiwa14", "base_body: base", "base_body: basis",
-         r"base_body: no body 'basis'"),
-        ("iiwa14", "tool_frame: tool_tip", "tool_frame: tip",
-         r"tool_frame: no frame 'tip'"),
-        ("iiwa14", "force_sensor: wrist", "force_sensor: elbow",
-         r"force_sensor: 'elbow' is not one of"),
+        (
+            "iiwa14",
+            "body: ft_sensor_link",
+            "body: iiwa_link_7",
+            r"force_torque_sensors\.wrist\.body: 'iiwa_link_7' is above its frame",
+        ),
+        (
+            "iiwa14",
+            "iiwa_joint_1",
+            "iiwa_joint_0",  # everywhere: a joint the model lacks
+            r"joints\[0\]: no joint 'iiwa_joint_0'",
+        ),
+        (
+            "iiwa14",
+            "controlled_joints: [iiwa_joint_1,",
+            "controlled_joints: [elbow,",
+            r"controlled_joints: \['elbow'\] are not in joints",
+        ),
+        (
+            "hrp2",
+            "imu_frame: imu",
+            "imu_frame: r_sole",
+            r"imu_frame: 'r_sole' is below F/T sensor 'right_foot'",
+        ),
+        (
+            "hrp2",
+            "imu_frame: imu ",
+            "imu_frame: '' ",
+            r"imu_frame: empty, but a floating-base robot needs an IMU",
+        ),
+        (
+            "hrp2",
+            "climbing32.pos.gz",
+            "missing.pos.gz",
+            r"trajectory_file: '.*missing.pos.gz' not found",
+        ),
+        (
+            "iiwa14",
+            "base_body: base",
+            "base_body: basis",
+            r"base_body: no body 'basis'",
+        ),
+        (
+            "iiwa14",
+            "tool_frame: tool_tip",
+            "tool_frame: tip",
+            r"tool_frame: no frame 'tip'",
+        ),
+        (
+            "iiwa14",
+            "force_sensor: wrist",
+            "force_sensor: elbow",
+            r"force_sensor: 'elbow' is not one of",
+        ),
         ("iiwa14", "name: iiwa14", "nam: iiwa14", r"unknown key\(s\) \['nam'\]"),
-        ("iiwa14", "initial_positions: [0.0, 0.2691,", "initial_positions: [0.2691,",
-         r"initial_positions: 6 values for 7 joints"),
-        ("iiwa14", "{joint: iiwa_joint_7,", "{joint: iiwa_joint_8,",
-         r"identification\.sinusoids\[6\]\.joint: 'iiwa_joint_8' is not in joints"),
-        ("hrp2", "RLEG_JOINT5: [0.240, 6.0]", "RLEG_JOINT9: [0.240, 6.0]",
-         r"published_motor_model: 'RLEG_JOINT9' is not in joints"),
-        ("hrp2", "RLEG_JOINT5: [0.240, 6.0]", "RLEG_JOINT5: [0.240]",
-         r"published_motor_model\.RLEG_JOINT5: expected \[10³ Kτ, 10³ Kv\]"),
+        (
+            "iiwa14",
+            "initial_positions: [0.0, 0.2691,",
+            "initial_positions: [0.2691,",
+            r"initial_positions: 6 values for 7 joints",
+        ),
+        (
+            "iiwa14",
+            "{joint: iiwa_joint_7,",
+            "{joint: iiwa_joint_8,",
+            r"identification\.sinusoids\[6\]\.joint: 'iiwa_joint_8' is not in joints",
+        ),
+        (
+            "hrp2",
+            "RLEG_JOINT5: [0.240, 6.0]",
+            "RLEG_JOINT9: [0.240, 6.0]",
+            r"published_motor_model: 'RLEG_JOINT9' is not in joints",
+        ),
+        (
+            "hrp2",
+            "RLEG_JOINT5: [0.240, 6.0]",
+            "RLEG_JOINT5: [0.240]",
+            r"published_motor_model\.RLEG_JOINT5: expected \[10³ Kτ, 10³ Kv\]",
+        ),
     ],
 )
 def test_bad_description_names_the_field(tmp_path, source, old, new, message):
@@ -109,7 +169,9 @@ def test_simulated_ft_sensor_needs_a_fixed_joint(tmp_path):
             "body: ft_sensor_link", "body: iiwa_link_7", 1
         ),
     )
-    with pytest.raises(ValueError, match=r"wrist\.body: 'iiwa_link_7' hangs from revolute"):
+    with pytest.raises(
+        ValueError, match=r"wrist\.body: 'iiwa_link_7' hangs from revolute"
+    ):
         make_station(StationConfig(robot=str(path), scenario="fixed_base"))
 
 
@@ -117,8 +179,15 @@ def test_cli_bad_robot_is_one_line(tmp_path, capsys):
     assert main(["simulate", "--robot", "no_such_robot", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no_such_robot" in err[0] and "iiwa14" in err[0]
-    path = _write(tmp_path, "iiwa14", lambda t: t.replace("frame: ft_sensor_link", "frame: x", 1))
-    assert main(["estimate", "--robot", str(path), "--log", "x.npz", "--out", str(tmp_path)]) == 2
+    path = _write(
+        tmp_path, "iiwa14", lambda t: t.replace("frame: ft_sensor_link", "frame: x", 1)
+    )
+    assert (
+        main(
+            ["estimate", "--robot", str(path), "--log", "x.npz", "--out", str(tmp_path)]
+        )
+        == 2
+    )
     assert "force_torque_sensors.wrist.frame" in capsys.readouterr().err
 
 
@@ -128,15 +197,18 @@ def test_offline_estimate_of_a_fixed_arm_log(tmp_path):
     from hrp2_drake.tools.estimate import run_estimate
 
     config = SimulateConfig(
-        station=StationConfig(robot="iiwa14", scenario="fixed_base",
-                              sensors=SensorsConfig.noiseless()),
+        station=StationConfig(
+            robot="iiwa14", scenario="fixed_base", sensors=SensorsConfig.noiseless()
+        ),
         duration=1.0,
     )
     signals = run_simulate(config).signals
     log = tmp_path / "arm.npz"
     np.savez(log, **signals)
     summary = run_estimate(config.station.description(), log, tmp_path, window=41)
-    assert set(summary["rms_error_vs_truth"]) == set(config.station.description().joints)
+    assert set(summary["rms_error_vs_truth"]) == set(
+        config.station.description().joints
+    )
     estimate = np.load(tmp_path / "estimate.npz")
     settled = (estimate["t"] >= 0.3) & (estimate["t"] < 0.96)  # after the servo's sag
     error = estimate["tau"][settled] - signals["joint_torque_true"][settled]
@@ -144,7 +216,9 @@ def test_offline_estimate_of_a_fixed_arm_log(tmp_path):
     # quantization through the window; the start-up sag itself is 4-7 N·m RMS.
     assert np.sqrt(np.mean(error**2, axis=0)).max() < 0.05
     assert (tmp_path / "estimate_torques.png").is_file()
-    assert (tmp_path / "estimate.md").read_text().startswith("# Offline torque estimation")
+    assert (
+        (tmp_path / "estimate.md").read_text().startswith("# Offline torque estimation")
+    )
 
 
 def test_generic_layers_import_no_robot_and_no_experiment():
@@ -154,7 +228,9 @@ def test_generic_layers_import_no_robot_and_no_experiment():
     packages = ("estimation", "identification", "control")
     root = Path(__file__).resolve().parents[1] / "hrp2_drake"
     modules = [
-        f"hrp2_drake.{p}.{f.stem}" for p in packages for f in sorted((root / p).glob("*.py"))
+        f"hrp2_drake.{p}.{f.stem}"
+        for p in packages
+        for f in sorted((root / p).glob("*.py"))
     ]
     code = (
         "import sys\n"
@@ -163,5 +239,7 @@ def test_generic_layers_import_no_robot_and_no_experiment():
         "'hrp2_drake.experiments'))]\n"
         "print(bad)\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    )
     assert out.stdout.strip() == "[]", out.stdout

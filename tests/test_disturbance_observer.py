@@ -194,8 +194,11 @@ def test_warm_up_then_frozen():
     step.warm_up()
     np.testing.assert_array_equal(buffer, before)
     if kernels.jit_enabled():  # every kernel of the module compiled
-        mine = [k for k in kernels.kernels()
-                if k.py_func.__module__ == disturbance_observer.__name__]
+        mine = [
+            k
+            for k in kernels.kernels()
+            if k.py_func.__module__ == disturbance_observer.__name__
+        ]
         assert mine and all(k.signatures for k in mine)
     try:
         kernels.freeze()

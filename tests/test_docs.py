@@ -58,8 +58,8 @@ def broken_links(page: Path) -> list[str]:
             where = f"{page.name}:{number}: {target}"
             if not resolved.exists():
                 broken.append(f"{where} (no {resolved})")
-            elif anchor and resolved.suffix == ".md" and anchor not in _anchors(
-                resolved
+            elif (
+                anchor and resolved.suffix == ".md" and anchor not in _anchors(resolved)
             ):
                 broken.append(f"{where} (no heading '#{anchor}' in {resolved.name})")
     return broken

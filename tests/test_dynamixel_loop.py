@@ -37,15 +37,19 @@ class SimServo:
         command = CLI + ["sim-servo", "--robot", robot, "--lockstep", *options]
         if out is not None:
             command += ["--out", str(out)]
-        self.popen = subprocess.Popen(command, stdout=subprocess.PIPE,
-                                      stderr=subprocess.PIPE, text=True)
+        self.popen = subprocess.Popen(
+            command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
         deadline = time.monotonic() + 120
         line = ""
         while time.monotonic() < deadline:
             line = self.popen.stdout.readline()
             if "sim-servo:" in line and " on /dev/" in line or not line:
                 break
-        assert " on /dev/" in line, (line, self.popen.stderr.read() if self.popen.poll() is not None else "")
+        assert " on /dev/" in line, (
+            line,
+            self.popen.stderr.read() if self.popen.poll() is not None else "",
+        )
         self.port = line.split(" on ")[1].split()[0]
 
     def stop(self) -> None:
@@ -70,13 +74,35 @@ def _motor_model(tmp_path: Path, robot: str) -> Path:
     return path
 
 
-def _control(tmp_path: Path, robot: str, port: str, model: Path, duration: float,
-             *options: str, timeout: float = 600) -> subprocess.CompletedProcess:
+def _control(
+    tmp_path: Path,
+    robot: str,
+    port: str,
+    model: Path,
+    duration: float,
+    *options: str,
+    timeout: float = 600,
+) -> subprocess.CompletedProcess:
     return subprocess.run(
-        CLI + ["control", "--robot", robot, "--port", port, "--lockstep", "--motor-model",
-               str(model), "--duration", str(duration), "--out", str(tmp_path / "control"),
-               *options],
-        capture_output=True, text=True, timeout=timeout,
+        CLI
+        + [
+            "control",
+            "--robot",
+            robot,
+            "--port",
+            port,
+            "--lockstep",
+            "--motor-model",
+            str(model),
+            "--duration",
+            str(duration),
+            "--out",
+            str(tmp_path / "control"),
+            *options,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
     )
 
 
@@ -111,9 +137,15 @@ def test_control_on_the_bus_equals_the_fused_controller_in_process(tmp_path):
     if motor_model.gain:
         motor_model = motor_model.at_gain(description.position_loop.gain)
     reference = control_reference(config)
-    controller = FusedController(torque_chain_parts(
-        description, reference, motor_model, config.torque_control_at_period(),
-        period=config.period()))
+    controller = FusedController(
+        torque_chain_parts(
+            description,
+            reference,
+            motor_model,
+            config.torque_control_at_period(),
+            period=config.period(),
+        )
+    )
     ticks = report["ticks"]
     station = StationConfig(robot=robot, scenario="fixed_base")
     direct = run_on_bus_in_process(station, controller, reference, ticks)
@@ -131,13 +163,20 @@ def arm(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("fault, expected", [
-    ("silent:12@1.0", "servo ID 12 (joint2): no status in 3 periods in a row"),
-    ("hardware:13@1.0:overload", "servo ID 13 (joint3): hardware error: overload"),
-    ("crc:11@1.0x20", "servo ID 11 (joint1): a corrupt status in 3 periods in a row"),
-])
+@pytest.mark.parametrize(
+    "fault, expected",
+    [
+        ("silent:12@1.0", "servo ID 12 (joint2): no status in 3 periods in a row"),
+        ("hardware:13@1.0:overload", "servo ID 13 (joint3): hardware error: overload"),
+        (
+            "crc:11@1.0x20",
+            "servo ID 11 (joint1): a corrupt status in 3 periods in a row",
+        ),
+    ],
+)
 def test_a_bus_fault_ramps_where_the_bus_works_with_a_report_and_one_line(
-        tmp_path, arm, fault, expected):
+    tmp_path, arm, fault, expected
+):
     robot, model = arm
     servo = SimServo(robot, "--fault", fault, out=tmp_path / "servo")
     try:
@@ -163,10 +202,24 @@ def test_the_emulator_killed_ends_the_run_with_a_report_and_one_line(tmp_path, a
     robot, model = arm
     servo = SimServo(robot)
     control = subprocess.Popen(
-        CLI + ["control", "--robot", robot, "--port", servo.port, "--lockstep",
-               "--motor-model", str(model), "--duration", "60", "--out",
-               str(tmp_path / "control")],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        CLI
+        + [
+            "control",
+            "--robot",
+            robot,
+            "--port",
+            servo.port,
+            "--lockstep",
+            "--motor-model",
+            str(model),
+            "--duration",
+            "60",
+            "--out",
+            str(tmp_path / "control"),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     try:
         deadline = time.monotonic() + 120
@@ -184,17 +237,24 @@ def test_the_emulator_killed_ends_the_run_with_a_report_and_one_line(tmp_path, a
     assert "the bus is gone" in err.strip().splitlines()[-1]
     report = _report(tmp_path)
     assert "the bus is gone" in report["fault"] and not report["ramped"]
-    assert "the servos hold their last goal position" in (
-        tmp_path / "control" / "control.md").read_text()
+    assert (
+        "the servos hold their last goal position"
+        in (tmp_path / "control" / "control.md").read_text()
+    )
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("options, expected", [
-    (["--ids", "11,12,13,15"], "servo ID 14 (joint4): no answer to PING"),
-    (["--fault", "wrong_model:12:XL330-M288"],
-     "servo ID 12 (joint2): model number 1200 (XL330-M288), but the description says "
-     "XM430-W350 (1020)"),
-])
+@pytest.mark.parametrize(
+    "options, expected",
+    [
+        (["--ids", "11,12,13,15"], "servo ID 14 (joint4): no answer to PING"),
+        (
+            ["--fault", "wrong_model:12:XL330-M288"],
+            "servo ID 12 (joint2): model number 1200 (XL330-M288), but the description says "
+            "XM430-W350 (1020)",
+        ),
+    ],
+)
 def test_a_wrong_bus_at_start_up_is_one_line(tmp_path, arm, options, expected):
     robot, model = arm
     servo = SimServo(robot, *options)
@@ -216,17 +276,47 @@ def test_record_identify_calibrate_control_on_the_emulated_xl330(tmp_path):
     servo = SimServo(robot)
     try:
         recorded = subprocess.run(
-            CLI + ["record", "--robot", robot, "--port", servo.port, "--lockstep",
-                   "--gain", "100", "--gain", "400", "--out", str(tmp_path / "record")],
-            capture_output=True, text=True, timeout=900,
+            CLI
+            + [
+                "record",
+                "--robot",
+                robot,
+                "--port",
+                servo.port,
+                "--lockstep",
+                "--gain",
+                "100",
+                "--gain",
+                "400",
+                "--out",
+                str(tmp_path / "record"),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=900,
         )
         assert recorded.returncode == 0, recorded.stderr[-3000:]
         logs = sorted((tmp_path / "record").glob("xl330_pendulum_kp*.json"))
-        assert [log.name for log in logs] == ["xl330_pendulum_kp100.json", "xl330_pendulum_kp400.json"]
+        assert [log.name for log in logs] == [
+            "xl330_pendulum_kp100.json",
+            "xl330_pendulum_kp400.json",
+        ]
         identified = subprocess.run(
-            CLI + ["identify", "--robot", robot, "--log", *map(str, logs), "--fit",
-                   "least-squares", "--out", str(tmp_path / "identify")],
-            capture_output=True, text=True, timeout=900,
+            CLI
+            + [
+                "identify",
+                "--robot",
+                robot,
+                "--log",
+                *map(str, logs),
+                "--fit",
+                "least-squares",
+                "--out",
+                str(tmp_path / "identify"),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=900,
         )
         assert identified.returncode == 0, identified.stderr[-3000:]
         model = MotorModel.load(tmp_path / "identify" / "motor_model.yaml")
@@ -237,7 +327,9 @@ def test_record_identify_calibrate_control_on_the_emulated_xl330(tmp_path):
         assert model.gain in (100, 400)
         k_tau = model.at_gain(400).k_tau[0]
         assert abs(k_tau / truth.k_tau[0] - 1) < 0.25, (k_tau, truth.k_tau)
-        done = _control(tmp_path, robot, servo.port, tmp_path / "identify" / "motor_model.yaml", 1.5)
+        done = _control(
+            tmp_path, robot, servo.port, tmp_path / "identify" / "motor_model.yaml", 1.5
+        )
     finally:
         servo.stop()
     assert done.returncode == 0, done.stderr[-3000:]

@@ -12,19 +12,37 @@ from hrp2_drake.cli import main
 @pytest.fixture(scope="module")
 def iiwa_log(tmp_path_factory):
     out = tmp_path_factory.mktemp("sim")
-    assert main(["simulate", "--robot", "iiwa14", "--duration", "1.5", "--out", str(out)]) == 0
+    assert (
+        main(["simulate", "--robot", "iiwa14", "--duration", "1.5", "--out", str(out)])
+        == 0
+    )
     return next(out.glob("*.npz"))
 
 
 def _estimate(log, out, *extra):
-    assert main(["estimate", "--robot", "iiwa14", "--log", str(log), "--out", str(out),
-                 *extra]) == 0
+    assert (
+        main(
+            [
+                "estimate",
+                "--robot",
+                "iiwa14",
+                "--log",
+                str(log),
+                "--out",
+                str(out),
+                *extra,
+            ]
+        )
+        == 0
+    )
     return json.loads((out / "estimate.json").read_text())
 
 
 def test_the_bias_is_warned_about_then_calibrated_away(iiwa_log, tmp_path, capsys):
     raw = _estimate(iiwa_log, tmp_path / "raw")
-    assert len(raw["bias_warnings"]) == 1 and "sensor 'wrist'" in raw["bias_warnings"][0]
+    assert (
+        len(raw["bias_warnings"]) == 1 and "sensor 'wrist'" in raw["bias_warnings"][0]
+    )
     assert "warning: sensor 'wrist'" in capsys.readouterr().out
     assert "**Warning:**" in (tmp_path / "raw" / "estimate.md").read_text()
     # Measured: A1 0.41 N·m RMS (the bias carried into τ̂), A4 1.1.
@@ -37,17 +55,36 @@ def test_the_bias_is_warned_about_then_calibrated_away(iiwa_log, tmp_path, capsy
         assert rms < raw["rms_error_vs_truth"][joint] / 3 or rms < 0.01, joint
 
 
-@pytest.mark.parametrize("segment, words", [
-    ("0.6", "expected START:END"),
-    ("0.6:0.2", "START must be < END"),
-    ("0.2:9", "outside the log"),
-    ("0.2:0.2001", "fewer than 10"),
-])
+@pytest.mark.parametrize(
+    "segment, words",
+    [
+        ("0.6", "expected START:END"),
+        ("0.6:0.2", "START must be < END"),
+        ("0.2:9", "outside the log"),
+        ("0.2:0.2001", "fewer than 10"),
+    ],
+)
 def test_bad_segments_are_one_line(iiwa_log, tmp_path, capsys, segment, words):
-    code = main(["estimate", "--robot", "iiwa14", "--log", str(iiwa_log), "--out",
-                 str(tmp_path), "--calibrate-offsets", segment])
+    code = main(
+        [
+            "estimate",
+            "--robot",
+            "iiwa14",
+            "--log",
+            str(iiwa_log),
+            "--out",
+            str(tmp_path),
+            "--calibrate-offsets",
+            segment,
+        ]
+    )
     err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and words in err[0] and "--calibrate-offsets" in err[0]
+    assert (
+        code == 2
+        and len(err) == 1
+        and words in err[0]
+        and "--calibrate-offsets" in err[0]
+    )
 
 
 def test_estimate_reads_a_robots_own_log(tmp_path):
@@ -68,8 +105,20 @@ def test_estimate_reads_a_robots_own_log(tmp_path):
     path = tmp_path / "sin_sin.json"
     path.write_text(json.dumps(document))
     out = tmp_path / "out"
-    assert main(["estimate", "--robot", "xl330_pendulum", "--log", str(path),
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "estimate",
+                "--robot",
+                "xl330_pendulum",
+                "--log",
+                str(path),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     log = read_robot_log(path, robot.logs, robot.joints)
     result = np.load(out / "estimate.npz")
     assert json.loads((out / "estimate.json").read_text())["samples"] == len(log.t)

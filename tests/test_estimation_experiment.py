@@ -28,7 +28,9 @@ def report(tmp_path_factory):
     out = tmp_path_factory.mktemp("estimation")
     # The `ideal` servo: the accuracy asserted here is the estimator's; reproduce
     # reports the calibrated servo's (its Coulomb jumps cost accuracy at window 80).
-    config = EstimationConfig(windows=[20, 30, 40, 80], duration_scale=0.3, servo_file="ideal")
+    config = EstimationConfig(
+        windows=[20, 30, 40, 80], duration_scale=0.3, servo_file="ideal"
+    )
     summary = run_estimation_experiment(config, out)
     return out, summary
 
@@ -136,7 +138,10 @@ motions:
         ({"calibration_time": 1.0}, "calibration must end"),
         ({"motions": {"hanging": [JointSinusoid("KNEE")]}}, "KNEE"),
         ({"per_signal_windows": {"imu": 40}}, r"per_signal_windows: .*another parity"),
-        ({"per_signal_windows": {"hip": 41}}, r"per_signal_windows: .*'hip' is not a joint"),
+        (
+            {"per_signal_windows": {"hip": 41}},
+            r"per_signal_windows: .*'hip' is not a joint",
+        ),
     ]:
         with pytest.raises(ValueError, match=match):
             EstimationConfig(**changes).validate()

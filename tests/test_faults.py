@@ -59,7 +59,9 @@ def test_each_fault_kind():
     bias = _inject([SensorFault("s", "bias", 0.010, np.inf, [], [0.5])], times)
     ramp = np.floor(np.array(times) * 1000 + 1e-6) / 1000  # the input at those times
     np.testing.assert_allclose(bias[:, 0], ramp + [0.0, 0.5, 0.5, 0.5, 0.5], atol=1e-12)
-    glitch = _inject([SensorFault("s", "glitch", 0.010, 1.0, [2], [1.0])], [0.0105, 0.0115])
+    glitch = _inject(
+        [SensorFault("s", "glitch", 0.010, 1.0, [2], [1.0])], [0.0105, 0.0115]
+    )
     assert glitch[0, 2] > 1.0 and glitch[1, 2] < 0.1
 
 
@@ -69,7 +71,9 @@ def test_fault_config_errors_name_the_field():
     with pytest.raises(ValueError, match=r"faults\[0\].kind"):
         StationConfig(faults=[SensorFault("q_measured", "melt")]).validate()
     with pytest.raises(ValueError, match=r"faults\[0\].indices"):
-        StationConfig(faults=[SensorFault("imu_angular_velocity", indices=[3])]).validate()
+        StationConfig(
+            faults=[SensorFault("imu_angular_velocity", indices=[3])]
+        ).validate()
 
 
 def test_a_campaign_whose_runs_raised_has_no_yes_verdict():
@@ -83,7 +87,9 @@ def test_a_campaign_whose_runs_raised_has_no_yes_verdict():
     ]
     verdict = _verdict(results)
     assert not any(value for value in verdict.values() if isinstance(value, bool))
-    assert "motion: F/T NaN burst (5 ms) (raised, not judged)" in verdict["detected_late"]
+    assert (
+        "motion: F/T NaN burst (5 ms) (raised, not judged)" in verdict["detected_late"]
+    )
 
 
 @pytest.mark.slow
@@ -108,7 +114,11 @@ def test_a_bad_sample_hands_back_to_the_servo_and_torque_control_resumes(fault):
     )
     robot, simulated, period = simulated_station(station)
     control = build_torque_control(
-        robot, simulated, reference, hrp2.true_motor_model(servo_file="ideal"), config,
+        robot,
+        simulated,
+        reference,
+        hrp2.true_motor_model(servo_file="ideal"),
+        config,
         control_period=period,
     )
     signals = run_controller(control, 1.3, "fault", stream=open("/dev/null", "w"))
@@ -153,7 +163,9 @@ def test_model_error_and_extra_latency():
     with pytest.raises(ValueError, match="error"):
         hrp2.add_hrp2_with_model_error(MultibodyPlant(0.0), 1.5)
     params = load_servo_params()
-    servo = EmulatedPositionServo(exact, params, hrp2.JOINT_NAMES, 1e-3, extra_latency=0.002)
+    servo = EmulatedPositionServo(
+        exact, params, hrp2.JOINT_NAMES, 1e-3, extra_latency=0.002
+    )
     base = EmulatedPositionServo(exact, params, hrp2.JOINT_NAMES, 1e-3)
     np.testing.assert_array_equal(servo.latency_periods, base.latency_periods + 2)
 

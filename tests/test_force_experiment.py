@@ -33,7 +33,10 @@ def _config(**changes) -> ForceConfig:
     # The `ideal` servo (the experiment's machinery; reproduce runs the calibrated one).
     config = ForceConfig(
         station=StationConfig(scenario="standing_on_block", servo_file="ideal"),
-        settle=0.6, static_average=0.2, hold=0.3, periods=1.0,
+        settle=0.6,
+        static_average=0.2,
+        hold=0.3,
+        periods=1.0,
     )
     config.ablations = []
     for name, value in changes.items():
@@ -129,8 +132,12 @@ def test_force_config_loads_from_yaml_and_validates():
     )
     assert config.amplitude == 30.0 and config.ablations == ["k6_0"]
     with pytest.raises(ValueError, match="controller.force_frame"):
-        load_config(ForceConfig, data="torque_control: {controller: {force_frame: ''}}\n")
-    with pytest.raises(ValueError, match="'force_frame' moved to 'controller.force_frame'"):
+        load_config(
+            ForceConfig, data="torque_control: {controller: {force_frame: ''}}\n"
+        )
+    with pytest.raises(
+        ValueError, match="'force_frame' moved to 'controller.force_frame'"
+    ):
         load_config(ForceConfig, data="torque_control: {force_frame: RLEG_FOOT}\n")
     with pytest.raises(ValueError, match="ablations"):
         load_config(ForceConfig, data="ablations: [no_such_variant]\n")
@@ -186,7 +193,9 @@ def test_position_feedback_against_a_fixed_posture_causes_an_undershoot(short_fo
     fixed, free = short_force.variants
     for run in (fixed, free):
         assert run.fallback_time is None
-    assert fixed.metrics["ft_reading"]["amplitude_ratio"] < base["amplitude_ratio"] - 0.08
+    assert (
+        fixed.metrics["ft_reading"]["amplitude_ratio"] < base["amplitude_ratio"] - 0.08
+    )
     assert fixed.metrics["ft_reading"]["overshoot"] < -0.08
     m = free.metrics["ft_reading"]
     assert m["amplitude_ratio"] > 0.93

@@ -57,7 +57,9 @@ CASES = {
         lambda: TorqueControlConfig(
             start_time=0.5,
             estimator=EstimatorSettings(window=41),
-            controller=ControllerSettings(k6=0.3, force_frame="ft_sensor_link", kf=[0.5]),
+            controller=ControllerSettings(
+                k6=0.3, force_frame="ft_sensor_link", kf=[0.5]
+            ),
             observer=ObserverSettings(disturbance_observer=20.0),
         ),
         2.0,
@@ -67,7 +69,8 @@ CASES = {
     "hrp2_predictor": (
         HRP2,
         lambda: TorqueControlConfig(
-            supervised=False, start_time=0.5,
+            supervised=False,
+            start_time=0.5,
             estimator=EstimatorSettings(window=41),
             controller=ControllerSettings(k6=1.0, position_source="estimate"),
             observer=ObserverSettings(predictor=True),
@@ -85,8 +88,14 @@ def _run(case: str, fused: bool) -> dict[str, np.ndarray]:
     extra = {"force_reference": force} if force is not None else {}
     robot, simulated, period = simulated_station(station)
     control = build_torque_control(
-        robot, simulated, reference, true_motor_model(robot), make(),
-        control_period=period, fused=fused, **extra,
+        robot,
+        simulated,
+        reference,
+        true_motor_model(robot),
+        make(),
+        control_period=period,
+        fused=fused,
+        **extra,
     )
     builder = DiagramBuilder()
     diagram = builder.AddSystem(control.diagram)
@@ -104,8 +113,9 @@ def test_fused_controller_equals_the_separate_systems(case):
     separate, fused = _run(case, fused=False), _run(case, fused=True)
     assert sorted(separate) == sorted(fused)
     for name in separate:
-        np.testing.assert_allclose(fused[name], separate[name], rtol=0, atol=1e-12,
-                                   err_msg=name)
+        np.testing.assert_allclose(
+            fused[name], separate[name], rtol=0, atol=1e-12, err_msg=name
+        )
     # Not a trivial run: torque control drove the controlled joints.
     assert np.abs(separate["delta_q"]).max() > 1e-4
     assert np.abs(separate["tau_estimated"]).max() > 1.0
@@ -120,8 +130,9 @@ def test_message_driven_loop_over_memq_equals_the_fused_controller(station_confi
     motor_model = true_motor_model(robot)
 
     def parts():
-        return torque_chain_parts(robot, reference, motor_model, config.torque_control,
-                                  period=config.period())
+        return torque_chain_parts(
+            robot, reference, motor_model, config.torque_control, period=config.period()
+        )
 
     ticks = 900
     direct = run_in_process(station_config, FusedController(parts()), reference, ticks)
@@ -149,10 +160,16 @@ def test_message_driven_loop_over_memq_equals_the_fused_controller(station_confi
     assert loop.ticks == ticks and loop.refused == 0
     signals = loop.signals()
     for k in range(ticks):
-        np.testing.assert_allclose(signals["q_cmd"][k], direct[k][0], rtol=0, atol=1e-12)
-    np.testing.assert_allclose(loop.controller.estimator.tau, direct[-1][1], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(
+            signals["q_cmd"][k], direct[k][0], rtol=0, atol=1e-12
+        )
+    np.testing.assert_allclose(
+        loop.controller.estimator.tau, direct[-1][1], rtol=0, atol=1e-12
+    )
     # The robot applied each command in the period it answered.
-    np.testing.assert_array_equal(bridge.signals()["q_cmd"][1:], signals["q_cmd"][: ticks - 1])
+    np.testing.assert_array_equal(
+        bridge.signals()["q_cmd"][1:], signals["q_cmd"][: ticks - 1]
+    )
     # Torque control took over (the supervisor's ramp completed).
     assert loop.controller.torque_active() == 1.0
 
@@ -167,8 +184,11 @@ def test_the_layout_names_the_station_rows_once():
     robot = HRP2.description()
     config = ControlConfig(robot=HRP2.robot, duration=1.0)
     parts = torque_chain_parts(
-        robot, control_reference(config), true_motor_model(robot),
-        config.torque_control, period=config.period(),
+        robot,
+        control_reference(config),
+        true_motor_model(robot),
+        config.torque_control,
+        period=config.period(),
     )
     layout = FusedController(parts).layout
     assert layout == ControllerLayout.of_robot(robot, stamped=True)
@@ -178,11 +198,13 @@ def test_the_layout_names_the_station_rows_once():
     assert [s.stop - s.start for s in signals.values()] == list(sizes.values())
     N, k = len(robot.joints), len(robot.sensor_names())
     assert (layout.values, layout.stamps) == (
-        slice(N, N + 6 + 6 * k), slice(N + 6 + 6 * k, N + 6 + 6 * k + 3 + k)
+        slice(N, N + 6 + 6 * k),
+        slice(N + 6 + 6 * k, N + 6 + 6 * k + 3 + k),
     )
     channels = layout.channels()
     assert [c.signals for c in channels][:2] == [
-        ("q_measured",), ("imu_linear_acceleration", "imu_angular_velocity")
+        ("q_measured",),
+        ("imu_linear_acceleration", "imu_angular_velocity"),
     ]
     stamp = layout.stamps.start
     assert channels[1].rows == slice(N, N + 6)
@@ -221,8 +243,9 @@ def test_an_unsupervised_controller_runs_on_every_shell():
     motor_model = true_motor_model(robot)
 
     def controller():
-        parts = torque_chain_parts(robot, reference, motor_model, torque_control,
-                                   period=config.period())
+        parts = torque_chain_parts(
+            robot, reference, motor_model, torque_control, period=config.period()
+        )
         return FusedController(parts)
 
     ticks = 200

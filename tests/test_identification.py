@@ -19,13 +19,23 @@ from hrp2_drake.paper import hrp2
 
 
 def test_increasing_sinusoid_is_the_papers_and_ends_at_rest():
-    s = SinusoidConfig(joint="x", amplitude_start=0.02, amplitude_end=0.3, peak_velocity=1.5, duration=6.0)
+    s = SinusoidConfig(
+        joint="x",
+        amplitude_start=0.02,
+        amplitude_end=0.3,
+        peak_velocity=1.5,
+        duration=6.0,
+    )
     t = np.linspace(0, s.end_time(), 5001)
     q = increasing_sinusoid(t, 0.1, s)
     a = (s.amplitude_end - s.amplitude_start) / s.end_time()
-    np.testing.assert_allclose(q, 0.1 + (0.02 + a * t) * np.sin(2 * np.pi * s.frequency() * t))
+    np.testing.assert_allclose(
+        q, 0.1 + (0.02 + a * t) * np.sin(2 * np.pi * s.frequency() * t)
+    )
     assert abs(s.end_time() - s.duration) <= 0.5 / s.frequency()
-    assert np.cos(2 * np.pi * s.frequency() * s.end_time()) == pytest.approx(0, abs=1e-9)
+    assert np.cos(2 * np.pi * s.frequency() * s.end_time()) == pytest.approx(
+        0, abs=1e-9
+    )
     assert np.abs(np.gradient(q, t)).max() == pytest.approx(1.5, rel=0.05)
 
 
@@ -47,7 +57,9 @@ def test_collection_excites_every_right_leg_joint(short_log):
     tau = log["joint_torque_true"][:, :6]
     pushes = log["phase"] == PHASE_HIGH_TORQUE
     # Large torques of both signs on every right-leg joint during the pushes...
-    assert np.all(tau[pushes].max(axis=0) > 20) and np.all(tau[pushes].min(axis=0) < -20)
+    assert np.all(tau[pushes].max(axis=0) > 20) and np.all(
+        tau[pushes].min(axis=0) < -20
+    )
     # ...and each joint's own sinusoid reaches its peak velocity.
     for j in range(6):
         moving = (log["phase"] == PHASE_HIGH_VELOCITY) & (log["excited_joint"] == j)
@@ -102,7 +114,9 @@ def test_identify_command_on_a_saved_log(short_log, tmp_path, capsys):
 
 def test_log_errors_name_the_problem(tmp_path):
     path = tmp_path / "bad.npz"
-    np.savez(path, t=np.arange(3.0), joint_names=np.array(["a"]), q_cmd=np.zeros((3, 1)))
+    np.savez(
+        path, t=np.arange(3.0), joint_names=np.array(["a"]), q_cmd=np.zeros((3, 1))
+    )
     with pytest.raises(ValueError, match="lacks"):
         load_log(path)
     m = 10

@@ -24,8 +24,13 @@ def _controller() -> tuple[FusedController, object]:
     config = ControlConfig(robot="iiwa14", duration=1.0)
     robot = config.description()
     reference = control_reference(config)
-    parts = torque_chain_parts(robot, reference, true_motor_model(robot),
-                               config.torque_control_at_period(), period=config.period())
+    parts = torque_chain_parts(
+        robot,
+        reference,
+        true_motor_model(robot),
+        config.torque_control_at_period(),
+        period=config.period(),
+    )
     return FusedController(parts), reference
 
 

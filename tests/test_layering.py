@@ -84,12 +84,16 @@ def test_imports_go_down(path):
         for line, target in _imports(path)
         if target != part and target not in ALLOWED.get(part, set())
     ]
-    assert not wrong, f"{part} may import only {sorted(ALLOWED[part])}:\n" + "\n".join(wrong)
+    assert not wrong, f"{part} may import only {sorted(ALLOWED[part])}:\n" + "\n".join(
+        wrong
+    )
 
 
 def test_the_rules_of_issue_19_are_in_the_table():
     """The three rules the layering must enforce, read from the table itself."""
-    assert all("paper" not in allowed for part, allowed in ALLOWED.items() if part != "cli")
+    assert all(
+        "paper" not in allowed for part, allowed in ALLOWED.items() if part != "cli"
+    )
     assert ALLOWED["description"] <= {"config", "multibody"}
     for part in ALGORITHMS:
         assert not ALLOWED[part] & {"robot", "hardware", "assembly", "tools", "paper"}
@@ -102,5 +106,7 @@ def test_the_checker_sees_an_upward_import(tmp_path, monkeypatch):
     bad.write_text("def f():\n    from hrp2_drake.paper import hrp2\n")
     monkeypatch.setattr(sys.modules[__name__], "PACKAGE", tmp_path / "hrp2_drake")
     assert _imports(bad) == [(2, "paper")]
-    with pytest.raises(AssertionError, match="control/bad.py:2 imports hrp2_drake.paper"):
+    with pytest.raises(
+        AssertionError, match="control/bad.py:2 imports hrp2_drake.paper"
+    ):
         test_imports_go_down(bad)

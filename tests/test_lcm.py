@@ -42,7 +42,12 @@ def test_codecs_are_drakes_messages():
     assert message.timestamp == 12500 == codec.timestamp(data)
     np.testing.assert_array_equal(codec.values(data), [1.5, -2.0, 3.25])
     other = lcmt_drake_signal()
-    other.dim, other.val, other.coord, other.timestamp = 3, [0.0] * 3, ["a", "b", "c"], 1
+    other.dim, other.val, other.coord, other.timestamp = (
+        3,
+        [0.0] * 3,
+        ["a", "b", "c"],
+        1,
+    )
     with pytest.raises(ValueError, match=r"channel X: coordinates \['a', 'b', 'c'\]"):
         codec.values(other.encode())
     wrench = WrenchCodec("W")
@@ -60,13 +65,22 @@ def test_lcm_station_has_the_simulated_station_ports():
         lcm = DrakeLcm("memq://")
         hardware = make_lcm_station(robot, lcm)
         simulated = make_station(config)
-        outputs = {hardware.get_output_port(i).get_name() for i in range(hardware.num_output_ports())}
-        sim_outputs = {simulated.get_output_port(i).get_name() for i in range(simulated.num_output_ports())}
+        outputs = {
+            hardware.get_output_port(i).get_name()
+            for i in range(hardware.num_output_ports())
+        }
+        sim_outputs = {
+            simulated.get_output_port(i).get_name()
+            for i in range(simulated.num_output_ports())
+        }
         truth = {"joint_torque_true", "state_true", "body_poses", "contact_results"}
         assert outputs == sim_outputs - truth
         assert hardware.HasInputPort("q_cmd")
         for name in outputs:
-            assert hardware.GetOutputPort(name).size() == simulated.GetOutputPort(name).size()
+            assert (
+                hardware.GetOutputPort(name).size()
+                == simulated.GetOutputPort(name).size()
+            )
 
 
 def test_waiting_for_a_silent_robot_names_the_channel(tmp_path, capsys, motor_model):
@@ -76,8 +90,17 @@ def test_waiting_for_a_silent_robot_names_the_channel(tmp_path, capsys, motor_mo
         Simulator(station).Initialize()
     path = tmp_path / "model.yaml"
     motor_model.save(path)
-    argv = ["control", "--robot", "iiwa14", "--lcm", "memq://", "--motor-model", str(path),
-            "--out", str(tmp_path)]
+    argv = [
+        "control",
+        "--robot",
+        "iiwa14",
+        "--lcm",
+        "memq://",
+        "--motor-model",
+        str(path),
+        "--out",
+        str(tmp_path),
+    ]
     config = tmp_path / "control.yaml"
     config.write_text("loop: {wait_timeout: 0.05}\n")
     assert main(argv + ["--config", str(config)]) == 2
@@ -112,8 +135,12 @@ def test_memq_loop_tracks_like_the_in_process_diagram(motor_model):
     lcm = DrakeLcm("memq://")
     period = config.period()
     bridged = build_torque_control(
-        robot, make_lcm_station(robot, lcm, period=period, wait_timeout=1.0), reference,
-        motor_model, config.torque_control, control_period=period,
+        robot,
+        make_lcm_station(robot, lcm, period=period, wait_timeout=1.0),
+        reference,
+        motor_model,
+        config.torque_control,
+        control_period=period,
     )
     controller = Simulator(bridged.diagram)
     robot_sim = Simulator(make_sim_robot(IIWA, lcm))
@@ -127,13 +154,24 @@ def test_memq_loop_tracks_like_the_in_process_diagram(motor_model):
 
     over_lcm = _max_errors(bridged.diagram, controller.get_context(), lock_step, 2.0)
     direct = build_torque_control(
-        robot, make_station(IIWA), reference, motor_model, config.torque_control,
+        robot,
+        make_station(IIWA),
+        reference,
+        motor_model,
+        config.torque_control,
         control_period=period,
     )
     simulator = Simulator(direct.diagram)
     simulator.Initialize()
-    in_process = _max_errors(direct.diagram, simulator.get_context(), simulator.AdvanceTo, 2.0)
-    assert bridged.diagram.GetOutputPort("supervisor_mode").Eval(controller.get_context())[0] == 1
+    in_process = _max_errors(
+        direct.diagram, simulator.get_context(), simulator.AdvanceTo, 2.0
+    )
+    assert (
+        bridged.diagram.GetOutputPort("supervisor_mode").Eval(controller.get_context())[
+            0
+        ]
+        == 1
+    )
     # Measured: 0.9-1.2 mrad over LCM against 0.6-0.9 in process: the transport adds
     # one period each way (0.5 mrad at the reference's 0.5 rad/s). The position servo
     # alone: 7-10 mrad.
@@ -151,14 +189,19 @@ def test_hub_relays_between_processes_on_the_loopback():
     port = _free_port()
     hub = subprocess.Popen(
         [sys.executable, "-m", "hrp2_drake.hardware.tcpq_hub", "--port", str(port)],
-        stdout=subprocess.PIPE, text=True,
+        stdout=subprocess.PIPE,
+        text=True,
     )
     try:
-        assert hub.stdout.readline().startswith(f"LCM tcpq hub on tcpq://127.0.0.1:{port}")
+        assert hub.stdout.readline().startswith(
+            f"LCM tcpq hub on tcpq://127.0.0.1:{port}"
+        )
         url = f"tcpq://127.0.0.1:{port}"
         sender, receiver = DrakeLcm(url), DrakeLcm(url)
         got = []
-        receiver.SubscribeMultichannel("ROBOT_.*", lambda channel, data: got.append(data))
+        receiver.SubscribeMultichannel(
+            "ROBOT_.*", lambda channel, data: got.append(data)
+        )
         time.sleep(0.1)
         codec = SignalCodec(["j"], "ROBOT_Q")
         for k in range(50):
@@ -190,7 +233,8 @@ def test_control_and_sim_robot_across_processes(tmp_path, motor_model):
     cli = [sys.executable, "-m", "hrp2_drake.cli"]
     hub = subprocess.Popen(
         [sys.executable, "-m", "hrp2_drake.hardware.tcpq_hub", "--port", str(port)],
-        stdout=subprocess.PIPE, text=True,
+        stdout=subprocess.PIPE,
+        text=True,
     )
     robot = None
     path = tmp_path / "model.yaml"
@@ -198,14 +242,40 @@ def test_control_and_sim_robot_across_processes(tmp_path, motor_model):
     try:
         hub.stdout.readline()
         robot = subprocess.Popen(
-            cli + ["sim-robot", "--robot", "iiwa14", "--lcm", url, "--duration", "30",
-                   "--lockstep", "--out", str(tmp_path / "robot")],
-            stderr=subprocess.PIPE, text=True,
+            cli
+            + [
+                "sim-robot",
+                "--robot",
+                "iiwa14",
+                "--lcm",
+                url,
+                "--duration",
+                "30",
+                "--lockstep",
+                "--out",
+                str(tmp_path / "robot"),
+            ],
+            stderr=subprocess.PIPE,
+            text=True,
         )
         done = subprocess.run(
-            cli + ["control", "--robot", "iiwa14", "--lcm", url, "--motor-model", str(path),
-                   "--duration", "3", "--out", str(tmp_path / "control")],
-            capture_output=True, text=True, timeout=300,
+            cli
+            + [
+                "control",
+                "--robot",
+                "iiwa14",
+                "--lcm",
+                url,
+                "--motor-model",
+                str(path),
+                "--duration",
+                "3",
+                "--out",
+                str(tmp_path / "control"),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=300,
         )
         assert done.returncode == 0, done.stderr[-2000:]
         robot.terminate()
@@ -224,12 +294,19 @@ def test_control_and_sim_robot_across_processes(tmp_path, motor_model):
     config = ControlConfig(robot="iiwa14", duration=3.0)
     robot_description = config.description()
     reference = control_reference(config)
-    controller = FusedController(torque_chain_parts(
-        robot_description, reference, MotorModel.load(path),
-        config.torque_control_at_period(), period=config.period()))
+    controller = FusedController(
+        torque_chain_parts(
+            robot_description,
+            reference,
+            MotorModel.load(path),
+            config.torque_control_at_period(),
+            period=config.period(),
+        )
+    )
     direct = run_in_process(IIWA, controller, reference, summary["ticks"])
-    np.testing.assert_allclose(signals["q_cmd"], np.array([q for q, _ in direct]),
-                               rtol=0, atol=1e-9)
+    np.testing.assert_allclose(
+        signals["q_cmd"], np.array([q for q, _ in direct]), rtol=0, atol=1e-9
+    )
     truth = np.load(tmp_path / "robot" / "sim_robot.npz")
     moved = np.ptp(truth["q_cmd"], axis=0)
     assert np.all(moved > 0.15)  # the reference moved every joint by 0.2-0.27 rad
@@ -249,13 +326,24 @@ def test_hrp2_sensors_round_trip_over_memq():
     context = controller.get_mutable_context()
     station.GetInputPort("q_cmd").FixValue(context, robot.home_positions())
     controller.Initialize()
-    received = {name: station.GetOutputPort(name).Eval(context) for name in (
-        "q_measured", "imu_linear_acceleration", "imu_angular_velocity", "wrench_right_foot",
-        "wrench_left_hand",
-    )}
+    received = {
+        name: station.GetOutputPort(name).Eval(context)
+        for name in (
+            "q_measured",
+            "imu_linear_acceleration",
+            "imu_angular_velocity",
+            "wrench_right_foot",
+            "wrench_left_hand",
+        )
+    }
     truth = make_station(config)
     sent = robot_sim.get_system().GetSubsystemByName("station")
     sent_context = sent.GetMyContextFromRoot(robot_sim.get_context())
     for name, value in received.items():
-        np.testing.assert_allclose(value, sent.GetOutputPort(name).Eval(sent_context), atol=1e-12)
-    assert station.GetOutputPort("sensor_time").size() == truth.GetOutputPort("sensor_time").size()
+        np.testing.assert_allclose(
+            value, sent.GetOutputPort(name).Eval(sent_context), atol=1e-12
+        )
+    assert (
+        station.GetOutputPort("sensor_time").size()
+        == truth.GetOutputPort("sensor_time").size()
+    )

@@ -38,14 +38,18 @@ def _write(tmp_path: Path, name: str, document: dict) -> Path:
 
 def _config(**changes) -> IdentifyConfig:
     station = StationConfig(robot=ROBOT, scenario="fixed_base")
-    return dataclasses.replace(IdentifyConfig(station=station, fit="least_squares"), **changes)
+    return dataclasses.replace(
+        IdentifyConfig(station=station, fit="least_squares"), **changes
+    )
 
 
 def test_a_jittery_bam_log_imports_on_a_uniform_grid(robot):
     raw = _bam("xl330_kp400_sin_sin")
     stamps = np.array([e["timestamp"] for e in raw["entries"]])
     steps = np.diff(stamps)
-    assert steps.max() > 1.1 * np.median(steps)  # the old constant-grid check refused it
+    assert steps.max() > 1.1 * np.median(
+        steps
+    )  # the old constant-grid check refused it
     log = read_robot_log(LOGS / "xl330_kp400_sin_sin.json", robot.logs, robot.joints)
     assert log.gain == 400.0
     assert 185 < log.raw_rate < 195
@@ -56,16 +60,20 @@ def test_a_jittery_bam_log_imports_on_a_uniform_grid(robot):
     k = 1000
     before = np.searchsorted(raw_t, log.t[k], side="right") - 1
     assert log.q_cmd[k, 0] == raw["entries"][before]["goal_position"]
-    lo, hi = sorted((raw["entries"][before]["position"], raw["entries"][before + 1]["position"]))
+    lo, hi = sorted(
+        (raw["entries"][before]["position"], raw["entries"][before + 1]["position"])
+    )
     assert lo - 1e-12 <= log.q_measured[k, 0] <= hi + 1e-12
 
 
 def test_the_valid_mask_follows_torque_enable(robot):
-    log = read_robot_log(LOGS / "xl330_kp100_lift_and_drop.json", robot.logs, robot.joints)
+    log = read_robot_log(
+        LOGS / "xl330_kp100_lift_and_drop.json", robot.logs, robot.joints
+    )
     off = np.flatnonzero(~log.valid)
     assert log.valid[0] and not log.valid[-1]
     assert 1.9 < log.t[off[0]] < 2.1  # BAM switches the servo off at about 2 s
-    assert np.all(~log.valid[off[0]:])
+    assert np.all(~log.valid[off[0] :])
 
 
 def test_windows_in_seconds_are_odd_sample_counts():
@@ -78,11 +86,15 @@ def test_windows_in_seconds_are_odd_sample_counts():
 
 def test_identification_leaves_out_servo_off_and_saturated_samples(robot):
     logs, rows = read_logs(
-        [LOGS / "xl330_kp400_lift_and_drop.json", LOGS / "xl330_kp400_sin_sin.json"], robot
+        [LOGS / "xl330_kp400_lift_and_drop.json", LOGS / "xl330_kp400_sin_sin.json"],
+        robot,
     )
     result = identify_logs(robot, _config(), logs)
     data = result.data
-    assert [r["log"] for r in rows] == ["xl330_kp400_lift_and_drop", "xl330_kp400_sin_sin"]
+    assert [r["log"] for r in rows] == [
+        "xl330_kp400_lift_and_drop",
+        "xl330_kp400_sin_sin",
+    ]
     assert set(np.unique(data.segment)) == {0, 1}
     # No training sample lies where the servo was off (the drop of the first log).
     first = data.segment == 0
@@ -139,10 +151,16 @@ def _case_text(document):
 BAD_LOGS = {
     # case: (edit, what the one line must say)
     "unknown column": (_case_unknown_column, "no column 'position' (logs.position[0])"),
-    "timestamp backwards": (_case_backwards, "timestamp 'timestamp' goes backwards at sample 50"),
+    "timestamp backwards": (
+        _case_backwards,
+        "timestamp 'timestamp' goes backwards at sample 50",
+    ),
     "gap longer than the window": (_case_gap, "longer than the filter window 0.081 s"),
     "no valid sample": (_case_no_valid, "no valid sample: column 'torque_enable'"),
-    "text in a column": (_case_text, "column 'position' (logs.position[0]) has 1 values"),
+    "text in a column": (
+        _case_text,
+        "column 'position' (logs.position[0]) has 1 values",
+    ),
 }
 
 
@@ -152,7 +170,17 @@ def test_a_bad_log_gets_one_line(case, tmp_path, capsys):
     document = _sliced("xl330_kp400_sin_sin")
     edit(document)
     path = _write(tmp_path, "bad", document)
-    code = main(["identify", "--robot", ROBOT, "--log", str(path), "--out", str(tmp_path / "out")])
+    code = main(
+        [
+            "identify",
+            "--robot",
+            ROBOT,
+            "--log",
+            str(path),
+            "--out",
+            str(tmp_path / "out"),
+        ]
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2
     assert len(err) == 1, err
@@ -164,8 +192,18 @@ def test_pooling_gains_needs_every_logs_gain(tmp_path, capsys):
     document = _sliced("xl330_kp100_sin_sin")
     del document["kp"]
     without = _write(tmp_path, "no_gain", document)
-    code = main(["identify", "--robot", ROBOT, "--log", str(with_gain), str(without),
-                 "--out", str(tmp_path / "out")])
+    code = main(
+        [
+            "identify",
+            "--robot",
+            ROBOT,
+            "--log",
+            str(with_gain),
+            str(without),
+            "--out",
+            str(tmp_path / "out"),
+        ]
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1
     assert "no_gain.json: states no servo gain" in err[0]
@@ -174,13 +212,29 @@ def test_pooling_gains_needs_every_logs_gain(tmp_path, capsys):
 def test_identify_a_bam_log_as_it_is(tmp_path, capsys):
     out = tmp_path / "out"
     path = _write(tmp_path, "slice", _sliced("xl330_kp400_sin_time_square", 1100))
-    assert main(["identify", "--robot", ROBOT, "--log", str(path), "--fit",
-                 "least-squares", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "identify",
+                "--robot",
+                ROBOT,
+                "--log",
+                str(path),
+                "--fit",
+                "least-squares",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     captured = capsys.readouterr()
     assert "least squares fit at servo gain 400" in captured.out
     assert "error" not in captured.err.lower()
     report = (out / "identification.md").read_text()
-    assert "paper" not in report.split("## Table 1")[1].split("##")[0]  # no empty columns
+    assert (
+        "paper" not in report.split("## Table 1")[1].split("##")[0]
+    )  # no empty columns
     assert "emulator Kτ" not in report
     for fit in ("least_squares", "asymmetric", "coulomb", "two_stage"):
         assert (out / f"motor_model_{fit}.yaml").is_file()
@@ -203,13 +257,24 @@ def test_the_lowest_rate_follows_from_the_window(robot, tmp_path, capsys):
     check_logs([log], 0.081, "IdentifyConfig.window")  # no error
     slower = _write(tmp_path, "slower", _every(_bam("xl330_kp400_sin_sin"), 8))
     rate = read_robot_log(slower, robot.logs, robot.joints).raw_rate
-    code = main(["identify", "--robot", ROBOT, "--log", str(slower), "--out",
-                 str(tmp_path / "out")])
+    code = main(
+        [
+            "identify",
+            "--robot",
+            ROBOT,
+            "--log",
+            str(slower),
+            "--out",
+            str(tmp_path / "out"),
+        ]
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1, err
     line = err[0]
     assert f"slower.json: sampled at {rate:.4g} Hz" in line, line
-    assert f"window 0.081 s (IdentifyConfig.window) spans {0.081 * rate:.2f} raw" in line
+    assert (
+        f"window 0.081 s (IdentifyConfig.window) spans {0.081 * rate:.2f} raw" in line
+    )
     assert "fewer than the 3 a window needs" in line, line
     assert f">= {3 / 0.081:.4g} Hz" in line and f">= {3 / rate:.4g} s" in line, line
     assert "time_unit" not in line
@@ -236,7 +301,21 @@ def test_identify_validates_its_config_once_and_reads_no_servo_file(
     monkeypatch.setattr(IdentifyConfig, "validate", counted)
     monkeypatch.setattr(station.StationConfig, "validate", station_validated)
     path = _write(tmp_path, "slice", _sliced("xl330_kp400_sin_time_square", 1100))
-    assert main(["identify", "--robot", ROBOT, "--log", str(path), "--fit",
-                 "least-squares", "--out", str(tmp_path / "out")]) == 0
+    assert (
+        main(
+            [
+                "identify",
+                "--robot",
+                ROBOT,
+                "--log",
+                str(path),
+                "--fit",
+                "least-squares",
+                "--out",
+                str(tmp_path / "out"),
+            ]
+        )
+        == 0
+    )
     assert calls == {"identify": 1, "station": 0}
     capsys.readouterr()

@@ -64,7 +64,9 @@ def test_model_loads_with_sensor_frames_and_reflected_inertia():
     for i in plant.GetJointActuatorIndices():
         actuator = plant.get_joint_actuator(i)
         assert 100 <= actuator.default_gear_ratio() <= 200
-        reflected = actuator.default_rotor_inertia() * actuator.default_gear_ratio() ** 2
+        reflected = (
+            actuator.default_rotor_inertia() * actuator.default_gear_ratio() ** 2
+        )
         v = actuator.joint().velocity_start()
         assert mass_matrix[v, v] >= reflected
 

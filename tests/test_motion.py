@@ -52,7 +52,11 @@ def short_motion(identified_model):
     # calibrated one.
     config = MotionConfig(
         station=StationConfig(scenario="hanging", servo_file="ideal"),
-        start=3.0, end=4.5, settle=0.7, k6=[1.0, 0.1], improved="",
+        start=3.0,
+        end=4.5,
+        settle=0.7,
+        k6=[1.0, 0.1],
+        improved="",
     )
     config.torque_control = TorqueControlConfig(start_time=0.5)
     return run_motion(config, identified_model)
@@ -71,7 +75,10 @@ def test_torque_control_beats_position_control_at_k6_1_not_at_0_1(short_motion):
     # Absolute bounds: K6 = 1 tracks the swing within 10 mrad on every moving joint.
     assert max(strong.max_error) < 0.010
     # The torque estimate during the motion (against the delayed truth): < 10% of peak.
-    rms, peak = np.array(strong.torque_estimation_rms), np.array(strong.torque_estimation_peak)
+    rms, peak = (
+        np.array(strong.torque_estimation_rms),
+        np.array(strong.torque_estimation_peak),
+    )
     assert np.all(rms[peak > 20] < 0.1 * peak[peak > 20])
 
 
@@ -91,13 +98,16 @@ def test_motion_report(short_motion, tmp_path):
     summary = write_motion_report(short_motion, tmp_path)
     assert (tmp_path / "figure4_tracking_error.png").stat().st_size > 20000
     text = (tmp_path / "motion.md").read_text()
-    assert "Table 2" in text and "(0.115, " in text  # the paper's knee value beside ours
+    assert (
+        "Table 2" in text and "(0.115, " in text
+    )  # the paper's knee value beside ours
     data = json.loads((tmp_path / "motion.json").read_text())
     assert len(data["runs"]) == 5 and data["verdicts"] == summary["verdicts"]
     # Each K6 judged against the paper's claim, exceptions included.
     assert "as written with their exceptions" in text
     assert {v["claim"]["verdict"].split(" ")[0] for v in data["verdicts"].values()} <= {
-        "holds", "does"
+        "holds",
+        "does",
     }
 
 
@@ -132,14 +142,20 @@ def test_claims_as_written_hold_on_the_papers_own_tables():
     own Tables 2 and 3, and reject a table where the exception does not show."""
     for c, k6 in enumerate(PAPER_K6):
         judged = judge_claim(
-            k6, PAPER_TABLE2[:, c + 1], PAPER_TABLE3[:, c + 1], PAPER_TABLE2[:, 0], PAPER_TABLE3[:, 0]
+            k6,
+            PAPER_TABLE2[:, c + 1],
+            PAPER_TABLE3[:, c + 1],
+            PAPER_TABLE2[:, 0],
+            PAPER_TABLE3[:, 0],
         )
         assert judged["verdict"] == "holds", (k6, judged["misses"])
     # K6 = 0.25 with the ankle roll's maximum lower than position control: the
     # claim's exception fails.
     table3 = PAPER_TABLE3[:, 3].copy()
     table3[4] = 0.5 * PAPER_TABLE3[4, 0]
-    judged = judge_claim(0.25, PAPER_TABLE2[:, 3], table3, PAPER_TABLE2[:, 0], PAPER_TABLE3[:, 0])
+    judged = judge_claim(
+        0.25, PAPER_TABLE2[:, 3], table3, PAPER_TABLE2[:, 0], PAPER_TABLE3[:, 0]
+    )
     assert judged["verdict"] == "holds except 1 of 10 cells"
     assert "ankle roll max" in judged["misses"][0]
 
@@ -157,7 +173,9 @@ def test_table2_sample_count_from_the_papers_own_numbers():
     speeds = np.abs(np.sin(np.linspace(0, 3, 5000)))[:, None] * np.ones((1, 5))
     derived = derive_sample_count(speeds)["per_joint"]
     ratio = speeds.max(0) / (np.sqrt((speeds**2).sum(0)) / np.array(derived))
-    np.testing.assert_allclose(ratio, PAPER_TABLE3[:, 0] / PAPER_TABLE2[:, 0], rtol=1e-12)
+    np.testing.assert_allclose(
+        ratio, PAPER_TABLE3[:, 0] / PAPER_TABLE2[:, 0], rtol=1e-12
+    )
 
 
 def test_table2_sample_count_is_that_of_the_whole_reference():
@@ -195,11 +213,16 @@ def test_improved_plan_shows_each_improvement_alone(tmp_path):
     base = MotionConfig().torque_control
     tuned = load_improved(IMPROVED_FILE, base)  # the committed, tuned controller
     assert tuned.controller.k6 == 0.1
-    assert tuned.estimator.offset_calibration_time == base.estimator.offset_calibration_time
+    assert (
+        tuned.estimator.offset_calibration_time
+        == base.estimator.offset_calibration_time
+    )
     plan = dict(improved_plan(base, tuned))
     paper = plan["improved K6=0.1: disturbance observer only"]
     assert (paper.controller.kp, paper.estimator.window, paper.estimator.windows) == (
-        [2.0], 80, {}
+        [2.0],
+        80,
+        {},
     )
     # The observer alone keeps the tuned bandwidth x estimation delay.
     bandwidth = paper.observer.disturbance_observer
@@ -208,7 +231,8 @@ def test_improved_plan_shows_each_improvement_alone(tmp_path):
     )
     alone = plan["improved K6=0.1: per-signal windows only"]
     assert (alone.estimator.window, alone.estimator.windows) == (
-        tuned.estimator.window, tuned.estimator.windows
+        tuned.estimator.window,
+        tuned.estimator.windows,
     )
     assert alone.observer.disturbance_observer == 0.0
     # The predictor: alone, and on top of the tuned controller when tuning left it off.
@@ -219,7 +243,9 @@ def test_improved_plan_shows_each_improvement_alone(tmp_path):
         MotionConfig(improved=str(bad)).validate()
     # A file of the flat layout (before the settings were nested): one line per move.
     bad.write_text("kp: [1.0]\nwindow: 41\n")
-    with pytest.raises(ValueError, match="'kp' moved to 'controller.kp', 'window' moved"):
+    with pytest.raises(
+        ValueError, match="'kp' moved to 'controller.kp', 'window' moved"
+    ):
         MotionConfig(improved=str(bad)).validate()
 
 
@@ -229,7 +255,11 @@ def test_improved_runs_and_report(identified_model, tmp_path):
     and are judged against position control (the `ideal` servo, a short segment)."""
     config = MotionConfig(
         station=StationConfig(scenario="hanging", servo_file="ideal"),
-        start=3.0, end=3.5, settle=0.7, k6=[0.1], held_out_time_scale=1.25,
+        start=3.0,
+        end=3.5,
+        settle=0.7,
+        k6=[0.1],
+        held_out_time_scale=1.25,
     )
     config.torque_control = TorqueControlConfig(start_time=0.5)
     result = run_motion(config, identified_model, include_variants=False)
@@ -239,12 +269,18 @@ def test_improved_runs_and_report(identified_model, tmp_path):
     runs = {r.label: r for r in result.runs}
     # (The predictor with the paper's K_p = 2 may fall back: once τ̂ is no longer
     # delayed, K_p > 1 destabilises eq. 11, see DeltaQTorqueController.)
-    for label in ("improved K6=0.1: all (tuned)", *[l for l in labels if "held-out" in l]):
+    for label in (
+        "improved K6=0.1: all (tuned)",
+        *[l for l in labels if "held-out" in l],
+    ):
         assert runs[label].fallback_time is None, label
     summary = write_motion_report(result, tmp_path)
     improved = summary["improved"]
     assert improved["goal"]["holds"] in (True, False)
-    assert len(improved["rows"]) == len([l for l in labels if l.startswith("improved")]) + 1
+    assert (
+        len(improved["rows"])
+        == len([l for l in labels if l.startswith("improved")]) + 1
+    )
     text = (tmp_path / "motion.md").read_text()
     assert "## Beyond the paper" in text and "### Held out" in text
     # Tables 2-3 get one new column, the tuned controller (not the ablations), and
@@ -310,7 +346,10 @@ def test_first_order_hold_in_pieces_is_the_whole_one():
         times = np.concatenate(
             [expected.get_segment_times(), rng.uniform(-1.0, t[-1] + 2.0, 5000)]
         )
-        assert built.vector_values(times).tobytes() == expected.vector_values(times).tobytes()
+        assert (
+            built.vector_values(times).tobytes()
+            == expected.vector_values(times).tobytes()
+        )
 
 
 @pytest.mark.parametrize("time_scale", [1.0, 1.25])
@@ -331,7 +370,9 @@ def test_motion_reference_is_what_it_was_built_whole(time_scale):
     motion = whole(*_climbing_samples(config.smoothing, 3.0, 5.5))
     if time_scale != 1.0:
         grid = np.arange(0.0, motion.end_time() * time_scale + 5e-4, 0.001)
-        values = motion.vector_values(np.minimum(grid / time_scale, motion.end_time())).T
+        values = motion.vector_values(
+            np.minimum(grid / time_scale, motion.end_time())
+        ).T
         q, v, a = JointReference.split(values)
         motion = whole(grid, q, v / time_scale, a / time_scale**2)
     first = motion.value(0.0)
@@ -340,7 +381,10 @@ def test_motion_reference_is_what_it_was_built_whole(time_scale):
     expected.ConcatenateInTime(motion)
     assert reference.trajectory.get_segment_times() == expected.get_segment_times()
     times = np.concatenate(
-        [expected.get_segment_times(), np.linspace(-0.5, expected.end_time() + 0.5, 4001)]
+        [
+            expected.get_segment_times(),
+            np.linspace(-0.5, expected.end_time() + 0.5, 4001),
+        ]
     )
     assert reference.trajectory.vector_values(times).tobytes() == (
         expected.vector_values(times).tobytes()

@@ -53,7 +53,9 @@ def test_description_loads(robot):
     for index in plant.GetJointActuatorIndices():
         actuator = plant.get_joint_actuator(index)
         assert actuator.default_gear_ratio() == 353.5
-        reflected = actuator.default_gear_ratio() ** 2 * actuator.default_rotor_inertia()
+        reflected = (
+            actuator.default_gear_ratio() ** 2 * actuator.default_rotor_inertia()
+        )
         assert reflected == pytest.approx(1.195e-2, rel=1e-3)
 
 
@@ -71,7 +73,9 @@ def test_bus_validates_and_carries_the_period(robot):
     # The position loop's documented saturation at the factory gain 800.
     assert robot.position_loop.gain == 800.0
     expected = 1.0 / (800 * (4096 / (2 * math.pi)) / (128 * 885))
-    assert robot.position_loop.saturation_error(None) == pytest.approx(expected, rel=1e-5)
+    assert robot.position_loop.saturation_error(None) == pytest.approx(
+        expected, rel=1e-5
+    )
 
 
 def test_holding_home_sags_by_the_servo_stiffness(robot, station_config):
@@ -96,7 +100,9 @@ def test_holding_home_sags_by_the_servo_stiffness(robot, station_config):
     plant_context = plant.CreateDefaultContext()
     plant.SetPositions(plant_context, q)
     gravity = -plant.CalcGravityGeneralizedForces(plant_context)  # what the servos hold
-    k_tau = effective_motor_parameters(station_config.servo_params(), robot.joints)["k_tau"]
+    k_tau = effective_motor_parameters(station_config.servo_params(), robot.joints)[
+        "k_tau"
+    ]
     assert k_tau == pytest.approx(np.full(4, 1 / (1.7826087 * 10.5887492)), rel=1e-6)
     predicted = k_tau * gravity
     error = robot.bus.quantized(q_home) - q  # the command as the servos take it
@@ -112,11 +118,13 @@ def test_servo_is_stable_at_the_plant_step(robot, station_config):
     """explicit_stability_margin with the reflected rotor inertia as the lower bound
     of every joint's inertia: spectral radius below 1 at the station's 1 ms step."""
     plant = robot.make_plant()
-    inertia = np.array([
-        plant.get_joint_actuator(i).default_gear_ratio() ** 2
-        * plant.get_joint_actuator(i).default_rotor_inertia()
-        for i in plant.GetJointActuatorIndices()
-    ])
+    inertia = np.array(
+        [
+            plant.get_joint_actuator(i).default_gear_ratio() ** 2
+            * plant.get_joint_actuator(i).default_rotor_inertia()
+            for i in plant.GetJointActuatorIndices()
+        ]
+    )
     radius = explicit_stability_margin(
         station_config.servo_params(), robot.joints, inertia, station_config.time_step
     )

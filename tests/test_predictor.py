@@ -113,7 +113,10 @@ def _scenario(joints, delay, latency, ticks):
 
 def _config(delay, latency, **changes):
     return DelayPredictorConfig(
-        joints=JOINTS, delay=delay, inertia=INERTIA.tolist(), command_latency=latency,
+        joints=JOINTS,
+        delay=delay,
+        inertia=INERTIA.tolist(),
+        command_latency=latency,
         **changes,
     )
 
@@ -129,8 +132,13 @@ def test_the_joint_generator_solves_the_ode():
 
     v = np.zeros(3)
     for j in range(len(u)):
-        v = solve_ivp(rhs, ((j + 1e-12) * PERIOD, (j + 1 - 1e-12) * PERIOD), v,
-                      rtol=1e-12, atol=1e-14).y[:, -1]
+        v = solve_ivp(
+            rhs,
+            ((j + 1e-12) * PERIOD, (j + 1 - 1e-12) * PERIOD),
+            v,
+            rtol=1e-12,
+            atol=1e-14,
+        ).y[:, -1]
     np.testing.assert_allclose(v, joints.v[-1], rtol=1e-7, atol=1e-12)
 
 
@@ -423,8 +431,9 @@ def test_warm_up_then_frozen():
     step.warm_up()
     np.testing.assert_array_equal(buffer, before)
     if kernels.jit_enabled():  # every kernel of the module compiled
-        mine = [k for k in kernels.kernels()
-                if k.py_func.__module__ == predictor.__name__]
+        mine = [
+            k for k in kernels.kernels() if k.py_func.__module__ == predictor.__name__
+        ]
         assert mine and all(k.signatures for k in mine)
     try:
         kernels.freeze()

@@ -26,9 +26,18 @@ def test_reproduce_quick_writes_the_report_and_numbers(tmp_path, capfd):
     for step in ("estimation", "motion", "force", "stability", "faults"):
         for key, count in results[step]["repeated_warnings"].items():
             level, template = key.split(": ", 1)
-            summary = f"hrp2-drake reproduce: {step}: {level}: repeated {count} more times: "
+            summary = (
+                f"hrp2-drake reproduce: {step}: {level}: repeated {count} more times: "
+            )
             assert summary + template in lines, (step, key)
-    for step in ("identify", "estimation", "motion", "force", "stability", "components"):
+    for step in (
+        "identify",
+        "estimation",
+        "motion",
+        "force",
+        "stability",
+        "components",
+    ):
         assert results[step].get("ok", True), (step, results[step].get("error"))
     assert len(results["identify"]["joints"]) == 6
     # position, 4 x K6, paper-literal, authors' code; beyond the paper: the tuned
@@ -70,28 +79,46 @@ def test_paper_claims_and_project_goals_are_judged_apart_by_one_rule():
     torque = [2.0, 2.0, 1.1, 2.0, 2.0]  # K6 = 0.1: the knee's average is higher
     claim = judge_claim(0.1, torque, [2.0, 2.0, 0.9, 2.0, 2.0], position, position)
     results = {
-        "identify": {"joints": {
-            f"RLEG_JOINT{j}": {
-                "relative_error_asymmetric": {"k_tau": 0.18 if j == 0 else 0.02, "k_v": 0.01},
-                "validation": {"asymmetric": {"overestimation": 0.01},
-                               "least_squares": {"overestimation": 0.08}},
-            } for j in range(6)
-        }},
-        "motion": {"ok": True, "verdicts": {"torque control K6=0.1": {"claim": claim}},
-                   "improved": {
-                       "goal": {"claim": "K6 = 0.1 torque control at least as accurate as "
-                                "position control"},
-                       "tuned": {"label": "improved K6=0.1: all (tuned)",
-                                 "fallback_time": None,
-                                 "misses": ["ankle roll maximum 4.71 > 4.52 mrad"]},
-                   }},
+        "identify": {
+            "joints": {
+                f"RLEG_JOINT{j}": {
+                    "relative_error_asymmetric": {
+                        "k_tau": 0.18 if j == 0 else 0.02,
+                        "k_v": 0.01,
+                    },
+                    "validation": {
+                        "asymmetric": {"overestimation": 0.01},
+                        "least_squares": {"overestimation": 0.08},
+                    },
+                }
+                for j in range(6)
+            }
+        },
+        "motion": {
+            "ok": True,
+            "verdicts": {"torque control K6=0.1": {"claim": claim}},
+            "improved": {
+                "goal": {
+                    "claim": "K6 = 0.1 torque control at least as accurate as "
+                    "position control"
+                },
+                "tuned": {
+                    "label": "improved K6=0.1: all (tuned)",
+                    "fallback_time": None,
+                    "misses": ["ankle roll maximum 4.71 > 4.52 mrad"],
+                },
+            },
+        },
     }
     rows = verdicts(results)
     assert [r.kind for r in rows] == ["paper", "paper", "goal", "goal"]  # claims first
     by_claim = {r.claim.split(":")[0]: r for r in rows}
     assert claim["verdict"] == "holds except 1 of 10 cells"
     assert by_claim["K6 = 0.1"].verdict == claim["verdict"]
-    assert by_claim["The paper's future work, tuned"].verdict == "holds except 1 of 10 cells"
+    assert (
+        by_claim["The paper's future work, tuned"].verdict
+        == "holds except 1 of 10 cells"
+    )
     identification = next(r for r in rows if r.claim.startswith("Identification"))
     assert identification.kind == "goal" and "within 10%" in identification.threshold
     assert identification.verdict == "holds except 1 of 12 values"
@@ -115,25 +142,49 @@ def test_the_goals_find_their_rows_by_key_not_by_label():
     from hrp2_drake.paper.claims import verdicts
 
     def metrics(rms, overshoot):
-        return {"ft_reading": {"rms_error": rms, "overshoot": overshoot, "lag_ms": 5.0,
-                               "amplitude_ratio": 0.95, "coupling_x": 0.1}}
+        return {
+            "ft_reading": {
+                "rms_error": rms,
+                "overshoot": overshoot,
+                "lag_ms": 5.0,
+                "amplitude_ratio": 0.95,
+                "coupling_x": 0.1,
+            }
+        }
 
     tuned = {"label": "any display text", "fallback_time": None, "misses": []}
     results = {
-        "motion": {"ok": True, "verdicts": {}, "improved": {
-            "goal": {"claim": "K6 = 0.1 as accurate as position control"},
-            "rows": [{"label": "improved K6=0.1: all (tuned)", "fallback_time": 1.0,
-                      "misses": ["a", "b", "c"]}],
-            "tuned": tuned,
-        }},
+        "motion": {
+            "ok": True,
+            "verdicts": {},
+            "improved": {
+                "goal": {"claim": "K6 = 0.1 as accurate as position control"},
+                "rows": [
+                    {
+                        "label": "improved K6=0.1: all (tuned)",
+                        "fallback_time": 1.0,
+                        "misses": ["a", "b", "c"],
+                    }
+                ],
+                "tuned": tuned,
+            },
+        },
         "force": {
             "ok": True,
             "baseline": {"metrics": metrics(10.0, 0.05)},
             "variants": [
-                {"name": "improved_observer_only", "label": "improved, observer alone",
-                 "metrics": metrics(50.0, 0.5), "fallback_time": 1.0},
-                {"name": "improved", "label": "the tuned controller",
-                 "metrics": metrics(9.0, 0.05), "fallback_time": None},
+                {
+                    "name": "improved_observer_only",
+                    "label": "improved, observer alone",
+                    "metrics": metrics(50.0, 0.5),
+                    "fallback_time": 1.0,
+                },
+                {
+                    "name": "improved",
+                    "label": "the tuned controller",
+                    "metrics": metrics(9.0, 0.05),
+                    "fallback_time": None,
+                },
             ],
         },
     }

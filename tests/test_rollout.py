@@ -342,8 +342,17 @@ def test_validate_rolls_out_the_shipped_twin(robot, tmp_path, capsys):
         LOGS / "xl330_kp100_sin_sin.json", tmp_path / "sin_sin.json", 1.0
     )
     out = tmp_path / "out"
-    argv = ["validate", "--robot", ROBOT, "--motor-model", str(servo_file),
-            "--log", str(log_path), "--out", str(out)]
+    argv = [
+        "validate",
+        "--robot",
+        ROBOT,
+        "--motor-model",
+        str(servo_file),
+        "--log",
+        str(log_path),
+        "--out",
+        str(out),
+    ]
     assert cli.main(argv) == 0
     summary = json.loads((out / "validate.json").read_text())
     assert summary["model_kind"] == "servo file" and summary["model_gain"] is None

@@ -82,7 +82,11 @@ def test_ramps_into_torque_control_without_a_step():
         (dict(q_torque=np.array([np.nan, 0.0])), 256),
     ],
     ids=[
-        "encoder_nan", "sensor_inf", "force_out_of_range", "encoder_jump", "command_nan"
+        "encoder_nan",
+        "sensor_inf",
+        "force_out_of_range",
+        "encoder_jump",
+        "command_nan",
     ],
 )
 def test_each_fault_is_detected_at_the_next_period_and_ramps_down(changes, bit):
@@ -210,13 +214,22 @@ def test_the_step_on_plain_arrays_is_the_system():
         stamps = np.full(3, t - PERIOD)
         returned.append(
             step.step(
-                t, h.inputs["q_torque"], h.inputs["q_position"], q_measured, sensors,
-                None, fallback, stamps,
+                t,
+                h.inputs["q_torque"],
+                h.inputs["q_position"],
+                q_measured,
+                sensors,
+                None,
+                fallback,
+                stamps,
             )
         )
         h.step(
-            noisy=False, q_measured=q_measured, controller_fallback=fallback,
-            imu_linear_acceleration=sensors[:3], wrench_x=sensors[3:],
+            noisy=False,
+            q_measured=q_measured,
+            controller_fallback=fallback,
+            imu_linear_acceleration=sensors[:3],
+            wrench_x=sensors[3:],
             sensor_time=stamps,
         )
         step.q_cmd(h.inputs["q_torque"], h.inputs["q_position"], fallback, q_cmd)
@@ -274,8 +287,12 @@ def _scripted_run():
     connected optional inputs in turn; returns [(returned bits, state, q_cmd)] of every
     period and the union of the fault bits."""
     config = SafetyConfig(
-        start_time=0.005, ramp_time=0.004, reentry_time=0.006, stale_samples=4,
-        encoder_stale_samples=3, max_reentries=10,
+        start_time=0.005,
+        ramp_time=0.004,
+        reentry_time=0.006,
+        stale_samples=4,
+        encoder_stale_samples=3,
+        max_reentries=10,
     )
     sensors = {"imu_linear_acceleration": "acceleration", "wrench_x": "wrench"}
     step = SafetySupervisorStep(3, sensors, config, 2)
@@ -319,7 +336,11 @@ def _scripted_run():
         if k == 175:
             stamps[1] = t - 0.01
         returned = step.step(
-            t, q_torque, q_position, q_measured, values,
+            t,
+            q_torque,
+            q_position,
+            q_measured,
+            values,
             None if k % 2 else e_stop,
             None if k % 3 == 0 else fallback,
             stamps if k >= 150 else None,
@@ -378,10 +399,19 @@ def test_warm_up_then_frozen_a_tick_runs_and_a_new_signature_raises():
     q_torque, q_cmd = np.array([0.1, 0.2]), np.zeros(2)
     try:
         kernels.freeze()
-        assert step.step(
-            0.0, q_torque, np.zeros(2), np.zeros(2), np.ones(9), np.zeros(1),
-            np.zeros(1), np.zeros(3),
-        ) == 0
+        assert (
+            step.step(
+                0.0,
+                q_torque,
+                np.zeros(2),
+                np.zeros(2),
+                np.ones(9),
+                np.zeros(1),
+                np.zeros(1),
+                np.zeros(3),
+            )
+            == 0
+        )
         step.step(0.001, q_torque, np.zeros(2), np.zeros(2), np.zeros(9))
         step.q_cmd(q_torque, np.zeros(2), None, q_cmd)
         h = _Harness().step(5)  # the LeafSystem shell (Drake's arrays)
@@ -389,7 +419,10 @@ def test_warm_up_then_frozen_a_tick_runs_and_a_new_signature_raises():
         if kernels.jit_enabled():
             with pytest.raises(TypeError):
                 step.step(
-                    0.002, q_torque.astype(np.float32), np.zeros(2), np.zeros(2),
+                    0.002,
+                    q_torque.astype(np.float32),
+                    np.zeros(2),
+                    np.zeros(2),
                     np.zeros(9),
                 )
             with pytest.raises(TypeError):

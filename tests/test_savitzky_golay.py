@@ -152,7 +152,11 @@ def test_ports_and_delay():
     system = SavitzkyGolayFilter(4, window=80, order=2, period=PERIOD)
     names = [system.get_output_port(i).get_name() for i in range(5)]
     assert names == [
-        "value", "derivative", "second_derivative", "evaluation_time", "input_fault"
+        "value",
+        "derivative",
+        "second_derivative",
+        "evaluation_time",
+        "input_fault",
     ]
     assert system.get_input_port().get_name() == "signal"
     assert system.get_input_port().size() == 4
@@ -402,7 +406,9 @@ def test_a_shorter_window_centred_in_the_past_keeps_its_derivatives_aligned():
     instant from its newest end would not."""
     coefficients = np.array([[40.0, -3.0, 1.0, 0.5]])  # a cubic: q̈ changes
     samples = np.array([[np.polyval(coefficients[0], k * PERIOD)] for k in range(300)])
-    short_centred = _run_on_noise(SavitzkyGolayFilter(1, [21], 2, PERIOD, span=81), samples)
+    short_centred = _run_on_noise(
+        SavitzkyGolayFilter(1, [21], 2, PERIOD, span=81), samples
+    )
     long = _run_on_noise(SavitzkyGolayFilter(1, 81, 2, PERIOD), samples)
     t = 299 * PERIOD - 40 * PERIOD
     truth = np.poly1d(coefficients[0]).deriv(2)(t)
@@ -415,7 +421,12 @@ def test_a_shorter_window_centred_in_the_past_keeps_its_derivatives_aligned():
     [
         ([21, 41], "centre", None, "window has 2 values for 3 signals"),
         ([21, 41, 2], "centre", None, "window=2"),
-        ([21, 40, 81], "centre", None, r"windows \[40\] differ in parity from the span, 81"),
+        (
+            [21, 40, 81],
+            "centre",
+            None,
+            r"windows \[40\] differ in parity from the span, 81",
+        ),
         ([21, 41, 81], "end", None, "need evaluation='centre'"),
         (21, "centre", 11, "span=11 must be an integer >= the longest window, 21"),
     ],
@@ -617,7 +628,9 @@ def test_warm_up_then_frozen_a_tick_runs_and_a_new_signature_raises():
         with pytest.raises(TypeError, match="float32"):
             step.step(0.1, np.zeros(4, dtype=np.float32))
         with pytest.raises(TypeError):
-            savgol_step(0.1, np.zeros(4), step.state.astype(np.float32), step._constants)
+            savgol_step(
+                0.1, np.zeros(4), step.state.astype(np.float32), step._constants
+            )
     finally:
         kernels.thaw()
 

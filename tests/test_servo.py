@@ -81,7 +81,11 @@ def test_servo_law_slope_is_k_tau(params, plant):
     p = params.vectors(hrp2.JOINT_NAMES)
     peak = p["k1"] * p["i_max"]  # N·m at current saturation
     # Commands for 20% and 40% of the peak torque, both signs, past the dead zone.
-    dqs = [s * (eff["deadzone"] + eff["k_tau"] * f * peak) for s in (1, -1) for f in (0.2, 0.4)]
+    dqs = [
+        s * (eff["deadzone"] + eff["k_tau"] * f * peak)
+        for s in (1, -1)
+        for f in (0.2, 0.4)
+    ]
     taus = []
     for dq in dqs:
         servo.get_input_port(0).FixValue(context, q[indexing.q] + dq)
@@ -122,8 +126,12 @@ def test_deprecated_name_warns_and_builds_the_same_servo(calibrated, plant):
     x[: plant.num_positions()] = plant.GetPositions(plant.CreateDefaultContext())
     torques = []
     for servo_class in (Hrp2ServoEmulation, EmulatedPositionServo):
-        servo = servo_class(plant, calibrated, hrp2.JOINT_NAMES, 1e-3, q0, enable_port=True)
-        names = [servo.get_input_port(i).get_name() for i in range(servo.num_input_ports())]
+        servo = servo_class(
+            plant, calibrated, hrp2.JOINT_NAMES, 1e-3, q0, enable_port=True
+        )
+        names = [
+            servo.get_input_port(i).get_name() for i in range(servo.num_input_ports())
+        ]
         assert names == ["q_cmd", "state", "enabled"]
         context = servo.CreateDefaultContext()
         servo.get_input_port(0).FixValue(context, q0 + 0.01)
@@ -245,8 +253,12 @@ def _fixed_base(q_cmd_system, external_force=None):
     source = builder.AddSystem(q_cmd_system)
     builder.Connect(source.get_output_port(), station.GetInputPort("q_cmd"))
     if external_force is not None:
-        push = builder.AddSystem(ConstantValueSource(AbstractValue.Make(external_force)))
-        builder.Connect(push.get_output_port(), station.GetInputPort("applied_spatial_force"))
+        push = builder.AddSystem(
+            ConstantValueSource(AbstractValue.Make(external_force))
+        )
+        builder.Connect(
+            push.get_output_port(), station.GetInputPort("applied_spatial_force")
+        )
     diagram = builder.Build()
     return diagram, station
 
@@ -360,7 +372,11 @@ def _single_joint_servo(plant, overrides: dict, off=()):
     base = load_servo_params("ideal")
     params = type(base)({n: replace(j, **overrides) for n, j in base.joints.items()})
     q0 = hrp2.half_sitting()
-    return EmulatedPositionServo(plant, params, hrp2.JOINT_NAMES, 1e-3, q0, off), params, q0
+    return (
+        EmulatedPositionServo(plant, params, hrp2.JOINT_NAMES, 1e-3, q0, off),
+        params,
+        q0,
+    )
 
 
 def _first_change_time(plant, latency: float) -> float:
@@ -371,7 +387,9 @@ def _first_change_time(plant, latency: float) -> float:
     servo, _, q0 = _single_joint_servo(plant, {"latency": latency})
     builder = DiagramBuilder()
     step = q0 + 0.01
-    traj = PiecewisePolynomial.ZeroOrderHold([0.0, 0.0095, 1.0], np.column_stack([q0, step, step]))
+    traj = PiecewisePolynomial.ZeroOrderHold(
+        [0.0, 0.0095, 1.0], np.column_stack([q0, step, step])
+    )
     source = builder.AddSystem(TrajectorySource(traj))
     hold = builder.AddSystem(ZeroOrderHold(1e-3, len(q0)))
     builder.Connect(source.get_output_port(), hold.get_input_port())
@@ -383,7 +401,9 @@ def _first_change_time(plant, latency: float) -> float:
     builder.Connect(state.get_output_port(), servo.get_input_port(1))
     diagram = builder.Build()
     simulator = Simulator(diagram)
-    hold.GetMyMutableContextFromRoot(simulator.get_mutable_context()).SetDiscreteState(q0)
+    hold.GetMyMutableContextFromRoot(simulator.get_mutable_context()).SetDiscreteState(
+        q0
+    )
     simulator.Initialize()
     context = servo.GetMyContextFromRoot(simulator.get_context())
     before = servo.get_output_port().Eval(context).copy()
@@ -400,7 +420,9 @@ def test_latency_delays_a_step_by_whole_periods(plant, latency):
     no latency (the ideal preset)."""
     reference = _first_change_time(plant, 0.0)
     assert reference < 0.0115
-    assert _first_change_time(plant, latency) - reference == pytest.approx(latency, abs=1e-6)
+    assert _first_change_time(plant, latency) - reference == pytest.approx(
+        latency, abs=1e-6
+    )
 
 
 def test_voltage_limit_is_the_torque_speed_line(plant):
@@ -408,7 +430,8 @@ def test_voltage_limit_is_the_torque_speed_line(plant):
     i = i_s (1 - q̇/ω0) at every constant speed (and braking is not limited until
     -i_s (1 + q̇/ω0) < -i_max); switched off, it is the driver's i_max."""
     servo, params, q0 = _single_joint_servo(
-        plant, {"stall_current": 30.0, "no_load_speed": 5.0, "k5": 0.0, "k2": 0.0, "k3": 0.0}
+        plant,
+        {"stall_current": 30.0, "no_load_speed": 5.0, "k5": 0.0, "k2": 0.0, "k3": 0.0},
     )
     off, _, _ = _single_joint_servo(
         plant,
@@ -424,11 +447,15 @@ def test_voltage_limit_is_the_torque_speed_line(plant):
         limited = servo.joint_torques(q_cmd, q0, v)
         expected = k1 * np.minimum(p["i_max"], 30.0 * (1 - speed / 5.0))
         np.testing.assert_allclose(limited, expected, rtol=1e-12, atol=1e-9)
-        np.testing.assert_allclose(off.joint_torques(q_cmd, q0, v), k1 * p["i_max"], rtol=1e-12)
+        np.testing.assert_allclose(
+            off.joint_torques(q_cmd, q0, v), k1 * p["i_max"], rtol=1e-12
+        )
     # Braking at speed (error against the motion) draws up to the driver's limit.
     braking = servo.joint_torques(q0 - 0.5, q0, np.full(30, 4.0))
     k1 = p["k1"] * (1 + p["k1_asymmetry"] * np.tanh(4.0 / p["v_coulomb"]))
-    np.testing.assert_allclose(braking, -k1 * np.minimum(p["i_max"], 30.0 * 1.8), rtol=1e-12)
+    np.testing.assert_allclose(
+        braking, -k1 * np.minimum(p["i_max"], 30.0 * 1.8), rtol=1e-12
+    )
 
 
 def test_voltage_limit_caps_the_speed_in_closed_loop():
@@ -441,7 +468,9 @@ def test_voltage_limit_caps_the_speed_in_closed_loop():
     speeds = {}
     for off in ((), ("voltage_limit",)):
         config = StationConfig(
-            scenario="fixed_base", sensors=SensorsConfig.noiseless(), servo_off=list(off)
+            scenario="fixed_base",
+            sensors=SensorsConfig.noiseless(),
+            servo_off=list(off),
         )
         builder = DiagramBuilder()
         station = builder.AddSystem(make_station(config))
@@ -479,8 +508,12 @@ def test_direction_state_switches_with_hysteresis(plant):
     amplitude = 0.005
     x = np.zeros((plant.num_positions() + plant.num_velocities(), len(times)))
     x[indexing.q] = q0[:, None] + amplitude * np.sin(2 * np.pi * times)
-    x[plant.num_positions() + indexing.v] = amplitude * 2 * np.pi * np.cos(2 * np.pi * times)
-    state = builder.AddSystem(TrajectorySource(PiecewisePolynomial.FirstOrderHold(times, x)))
+    x[plant.num_positions() + indexing.v] = (
+        amplitude * 2 * np.pi * np.cos(2 * np.pi * times)
+    )
+    state = builder.AddSystem(
+        TrajectorySource(PiecewisePolynomial.FirstOrderHold(times, x))
+    )
     builder.Connect(state.get_output_port(), servo.get_input_port(1))
     command = builder.AddSystem(ConstantVectorSource(q0))
     builder.Connect(command.get_output_port(), servo.get_input_port(0))
@@ -505,12 +538,16 @@ def test_direction_state_switches_with_hysteresis(plant):
     assert s[mid_out] > 0.99 and s[mid_back] < -0.99
     # With the hysteresis off, the state follows tanh(q̇ / v_s) at once: the
     # torque at a given (q, q̇) then does not depend on the history.
-    off, _, _ = _single_joint_servo(plant, {"hysteresis_width": width}, off=("hysteresis",))
+    off, _, _ = _single_joint_servo(
+        plant, {"hysteresis_width": width}, off=("hysteresis",)
+    )
     ctx = off.CreateDefaultContext()
     off.get_input_port(0).FixValue(ctx, q0)
     off.get_input_port(1).FixValue(ctx, x[:, 260])
     tanh_torque = off.get_output_port().Eval(ctx)[3]
-    expected = off.joint_torques(q0, x[indexing.q, 260], x[plant.num_positions() + indexing.v, 260])[3]
+    expected = off.joint_torques(
+        q0, x[indexing.q, 260], x[plant.num_positions() + indexing.v, 260]
+    )[3]
     assert tanh_torque == pytest.approx(expected, rel=1e-12)
 
 
@@ -534,7 +571,10 @@ def test_calibrated_servo_is_stable_at_1khz(calibrated, plant):
             for i in plant.GetJointActuatorIndices()
         ]
     )
-    assert explicit_stability_margin(calibrated, hrp2.JOINT_NAMES, reflected, 1e-3).max() < 1.0
+    assert (
+        explicit_stability_margin(calibrated, hrp2.JOINT_NAMES, reflected, 1e-3).max()
+        < 1.0
+    )
 
 
 # --- The kernels (hrp2_drake.kernels) ---------------------------------------------
@@ -558,8 +598,14 @@ def _kernel_servo(calibrated, plant):
         }
     )
     return EmulatedPositionServo(
-        plant, params, names, 1e-3, hrp2.half_sitting(), extra_latency=1e-3,
-        enable_port=True, command_resolution=2e-5,
+        plant,
+        params,
+        names,
+        1e-3,
+        hrp2.half_sitting(),
+        extra_latency=1e-3,
+        enable_port=True,
+        command_resolution=2e-5,
     )
 
 
@@ -668,7 +714,9 @@ def test_kernels_give_servo_torque_bit_for_bit_at_the_edges(calibrated, plant):
         assert actual[~nan].tobytes() == expected[~nan].tobytes(), trial
 
 
-def test_warm_up_then_frozen_the_servo_runs_and_a_new_signature_raises(calibrated, plant):
+def test_warm_up_then_frozen_the_servo_runs_and_a_new_signature_raises(
+    calibrated, plant
+):
     """The constructor compiles (or loads) every kernel for a tick's types; frozen,
     the servo's output, update and methods run, and a kernel called with float32
     arrays raises instead of compiling."""

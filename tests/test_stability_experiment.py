@@ -37,7 +37,9 @@ def fits(short_identification) -> dict[str, MotorModel]:
 def test_least_squares_over_estimates_friction_at_high_speed(fits):
     ls, asym = fits["least_squares"], fits["asymmetric"]
     assert ls.k_v[0] > 1.02 * asym.k_v[0]
-    config = StabilityConfig(station=StationConfig(scenario="fixed_base", servo_file="ideal"))
+    config = StabilityConfig(
+        station=StationConfig(scenario="fixed_base", servo_file="ideal")
+    )
     # Predicted (steady state, emulator's parameters): with the command's 1 ms delay
     # compensated, LS over-compensates friction above about 1.1 rad/s, the
     # asymmetric fit only above about 2.6 rad/s; uncompensated, neither does.
@@ -134,8 +136,17 @@ def _run(model_name: str, v0: float, final: float, limit_time=None, accelerates=
     from hrp2_drake.paper.stability import StabilityRun
 
     return StabilityRun(
-        model_name, 1e-4, 7e-3, 0.001, v0, v0, max(v0, final), final, limit_time,
-        final > 1.05 * v0 if accelerates is None else accelerates, None,
+        model_name,
+        1e-4,
+        7e-3,
+        0.001,
+        v0,
+        v0,
+        max(v0, final),
+        final,
+        limit_time,
+        final > 1.05 * v0 if accelerates is None else accelerates,
+        None,
     )
 
 
@@ -146,7 +157,9 @@ def test_a_run_that_reached_its_limit_is_never_called_stable(tmp_path):
     from hrp2_drake.paper.claims import _push_outcome
     from hrp2_drake.paper.stability import StabilityResult, contrast, summarize
 
-    config = StabilityConfig(push_velocities=[1.0, 2.0], command_delay_compensation=[0.001])
+    config = StabilityConfig(
+        push_velocities=[1.0, 2.0], command_delay_compensation=[0.001]
+    )
     runs = [
         _run("least_squares", 1.0, 0.2),
         _run("least_squares", 2.0, 3.1, limit_time=0.4),  # faster, up to its limit
@@ -154,7 +167,10 @@ def test_a_run_that_reached_its_limit_is_never_called_stable(tmp_path):
         _run("asymmetric", 2.0, 1.6, limit_time=0.55),  # slower, but hit its limit
     ]
     assert [r.outcome for r in runs] == [
-        "stable", "accelerates away", "stable", "reached the limit"
+        "stable",
+        "accelerates away",
+        "stable",
+        "reached the limit",
     ]
     t = np.linspace(0.0, 2.0, 50)
     traces = {
@@ -168,11 +184,21 @@ def test_a_run_that_reached_its_limit_is_never_called_stable(tmp_path):
     # The paper's contrast needs the asymmetric run stable where least squares
     # accelerates: at 2 rad/s it reached its limit.
     assert contrast(result) == {"1 ms": False}
-    assert "stable" in summary["stable_means"] and "never as stable" in summary["stable_means"]
+    assert (
+        "stable" in summary["stable_means"]
+        and "never as stable" in summary["stable_means"]
+    )
     outcome = _push_outcome(asym)
-    assert "reached its position limit without speeding up after the pushes at 2 rad/s (not stable)" in outcome
+    assert (
+        "reached its position limit without speeding up after the pushes at 2 rad/s (not stable)"
+        in outcome
+    )
     assert not outcome.startswith("stable after every push")
     write_stability_report(result, tmp_path)
     table = (tmp_path / "stability.md").read_text()
-    row = next(line for line in table.splitlines() if line.startswith("| asymmetric") and "| 2 |" in line)
+    row = next(
+        line
+        for line in table.splitlines()
+        if line.startswith("| asymmetric") and "| 2 |" in line
+    )
     assert row.endswith("| 0.55 s | reached the limit |")

@@ -160,7 +160,9 @@ def test_fixed_base_step_response_is_stable():
 
 def test_standing_on_block_loads_the_right_foot_on_the_block():
     config = StationConfig(
-        scenario="standing_on_block", block_height=0.05, sensors=SensorsConfig.noiseless()
+        scenario="standing_on_block",
+        block_height=0.05,
+        sensors=SensorsConfig.noiseless(),
     )
     station, context, _ = _run(config, 1.0)
     plant = station.GetSubsystemByName("plant")
@@ -184,8 +186,12 @@ def test_encoders_are_quantized():
 
 def test_noise_repeats_with_the_seed():
     def accel(seed):
-        cfg = SimulateConfig(station=StationConfig(scenario="fixed_base"), duration=0.05)
-        cfg.station.sensors = dataclasses.replace(cfg.station.sensors_config(), seed=seed)
+        cfg = SimulateConfig(
+            station=StationConfig(scenario="fixed_base"), duration=0.05
+        )
+        cfg.station.sensors = dataclasses.replace(
+            cfg.station.sensors_config(), seed=seed
+        )
         return run_simulate(cfg).signals["imu_linear_acceleration"]
 
     a, b, c = accel(1), accel(1), accel(2)
@@ -208,7 +214,9 @@ def test_config_errors_say_what_and_where(tmp_path):
     assert config.scenario == "standing" and config.sensors_config().seed == 4
     bad_noise = StationConfig(sensors=SensorsConfig())
     bad_noise.sensors.accelerometer = NoiseConfig(std=[0.1, 0.2])
-    with pytest.raises(ValueError, match=r"Config\.accelerometer\.std must hold 1 or 3"):
+    with pytest.raises(
+        ValueError, match=r"Config\.accelerometer\.std must hold 1 or 3"
+    ):
         make_station(bad_noise)
     with pytest.raises(KeyError, match="no joint 'RLEG_FT'"):
         plant = MultibodyPlant(0.0)
@@ -341,7 +349,9 @@ def _hanging_sampler(resolution_of=None):
     return sampler, plant, robot
 
 
-def _sampler_updates(sampler, plant, ks=(0, 1, 11, 13, 4095, 4096, 4097)) -> list[bytes]:
+def _sampler_updates(
+    sampler, plant, ks=(0, 1, 11, 13, 4095, 4096, 4097)
+) -> list[bytes]:
     """Every output of `sampler` after an update at each sample k of random inputs."""
     context = sampler.CreateDefaultContext()
     rng = np.random.default_rng(9)
@@ -351,8 +361,12 @@ def _sampler_updates(sampler, plant, ks=(0, 1, 11, 13, 4095, 4096, 4097)) -> lis
         context.SetTime(k * period)
         x = rng.normal(0.0, 0.3, plant.num_positions() + plant.num_velocities())
         sampler.GetInputPort("state").FixValue(context, x)
-        sampler.GetInputPort("linear_acceleration").FixValue(context, rng.normal(0, 5, 3))
-        sampler.GetInputPort("angular_velocity").FixValue(context, rng.normal(0, 0.5, 3))
+        sampler.GetInputPort("linear_acceleration").FixValue(
+            context, rng.normal(0, 5, 3)
+        )
+        sampler.GetInputPort("angular_velocity").FixValue(
+            context, rng.normal(0, 0.5, 3)
+        )
         sampler.GetInputPort("reaction_forces").FixValue(
             context,
             [SpatialForce(rng.normal(0.0, 50.0, 6)) for _ in range(plant.num_joints())],
@@ -385,12 +399,16 @@ def test_sensor_sampler_kernel_compiled_equals_interpreted():
             sampler.GetInputPort("state").FixValue(
                 context, np.zeros(plant.num_positions() + plant.num_velocities())
             )
-            sampler.GetInputPort("linear_acceleration").FixValue(context, [0, np.inf, 0])
+            sampler.GetInputPort("linear_acceleration").FixValue(
+                context, [0, np.inf, 0]
+            )
             sampler.GetInputPort("angular_velocity").FixValue(context, np.zeros(3))
             sampler.GetInputPort("reaction_forces").FixValue(
                 context, [SpatialForce(np.zeros(6))] * plant.num_joints()
             )
-            with pytest.raises(RuntimeError, match="imu_accelerometer: signal not finite"):
+            with pytest.raises(
+                RuntimeError, match="imu_accelerometer: signal not finite"
+            ):
                 sampler.EvalUniquePeriodicDiscreteUpdate(context)
 
 
@@ -409,8 +427,17 @@ def test_sensor_sampler_warm_up_then_frozen_updates_and_a_new_signature_raises()
         frozen = _sampler_updates(sampler, plant, ks=(0, 1, 2))
         groups = tuple(group.copy() for group in sampler._groups)
         arguments = [
-            sampler._constants, sampler._table, np.zeros(80), np.zeros(3), np.zeros(3),
-            sampler._signals.copy(), sampler._noise_block, 0, groups, 0.0, True,
+            sampler._constants,
+            sampler._table,
+            np.zeros(80),
+            np.zeros(3),
+            np.zeros(3),
+            sampler._signals.copy(),
+            sampler._noise_block,
+            0,
+            groups,
+            0.0,
+            True,
         ]
         assert sensors._sample_bus(*arguments)  # the compiled signature
         arguments[2] = np.zeros(80, dtype=np.float32)
@@ -434,14 +461,21 @@ def test_an_encoder_of_resolution_zero_is_not_quantized():
     sampler, plant, robot = _hanging_sampler(with_zeros)
     cfg = StationConfig(scenario="hanging").sensors_config()
     n = len(robot.joints)
-    resolution = with_zeros(load_servo_params().vectors(list(robot.joints))["encoder_resolution"])
+    resolution = with_zeros(
+        load_servo_params().vectors(list(robot.joints))["encoder_resolution"]
+    )
     separate = NoisySampler(
         n, cfg.period, *cfg.encoder.vectors(n, "enc"), 1000 * cfg.seed + 1, resolution
     )
     indexing = hrp2.hrp2_joint_indexing(plant)
-    x = np.random.default_rng(2).normal(0.0, 0.3, plant.num_positions() + plant.num_velocities())
+    x = np.random.default_rng(2).normal(
+        0.0, 0.3, plant.num_positions() + plant.num_velocities()
+    )
     readings = []
-    for system, port, value in ((sampler, "state", x), (separate, "signal", x[indexing.q])):
+    for system, port, value in (
+        (sampler, "state", x),
+        (separate, "signal", x[indexing.q]),
+    ):
         context = system.CreateDefaultContext()
         context.SetTime(0.003)
         system.GetInputPort(port).FixValue(context, value)

@@ -14,7 +14,9 @@ PLACES = ["hrp2_drake", "scripts", "tests"]
 
 
 def _ruff(*args: str) -> subprocess.CompletedProcess:
-    ruff = shutil.which("ruff", path=str(Path(sys.executable).parent)) or shutil.which("ruff")
+    ruff = shutil.which("ruff", path=str(Path(sys.executable).parent)) or shutil.which(
+        "ruff"
+    )
     if ruff is None:
         pytest.fail("ruff is not installed: pip install -e '.[test]'")
     return subprocess.run(

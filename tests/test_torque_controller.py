@@ -652,8 +652,13 @@ def _kernel_ticks(motor, config, seed: int):
 @pytest.mark.parametrize(
     "changes",
     [
-        dict(ki=[5.0], integral_limit=[0.01], disturbance_compensation=True,
-             coulomb_compensation=True, start_time=3 * PERIOD),
+        dict(
+            ki=[5.0],
+            integral_limit=[0.01],
+            disturbance_compensation=True,
+            coulomb_compensation=True,
+            start_time=3 * PERIOD,
+        ),
         dict(kp=[0.5, 1, 2, 3, 0, 2], latch_fallback=False),
     ],
 )

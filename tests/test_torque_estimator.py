@@ -105,9 +105,7 @@ class _Truth:
         self.sensor_frames = [
             plant.GetJointByName(hrp2.FT_SENSORS[s]).frame_on_child() for s in SENSORS
         ]
-        self.sensor_joints = [
-            plant.GetJointByName(hrp2.FT_SENSORS[s]) for s in SENSORS
-        ]
+        self.sensor_joints = [plant.GetJointByName(hrp2.FT_SENSORS[s]) for s in SENSORS]
         self.sensor_bodies = [
             plant.GetBodyByName(hrp2.FT_SENSOR_BODIES[s]) for s in SENSORS
         ]
@@ -391,7 +389,9 @@ def test_set_offsets_subtracts_known_offsets(plant, truth):
 def test_imu_below_a_force_sensor_is_an_error(plant):
     """The base motion comes from the IMU: it cannot sit below an F/T sensor, whose
     wrench would then be inside the chain from the IMU to the base."""
-    sensors = {"chest": ForceTorqueSensorConfig(frame="CHEST_LINK1", body="CHEST_LINK1")}
+    sensors = {
+        "chest": ForceTorqueSensorConfig(frame="CHEST_LINK1", body="CHEST_LINK1")
+    }
     with pytest.raises(ValueError, match="IMU frame 'imu' is below an F/T sensor"):
         FloatingBaseTorqueEstimator(plant, _config(plant, sensors=sensors))
 
@@ -567,8 +567,10 @@ def test_step_warm_up_then_no_compiling(plant, truth):
         step.step(5e-3, *_step_inputs(sample))  # after the calibration
         assert step.num_calibration_samples() == 2
         if kernels.jit_enabled():
-            single = [np.float32(x) if np.ndim(x) == 0 else np.asarray(x, np.float32)
-                      for x in _step_inputs(sample)]
+            single = [
+                np.float32(x) if np.ndim(x) == 0 else np.asarray(x, np.float32)
+                for x in _step_inputs(sample)
+            ]
             with pytest.raises(TypeError):
                 step.step(6e-3, *single)
     finally:
@@ -815,7 +817,9 @@ def _closed_loop(
     """Station (noiseless sensors by default, servo holding its initial pose) +
     add_estimator. Returns (chain, estimator plant, logs, final F/T offsets)."""
     station_config = StationConfig(
-        scenario=scenario, sensors=sensors or SensorsConfig.noiseless(), servo_file="ideal"
+        scenario=scenario,
+        sensors=sensors or SensorsConfig.noiseless(),
+        servo_file="ideal",
     )
     builder = DiagramBuilder()
     station = builder.AddNamedSystem("station", make_station(station_config))
@@ -967,11 +971,17 @@ def test_per_signal_windows_keep_one_delay(plant):
 @pytest.mark.parametrize(
     "windows, match",
     [
-        ({"RLEG_JOINT9": 31}, "windows: 'RLEG_JOINT9' is not a joint, an F/T sensor or 'imu'"),
+        (
+            {"RLEG_JOINT9": 31},
+            "windows: 'RLEG_JOINT9' is not a joint, an F/T sensor or 'imu'",
+        ),
         ({"imu": 2}, r"windows\['imu'\]=2 must be an integer >= 3"),
         ({"left_hand": 40.0}, r"windows\['left_hand'\]=40.0 must be an integer"),
         ({"imu": 40}, r"window=21: of another parity than the longest window, 40"),
-        ({"imu": 41, "RLEG_JOINT2": 30}, r"windows\['RLEG_JOINT2'\]=30: of another parity"),
+        (
+            {"imu": 41, "RLEG_JOINT2": 30},
+            r"windows\['RLEG_JOINT2'\]=30: of another parity",
+        ),
     ],
 )
 def test_bad_per_signal_windows(plant, windows, match):

@@ -25,18 +25,24 @@ def _known_servo_log(robot, prior, name: str, seconds: float):
     joint.stall_current *= 0.8
     joint.k3 = 0.03
     joint.k5 = joint.stall_current / joint.no_load_speed  # the twin's tie
-    q = rollout(robot, log, emulated_servo(truth, log.gain, initial_q_cmd=log.q_cmd[0])).q_sim
+    q = rollout(
+        robot, log, emulated_servo(truth, log.gain, initial_q_cmd=log.q_cmd[0])
+    ).q_sim
     return dataclasses.replace(log, q_measured=q), truth
 
 
 def test_calibration_recovers_a_known_servo(xl330_prior):
     robot = load_robot_description(ROBOT)
     prior = xl330_prior
-    logs, truth = zip(*(
-        _known_servo_log(robot, prior, name, 2.0)
-        for name in ("xl330_kp400_sin_time_square.json", "xl330_kp100_sin_sin.json")
-    ))
-    config = TwinConfig(parameters=["k4", "stall_current", "k3"], max_evaluations=60, workers=1)
+    logs, truth = zip(
+        *(
+            _known_servo_log(robot, prior, name, 2.0)
+            for name in ("xl330_kp400_sin_time_square.json", "xl330_kp100_sin_sin.json")
+        )
+    )
+    config = TwinConfig(
+        parameters=["k4", "stall_current", "k3"], max_evaluations=60, workers=1
+    )
     fit = fit_twin(robot, list(logs), prior, config)
     got, want = fit.params.joints["servo"], truth[0].joints["servo"]
     # Measured: within 2% on each (encoder quantization of 1.5 mrad makes the
@@ -46,7 +52,9 @@ def test_calibration_recovers_a_known_servo(xl330_prior):
     assert fit.cost_end < 0.01 * fit.cost_start
 
 
-def test_a_twin_of_a_57_ms_log_is_refused_before_any_rollout(tmp_path, capsys, monkeypatch):
+def test_a_twin_of_a_57_ms_log_is_refused_before_any_rollout(
+    tmp_path, capsys, monkeypatch
+):
     """A twin calibrated from 57 ms of log fits anything (issue 28: accepted without
     a word): refused on one line with the numbers, before the first rollout."""
     import json
@@ -67,8 +75,17 @@ def test_a_twin_of_a_57_ms_log_is_refused_before_any_rollout(tmp_path, capsys, m
     ]
     path = tmp_path / "short.json"
     path.write_text(json.dumps(document))
-    code = cli.main(["calibrate", "--robot", ROBOT, "--log", str(path), "--out",
-                     str(tmp_path / "out")])
+    code = cli.main(
+        [
+            "calibrate",
+            "--robot",
+            ROBOT,
+            "--log",
+            str(path),
+            "--out",
+            str(tmp_path / "out"),
+        ]
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1, err
     # 57 ms on the 1 kHz grid: one residual every 10 ms, 6 of them, for 9 parameters
@@ -77,5 +94,7 @@ def test_a_twin_of_a_57_ms_log_is_refused_before_any_rollout(tmp_path, capsys, m
     seconds = read_robot_log(path, robot.logs, robot.joints).t[-1]
     assert 0.05 < seconds < 0.057
     assert f"{seconds:.3g} s of logs give 6 position residuals" in err[0], err[0]
-    assert "for 9 parameters" in err[0] and "(90, about 0.9 s of logs)" in err[0], err[0]
+    assert "for 9 parameters" in err[0] and "(90, about 0.9 s of logs)" in err[0], err[
+        0
+    ]
     assert not (tmp_path / "out" / "servo.yaml").exists()

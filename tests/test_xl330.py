@@ -104,8 +104,14 @@ def _synthetic_csv(path: Path, rate: float, seed: int, duration: float = 6.0) ->
     q_sim = rollout(station.description(), log, servo).q_sim
     position = np.interp(t_raw, grid, q_sim[:, 0])
     rows = np.column_stack([t_raw, position, command, np.full(n, GAIN)])
-    np.savetxt(path, rows, delimiter=",", header="t,position,goal_position,kp",
-               comments="", fmt="%.10g")
+    np.savetxt(
+        path,
+        rows,
+        delimiter=",",
+        header="t,position,goal_position,kp",
+        comments="",
+        fmt="%.10g",
+    )
 
 
 def test_windows_in_seconds_give_the_same_fit_at_any_rate(tmp_path):
@@ -118,9 +124,16 @@ def test_windows_in_seconds_give_the_same_fit_at_any_rate(tmp_path):
     station = StationConfig(robot=ROBOT, scenario="fixed_base")
     robot = station.description()
     log_format = dataclasses.replace(
-        robot.logs, format="csv", samples="", time="t", time_unit=1.0,
-        position=["position"], command=["goal_position"], position_unit=1.0,
-        valid="", gain="kp",
+        robot.logs,
+        format="csv",
+        samples="",
+        time="t",
+        time_unit=1.0,
+        position=["position"],
+        command=["goal_position"],
+        position_unit=1.0,
+        valid="",
+        gain="kp",
     )
     csv_robot = dataclasses.replace(robot, logs=log_format)
     config = IdentifyConfig(station=station, window=0.1, w_sweep=[1000.0])

@@ -121,12 +121,15 @@ class SmoothMove:
     within `tolerance` (rad) of `goal` on every joint (the position servo takes that
     step). The move that starts a run on a robot, from its measured pose."""
 
-    def __init__(self, start: np.ndarray, goal: np.ndarray, speed: float,
-                 tolerance: float = 1e-3):
+    def __init__(
+        self, start: np.ndarray, goal: np.ndarray, speed: float, tolerance: float = 1e-3
+    ):
         self.start = np.asarray(start, float)
         self.step = np.asarray(goal, float) - self.start
         distance = float(np.max(np.abs(self.step)))
-        self.duration = max(0.2, 1.875 * distance / speed) if distance > tolerance else 0.0
+        self.duration = (
+            max(0.2, 1.875 * distance / speed) if distance > tolerance else 0.0
+        )
 
     def at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """q, q̇, q̈ at the times t (s, 1-D, within the move): (len(t), n) each."""
@@ -149,7 +152,9 @@ class JointReference:
     approach_time: float = 0.0
 
     @staticmethod
-    def from_samples(t: np.ndarray, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> "JointReference":
+    def from_samples(
+        t: np.ndarray, q: np.ndarray, v: np.ndarray, a: np.ndarray
+    ) -> "JointReference":
         """Linear interpolation between dense samples (e.g. 1 kHz), by
         `first_order_hold`."""
         return JointReference(first_order_hold(t, np.hstack([q, v, a]).T))
@@ -159,7 +164,9 @@ class JointReference:
         n = len(q)
         values = np.concatenate([q, np.zeros(2 * n)])
         return JointReference(
-            PiecewisePolynomial.ZeroOrderHold([0.0, duration], np.column_stack([values, values]))
+            PiecewisePolynomial.ZeroOrderHold(
+                [0.0, duration], np.column_stack([values, values])
+            )
         )
 
     def after_approach(
@@ -178,7 +185,9 @@ class JointReference:
         samples = np.array([self.trajectory.value(x).ravel() for x in later])
         times = np.concatenate([t, move.duration + np.asarray(later)])
         values = np.vstack([np.hstack(move.at(t)), samples])
-        return JointReference(first_order_hold(times, values.T), approach_time=move.duration)
+        return JointReference(
+            first_order_hold(times, values.T), approach_time=move.duration
+        )
 
     @staticmethod
     def split(
@@ -244,7 +253,9 @@ class ControlDiagram:
         """The logged signals: every vector output (not `contact_results`)."""
         return [
             port.get_name()
-            for port in map(self.diagram.get_output_port, range(self.diagram.num_output_ports()))
+            for port in map(
+                self.diagram.get_output_port, range(self.diagram.num_output_ports())
+            )
             if port.get_data_type() == PortDataType.kVectorValued
         ]
 
@@ -287,7 +298,11 @@ def _station_ports(station: Diagram, robot: RobotDescription) -> dict[str, Outpu
     names = ["q_measured", "joint_torque_true", "state_true"]
     if robot.force_sensor:
         names.append(f"wrench_{robot.force_sensor}")
-    return {name: station.GetOutputPort(name) for name in names if station.HasOutputPort(name)}
+    return {
+        name: station.GetOutputPort(name)
+        for name in names
+        if station.HasOutputPort(name)
+    }
 
 
 class SimulatedStation(NamedTuple):
@@ -301,7 +316,9 @@ class SimulatedStation(NamedTuple):
     control_period: float
 
 
-def simulated_station(config: StationConfig, meshcat: Meshcat | None = None) -> SimulatedStation:
+def simulated_station(
+    config: StationConfig, meshcat: Meshcat | None = None
+) -> SimulatedStation:
     """The simulated station of `config` (`make_station(config, meshcat)`), its robot
     and its control period (`config.sensors_config().period`, s): the common case of
     `build_position_control` and `build_torque_control`, e.g.
@@ -310,11 +327,15 @@ def simulated_station(config: StationConfig, meshcat: Meshcat | None = None) -> 
         build_torque_control(robot, station, ..., control_period=period)
     """
     return SimulatedStation(
-        config.description(), make_station(config, meshcat), config.sensors_config().period
+        config.description(),
+        make_station(config, meshcat),
+        config.sensors_config().period,
     )
 
 
-def _add_station(builder: DiagramBuilder, robot: RobotDescription, station: Diagram) -> Diagram:
+def _add_station(
+    builder: DiagramBuilder, robot: RobotDescription, station: Diagram
+) -> Diagram:
     """Adds `station` (a simulated or a hardware station) to `builder` as "station",
     once its q_cmd input is checked to command every joint of `robot`."""
     if not station.HasInputPort("q_cmd"):
@@ -329,7 +350,9 @@ def _add_station(builder: DiagramBuilder, robot: RobotDescription, station: Diag
 
 
 def build_position_control(
-    robot: RobotDescription, station: Diagram, reference: JointReference,
+    robot: RobotDescription,
+    station: Diagram,
+    reference: JointReference,
     command_period: float = 0.0,
 ) -> ControlDiagram:
     """The baseline: the robot's own position servo tracking the reference (q_cmd =
@@ -359,7 +382,9 @@ def build_position_control(
     return _build(builder, station, ports, reference)
 
 
-def _joint_inertia(plant, all_joints: list[str], joints: list[str], q: np.ndarray) -> np.ndarray:
+def _joint_inertia(
+    plant, all_joints: list[str], joints: list[str], q: np.ndarray
+) -> np.ndarray:
     """Diagonal of the mass matrix (kg·m², reflected rotor inertia included) of
     `joints` at the joint angles q (all_joints order): what sets K_d for a damping
     ratio."""
@@ -404,7 +429,10 @@ def _inverse_dynamics_plant(robot: RobotDescription, errors: dict):
 
 
 def _inverse_dynamics_config(
-    config: TorqueControlConfig, joints: list[str], ks: np.ndarray, kd: np.ndarray,
+    config: TorqueControlConfig,
+    joints: list[str],
+    ks: np.ndarray,
+    kd: np.ndarray,
     period: float,
 ) -> InverseDynamicsConfig:
     """The inverse dynamics of `joints` with the gains K_s, K_d (one per joint), updated
@@ -420,7 +448,10 @@ def _inverse_dynamics_config(
 
 
 def _torque_controller_config(
-    robot: RobotDescription, config: TorqueControlConfig, joints: list[str], period: float
+    robot: RobotDescription,
+    config: TorqueControlConfig,
+    joints: list[str],
+    period: float,
 ) -> TorqueControllerConfig:
     """The Δq torque controller of `joints`, updated every `period` s: Δq saturated at
     `delta_q_limit`, the fallback latched at twice it."""
@@ -438,7 +469,10 @@ def _torque_controller_config(
 
 
 def _observer_parts(
-    config: TorqueControlConfig, joints: list[str], controller_model: MotorModel, delay: float,
+    config: TorqueControlConfig,
+    joints: list[str],
+    controller_model: MotorModel,
+    delay: float,
     period: float,
 ) -> ObserverParts | None:
     """The disturbance observer's model and config (None without one); `delay`: the
@@ -492,7 +526,9 @@ def torque_chain_parts(
     _check_controlled_joints(robot, config, joints)
     all_joints = list(robot.joints)
     # The controllers' model of the robot (with errors, if asked: a fault).
-    errors = dict(model_error=config.faults.model_error, seed=config.faults.model_error_seed)
+    errors = dict(
+        model_error=config.faults.model_error, seed=config.faults.model_error_seed
+    )
     estimator = config.estimator
     estimator_config = estimation_config.estimator_config(
         robot,
@@ -531,7 +567,9 @@ def torque_chain_parts(
         position_source=gains.position_source,
         feedback_velocity=gains.feedback_velocity,
         friction_velocity=gains.friction_velocity,
-        force_sensor=robot.sensor_of_body(gains.force_frame) if gains.force_frame else "",
+        force_sensor=robot.sensor_of_body(gains.force_frame)
+        if gains.force_frame
+        else "",
         period=estimator_config.period,
     )
 
@@ -564,7 +602,9 @@ def build_torque_control(
         fused: the whole chain as one `FusedTorqueController` (the real-time path;
             the same signals to 1e-12) instead of its separate systems.
     """
-    parts = torque_chain_parts(robot, reference, motor_model, config, period=control_period)
+    parts = torque_chain_parts(
+        robot, reference, motor_model, config, period=control_period
+    )
     builder = DiagramBuilder()
     station = _add_station(builder, robot, station)
     blocks = _add_reference(builder, reference, len(parts.all_joints))
@@ -585,7 +625,9 @@ def build_torque_control(
     return _build(builder, station, ports, reference, force_reference)
 
 
-def _add_fused_chain(builder, station, robot, parts, blocks, f_ref) -> dict[str, OutputPort]:
+def _add_fused_chain(
+    builder, station, robot, parts, blocks, f_ref
+) -> dict[str, OutputPort]:
     fused = builder.AddNamedSystem("fused_controller", FusedTorqueController(parts))
     for k in range(fused.num_input_ports()):
         port = fused.get_input_port(k)
@@ -596,8 +638,15 @@ def _add_fused_chain(builder, station, robot, parts, blocks, f_ref) -> dict[str,
             builder.Connect(f_ref, port)
         else:
             builder.Connect(station.GetOutputPort(name), port)
-    names = ["q_cmd", "tau_estimated", "tau_desired", "delta_q", "fallback_active",
-             "sensor_fault", *COMPONENTS]
+    names = [
+        "q_cmd",
+        "tau_estimated",
+        "tau_desired",
+        "delta_q",
+        "fallback_active",
+        "sensor_fault",
+        *COMPONENTS,
+    ]
     if parts.supervisor is not None:
         names += [f"supervisor_{name}" for name in ("mode", "fault", "transition")]
     if robot.force_sensor:
@@ -605,20 +654,30 @@ def _add_fused_chain(builder, station, robot, parts, blocks, f_ref) -> dict[str,
     return {name: fused.GetOutputPort(name) for name in names}
 
 
-def _add_separate_chain(builder, station, robot, parts, blocks, f_ref) -> dict[str, OutputPort]:
+def _add_separate_chain(
+    builder, station, robot, parts, blocks, f_ref
+) -> dict[str, OutputPort]:
     """The chain as its separate LeafSystems (the design card's diagram)."""
-    chain = add_estimator(builder, station, parts.estimator_plant, parts.estimator_config)
+    chain = add_estimator(
+        builder, station, parts.estimator_plant, parts.estimator_config
+    )
     inverse_dynamics = builder.AddNamedSystem(
         "inverse_dynamics", InverseDynamicsController(parts.id_plant, parts.id_config)
     )
     selected = _add_controlled_signals(builder, station, chain, parts, blocks)
     for name in ("q_ref", "v_ref", "vdot_ref"):
         builder.Connect(selected[name], inverse_dynamics.GetInputPort(name))
-    predictor, v_estimate, torque_estimate = _add_delay_predictor(builder, chain, parts, selected)
+    predictor, v_estimate, torque_estimate = _add_delay_predictor(
+        builder, chain, parts, selected
+    )
     velocity = {"estimate": v_estimate, "reference": selected["v_ref"]}
-    position = selected["q_measured" if parts.position_source == "encoders" else "q_estimate"]
+    position = selected[
+        "q_measured" if parts.position_source == "encoders" else "q_estimate"
+    ]
     builder.Connect(position, inverse_dynamics.GetInputPort("q"))
-    builder.Connect(velocity[parts.feedback_velocity], inverse_dynamics.GetInputPort("v"))
+    builder.Connect(
+        velocity[parts.feedback_velocity], inverse_dynamics.GetInputPort("v")
+    )
     if parts.force_sensor:
         builder.Connect(f_ref, inverse_dynamics.GetInputPort("f_ref"))
         builder.Connect(
@@ -634,7 +693,9 @@ def _add_separate_chain(builder, station, robot, parts, blocks, f_ref) -> dict[s
     builder.Connect(torque_estimate, torque.GetInputPort("tau_estimated"))
     builder.Connect(velocity[parts.friction_velocity], torque.GetInputPort("v"))
     if predictor is not None:
-        builder.Connect(torque.GetOutputPort("delta_q"), predictor.GetInputPort("delta_q"))
+        builder.Connect(
+            torque.GetOutputPort("delta_q"), predictor.GetInputPort("delta_q")
+        )
     builder.Connect(selected["q_measured"], torque.GetInputPort("q_measured"))
     builder.Connect(selected["q_ref"], torque.GetInputPort("q_ref"))
     builder.Connect(chain.input_fault, torque.GetInputPort("sensor_fault"))
@@ -664,7 +725,9 @@ def _add_selector(builder, parts, name: str, source: OutputPort) -> OutputPort:
     return selector.get_output_port()
 
 
-def _add_controlled_signals(builder, station, chain, parts, blocks) -> dict[str, OutputPort]:
+def _add_controlled_signals(
+    builder, station, chain, parts, blocks
+) -> dict[str, OutputPort]:
     """The controlled joints' reference (q_ref, v_ref, vdot_ref), encoders
     (q_measured) and estimates (q_estimate, v_estimate, tau_estimate), by name; each
     selected by a system named `<name>_controlled`."""
@@ -712,7 +775,9 @@ def _add_delay_predictor(builder, chain, parts, selected: dict[str, OutputPort])
     )
 
 
-def _add_disturbance_observer(builder, parts, selected: dict[str, OutputPort], torque) -> None:
+def _add_disturbance_observer(
+    builder, parts, selected: dict[str, OutputPort], torque
+) -> None:
     """The disturbance observer of `parts.observer`, in a loop with the torque
     controller: d̂ from Δq, q̂̇ and τ̂."""
     observer = builder.AddNamedSystem(

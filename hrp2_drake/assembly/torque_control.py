@@ -218,7 +218,9 @@ class ObserverSettings:
 
     def validate(self) -> None:
         """Raises ValueError unless the observer's bandwidth is finite and >= 0."""
-        if not (math.isfinite(self.disturbance_observer) and self.disturbance_observer >= 0):
+        if not (
+            math.isfinite(self.disturbance_observer) and self.disturbance_observer >= 0
+        ):
             raise ValueError(
                 f"{_WHERE}.observer.disturbance_observer: {self.disturbance_observer} "
                 "must be a bandwidth >= 0 (rad/s; 0 = none)"
@@ -248,18 +250,24 @@ class FaultSettings:
 
 
 @moved_keys(
-    k6="controller.k6", kp="controller.kp", damping_ratio="controller.damping_ratio",
+    k6="controller.k6",
+    kp="controller.kp",
+    damping_ratio="controller.damping_ratio",
     position_source="controller.position_source",
     feedback_velocity="controller.feedback_velocity",
     friction_velocity="controller.friction_velocity",
-    force_frame="controller.force_frame", kf="controller.kf",
+    force_frame="controller.force_frame",
+    kf="controller.kf",
     delta_q_limit="controller.delta_q_limit",
-    window="estimator.window", windows="estimator.windows",
+    window="estimator.window",
+    windows="estimator.windows",
     evaluation="estimator.evaluation",
     offset_calibration_time="estimator.offset_calibration_time",
-    disturbance_observer="observer.disturbance_observer", predictor="observer.predictor",
+    disturbance_observer="observer.disturbance_observer",
+    predictor="observer.predictor",
     safety="supervisor",
-    model_error="faults.model_error", model_error_seed="faults.model_error_seed",
+    model_error="faults.model_error",
+    model_error_seed="faults.model_error_seed",
 )
 @dataclass
 class TorqueControlConfig:
@@ -313,7 +321,9 @@ class TorqueControlConfig:
             )
 
 
-def check_control_period(config: TorqueControlConfig, period: float, where: str = "") -> None:
+def check_control_period(
+    config: TorqueControlConfig, period: float, where: str = ""
+) -> None:
     """Raises ValueError unless `config.supervisor.period` is the control `period` (s):
     the robot's sensor period (a simulated station's
     `StationConfig.sensors_config().period`), one supervisor update per controller
@@ -329,7 +339,9 @@ def check_control_period(config: TorqueControlConfig, period: float, where: str 
         )
 
 
-def check_for_robot(config: TorqueControlConfig, robot: RobotDescription, where: str) -> None:
+def check_for_robot(
+    config: TorqueControlConfig, robot: RobotDescription, where: str
+) -> None:
     """Raises ValueError naming `where`.<field> (the path of `config` in the user's
     file, e.g. "ControlConfig.torque_control") unless `config` fits `robot`: its
     joints are the robot's, each once; `controller.kp` has one value or one per

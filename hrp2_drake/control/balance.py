@@ -715,14 +715,29 @@ class BalanceStep(Step):
         qp = copy.deepcopy(self.qp)
         arrays = (qp.H, qp.g, qp.A_eq, qp.b_eq, qp.A_in, qp.l_in, qp.u_in)
         balance_assemble(
-            self._M, self._h, self._Jf, self._zero3, x, np.zeros(self._n),
-            np.zeros(9), self._constants, self._table, self._H0,
-            self._J_com.copy(), self._a_com.copy(), arrays,
+            self._M,
+            self._h,
+            self._Jf,
+            self._zero3,
+            x,
+            np.zeros(self._n),
+            np.zeros(9),
+            self._constants,
+            self._table,
+            self._H0,
+            self._J_com.copy(),
+            self._a_com.copy(),
+            arrays,
         )
         state = self.state.copy()
         balance_outputs(
-            self._M, self._h, self._Jf, np.zeros(self._nv + self._nf),
-            self._corner_array, self._table, *self._output_views(state),
+            self._M,
+            self._h,
+            self._Jf,
+            np.zeros(self._nv + self._nf),
+            self._corner_array,
+            self._table,
+            *self._output_views(state),
         )
 
     def _output_views(self, state: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -817,15 +832,34 @@ class BalanceStep(Step):
         com = plant.CalcCenterOfMassPositionInWorld(context)
         self.com[:] = com
         balance_assemble(
-            M, h, self._Jf, com, self._x, q_ref, com_ref, self._constants,
-            self._table, self._H0, self._J_com, self._a_com, self._qp_arrays,
+            M,
+            h,
+            self._Jf,
+            com,
+            self._x,
+            q_ref,
+            com_ref,
+            self._constants,
+            self._table,
+            self._H0,
+            self._J_com,
+            self._a_com,
+            self._qp_arrays,
         )
 
     def _accept(self, solution: np.ndarray) -> None:
         """τ from a solution [v̇; f] (its joint rows) and the soles' wrenches."""
         balance_outputs(
-            self._M, self._h, self._Jf, solution, self._corner_array, self._table,
-            self.tau_desired, self.vdot, self.contact_forces, self.sole_wrenches,
+            self._M,
+            self._h,
+            self._Jf,
+            solution,
+            self._corner_array,
+            self._table,
+            self.tau_desired,
+            self.vdot,
+            self.contact_forces,
+            self.sole_wrenches,
         )
 
     def _fault(self, fault: int) -> int:

@@ -238,17 +238,16 @@ class DisturbanceObserverStep(Step):
         if out is None:
             out = np.empty(shape)
         elif (
-            out.shape != shape
-            or out.dtype != np.float64
-            or not out.flags.c_contiguous
+            out.shape != shape or out.dtype != np.float64 or not out.flags.c_contiguous
         ):
             raise ValueError(
                 f"{_WHERE}.raw_disturbance: out must be a C-contiguous float64 array "
                 f"of shape {shape}, got {out.dtype} {out.shape}"
             )
         rows = [
-            np.ascontiguousarray(np.broadcast_to(np.asarray(x, dtype=float), shape))
-            .reshape(-1, n)
+            np.ascontiguousarray(
+                np.broadcast_to(np.asarray(x, dtype=float), shape)
+            ).reshape(-1, n)
             for x in (delta_q, v, tau)
         ]
         _raw_disturbance_rows(*rows, self._constants, out.reshape(-1, n))

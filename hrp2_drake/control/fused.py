@@ -309,7 +309,12 @@ class FusedController:
         econfig = parts.estimator_config
         encoder_windows, sensor_windows = filter_windows(econfig)
         self.encoder_filter = SavitzkyGolayStep(
-            N, encoder_windows, 2, econfig.period, econfig.evaluation, span=econfig.span()
+            N,
+            encoder_windows,
+            2,
+            econfig.period,
+            econfig.evaluation,
+            span=econfig.span(),
         )
         num_values = self.layout.num_values
         self.sensor_filter = (
@@ -383,10 +388,15 @@ class FusedController:
         sizes = [self.state.size, layout.size, N, N, N, 6, 6]
         self._sources = np.zeros(sum(sizes))
         ends = np.cumsum(sizes)
-        (self._previous, self.sensor_buffer, self.q_ref, self.v_ref, self.vdot_ref,
-         self.f_ref, self._no_force) = (
-            self._sources[end - size : end] for size, end in zip(sizes, ends)
-        )
+        (
+            self._previous,
+            self.sensor_buffer,
+            self.q_ref,
+            self.v_ref,
+            self.vdot_ref,
+            self.f_ref,
+            self._no_force,
+        ) = (self._sources[end - size : end] for size, end in zip(sizes, ends))
         self.q_measured = self.sensor_buffer[layout.q_measured]
         self.sensor_values = self.sensor_buffer[layout.values]
         self.sensor_time = self.sensor_buffer[layout.stamps]
@@ -499,8 +509,13 @@ class FusedController:
         self._id_inputs = self.inverse_dynamics.inputs
         self._id_rows = self.inverse_dynamics.input_rows
         # In the order of `_gathered`'s names (`_make_buffers`).
-        gathered = [self.q_measured, self._p_q_hat, self._p_v_hat, self._p_vdot_hat,
-                    self._p_tau]
+        gathered = [
+            self.q_measured,
+            self._p_q_hat,
+            self._p_v_hat,
+            self._p_vdot_hat,
+            self._p_tau,
+        ]
         self._gather = np.concatenate([rows(view)[index] for view in gathered])
         # What the Δq controller reads besides: q_ref, τ̂ and the friction's q̂̇.
         self._q_ref_controlled = self._id_rows[0]
@@ -557,8 +572,14 @@ class FusedController:
         if self.sensor_filter is not None:
             self.sensor_filter.step(t, self.sensor_values)
         self.estimator.step(
-            t, self._p_q_hat, self._p_v_hat, self._p_vdot_hat,
-            self._p_acc, self._p_gyro, self._p_alpha, self._p_wrenches,
+            t,
+            self._p_q_hat,
+            self._p_v_hat,
+            self._p_vdot_hat,
+            self._p_acc,
+            self._p_gyro,
+            self._p_alpha,
+            self._p_wrenches,
         )
         # Eq. 12 from its input rows, filled in place by the take above.
         self.inverse_dynamics.step(t, *self._id_rows)
@@ -566,8 +587,15 @@ class FusedController:
         fault[0] = self._p_encoder_fault[0] + self._p_sensor_fault[0]
         q_ref = self._q_ref_controlled
         reason = self.torque.step(
-            t, self._p_tau_desired, self._tau_estimate, self._v_friction,
-            q_measured, q_ref, fault, self._p_terms, self._p_disturbance,
+            t,
+            self._p_tau_desired,
+            self._tau_estimate,
+            self._v_friction,
+            q_measured,
+            q_ref,
+            fault,
+            self._p_terms,
+            self._p_disturbance,
         )
         if reason:
             self._record(t, EventKind.CONTROLLER_FALLBACK, reason)
@@ -580,8 +608,14 @@ class FusedController:
             merged[:] = self.q_ref
             merged[self._index] = self._p_q_cmd_controlled
             bits = self.supervisor.step(
-                t, merged, self.q_ref, self.q_measured, self.sensor_values,
-                None, self._p_fallback, self.sensor_time,
+                t,
+                merged,
+                self.q_ref,
+                self.q_measured,
+                self.sensor_values,
+                None,
+                self._p_fallback,
+                self.sensor_time,
             )
             if bits:
                 self._record(t, EventKind.SUPERVISOR_FAULT, bits)
@@ -693,13 +727,16 @@ class FusedTorqueController(WitnessFreeLeafSystem):
         q_ref_port = self._reference_ports[0][0]
         self._q_cmd_out = np.zeros(N)
         self.DeclareVectorOutputPort(
-            "q_cmd", N, self._calc_q_cmd,
+            "q_cmd",
+            N,
+            self._calc_q_cmd,
             prerequisites_of_calc={self.xd_ticket(), q_ref_port.ticket()},
         )
         for name, view in fused.signals().items():
             rows = self._rows_of(view)
             self.DeclareVectorOutputPort(
-                name, len(view),
+                name,
+                len(view),
                 lambda context, output, rows=rows: output.SetFromVector(
                     context.get_discrete_state(self._group).get_value()[rows]
                 ),
@@ -709,10 +746,15 @@ class FusedTorqueController(WitnessFreeLeafSystem):
         if fused.sensor_filter is not None:
             fault_rows.append(self._rows_of(fused.sensor_filter.input_fault))
         self.DeclareVectorOutputPort(
-            "sensor_fault", 1,
+            "sensor_fault",
+            1,
             lambda context, output: output.SetFromVector(
-                [sum(context.get_discrete_state(self._group).get_value()[r][0]
-                     for r in fault_rows)]
+                [
+                    sum(
+                        context.get_discrete_state(self._group).get_value()[r][0]
+                        for r in fault_rows
+                    )
+                ]
             ),
             prerequisites_of_calc=state_only,
         )

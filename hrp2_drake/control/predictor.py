@@ -361,8 +361,12 @@ class DelayPredictorStep(Step):
         """The kernel indexes the state as v_predicted, tau_predicted,
         wrench_predicted, input_fault, counters, ring."""
         n, k, M = self._n, self._k, self._steps
-        starts = {"v_predicted": 0, "tau_predicted": n, "input_fault": 2 * n + k,
-                  "counters": 2 * n + k + 1}
+        starts = {
+            "v_predicted": 0,
+            "tau_predicted": n,
+            "input_fault": 2 * n + k,
+            "counters": 2 * n + k + 1,
+        }
         if k:
             starts["wrench_predicted"] = 2 * n
         if M:

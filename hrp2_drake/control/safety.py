@@ -124,9 +124,15 @@ class SafetyConfig:
     def validate(self) -> None:
         where = "SafetyConfig"
         positive = (
-            "period", "ramp_time", "encoder_motion", "encoder_jump_speed",
-            "force_limit", "torque_limit", "acceleration_limit",
-            "angular_velocity_limit", "stale_time",
+            "period",
+            "ramp_time",
+            "encoder_motion",
+            "encoder_jump_speed",
+            "force_limit",
+            "torque_limit",
+            "acceleration_limit",
+            "angular_velocity_limit",
+            "stale_time",
         )
         for name in positive:
             value = getattr(self, name)
@@ -169,9 +175,21 @@ _HOLD = _MEMORY + 4
 
 # The rows of the step's constants (`SafetySupervisorStep._constants`, packed once at
 # construction), then the range of each monitored sensor entry (s rows).
-(_C_PERIOD, _C_RAMP, _C_START, _C_REENTRY, _C_MAX_REENTRIES, _C_STALE_SAMPLES,
- _C_STALE_COUNT, _C_JUMP, _C_ENCODER_STALE, _C_ENCODER_MOTION, _C_STALE_TIME,
- _C_STAMPS, _C_LIMITS) = range(13)
+(
+    _C_PERIOD,
+    _C_RAMP,
+    _C_START,
+    _C_REENTRY,
+    _C_MAX_REENTRIES,
+    _C_STALE_SAMPLES,
+    _C_STALE_COUNT,
+    _C_JUMP,
+    _C_ENCODER_STALE,
+    _C_ENCODER_MOTION,
+    _C_STALE_TIME,
+    _C_STAMPS,
+    _C_LIMITS,
+) = range(13)
 
 #: What a kernel gets for an input that is not connected (None): no entries.
 _ABSENT = np.zeros(0)
@@ -179,8 +197,17 @@ _ABSENT = np.zeros(0)
 
 @kernel
 def _supervise(
-    t, state, constants, q_torque, q_position, q_measured, sensors, e_stop,
-    controller_fallback, sensor_time, stamped,
+    t,
+    state,
+    constants,
+    q_torque,
+    q_position,
+    q_measured,
+    sensors,
+    e_stop,
+    controller_fallback,
+    sensor_time,
+    stamped,
 ):
     """`SafetySupervisorStep.step`'s arithmetic, in place on `state` (the step's flat
     state): the health checks, the mode and the memory; returns the fault bits when a
@@ -460,7 +487,10 @@ class SafetySupervisorStep(Step):
         # The kernels' layout of the state (_MODE, ...): the declarations above.
         names = ("mode", "fault", "transition", "memory")
         starts = [self.rows(name).start for name in names]
-        if starts != [_MODE, _FAULT, _TRANSITION, _MEMORY] or self._hold_rows.start != 4:
+        if (
+            starts != [_MODE, _FAULT, _TRANSITION, _MEMORY]
+            or self._hold_rows.start != 4
+        ):
             raise AssertionError("SafetySupervisorStep: the state layout changed")
 
     def _views_changed(self) -> None:
@@ -509,9 +539,17 @@ class SafetySupervisorStep(Step):
         state = self._state.copy()
         zeros = np.zeros(self._n)
         _supervise(
-            0.0, state, self._constants, zeros, zeros, zeros,
-            np.zeros(self._sensor_size), np.zeros(1), np.zeros(1),
-            np.zeros(self._num_stamps), True,
+            0.0,
+            state,
+            self._constants,
+            zeros,
+            zeros,
+            zeros,
+            np.zeros(self._sensor_size),
+            np.zeros(1),
+            np.zeros(1),
+            np.zeros(self._num_stamps),
+            True,
         )
         _command(state, zeros, zeros, np.zeros(1), np.zeros(self._n))
 
@@ -547,7 +585,13 @@ class SafetySupervisorStep(Step):
             caller: the step never logs), else 0.
         """
         return _supervise(
-            t, self._state, self._constants, q_torque, q_position, q_measured, sensors,
+            t,
+            self._state,
+            self._constants,
+            q_torque,
+            q_position,
+            q_measured,
+            sensors,
             _ABSENT if e_stop is None else e_stop,
             _ABSENT if controller_fallback is None else controller_fallback,
             _ABSENT if sensor_time is None else sensor_time,
@@ -568,8 +612,11 @@ class SafetySupervisorStep(Step):
         the e-stop's held pose replaces q_position (the kernel `_command`). Returns
         `out`."""
         _command(
-            self._state, q_torque, q_position,
-            _ABSENT if controller_fallback is None else controller_fallback, out,
+            self._state,
+            q_torque,
+            q_position,
+            _ABSENT if controller_fallback is None else controller_fallback,
+            out,
         )
         return out
 
@@ -615,7 +662,9 @@ class SafetySupervisor(StepSystem):
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
         self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
         self.DeclareVectorOutputPort(
-            "q_cmd", n, self._calc_q_cmd,
+            "q_cmd",
+            n,
+            self._calc_q_cmd,
             prerequisites_of_calc={
                 self.xd_ticket(),
                 self._q_torque.ticket(),
@@ -690,7 +739,9 @@ class SafetySupervisor(StepSystem):
         if new_fault:
             _logger.warning(
                 "SafetySupervisor %s: fault at t = %.6g s (%s): to position control",
-                self.GetSystemPathname(), t, describe_faults(new_fault),
+                self.GetSystemPathname(),
+                t,
+                describe_faults(new_fault),
             )
 
     # ----------------------------------------------------------------- output

@@ -46,6 +46,7 @@ DELTA_Q_COMPONENTS: tuple[str, ...] = (
     "feedback_disturbance",
 )
 
+
 class FallbackReason(IntEnum):
     """Why the controller fell back to position control (`fallback_reason`): the
     codes the step's kernel returns (`_delta_q_step`)."""
@@ -177,8 +178,20 @@ _FALLBACK = 12  # fallback_active at 12 n, fallback_reason and the integral afte
 _STATE_ROWS = 13  # the state has 13 n + 2 entries
 # Its constants (`DeltaQTorqueStep._constants`, packed once): rows of n, then the
 # scalars at _C_ROWS n.
-(_C_KP, _C_KI, _C_INTEGRAL_LIMIT, _C_DELTA_Q_LIMIT, _C_FALLBACK_LIMIT, _C_TAU_LIMIT,
- _C_K_TAU, _C_K_V, _C_K_C, _C_K_TAU_ONE_PLUS_KP, _C_K_TAU_KP, _C_K_TAU_KI) = range(12)
+(
+    _C_KP,
+    _C_KI,
+    _C_INTEGRAL_LIMIT,
+    _C_DELTA_Q_LIMIT,
+    _C_FALLBACK_LIMIT,
+    _C_TAU_LIMIT,
+    _C_K_TAU,
+    _C_K_V,
+    _C_K_C,
+    _C_K_TAU_ONE_PLUS_KP,
+    _C_K_TAU_KP,
+    _C_K_TAU_KI,
+) = range(12)
 _C_ROWS = 12
 _S_PERIOD, _S_COULOMB_VELOCITY, _S_INTEGRATES, _S_COMPENSATES, _S_COULOMB, _S_LATCH = (
     range(6)
@@ -325,8 +338,9 @@ def _delta_q_step(
             coulomb_velocity = c[scalars + _S_COULOMB_VELOCITY]
             for i in range(n):
                 e_tau = tau_desired[i] - tau_estimated[i]
-                integral = _clipped_integral(state[integral_row + i], e_tau, period,
-                                             c[_C_INTEGRAL_LIMIT * n + i])
+                integral = _clipped_integral(
+                    state[integral_row + i], e_tau, period, c[_C_INTEGRAL_LIMIT * n + i]
+                )
                 # τ* = τ_d + K_p e_τ + K_i ∫ e_τ dt [− d̂].
                 tau_star = tau_desired[i] + c[_C_KP * n + i] * e_tau
                 if integrates:
@@ -361,7 +375,10 @@ def _delta_q_step(
                 if has_terms:
                     feedforward = terms[0, i]
                     position, velocity, force, error = (
-                        terms[1, i], terms[2, i], terms[3, i], terms[4, i]
+                        terms[1, i],
+                        terms[2, i],
+                        terms[3, i],
+                        terms[4, i],
                     )
                 else:  # τ_ff = τ_d, the others zero
                     feedforward = tau_desired[i]
@@ -376,8 +393,9 @@ def _delta_q_step(
                     k_tau_kp * (feedforward - tau_estimated[i]) - error
                 )
                 e_tau = tau_desired[i] - tau_estimated[i]
-                integral = _clipped_integral(state[integral_row + i], e_tau, period,
-                                             c[_C_INTEGRAL_LIMIT * n + i])
+                integral = _clipped_integral(
+                    state[integral_row + i], e_tau, period, c[_C_INTEGRAL_LIMIT * n + i]
+                )
                 if integrates:  # (else feedback_torque_integral stays zero)
                     state[_FB_INTEGRAL * n + i] = c[_C_K_TAU_KI * n + i] * integral
                 if compensates:
@@ -526,8 +544,11 @@ class DeltaQTorqueStep(Step):
         names = ("q_cmd", "delta_q", "delta_q_unsaturated", "tau_commanded")
         expected = {name: k * n for k, name in enumerate(names + DELTA_Q_COMPONENTS)}
         active = _FALLBACK * n
-        expected |= {"fallback_active": active, "fallback_reason": active + 1,
-                     "tau_error_integral": active + 2}
+        expected |= {
+            "fallback_active": active,
+            "fallback_reason": active + 1,
+            "tau_error_integral": active + 2,
+        }
         actual = {name: rows.start for name, rows in self.layout()}
         if actual != expected or self.state_size != _STATE_ROWS * n + 2:
             raise AssertionError(f"{_WHERE}: the state layout is not the kernels'")
@@ -663,8 +684,20 @@ class DeltaQTorqueStep(Step):
         _clipped_integral(0.0, 0.0, 0.0, 1.0)
         _delta_q_hold(zeros, zeros, True, False, state)
         _delta_q_step(
-            False, zeros, zeros, zeros, zeros, zeros, True, self._no_fault,
-            self._no_terms, True, zeros, True, state, self._constants,
+            False,
+            zeros,
+            zeros,
+            zeros,
+            zeros,
+            zeros,
+            True,
+            self._no_fault,
+            self._no_terms,
+            True,
+            zeros,
+            True,
+            state,
+            self._constants,
         )
 
 

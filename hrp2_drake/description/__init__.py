@@ -133,7 +133,9 @@ class PositionLoopDescription:
         for name in ("output_per_gain", "gain"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"position_loop.{name}: must be finite and >= 0, got {value}")
+                raise ValueError(
+                    f"position_loop.{name}: must be finite and >= 0, got {value}"
+                )
         if not self.output_limit > 0:
             raise ValueError(
                 f"position_loop.output_limit: must be > 0, got {self.output_limit}"
@@ -226,7 +228,9 @@ class RobotDescription:
     contacts: ContactsDescription = field(default_factory=ContactsDescription)
     identification: CollectionConfig = field(default_factory=CollectionConfig)
     logs: LogFormat = field(default_factory=LogFormat)
-    position_loop: PositionLoopDescription = field(default_factory=PositionLoopDescription)
+    position_loop: PositionLoopDescription = field(
+        default_factory=PositionLoopDescription
+    )
     bus: BusDescription = field(default_factory=BusDescription)
     published_motor_model: dict[str, list[float]] = field(default_factory=dict)
     #: The description file (set by the loader; paths are relative to its folder).
@@ -249,7 +253,9 @@ class RobotDescription:
             raise ValueError(f"base: '{self.base}', expected one of {BASES}")
         if not self.base_body:
             raise ValueError("base_body: empty")
-        if len(self.base_pose) != 6 or not all(math.isfinite(v) for v in self.base_pose):
+        if len(self.base_pose) != 6 or not all(
+            math.isfinite(v) for v in self.base_pose
+        ):
             raise ValueError(
                 f"base_pose: expected 6 finite numbers [x, y, z, roll, pitch, yaw], "
                 f"got {self.base_pose}"
@@ -401,7 +407,9 @@ class RobotDescription:
             (instance,) = Parser(plant).AddModels(str(self.model_path()))
         else:
             if self.model_path().suffix.lower() != ".urdf":
-                raise ValueError(f"model_error needs a URDF model, got '{self.model_file}'")
+                raise ValueError(
+                    f"model_error needs a URDF model, got '{self.model_file}'"
+                )
             text = _perturbed_urdf(self.model_path().read_text(), model_error, seed)
             parser = Parser(plant)
             parser.package_map().PopulateFromFolder(str(self.folder))
@@ -413,11 +421,14 @@ class RobotDescription:
             base = plant.GetBodyByName(self.base_body, instance)
             welded = any(
                 plant.get_joint(j).child_body().index() == base.index()
-                and plant.get_joint(j).parent_body().index() == plant.world_body().index()
+                and plant.get_joint(j).parent_body().index()
+                == plant.world_body().index()
                 for j in plant.GetJointIndices(instance)
             )
             if not welded:
-                plant.WeldFrames(plant.world_frame(), base.body_frame(), self.base_transform())
+                plant.WeldFrames(
+                    plant.world_frame(), base.body_frame(), self.base_transform()
+                )
         return instance
 
     def make_plant(
@@ -484,8 +495,13 @@ class RobotDescription:
                 "model (is it welded to the world?)"
             )
         if self.base == "fixed" and plant.GetFloatingBaseBodies():
-            names = [plant.get_body(BodyIndex(b)).name() for b in plant.GetFloatingBaseBodies()]
-            raise ValueError(f"base: 'fixed', but the model has floating bodies {names}")
+            names = [
+                plant.get_body(BodyIndex(b)).name()
+                for b in plant.GetFloatingBaseBodies()
+            ]
+            raise ValueError(
+                f"base: 'fixed', but the model has floating bodies {names}"
+            )
         return base
 
     def _check_joints(self, plant: MultibodyPlant) -> None:
@@ -513,7 +529,8 @@ class RobotDescription:
                 f"of freedom; not listed: {missing}"
             )
         actuated = {
-            plant.get_joint_actuator(a).joint().name() for a in plant.GetJointActuatorIndices()
+            plant.get_joint_actuator(a).joint().name()
+            for a in plant.GetJointActuatorIndices()
         }
         unactuated = [name for name in self.joints if name not in actuated]
         if unactuated:
@@ -530,7 +547,9 @@ class RobotDescription:
         for name, sensor in self.force_torque_sensors.items():
             where = f"force_torque_sensors.{name}"
             if not plant.HasFrameNamed(sensor.frame):
-                raise ValueError(f"{where}.frame: no frame '{sensor.frame}' in the model")
+                raise ValueError(
+                    f"{where}.frame: no frame '{sensor.frame}' in the model"
+                )
             frame = plant.GetFrameByName(sensor.frame)
             body_name = sensor.body or frame.body().name()
             if not plant.HasBodyNamed(body_name):
@@ -591,29 +610,35 @@ class RobotDescription:
                 raise ValueError(f"{key}: no frame '{value}' in the model")
         for k, name in enumerate(self.scenarios.block.joints):
             if name not in self.joints:
-                raise ValueError(f"scenarios.block.joints[{k}]: '{name}' is not in joints")
-        for k, name in enumerate(
-            s.joint for s in self.identification.sinusoids
-        ):
+                raise ValueError(
+                    f"scenarios.block.joints[{k}]: '{name}' is not in joints"
+                )
+        for k, name in enumerate(s.joint for s in self.identification.sinusoids):
             if name not in self.joints:
                 raise ValueError(
                     f"identification.sinusoids[{k}].joint: '{name}' is not in joints"
                 )
         push = self.identification.pushes.body
         if push and not plant.HasBodyNamed(push):
-            raise ValueError(f"identification.pushes.body: no body '{push}' in the model")
+            raise ValueError(
+                f"identification.pushes.body: no body '{push}' in the model"
+            )
 
     def _check_home(self, plant: MultibodyPlant) -> None:
         """The home pose is within the model's joint limits."""
         home = self.home_positions()
         for j, name in enumerate(self.joints):
             joint = plant.GetJointByName(name)
-            low, high = joint.position_lower_limits()[0], joint.position_upper_limits()[0]
+            low, high = (
+                joint.position_lower_limits()[0],
+                joint.position_upper_limits()[0],
+            )
             if not low - 1e-9 <= home[j] <= high + 1e-9:
                 raise ValueError(
                     f"initial_positions[{j}]: {name} = {home[j]:.6g} rad is outside its "
                     f"limits [{low:.6g}, {high:.6g}]"
                 )
+
 
 @functools.lru_cache(maxsize=8)
 def _joint_limits(source_file: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -659,7 +684,9 @@ def _perturbed_urdf(text: str, error: float, seed: int) -> str:
     rng = np.random.default_rng(seed)
     root = ElementTree.fromstring(text)
     for inertial in root.iter("inertial"):
-        mass_scale, com_scale = (float(v) for v in 1.0 + error * rng.uniform(-1.0, 1.0, 2))
+        mass_scale, com_scale = (
+            float(v) for v in 1.0 + error * rng.uniform(-1.0, 1.0, 2)
+        )
         mass = inertial.find("mass")
         mass.set("value", f"{float(mass.get('value')) * mass_scale:.9g}")
         inertia = inertial.find("inertia")
@@ -714,7 +741,9 @@ def _load(path: str, mtime: int, check: bool) -> RobotDescription:
     description = load_config(RobotDescription, filename=path)
     description.source_file = path
     if not description.model_path().is_file():
-        raise FileNotFoundError(f"{path}: model_file: '{description.model_path()}' not found")
+        raise FileNotFoundError(
+            f"{path}: model_file: '{description.model_path()}' not found"
+        )
     trajectory = description.trajectory_file
     if trajectory and not description.path(trajectory).is_file():
         raise ValueError(

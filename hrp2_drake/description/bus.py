@@ -126,22 +126,36 @@ class DynamixelModel:
 
     def describe_hardware_error(self, bits: int) -> str:
         """The Hardware Error Status bits in words ("overload, overheating")."""
-        names = [text for bit, text in enumerate(self.hardware_errors) if text and bits >> bit & 1]
+        names = [
+            text
+            for bit, text in enumerate(self.hardware_errors)
+            if text and bits >> bit & 1
+        ]
         return ", ".join(names) or f"status 0x{bits:02x}"
 
     def validate(self, name: str = "") -> None:
         where = f"dynamixel model {name}"
         if not self.model_number:
             raise ValueError(f"{where}: model_number missing")
-        needed = ("model_number", "id", "return_delay_time", "operating_mode",
-                  "torque_enable", "hardware_error_status", "position_p_gain",
-                  "goal_position", "present_position")
+        needed = (
+            "model_number",
+            "id",
+            "return_delay_time",
+            "operating_mode",
+            "torque_enable",
+            "hardware_error_status",
+            "position_p_gain",
+            "goal_position",
+            "present_position",
+        )
         missing = [item for item in needed if item not in self.registers]
         if missing:
             raise ValueError(f"{where}: registers {missing} missing")
         for item, register in self.registers.items():
             if register.size not in (1, 2, 4) or register.access not in ("R", "RW"):
-                raise ValueError(f"{where}: register {item}: size 1, 2 or 4 and access R or RW")
+                raise ValueError(
+                    f"{where}: register {item}: size 1, 2 or 4 and access R or RW"
+                )
 
 
 @dataclass
@@ -166,7 +180,9 @@ def dynamixel_model(name: str, where: str = "bus.model") -> DynamixelModel:
     known models."""
     models = dynamixel_models()
     if name not in models:
-        raise ValueError(f"{where}: unknown servo model '{name}' (known: {sorted(models)})")
+        raise ValueError(
+            f"{where}: unknown servo model '{name}' (known: {sorted(models)})"
+        )
     return models[name]
 
 
@@ -298,7 +314,9 @@ class BusDescription:
         if self.kind not in BUS_KINDS:
             raise ValueError(f"bus.kind: '{self.kind}', expected one of {BUS_KINDS}")
         if self.protocol != 2.0:
-            raise ValueError(f"bus.protocol: {self.protocol}, only Protocol 2.0 is supported")
+            raise ValueError(
+                f"bus.protocol: {self.protocol}, only Protocol 2.0 is supported"
+            )
         model = self.servo_model()
         if self.baud not in model.baud_rates:
             raise ValueError(
@@ -327,7 +345,9 @@ class BusDescription:
             raise ValueError(f"bus.direction: {self.direction}, each +1 or -1")
         delay = model.register("return_delay_time", "bus.return_delay")
         counts = self.return_delay / delay.unit
-        if not (0 <= counts <= delay.limits()[1] and abs(counts - round(counts)) < 1e-6):
+        if not (
+            0 <= counts <= delay.limits()[1] and abs(counts - round(counts)) < 1e-6
+        ):
             raise ValueError(
                 f"bus.return_delay: {self.return_delay} s is not a whole number of "
                 f"{delay.unit * 1e6:g} µs from 0 to {delay.limits()[1] * delay.unit * 1e6:g} µs"
@@ -341,7 +361,9 @@ class BusDescription:
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"bus.{name}: {value} must be finite and >= 0")
         if not (isinstance(self.silent_periods, int) and self.silent_periods >= 1):
-            raise ValueError(f"bus.silent_periods: {self.silent_periods!r}, an integer >= 1")
+            raise ValueError(
+                f"bus.silent_periods: {self.silent_periods!r}, an integer >= 1"
+            )
 
     # ---------------------------------------------------------------- units
 
@@ -350,7 +372,9 @@ class BusDescription:
         return 2 * math.pi / self.servo_model().pulses_per_turn
 
     def _zero(self) -> np.ndarray:
-        return np.array(self.zero or [self.servo_model().pulses_per_turn // 2] * len(self.ids))
+        return np.array(
+            self.zero or [self.servo_model().pulses_per_turn // 2] * len(self.ids)
+        )
 
     def _direction(self) -> np.ndarray:
         return np.array(self.direction or [1] * len(self.ids), dtype=float)
@@ -420,7 +444,9 @@ def bus_for_period(bus: BusDescription, period: float) -> tuple[BusDescription, 
     return fastest, note
 
 
-def check_bus_period(bus: BusDescription, period: float, where: str = "sensors.period") -> None:
+def check_bus_period(
+    bus: BusDescription, period: float, where: str = "sensors.period"
+) -> None:
     """Raises ValueError naming `where` if `period` (s) is shorter than one period's
     traffic on `bus` (`BusTiming.cycle`), with the budget."""
     if not bus.active:

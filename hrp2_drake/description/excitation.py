@@ -90,14 +90,18 @@ class CollectionConfig:
     def validate(self) -> None:
         for s in self.sinusoids:
             if not (0 < s.amplitude_start <= s.amplitude_end and s.duration > 0):
-                raise ValueError(f"CollectionConfig.sinusoids[{s.joint}]: bad amplitudes/duration")
+                raise ValueError(
+                    f"CollectionConfig.sinusoids[{s.joint}]: bad amplitudes/duration"
+                )
         if self.pushes.extra_ramps < 0:
             raise ValueError("CollectionConfig.pushes.extra_ramps must be >= 0")
 
     def is_empty(self) -> bool:
         return not (self.sinusoids or self.pushes.body)
 
-    def scaled(self, duration_scale: float, seed: int | None = None) -> "CollectionConfig":
+    def scaled(
+        self, duration_scale: float, seed: int | None = None
+    ) -> "CollectionConfig":
         """A copy shortened (or lengthened) by `duration_scale`: the pushes' random
         ramps and the sinusoids' durations (each at least 2 s) scale, the 12
         single-axis pushes stay; `seed` replaces the pushes' seed if given."""

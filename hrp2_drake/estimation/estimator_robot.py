@@ -84,9 +84,7 @@ class EstimatorRobot:
         welded.discard(int(world.index()))
         if config.base_body:
             if not plant.HasBodyNamed(config.base_body):
-                raise KeyError(
-                    f"{WHERE}: base body '{config.base_body}' is not a body"
-                )
+                raise KeyError(f"{WHERE}: base body '{config.base_body}' is not a body")
             base = plant.GetBodyByName(config.base_body)
             if base.is_floating_base_body():
                 return base, False
@@ -193,9 +191,7 @@ class EstimatorRobot:
             return None
         imu = get_frame(plant, config.imu_frame, "IMU frame")
         if imu.body().index() == plant.world_body().index():
-            raise ValueError(
-                f"{WHERE}: IMU frame '{config.imu_frame}' is on the world"
-            )
+            raise ValueError(f"{WHERE}: IMU frame '{config.imu_frame}' is on the world")
         if int(imu.body().index()) not in self.parent:
             raise ValueError(
                 f"{WHERE}: IMU frame '{config.imu_frame}' is on body "

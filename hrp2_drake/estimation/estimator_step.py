@@ -368,9 +368,7 @@ class TorqueEstimatorStep(Step):
         sizes = [nq + nv, nv, 6 * k, 6 * k, self._n + 6, 6, 12 * num_pairs, 36, self._n]
         self._work = np.zeros(sum(sizes))
         self._work_starts = np.cumsum([0, *sizes[:-1]])
-        x, vdot, raw, _, _, _, poses, _, _ = np.split(
-            self._work, self._work_starts[1:]
-        )
+        x, vdot, raw, _, _, _, poses, _, _ = np.split(self._work, self._work_starts[1:])
         self._x, self._vdot = x, vdot
         self._raw = raw.reshape(k, 6)
         self._poses = poses.reshape(num_pairs, 3, 4)
@@ -484,7 +482,6 @@ class TorqueEstimatorStep(Step):
         k = len(self._sensors)
         self._offsets = self.calibration[:-1].reshape(k, 6)
 
-
     # ----------------------------------------------------------------- construction
 
     def _check_rank(self, model: MultibodyPlant, frame) -> None:
@@ -511,7 +508,6 @@ class TorqueEstimatorStep(Step):
                 f"wrench on '{frame.body().name()}' and the torques are not "
                 "identifiable"
             )
-
 
     # ----------------------------------------------------------------- accessors
 
@@ -787,4 +783,3 @@ class TorqueEstimatorStep(Step):
             else check_vector("imu_angular_acceleration", alpha, 3, WHERE)
         )
         return gyro, alpha, acc
-

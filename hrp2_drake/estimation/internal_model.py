@@ -47,7 +47,6 @@ class ModelSensor:
     rows: np.ndarray | None = None  # its 6 velocities
 
 
-
 def internal_model(
     plant: MultibodyPlant,
     context: Context,

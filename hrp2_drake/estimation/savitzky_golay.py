@@ -221,7 +221,9 @@ def savgol_step(t, signal, state, constants):
     k = int(constants[_SIGNALS])
     rows = int(constants[_ROWS])
     if signal.shape[0] != k:
-        raise ValueError("SavitzkyGolayStep.step: the signal's size is not num_signals()")
+        raise ValueError(
+            "SavitzkyGolayStep.step: the signal's size is not num_signals()"
+        )
     # Views with indices from 0 (no wraparound test per access, distinct arrays: the
     # innermost loops vectorise).
     ring = int(constants[_RING])
@@ -273,7 +275,9 @@ def savgol_step(t, signal, state, constants):
         weights = constants[_WEIGHTS:]
         if constants[_SHARED] != 0.0:
             shared = weights.reshape((rows, N))
-            for j in range(N):  # window column j (0 = oldest): ring row (row + 1 + j) % N
+            for j in range(
+                N
+            ):  # window column j (0 = oldest): ring row (row + 1 + j) % N
                 x = samples[(row + 1 + j) % N]
                 for d in range(rows):
                     w = shared[d, j]
@@ -384,7 +388,11 @@ class SavitzkyGolayStep(Step):
             weights = np.stack([padded[n] for n in self._windows], axis=2)
         header = np.zeros(_WEIGHTS)
         header[[_DELAY, _SPAN, _SIGNALS, _ROWS, _SHARED]] = [
-            self._delay, N, k, rows, float(shared)
+            self._delay,
+            N,
+            k,
+            rows,
+            float(shared),
         ]
         ring, fit = self.rows("ring"), self.rows("value")
         time, fault = self.rows("evaluation_time"), self.rows("input_fault")
@@ -392,7 +400,10 @@ class SavitzkyGolayStep(Step):
             # The kernel writes the estimates as one (order + 1, k) block.
             raise AssertionError("SavitzkyGolayStep: the estimates are not contiguous")
         header[[_RING, _FIT, _TIME, _FAULT]] = [
-            ring.start, fit.start, time.start, fault.start
+            ring.start,
+            fit.start,
+            time.start,
+            fault.start,
         ]
         return np.concatenate([header, weights.reshape(-1)])
 
@@ -454,7 +465,9 @@ class SavitzkyGolayStep(Step):
         """Compiles (or loads) `savgol_step` for a tick's types: t a float, the signal
         and the state C-contiguous float64 vectors (a step's state, bound or not, and
         the fused controller's signals are), on copies."""
-        savgol_step(0.0, np.zeros(self._num_signals), self._state.copy(), self._constants)
+        savgol_step(
+            0.0, np.zeros(self._num_signals), self._state.copy(), self._constants
+        )
 
 
 class SavitzkyGolayFilter(StepSystem):

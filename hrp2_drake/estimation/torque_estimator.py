@@ -193,7 +193,6 @@ class FloatingBaseTorqueEstimator(StepSystem):
     prismatic and weld joints besides; its force elements are ignored.
     """
 
-
     def __init__(self, plant: MultibodyPlant, config: TorqueEstimatorConfig):
         """
         Args:

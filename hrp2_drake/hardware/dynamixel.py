@@ -408,7 +408,8 @@ class DynamixelLink(RobotLink):
                 elif lag > timeout:
                     raise LoopFault(
                         f"{self.name}: the loop is {lag * 1e3:.0f} ms behind the bus "
-                        f"period ({self.period * 1e3:g} ms)", t
+                        f"period ({self.period * 1e3:g} ms)",
+                        t,
                     )
         self.started_ns = time.perf_counter_ns()
         self.reading = reading = self.bus.read()
@@ -445,7 +446,8 @@ class DynamixelLink(RobotLink):
             )
             raise LoopFault(
                 f"{self.bus.name(k)}: {what} in {self._failures[k]} periods in a row "
-                f"(silent_periods: {limit})", t
+                f"(silent_periods: {limit})",
+                t,
             )
 
     def send(self, q_cmd: np.ndarray, t: float) -> None:

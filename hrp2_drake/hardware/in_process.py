@@ -56,8 +56,14 @@ def run_in_process(
     return out
 
 
-def _tick_in_process(controller: FusedController, reference, t: float, first: bool,
-                     on_tick, command: np.ndarray) -> None:
+def _tick_in_process(
+    controller: FusedController,
+    reference,
+    t: float,
+    first: bool,
+    on_tick,
+    command: np.ndarray,
+) -> None:
     """One tick of an in-process run at t (s): the reference at t, the chain's
     initialization on the `first`, the tick and its command into `command`, wrapped
     by `on_tick(step)` if given (a timer)."""

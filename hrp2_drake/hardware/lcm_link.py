@@ -52,8 +52,14 @@ class LcmLink(RobotLink):
             channel (s).
     """
 
-    def __init__(self, robot: RobotDescription, transport: Transport,
-                 channels: LcmChannels, controller, wait_timeout: float = 10.0):
+    def __init__(
+        self,
+        robot: RobotDescription,
+        transport: Transport,
+        channels: LcmChannels,
+        controller,
+        wait_timeout: float = 10.0,
+    ):
         self.robot = robot
         self.transport = transport
         self.channels = channels = channels.resolved(robot)
@@ -102,7 +108,11 @@ class LcmLink(RobotLink):
 
     def _on_q_measured(self, data: bytes) -> None:
         self._seen.add(self.channels.q_measured)
-        newest = SignalCodec.timestamp(self._pending[-1][0]) if self._pending else self._last_stamp
+        newest = (
+            SignalCodec.timestamp(self._pending[-1][0])
+            if self._pending
+            else self._last_stamp
+        )
         if SignalCodec.timestamp(data) <= newest:
             self.refused += 1  # an old or repeated sample: not a new period
             return

@@ -23,18 +23,21 @@ class SignalCodec:
         n = len(self.names)
         self._head = self.FINGERPRINT + struct.pack(">i", n)
         self._tail = b"".join(
-            struct.pack(">I", len(name.encode()) + 1) + name.encode() + b"\0" for name in self.names
+            struct.pack(">I", len(name.encode()) + 1) + name.encode() + b"\0"
+            for name in self.names
         )
         self._size = len(self._head) + 8 * n + len(self._tail) + 8
         self._checked: bytes | None = None
 
     def encode(self, values: np.ndarray, time: float) -> bytes:
-        return b"".join((
-            self._head,
-            np.asarray(values, ">f8").tobytes(),
-            self._tail,
-            struct.pack(">q", int(round(time * 1e6))),
-        ))
+        return b"".join(
+            (
+                self._head,
+                np.asarray(values, ">f8").tobytes(),
+                self._tail,
+                struct.pack(">q", int(round(time * 1e6))),
+            )
+        )
 
     def values(self, data: bytes) -> np.ndarray:
         """The values (a read-only view on `data`); a ValueError naming the channel if
@@ -48,8 +51,10 @@ class SignalCodec:
         return struct.unpack_from(">q", data, len(data) - 8)[0] if data else -1
 
     def _check(self, data: bytes) -> None:
-        if len(data) == self._size and data[: len(self._head)] == self._head and (
-            data[self._size - 8 - len(self._tail) : self._size - 8] == self._tail
+        if (
+            len(data) == self._size
+            and data[: len(self._head)] == self._head
+            and (data[self._size - 8 - len(self._tail) : self._size - 8] == self._tail)
         ):
             self._checked = data
             return

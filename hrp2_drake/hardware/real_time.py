@@ -120,4 +120,3 @@ def check_time(value, name: str) -> None:
     """Raises ValueError naming `name` unless `value` is a time: finite, > 0 (s)."""
     if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
         raise ValueError(f"{name}: {value!r} must be a finite number > 0 (s)")
-

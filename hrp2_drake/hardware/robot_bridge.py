@@ -97,7 +97,9 @@ class RobotBridge:
         self._messages = [
             ([port(signal) for signal in channel.signals], name, codec)
             for channel, name, codec in zip(
-                layout.channels(), channels.sensors(robot), channels.codecs(robot),
+                layout.channels(),
+                channels.sensors(robot),
+                channels.codecs(robot),
                 strict=True,
             )
         ]

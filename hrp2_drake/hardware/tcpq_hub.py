@@ -62,7 +62,9 @@ class LcmTcpqHub:
         self._selector.register(self._listener, selectors.EVENT_READ)
         self._clients: dict[socket.socket, _Client] = {}
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, name="lcm-tcpq-hub", daemon=True)
+        self._thread = threading.Thread(
+            target=self._serve, name="lcm-tcpq-hub", daemon=True
+        )
         self._thread.start()
 
     @property
@@ -109,7 +111,9 @@ class LcmTcpqHub:
     def _receive(self, sock: socket.socket) -> None:
         try:
             data = sock.recv(65536)
-            if hasattr(socket, "TCP_QUICKACK"):  # ack at once: the client sends in pieces
+            if hasattr(
+                socket, "TCP_QUICKACK"
+            ):  # ack at once: the client sends in pieces
                 sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_QUICKACK, 1)
         except OSError:
             data = b""
@@ -173,8 +177,11 @@ def main() -> None:
     try:
         hub = LcmTcpqHub(args.port)
     except OSError as error:
-        print(f"tcpq_hub: error: cannot listen on 127.0.0.1:{args.port}: "
-              f"{error.strerror or error}", file=sys.stderr)
+        print(
+            f"tcpq_hub: error: cannot listen on 127.0.0.1:{args.port}: "
+            f"{error.strerror or error}",
+            file=sys.stderr,
+        )
         sys.exit(2)
     print(f"LCM tcpq hub on {hub.url}", flush=True)
     try:

@@ -166,7 +166,12 @@ class TcpqTransport:
     @staticmethod
     def _packet(channel: str, data: bytes) -> bytes:
         name = channel.encode()
-        return struct.pack(">II", PUBLISH, len(name)) + name + struct.pack(">I", len(data)) + data
+        return (
+            struct.pack(">II", PUBLISH, len(name))
+            + name
+            + struct.pack(">I", len(data))
+            + data
+        )
 
     def _send(self, packet: bytes) -> None:
         if self._closed:
@@ -180,7 +185,9 @@ class TcpqTransport:
                 continue
             except OSError as error:
                 self._closed = True
-                raise TransportClosed(f"{self.url}: the hub went away ({error})") from None
+                raise TransportClosed(
+                    f"{self.url}: the hub went away ({error})"
+                ) from None
             view = view[sent:]
 
     def handle(self, timeout: float) -> int:

@@ -100,9 +100,9 @@ def noncausal_torques(
     q, v, vdot = savgol_filter_offline(log.q_measured[:, columns], dt, window, 2)
     if imu:  # else a fixed base: the estimator knows its motion (none) and gravity
         sensors = log.sensors
-        acc = savgol_filter_offline(
-            sensors["imu_linear_acceleration"], dt, window, 1
-        )[0]
+        acc = savgol_filter_offline(sensors["imu_linear_acceleration"], dt, window, 1)[
+            0
+        ]
         gyro, alpha, _ = savgol_filter_offline(
             sensors["imu_angular_velocity"], dt, window, 1
         )
@@ -113,7 +113,9 @@ def noncausal_torques(
         )[0]
     estimates = [
         estimator.estimate(
-            q[k], v[k], vdot[k],
+            q[k],
+            v[k],
+            vdot[k],
             *((acc[k], gyro[k], alpha[k]) if imu else (None, None, None)),
             wrenches[k],
             offsets,
@@ -160,7 +162,14 @@ def noncausal_estimates(
         for label in (log.phase, log.excited_joint)
     ]
     return IdentificationData(
-        t[keep], q, v, vdot, tau, delta_q[keep], *labels, tau_true,
+        t[keep],
+        q,
+        v,
+        vdot,
+        tau,
+        delta_q[keep],
+        *labels,
+        tau_true,
     )
 
 

@@ -44,7 +44,6 @@ from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
 PHASE_TRANSITION, PHASE_HIGH_TORQUE, PHASE_HIGH_VELOCITY = 0, 1, 2
 
 
-
 @dataclass
 class ExcitationPlan:
     """What the collection commands: joint references, pushes, and per-sample labels."""
@@ -99,7 +98,9 @@ def make_plan(
     return plan.plan()
 
 
-def _joint_index(config: CollectionConfig, joint_names: Sequence[str]) -> dict[str, int]:
+def _joint_index(
+    config: CollectionConfig, joint_names: Sequence[str]
+) -> dict[str, int]:
     """{joint name: index}; a KeyError names a joint of `config` not in joint_names."""
     index = {name: i for i, name in enumerate(joint_names)}
     for s in config.sinusoids:
@@ -200,7 +201,9 @@ class _PlanSamples:
         """The plan of these samples."""
         # C1, no overshoot between the dense samples (10 ms on the sinusoids).
         q_traj = PiecewisePolynomial.CubicShapePreserving(
-            np.array(self.times), np.array(self.poses).T, zero_end_point_derivatives=True
+            np.array(self.times),
+            np.array(self.poses).T,
+            zero_end_point_derivatives=True,
         )
         wrench_traj = PiecewisePolynomial.FirstOrderHold(
             np.array(self.wrench_t), np.array(self.wrenches).T
@@ -256,12 +259,19 @@ def collect(
     builder.AddNamedSystem("station", station)
     q_source = builder.AddNamedSystem("q_cmd_source", TrajectorySource(plan.q_cmd))
     builder.Connect(q_source.get_output_port(), station.GetInputPort("q_cmd"))
-    wrench_source = builder.AddNamedSystem("wrench_source", TrajectorySource(plan.wrench))
+    wrench_source = builder.AddNamedSystem(
+        "wrench_source", TrajectorySource(plan.wrench)
+    )
     if push_body_index is not None:
         push = builder.AddNamedSystem("push", PushSource(push_body_index, push_point))
         builder.Connect(wrench_source.get_output_port(), push.get_input_port())
-        builder.Connect(push.get_output_port(), station.GetInputPort("applied_spatial_force"))
-    ports = {"q_cmd": q_source.get_output_port(), "applied_wrench": wrench_source.get_output_port()}
+        builder.Connect(
+            push.get_output_port(), station.GetInputPort("applied_spatial_force")
+        )
+    ports = {
+        "q_cmd": q_source.get_output_port(),
+        "applied_wrench": wrench_source.get_output_port(),
+    }
     for i in range(station.num_output_ports()):
         port = station.get_output_port(i)
         name = port.get_name()
@@ -287,5 +297,3 @@ def collect(
     log["phase"] = phase
     log["excited_joint"] = joint
     return log
-
-

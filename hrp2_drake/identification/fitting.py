@@ -64,9 +64,7 @@ def fit_least_squares(
     A = _regressor(tau, v, coulomb, where)
     A_hat, b_hat, scale = _scaled_problem(A, delta_q, where)
     x_hat = np.linalg.lstsq(A_hat, b_hat, rcond=None)[0]  # eq. 7
-    return _linear_model(
-        joint_name, x_hat * scale, "least_squares", 0, tau, v, delta_q
-    )
+    return _linear_model(joint_name, x_hat * scale, "least_squares", 0, tau, v, delta_q)
 
 
 def fit_asymmetric(

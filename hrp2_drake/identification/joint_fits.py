@@ -218,8 +218,12 @@ def identify_logs(
     reference = min(gains) if gains[0] is not None else 0.0
     estimator = FloatingBaseTorqueEstimator(robot.make_plant(), estimator_config(robot))
     data = estimate_logs(
-        logs, estimator, config.window, config.stride,
-        robot.position_loop.saturation_error, config.saturation_margin,
+        logs,
+        estimator,
+        config.window,
+        config.stride,
+        robot.position_loop.saturation_error,
+        config.saturation_margin,
     )
     if reference:
         data.delta_q = data.delta_q * (data.gain / reference)[:, None]
@@ -232,8 +236,15 @@ def identify_logs(
     usable = data.usable & (data.phase != PHASE_TRANSITION)
     columns = {name: i for i, name in enumerate(estimator.config().joints)}
     results = [
-        _identify_joint(config, data, usable & ~data.saturated[:, columns[name]], held,
-                        columns[name], name, reference)
+        _identify_joint(
+            config,
+            data,
+            usable & ~data.saturated[:, columns[name]],
+            held,
+            columns[name],
+            name,
+            reference,
+        )
         for name in config.identified_joints(robot)
     ]
     chosen = MotorModel.from_joints({r.joint: r.models[config.fit] for r in results})
@@ -250,7 +261,16 @@ def identify_logs(
     }
     train = usable & ~held & ~data.saturated.any(axis=1)  # of every joint
     return IdentificationResult(
-        results, data, held, train, config, robot, chosen, rms, peak, reference,
+        results,
+        data,
+        held,
+        train,
+        config,
+        robot,
+        chosen,
+        rms,
+        peak,
+        reference,
         excluded,
     )
 
@@ -394,9 +414,7 @@ def _breakpoints(guess: tuple[float, float]) -> str:
 
 
 def _failures(failed: list[tuple[tuple[float, float], str]]) -> str:
-    """"from (-0.5, 0.5) and (-2, 2) it did not converge (<reasons>)"."""
+    """ "from (-0.5, 0.5) and (-2, 2) it did not converge (<reasons>)"."""
     guesses = " and ".join(_breakpoints(g) for g, _ in failed)
     reasons = "; ".join(dict.fromkeys(why for _, why in failed))
     return f"from {guesses} it did not converge ({reasons})"
-
-

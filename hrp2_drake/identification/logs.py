@@ -153,7 +153,8 @@ class RobotLog:
             joint_names=list(joint_names),
             raw_rate=float(1.0 / np.median(np.diff(t))),
             sensors={
-                k: np.asarray(v, float) for k, v in arrays.items()
+                k: np.asarray(v, float)
+                for k, v in arrays.items()
                 if k in IMU_LOG_SIGNALS or k.startswith("wrench_")
             },
             phase=labels.get("phase"),
@@ -181,10 +182,14 @@ class RobotLog:
             return None if array is None else array[keep]
 
         return dataclasses.replace(
-            self, t=self.t[keep] - self.t[keep][0], q_measured=self.q_measured[keep],
-            q_cmd=self.q_cmd[keep], valid=self.valid[keep],
+            self,
+            t=self.t[keep] - self.t[keep][0],
+            q_measured=self.q_measured[keep],
+            q_cmd=self.q_cmd[keep],
+            valid=self.valid[keep],
             sensors={k: v[keep] for k, v in self.sensors.items()},
-            phase=part(self.phase), excited_joint=part(self.excited_joint),
+            phase=part(self.phase),
+            excited_joint=part(self.excited_joint),
             tau_true=part(self.tau_true),
         )
 
@@ -259,7 +264,8 @@ def read_csv(path: Path, log_format: LogFormat) -> RawLog:
     except UnicodeDecodeError:
         raise ValueError(f"{path}: not a text (UTF-8) file, expected CSV") from None
     lines = [
-        line for line in text.splitlines()
+        line
+        for line in text.splitlines()
         if line.strip() and not line.lstrip().startswith("#")
     ]
     rows = list(csv.reader(lines))
@@ -447,8 +453,10 @@ def _gain(raw: RawLog, log_format: LogFormat, source: str) -> float | None:
         value = values[0]
     else:
         return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
-        math.isfinite(value) and value > 0
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, float))
+        or not (math.isfinite(value) and value > 0)
     ):
         raise ValueError(
             f"{source}: gain '{key}' (logs.gain) is {value!r}, expected a number > 0"
@@ -464,7 +472,10 @@ def _from_npz(path: Path, joint_names: Sequence[str], command: bool) -> RobotLog
     if "q_cmd" not in log:  # estimation only: the estimator reads no command
         log["q_cmd"] = log["q_measured"]
     return RobotLog.from_arrays(
-        log, names, joint_names, None if gain is None else float(np.ravel(gain)[0]),
+        log,
+        names,
+        joint_names,
+        None if gain is None else float(np.ravel(gain)[0]),
         str(path),
     )
 
@@ -695,7 +706,6 @@ def log_columns(log_joint_names: Sequence[str], joints: Sequence[str]) -> list[i
     return [column[j] for j in joints]
 
 
-
 def save_log(
     path: str | Path, log: dict[str, np.ndarray], joint_names: Sequence[str]
 ) -> None:
@@ -789,9 +799,12 @@ def write_robot_log(
         data = {name: np.asarray(columns[name]).tolist() for name in names}
         if log_format.samples:
             count = len(data[names[0]])
-            document = {**meta, log_format.samples: [
-                {name: data[name][k] for name in names} for k in range(count)
-            ]}
+            document = {
+                **meta,
+                log_format.samples: [
+                    {name: data[name][k] for name in names} for k in range(count)
+                ],
+            }
         else:
             document = {**meta, **data}
         path.write_text(json.dumps(document))
@@ -803,8 +816,10 @@ def write_robot_log(
             writer = csv.writer(file)
             writer.writerow(header)
             for k in range(count):
-                writer.writerow([repr(float(columns[n][k])) for n in names]
-                                + [repr(float(v)) for v in constant.values()])
+                writer.writerow(
+                    [repr(float(columns[n][k])) for n in names]
+                    + [repr(float(v)) for v in constant.values()]
+                )
     else:
         raise ValueError(
             f"write_robot_log: format '{log_format.format}' is this project's own log "

@@ -123,7 +123,9 @@ class MotorModel:
                 raise ValueError(f"MotorModel: {name} is NaN or inf for joints {bad}")
             setattr(self, name, value)
         if not (math.isfinite(self.gain) and self.gain >= 0):
-            raise ValueError(f"MotorModel: gain must be finite and >= 0, got {self.gain}")
+            raise ValueError(
+                f"MotorModel: gain must be finite and >= 0, got {self.gain}"
+            )
         self.gain = float(self.gain)
 
     def at_gain(self, gain: float | None) -> "MotorModel":
@@ -136,10 +138,15 @@ class MotorModel:
         if gain is None or not self.gain:
             return self
         if not (math.isfinite(gain) and gain > 0):
-            raise ValueError(f"MotorModel.at_gain: gain must be finite and > 0, got {gain}")
+            raise ValueError(
+                f"MotorModel.at_gain: gain must be finite and > 0, got {gain}"
+            )
         scale = self.gain / gain
         return dataclasses.replace(
-            self, k_tau=self.k_tau * scale, k_v=self.k_v * scale, k_c=self.k_c * scale,
+            self,
+            k_tau=self.k_tau * scale,
+            k_v=self.k_v * scale,
+            k_c=self.k_c * scale,
             gain=float(gain),
         )
 
@@ -249,7 +256,9 @@ class MotorModel:
         }
         gains = {m.gain for m in models.values()}
         if len(gains) > 1:
-            raise ValueError(f"from_joints: the joints' models hold at different gains {sorted(gains)}")
+            raise ValueError(
+                f"from_joints: the joints' models hold at different gains {sorted(gains)}"
+            )
         fits = {m.fit for m in models.values()}
         return MotorModel(
             joint_names=list(models),

@@ -76,18 +76,51 @@ PAPER_POSITION_MAX = PAPER_TABLE3[:, 0] * 1e-3
 #: those widths are lower bounds. The left hip yaw's + branch did not converge
 #: (k2 = 100) and is not used.
 PWL_FITS: dict[str, dict[str, tuple[float, float, float]]] = {
-    "RLEG_JOINT0": {"+": (0.002431, 4.647462, 7.053441), "-": (0.002916, -5.447130, -3.455461)},
-    "RLEG_JOINT1": {"+": (0.000833, 4.680849, 5.434831), "-": (0.000833, -3.987784, -3.202386)},
-    "RLEG_JOINT2": {"+": (0.000833, 2.508688, 4.164688), "-": (0.000833, -11.694394, -8.598394)},
-    "RLEG_JOINT3": {"+": (0.002415, 2.521347, 2.827010), "-": (0.000833, -8.327572, -7.158899)},
-    "RLEG_JOINT4": {"+": (0.001963, 1.895690, 3.193865), "-": (0.005242, -4.124708, -3.671868)},
-    "RLEG_JOINT5": {"+": (0.002760, 2.010004, 2.647346), "-": (0.001577, -3.188489, -1.953347)},
+    "RLEG_JOINT0": {
+        "+": (0.002431, 4.647462, 7.053441),
+        "-": (0.002916, -5.447130, -3.455461),
+    },
+    "RLEG_JOINT1": {
+        "+": (0.000833, 4.680849, 5.434831),
+        "-": (0.000833, -3.987784, -3.202386),
+    },
+    "RLEG_JOINT2": {
+        "+": (0.000833, 2.508688, 4.164688),
+        "-": (0.000833, -11.694394, -8.598394),
+    },
+    "RLEG_JOINT3": {
+        "+": (0.002415, 2.521347, 2.827010),
+        "-": (0.000833, -8.327572, -7.158899),
+    },
+    "RLEG_JOINT4": {
+        "+": (0.001963, 1.895690, 3.193865),
+        "-": (0.005242, -4.124708, -3.671868),
+    },
+    "RLEG_JOINT5": {
+        "+": (0.002760, 2.010004, 2.647346),
+        "-": (0.001577, -3.188489, -1.953347),
+    },
     "LLEG_JOINT0": {"-": (0.001836, -7.161778, -3.908519)},
-    "LLEG_JOINT1": {"+": (0.000864, 1.502178, 2.350674), "-": (0.000833, -4.133966, -3.254320)},
-    "LLEG_JOINT2": {"+": (0.000833, 12.411460, 15.594460), "-": (0.000833, 1.935234, 4.742034)},
-    "LLEG_JOINT3": {"+": (0.000833, 7.420875, 8.740275), "-": (0.000833, -1.278539, -0.185339)},
-    "LLEG_JOINT4": {"+": (0.001507, 3.311642, 4.748123), "-": (0.002136, -2.312898, -1.234218)},
-    "LLEG_JOINT5": {"+": (0.003025, 1.358952, 1.961382), "-": (0.002221, -2.207792, -1.330901)},
+    "LLEG_JOINT1": {
+        "+": (0.000864, 1.502178, 2.350674),
+        "-": (0.000833, -4.133966, -3.254320),
+    },
+    "LLEG_JOINT2": {
+        "+": (0.000833, 12.411460, 15.594460),
+        "-": (0.000833, 1.935234, 4.742034),
+    },
+    "LLEG_JOINT3": {
+        "+": (0.000833, 7.420875, 8.740275),
+        "-": (0.000833, -1.278539, -0.185339),
+    },
+    "LLEG_JOINT4": {
+        "+": (0.001507, 3.311642, 4.748123),
+        "-": (0.002136, -2.312898, -1.234218),
+    },
+    "LLEG_JOINT5": {
+        "+": (0.003025, 1.358952, 1.961382),
+        "-": (0.002221, -2.207792, -1.330901),
+    },
 }
 
 
@@ -164,7 +197,9 @@ class CalibrationConfig:
                 "stall_current > 0"
             )
         if self.jobs not in (1, 2) or self.max_iterations < 1:
-            raise ValueError("CalibrationConfig: jobs must be 1 or 2, max_iterations >= 1")
+            raise ValueError(
+                "CalibrationConfig: jobs must be 1 or 2, max_iterations >= 1"
+            )
 
 
 LEGS = hrp2.JOINT_NAMES[:12]
@@ -175,7 +210,9 @@ def _mirror(joint: str) -> str:
 
 
 def build_servo(
-    config: CalibrationConfig, no_load_speeds: dict[str, float], prior: ServoParams | None = None
+    config: CalibrationConfig,
+    no_load_speeds: dict[str, float],
+    prior: ServoParams | None = None,
 ) -> ServoParams:
     """The servo: the `ideal` preset's linear part (Table 1) plus the mechanisms, with
     the given no-load speeds on the right-leg joints (mirrored on the left leg)."""
@@ -221,12 +258,16 @@ def position_control_errors(
         dict with "max" (rad), "sum_squares" (Σ e², rad², at 1 kHz) and "rms" (rad)
         per moving joint, and "peak_speed" (rad/s); with `log`, "signals".
     """
-    station = StationConfig(scenario="hanging", servo_file=servo_file, servo_off=list(servo_off))
+    station = StationConfig(
+        scenario="hanging", servo_file=servo_file, servo_off=list(servo_off)
+    )
     config = MotionConfig(station=station, settle=settle, end=end)
     reference = motion_reference(config)
     robot, simulated, _ = simulated_station(station)
     control = build_position_control(robot, simulated, reference)
-    signals = run_controller(control, reference.end_time(), "position control", stream=io.StringIO())
+    signals = run_controller(
+        control, reference.end_time(), "position control", stream=io.StringIO()
+    )
     t = signals["t"]
     after = t >= settle
     columns = [hrp2.JOINT_NAMES.index(j) for j in MOVING_JOINTS]
@@ -244,7 +285,9 @@ def position_control_errors(
 def _evaluate(args: tuple) -> dict:
     """Process-pool worker: writes the servo for `speeds` and runs position control."""
     config, speeds, path, off = args
-    save_servo_params(build_servo(config, speeds), Path(path), ["calibration candidate"])
+    save_servo_params(
+        build_servo(config, speeds), Path(path), ["calibration candidate"]
+    )
     result = position_control_errors(path, config.settle, off, end=config.end)
     return {k: v.tolist() for k, v in result.items()}
 
@@ -310,18 +353,24 @@ class _Fit:
 
     STEP = 0.04  # finite-difference step of log(ω0)
 
-    def __init__(self, config: CalibrationConfig, work: Path, n: float, wall0: float, stream):
+    def __init__(
+        self, config: CalibrationConfig, work: Path, n: float, wall0: float, stream
+    ):
         self.config, self.work, self.n = config, work, n
         self.wall0, self.stream = wall0, stream
         self.lo, self.hi = np.log(config.no_load_speed_bounds)
         self.prior = np.clip(
-            np.log(config.motor_no_load_speed / gear_ratios(MOVING_JOINTS)), self.lo, self.hi
+            np.log(config.motor_no_load_speed / gear_ratios(MOVING_JOINTS)),
+            self.lo,
+            self.hi,
         )
         self.history: list[Evaluation] = []
         self.cache: dict[tuple, dict] = {}
         self.pool = ProcessPoolExecutor(
-            max_workers=config.jobs, mp_context=get_context("spawn"),
-            initializer=console.start_worker, initargs=(console.program(), ""),
+            max_workers=config.jobs,
+            mp_context=get_context("spawn"),
+            initializer=console.start_worker,
+            initargs=(console.program(), ""),
         )
         self.counter = iter(range(10**6))
 
@@ -406,7 +455,9 @@ class _Fit:
         )
 
 
-def run_calibration(config: CalibrationConfig, work: Path, stream=None) -> CalibrationResult:
+def run_calibration(
+    config: CalibrationConfig, work: Path, stream=None
+) -> CalibrationResult:
     """Fits the no-load speeds of the moving joints to the position-control column of
     Tables 2 and 3 (module docstring), then measures the calibrated servo, the `ideal`
     preset and each mechanism switched off on the same swing."""
@@ -493,7 +544,9 @@ def _measure(path: str, settle: float, off: tuple, end: float) -> dict:
     out = {k: v.tolist() for k, v in result.items()}
     out["signals"] = {
         "t": signals["t"][::5].tolist(),
-        "knee_error": (signals["q_ref"][::5, j] - signals["q_measured"][::5, j]).tolist(),
+        "knee_error": (
+            signals["q_ref"][::5, j] - signals["q_measured"][::5, j]
+        ).tolist(),
     }
     return out
 
@@ -512,7 +565,10 @@ def write_calibration_report(
     within_max = np.abs(final_max / PAPER_POSITION_MAX - 1) <= 0.20
     within_avg = np.abs(final_avg / PAPER_POSITION_AVERAGE - 1) <= 0.30
     lines = _introduction(result, config)
-    lines += ["## Fit per joint (position control, rad·10³: simulation (paper, ratio))", ""]
+    lines += [
+        "## Fit per joint (position control, rad·10³: simulation (paper, ratio))",
+        "",
+    ]
     rows = [
         [
             label,
@@ -525,8 +581,12 @@ def write_calibration_report(
         for j, label in enumerate(MOVING_LABELS)
     ]
     header = [
-        "joint", "max error (Table 3)", "within ±20%", "average error (Table 2, N above)",
-        "within ±30%", "ω0 (rad/s)",
+        "joint",
+        "max error (Table 3)",
+        "within ±20%",
+        "average error (Table 2, N above)",
+        "within ±30%",
+        "ω0 (rad/s)",
     ]
     lines += markdown_table(header, rows, align="lrcrcr")
     lines += ["", "## The calibrated servo, right leg", ""]
@@ -539,7 +599,10 @@ def write_calibration_report(
     rows = [("calibrated", result.final), ("ideal preset (before)", result.ideal)]
     rows += list(result.ablation.items())
     lines += markdown_table(
-        ["servo", *(f"{l} ({v * 1e3:g})" for l, v in zip(MOVING_LABELS, PAPER_POSITION_MAX))],
+        [
+            "servo",
+            *(f"{l} ({v * 1e3:g})" for l, v in zip(MOVING_LABELS, PAPER_POSITION_MAX)),
+        ],
         [[label, *(f"{v * 1e3:.2f}" for v in values["max"])] for label, values in rows],
     )
     figures = plot_calibration(result, out)
@@ -587,7 +650,8 @@ def _introduction(result: CalibrationResult, config: CalibrationConfig) -> list[
         "their speed limit) max|e| / sqrt(Σ e²) = max|q̇| / sqrt(Σ q̇²), so the paper's own ratio "
         "of Table 3 to Table 2 fixes N: "
         + ", ".join(
-            f"{label} {v:.0f}" for label, v in zip(MOVING_LABELS, result.sample_count["per_joint"])
+            f"{label} {v:.0f}"
+            for label, v in zip(MOVING_LABELS, result.sample_count["per_joint"])
         )
         + f". The mean over {', '.join(result.sample_count['used'])} (the knee is at its speed "
         f"limit, its error is not velocity-proportional): **N = {n:.0f}**, a "
@@ -616,8 +680,14 @@ def _servo_table(servo: ServoParams) -> list[str]:
         for j, label in enumerate(hrp2.RIGHT_LEG_LABELS)
     ]
     header = [
-        "joint", "10³Kτ", "10³Kv (identified, incl. latency)", "latency (ms)",
-        "dead zone (mrad, half)", "Coulomb (N·m)", "hysteresis (mrad)", "stall current (A)",
+        "joint",
+        "10³Kτ",
+        "10³Kv (identified, incl. latency)",
+        "latency (ms)",
+        "dead zone (mrad, half)",
+        "Coulomb (N·m)",
+        "hysteresis (mrad)",
+        "stall current (A)",
         "ω0 (rad/s)",
     ]
     return markdown_table(header, rows)
@@ -626,7 +696,11 @@ def _servo_table(servo: ServoParams) -> list[str]:
 def plot_calibration(result: CalibrationResult, out: Path) -> list[str]:
     """Three figures in `out`: the fit's convergence, simulation against the paper
     before (the ideal preset) and after, the knee's error over time; their names."""
-    names = ["calibration_history.png", "calibration_fit.png", "calibration_knee_error.png"]
+    names = [
+        "calibration_history.png",
+        "calibration_fit.png",
+        "calibration_knee_error.png",
+    ]
     for plot, name in zip((_plot_history, _plot_fit, _plot_knee_error), names):
         save_figure(plot(result), out / name, tight=True)
     return names
@@ -635,21 +709,35 @@ def plot_calibration(result: CalibrationResult, out: Path) -> list[str]:
 def _plot_history(result: CalibrationResult):
     """Convergence: each simulation's max-error ratios and cost."""
     fig, axes = pyplot().subplots(1, 2, figsize=(15, 4))
-    ratios = np.array([np.asarray(e.max_error) / PAPER_POSITION_MAX for e in result.history])
+    ratios = np.array(
+        [np.asarray(e.max_error) / PAPER_POSITION_MAX for e in result.history]
+    )
     costs = np.array([e.cost for e in result.history])
     iterate = np.array([e.kind == "iterate" for e in result.history])
     index = np.arange(len(result.history))
     for j, label in enumerate(MOVING_LABELS):
-        line = axes[0].plot(index[iterate], ratios[iterate, j], "o-", label=label, ms=3)[0]
-        axes[0].plot(index[~iterate], ratios[~iterate, j], "x", color=line.get_color(), alpha=0.5)
+        line = axes[0].plot(
+            index[iterate], ratios[iterate, j], "o-", label=label, ms=3
+        )[0]
+        axes[0].plot(
+            index[~iterate], ratios[~iterate, j], "x", color=line.get_color(), alpha=0.5
+        )
     axes[0].axhspan(0.8, 1.2, color="g", alpha=0.1, label="±20%")
-    axes[0].set_xlabel("simulation (o: the optimizer's points, x: finite-difference steps)")
+    axes[0].set_xlabel(
+        "simulation (o: the optimizer's points, x: finite-difference steps)"
+    )
     axes[0].set_ylabel("max error / paper (Table 3)")
     axes[0].set_yscale("log")
     legend_beside(axes[0])
-    axes[1].semilogy(index[iterate], costs[iterate], "ko-", ms=3, label="optimizer's points")
     axes[1].semilogy(
-        index[~iterate], costs[~iterate], "kx", alpha=0.5, label="finite-difference steps"
+        index[iterate], costs[iterate], "ko-", ms=3, label="optimizer's points"
+    )
+    axes[1].semilogy(
+        index[~iterate],
+        costs[~iterate],
+        "kx",
+        alpha=0.5,
+        label="finite-difference steps",
     )
     legend_beside(axes[1])
     axes[1].set_xlabel("simulation")
@@ -669,8 +757,20 @@ def _plot_fit(result: CalibrationResult):
         (axes[1], "average", PAPER_POSITION_AVERAGE, "Table 2: N⁻¹ sqrt(Σe²)"),
     ):
         ax.bar(x - 0.27, paper * 1e3, 0.27, label="paper (real HRP-2)", color="k")
-        ax.bar(x, np.asarray(result.ideal[key]) * 1e3, 0.27, label="ideal preset", color="0.6")
-        ax.bar(x + 0.27, np.asarray(result.final[key]) * 1e3, 0.27, label="calibrated", color="C0")
+        ax.bar(
+            x,
+            np.asarray(result.ideal[key]) * 1e3,
+            0.27,
+            label="ideal preset",
+            color="0.6",
+        )
+        ax.bar(
+            x + 0.27,
+            np.asarray(result.final[key]) * 1e3,
+            0.27,
+            label="calibrated",
+            color="C0",
+        )
         ax.set_xticks(x, MOVING_LABELS)
         ax.set_ylabel("rad·10³")
         ax.set_title(title)
@@ -687,7 +787,9 @@ def _plot_knee_error(result: CalibrationResult):
         s = run.get("signals")
         if s:
             ax.plot(s["t"], np.asarray(s["knee_error"]) * 1e3, lw=0.8, label=label)
-    ax.axhline(PAPER_POSITION_MAX[2] * 1e3, color="k", ls="--", lw=0.8, label="paper's maximum")
+    ax.axhline(
+        PAPER_POSITION_MAX[2] * 1e3, color="k", ls="--", lw=0.8, label="paper's maximum"
+    )
     ax.axhline(-PAPER_POSITION_MAX[2] * 1e3, color="k", ls="--", lw=0.8)
     ax.set_xlabel("t (s)")
     ax.set_ylabel("knee tracking error (mrad)")
@@ -696,7 +798,9 @@ def _plot_knee_error(result: CalibrationResult):
     return fig
 
 
-def calibrate(config: CalibrationConfig, out: Path, install: bool = False, stream=None) -> dict:
+def calibrate(
+    config: CalibrationConfig, out: Path, install: bool = False, stream=None
+) -> dict:
     """Runs the calibration, writes out/servo.yaml and the report; with `install`,
     also models/hrp2/servo.yaml (the simulated robot's servo)."""
     from hrp2_drake.paper.hrp2 import SERVO_FILE, models_dir
@@ -721,5 +825,7 @@ def calibrate(config: CalibrationConfig, out: Path, install: bool = False, strea
         save_servo_params(servo, models_dir() / SERVO_FILE, header)
         console.say(f"wrote {models_dir() / SERVO_FILE}", stream)
     summary = write_calibration_report(result, config, out)
-    console.say(f"wrote {out / 'calibration.md'} ({result.wall_time / 60:.1f} min)", stream)
+    console.say(
+        f"wrote {out / 'calibration.md'} ({result.wall_time / 60:.1f} min)", stream
+    )
     return summary

@@ -44,7 +44,9 @@ def partial_verdict(misses: int, total: int, unit: str = "cells") -> str:
 #: leg's but the hip yaw, which stays at 0 in the climbing motion.
 MOVING_JOINTS = hrp2.RIGHT_LEG[1:]
 #: Their labels: hip roll, hip pitch, knee, ankle pitch, ankle roll.
-MOVING_LABELS = tuple(hrp2.RIGHT_LEG_LABELS[hrp2.RIGHT_LEG.index(j)] for j in MOVING_JOINTS)
+MOVING_LABELS = tuple(
+    hrp2.RIGHT_LEG_LABELS[hrp2.RIGHT_LEG.index(j)] for j in MOVING_JOINTS
+)
 
 #: Relative difference under which two errors are "equivalent" in the paper's words:
 #: its own "almost equivalent" averages at K6 = 0.25 differ by -20% to +14% from
@@ -142,7 +144,8 @@ def force_verdict(metrics: dict, frequency: float) -> dict:
     10% and no visible delay at the reference's `frequency` (Hz)."""
     return {
         "overshoot_at_most_10_percent": metrics["overshoot"] <= PAPER_OVERSHOOT,
-        "no_visible_delay": abs(metrics["lag_ms"]) * 1e-3 <= VISIBLE_DELAY_SHARE / frequency,
+        "no_visible_delay": abs(metrics["lag_ms"]) * 1e-3
+        <= VISIBLE_DELAY_SHARE / frequency,
     }
 
 
@@ -265,7 +268,9 @@ def verdicts(results: dict) -> list[Verdict]:
         _fault_verdicts,
     ):
         rows += judge(results)
-    return [r for r in rows if r.kind == "paper"] + [r for r in rows if r.kind == "goal"]
+    return [r for r in rows if r.kind == "paper"] + [
+        r for r in rows if r.kind == "goal"
+    ]
 
 
 def verdict_tables(results: dict) -> list[str]:
@@ -285,7 +290,11 @@ def verdict_tables(results: dict) -> list[str]:
         lines += ["", f"**{KINDS[kind][0].upper() + KINDS[kind][1:]}**", ""]
         lines += markdown_table(
             [first, second, "verdict", "evidence"],
-            [[r.claim, r.threshold, r.verdict, r.evidence] for r in rows if r.kind == kind],
+            [
+                [r.claim, r.threshold, r.verdict, r.evidence]
+                for r in rows
+                if r.kind == kind
+            ],
             align="llll",
         )
     return lines
@@ -297,9 +306,13 @@ def _identification_verdicts(results: dict) -> list[Verdict]:
     joints = results.get("identify", {}).get("joints", {})
     if not joints or not all("relative_error_asymmetric" in r for r in joints.values()):
         return []
-    errors = [abs(v) for r in joints.values() for v in r["relative_error_asymmetric"].values()]
+    errors = [
+        abs(v) for r in joints.values() for v in r["relative_error_asymmetric"].values()
+    ]
     asym = max(r["validation"]["asymmetric"]["overestimation"] for r in joints.values())
-    ls = min(r["validation"]["least_squares"]["overestimation"] for r in joints.values())
+    ls = min(
+        r["validation"]["least_squares"]["overestimation"] for r in joints.values()
+    )
     return [
         _goal(
             "Identification (Sec. 3, the asymmetric fit) recovers the emulated servo's "
@@ -310,9 +323,9 @@ def _identification_verdicts(results: dict) -> list[Verdict]:
             f"{len(joints)} joints × 2 parameters",
         ),
         _claim(
-            "\"Using the symmetric penalty function, the model tends to over-estimate the "
+            '"Using the symmetric penalty function, the model tends to over-estimate the '
             "data for large velocities. [...] With the asymmetric penalty, the model no "
-            "longer over-estimates the data\" (Sec. 5.2, Fig. 3)",
+            'longer over-estimates the data" (Sec. 5.2, Fig. 3)',
             "share of held-out samples whose Δq the model over-estimates in magnitude: "
             "under 5% on every joint with the asymmetric fit, and more on every joint "
             "with least squares than the asymmetric fit's worst joint",
@@ -374,7 +387,9 @@ def _estimation_verdicts(results: dict) -> list[Verdict]:
             "; ".join(parts),
         )
     ]
-    at_80 = {s: a["windows"]["80"] for s, a in scenarios.items() if "80" in a["windows"]}
+    at_80 = {
+        s: a["windows"]["80"] for s, a in scenarios.items() if "80" in a["windows"]
+    }
     if at_80:
         rows.append(
             _goal(
@@ -384,7 +399,9 @@ def _estimation_verdicts(results: dict) -> list[Verdict]:
                 _worst_ratios(at_80),
             )
         )
-    per_signal = {s: a["per_signal"] for s, a in scenarios.items() if a.get("per_signal")}
+    per_signal = {
+        s: a["per_signal"] for s, a in scenarios.items() if a.get("per_signal")
+    }
     if per_signal:
         delay = next(iter(per_signal.values()))["delay_s"]
         rows.append(
@@ -408,10 +425,11 @@ def _motion_verdicts(results: dict) -> list[Verdict]:
         _claim(
             judged["claim"] + " (Sec. 5.3, Tables 2, 3)",
             "each of 10 cells (5 joints × average, maximum error) against position "
-            "control: \"lower\" and \"higher\" by any margin, \"equivalent\" within "
+            'control: "lower" and "higher" by any margin, "equivalent" within '
             f"±{EQUIVALENT * 100:.0f}%",
             judged["verdict"],
-            "; ".join(judged["misses"]) or "every joint, average and maximum, as written",
+            "; ".join(judged["misses"])
+            or "every joint, average and maximum, as written",
         )
         for judged in (v.get("claim") for v in motion["verdicts"].values())
         if judged is not None
@@ -426,7 +444,8 @@ def _motion_verdicts(results: dict) -> list[Verdict]:
     tuned = improved["tuned"]
     goals = [
         (
-            "The paper's future work, tuned: " + improved["goal"]["claim"]
+            "The paper's future work, tuned: "
+            + improved["goal"]["claim"]
             + " (the climbing motion)",
             tuned,
         )
@@ -456,12 +475,13 @@ def _force_verdicts(results: dict) -> list[Verdict]:
     coupling = m["coupling_x"]
     rows = [
         _claim(
-            "\"An overshoot of maximum 10% is observed at the sinusoid apex. [...] No "
-            "significant delay affects the tracking.\" (Sec. 5.4, Fig. 5)",
+            '"An overshoot of maximum 10% is observed at the sinusoid apex. [...] No '
+            'significant delay affects the tracking." (Sec. 5.4, Fig. 5)',
             "the apex within ±10% of the reference's, and a lag under 50 ms either way "
             "(F/T reading)",
             partial_verdict(
-                int(abs(m["overshoot"]) > PAPER_OVERSHOOT) + int(abs(m["lag_ms"]) >= 50),
+                int(abs(m["overshoot"]) > PAPER_OVERSHOOT)
+                + int(abs(m["lag_ms"]) >= 50),
                 2,
                 "criteria",
             ),
@@ -470,7 +490,7 @@ def _force_verdicts(results: dict) -> list[Verdict]:
             "reading)",
         ),
         _claim(
-            "\"The same 10% are observed as a coupling on the X axis.\" (Sec. 5.4, Fig. 5)",
+            '"The same 10% are observed as a coupling on the X axis." (Sec. 5.4, Fig. 5)',
             "coupling on X within 5-15% of the z amplitude",
             partial_verdict(int(not 0.05 <= coupling <= 0.15), 1),
             f"coupling on X {coupling * 100:.1f}% ({coupling / PAPER_COUPLING_X:.2f}x the "
@@ -512,10 +532,18 @@ def _component_verdicts(results: dict) -> list[Verdict]:
     panels = components.get("panels", {})
     rows = []
     for experiment, text, where in (
-        ("motion", "In motion control feedforward friction dominates Δq, then "
-         "feedback position (Sec. 5.5, Fig. 6)", "hip pitch and knee at K6 = 0.1 and 1"),
-        ("force", "In force control feedforward torque dominates Δq, then feedback "
-         "force (Sec. 5.5, Fig. 6)", "knee and ankle pitch"),
+        (
+            "motion",
+            "In motion control feedforward friction dominates Δq, then "
+            "feedback position (Sec. 5.5, Fig. 6)",
+            "hip pitch and knee at K6 = 0.1 and 1",
+        ),
+        (
+            "force",
+            "In force control feedforward torque dominates Δq, then feedback "
+            "force (Sec. 5.5, Fig. 6)",
+            "knee and ankle pitch",
+        ),
     ):
         judged = [p for p in panels.values() if p.get("experiment") == experiment]
         misses = [p["title"] for p in judged if not p.get("holds")]
@@ -549,17 +577,19 @@ def _stability_verdicts(results: dict) -> list[Verdict]:
         f"with δc = {delay} compensated: least squares "
         f"{_push_outcome(v['least_squares'])}, asymmetric "
         f"{_push_outcome(v['asymmetric'])}"
-        for delay, v in stability["verdicts"].items() if delay != "0 ms"
+        for delay, v in stability["verdicts"].items()
+        if delay != "0 ms"
     )
     return [
         _claim(
-            "\"Using the symmetric penalty function [...] the joint accelerating as "
+            '"Using the symmetric penalty function [...] the joint accelerating as '
             "soon as a certain velocity was reached, even when lowering the feedback "
             "gains to zero. With the asymmetric penalty, the model no longer "
-            "over-estimates the data\": the asymmetric fit is stable (Sec. 5.2), with "
+            'over-estimates the data": the asymmetric fit is stable (Sec. 5.2), with '
             "the controller as it is",
             "some least-squares run accelerates away and every asymmetric run is "
-            "stable; " + stability.get("stable_means", "a run is stable when it slows down"),
+            "stable; "
+            + stability.get("stable_means", "a run is stable when it slows down"),
             partial_verdict(int(not holds), 1),
             f"least squares {_push_outcome(ls)}, asymmetric {_push_outcome(asym)}"
             + (f" ({others}: not the verdict)" if others else ""),
@@ -573,11 +603,20 @@ def _fault_verdicts(results: dict) -> list[Verdict]:
     if not faults.get("ok") or "verdict" not in faults:
         return []
     v = faults["verdict"]
-    criteria = ("nothing_raised", "detected_within_10_ms", "no_step_above_bound",
-                "tracking_within_margin")
+    criteria = (
+        "nothing_raised",
+        "detected_within_10_ms",
+        "no_step_above_bound",
+        "tracking_within_margin",
+    )
     misses = sum(not v[k] for k in criteria)
-    count = len([r for r in faults["results"]
-                 if r["case"] not in ("no fault", "position control")])
+    count = len(
+        [
+            r
+            for r in faults["results"]
+            if r["case"] not in ("no fault", "position control")
+        ]
+    )
     return [
         _goal(
             "Supervised torque control survives sensor faults (not the paper's)",
@@ -588,9 +627,16 @@ def _fault_verdicts(results: dict) -> list[Verdict]:
             f"{count} fault runs; "
             + "; ".join(
                 f"{k.replace('_', ' ')}: {', '.join(v[k])}"
-                for k in ("raised", "detected_late", "steps_above_bound", "tracking_worse")
+                for k in (
+                    "raised",
+                    "detected_late",
+                    "steps_above_bound",
+                    "tracking_worse",
+                )
                 if v[k]
-            ) if misses else f"{count} fault runs, every criterion met",
+            )
+            if misses
+            else f"{count} fault runs, every criterion met",
         )
     ]
 
@@ -608,7 +654,9 @@ def _push_outcome(fit: dict) -> str:
         return f"stable after every push ({speeds(fit['stable_at'])} rad/s)"
     parts = []
     if fit["accelerates_at"]:
-        parts.append(f"accelerates away after the pushes at {speeds(fit['accelerates_at'])} rad/s")
+        parts.append(
+            f"accelerates away after the pushes at {speeds(fit['accelerates_at'])} rad/s"
+        )
     if fit.get("limit_at"):
         parts.append(
             f"reached its position limit without speeding up after the pushes at "

@@ -251,9 +251,13 @@ def sinusoid_reference(
 
 
 def _station_config(config: EstimationConfig, scenario: str) -> StationConfig:
-    base = StationConfig().sensors_config() if config.sensors is None else config.sensors
+    base = (
+        StationConfig().sensors_config() if config.sensors is None else config.sensors
+    )
     sensors = dataclasses.replace(base, seed=config.seed)
-    return StationConfig(scenario=scenario, sensors=sensors, servo_file=config.servo_file)
+    return StationConfig(
+        scenario=scenario, sensors=sensors, servo_file=config.servo_file
+    )
 
 
 def _build(
@@ -431,7 +435,9 @@ def analyse(run: dict, config: EstimationConfig, scenario: str) -> dict:
     )
     reversals = near_reversals(t, q_cmd[: len(t), leg], REVERSAL_MARGIN)
     windows = {}
-    for window, tau in run["tau"].items():  # (and the per-signal chain, set apart below)
+    for window, tau in run[
+        "tau"
+    ].items():  # (and the per-signal chain, set apart below)
         nominal = round(run["delay"][window] / period, 9)
         e = errors(t, tau, true, nominal, config.settle)
         shift = best_shift(t, tau, true, nominal, config.settle)
@@ -512,7 +518,9 @@ def plot_torque(run: dict, analysis: dict, config: EstimationConfig, path: Path)
     bottom.set_ylabel("τ̂ − delayed true τ (N·m)")
     bottom.set_xlabel("time the estimate refers to (s)")
     # One legend below the panels (off the data); the errors below share the styles.
-    fig.legend(*top.get_legend_handles_labels(), loc="outside lower center", ncol=2, fontsize=8)
+    fig.legend(
+        *top.get_legend_handles_labels(), loc="outside lower center", ncol=2, fontsize=8
+    )
     save_figure(fig, path)
 
 
@@ -528,12 +536,20 @@ def _table(w: dict) -> list[str]:
             if time_share > 0
             else "(does not move)"
         )
-        rows.append([
-            f"{name} ({hrp2.RIGHT_LEG_LABELS[k]})", f"{w['rms'][j]:.3f}",
-            f"{w['peak'][j]:.2f}", f"{100 * w['ratio'][j]:.2f} %", share,
-        ])
+        rows.append(
+            [
+                f"{name} ({hrp2.RIGHT_LEG_LABELS[k]})",
+                f"{w['rms'][j]:.3f}",
+                f"{w['peak'][j]:.2f}",
+                f"{100 * w['ratio'][j]:.2f} %",
+                share,
+            ]
+        )
     header = [
-        "joint", "RMS error (N·m)", "peak abs(τ) (N·m)", "RMS / peak",
+        "joint",
+        "RMS error (N·m)",
+        "peak abs(τ) (N·m)",
+        "RMS / peak",
         "share of the squared error near its velocity reversals (share of the time)",
     ]
     return markdown_table(header, rows)
@@ -576,7 +592,9 @@ def markdown(results: dict, config: EstimationConfig) -> str:
     return "\n".join(lines)
 
 
-def _scenario_lines(scenario: str, analysis: dict, config: EstimationConfig) -> list[str]:
+def _scenario_lines(
+    scenario: str, analysis: dict, config: EstimationConfig
+) -> list[str]:
     """One scenario's section: the run, every window, the joint tables of the paper's
     and the best window with the goal, of the per-signal windows if run, the plot."""
     best = analysis["best_window"]
@@ -646,8 +664,11 @@ def _window_table(windows: dict[int, dict]) -> list[str]:
         for window, w in sorted(windows.items())
     ]
     header = [
-        "window", "delay (ms)", "shift minimising the error (samples)",
-        "worst right-leg RMS/peak", "same, at that shift",
+        "window",
+        "delay (ms)",
+        "shift minimising the error (samples)",
+        "worst right-leg RMS/peak",
+        "same, at that shift",
     ]
     return markdown_table(header, rows, align="rrrrr")
 

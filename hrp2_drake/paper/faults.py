@@ -64,9 +64,17 @@ class FaultCase:
 def default_cases() -> list[FaultCase]:
     knee = hrp2.JOINT_NAMES.index("RLEG_JOINT3")
     return [
-        FaultCase("F/T NaN burst (5 ms)", [SensorFault("wrench_right_foot", "nan", 0.0, 0.005)]),
-        FaultCase("F/T frozen (200 ms)", [SensorFault("wrench_right_foot", "freeze", 0.0, 0.2)]),
-        FaultCase("F/T zeroed (200 ms)", [SensorFault("wrench_right_foot", "zero", 0.0, 0.2)]),
+        FaultCase(
+            "F/T NaN burst (5 ms)",
+            [SensorFault("wrench_right_foot", "nan", 0.0, 0.005)],
+        ),
+        FaultCase(
+            "F/T frozen (200 ms)",
+            [SensorFault("wrench_right_foot", "freeze", 0.0, 0.2)],
+        ),
+        FaultCase(
+            "F/T zeroed (200 ms)", [SensorFault("wrench_right_foot", "zero", 0.0, 0.2)]
+        ),
         FaultCase(
             "IMU bias step (0.5 m/s²)",
             [SensorFault("imu_linear_acceleration", "bias", 0.0, np.inf, [0], [0.5])],
@@ -79,7 +87,10 @@ def default_cases() -> list[FaultCase]:
             "encoder frozen (knee, 200 ms)",
             [SensorFault("q_measured", "freeze", 0.0, 0.2, [knee])],
         ),
-        FaultCase("encoder NaN (knee, 5 ms)", [SensorFault("q_measured", "nan", 0.0, 0.005, [knee])]),
+        FaultCase(
+            "encoder NaN (knee, 5 ms)",
+            [SensorFault("q_measured", "nan", 0.0, 0.005, [knee])],
+        ),
         FaultCase("extra command latency (2 ms)", extra_command_latency=0.002),
         FaultCase("model error (masses, COMs ±20%)", model_error=0.2),
     ]
@@ -117,7 +128,9 @@ class FaultCampaignConfig:
                 f"FaultCampaignConfig.experiments: {self.experiments}, expected motion and/or force"
             )
         if not self.motion_start < self.motion_end:
-            raise ValueError("FaultCampaignConfig: motion_end must be after motion_start")
+            raise ValueError(
+                "FaultCampaignConfig: motion_end must be after motion_start"
+            )
         check_finite(self.k6, "FaultCampaignConfig.k6", 0.0)
         if self.jobs < 1:
             raise ValueError(
@@ -135,10 +148,16 @@ class FaultCampaignConfig:
                 f"FaultCampaignConfig.motion_start, motion_end: {error}"
             ) from None
         runs = {
-            "motion_fault_time": (self.motion_fault_time, torque_start,
-                                  SETTLE + self.motion_end - self.motion_start),
-            "force_fault_time": (self.force_fault_time, ForceConfig().settle,
-                                 ForceConfig().duration),
+            "motion_fault_time": (
+                self.motion_fault_time,
+                torque_start,
+                SETTLE + self.motion_end - self.motion_start,
+            ),
+            "force_fault_time": (
+                self.force_fault_time,
+                ForceConfig().settle,
+                ForceConfig().duration,
+            ),
         }
         for name, (value, start, end) in runs.items():
             check_finite(value, f"FaultCampaignConfig.{name}")
@@ -154,8 +173,12 @@ def _shifted(case: FaultCase, t0: float) -> list[SensorFault]:
     return [replace(f, start=f.start + t0) for f in case.sensor_faults]
 
 
-def _motion_run(config: FaultCampaignConfig, case: FaultCase | None, motor_path: str,
-                position_control: bool = False) -> dict:
+def _motion_run(
+    config: FaultCampaignConfig,
+    case: FaultCase | None,
+    motor_path: str,
+    position_control: bool = False,
+) -> dict:
     t_fault = config.motion_fault_time
     station = StationConfig(scenario="hanging")
     torque = TorqueControlConfig(
@@ -164,7 +187,9 @@ def _motion_run(config: FaultCampaignConfig, case: FaultCase | None, motor_path:
     )
     if case is not None:
         station = replace(
-            station, faults=_shifted(case, t_fault), extra_command_latency=case.extra_command_latency
+            station,
+            faults=_shifted(case, t_fault),
+            extra_command_latency=case.extra_command_latency,
         )
         torque = replace_fields(torque, {"faults.model_error": case.model_error})
     motion = MotionConfig(
@@ -176,14 +201,22 @@ def _motion_run(config: FaultCampaignConfig, case: FaultCase | None, motor_path:
         control = build_position_control(robot, simulated, reference)
     else:
         control = build_torque_control(
-            robot, simulated, reference, MotorModel.load(motor_path), torque,
+            robot,
+            simulated,
+            reference,
+            MotorModel.load(motor_path),
+            torque,
             control_period=period,
         )
-    signals = run_controller(control, reference.end_time(), "faults", stream=io.StringIO())
+    signals = run_controller(
+        control, reference.end_time(), "faults", stream=io.StringIO()
+    )
     return _summarize(signals, t_fault, "motion")
 
 
-def _force_run(config: FaultCampaignConfig, case: FaultCase | None, motor_path: str) -> dict:
+def _force_run(
+    config: FaultCampaignConfig, case: FaultCase | None, motor_path: str
+) -> dict:
     t_fault = config.force_fault_time
     force = ForceConfig()
     force.ablations = []
@@ -248,11 +281,17 @@ def _summarize(signals: dict, t_fault: float, experiment: str) -> dict:
         mode = signals["supervisor_mode"][:, 0]
         hit = after & (bits > 0)
         out["detected"] = bool(hit.any())
-        out["detection_delay"] = float(t[np.argmax(hit)] - t_fault) if hit.any() else None
-        out["fault_bits"] = int(np.bitwise_or.reduce(bits[after].astype(int))) if after.any() else 0
+        out["detection_delay"] = (
+            float(t[np.argmax(hit)] - t_fault) if hit.any() else None
+        )
+        out["fault_bits"] = (
+            int(np.bitwise_or.reduce(bits[after].astype(int))) if after.any() else 0
+        )
         out["faults"] = describe_faults(out["fault_bits"])
         down = after & (mode < 1.0)
-        out["position_control_at"] = float(t[np.argmax(down)] - t_fault) if down.any() else None
+        out["position_control_at"] = (
+            float(t[np.argmax(down)] - t_fault) if down.any() else None
+        )
         out["resumed"] = bool(mode[-1] == 1.0)
         switching = (mode > 0) & (mode < 1)
         window = np.convolve(switching, np.ones(3), mode="same")[1:] > 0
@@ -272,13 +311,16 @@ def _job(args: tuple) -> dict:
         result["raised"] = None
     except Exception as error:  # the campaign reports it: nothing may raise
         result = {"experiment": kind, "raised": f"{type(error).__name__}: {error}"}
-    result["case"] = case.name if case else ("position control" if position else "no fault")
+    result["case"] = (
+        case.name if case else ("position control" if position else "no fault")
+    )
     result["seconds"] = time.perf_counter() - start
     return result
 
 
-def run_fault_campaign(config: FaultCampaignConfig, motor_model_path: Path, out: Path,
-                       stream=None) -> dict:
+def run_fault_campaign(
+    config: FaultCampaignConfig, motor_model_path: Path, out: Path, stream=None
+) -> dict:
     """Runs every fault on every experiment (and the references without fault and in
     position control), in `config.jobs` processes; writes faults.md, faults.json and
     the figure in `out`."""
@@ -312,8 +354,10 @@ def run_fault_campaign(config: FaultCampaignConfig, motor_model_path: Path, out:
         collect(_job(job) for job in jobs)
     else:
         with ProcessPoolExecutor(
-            config.jobs, mp_context=get_context("spawn"),
-            initializer=console.start_worker, initargs=(console.program(), "faults"),
+            config.jobs,
+            mp_context=get_context("spawn"),
+            initializer=console.start_worker,
+            initargs=(console.program(), "faults"),
         ) as pool:  # the workers' lines in the console's format, repeats counted
             collect(pool.map(_job, jobs))
     summary = {
@@ -339,7 +383,9 @@ def _plot(results: list[dict], out: Path) -> str:
     plt = pyplot()
     kinds = sorted({r["experiment"] for r in results})
     cases = list(dict.fromkeys(r["case"] for r in results))
-    colours = [f"C{k}" for k in range(10) if k != 7]  # C7 is the grey of position control
+    colours = [
+        f"C{k}" for k in range(10) if k != 7
+    ]  # C7 is the grey of position control
     styles, k = {}, 0
     for case in cases:
         if case == "no fault":
@@ -347,7 +393,9 @@ def _plot(results: list[dict], out: Path) -> str:
         elif case == "position control":
             styles[case] = dict(lw=1.2, color="0.5", ls="--")
         else:
-            styles[case] = dict(lw=0.9, color=colours[k % 9], ls=("-", "-.", ":")[k // 9 % 3])
+            styles[case] = dict(
+                lw=0.9, color=colours[k % 9], ls=("-", "-.", ":")[k // 9 % 3]
+            )
             k += 1
     fig, axes = plt.subplots(
         2, len(kinds), figsize=(7 * len(kinds), 8), squeeze=False, layout="constrained"
@@ -361,7 +409,10 @@ def _plot(results: list[dict], out: Path) -> str:
             if "mode" in trace:
                 axes[0, col].plot(trace["t"], trace["mode"], label=r["case"], **style)
             axes[1, col].plot(
-                trace["t"], np.asarray(trace["knee_error"]) * 1e3, label=r["case"], **style
+                trace["t"],
+                np.asarray(trace["knee_error"]) * 1e3,
+                label=r["case"],
+                **style,
             )
         axes[0, col].set_title(f"{kind}: supervisor mode (1 = torque control)")
         axes[1, col].set_title(f"{kind}: knee tracking error (mrad)")
@@ -373,7 +424,9 @@ def _plot(results: list[dict], out: Path) -> str:
     for ax in axes.ravel():
         for handle, label in zip(*ax.get_legend_handles_labels()):
             handles.setdefault(label, handle)
-    fig.legend(handles.values(), handles.keys(), loc="outside lower center", ncol=4, fontsize=8)
+    fig.legend(
+        handles.values(), handles.keys(), loc="outside lower center", ncol=4, fontsize=8
+    )
     name = "faults.png"
     save_figure(fig, out / name, dpi=100)
     return name
@@ -384,12 +437,11 @@ def _verdict(results: list[dict]) -> dict:
     raised = [r["case"] for r in results if r.get("raised")]
     sensor = [r for r in faulty if r.get("raised") is None and r.get("fault_bits", 0)]
     slow = [
-        r["case"] for r in sensor
+        r["case"]
+        for r in sensor
         if r["detection_delay"] is None or r["detection_delay"] > 0.010
     ]
-    position = {
-        r["experiment"]: r for r in results if r["case"] == "position control"
-    }
+    position = {r["experiment"]: r for r in results if r["case"] == "position control"}
     worse = []
     for r in faulty:
         ref = position.get(r["experiment"])
@@ -405,7 +457,8 @@ def _verdict(results: list[dict]) -> dict:
     # A run that raised was not judged: no check can hold for it.
     unjudged = [
         f"{r['experiment']}: {r['case']} (raised, not judged)"
-        for r in results if r.get("raised")
+        for r in results
+        if r.get("raised")
     ]
     slow, steps, worse = slow + unjudged, steps + unjudged, worse + unjudged
     return {
@@ -436,15 +489,21 @@ def _report(summary: dict, out: Path) -> str:
         _check("nothing raised, nothing diverged", v, "nothing_raised", "raised"),
         _check(
             "every NaN, freeze or staleness detected within 10 ms",
-            v, "detected_within_10_ms", "detected_late",
+            v,
+            "detected_within_10_ms",
+            "detected_late",
         ),
         _check(
             f"no q_cmd step above {STEP_BOUND * 1e3:g} mrad at a mode switch",
-            v, "no_step_above_bound", "steps_above_bound",
+            v,
+            "no_step_above_bound",
+            "steps_above_bound",
         ),
         _check(
             f"tracking no worse than position control + {TRACKING_MARGIN * 1e3:g} mrad",
-            v, "tracking_within_margin", "tracking_worse",
+            v,
+            "tracking_within_margin",
+            "tracking_worse",
         ),
         "",
         *_run_table(results),
@@ -470,7 +529,9 @@ def _run_table(results: list[dict]) -> list[str]:
     rows = []
     for r in results:
         if r.get("raised"):
-            rows.append([r["experiment"], r["case"], *["-"] * 6, f"raised: {r['raised']}"])
+            rows.append(
+                [r["experiment"], r["case"], *["-"] * 6, f"raised: {r['raised']}"]
+            )
             continue
         detected = "-"
         if "detected" in r:
@@ -478,19 +539,28 @@ def _run_table(results: list[dict]) -> list[str]:
                 f"yes ({r['detection_delay'] * 1e3:.0f} ms)" if r["detected"] else "no"
             )
         down = r.get("position_control_at")
-        rows.append([
-            r["experiment"],
-            r["case"],
-            detected,
-            f"{r.get('faults', '-')}",
-            "-" if down is None else f"{down * 1e3:.0f} ms",
-            "-" if "resumed" not in r else ("yes" if r["resumed"] else "no"),
-            f"{r['max_error_after'] * 1e3:.1f}",
-            f"{r.get('max_switch_step', 0.0) * 1e3:.2f}",
-            "ran" if r["finite"] else "not finite",
-        ])
+        rows.append(
+            [
+                r["experiment"],
+                r["case"],
+                detected,
+                f"{r.get('faults', '-')}",
+                "-" if down is None else f"{down * 1e3:.0f} ms",
+                "-" if "resumed" not in r else ("yes" if r["resumed"] else "no"),
+                f"{r['max_error_after'] * 1e3:.1f}",
+                f"{r.get('max_switch_step', 0.0) * 1e3:.2f}",
+                "ran" if r["finite"] else "not finite",
+            ]
+        )
     header = [
-        "experiment", "fault", "detected (delay)", "faults seen", "position control after",
-        "resumed", "max error after (mrad)", "step (mrad)", "outcome",
+        "experiment",
+        "fault",
+        "detected (delay)",
+        "faults seen",
+        "position control after",
+        "resumed",
+        "max error after (mrad)",
+        "step (mrad)",
+        "outcome",
     ]
     return markdown_table(header, rows, align="llllrlrrl")

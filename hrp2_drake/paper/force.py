@@ -220,7 +220,9 @@ def _improved(config: ForceConfig, improvement: str = "") -> ForceConfig:
 def _torque_changed(config: ForceConfig, changes: dict) -> ForceConfig:
     """`config` with `changes` to its torque control (values by field path,
     `torque_control.replace_fields`)."""
-    return replace(config, torque_control=replace_fields(config.torque_control, changes))
+    return replace(
+        config, torque_control=replace_fields(config.torque_control, changes)
+    )
 
 
 ABLATIONS: dict[str, tuple[str, Callable[[ForceConfig], ForceConfig]]] = {
@@ -242,11 +244,14 @@ ABLATIONS: dict[str, tuple[str, Callable[[ForceConfig], ForceConfig]]] = {
     ),
     "paper_literal": (
         "paper-literal eq. 12-13 (q̂, q̂̇ estimates everywhere)",
-        lambda c: _torque_changed(c, {
-            "controller.position_source": "estimate",
-            "controller.feedback_velocity": "estimate",
-            "controller.friction_velocity": "estimate",
-        }),
+        lambda c: _torque_changed(
+            c,
+            {
+                "controller.position_source": "estimate",
+                "controller.feedback_velocity": "estimate",
+                "controller.friction_velocity": "estimate",
+            },
+        ),
     ),
     "window_40": (
         "estimator window 40 (20 ms delay)",
@@ -267,7 +272,8 @@ ABLATIONS: dict[str, tuple[str, Callable[[ForceConfig], ForceConfig]]] = {
     "servo_no_hysteresis": (
         "servo without direction hysteresis (Coulomb friction switching at sign(q̇))",
         lambda c: replace(
-            c, station=replace(c.station, servo_off=[*c.station.servo_off, "hysteresis"])
+            c,
+            station=replace(c.station, servo_off=[*c.station.servo_off, "hysteresis"]),
         ),
     ),
     "servo_no_deadzone": (
@@ -621,7 +627,11 @@ def run_force_all(config: ForceConfig, motor_model: MotorModel) -> ForceResult:
         label, change = ABLATIONS[name]
         variant = change(config)
         same_plant = variant.station == config.station
-        gain = baseline.posture_gain if variant.compatible_reference and same_plant else None
+        gain = (
+            baseline.posture_gain
+            if variant.compatible_reference and same_plant
+            else None
+        )
         shared = static if same_plant else None
         run = run_force(variant, motor_model, label, shared, gain)
         run.name = name
@@ -651,10 +661,14 @@ def summarize(result: ForceResult) -> dict:
             "metrics": run.metrics,
             "fallback_time": run.fallback_time,
             "joint_motion_peak_to_peak": dict(
-                zip(c.torque_control.controlled_joints(hrp2.description()), joint_motion(run).tolist())
+                zip(
+                    c.torque_control.controlled_joints(hrp2.description()),
+                    joint_motion(run).tolist(),
+                )
             ),
             "verdict": {
-                name: force_verdict(run.metrics[name], c.frequency) for name in run.metrics
+                name: force_verdict(run.metrics[name], c.frequency)
+                for name in run.metrics
             },
         }
 
@@ -731,7 +745,10 @@ def joint_motion(run: ForceRun) -> np.ndarray:
     """Peak-to-peak motion of the torque-controlled joints (encoders, rad) during the
     sinusoid, in the order of run.config.torque_control.joints."""
     on = run.signals["t"] >= run.config.sinusoid_start
-    columns = [hrp2.JOINT_NAMES.index(j) for j in run.config.torque_control.controlled_joints(hrp2.description())]
+    columns = [
+        hrp2.JOINT_NAMES.index(j)
+        for j in run.config.torque_control.controlled_joints(hrp2.description())
+    ]
     q = run.signals["q_measured"][on][:, columns]
     return q.max(axis=0) - q.min(axis=0)
 
@@ -772,7 +789,12 @@ def _figure5_table(metrics: dict[str, dict]) -> list[str]:
     e, r = metrics["estimate"], metrics["ft_reading"]
     rows = [
         ("overshoot at the apexes", "≈ 10%", "overshoot", "{:+.1%}"),
-        ("amplitude ratio (sinusoid fit)", "≈ 1.1 (implied)", "amplitude_ratio", "{:.3f}"),
+        (
+            "amplitude ratio (sinusoid fit)",
+            "≈ 1.1 (implied)",
+            "amplitude_ratio",
+            "{:.3f}",
+        ),
         ("delay, cross-correlation (ms)", "none visible", "lag_ms", "{:+.1f}"),
         ("delay, sinusoid phase (ms)", "", "phase_delay_ms", "{:+.1f}"),
         ("RMS error of f_z (N)", "", "rms_error", "{:.2f}"),
@@ -782,7 +804,10 @@ def _figure5_table(metrics: dict[str, dict]) -> list[str]:
     ]
     return markdown_table(
         ["metric", "paper", "estimate f̂", "F/T reading"],
-        [[label, paper, fmt.format(e[key]), fmt.format(r[key])] for label, paper, key, fmt in rows],
+        [
+            [label, paper, fmt.format(e[key]), fmt.format(r[key])]
+            for label, paper, key, fmt in rows
+        ],
     )
 
 
@@ -821,18 +846,25 @@ def _variant_lines(runs: list[ForceRun]) -> list[str]:
     rows = []
     for run in runs:
         m, me = run.metrics["ft_reading"], run.metrics["estimate"]
-        rows.append([
-            run.label,
-            f"{m['overshoot']:+.1%} ({me['overshoot']:+.1%})",
-            f"{m['amplitude_ratio']:.3f} ({me['amplitude_ratio']:.3f})",
-            f"{m['lag_ms']:+.0f} ({me['lag_ms']:+.0f})",
-            f"{m['rms_error']:.1f} ({me['rms_error']:.1f})",
-            f"{m['coupling_x']:.1%}",
-            f"{run.fallback_time:.2f} s" if run.fallback_time else "no",
-        ])
+        rows.append(
+            [
+                run.label,
+                f"{m['overshoot']:+.1%} ({me['overshoot']:+.1%})",
+                f"{m['amplitude_ratio']:.3f} ({me['amplitude_ratio']:.3f})",
+                f"{m['lag_ms']:+.0f} ({me['lag_ms']:+.0f})",
+                f"{m['rms_error']:.1f} ({me['rms_error']:.1f})",
+                f"{m['coupling_x']:.1%}",
+                f"{run.fallback_time:.2f} s" if run.fallback_time else "no",
+            ]
+        )
     header = [
-        "variant", "overshoot", "amplitude ratio", "lag (ms)", "RMS error (N)",
-        "coupling X", "fallback",
+        "variant",
+        "overshoot",
+        "amplitude ratio",
+        "lag (ms)",
+        "RMS error (N)",
+        "coupling X",
+        "fallback",
     ]
     return [
         "## Why: variants (F/T reading; estimate in parentheses)",
@@ -865,7 +897,9 @@ def plot_figure5(result: ForceResult, out: Path) -> str:
     for k, (ax, group) in enumerate(zip(axes[2:], groups)):
         first = k * VARIANTS_PER_PANEL + 1
         _plot_variants(
-            ax, result.baseline, group,
+            ax,
+            result.baseline,
+            group,
             f"variants {first}-{first + len(group) - 1} of {len(result.variants)}",
         )
     for ax in axes:

@@ -130,7 +130,9 @@ def estimator_plant(add_model=add_hrp2) -> MultibodyPlant:
     return plant
 
 
-def right_leg_collection(duration_scale: float = 1.0, seed: int = 0) -> CollectionConfig:
+def right_leg_collection(
+    duration_scale: float = 1.0, seed: int = 0
+) -> CollectionConfig:
     """HRP-2's identification excitation (models/hrp2/robot.yaml): high-torque pushes
     on the right foot in three leg configurations, then one increasing-amplitude
     sinusoid per right-leg joint; the left leg spread out of the way.
@@ -144,4 +146,6 @@ def true_motor_model(
     """HRP-2's emulated servo's effective Kτ, Kv, Kc: ground truth, for evaluation
     only (`ground_truth.true_motor_model`). `servo_file` as `StationConfig.servo_file`
     (empty: the calibrated servo)."""
-    return ground_truth.true_motor_model(description(), joint_names, direction, servo_file)
+    return ground_truth.true_motor_model(
+        description(), joint_names, direction, servo_file
+    )

@@ -126,9 +126,18 @@ def improved_plan(
         changes = {f: field_at(tuned, f) for f in fields}
         if fields == (predictor,) and not tuned.observer.predictor:
             # The tuner left it off: show what it does alone, and on the tuned one.
-            plan.append((f"{IMPROVED}: predictor only", replace_fields(paper, {predictor: True})))
-            plan.append((f"{IMPROVED}: all (tuned) + predictor",
-                         replace_fields(tuned, {k6: 0.1, predictor: True})))
+            plan.append(
+                (
+                    f"{IMPROVED}: predictor only",
+                    replace_fields(paper, {predictor: True}),
+                )
+            )
+            plan.append(
+                (
+                    f"{IMPROVED}: all (tuned) + predictor",
+                    replace_fields(tuned, {k6: 0.1, predictor: True}),
+                )
+            )
             continue
         if all(changes[f] == field_at(paper, f) for f in fields):
             continue  # the tuned controller does not use it: nothing to show
@@ -137,7 +146,10 @@ def improved_plan(
 
 
 def climbing_reference(
-    smoothing: float = 1e-8, start: float = 0.0, end: float | None = None, dt: float = 0.001
+    smoothing: float = 1e-8,
+    start: float = 0.0,
+    end: float | None = None,
+    dt: float = 0.001,
 ) -> JointReference:
     """The climbing motion as a smoothing spline (scipy make_smoothing_spline, `lam` =
     smoothing) sampled at 1 kHz: q, q̇, q̈ for the 30 joints. The raw 5 ms data have
@@ -157,7 +169,9 @@ def _climbing_samples(
     t, q = hrp2.load_trajectory()
     end = t[-1] if end is None else end
     grid = np.arange(start, end + dt / 2, dt)
-    splines = [make_smoothing_spline(t, q[:, j], lam=smoothing) for j in range(q.shape[1])]
+    splines = [
+        make_smoothing_spline(t, q[:, j], lam=smoothing) for j in range(q.shape[1])
+    ]
     stack = [np.column_stack([s(grid, nu) for s in splines]) for nu in (0, 1, 2)]
     return grid - start, *stack
 
@@ -238,7 +252,9 @@ class MotionConfig:
             controller; 0: not run.
     """
 
-    station: StationConfig = field(default_factory=lambda: StationConfig(scenario="hanging"))
+    station: StationConfig = field(
+        default_factory=lambda: StationConfig(scenario="hanging")
+    )
     k6: list[float] = field(default_factory=lambda: list(PAPER_K6))
     torque_control: TorqueControlConfig = field(
         # Hanging, the feet and hands touch nothing at start-up: calibrate the F/T
@@ -265,7 +281,10 @@ class MotionConfig:
             check_finite(k6, f"MotionConfig.k6[{k}]", 0.0)
         check_finite(self.smoothing, "MotionConfig.smoothing", 0.0)
         check_finite(
-            self.held_out_time_scale, "MotionConfig.held_out_time_scale", 0.0, strict=False
+            self.held_out_time_scale,
+            "MotionConfig.held_out_time_scale",
+            0.0,
+            strict=False,
         )
         if self.improved:
             try:
@@ -308,7 +327,9 @@ def motion_reference(config: MotionConfig, time_scale: float = 1.0) -> JointRefe
     # Hold the first pose (the motion's value at 0) for `settle` seconds, then the
     # motion shifted right by `settle`.
     first = first_order_hold(t[:2], samples[:, :2]).value(0.0)
-    hold = PiecewisePolynomial.FirstOrderHold([0.0, config.settle], np.hstack([first, first]))
+    hold = PiecewisePolynomial.FirstOrderHold(
+        [0.0, config.settle], np.hstack([first, first])
+    )
     return JointReference(first_order_hold(t, samples, shift=config.settle, after=hold))
 
 
@@ -349,7 +370,9 @@ def run_controller(
 
     builder = DiagramBuilder()
     builder.AddNamedSystem("control", control.diagram)
-    ports = {name: control.diagram.GetOutputPort(name) for name in control.output_names()}
+    ports = {
+        name: control.diagram.GetOutputPort(name) for name in control.output_names()
+    }
     loggers = add_loggers(builder, ports, log_period)
     simulator = Simulator(builder.Build())
     run_with_progress(simulator, duration, label, stream=stream)
@@ -389,27 +412,35 @@ def _authors_code(config: TorqueControlConfig) -> TorqueControlConfig:
     K_d ė_q, the raw encoders in e_q."""
     from dataclasses import replace
 
-    return replace(config, controller=replace(
-        config.controller,
-        position_source="encoders",
-        feedback_velocity="estimate",
-        friction_velocity="estimate",
-    ))
+    return replace(
+        config,
+        controller=replace(
+            config.controller,
+            position_source="encoders",
+            feedback_velocity="estimate",
+            friction_velocity="estimate",
+        ),
+    )
 
 
 def _paper_literal(config: TorqueControlConfig) -> TorqueControlConfig:
     """The paper's eq. 12-13 as written: every feedback signal from the estimator."""
     from dataclasses import replace
 
-    return replace(config, controller=replace(
-        config.controller,
-        position_source="estimate",
-        feedback_velocity="estimate",
-        friction_velocity="estimate",
-    ))
+    return replace(
+        config,
+        controller=replace(
+            config.controller,
+            position_source="estimate",
+            feedback_velocity="estimate",
+            friction_velocity="estimate",
+        ),
+    )
 
 
-def evaluate(label: str, k6, signals: dict, settle: float, delay: float) -> ControllerRun:
+def evaluate(
+    label: str, k6, signals: dict, settle: float, delay: float
+) -> ControllerRun:
     """Errors of the moving right-leg joints after `settle`; the torque estimate
     against the truth delayed by the estimator's `delay` (s)."""
     t = signals["t"]
@@ -473,17 +504,24 @@ def run_motion(
     runs, signals = [], {}
     plan = [("position control", None, None)]
     plan += [
-        (f"torque control K6={k6:g}", k6,
-         replace_fields(config.torque_control, {"controller.k6": k6}))
+        (
+            f"torque control K6={k6:g}",
+            k6,
+            replace_fields(config.torque_control, {"controller.k6": k6}),
+        )
         for k6 in config.k6
     ]
     if include_variants:
         k6_1 = replace_fields(config.torque_control, {"controller.k6": 1.0})
-        plan.append(("torque control K6=1, paper-literal eq. 13", 1.0, _paper_literal(k6_1)))
+        plan.append(
+            ("torque control K6=1, paper-literal eq. 13", 1.0, _paper_literal(k6_1))
+        )
         plan.append(("torque control K6=1, authors' code", 1.0, _authors_code(k6_1)))
     if config.improved:
         tuned = load_improved(config.improved, config.torque_control)
-        plan += [(label, 0.1, c) for label, c in improved_plan(config.torque_control, tuned)]
+        plan += [
+            (label, 0.1, c) for label, c in improved_plan(config.torque_control, tuned)
+        ]
         if config.held_out_time_scale > 0:
             scale = config.held_out_time_scale
             tag = f"{HELD_OUT} (climbing x{scale:g} in time)"
@@ -520,7 +558,12 @@ def _run(
         control = build_position_control(robot, simulated, reference)
     else:
         control = build_torque_control(
-            robot, simulated, reference, motor_model, torque_config, control_period=period
+            robot,
+            simulated,
+            reference,
+            motor_model,
+            torque_config,
+            control_period=period,
         )
     return run_controller(control, reference.end_time(), label)
 
@@ -609,7 +652,9 @@ def _claim_lines(main: list[ControllerRun]) -> tuple[list[str], dict]:
     for run in main[1:]:
         better_avg = [
             label
-            for label, a, b in zip(MOVING_LABELS, run.average_error, position.average_error)
+            for label, a, b in zip(
+                MOVING_LABELS, run.average_error, position.average_error
+            )
             if a < b
         ]
         better_max = [
@@ -620,8 +665,11 @@ def _claim_lines(main: list[ControllerRun]) -> tuple[list[str], dict]:
         verdicts[run.label] = {"average": better_avg, "maximum": better_max}
         if run.k6 in PAPER_CLAIMS:
             judged = judge_claim(
-                run.k6, run.average_error, run.max_error,
-                position.average_error, position.max_error,
+                run.k6,
+                run.average_error,
+                run.max_error,
+                position.average_error,
+                position.max_error,
             )
             verdicts[run.label]["claim"] = judged
             lines.append(
@@ -634,11 +682,19 @@ def _claim_lines(main: list[ControllerRun]) -> tuple[list[str], dict]:
             f"  - {run.label}: lower average on {len(better_avg)}/5 "
             f"({', '.join(better_avg) or '-'}), lower maximum on {len(better_max)}/5 "
             f"({', '.join(better_max) or '-'})"
-            + (f"; fell back to position control at {fell_back:.2f} s" if fell_back else "")
-            + (f"; safety supervisor saw: {faults}" if faults not in (None, "none") else "")
+            + (
+                f"; fell back to position control at {fell_back:.2f} s"
+                if fell_back
+                else ""
+            )
+            + (
+                f"; safety supervisor saw: {faults}"
+                if faults not in (None, "none")
+                else ""
+            )
         )
     lines.append(
-        f"\n\"Equivalent\" is within ±{EQUIVALENT * 100:.0f}% (the paper's own \"almost "
+        f'\n"Equivalent" is within ±{EQUIVALENT * 100:.0f}% (the paper\'s own "almost '
         "equivalent\" cells at K6 = 0.25 span -20% to +14%); applied to the paper's own "
         "Tables 2 and 3, every claim holds."
     )
@@ -654,7 +710,8 @@ def _variant_lines(variants: list[ControllerRun], default: ControllerRun) -> lis
         for r in variants
     ]
     rows.append(
-        ["torque control K6=1 (default)"] + [f"{e * 1e3:.2f}" for e in default.max_error]
+        ["torque control K6=1 (default)"]
+        + [f"{e * 1e3:.2f}" for e in default.max_error]
         + ["ran"]
     )
     return [
@@ -696,7 +753,9 @@ def _against(run: ControllerRun, position: ControllerRun) -> dict:
     (average and maximum), and the cells where it is not."""
     misses = []
     for key, name in (("average_error", "average"), ("max_error", "maximum")):
-        for label, a, b in zip(MOVING_LABELS, getattr(run, key), getattr(position, key)):
+        for label, a, b in zip(
+            MOVING_LABELS, getattr(run, key), getattr(position, key)
+        ):
             if a > b:
                 misses.append(f"{label} {name} {a * 1e3:.3g} > {b * 1e3:.3g} mrad")
     return {
@@ -751,7 +810,8 @@ def _outcome(row: dict) -> str:
 def _average_max_cells(row: dict) -> list[str]:
     """One controller's row of `_against`, as "average / maximum" (rad·10³) per joint."""
     return [
-        f"{a * 1e3:.3f} / {m * 1e3:.2f}" for a, m in zip(row["average_error"], row["max_error"])
+        f"{a * 1e3:.3f} / {m * 1e3:.2f}"
+        for a, m in zip(row["average_error"], row["max_error"])
     ]
 
 
@@ -763,15 +823,21 @@ def _improved_lines(summary: dict, labels: list[str]) -> list[str]:
         "on four of five joints). The improved controller (`hrp2-drake tune`, "
         f"`{IMPROVED_FILE}`) adds a disturbance observer, per-signal estimation "
         "windows, the delay predictor and tuned gains where the tuner kept them; the "
-        "rows \"... only\" put one of them alone on the paper's K6 = 0.1. Average "
+        'rows "... only" put one of them alone on the paper\'s K6 = 0.1. Average '
         "(Table 2 formula) / maximum error, rad·10³.",
         "",
     ]
     rows = [
-        [r["label"], *_average_max_cells(r), _outcome(r) if r is not summary["position"] else "-"]
+        [
+            r["label"],
+            *_average_max_cells(r),
+            _outcome(r) if r is not summary["position"] else "-",
+        ]
         for r in [summary["position"], *summary["rows"]]
     ]
-    lines += markdown_table(["controller", *labels, "≤ position control everywhere"], rows)
+    lines += markdown_table(
+        ["controller", *labels, "≤ position control everywhere"], rows
+    )
     goal = summary["goal"]
     tuned = summary["tuned"]
     lines += [
@@ -782,7 +848,10 @@ def _improved_lines(summary: dict, labels: list[str]) -> list[str]:
     ]
     held = summary.get("held_out")
     if held:
-        rows = [[r["label"], *_average_max_cells(r)] for r in (held["position"], held["improved"])]
+        rows = [
+            [r["label"], *_average_max_cells(r)]
+            for r in (held["position"], held["improved"])
+        ]
         misses = held["improved"]["misses"]
         lines += [
             "",
@@ -820,7 +889,10 @@ def plot_figure4(result: MotionResult, out: Path) -> str:
             ax.grid(True, alpha=0.3)
     # One legend for the four panels, below them (off the data).
     fig.legend(
-        *axes[0, 0].get_legend_handles_labels(), loc="outside lower center", ncol=4, fontsize=8
+        *axes[0, 0].get_legend_handles_labels(),
+        loc="outside lower center",
+        ncol=4,
+        fontsize=8,
     )
     fig.suptitle("Figure 4: position control vs torque control (K6 = 1, 0.25)")
     name = "figure4_tracking_error.png"

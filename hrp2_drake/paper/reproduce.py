@@ -35,7 +35,15 @@ from hrp2_drake.paper.claims import (
 )
 from hrp2_drake.report import markdown_table
 
-STEPS = ("identify", "estimation", "motion", "force", "stability", "faults", "components")
+STEPS = (
+    "identify",
+    "estimation",
+    "motion",
+    "force",
+    "stability",
+    "faults",
+    "components",
+)
 
 
 @dataclass
@@ -64,8 +72,11 @@ def _log(message: str) -> None:
 
 
 def _save_signals(path: Path, signals: dict[str, dict[str, np.ndarray]]) -> None:
-    flat = {f"{label}::{name}": value for label, logged in signals.items()
-            for name, value in logged.items()}
+    flat = {
+        f"{label}::{name}": value
+        for label, logged in signals.items()
+        for name, value in logged.items()
+    }
     np.savez_compressed(path, **flat)
 
 
@@ -127,7 +138,9 @@ def _component_runs(labels) -> list[str]:
 
     paper = [label for label in labels if not is_beyond_paper(label)]
     keep = [label for label in paper if "K6=1" in label and "," not in label]
-    keep += [label for label in paper if "K6=0.1" in label or label == "position control"]
+    keep += [
+        label for label in paper if "K6=0.1" in label or label == "position control"
+    ]
     return keep
 
 
@@ -145,7 +158,11 @@ def _motion_replay(config, motor_model, path: Path) -> None:
     robot, station, period = simulated_station(config.station, meshcat)
     k6_1 = replace_fields(config.torque_control, {"controller.k6": 1.0})
     control = build_torque_control(
-        robot, station, reference, motor_model, k6_1,
+        robot,
+        station,
+        reference,
+        motor_model,
+        k6_1,
         control_period=period,
     )
     simulator = Simulator(control.diagram)
@@ -180,8 +197,13 @@ def step_force(out: Path, model_path: Path, quick: bool, replays: bool) -> dict:
         meshcat = Meshcat()
         meshcat.StartRecording(frames_per_second=30.0)
         base = result.baseline
-        run_force(config, motor_model, static=(base.static_wrench, base.static_reading),
-                  gain=base.posture_gain, meshcat=meshcat)
+        run_force(
+            config,
+            motor_model,
+            static=(base.static_wrench, base.static_reading),
+            gain=base.posture_gain,
+            meshcat=meshcat,
+        )
         meshcat.StopRecording()
         meshcat.PublishRecording()
         (out / "force_replay.html").write_text(meshcat.StaticHtml())
@@ -200,7 +222,9 @@ def step_stability(out: Path, model_path: Path, quick: bool, replays: bool) -> d
         config = replace(config, push_velocities=[0.5, 2.0])
     models = {
         "asymmetric": MotorModel.load(model_path),
-        "least_squares": MotorModel.load(model_path.with_name("motor_model_least_squares.yaml")),
+        "least_squares": MotorModel.load(
+            model_path.with_name("motor_model_least_squares.yaml")
+        ),
     }
     return run_stability_experiment(config, models, out)
 
@@ -245,7 +269,12 @@ STEP_FUNCTIONS: dict[str, Callable] = {
 
 
 def _run_step(
-    name: str, out: Path, model_path: Path, quick: bool, replays: bool, program: str = ""
+    name: str,
+    out: Path,
+    model_path: Path,
+    quick: bool,
+    replays: bool,
+    program: str = "",
 ) -> dict:
     """Runs one step in a worker process; failures become a summary with the error.
     Its console lines name the step; each repeated warning is printed once and its
@@ -258,8 +287,11 @@ def _run_step(
             summary = STEP_FUNCTIONS[name](out, model_path, quick, replays)
             summary["ok"] = True
         except Exception as error:  # reported, and the other steps go on
-            summary = {"ok": False, "error": f"{type(error).__name__}: {error}",
-                       "traceback": traceback.format_exc()}
+            summary = {
+                "ok": False,
+                "error": f"{type(error).__name__}: {error}",
+                "traceback": traceback.format_exc(),
+            }
         summary["repeated_warnings"] = session.repeats()
     summary["seconds"] = time.perf_counter() - start
     return summary
@@ -278,10 +310,17 @@ def run_reproduce(config: ReproduceConfig, out: Path) -> dict:
 
     parallel = [s for s in config.steps if s in STEP_FUNCTIONS]
     _log(f"running {', '.join(parallel)} in {config.jobs} process(es)")
-    with ProcessPoolExecutor(max_workers=max(1, config.jobs), mp_context=get_context("spawn")) as pool:
+    with ProcessPoolExecutor(
+        max_workers=max(1, config.jobs), mp_context=get_context("spawn")
+    ) as pool:
         futures = {
             name: pool.submit(
-                _run_step, name, out / name, model_path, config.quick, config.replays,
+                _run_step,
+                name,
+                out / name,
+                model_path,
+                config.quick,
+                config.replays,
                 console.program(),
             )
             for name in parallel
@@ -289,7 +328,9 @@ def run_reproduce(config: ReproduceConfig, out: Path) -> dict:
         session = console.current()
         for name, future in futures.items():
             results[name] = future.result()
-            status = "done" if results[name]["ok"] else f"FAILED: {results[name]['error']}"
+            status = (
+                "done" if results[name]["ok"] else f"FAILED: {results[name]['error']}"
+            )
             _log(f"{name}: {status} in {results[name]['seconds']:.0f} s")
             repeats = results[name].get("repeated_warnings", {})
             if session is not None:  # printed with the run's own, at its end
@@ -306,10 +347,16 @@ def run_reproduce(config: ReproduceConfig, out: Path) -> dict:
                 )
                 results["components"]["ok"] = True
             except Exception as error:
-                results["components"] = {"ok": False, "error": f"{type(error).__name__}: {error}"}
+                results["components"] = {
+                    "ok": False,
+                    "error": f"{type(error).__name__}: {error}",
+                }
             results["components"]["seconds"] = time.perf_counter() - start
         else:
-            results["components"] = {"ok": False, "error": "needs the motion and force steps"}
+            results["components"] = {
+                "ok": False,
+                "error": "needs the motion and force steps",
+            }
     results["total_seconds"] = time.perf_counter() - wall
     results["quick"] = config.quick
     (out / "results.json").write_text(json.dumps(results, indent=2, default=float))
@@ -349,21 +396,41 @@ def _predictions(results: dict) -> list[str]:
     if force.get("ok") and "baseline" in force:
         m = force["baseline"]["metrics"]["ft_reading"]
         rows += [
-            ["Fig. 5", "overshoot at the apex ≤ 10%", f"{m['overshoot'] * 100:+.1f}%",
-             f"{m['overshoot'] / PAPER_OVERSHOOT:.2f}"],
-            ["Fig. 5", "coupling on X: the same 10%", f"{m['coupling_x'] * 100:.1f}%",
-             f"{m['coupling_x'] / PAPER_COUPLING_X:.2f}"],
+            [
+                "Fig. 5",
+                "overshoot at the apex ≤ 10%",
+                f"{m['overshoot'] * 100:+.1f}%",
+                f"{m['overshoot'] / PAPER_OVERSHOOT:.2f}",
+            ],
+            [
+                "Fig. 5",
+                "coupling on X: the same 10%",
+                f"{m['coupling_x'] * 100:.1f}%",
+                f"{m['coupling_x'] / PAPER_COUPLING_X:.2f}",
+            ],
             ["Fig. 5", "no significant delay", f"{m['lag_ms']:+.0f} ms", "-"],
-            ["Fig. 5", "(amplitude of the z force)", f"ratio {m['amplitude_ratio']:.2f}", "-"],
+            [
+                "Fig. 5",
+                "(amplitude of the z force)",
+                f"ratio {m['amplitude_ratio']:.2f}",
+                "-",
+            ],
         ]
     for delay, v in results.get("stability", {}).get("verdicts", {}).items():
         label = "as it is" if delay == "0 ms" else f"with δc = {delay} compensated"
         rows += [
-            ["Sec. 5.2",
-             f"least squares: unstable once a speed is reached (controller {label})",
-             _push_outcome(v["least_squares"]), "-"],
-            ["Sec. 5.2", f"asymmetric fit: stable (controller {label})",
-             _push_outcome(v["asymmetric"]), "-"],
+            [
+                "Sec. 5.2",
+                f"least squares: unstable once a speed is reached (controller {label})",
+                _push_outcome(v["least_squares"]),
+                "-",
+            ],
+            [
+                "Sec. 5.2",
+                f"asymmetric fit: stable (controller {label})",
+                _push_outcome(v["asymmetric"]),
+                "-",
+            ],
         ]
     header = ["paper", "what it reports", "simulation", "simulation/paper"]
     return lines + markdown_table(header, rows, align="lllr")
@@ -374,7 +441,11 @@ def write_report(results: dict, out: Path) -> str:
         "# Reproduction of Del Prete et al. 2015 on a simulated HRP-2",
         "",
         f"Generated by `hrp2-drake reproduce` in {results['total_seconds'] / 60:.1f} min"
-        + (" (quick: CI-sized durations, numbers only indicative)" if results.get("quick") else "")
+        + (
+            " (quick: CI-sized durations, numbers only indicative)"
+            if results.get("quick")
+            else ""
+        )
         + ". Every number below is measured in this run; the paper's values are in parentheses "
         "or in their own columns.",
         "",
@@ -399,5 +470,9 @@ def write_report(results: dict, out: Path) -> str:
         if step in results:
             lines += _section(out, step, filename) + [""]
     lines += ["## Timing", ""]
-    lines += [f"- {step}: {results[step].get('seconds', 0):.0f} s" for step in STEPS if step in results]
+    lines += [
+        f"- {step}: {results[step].get('seconds', 0):.0f} s"
+        for step in STEPS
+        if step in results
+    ]
     return "\n".join(lines) + "\n"

@@ -296,7 +296,7 @@ class StabilityRun:
 
     @property
     def outcome(self) -> str:
-        """"accelerates away", "reached the limit" or "stable" (module docstring)."""
+        """ "accelerates away", "reached the limit" or "stable" (module docstring)."""
         if self.accelerates:
             return "accelerates away"
         return "stable" if self.limit_time is None else "reached the limit"
@@ -531,7 +531,9 @@ def contrast(result: StabilityResult) -> dict[str, bool]:
             r.push_velocity: r.accelerates for r in runs if r.model == "least_squares"
         }
         asym = {
-            r.push_velocity: r.outcome == "stable" for r in runs if r.model == "asymmetric"
+            r.push_velocity: r.outcome == "stable"
+            for r in runs
+            if r.model == "asymmetric"
         }
         out[f"{delay * 1e3:g} ms"] = any(ls.get(v) and asym.get(v) for v in ls)
     return out
@@ -643,8 +645,16 @@ def _run_table(runs: list[StabilityRun]) -> list[str]:
         for r in runs
     ]
     header = [
-        "fit", "10³ K̂_τ", "10³ K̂_v", "δc (ms)", "v0 (rad/s)", "release speed",
-        "peak speed", "final speed", "reached the limit after", "outcome",
+        "fit",
+        "10³ K̂_τ",
+        "10³ K̂_v",
+        "δc (ms)",
+        "v0 (rad/s)",
+        "release speed",
+        "peak speed",
+        "final speed",
+        "reached the limit after",
+        "outcome",
     ]
     return markdown_table(header, rows, align="l" + "r" * 8 + "l")
 

@@ -350,7 +350,9 @@ def base_params(
 
 def _default_torque_control() -> TorqueControlConfig:
     # As the motion experiment's: hanging, the F/T offsets calibrated at start-up.
-    return TorqueControlConfig(estimator=EstimatorSettings(offset_calibration_time=0.25))
+    return TorqueControlConfig(
+        estimator=EstimatorSettings(offset_calibration_time=0.25)
+    )
 
 
 @dataclass
@@ -569,8 +571,13 @@ def run_trial(task: TrialTask) -> dict:
         else:
             # The fused controller: the diagram's signals, at less cost per step.
             control = build_torque_control(
-                robot, station, reference, task.motor_model, task.torque_control,
-                control_period=period, fused=True,
+                robot,
+                station,
+                reference,
+                task.motor_model,
+                task.torque_control,
+                control_period=period,
+                fused=True,
             )
         with _quiet("hrp2_drake.control"):  # the result reports the fallbacks
             signals = run_controller(
@@ -695,10 +702,14 @@ def open_executor(config: TuneConfig):
         threads = sum(client.nthreads().values())
         workers = config.workers or max(1, threads)
         executor = client.get_executor(pure=False)  # each trial runs, even if equal
-        yield executor, (
-            f"Dask cluster at {config.scheduler} ({len(client.nthreads())} workers, "
-            f"{threads} threads)"
-        ), workers
+        yield (
+            executor,
+            (
+                f"Dask cluster at {config.scheduler} ({len(client.nthreads())} workers, "
+                f"{threads} threads)"
+            ),
+            workers,
+        )
     finally:
         client.close()
 
@@ -1027,8 +1038,11 @@ def _report(result: TuneResult, config: TuneConfig, figures: dict[str, str]) -> 
     lines += _best_trial_lines(best.user_attrs, result.position, labels)
     lines += ["", "## Best parameters", ""]
     rows = [
-        [name, _fmt(untuned.params.get(name, "-") if untuned else "-"),
-         _fmt(best.params.get(name, "-"))]
+        [
+            name,
+            _fmt(untuned.params.get(name, "-") if untuned else "-"),
+            _fmt(best.params.get(name, "-")),
+        ]
         for name in sorted(set(best.params) | set(untuned.params if untuned else ()))
     ]
     lines += markdown_table(["parameter", "untuned", "best"], rows)
@@ -1050,16 +1064,20 @@ def _report(result: TuneResult, config: TuneConfig, figures: dict[str, str]) -> 
 def _best_trial_lines(attrs: dict, position: dict, labels: list[str]) -> list[str]:
     """The best trial's errors beside position control's per moving joint (rad·10³,
     and their ratios); a trial without them (it failed): the table's header alone."""
-    rows = [
+    rows = (
         [
-            label,
-            f"{attrs['average_error'][j] * 1e3:.4f} ({position['average_error'][j] * 1e3:.4f})",
-            f"{attrs['average_ratio'][j]:.3f}",
-            f"{attrs['max_error'][j] * 1e3:.2f} ({position['max_error'][j] * 1e3:.2f})",
-            f"{attrs['max_ratio'][j]:.3f}",
+            [
+                label,
+                f"{attrs['average_error'][j] * 1e3:.4f} ({position['average_error'][j] * 1e3:.4f})",
+                f"{attrs['average_ratio'][j]:.3f}",
+                f"{attrs['max_error'][j] * 1e3:.2f} ({position['max_error'][j] * 1e3:.2f})",
+                f"{attrs['max_ratio'][j]:.3f}",
+            ]
+            for j, label in enumerate(labels)
         ]
-        for j, label in enumerate(labels)
-    ] if "average_ratio" in attrs else []
+        if "average_ratio" in attrs
+        else []
+    )
     header = ["joint", "average (x10³ rad)", "ratio", "maximum (mrad)", "ratio"]
     lines = markdown_table(header, rows)
     if "average_ratio" in attrs:

@@ -90,7 +90,9 @@ class SimulatedServos:
     def _build(self, gain: float) -> None:
         """The station at servo gain `gain`, its context carried over from the
         current one (if any)."""
-        station = make_station(replace(self._config, servo_gain=gain), servo_enable=True)
+        station = make_station(
+            replace(self._config, servo_gain=gain), servo_enable=True
+        )
         simulator = Simulator(station)
         context = simulator.get_mutable_context()
         if self._simulator is not None:
@@ -167,7 +169,9 @@ class SimulatedServos:
         position = self._servo.encoder(q)
         loop = self.robot.position_loop
         duty = loop.output_per_gain * self._gain * (self._goal - position)
-        duty = np.clip(duty, -loop.output_limit, loop.output_limit) * (self._enabled > 0.5)
+        duty = np.clip(duty, -loop.output_limit, loop.output_limit) * (
+            self._enabled > 0.5
+        )
         return ServoReadings(
             position=position,
             velocity=v.copy(),

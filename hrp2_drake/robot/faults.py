@@ -54,17 +54,25 @@ class SensorFault:
                 f"{where}.signal: unknown signal '{self.signal}', expected one of {sorted(sizes)}"
             )
         if self.kind not in FAULT_KINDS:
-            raise ValueError(f"{where}.kind: '{self.kind}', expected one of {FAULT_KINDS}")
+            raise ValueError(
+                f"{where}.kind: '{self.kind}', expected one of {FAULT_KINDS}"
+            )
         if not (math.isfinite(self.start) and self.start >= 0):
-            raise ValueError(f"{where}.start: must be finite and >= 0, got {self.start}")
+            raise ValueError(
+                f"{where}.start: must be finite and >= 0, got {self.start}"
+            )
         if not self.duration > 0:
             raise ValueError(f"{where}.duration: must be > 0, got {self.duration}")
         size = sizes[self.signal]
         bad = [i for i in self.indices if not 0 <= i < size]
         if bad:
-            raise ValueError(f"{where}.indices: {bad} out of range for '{self.signal}' ({size})")
+            raise ValueError(
+                f"{where}.indices: {bad} out of range for '{self.signal}' ({size})"
+            )
         count = len(self.indices) or size
-        if len(self.magnitude) not in (1, count) or not np.all(np.isfinite(self.magnitude)):
+        if len(self.magnitude) not in (1, count) or not np.all(
+            np.isfinite(self.magnitude)
+        ):
             raise ValueError(
                 f"{where}.magnitude: 1 or {count} finite values, got {self.magnitude}"
             )
@@ -91,7 +99,9 @@ class FaultInjector(WitnessFreeLeafSystem):
         self._faults = []
         for fault in faults:
             rows = np.array(fault.indices or range(size), dtype=int)
-            magnitude = np.broadcast_to(np.asarray(fault.magnitude, float), rows.shape).copy()
+            magnitude = np.broadcast_to(
+                np.asarray(fault.magnitude, float), rows.shape
+            ).copy()
             end = fault.start + (period if fault.kind == "glitch" else fault.duration)
             self._faults.append((fault.kind, fault.start, end, rows, magnitude))
         self._input = self.DeclareVectorInputPort("signal", size)
@@ -102,7 +112,9 @@ class FaultInjector(WitnessFreeLeafSystem):
 
     def _hold(self, context: Context, state: DiscreteValues) -> None:
         t = context.get_time()
-        if not any(k == "freeze" and start <= t < end for k, start, end, *_ in self._faults):
+        if not any(
+            k == "freeze" and start <= t < end for k, start, end, *_ in self._faults
+        ):
             state.set_value(self._held, self._input.Eval(context))
 
     def _calc(self, context: Context, output: BasicVector) -> None:
@@ -162,7 +174,9 @@ class SensorClock(WitnessFreeLeafSystem):
     (The simulated station's `SensorSampler` keeps the same stamps itself.)
     """
 
-    def __init__(self, signals: Sequence[str], faults: Sequence[SensorFault], period: float):
+    def __init__(
+        self, signals: Sequence[str], faults: Sequence[SensorFault], period: float
+    ):
         super().__init__()
         self._freezes = freeze_windows(list(signals), faults)
         self._stamps = self.DeclareDiscreteState(len(signals))

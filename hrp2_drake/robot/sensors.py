@@ -95,7 +95,6 @@ class SampledSignal:
         return y
 
 
-
 def _raise_not_finite(name: str, signal: np.ndarray, t: float) -> None:
     """Raises the error of a sensor whose signal is not finite (a diverged simulation)."""
     raise RuntimeError(
@@ -285,8 +284,19 @@ _HEADER = 6
 
 
 @kernel
-def _sample_bus(c, table, x, acceleration, angular_velocity, signals, noise, row,
-                groups, t, stamp_all):
+def _sample_bus(
+    c,
+    table,
+    x,
+    acceleration,
+    angular_velocity,
+    signals,
+    noise,
+    row,
+    groups,
+    t,
+    stamp_all,
+):
     """`SensorSampler._update`'s arithmetic: the encoders' (from the plant's state x)
     and the IMU's signals into the signal buffer (whose F/T part is filled), then, if
     every signal is finite, each channel's `SampledSignal` law on the whole buffer,
@@ -404,7 +414,9 @@ class SensorSampler(WitnessFreeLeafSystem):
         starts = self._make_buffers(laws)
         self._declare_inputs(plant, joint_names, starts, imu, force_torque)
         self._declare_outputs(starts, initial_q, imu, names, faults)
-        self.DeclarePeriodicDiscreteUpdateEvent(config.period, self._offset, self._update)
+        self.DeclarePeriodicDiscreteUpdateEvent(
+            config.period, self._offset, self._update
+        )
         self.warm_up()
 
     def _make_buffers(self, laws: dict[str, SampledSignal]) -> dict[str, int]:
@@ -429,7 +441,9 @@ class SensorSampler(WitnessFreeLeafSystem):
         start = 0
         for name in order:
             starts[name] = start
-            self._channels.append((name, self._signals[start : start + laws[name].size]))
+            self._channels.append(
+                (name, self._signals[start : start + laws[name].size])
+            )
             start += laws[name].size
         # The noisy channels in the seeds' order, which the stable sort kept.
         self._noisy_laws = [law for law in laws.values() if law.noisy]
@@ -492,9 +506,14 @@ class SensorSampler(WitnessFreeLeafSystem):
                 ("imu_angular_velocity", starts["imu_gyroscope"], np.zeros(3)),
             ]
         for k, sensor in enumerate(names):
-            ports.append((f"wrench_{sensor}", starts["force_torque"] + 6 * k, np.zeros(6)))
+            ports.append(
+                (f"wrench_{sensor}", starts["force_torque"] + 6 * k, np.zeros(6))
+            )
         size = self._signals.size
-        group_of, row_of = np.zeros(size, dtype=np.int64), np.zeros(size, dtype=np.int64)
+        group_of, row_of = (
+            np.zeros(size, dtype=np.int64),
+            np.zeros(size, dtype=np.int64),
+        )
         for port, start, initial in ports:
             group = self.DeclareDiscreteState(initial)
             self.DeclareStateOutputPort(port, group)
@@ -534,8 +553,17 @@ class SensorSampler(WitnessFreeLeafSystem):
         imu = np.zeros(3) if self._imu else self._no_imu
         groups = tuple(group.copy() for group in self._groups)
         _sample_bus(
-            self._constants, self._table, x, imu, imu, self._signals.copy(),
-            self._noise_block, 0, groups, 0.0, True,
+            self._constants,
+            self._table,
+            x,
+            imu,
+            imu,
+            self._signals.copy(),
+            self._noise_block,
+            0,
+            groups,
+            0.0,
+            True,
         )
 
     def _update(self, context: Context, state: DiscreteValues) -> None:
@@ -553,8 +581,17 @@ class SensorSampler(WitnessFreeLeafSystem):
         # bus (each entry sees the same operations, so the numbers are the same).
         row = self._noise_row(round((t - self._offset) / self._period))
         if not _sample_bus(
-            self._constants, self._table, x, acceleration, angular_velocity,
-            self._signals, self._noise_block, row, self._groups, t, not self._freezes,
+            self._constants,
+            self._table,
+            x,
+            acceleration,
+            angular_velocity,
+            self._signals,
+            self._noise_block,
+            row,
+            self._groups,
+            t,
+            not self._freezes,
         ):
             for name, signal in self._channels:
                 if not np.all(np.isfinite(signal)):

@@ -46,7 +46,6 @@ so the per-joint test in `explicit_stability_margin` bounds the whole robot's
 discrete closed loop; tests/test_servo.py checks it and a closed-loop run.
 """
 
-
 import copy
 import functools
 import math
@@ -126,22 +125,34 @@ class ServoJointParams:
             if not value > 0:
                 raise ValueError(f"{where}.{name}: must be > 0, got {value}")
         non_negative = (
-            "k2", "k3", "k5", "i_deadzone", "encoder_resolution", "latency",
-            "hysteresis_width", "gain",
+            "k2",
+            "k3",
+            "k5",
+            "i_deadzone",
+            "encoder_resolution",
+            "latency",
+            "hysteresis_width",
+            "gain",
         )
         for name in non_negative:
             value = getattr(self, name)
             if not (value >= 0 and math.isfinite(value)):
-                raise ValueError(f"{where}.{name}: must be finite and >= 0, got {value}")
+                raise ValueError(
+                    f"{where}.{name}: must be finite and >= 0, got {value}"
+                )
         if math.isfinite(self.stall_current) != math.isfinite(self.no_load_speed):
             raise ValueError(
                 f"{where}: stall_current and no_load_speed set the voltage limit together "
                 f"(both finite, or both .inf), got {self.stall_current}, {self.no_load_speed}"
             )
         if not 0 <= self.load_friction < 1:
-            raise ValueError(f"{where}.load_friction: must be in [0, 1), got {self.load_friction}")
+            raise ValueError(
+                f"{where}.load_friction: must be in [0, 1), got {self.load_friction}"
+            )
         if not 0 <= self.k1_asymmetry < 1:
-            raise ValueError(f"{where}.k1_asymmetry: must be in [0, 1), got {self.k1_asymmetry}")
+            raise ValueError(
+                f"{where}.k1_asymmetry: must be in [0, 1), got {self.k1_asymmetry}"
+            )
 
 
 @dataclass
@@ -222,7 +233,9 @@ def _read_servo_file(filename: str, mtime_ns: int) -> ServoParams:
     return load_config(ServoParams, filename=filename)
 
 
-def save_servo_params(params: ServoParams, path: str | Path, header: Sequence[str]) -> None:
+def save_servo_params(
+    params: ServoParams, path: str | Path, header: Sequence[str]
+) -> None:
     """Writes a servo data file that `load_servo_params` reads back: every parameter
     of every joint (9 significant digits, .inf for no limit), after `header` as
     comment lines."""
@@ -293,8 +306,12 @@ def explicit_stability_margin(
         dahl = p["hysteresis_width"][j] > 0
         coulomb_damping = 0.0 if dahl else p["k3"][j] / p["v_coulomb"][j]
         cases = [(p["k1"][j] * p["k4"][j], k1_plus[j] * p["k5"][j])]
-        if math.isfinite(p["no_load_speed"][j]) and math.isfinite(p["stall_current"][j]):
-            cases.append((0.0, k1_plus[j] * p["stall_current"][j] / p["no_load_speed"][j]))
+        if math.isfinite(p["no_load_speed"][j]) and math.isfinite(
+            p["stall_current"][j]
+        ):
+            cases.append(
+                (0.0, k1_plus[j] * p["stall_current"][j] / p["no_load_speed"][j])
+            )
         worst = 0.0
         for k, c_servo in cases:
             c = c_servo + p["k2"][j] + coulomb_damping
@@ -460,7 +477,9 @@ def _command_finite(q_cmd):
 
 
 @kernel
-def _servo_output(c, rows, x, q_cmd, servo_state, tanh_v, enabled, quantum, torque, out):
+def _servo_output(
+    c, rows, x, q_cmd, servo_state, tanh_v, enabled, quantum, torque, out
+):
     """The servo's output now (`EmulatedPositionServo._calc`, `current`): with
     `torque`, the actuation (out: the plant's actuation vector, zero where no joint
     of the servo drives), else the motor current of each joint (out: joint order).
@@ -646,7 +665,9 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
         self._indexing: JointIndexing = joint_indexing(plant, joint_names)
         if np.any(self._indexing.u < 0):
             missing = [n for n, u in zip(joint_names, self._indexing.u) if u < 0]
-            raise ValueError(f"EmulatedPositionServo: joints without actuator: {missing}")
+            raise ValueError(
+                f"EmulatedPositionServo: joints without actuator: {missing}"
+            )
         if not period > 0:
             raise ValueError(f"EmulatedPositionServo: period must be > 0, got {period}")
         p, delays = _applied_parameters(params, joint_names, period, off, extra_latency)
@@ -675,7 +696,9 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
         if enable_port:
             self._enabled = self.DeclareVectorInputPort("enabled", n)
         depth = int(self._delays.max())
-        initial = np.zeros(n) if initial_q_cmd is None else np.asarray(initial_q_cmd, float)
+        initial = (
+            np.zeros(n) if initial_q_cmd is None else np.asarray(initial_q_cmd, float)
+        )
         if initial.shape != (n,):
             raise ValueError(
                 f"EmulatedPositionServo: initial_q_cmd has {initial.size} values, expected {n}"
@@ -699,10 +722,18 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
         n, p, delays = self._n, self._p, self._delays
         constants = np.zeros((_WIDTH + 1, n))
         for row, name in (
-            (_K1, "k1"), (_ASYMMETRY, "k1_asymmetry"), (_K2, "k2"), (_K3, "k3"),
-            (_K4, "k4"), (_K5, "k5"), (_DEADZONE, "i_deadzone"), (_I_MAX, "i_max"),
-            (_STALL, "stall_current"), (_NO_LOAD, "no_load_speed"),
-            (_LOAD_FRICTION, "load_friction"), (_RESOLUTION, "encoder_resolution"),
+            (_K1, "k1"),
+            (_ASYMMETRY, "k1_asymmetry"),
+            (_K2, "k2"),
+            (_K3, "k3"),
+            (_K4, "k4"),
+            (_K5, "k5"),
+            (_DEADZONE, "i_deadzone"),
+            (_I_MAX, "i_max"),
+            (_STALL, "stall_current"),
+            (_NO_LOAD, "no_load_speed"),
+            (_LOAD_FRICTION, "load_friction"),
+            (_RESOLUTION, "encoder_resolution"),
         ):
             constants[row] = p[name]
         constants[_WIDTH] = np.where(self._dahl, p["hysteresis_width"], 0.0)
@@ -749,7 +780,7 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
         _joint_current(c, 0, 0.0, 0.0, True)
         _joint_torque(c, 0, 0.0, 0.0, 0.0)
         _command_finite(np.zeros(n))
-        x = np.zeros(int(self._rows[:_V_ROW + 1].max(initial=-1)) + 1)
+        x = np.zeros(int(self._rows[: _V_ROW + 1].max(initial=-1)) + 1)
         q_cmd = np.zeros(n)
         servo_state = np.zeros(2 * n + self._depth * n)
         read_only = servo_state.copy()
@@ -757,7 +788,16 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
         out = np.zeros(self._num_actuators)
         for enabled in (self._empty, np.ones(n)):
             _servo_output(
-                c, self._rows, x, q_cmd, read_only, self._tanh_v, enabled, 0.0, True, out
+                c,
+                self._rows,
+                x,
+                q_cmd,
+                read_only,
+                self._tanh_v,
+                enabled,
+                0.0,
+                True,
+                out,
             )
             _servo_law(c, q_cmd, q_cmd, q_cmd, q_cmd, enabled, True, np.zeros(n))
         _dahl_exponents(c, self._rows, x, servo_state, np.zeros(n))
@@ -804,8 +844,14 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
             direction[self._dahl_joints] = self._vector(s)[self._dahl_joints]
         tau = np.empty(self._n)
         _servo_law(
-            self._constants, self._vector(q_cmd), self._vector(q), v, direction,
-            self._enabled_vector(enabled), True, tau,
+            self._constants,
+            self._vector(q_cmd),
+            self._vector(q),
+            v,
+            direction,
+            self._enabled_vector(enabled),
+            True,
+            tau,
         )
         return tau
 
@@ -817,7 +863,10 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
         return q_encoder
 
     def motor_current(
-        self, q_cmd: np.ndarray, q: np.ndarray, v: np.ndarray,
+        self,
+        q_cmd: np.ndarray,
+        q: np.ndarray,
+        v: np.ndarray,
         enabled: np.ndarray | None = None,
     ) -> np.ndarray:
         """The motor current i (A) the servo drives for the command it acts on
@@ -826,8 +875,14 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
         v = self._vector(v)
         current = np.empty(self._n)
         _servo_law(
-            self._constants, self._vector(q_cmd), self._vector(q), v, v,
-            self._enabled_vector(enabled), False, current,
+            self._constants,
+            self._vector(q_cmd),
+            self._vector(q),
+            v,
+            v,
+            self._enabled_vector(enabled),
+            False,
+            current,
         )
         return current
 
@@ -842,8 +897,14 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
         (the servo's kernel on the position error itself)."""
         tau = np.empty(self._n)
         _servo_law(
-            self._constants, self._vector(error), self._empty, self._vector(v),
-            self._vector(direction), self._enabled_vector(enabled), True, tau,
+            self._constants,
+            self._vector(error),
+            self._empty,
+            self._vector(v),
+            self._vector(direction),
+            self._enabled_vector(enabled),
+            True,
+            tau,
         )
         return tau
 
@@ -866,9 +927,16 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
         q_cmd = self._q_cmd.Eval(context)
         current = np.empty(self._n)
         if not _servo_output(
-            self._constants, self._rows, self._state.Eval(context), q_cmd,
-            context.get_discrete_state(self._x).get_value(), self._tanh_v,
-            self._enabled_input(context), self._quantum, False, current,
+            self._constants,
+            self._rows,
+            self._state.Eval(context),
+            q_cmd,
+            context.get_discrete_state(self._x).get_value(),
+            self._tanh_v,
+            self._enabled_input(context),
+            self._quantum,
+            False,
+            current,
         ):
             self._raise_not_finite(q_cmd)
         return current
@@ -888,8 +956,14 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
             np.exp(decay, decay)
         q_cmd = self._q_cmd.Eval(context) if self._depth else self._empty
         if not _servo_update(
-            self._constants, self._rows, x, q_cmd, servo_state, self._decay,
-            self._quantum, self._depth,
+            self._constants,
+            self._rows,
+            x,
+            q_cmd,
+            servo_state,
+            self._decay,
+            self._quantum,
+            self._depth,
         ):
             self._raise_not_finite(q_cmd)
 
@@ -899,9 +973,15 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
             np.tanh(x.take(self._state_v) / self._v_coulomb, self._tanh_v)
         q_cmd = self._q_cmd.Eval(context)
         if not _servo_output(
-            self._constants, self._rows, x, q_cmd,
-            context.get_discrete_state(self._x).get_value(), self._tanh_v,
-            self._enabled_input(context), self._quantum, True,
+            self._constants,
+            self._rows,
+            x,
+            q_cmd,
+            context.get_discrete_state(self._x).get_value(),
+            self._tanh_v,
+            self._enabled_input(context),
+            self._quantum,
+            True,
             output.get_mutable_value(),
         ):
             self._raise_not_finite(q_cmd)

@@ -39,7 +39,6 @@ index (`SampledSignal`), so every run of a config repeats the same noise. One
 `SensorSampler` samples every sensor (robot/sensors.py).
 """
 
-
 import functools
 import math
 from collections.abc import Sequence
@@ -291,9 +290,11 @@ class StationConfig:
             "standing_on_block": robot.scenarios.block.sole and robot.scenarios.soles,
         }
         if self.scenario not in SCENARIOS:
-            fits = [s for s in SCENARIOS if s == "fixed_base" or (
-                robot.base != "fixed" and needs[s]
-            )]
+            fits = [
+                s
+                for s in SCENARIOS
+                if s == "fixed_base" or (robot.base != "fixed" and needs[s])
+            ]
             raise ValueError(
                 f"StationConfig.scenario: unknown scenario '{self.scenario}', expected "
                 f"one of {SCENARIOS} (robot '{robot.name}': {', '.join(fits)})"
@@ -444,7 +445,9 @@ def _lowest_sole_height(robot: RobotDescription, q: np.ndarray) -> float:
     return min(_frame_position(robot, q, f)[2] for f in robot.scenarios.soles)
 
 
-def _add_box(plant: MultibodyPlant, name: str, X_WB: RigidTransform, size, color, friction=1.0):
+def _add_box(
+    plant: MultibodyPlant, name: str, X_WB: RigidTransform, size, color, friction=1.0
+):
     shape = Box(*size)
     plant.RegisterCollisionGeometry(
         plant.world_body(), X_WB, shape, name, CoulombFriction(friction, friction)
@@ -455,11 +458,18 @@ def _add_box(plant: MultibodyPlant, name: str, X_WB: RigidTransform, size, color
 def _add_ground(plant: MultibodyPlant) -> None:
     # A thick box rather than a HalfSpace: same point contact for the sole spheres,
     # without Drake's warning that half spaces do not support deformable contact.
-    _add_box(plant, "ground", RigidTransform([0.0, 0.0, -0.05]), (6, 6, 0.1),
-             [0.8, 0.8, 0.75, 1.0])
+    _add_box(
+        plant,
+        "ground",
+        RigidTransform([0.0, 0.0, -0.05]),
+        (6, 6, 0.1),
+        [0.8, 0.8, 0.75, 1.0],
+    )
 
 
-def _add_block(plant: MultibodyPlant, robot: RobotDescription, q: np.ndarray, height: float):
+def _add_block(
+    plant: MultibodyPlant, robot: RobotDescription, q: np.ndarray, height: float
+):
     """A rigid block under the block's sole (horizontal position of the sole with the
     base above the origin)."""
     p = _frame_position(robot, q, robot.scenarios.block.sole)
@@ -502,8 +512,14 @@ def add_scenario_plant(
         _add_block(plant, robot, q0, config.block_height)
     for box in config.obstacles:
         x, y, z, roll, pitch, yaw = box.pose
-        _add_box(plant, box.name, RigidTransform(RollPitchYaw(roll, pitch, yaw), [x, y, z]),
-                 box.size, [0.5, 0.5, 0.6, 1.0], box.friction)
+        _add_box(
+            plant,
+            box.name,
+            RigidTransform(RollPitchYaw(roll, pitch, yaw), [x, y, z]),
+            box.size,
+            [0.5, 0.5, 0.6, 1.0],
+            box.friction,
+        )
     if config.scenario == "hanging":
         _add_strings(plant, robot, q0, X_WB0, config.hanging)
     plant.Finalize()
@@ -554,11 +570,20 @@ def make_station(
     builder.ExportInput(servo.GetInputPort("q_cmd"), "q_cmd")
     if servo_enable:
         builder.ExportInput(servo.GetInputPort("enabled"), "servo_enabled")
-    builder.ExportInput(plant.get_applied_spatial_force_input_port(), "applied_spatial_force")
+    builder.ExportInput(
+        plant.get_applied_spatial_force_input_port(), "applied_spatial_force"
+    )
 
     _add_sensors(
-        builder, plant, robot, indexing, config.sensors_config(), q0, servo_params,
-        config.faults, config.sample_lead_steps() * config.time_step,
+        builder,
+        plant,
+        robot,
+        indexing,
+        config.sensors_config(),
+        q0,
+        servo_params,
+        config.faults,
+        config.sample_lead_steps() * config.time_step,
     )
 
     builder.ExportOutput(plant.get_net_actuation_output_port(), "joint_torque_true")
@@ -567,7 +592,10 @@ def make_station(
     builder.ExportOutput(plant.get_contact_results_output_port(), "contact_results")
     if meshcat is not None:
         MeshcatVisualizer.AddToBuilder(
-            builder, scene_graph, meshcat, MeshcatVisualizerParams(role=Role.kIllustration)
+            builder,
+            scene_graph,
+            meshcat,
+            MeshcatVisualizerParams(role=Role.kIllustration),
         )
     diagram = builder.Build()
     diagram.set_name(f"{robot.name}_station_{config.scenario}")
@@ -586,21 +614,32 @@ def _add_strings(
     hanging = robot.scenarios.hanging
     plant_k, context = _posed(robot, q0, X_WB0)
     X_WT = plant_k.GetBodyByName(hanging.body).EvalPoseInWorld(context)
-    stretch = plant_k.CalcTotalMass(context) * GRAVITY / (len(hanging.points) * cfg.stiffness)
+    stretch = (
+        plant_k.CalcTotalMass(context) * GRAVITY / (len(hanging.points) * cfg.stiffness)
+    )
     torso = plant.GetBodyByName(hanging.body)
     for p_TS in hanging.points:
         anchor = X_WT @ np.array(p_TS) + [0.0, 0.0, cfg.string_length + stretch]
         plant.AddForceElement(
             LinearSpringDamper(
-                plant.world_body(), anchor, torso, p_TS,
-                cfg.string_length, cfg.stiffness, cfg.damping,
+                plant.world_body(),
+                anchor,
+                torso,
+                p_TS,
+                cfg.string_length,
+                cfg.stiffness,
+                cfg.damping,
             )
         )
     rotational, translational = cfg.sway_damping
     plant.AddForceElement(
         LinearBushingRollPitchYaw(
-            plant.world_frame(), torso.body_frame(), [0.0] * 3, [rotational] * 3,
-            [0.0] * 3, [translational] * 3,
+            plant.world_frame(),
+            torso.body_frame(),
+            [0.0] * 3,
+            [rotational] * 3,
+            [0.0] * 3,
+            [translational] * 3,
         )
     )
 
@@ -691,10 +730,13 @@ def _add_imu(
     X_BS = imu.GetFixedPoseInBodyFrame()
     body = imu.body()
     accel = builder.AddNamedSystem(
-        "accelerometer", Accelerometer(body, X_BS, plant.gravity_field().gravity_vector())
+        "accelerometer",
+        Accelerometer(body, X_BS, plant.gravity_field().gravity_vector()),
     )
     gyro = builder.AddNamedSystem("gyroscope", Gyroscope(body, X_BS))
-    builder.Connect(plant.get_body_poses_output_port(), accel.get_body_poses_input_port())
+    builder.Connect(
+        plant.get_body_poses_output_port(), accel.get_body_poses_input_port()
+    )
     builder.Connect(
         plant.get_body_spatial_velocities_output_port(),
         accel.get_body_velocities_input_port(),
@@ -703,7 +745,9 @@ def _add_imu(
         plant.get_body_spatial_accelerations_output_port(),
         accel.get_body_accelerations_input_port(),
     )
-    builder.Connect(plant.get_body_poses_output_port(), gyro.get_body_poses_input_port())
+    builder.Connect(
+        plant.get_body_poses_output_port(), gyro.get_body_poses_input_port()
+    )
     builder.Connect(
         plant.get_body_spatial_velocities_output_port(),
         gyro.get_body_velocities_input_port(),

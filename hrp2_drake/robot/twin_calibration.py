@@ -67,8 +67,15 @@ TWIN_PARAMETERS = {
 #: What `calibrate --log` fits by default: stiffness, back-EMF and voltage limit,
 #: friction (viscous, Coulomb, load-dependent), dead zone, hysteresis, latency.
 DEFAULT_PARAMETERS = (
-    "k4", "stall_current", "no_load_speed", "k2", "k3", "load_friction", "i_deadzone",
-    "hysteresis_width", "latency",
+    "k4",
+    "stall_current",
+    "no_load_speed",
+    "k2",
+    "k3",
+    "load_friction",
+    "i_deadzone",
+    "hysteresis_width",
+    "latency",
 )
 #: The residuals' sampling: one error every `RESIDUAL_PERIOD` seconds of each log.
 RESIDUAL_PERIOD = 0.01
@@ -284,8 +291,12 @@ def fit_twin(
     try:
         r0 = residuals(space.start())
         result = scipy.optimize.least_squares(
-            residuals, space.start(), bounds=space.bounds(), method="trf",
-            diff_step=config.diff_step, x_scale=1.0,
+            residuals,
+            space.start(),
+            bounds=space.bounds(),
+            method="trf",
+            diff_step=config.diff_step,
+            x_scale=1.0,
         )
         message = result.message
     except _BudgetSpent:
@@ -367,8 +378,12 @@ def cross_validate(
         test = [log for log in logs if log.gain != gain]
         twin = fit_twin(robot, train, prior, config, label=f"twin on gain {gain:g}")
         model = least_squares_model(robot, train)
-        results.append(CrossValidation(
-            gain, twin, twin_errors(robot, test, twin.params),
-            model_errors(robot, test, model),
-        ))
+        results.append(
+            CrossValidation(
+                gain,
+                twin,
+                twin_errors(robot, test, twin.params),
+                model_errors(robot, test, model),
+            )
+        )
     return results

@@ -80,12 +80,15 @@ class ControlConfig:
     """
 
     robot: str = ""
-    torque_control: TorqueControlConfig = field(default_factory=lambda: TorqueControlConfig(
-        start_time=0.5, estimator=EstimatorSettings(window=41),
-        # A sample may come a few ms late over a network (and two real-time processes
-        # share 2 cores here): stale after 10 ms or 12 repeated samples, not 2.5 / 5.
-        supervisor=SafetyConfig(stale_time=0.010, stale_samples=12),
-    ))
+    torque_control: TorqueControlConfig = field(
+        default_factory=lambda: TorqueControlConfig(
+            start_time=0.5,
+            estimator=EstimatorSettings(window=41),
+            # A sample may come a few ms late over a network (and two real-time processes
+            # share 2 cores here): stale after 10 ms or 12 repeated samples, not 2.5 / 5.
+            supervisor=SafetyConfig(stale_time=0.010, stale_samples=12),
+        )
+    )
     duration: float = 5.0
     motion: str = "sinusoid"
     amplitude: float = 0.2
@@ -126,7 +129,9 @@ class ControlConfig:
             raise ValueError(
                 f"{where}.motion: '{self.motion}', expected sinusoid or hold"
             )
-        check_sinusoid(robot, self.home(), self.amplitude, self.frequency, self.settle, where)
+        check_sinusoid(
+            robot, self.home(), self.amplitude, self.frequency, self.settle, where
+        )
         check_finite(self.duration, f"{where}.duration", 0.0)
         if self.torque_control.start_time >= self.duration:
             raise ValueError(
@@ -138,7 +143,9 @@ class ControlConfig:
         self.loop.validate(self.period(), f"{where}.loop")
 
 
-def control_reference(config: ControlConfig, start: np.ndarray | None = None) -> JointReference:
+def control_reference(
+    config: ControlConfig, start: np.ndarray | None = None
+) -> JointReference:
     """The run's reference: home for `settle` s, then `motion`; after a move from
     `start` (the measured pose) to home if given (`JointReference.after_approach`)."""
     robot = config.description()
@@ -147,8 +154,10 @@ def control_reference(config: ControlConfig, start: np.ndarray | None = None) ->
         reference = JointReference.hold(q0, config.duration + 1.0)
     else:
         track = TrackConfig(
-            settle=config.settle, amplitude=config.amplitude,
-            frequency=config.frequency, duration=config.duration + 1.0 - config.settle,
+            settle=config.settle,
+            amplitude=config.amplitude,
+            frequency=config.frequency,
+            duration=config.duration + 1.0 - config.settle,
         )
         reference = sinusoid_reference(robot, q0, track)
     if start is None:
@@ -156,8 +165,13 @@ def control_reference(config: ControlConfig, start: np.ndarray | None = None) ->
     return reference.after_approach(start, config.approach_speed)
 
 
-def open_link(config: ControlConfig, controller: FusedController, lcm_url: str = "",
-              port: str = "", lockstep: bool = False) -> RobotLink:
+def open_link(
+    config: ControlConfig,
+    controller: FusedController,
+    lcm_url: str = "",
+    port: str = "",
+    lockstep: bool = False,
+) -> RobotLink:
     """The robot's link: over LCM at `lcm_url`, or on its bus at `port` (a robot
     description with a `bus`); `lockstep`: the robot behind the port is a lock-step
     simulation."""
@@ -174,12 +188,18 @@ def open_link(config: ControlConfig, controller: FusedController, lcm_url: str =
     from hrp2_drake.hardware.lcm_link import LcmLink
 
     transport = open_transport(lcm_url, timeout=min(config.loop.wait_timeout, 2.0))
-    return LcmLink(robot, transport, config.channels, controller, config.loop.wait_timeout)
+    return LcmLink(
+        robot, transport, config.channels, controller, config.loop.wait_timeout
+    )
 
 
 def run_control(
-    config: ControlConfig, motor_model: MotorModel, out: Path, lcm_url: str = "",
-    port: str = "", lockstep: bool = False,
+    config: ControlConfig,
+    motor_model: MotorModel,
+    out: Path,
+    lcm_url: str = "",
+    port: str = "",
+    lockstep: bool = False,
 ) -> dict:
     """The whole `hrp2-drake control`: build the fused controller, connect to the
     robot (over LCM at `lcm_url`, or on its bus at `port`), move to home and run the
@@ -188,13 +208,20 @@ def run_control(
     where it was loaded (`validate_config`)."""
     robot = config.description()
     torque_control = config.torque_control_at_period()
-    if motor_model.gain:  # a model stated at a servo gain: at the gain the robot runs at
+    if (
+        motor_model.gain
+    ):  # a model stated at a servo gain: at the gain the robot runs at
         motor_model = motor_model.at_gain(robot.position_loop.gain or motor_model.gain)
     # The chain is built for a reference from home; the run's one (from the measured
     # pose) replaces it once the robot is there (the parts read only its start).
     controller = FusedController(
-        torque_chain_parts(robot, control_reference(config), motor_model, torque_control,
-                           period=config.period())
+        torque_chain_parts(
+            robot,
+            control_reference(config),
+            motor_model,
+            torque_control,
+            period=config.period(),
+        )
     )
     say("compiling the controller's kernels (or loading them from numba's cache) ...")
     warm_up = controller.warm_up()
@@ -204,31 +231,53 @@ def run_control(
         start = link.connect(controller)
         reference = control_reference(config, start)
         approach = reference.approach_time
-        loop = ControlLoop(controller, link, reference, settings=config.loop,
-                           duration=config.duration + approach)
-        say(f"running {config.duration} s" + (f" after a {approach:.1f} s move home" if approach else ""))
+        loop = ControlLoop(
+            controller,
+            link,
+            reference,
+            settings=config.loop,
+            duration=config.duration + approach,
+        )
+        say(
+            f"running {config.duration} s"
+            + (f" after a {approach:.1f} s move home" if approach else "")
+        )
         summary = loop.run()
     finally:
         link.close()
     summary["approach_s"] = approach
     summary["warm_up_s"] = warm_up
-    return _report(config, robot, loop, summary, out, torque_control.start_time + approach)
+    return _report(
+        config, robot, loop, summary, out, torque_control.start_time + approach
+    )
 
 
-def _report(config: ControlConfig, robot: RobotDescription, loop: ControlLoop,
-            summary: dict, out: Path, torque_start: float) -> dict:
+def _report(
+    config: ControlConfig,
+    robot: RobotDescription,
+    loop: ControlLoop,
+    summary: dict,
+    out: Path,
+    torque_start: float,
+) -> dict:
     """control.npz, control.json, latency.png and control.md; the summary with the
     tracking errors after torque control started (`torque_start`, s)."""
     signals = loop.signals()
-    cols = [robot.joints.index(j) for j in config.torque_control.controlled_joints(robot)]
+    cols = [
+        robot.joints.index(j) for j in config.torque_control.controlled_joints(robot)
+    ]
     after = signals["t"] >= torque_start + 0.1
     error = signals["q_ref"][after][:, cols] - signals["q_measured"][after][:, cols]
     summary |= {
         "robot": robot.name,
         "period": config.period(),
         "duration": config.duration,
-        "max_error_mrad": (np.abs(error).max(axis=0) * 1e3).tolist() if len(error) else [],
-        "rms_error_mrad": (np.sqrt(np.mean(error**2, axis=0)) * 1e3).tolist() if len(error) else [],
+        "max_error_mrad": (np.abs(error).max(axis=0) * 1e3).tolist()
+        if len(error)
+        else [],
+        "rms_error_mrad": (np.sqrt(np.mean(error**2, axis=0)) * 1e3).tolist()
+        if len(error)
+        else [],
     }
     out.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out / "control.npz", **signals)
@@ -241,11 +290,18 @@ def _report(config: ControlConfig, robot: RobotDescription, loop: ControlLoop,
 def _latency_histogram(latency_us: np.ndarray, period: float, path: Path) -> None:
     fig, ax = pyplot().subplots(figsize=(7, 3.5))
     if len(latency_us):
-        bins = np.logspace(np.log10(max(latency_us.min(), 1.0)), np.log10(latency_us.max() + 1), 60)
+        bins = np.logspace(
+            np.log10(max(latency_us.min(), 1.0)), np.log10(latency_us.max() + 1), 60
+        )
         ax.hist(latency_us, bins=bins, color="tab:blue")
         ax.set_xscale("log")
         ax.set_yscale("log")
-    ax.axvline(period * 1e6, color="tab:red", linestyle="--", label=f"period {period * 1e6:.0f} µs")
+    ax.axvline(
+        period * 1e6,
+        color="tab:red",
+        linestyle="--",
+        label=f"period {period * 1e6:.0f} µs",
+    )
     ax.set_xlabel("samples in → command out (µs)")
     ax.set_ylabel("ticks")
     legend_beside(ax, fontsize=None)
@@ -279,7 +335,10 @@ def _markdown(robot, config: ControlConfig, summary: dict) -> str:
                 [None, *labels],
                 [
                     [name, *(f"{v:.2f}" for v in summary[key])]
-                    for name, key in (("maximum", "max_error_mrad"), ("RMS", "rms_error_mrad"))
+                    for name, key in (
+                        ("maximum", "max_error_mrad"),
+                        ("RMS", "rms_error_mrad"),
+                    )
                 ],
             ),
             "",
@@ -297,9 +356,11 @@ def _markdown(robot, config: ControlConfig, summary: dict) -> str:
         f"Kernels compiled, or loaded from numba's cache, before the loop: "
         f"{summary['warm_up_s']:.2f} s; none compiled while it ran.",
         f"Operating system: CPU {rt.get('cpu')}, scheduler {rt.get('scheduler')}"
-        + (f" ({rt['error'].strip('; ')})" if rt.get("error") else "") + "; garbage "
+        + (f" ({rt['error'].strip('; ')})" if rt.get("error") else "")
+        + "; garbage "
         "collector frozen and disabled in the loop"
-        + ("" if config.loop.real_time.freeze_gc else " (not: freeze_gc is off)") + ".",
+        + ("" if config.loop.real_time.freeze_gc else " (not: freeze_gc is off)")
+        + ".",
         "",
         "![latency](latency.png)",
         "",
@@ -310,13 +371,21 @@ def _markdown(robot, config: ControlConfig, summary: dict) -> str:
     if summary["events"]:
         lines += markdown_table(
             ["t (s)", "what", "reason"],
-            [[f"{e['t']:.3f}", f"{e['what']}", f"{e['reason']}"] for e in summary["events"]],
+            [
+                [f"{e['t']:.3f}", f"{e['what']}", f"{e['reason']}"]
+                for e in summary["events"]
+            ],
             align="rll",
         )
     else:
         lines.append("None.")
     if summary["overrun_times"]:
-        lines += ["", "Overruns at t = " + ", ".join(f"{x:.3f}" for x in summary["overrun_times"]) + " s."]
+        lines += [
+            "",
+            "Overruns at t = "
+            + ", ".join(f"{x:.3f}" for x in summary["overrun_times"])
+            + " s.",
+        ]
     return "\n".join(lines) + "\n"
 
 
@@ -329,9 +398,11 @@ def _ending(summary: dict) -> str:
 
 def _clock(robot: RobotDescription) -> str:
     if robot.bus.active:
-        return (f"the loop's own clock on the bus ({robot.bus.model} x {len(robot.bus.ids)} "
-                f"at {robot.bus.baud / 1e6:g} Mbit/s: one sync read and one sync write per "
-                "period)")
+        return (
+            f"the loop's own clock on the bus ({robot.bus.model} x {len(robot.bus.ids)} "
+            f"at {robot.bus.baud / 1e6:g} Mbit/s: one sync read and one sync write per "
+            "period)"
+        )
     return "message-driven (the robot's encoder message clocks each tick)"
 
 
@@ -343,7 +414,13 @@ def _bus_section(robot: RobotDescription, summary: dict) -> list[str]:
     link = summary["link"]
     cycle = summary["cycle_us"]
     rows = [
-        [servo, joint, f"{c['no_status']}", f"{c['corrupt']}", f"{c['hardware_alerts']}"]
+        [
+            servo,
+            joint,
+            f"{c['no_status']}",
+            f"{c['corrupt']}",
+            f"{c['hardware_alerts']}",
+        ]
         for (servo, c), joint in zip(link["servos"].items(), robot.joints)
     ]
     return [
@@ -357,22 +434,36 @@ def _bus_section(robot: RobotDescription, summary: dict) -> list[str]:
         f"lag {link['max_lag_ms']:.1f} ms); {link['incomplete_periods']} periods without "
         "every servo's status.",
         "",
-        *markdown_table(["ID", "joint", "no status", "corrupt status", "hardware alerts"],
-                        rows, align="llrrr"),
+        *markdown_table(
+            ["ID", "joint", "no status", "corrupt status", "hardware alerts"],
+            rows,
+            align="llrrr",
+        ),
         "",
     ]
 
 
-def run_sim_robot(config: StationConfig, lcm_url: str, duration: float, out: Path | None,
-                  channels: LcmChannels | None = None, rate: float = 1.0,
-                  watchdog_periods: int = 5, lockstep: bool = False) -> dict:
+def run_sim_robot(
+    config: StationConfig,
+    lcm_url: str,
+    duration: float,
+    out: Path | None,
+    channels: LcmChannels | None = None,
+    rate: float = 1.0,
+    watchdog_periods: int = 5,
+    lockstep: bool = False,
+) -> dict:
     """The whole `hrp2-drake sim-robot`: `RobotBridge` in real time (or at `rate` times
     it, or in lock step with the controller's commands) for `duration` s (inf: until
     SIGTERM or Ctrl-C); writes its ground truth (sim_robot.npz: t, state_true,
     q_measured, q_cmd, holding, commanded) to `out` on exit. `config` is validated
     where it was loaded (`validate_config`)."""
-    bridge_config = BridgeConfig(duration=duration, rate=rate, watchdog_periods=watchdog_periods,
-                                 lockstep=lockstep)
+    bridge_config = BridgeConfig(
+        duration=duration,
+        rate=rate,
+        watchdog_periods=watchdog_periods,
+        lockstep=lockstep,
+    )
     bridge_config.validate()
     transport = open_transport(lcm_url)
     try:
@@ -383,7 +474,10 @@ def run_sim_robot(config: StationConfig, lcm_url: str, duration: float, out: Pat
         transport.close()
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(out / "sim_robot.npz", joint_names=np.array(bridge.robot.joints),
-                            **bridge.signals())
+        np.savez_compressed(
+            out / "sim_robot.npz",
+            joint_names=np.array(bridge.robot.joints),
+            **bridge.signals(),
+        )
         (out / "sim_robot.json").write_text(json.dumps(summary, indent=2))
     return summary

@@ -42,7 +42,9 @@ def read_estimation_log(path: str | Path, robot: RobotDescription) -> RobotLog:
     """The log (`read_robot_log`, without commands), checked: one ValueError naming
     the file and the array for anything the estimator cannot use."""
     log = read_robot_log(path, robot.logs, robot.joints, command=False)
-    needed = ["imu_linear_acceleration", "imu_angular_velocity"] if robot.has_imu() else []
+    needed = (
+        ["imu_linear_acceleration", "imu_angular_velocity"] if robot.has_imu() else []
+    )
     needed += [f"wrench_{name}" for name in robot.force_torque_sensors]
     missing = [key for key in needed if key not in log.sensors]
     if missing:
@@ -77,31 +79,37 @@ def estimate_log(
         "unknown_wrench": np.array([e.unknown_wrench for e in estimates]),
     }
     for s, name in enumerate(robot.sensor_names()):
-        out[f"external_wrench_{name}"] = np.array([e.external_wrenches[s] for e in estimates])
+        out[f"external_wrench_{name}"] = np.array(
+            [e.external_wrenches[s] for e in estimates]
+        )
     return out
 
 
-def parse_segment(text: str, log: RobotLog, where: str = "--calibrate-offsets") -> slice:
+def parse_segment(
+    text: str, log: RobotLog, where: str = "--calibrate-offsets"
+) -> slice:
     """'START:END' (s, log time) as the log's sample indices; a ValueError naming
     `where` if it is malformed, empty, or outside the log."""
     try:
         start, end = (float(x) for x in text.split(":"))
     except ValueError:
-        raise ValueError(f"{where} '{text}': expected START:END in seconds, e.g. 0.2:0.5") from None
+        raise ValueError(
+            f"{where} '{text}': expected START:END in seconds, e.g. 0.2:0.5"
+        ) from None
     t = log.t
     if not (np.isfinite(start) and np.isfinite(end) and start < end):
         raise ValueError(f"{where} '{text}': START must be < END, both finite")
     if start < t[0] or end > t[-1]:
-        raise ValueError(
-            f"{where} '{text}': outside the log ({t[0]:g} to {t[-1]:g} s)"
-        )
+        raise ValueError(f"{where} '{text}': outside the log ({t[0]:g} to {t[-1]:g} s)")
     rows = np.flatnonzero((t >= start) & (t < end))
     if len(rows) < 10:
         raise ValueError(f"{where} '{text}': {len(rows)} samples, fewer than 10")
     return slice(rows[0], rows[-1] + 1)
 
 
-def calibrate_offsets(robot: RobotDescription, result: dict, segment: slice) -> np.ndarray:
+def calibrate_offsets(
+    robot: RobotDescription, result: dict, segment: slice
+) -> np.ndarray:
     """The F/T sensors' biases (k, 6, sensor frame, [N·m; N]): the mean compensated
     reading over `segment`, a still stretch of the log where nothing touches the
     sensors (what the online chain's start-up calibration does)."""
@@ -114,10 +122,12 @@ def calibrate_offsets(robot: RobotDescription, result: dict, segment: slice) -> 
             f"{sorted(nested)}: their readings are not separable offline; calibrate "
             "them online (TorqueControlConfig.offset_calibration_time)"
         )
-    return np.array([
-        result[f"external_wrench_{name}"][segment].mean(axis=0)
-        for name in robot.sensor_names()
-    ])
+    return np.array(
+        [
+            result[f"external_wrench_{name}"][segment].mean(axis=0)
+            for name in robot.sensor_names()
+        ]
+    )
 
 
 #: A still robot: every joint's q̂̇ below this (rad/s) for at least STILL_TIME (s).
@@ -170,19 +180,25 @@ def run_estimate(
     if segment is not None:
         offsets = calibrate_offsets(robot, result, segment)
         result = estimate_log(robot, log, window, offsets)
-    np.savez_compressed(out / "estimate.npz", joint_names=np.array(robot.joints), **result)
+    np.savez_compressed(
+        out / "estimate.npz", joint_names=np.array(robot.joints), **result
+    )
     margin = window  # the ends are fitted, not centred
     summary = {
         "robot": robot.name,
         "log": str(log_path),
         "samples": int(len(result["t"])),
         "window": window,
-        "peak_torque": dict(zip(robot.joints, np.abs(result["tau"]).max(axis=0).tolist())),
-        "offsets": None if offsets is None else {
-            name: row.tolist() for name, row in zip(robot.sensor_names(), offsets)
-        },
+        "peak_torque": dict(
+            zip(robot.joints, np.abs(result["tau"]).max(axis=0).tolist())
+        ),
+        "offsets": None
+        if offsets is None
+        else {name: row.tolist() for name, row in zip(robot.sensor_names(), offsets)},
         "calibration_segment": calibrate or None,
-        "bias_warnings": [] if offsets is not None else bias_warnings(robot, result, margin),
+        "bias_warnings": []
+        if offsets is not None
+        else bias_warnings(robot, result, margin),
     }
     inside = slice(margin, len(result["t"]) - margin)
     if log.tau_true is not None:
@@ -198,14 +214,21 @@ def run_estimate(
 
 def _plot(robot: RobotDescription, result: dict, log: RobotLog, path: Path):
     joints = robot.controlled_joints or robot.joints
-    fig, axes = pyplot().subplots(len(joints), 1, figsize=(9, 1.8 * len(joints)), sharex=True)
+    fig, axes = pyplot().subplots(
+        len(joints), 1, figsize=(9, 1.8 * len(joints)), sharex=True
+    )
     axes = np.atleast_1d(axes)
     labels = dict(zip(robot.controlled_joints, robot.labels()))
     for ax, joint in zip(axes, joints):
         j = robot.joints.index(joint)
         if log.tau_true is not None:
-            ax.plot(result["t"], log.tau_true[:, j],
-                    color="0.6", lw=2, label="true (simulation)")
+            ax.plot(
+                result["t"],
+                log.tau_true[:, j],
+                color="0.6",
+                lw=2,
+                label="true (simulation)",
+            )
         ax.plot(result["t"], result["tau"][:, j], lw=1, label="τ̂")
         ax.set_ylabel(f"{labels.get(joint, joint)}\n(N·m)")
     legend_beside(axes[0])
@@ -233,9 +256,16 @@ def _markdown(robot: RobotDescription, summary: dict) -> str:
     ]
     lines += markdown_table(header, rows)
     if summary["offsets"]:
-        lines += ["", f"F/T offsets calibrated over {summary['calibration_segment']} s "
-                  "(mean compensated reading, [τ (N·m); f (N)], sensor frame), subtracted:", ""]
-        lines += [f"- {name}: {np.round(row, 3).tolist()}" for name, row in summary["offsets"].items()]
+        lines += [
+            "",
+            f"F/T offsets calibrated over {summary['calibration_segment']} s "
+            "(mean compensated reading, [τ (N·m); f (N)], sensor frame), subtracted:",
+            "",
+        ]
+        lines += [
+            f"- {name}: {np.round(row, 3).tolist()}"
+            for name, row in summary["offsets"].items()
+        ]
     for warning in summary["bias_warnings"]:
         lines += ["", f"**Warning:** {warning}."]
     return "\n".join(lines) + "\n"

@@ -64,7 +64,9 @@ class IdentifyConfig(FitConfig):
         duration_scale: shortens the default collection (1 = about 90 s of data).
     """
 
-    station: StationConfig = field(default_factory=lambda: StationConfig(scenario="hanging"))
+    station: StationConfig = field(
+        default_factory=lambda: StationConfig(scenario="hanging")
+    )
     collection: CollectionConfig = field(default_factory=CollectionConfig)
     duration_scale: float = 1.0
 
@@ -88,7 +90,9 @@ class IdentifyConfig(FitConfig):
         )
 
 
-def collect_log(config: IdentifyConfig, progress: bool = True) -> tuple[dict, list[str]]:
+def collect_log(
+    config: IdentifyConfig, progress: bool = True
+) -> tuple[dict, list[str]]:
     """Runs the data collection on the simulated robot."""
     robot = config.station.description()
     station = make_station(config.station)
@@ -100,14 +104,21 @@ def collect_log(config: IdentifyConfig, progress: bool = True) -> tuple[dict, li
             "identification excitation"
         )
     plan = make_plan(collection, robot.joints, initial_joint_positions(config.station))
-    body = plant.GetBodyByName(collection.pushes.body).index() if collection.pushes.body else None
+    body = (
+        plant.GetBodyByName(collection.pushes.body).index()
+        if collection.pushes.body
+        else None
+    )
     log = collect(station, plan, body, collection.pushes.point, progress=progress)
     return log, list(robot.joints)
 
 
 # ------------------------------------------------------------------------- report
 def write_report(
-    result: IdentificationResult, out: Path, log_is_simulated: bool, servo_file: str = ""
+    result: IdentificationResult,
+    out: Path,
+    log_is_simulated: bool,
+    servo_file: str = "",
 ) -> dict:
     """Writes identification.md, identification.json, motor_model.yaml (the fit of
     `IdentifyConfig.fit`), motor_model_<fit>.yaml for every fit, and the figures;
@@ -123,9 +134,14 @@ def write_report(
     )
     rows = {}
     for k, r in enumerate(result.joints):
-        row = {m: {"k_tau": float(r.models[m].k_tau[0]), "k_v": float(r.models[m].k_v[0]),
-                   "k_c": float(r.models[m].k_c[0])}
-               for m in FITS}
+        row = {
+            m: {
+                "k_tau": float(r.models[m].k_tau[0]),
+                "k_v": float(r.models[m].k_v[0]),
+                "k_c": float(r.models[m].k_c[0]),
+            }
+            for m in FITS
+        }
         row["validation"] = r.validation
         row["samples"] = r.samples
         row["w_sweep"] = {f"{w:g}": v for w, v in r.w_sweep.items()}
@@ -135,27 +151,38 @@ def write_report(
             k_tau, k_v = robot.published_motor_model[r.joint]
             row["paper"] = {"k_tau": k_tau * 1e-3, "k_v": k_v * 1e-3}
         if truth is not None:
-            row["emulator"] = {"k_tau": float(truth.k_tau[k]), "k_v": float(truth.k_v[k])}
+            row["emulator"] = {
+                "k_tau": float(truth.k_tau[k]),
+                "k_v": float(truth.k_v[k]),
+            }
             row["relative_error_asymmetric"] = {
-                p: row["asymmetric"][p] / row["emulator"][p] - 1 for p in ("k_tau", "k_v")
+                p: row["asymmetric"][p] / row["emulator"][p] - 1
+                for p in ("k_tau", "k_v")
             }
         rows[r.joint] = row
-    summary = {"joints": rows, "fit": result.config.fit, "gain": result.gain,
-               "excluded_samples": result.excluded}
+    summary = {
+        "joints": rows,
+        "fit": result.config.fit,
+        "gain": result.gain,
+        "excluded_samples": result.excluded,
+    }
     if result.logs:
         summary["logs"] = result.logs
     if result.estimation_rms is not None:
         cols = [robot.joints.index(j) for j in joints]
         summary["torque_estimation"] = {
-            j: {"rms": float(result.estimation_rms[c]), "peak": float(result.estimation_peak[c])}
+            j: {
+                "rms": float(result.estimation_rms[c]),
+                "peak": float(result.estimation_peak[c]),
+            }
             for j, c in zip(joints, cols)
         }
     (out / "identification.json").write_text(json.dumps(summary, indent=2))
     result.identified.save(out / "motor_model.yaml")
     for method in FITS:
-        MotorModel.from_joints(
-            {r.joint: r.models[method] for r in result.joints}
-        ).save(out / f"motor_model_{method}.yaml")
+        MotorModel.from_joints({r.joint: r.models[method] for r in result.joints}).save(
+            out / f"motor_model_{method}.yaml"
+        )
     figures = plot_figures(result, out)
     (out / "identification.md").write_text(_markdown(result, summary, figures))
     return summary
@@ -181,7 +208,8 @@ def _markdown(result: IdentificationResult, summary: dict, figures: list[str]) -
         f"{int((~result.train & result.held_out).sum())} held out "
         f"(one {config.held_out_block:g} s block in {config.held_out_every}), window "
         f"{config.window * 1e3:g} ms, w = {config.w:g}. Left out: "
-        + ", ".join(f"{n} {what}" for what, n in result.excluded.items()) + ".",
+        + ", ".join(f"{n} {what}" for what, n in result.excluded.items())
+        + ".",
         "",
         f"`motor_model.yaml` holds the **{config.fit.replace('_', ' ')}** fit{at_gain}; "
         "every fit is also written as `motor_model_<fit>.yaml`. What each is for:",
@@ -189,12 +217,32 @@ def _markdown(result: IdentificationResult, summary: dict, figures: list[str]) -
         *(f"- {m.replace('_', ' ')}: {FIT_PURPOSE[m]}." for m in FITS),
     ]
     if result.logs:
-        lines += ["", "## Logs", "", *markdown_table(
-            ["log", "raw rate (Hz)", "duration (s)", "gain", "servo on", "longest gap (ms)"],
-            [[r["log"], f"{r['raw_rate_hz']:g}", f"{r['duration_s']:g}",
-              "–" if r["gain"] is None else f"{r['gain']:g}",
-              f"{r['valid_share'] * 100:.0f}%", f"{r['longest_gap_s'] * 1e3:.1f}"]
-             for r in result.logs])]
+        lines += [
+            "",
+            "## Logs",
+            "",
+            *markdown_table(
+                [
+                    "log",
+                    "raw rate (Hz)",
+                    "duration (s)",
+                    "gain",
+                    "servo on",
+                    "longest gap (ms)",
+                ],
+                [
+                    [
+                        r["log"],
+                        f"{r['raw_rate_hz']:g}",
+                        f"{r['duration_s']:g}",
+                        "–" if r["gain"] is None else f"{r['gain']:g}",
+                        f"{r['valid_share'] * 100:.0f}%",
+                        f"{r['longest_gap_s'] * 1e3:.1f}",
+                    ]
+                    for r in result.logs
+                ],
+            ),
+        ]
     lines += _parameter_table(result, joints, label)
     lines += _gain_table(result, joints, label)
     lines += [
@@ -205,26 +253,57 @@ def _markdown(result: IdentificationResult, summary: dict, figures: list[str]) -
         "",
     ]
     methods = FITS + ("piecewise_linear",)
-    header = ["joint", *(m.replace("_", " ") for m in methods[:-1]),
-              "piecewise-linear (static samples only)"]
+    header = [
+        "joint",
+        *(m.replace("_", " ") for m in methods[:-1]),
+        "piecewise-linear (static samples only)",
+    ]
     lines += markdown_table(
         header,
-        [[label(joint)] + [
-            f"{v['rms'] * 1e3:.3f} / {v['overestimation'] * 100:.1f}%" if v else "not fitted"
-            for v in (row["validation"].get(m) for m in methods)
-        ] for joint, row in joints.items()],
+        [
+            [label(joint)]
+            + [
+                f"{v['rms'] * 1e3:.3f} / {v['overestimation'] * 100:.1f}%"
+                if v
+                else "not fitted"
+                for v in (row["validation"].get(m) for m in methods)
+            ]
+            for joint, row in joints.items()
+        ],
         align="l" * len(header),
     )
-    notes = [f"- {label(r.joint)}: {r.piecewise_note}" for r in result.joints if r.piecewise_note]
+    notes = [
+        f"- {label(r.joint)}: {r.piecewise_note}"
+        for r in result.joints
+        if r.piecewise_note
+    ]
     if notes:
-        lines += ["", "The piecewise-linear model (Sec. 3.2, abandoned by the paper; for "
-                  "comparison only) needs an initial guess of its breakpoints:", "", *notes]
+        lines += [
+            "",
+            "The piecewise-linear model (Sec. 3.2, abandoned by the paper; for "
+            "comparison only) needs an initial guess of its breakpoints:",
+            "",
+            *notes,
+        ]
     lines += _sweep_table(result, joints, label)
     if "torque_estimation" in summary:
-        lines += ["", "## Non-causal torque estimate vs ground truth", "", *markdown_table(
-            ["joint", "RMS error (N·m)", "peak |τ| (N·m)", "RMS / peak"],
-            [[label(j), f"{v['rms']:.3f}", f"{v['peak']:.1f}", f"{v['rms'] / v['peak'] * 100:.2f}%"]
-             for j, v in summary["torque_estimation"].items()])]
+        lines += [
+            "",
+            "## Non-causal torque estimate vs ground truth",
+            "",
+            *markdown_table(
+                ["joint", "RMS error (N·m)", "peak |τ| (N·m)", "RMS / peak"],
+                [
+                    [
+                        label(j),
+                        f"{v['rms']:.3f}",
+                        f"{v['peak']:.1f}",
+                        f"{v['rms'] / v['peak'] * 100:.2f}%",
+                    ]
+                    for j, v in summary["torque_estimation"].items()
+                ],
+            ),
+        ]
     lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures]
     return "\n".join(lines) + "\n"
 
@@ -237,7 +316,9 @@ def _parameter_table(result, joints: dict, label) -> list[str]:
     scale = f" (servo gain {result.gain:g})" if result.gain else ""
     header = ["joint"]
     for m in FITS:
-        header += [f"{m.replace('_', ' ')} Kτ", "Kv"] + (["Kc"] if m == "coulomb" else [])
+        header += [f"{m.replace('_', ' ')} Kτ", "Kv"] + (
+            ["Kc"] if m == "coulomb" else []
+        )
     header += ["emulator Kτ", "Kv", "error Kτ, Kv (asym.)"] if truth else []
     header += ["paper Kτ", "Kv"] if paper else []
     rows = []
@@ -248,14 +329,30 @@ def _parameter_table(result, joints: dict, label) -> list[str]:
             cells += [f"{row[m]['k_c'] * 1e3:.3f}"] if m == "coulomb" else []
         if truth:
             e = row.get("relative_error_asymmetric")
-            cells += [f"{row['emulator']['k_tau'] * 1e3:.4f}", f"{row['emulator']['k_v'] * 1e3:.3f}",
-                      f"{e['k_tau'] * 100:+.1f}%, {e['k_v'] * 100:+.1f}%"] if e else ["–"] * 3
+            cells += (
+                [
+                    f"{row['emulator']['k_tau'] * 1e3:.4f}",
+                    f"{row['emulator']['k_v'] * 1e3:.3f}",
+                    f"{e['k_tau'] * 100:+.1f}%, {e['k_v'] * 100:+.1f}%",
+                ]
+                if e
+                else ["–"] * 3
+            )
         if paper:
             p = row.get("paper")
-            cells += [f"{p['k_tau'] * 1e3:.3f}", f"{p['k_v'] * 1e3:.3f}"] if p else ["–", "–"]
+            cells += (
+                [f"{p['k_tau'] * 1e3:.3f}", f"{p['k_v'] * 1e3:.3f}"]
+                if p
+                else ["–", "–"]
+            )
         rows.append(cells)
-    return ["", f"## Table 1: identified motor parameters{scale} (10³ Kτ in rad/(N·m), "
-            "10³ Kv in s, 10³ Kc in rad)", "", *markdown_table(header, rows)]
+    return [
+        "",
+        f"## Table 1: identified motor parameters{scale} (10³ Kτ in rad/(N·m), "
+        "10³ Kv in s, 10³ Kc in rad)",
+        "",
+        *markdown_table(header, rows),
+    ]
 
 
 def _gain_table(result, joints: dict, label) -> list[str]:
@@ -263,11 +360,16 @@ def _gain_table(result, joints: dict, label) -> list[str]:
     alone, and their spread (max / min; 1 for a servo whose output is gain · Δq)."""
     if not any("per_gain" in row for row in joints.values()):
         return []
-    lines = ["", "## Gain consistency", "",
-             "Each fit on the logs of one servo gain at a time: Kτ·gain (rad/(N·m) · gain) "
-             "and Kv·gain (s · gain), and their spread (max/min) across the gains. A "
-             "P-controlled servo's output is gain · Δq, so a spread of 1 means the model "
-             "transfers from one gain to another; the pooled model above assumes it.", ""]
+    lines = [
+        "",
+        "## Gain consistency",
+        "",
+        "Each fit on the logs of one servo gain at a time: Kτ·gain (rad/(N·m) · gain) "
+        "and Kv·gain (s · gain), and their spread (max/min) across the gains. A "
+        "P-controlled servo's output is gain · Δq, so a spread of 1 means the model "
+        "transfers from one gain to another; the pooled model above assumes it.",
+        "",
+    ]
     for joint, row in joints.items():
         gains = list(row.get("per_gain", {}))
         if not gains:
@@ -279,10 +381,17 @@ def _gain_table(result, joints: dict, label) -> list[str]:
             for p in ("k_tau", "k_v"):
                 values = [v[p] for v in per]
                 cells += [f"{v:.4g}" for v in values]
-                cells.append(f"{max(values) / min(values):.3f}" if min(values) > 0 else "–")
+                cells.append(
+                    f"{max(values) / min(values):.3f}" if min(values) > 0 else "–"
+                )
             body.append(cells)
-        header = (["fit (" + label(joint) + ")"] + [f"Kτ·gain at {g}" for g in gains]
-                  + ["Kτ spread"] + [f"Kv·gain at {g}" for g in gains] + ["Kv spread"])
+        header = (
+            ["fit (" + label(joint) + ")"]
+            + [f"Kτ·gain at {g}" for g in gains]
+            + ["Kτ spread"]
+            + [f"Kv·gain at {g}" for g in gains]
+            + ["Kv spread"]
+        )
         lines += markdown_table(header, body) + [""]
     return lines[:-1]
 
@@ -294,7 +403,11 @@ def _sweep_table(result, joints: dict, label) -> list[str]:
         "## The asymmetric penalty's weight w",
         "",
         "Held-out share of over-estimated |Δq|"
-        + (" / error of Kτ, Kv against the emulator" if truth_in({"joints": joints}) else "")
+        + (
+            " / error of Kτ, Kv against the emulator"
+            if truth_in({"joints": joints})
+            else ""
+        )
         + " (the paper used w = 100).",
         "",
     ]
@@ -345,41 +458,64 @@ def plot_figures(result: IdentificationResult, out: Path) -> list[str]:
     return names
 
 
-def _plot_figure1(result: IdentificationResult, joints: list[str], robot: RobotDescription):
+def _plot_figure1(
+    result: IdentificationResult, joints: list[str], robot: RobotDescription
+):
     """Figure 1 of `joints`: τ̂ vs Δq at near-zero velocity, the data and the fits."""
     data, cfg = result.data, result.config
     by_joint = {r.joint: r for r in result.joints}
     column = {name: i for i, name in enumerate(robot.joints)}
-    fig, axes = pyplot().subplots(1, len(joints), figsize=(6 * len(joints), 4.5), squeeze=False)
+    fig, axes = pyplot().subplots(
+        1, len(joints), figsize=(6 * len(joints), 4.5), squeeze=False
+    )
     for ax, joint in zip(axes[0], joints):
         r, j = by_joint[joint], column[joint]
         static = result.train & (np.abs(data.v[:, j]) < cfg.zero_velocity_threshold)
         tau, v, delta_q = data.joint(j, static)
-        ax.scatter(tau[v > 0], delta_q[v > 0] * 1e3, s=2, alpha=0.4, label="data, q̇ > 0")
-        ax.scatter(tau[v < 0], delta_q[v < 0] * 1e3, s=2, alpha=0.4, label="data, q̇ < 0")
+        ax.scatter(
+            tau[v > 0], delta_q[v > 0] * 1e3, s=2, alpha=0.4, label="data, q̇ > 0"
+        )
+        ax.scatter(
+            tau[v < 0], delta_q[v < 0] * 1e3, s=2, alpha=0.4, label="data, q̇ < 0"
+        )
         grid = np.linspace(tau.min(), tau.max(), 200)
         for method, style in (("least_squares", "k--"), ("asymmetric", "b-")):
             k = r.models[method].k_tau[0]
-            ax.plot(grid, k * grid * 1e3, style, label=f"{method.replace('_', ' ')}: Δq = Kτ τ")
+            ax.plot(
+                grid,
+                k * grid * 1e3,
+                style,
+                label=f"{method.replace('_', ' ')}: Δq = Kτ τ",
+            )
         if r.piecewise is not None:
-            ax.plot(grid, r.piecewise.positive(grid) * 1e3, "g:", label="piecewise, q̇ > 0")
-            ax.plot(grid, r.piecewise.negative(grid) * 1e3, "m:", label="piecewise, q̇ < 0")
+            ax.plot(
+                grid, r.piecewise.positive(grid) * 1e3, "g:", label="piecewise, q̇ > 0"
+            )
+            ax.plot(
+                grid, r.piecewise.negative(grid) * 1e3, "m:", label="piecewise, q̇ < 0"
+            )
         ax.set_xlabel("τ̂ (N·m)")
         ax.set_ylabel("Δq (mrad)")
-        ax.set_title(f"{_label(joint, robot)}, |q̇| < {cfg.zero_velocity_threshold} rad/s")
+        ax.set_title(
+            f"{_label(joint, robot)}, |q̇| < {cfg.zero_velocity_threshold} rad/s"
+        )
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7)
     fig.suptitle("Figure 1: torque vs position error at near-zero velocity")
     return fig
 
 
-def _plot_figure3(result: IdentificationResult, joints: list[str], robot: RobotDescription):
+def _plot_figure3(
+    result: IdentificationResult, joints: list[str], robot: RobotDescription
+):
     """Figure 3 of `joints`: the friction part of the model vs q̇, symmetric (least
     squares) beside asymmetric."""
     data, cfg = result.data, result.config
     by_joint = {r.joint: r for r in result.joints}
     column = {name: i for i, name in enumerate(robot.joints)}
-    fig, axes = pyplot().subplots(len(joints), 2, figsize=(11, 4 * len(joints)), squeeze=False)
+    fig, axes = pyplot().subplots(
+        len(joints), 2, figsize=(11, 4 * len(joints)), squeeze=False
+    )
     for row, joint in zip(axes, joints):
         r, j = by_joint[joint], column[joint]
         tau, v, delta_q = data.joint(j, result.train)
@@ -391,7 +527,11 @@ def _plot_figure3(result: IdentificationResult, joints: list[str], robot: RobotD
             kv = fitted.k_v[0]
             ax.plot(grid, kv * grid * 1e3, "b-", label=f"Kv q̇, Kv = {kv * 1e3:.2f}e-3")
             share = overestimation_share(fitted, tau, v, delta_q)
-            kind = "symmetric, eq. 7" if method == "least_squares" else f"asymmetric, w={cfg.w:g}"
+            kind = (
+                "symmetric, eq. 7"
+                if method == "least_squares"
+                else f"asymmetric, w={cfg.w:g}"
+            )
             ax.set_title(
                 f"{_label(joint, robot)}, {kind}: over-estimates {share * 100:.1f}%",
                 fontsize=10,
@@ -427,8 +567,14 @@ def run_identify(
     except (ValueError, KeyError) as error:
         if not log_paths:
             raise
-        message = error.args[0] if isinstance(error, KeyError) and error.args else str(error)
-        where = "" if any(message.startswith(str(p)) for p in log_paths) else f"{log_paths[0]}: "
+        message = (
+            error.args[0] if isinstance(error, KeyError) and error.args else str(error)
+        )
+        where = (
+            ""
+            if any(message.startswith(str(p)) for p in log_paths)
+            else f"{log_paths[0]}: "
+        )
         raise ValueError(f"{where}{message}; no motor model written") from error
     result.logs = rows
     simulated = all(log.tau_true is not None for log in logs)
@@ -439,7 +585,10 @@ def collected_log(config: IdentifyConfig, arrays: dict, names: list[str]) -> Rob
     """The collection's arrays (`collect_log`) as a log: the simulated servo ran at the
     station's gain, so the model holds at it."""
     return RobotLog.from_arrays(
-        arrays, names, config.robot().joints, config.station.servo_gain_in_use(),
+        arrays,
+        names,
+        config.robot().joints,
+        config.station.servo_gain_in_use(),
         "the collected log",
     )
 

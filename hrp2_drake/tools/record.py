@@ -109,8 +109,13 @@ class _Excitation:
         return self.plan.q_cmd.value(min(t - self.approach, self.plan.duration)).ravel()
 
 
-def record_one(robot: RobotDescription, port: str, gain: float, config: RecordConfig,
-               lockstep: bool) -> dict:
+def record_one(
+    robot: RobotDescription,
+    port: str,
+    gain: float,
+    config: RecordConfig,
+    lockstep: bool,
+) -> dict:
     """One log at P gain `gain`: its columns (`write_robot_log`'s), the link's
     counters and why it stopped ("" at its end)."""
     bus = robot.bus
@@ -119,21 +124,35 @@ def record_one(robot: RobotDescription, port: str, gain: float, config: RecordCo
     link = DynamixelLink(robot, port, lockstep=lockstep, gain=gain, skip_late=True)
     try:
         start = link.connect(buffers)
-        plan = make_plan(robot.identification.scaled(config.duration_scale), robot.joints,
-                         robot.home_positions())
+        plan = make_plan(
+            robot.identification.scaled(config.duration_scale),
+            robot.joints,
+            robot.home_positions(),
+        )
         excitation = _Excitation(plan, start, config.approach_speed)
         with garbage_collector_frozen(config.loop.real_time.freeze_gc):
             rows, fault = _play(link, buffers, excitation, config, lockstep)
     finally:
         link.close()
     columns = _columns(robot, rows)
-    return {"gain": gain, "columns": columns, "counters": link.counters(), "fault": fault,
-            "approach": excitation.approach, "rate": 1.0 / robot.sensors.period,
-            "bus": bus}
+    return {
+        "gain": gain,
+        "columns": columns,
+        "counters": link.counters(),
+        "fault": fault,
+        "approach": excitation.approach,
+        "rate": 1.0 / robot.sensors.period,
+        "bus": bus,
+    }
 
 
-def _play(link: DynamixelLink, buffers, excitation: _Excitation, config: RecordConfig,
-          lockstep: bool) -> tuple[list, str]:
+def _play(
+    link: DynamixelLink,
+    buffers,
+    excitation: _Excitation,
+    config: RecordConfig,
+    lockstep: bool,
+) -> tuple[list, str]:
     """Each period: read, log, write the goal; until the excitation's end or a fault.
     Progress: a line every tenth of the excitation (between periods)."""
     rows, fault = [], ""
@@ -143,10 +162,20 @@ def _play(link: DynamixelLink, buffers, excitation: _Excitation, config: RecordC
     while True:
         try:
             t = link.receive(buffers, timeout)
-            stamp = t if lockstep else ((link.started_ns + link.received_ns) / 2 - t0) * 1e-9
+            stamp = (
+                t
+                if lockstep
+                else ((link.started_ns + link.received_ns) / 2 - t0) * 1e-9
+            )
             goal = link.robot.bus.quantized(excitation(t))
-            rows.append((stamp, buffers.q_measured.copy(), goal,
-                         {k: v.copy() for k, v in link.reading.values.items()}))
+            rows.append(
+                (
+                    stamp,
+                    buffers.q_measured.copy(),
+                    goal,
+                    {k: v.copy() for k, v in link.reading.values.items()},
+                )
+            )
             link.send(goal, t)
         except LoopFault as error:
             fault = str(error)
@@ -183,7 +212,9 @@ def _columns(robot: RobotDescription, rows: list) -> dict[str, np.ndarray]:
     return columns
 
 
-def run_record(config: RecordConfig, port: str, out: Path, lockstep: bool = False) -> dict:
+def run_record(
+    config: RecordConfig, port: str, out: Path, lockstep: bool = False
+) -> dict:
     """The whole `hrp2-drake record` (module docstring); the summary."""
     config.validate()
     robot = config.description()
@@ -202,9 +233,16 @@ def run_record(config: RecordConfig, port: str, out: Path, lockstep: bool = Fals
         meta |= {"robot": robot.name, "port": port, "bus_period": robot.sensors.period}
         write_robot_log(out / name, robot.logs, one["columns"], meta)
         _plot(robot, one, out / f"{Path(name).stem}.png")
-        logs.append({"log": name, "gain": gain, "samples": len(one["columns"][robot.logs.time]),
-                     "approach_s": one["approach"], "fault": one["fault"],
-                     "bus": one["counters"]})
+        logs.append(
+            {
+                "log": name,
+                "gain": gain,
+                "samples": len(one["columns"][robot.logs.time]),
+                "approach_s": one["approach"],
+                "fault": one["fault"],
+                "bus": one["counters"],
+            }
+        )
         if one["fault"]:
             break
     summary = {"robot": robot.name, "port": port, "lockstep": lockstep, "logs": logs}
@@ -216,11 +254,18 @@ def run_record(config: RecordConfig, port: str, out: Path, lockstep: bool = Fals
 def _plot(robot: RobotDescription, one: dict, path: Path) -> None:
     columns, log_format = one["columns"], robot.logs
     t = columns[log_format.time]
-    fig, axes = pyplot().subplots(len(robot.joints), 1, figsize=(9, 2.5 * len(robot.joints)),
-                                  squeeze=False)
-    for ax, label, p_key, c_key in zip(axes[:, 0], robot.joint_labels or robot.joints,
-                                       log_format.position, log_format.command):
-        ax.plot(t, columns[c_key] * log_format.position_unit, "k--", lw=0.8, label="goal")
+    fig, axes = pyplot().subplots(
+        len(robot.joints), 1, figsize=(9, 2.5 * len(robot.joints)), squeeze=False
+    )
+    for ax, label, p_key, c_key in zip(
+        axes[:, 0],
+        robot.joint_labels or robot.joints,
+        log_format.position,
+        log_format.command,
+    ):
+        ax.plot(
+            t, columns[c_key] * log_format.position_unit, "k--", lw=0.8, label="goal"
+        )
         ax.plot(t, columns[p_key] * log_format.position_unit, lw=1.0, label="measured")
         ax.set_ylabel(f"{label} (rad)")
         legend_beside(ax)
@@ -234,22 +279,40 @@ def _markdown(robot: RobotDescription, summary: dict) -> str:
     for log in summary["logs"]:
         servos = log["bus"]["servos"].values()
         faults = sum(c["no_status"] + c["corrupt"] for c in servos)
-        rows.append([f"`{log['log']}`", f"{log['gain']:g}", f"{log['samples']}",
-                     f"{log['approach_s']:.1f}", f"{faults}",
-                     f"{log['bus']['late_periods']} ({log['bus']['skipped_periods']})",
-                     log["fault"] or "its end"])
+        rows.append(
+            [
+                f"`{log['log']}`",
+                f"{log['gain']:g}",
+                f"{log['samples']}",
+                f"{log['approach_s']:.1f}",
+                f"{faults}",
+                f"{log['bus']['late_periods']} ({log['bus']['skipped_periods']})",
+                log["fault"] or "its end",
+            ]
+        )
     lines = [
         f"# Identification logs of {robot.name}, recorded on its bus",
         "",
-        f"Port {summary['port']}" + (" (a lock-step robot)" if summary["lockstep"] else "")
+        f"Port {summary['port']}"
+        + (" (a lock-step robot)" if summary["lockstep"] else "")
         + f": {len(bus.ids)} {bus.model} servo(s) at {bus.baud / 1e6:g} Mbit/s, one sync "
         f"read and one sync write every {robot.sensors.period * 1e3:g} ms. The servos' "
         "own position control played the description's identification excitation, after "
         "a move from the measured pose to its start. Read them with `hrp2-drake identify "
         f"--robot {robot.name} --log <log>` (and `validate`, `calibrate`).",
         "",
-        *markdown_table(["log", "P gain", "samples", "move to start (s)",
-                         "statuses missing or corrupt", "late periods (skipped)", "ended with"], rows),
+        *markdown_table(
+            [
+                "log",
+                "P gain",
+                "samples",
+                "move to start (s)",
+                "statuses missing or corrupt",
+                "late periods (skipped)",
+                "ended with",
+            ],
+            rows,
+        ),
         "",
         *[f"![{log['log']}]({Path(log['log']).stem}.png)" for log in summary["logs"]],
     ]

@@ -44,7 +44,9 @@ class SimulateConfig:
         log_period: period of the logged signals (s).
     """
 
-    station: StationConfig = field(default_factory=lambda: StationConfig(scenario="standing"))
+    station: StationConfig = field(
+        default_factory=lambda: StationConfig(scenario="standing")
+    )
     duration: float = 5.0
     trajectory: str = ""
     trajectory_start: float = 0.5
@@ -77,7 +79,10 @@ class SimulateConfig:
 
 
 def check_joint_limits(
-    q: np.ndarray, where: str, robot: RobotDescription | None = None, tolerance: float = 1e-9
+    q: np.ndarray,
+    where: str,
+    robot: RobotDescription | None = None,
+    tolerance: float = 1e-9,
 ) -> None:
     """Raises ValueError naming `where`, the first offending joint and row unless every
     row of q (m, n) lies within the robot's joint position limits (default: HRP-2)."""
@@ -120,7 +125,9 @@ def load_joint_trajectory(
     n = len(robot.joints)
     if spec in ("default", "climbing"):
         if not robot.trajectory_file:
-            raise ValueError(f"trajectory '{spec}': robot '{robot.name}' has no trajectory_file")
+            raise ValueError(
+                f"trajectory '{spec}': robot '{robot.name}' has no trajectory_file"
+            )
         return robot.load_trajectory()
     path = Path(spec)
     if not path.exists():
@@ -140,8 +147,7 @@ def load_joint_trajectory(
         ) from None
     if data.size == 0:
         raise ValueError(
-            f"trajectory file '{spec}': empty, expected rows of time + "
-            f"{n} joint angles"
+            f"trajectory file '{spec}': empty, expected rows of time + {n} joint angles"
         )
     if data.shape[1] != columns or data.shape[0] < 2:
         raise ValueError(
@@ -234,7 +240,9 @@ def summarize(result: SimulationResult, config: SimulateConfig) -> dict[str, flo
         "max_abs_tracking_error_rad": float(np.abs(q_err).max()),
         "max_abs_joint_torque_Nm": float(np.abs(s["joint_torque_true"]).max()),
     }
-    if config.station.scenario != "fixed_base":  # the base's free joint: [quaternion; xyz]
+    if (
+        config.station.scenario != "fixed_base"
+    ):  # the base's free joint: [quaternion; xyz]
         base_xyz = s["state_true"][:, 4:7]
         summary["base_drift_m"] = float(np.linalg.norm(base_xyz[-1] - base_xyz[0]))
         summary["base_height_final_m"] = float(base_xyz[-1, 2])

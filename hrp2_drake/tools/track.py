@@ -102,7 +102,9 @@ class TrackConfig:
             servos allow, said in the table); empty: none.
     """
 
-    station: StationConfig = field(default_factory=lambda: StationConfig(robot="iiwa14", scenario="fixed_base"))
+    station: StationConfig = field(
+        default_factory=lambda: StationConfig(robot="iiwa14", scenario="fixed_base")
+    )
     torque_control: TorqueControlConfig = field(
         default_factory=lambda: TorqueControlConfig(
             estimator=EstimatorSettings(offset_calibration_time=0.3)
@@ -128,7 +130,9 @@ class TrackConfig:
         """The control period: the station's sensor period (on a bus, the bus's)."""
         return self.station.sensors_config().period
 
-    def torque_control_at_period(self, period: float | None = None) -> TorqueControlConfig:
+    def torque_control_at_period(
+        self, period: float | None = None
+    ) -> TorqueControlConfig:
         """`torque_control` at `period` (default: the robot's; `at_period`)."""
         return at_period(self.torque_control, period or self.period())
 
@@ -140,15 +144,26 @@ class TrackConfig:
             raise ValueError(f"{where}.k6: positive gains, got {self.k6}")
         for k, gain in enumerate(self.k6):
             check_finite(gain, f"{where}.k6[{k}]", 0.0)
-        for name in ("duration", "settle", "frequency", "force_k6", "ramp",
-                     "force_frequency", "force_duration"):
+        for name in (
+            "duration",
+            "settle",
+            "frequency",
+            "force_k6",
+            "ramp",
+            "force_frequency",
+            "force_duration",
+        ):
             check_finite(getattr(self, name), f"{where}.{name}", 0.0)
         for name in ("kf", "press", "force_amplitude", "gap"):
             check_finite(getattr(self, name), f"{where}.{name}", 0.0, strict=False)
         robot = self.station.description()
         check_sinusoid(
-            robot, initial_joint_positions(self.station),
-            self.amplitude, self.frequency, self.settle, where,
+            robot,
+            initial_joint_positions(self.station),
+            self.amplitude,
+            self.frequency,
+            self.settle,
+            where,
         )
         control = f"{where}.torque_control"
         check_for_robot(self.torque_control, robot, control)
@@ -262,7 +277,9 @@ class ContactForceOnBodies(LeafSystem):
                 total += info.contact_force()
             if info.bodyA_index() in self._bodies:
                 total -= info.contact_force()
-        output.set_value(total)  # (point contact only: the station has no hydroelastics)
+        output.set_value(
+            total
+        )  # (point contact only: the station has no hydroelastics)
 
 
 def sinusoid_reference(
@@ -306,11 +323,17 @@ def _tracking_errors(
         "maximum": np.abs(error[:, cols]).max(axis=0).tolist(),
         "rms": np.sqrt(np.mean(error[:, cols] ** 2, axis=0)).tolist(),
     }
-    if "tau_estimated" in signals:  # a torque-control run (ground truth: evaluation only)
-        tau_error = (signals["tau_estimated"][keep] - signals["joint_torque_true"][keep])[:, cols]
+    if (
+        "tau_estimated" in signals
+    ):  # a torque-control run (ground truth: evaluation only)
+        tau_error = (
+            signals["tau_estimated"][keep] - signals["joint_torque_true"][keep]
+        )[:, cols]
         out["tau_rms_error"] = np.sqrt(np.mean(tau_error**2, axis=0)).tolist()
         if "supervisor_mode" in signals:
-            out["torque_share"] = float(np.mean(signals["supervisor_mode"][keep] >= 1.0))
+            out["torque_share"] = float(
+                np.mean(signals["supervisor_mode"][keep] >= 1.0)
+            )
         else:
             out["torque_share"] = float(np.mean(signals["fallback_active"][keep] < 0.5))
     return out
@@ -323,12 +346,14 @@ def _simulate(control, duration: float, label: str, extra_ports=None) -> dict:
     builder = DiagramBuilder()
     diagram = builder.AddNamedSystem("control", control.diagram)
     ports = {
-        name: diagram.GetOutputPort(name)
-        for name in ("q_ref", "state_true", "q_cmd")
+        name: diagram.GetOutputPort(name) for name in ("q_ref", "state_true", "q_cmd")
     }
     for name in control.output_names():
         if name.startswith(("external_wrench_", "wrench_")) or name in (
-            "tau_estimated", "joint_torque_true", "supervisor_mode", "fallback_active"
+            "tau_estimated",
+            "joint_torque_true",
+            "supervisor_mode",
+            "fallback_active",
         ):
             ports[name] = diagram.GetOutputPort(name)
     if extra_ports:
@@ -343,8 +368,11 @@ def _simulate(control, duration: float, label: str, extra_ports=None) -> dict:
 BUS_TIME_STEP = 0.00025
 
 
-def track_station(config: TrackConfig, period: float | None = None,
-                  robot: RobotDescription | None = None) -> StationConfig:
+def track_station(
+    config: TrackConfig,
+    period: float | None = None,
+    robot: RobotDescription | None = None,
+) -> StationConfig:
     """The station of a run at `period` (s; default: the robot's): a robot on a bus
     (its description, or `robot`'s bus) samples its sensors the bus's
     read-to-write delay before each tick, on a plant of step `BUS_TIME_STEP`."""
@@ -352,17 +380,26 @@ def track_station(config: TrackConfig, period: float | None = None,
     robot = robot or station.description()
     period = period or config.period()
     if period != config.period():
-        station = replace(station, sensors=replace(station.sensors_config(), period=period))
+        station = replace(
+            station, sensors=replace(station.sensors_config(), period=period)
+        )
     if robot.bus.active:
         # A plant step fine enough to put the bus's sub-millisecond read-to-write
         # delay inside a 1 kHz period (the delay is rounded up to whole steps).
-        station = replace(station, time_step=min(station.time_step, BUS_TIME_STEP),
-                          sample_lead=robot.bus.timing().read_to_write)
+        station = replace(
+            station,
+            time_step=min(station.time_step, BUS_TIME_STEP),
+            sample_lead=robot.bus.timing().read_to_write,
+        )
     return station
 
 
-def run_tracking(config: TrackConfig, motor_model: MotorModel, period: float | None = None,
-                 robot: RobotDescription | None = None) -> dict:
+def run_tracking(
+    config: TrackConfig,
+    motor_model: MotorModel,
+    period: float | None = None,
+    robot: RobotDescription | None = None,
+) -> dict:
     """Free-space tracking: position control, then torque control at each K6; at
     `period` (s; default: the robot's) with `robot`'s bus (default: the
     description's)."""
@@ -374,18 +411,28 @@ def run_tracking(config: TrackConfig, motor_model: MotorModel, period: float | N
     duration = reference.end_time()
     runs = {}
     command_period = period if robot.bus.active else 0.0
-    position = build_position_control(robot, make_station(station), reference, command_period)
-    q_index = joint_indexing(position.station.GetSubsystemByName("plant"), robot.joints).q
+    position = build_position_control(
+        robot, make_station(station), reference, command_period
+    )
+    q_index = joint_indexing(
+        position.station.GetSubsystemByName("plant"), robot.joints
+    ).q
     signals = _simulate(position, duration, "position control")
     runs["position control"] = _tracking_errors(robot, q_index, signals, config.settle)
     torque = replace(config.torque_control_at_period(period), start_time=config.settle)
     for k6 in config.k6:
         control = build_torque_control(
-            robot, make_station(station), reference, motor_model,
-            replace_fields(torque, {"controller.k6": k6}), control_period=period,
+            robot,
+            make_station(station),
+            reference,
+            motor_model,
+            replace_fields(torque, {"controller.k6": k6}),
+            control_period=period,
         )
         signals = _simulate(control, duration, f"torque control K6={k6:g}")
-        runs[f"torque control K6={k6:g}"] = _tracking_errors(robot, q_index, signals, config.settle)
+        runs[f"torque control K6={k6:g}"] = _tracking_errors(
+            robot, q_index, signals, config.settle
+        )
     return runs
 
 
@@ -403,8 +450,15 @@ def run_rates(config: TrackConfig, motor_model: MotorModel) -> list[dict]:
             continue
         at_rate = replace(robot, bus=bus, sensors=replace(robot.sensors, period=period))
         runs = run_tracking(config, motor_model, period, at_rate)
-        rows.append({"rate": rate, "note": note, "read_to_write_ms": bus.timing().read_to_write * 1e3,
-                     "cycle_ms": bus.timing().cycle * 1e3, "runs": runs})
+        rows.append(
+            {
+                "rate": rate,
+                "note": note,
+                "read_to_write_ms": bus.timing().read_to_write * 1e3,
+                "cycle_ms": bus.timing().cycle * 1e3,
+                "runs": runs,
+            }
+        )
     return rows
 
 
@@ -426,37 +480,60 @@ def run_force_task(config: TrackConfig, motor_model: MotorModel, out: Path) -> d
     top = _lowest_collision_point(config.station, tip.body().name()) - config.gap
     station = replace(
         config.station,
-        obstacles=[BoxObstacle("table", [0.4, 0.4, 0.05], [p_tip[0], p_tip[1], top - 0.025, 0, 0, 0])],
+        obstacles=[
+            BoxObstacle(
+                "table", [0.4, 0.4, 0.05], [p_tip[0], p_tip[1], top - 0.025, 0, 0, 0]
+            )
+        ],
     )
     # f_ref: the table's reaction on the tool, in the sensor frame at home.
     sensor = robot.force_torque_sensors[robot.force_sensor]
-    R_WS = plant.GetFrameByName(sensor.frame).CalcPoseInWorld(context).rotation().matrix()
+    R_WS = (
+        plant.GetFrameByName(sensor.frame).CalcPoseInWorld(context).rotation().matrix()
+    )
     up_S = R_WS.T @ np.array([0.0, 0.0, 1.0])
     t = np.arange(0.0, config.settle + config.ramp + config.force_duration + 1e-9, 0.01)
     half = config.ramp / 2  # first half: lower the tool; second half: ramp the force
     s = np.clip((t - config.settle - half) / half, 0.0, 1.0)
     magnitude = config.press * s * s * (3 - 2 * s)
     after = np.clip(t - config.settle - config.ramp, 0.0, None)
-    magnitude += config.force_amplitude * np.sin(2 * np.pi * config.force_frequency * after)
+    magnitude += config.force_amplitude * np.sin(
+        2 * np.pi * config.force_frequency * after
+    )
     f_ref = np.zeros((6, len(t)))
     f_ref[3:] = np.outer(up_S, magnitude)
     force_reference = PiecewisePolynomial.FirstOrderHold(t, f_ref)
     reference = _lowering(plant, context, robot, tip, q0, config, t[-1])
-    torque = replace_fields(config.torque_control, {
-        "controller.k6": config.force_k6,
-        "controller.kf": [config.kf],
-        "controller.force_frame": sensor.frame,
-        "start_time": config.settle,
-    })
-    control = build_torque_control(robot, make_station(station), reference, motor_model, torque,
-                                   control_period=station.sensors_config().period,
-                                   force_reference=force_reference)
-    tool_bodies = _bodies_below(robot, plant, robot.sensor_body(robot.force_sensor, plant))
+    torque = replace_fields(
+        config.torque_control,
+        {
+            "controller.k6": config.force_k6,
+            "controller.kf": [config.kf],
+            "controller.force_frame": sensor.frame,
+            "start_time": config.settle,
+        },
+    )
+    control = build_torque_control(
+        robot,
+        make_station(station),
+        reference,
+        motor_model,
+        torque,
+        control_period=station.sensors_config().period,
+        force_reference=force_reference,
+    )
+    tool_bodies = _bodies_below(
+        robot, plant, robot.sensor_body(robot.force_sensor, plant)
+    )
 
     def truth(builder, diagram):
         station_plant = control.station.GetSubsystemByName("plant")
-        system = builder.AddNamedSystem("contact_force", ContactForceOnBodies(station_plant, tool_bodies))
-        builder.Connect(diagram.GetOutputPort("contact_results"), system.get_input_port())
+        system = builder.AddNamedSystem(
+            "contact_force", ContactForceOnBodies(station_plant, tool_bodies)
+        )
+        builder.Connect(
+            diagram.GetOutputPort("contact_results"), system.get_input_port()
+        )
         return {"contact_force": system.get_output_port()}
 
     signals = _simulate(control, t[-1], "force task", truth)
@@ -472,26 +549,38 @@ def run_force_task(config: TrackConfig, motor_model: MotorModel, out: Path) -> d
         "rms_error_N": float(np.sqrt(np.mean(error**2))),
         "max_error_N": float(np.abs(error).max()),
         "mean_error_N": float(error.mean()),
-        "estimate_rms_error_N": float(np.sqrt(np.mean((estimate[window] - achieved[window]) ** 2))),
-        "amplitude_ratio": float(np.ptp(achieved[window]) / max(np.ptp(desired[window]), 1e-9)),
+        "estimate_rms_error_N": float(
+            np.sqrt(np.mean((estimate[window] - achieved[window]) ** 2))
+        ),
+        "amplitude_ratio": float(
+            np.ptp(achieved[window]) / max(np.ptp(desired[window]), 1e-9)
+        ),
     }
     _plot_force(time, desired, achieved, estimate, config, out / "track_force.png")
     return result
 
 
-def _lowering(plant, context, robot, tip, q0, config: TrackConfig, end: float) -> JointReference:
+def _lowering(
+    plant, context, robot, tip, q0, config: TrackConfig, end: float
+) -> JointReference:
     """Home, then the controlled joints move the tool tip straight down by `gap` over
     the first half of the ramp (Δq = J⁺ Δx on the tip's translational Jacobian)."""
     from pydrake.multibody.tree import JacobianWrtVariable
 
     J = plant.CalcJacobianTranslationalVelocity(
-        context, JacobianWrtVariable.kV, tip, np.zeros(3), plant.world_frame(),
+        context,
+        JacobianWrtVariable.kV,
+        tip,
+        np.zeros(3),
+        plant.world_frame(),
         plant.world_frame(),
     )
     indexing = joint_indexing(plant, robot.joints)
     cols = [robot.joints.index(j) for j in robot.controlled_joints]
     dq = np.zeros(len(robot.joints))
-    dq[cols] = np.linalg.pinv(J[:, indexing.v[cols]]) @ np.array([0.0, 0.0, -config.gap])
+    dq[cols] = np.linalg.pinv(J[:, indexing.v[cols]]) @ np.array(
+        [0.0, 0.0, -config.gap]
+    )
     t = np.arange(0.0, end + 1e-9, 0.001)
     half = config.ramp / 2
     x = np.clip((t - config.settle) / half, 0.0, 1.0)
@@ -530,7 +619,9 @@ def _lowest_collision_point(station_config: StationConfig, body_name: str) -> fl
     return min(heights)
 
 
-def _bodies_below(robot: RobotDescription, plant: MultibodyPlant, body: str) -> list[str]:
+def _bodies_below(
+    robot: RobotDescription, plant: MultibodyPlant, body: str
+) -> list[str]:
     """`body` and every body beyond it, away from the base (the tool)."""
     top = int(plant.GetBodyByName(body).index())
     parents = tree_parents(plant, plant.GetBodyByName(robot.base_body).index())
@@ -541,7 +632,9 @@ def _bodies_below(robot: RobotDescription, plant: MultibodyPlant, body: str) -> 
     ]
 
 
-def _plot_force(t, desired, achieved, estimate, config: TrackConfig, path: Path) -> None:
+def _plot_force(
+    t, desired, achieved, estimate, config: TrackConfig, path: Path
+) -> None:
     fig, ax = pyplot().subplots(figsize=(9, 3.5))
     ax.plot(t, desired, "k--", lw=1, label="reference")
     ax.plot(t, achieved, lw=1.5, label="contact force (truth)")
@@ -560,12 +653,17 @@ def run_track(config: TrackConfig, motor_model: MotorModel, out: Path) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     # The one place where track reads the motor model: at the station's servo gain.
     motor_model = motor_model_at_station_gain(motor_model, config.station)
-    summary = {"robot": robot.name, "joints": list(robot.controlled_joints),
-               "motor_model_gain": motor_model.gain}
+    summary = {
+        "robot": robot.name,
+        "joints": list(robot.controlled_joints),
+        "motor_model_gain": motor_model.gain,
+    }
     summary["tracking"] = run_tracking(config, motor_model)
     if robot.bus.active:
-        summary["bus"] = {"rate": 1.0 / config.period(),
-                          "read_to_write_ms": robot.bus.timing().read_to_write * 1e3}
+        summary["bus"] = {
+            "rate": 1.0 / config.period(),
+            "read_to_write_ms": robot.bus.timing().read_to_write * 1e3,
+        }
         if config.rates:
             summary["rates"] = run_rates(config, motor_model)
     if config.force_task and can_press(robot):
@@ -605,7 +703,10 @@ def _markdown(robot: RobotDescription, config: TrackConfig, summary: dict) -> st
         "",
     ]
     rows = [
-        [name, *(f"{m * 1e3:.2f} ({r * 1e3:.2f})" for m, r in zip(e["maximum"], e["rms"]))]
+        [
+            name,
+            *(f"{m * 1e3:.2f} ({r * 1e3:.2f})" for m, r in zip(e["maximum"], e["rms"])),
+        ]
         for name, e in summary["tracking"].items()
     ]
     lines += markdown_table(["controller", *labels], rows)
@@ -624,11 +725,22 @@ def _markdown(robot: RobotDescription, config: TrackConfig, summary: dict) -> st
             "Drake's contact results (evaluation only). Plot: `track_force.png`.",
             "",
             *markdown_table(
-                ["RMS error (N)", "maximum error (N)", "mean error (N)", "amplitude ratio",
-                 "estimate f̂ vs truth, RMS (N)"],
-                [[f"{force['rms_error_N']:.2f}", f"{force['max_error_N']:.2f}",
-                  f"{force['mean_error_N']:+.2f}", f"{force['amplitude_ratio']:.2f}",
-                  f"{force['estimate_rms_error_N']:.2f}"]],
+                [
+                    "RMS error (N)",
+                    "maximum error (N)",
+                    "mean error (N)",
+                    "amplitude ratio",
+                    "estimate f̂ vs truth, RMS (N)",
+                ],
+                [
+                    [
+                        f"{force['rms_error_N']:.2f}",
+                        f"{force['max_error_N']:.2f}",
+                        f"{force['mean_error_N']:+.2f}",
+                        f"{force['amplitude_ratio']:.2f}",
+                        f"{force['estimate_rms_error_N']:.2f}",
+                    ]
+                ],
                 align="rrrrr",
             ),
         ]
@@ -664,28 +776,44 @@ def _rates_markdown(robot: RobotDescription, summary: dict) -> list[str]:
         best = min(torque, key=lambda name: max(torque[name]["maximum"]))
         beats = all(t <= p for t, p in zip(torque[best]["rms"], position["rms"]))
         chosen = torque[best]
-        rows.append([
-            f"{row['rate']:.0f}",
-            f"{row['read_to_write_ms']:.2f}",
-            ", ".join(f"{m * 1e3:.1f} ({r * 1e3:.1f})"
-                      for m, r in zip(position["maximum"], position["rms"])),
-            f"{best.removeprefix('torque control ')}: " + ", ".join(
-                f"{m * 1e3:.1f} ({r * 1e3:.1f})" for m, r in zip(chosen["maximum"], chosen["rms"])
-            ),
-            f"{chosen['torque_share'] * 100:.0f}%",
-            ", ".join(f"{e * 1e3:.0f}" for e in chosen["tau_rms_error"]),
-            ("yes" if beats else "no") + (f"; {row['note']}" if row["note"] else ""),
-        ])
+        rows.append(
+            [
+                f"{row['rate']:.0f}",
+                f"{row['read_to_write_ms']:.2f}",
+                ", ".join(
+                    f"{m * 1e3:.1f} ({r * 1e3:.1f})"
+                    for m, r in zip(position["maximum"], position["rms"])
+                ),
+                f"{best.removeprefix('torque control ')}: "
+                + ", ".join(
+                    f"{m * 1e3:.1f} ({r * 1e3:.1f})"
+                    for m, r in zip(chosen["maximum"], chosen["rms"])
+                ),
+                f"{chosen['torque_share'] * 100:.0f}%",
+                ", ".join(f"{e * 1e3:.0f}" for e in chosen["tau_rms_error"]),
+                ("yes" if beats else "no")
+                + (f"; {row['note']}" if row["note"] else ""),
+            ]
+        )
     return lines + [
         "",
         f"**The same motion at other loop rates** (maximum (RMS) error, mrad, "
         f"{', '.join(labels)}): does torque control beat the servo's position control "
         "(RMS, every joint)?",
         "",
-        *markdown_table(["rate (Hz)", "read → write (ms)", "position control",
-                         "torque control (best K6)", "in torque control",
-                         "τ̂ error, RMS (mN·m)", "torque control better"], rows,
-                        align="rrllrrl"),
+        *markdown_table(
+            [
+                "rate (Hz)",
+                "read → write (ms)",
+                "position control",
+                "torque control (best K6)",
+                "in torque control",
+                "τ̂ error, RMS (mN·m)",
+                "torque control better",
+            ],
+            rows,
+            align="rrllrrl",
+        ),
         "",
         "In torque control: the share of the run after the settle with the supervisor "
         "in torque control (the rest: its ramps and fallbacks to position control). "

@@ -59,7 +59,9 @@ def run_calibrate_logs(
     out.mkdir(parents=True, exist_ok=True)
     cross = cross_validate(robot, logs, prior, config) if several else []
     final = fit_twin(robot, logs, prior, config, label="twin on every log")
-    fitted_mae = {k: v["mae"] for k, v in twin_errors(robot, logs, final.params).items()}
+    fitted_mae = {
+        k: v["mae"] for k, v in twin_errors(robot, logs, final.params).items()
+    }
     header = [
         f"{robot.name}'s emulated servo: a digital twin calibrated to {len(logs)} real "
         f"logs by rollout (hrp2-drake calibrate --log; {final.evaluations} rollouts of "
@@ -82,23 +84,32 @@ def _gains(logs: Sequence[RobotLog]) -> int:
 
 
 def _summary(
-    robot, logs, prior, final: TwinFit, fitted_mae: dict[str, float],
+    robot,
+    logs,
+    prior,
+    final: TwinFit,
+    fitted_mae: dict[str, float],
     cross: list[CrossValidation],
 ) -> dict:
     def values(params: ServoParams) -> dict[str, dict[str, float]]:
         return {
-            joint: {name: getattr(params.joints[joint], name)
-                    for name in list(TWIN_PARAMETERS) + ["k5"]}
+            joint: {
+                name: getattr(params.joints[joint], name)
+                for name in list(TWIN_PARAMETERS) + ["k5"]
+            }
             for joint in robot.joints
         }
 
     summary = {
         "robot": robot.name,
         "logs": [log.name for log in logs],
-        "fit": {"rollouts": final.evaluations, "wall_time_s": final.wall_time,
-                "rms_error_start_mrad": math.sqrt(final.cost_start / len(logs)) * 1e3,
-                "rms_error_end_mrad": math.sqrt(final.cost_end / len(logs)) * 1e3,
-                "message": final.message},
+        "fit": {
+            "rollouts": final.evaluations,
+            "wall_time_s": final.wall_time,
+            "rms_error_start_mrad": math.sqrt(final.cost_start / len(logs)) * 1e3,
+            "rms_error_end_mrad": math.sqrt(final.cost_end / len(logs)) * 1e3,
+            "message": final.message,
+        },
         "parameters": values(final.params),
         "prior": values(prior),
         "mae_on_fitted_logs_mrad": {k: v * 1e3 for k, v in fitted_mae.items()},
@@ -107,11 +118,16 @@ def _summary(
         rows = []
         for c in cross:
             for name in c.twin_errors:
-                rows.append({"train_gain": c.train_gain, "log": name,
-                             "twin_mae_mrad": c.twin_errors[name]["mae"] * 1e3,
-                             "model_mae_mrad": c.model_errors[name]["mae"] * 1e3,
-                             "twin_max_mrad": c.twin_errors[name]["max"] * 1e3,
-                             "model_max_mrad": c.model_errors[name]["max"] * 1e3})
+                rows.append(
+                    {
+                        "train_gain": c.train_gain,
+                        "log": name,
+                        "twin_mae_mrad": c.twin_errors[name]["mae"] * 1e3,
+                        "model_mae_mrad": c.model_errors[name]["mae"] * 1e3,
+                        "twin_max_mrad": c.twin_errors[name]["max"] * 1e3,
+                        "model_max_mrad": c.model_errors[name]["max"] * 1e3,
+                    }
+                )
         twin = float(np.mean([r["twin_mae_mrad"] for r in rows]))
         model = float(np.mean([r["model_mae_mrad"] for r in rows]))
         summary["cross_gain"] = {
@@ -134,8 +150,11 @@ def _markdown(robot, summary: dict, figures: list[str], install: bool) -> str:
         f"logs: {fit['rollouts']} rollouts of every log in {fit['wall_time_s']:.0f} s; "
         f"RMS position error {fit['rms_error_start_mrad']:.1f} mrad with the prior, "
         f"{fit['rms_error_end_mrad']:.1f} mrad after ({fit['message']}). "
-        + ("Installed as the robot's servo file." if install else
-           "Written to servo.yaml here (`--install` makes it the robot's)."),
+        + (
+            "Installed as the robot's servo file."
+            if install
+            else "Written to servo.yaml here (`--install` makes it the robot's)."
+        ),
         "",
     ]
     cross = summary.get("cross_gain")
@@ -159,7 +178,12 @@ def _markdown(robot, summary: dict, figures: list[str], install: bool) -> str:
     lines += markdown_table(
         ["joint", "parameter", "prior", "twin"],
         [
-            [f"{joint}", f"{name}", f"{summary['prior'][joint][name]:.4g}", f"{value:.4g}"]
+            [
+                f"{joint}",
+                f"{name}",
+                f"{summary['prior'][joint][name]:.4g}",
+                f"{value:.4g}",
+            ]
             for joint, values in summary["parameters"].items()
             for name, value in values.items()
         ],
@@ -178,16 +202,32 @@ def _cross_gain_table(cross: dict) -> list[str]:
     """Per log of the other gain: the twin's and the least-squares model's rollout
     errors (mrad), then their mean MAE."""
     rows = [
-        [f"{r['train_gain']:g}", f"{r['log']}", f"{r['twin_mae_mrad']:.1f}",
-         f"{r['twin_max_mrad']:.1f}", f"{r['model_mae_mrad']:.1f}", f"{r['model_max_mrad']:.1f}"]
+        [
+            f"{r['train_gain']:g}",
+            f"{r['log']}",
+            f"{r['twin_mae_mrad']:.1f}",
+            f"{r['twin_max_mrad']:.1f}",
+            f"{r['model_mae_mrad']:.1f}",
+            f"{r['model_max_mrad']:.1f}",
+        ]
         for r in cross["rows"]
     ]
-    rows.append([
-        None, "**mean**", f"**{cross['twin_mean_mae_mrad']:.1f}**", None,
-        f"**{cross['least_squares_mean_mae_mrad']:.1f}**", None,
-    ])
+    rows.append(
+        [
+            None,
+            "**mean**",
+            f"**{cross['twin_mean_mae_mrad']:.1f}**",
+            None,
+            f"**{cross['least_squares_mean_mae_mrad']:.1f}**",
+            None,
+        ]
+    )
     header = [
-        "fitted on gain", "log", "twin MAE", "twin max", "least squares MAE",
+        "fitted on gain",
+        "log",
+        "twin MAE",
+        "twin max",
+        "least squares MAE",
         "least squares max",
     ]
     return markdown_table(header, rows, align="rlrrrr")
@@ -204,7 +244,9 @@ def _plot(robot, logs: Sequence[RobotLog], final: TwinFit, out: Path) -> list[st
         ax.plot(log.t, log.q_cmd[:, 0], color="0.6", lw=1, label="command")
         ax.plot(log.t, log.q_measured[:, 0], "k", lw=1.4, label="measured")
         ax.plot(log.t, q[:, 0], "tab:red", lw=1.2, ls="--", label="twin (rollout)")
-        ax.set_title(f"{log.name} (gain {log.gain:g})" if log.gain else log.name, fontsize=10)
+        ax.set_title(
+            f"{log.name} (gain {log.gain:g})" if log.gain else log.name, fontsize=10
+        )
         ax.set_xlabel("t (s)")
         ax.set_ylabel(f"{robot.joints[0]} (rad)")
         ax.grid(True, alpha=0.3)

@@ -84,7 +84,9 @@ def load_model(robot: RobotDescription, path: str | Path) -> Model:
     return params if kind == "servo file" else model.subset(list(robot.joints))
 
 
-def servo_of_log(robot: RobotDescription, model: Model) -> Callable[[RobotLog], ServoFactory]:
+def servo_of_log(
+    robot: RobotDescription, model: Model
+) -> Callable[[RobotLog], ServoFactory]:
     """The servo that replays a log: the motor model's at the log's gain, or the
     twin's (the emulated servo with the servo file's parameters)."""
     if isinstance(model, ServoParams):
@@ -249,7 +251,9 @@ def _plot(
 ):
     log = result.log
     n = len(log.joint_names)
-    fig, axes = pyplot().subplots(n, 1, figsize=(9, 2.6 * n), sharex=True, squeeze=False)
+    fig, axes = pyplot().subplots(
+        n, 1, figsize=(9, 2.6 * n), sharex=True, squeeze=False
+    )
     labels = dict(zip(robot.controlled_joints, robot.labels()))
     stretches = _servo_off_stretches(log.t, log.valid)
     for j, (ax, joint) in enumerate(zip(axes[:, 0], log.joint_names)):
@@ -258,7 +262,13 @@ def _plot(
         ax.plot(log.t, log.q_cmd[:, j], "--", color="0.4", lw=1, label="command")
         ax.plot(log.t, log.q_measured[:, j], color="C0", lw=1.5, label="measured")
         simulated = "twin" if kind == "twin" else "model"
-        ax.plot(log.t, result.q_sim[:, j], color="C1", lw=1, label=f"simulated ({simulated})")
+        ax.plot(
+            log.t,
+            result.q_sim[:, j],
+            color="C1",
+            lw=1,
+            label=f"simulated ({simulated})",
+        )
         ax.set_ylabel(f"{labels.get(joint, joint)}\n(rad)")
         ax.set_title(
             f"MAE {errors.mae[j] * 1e3:.1f} mrad, max {errors.max_error[j] * 1e3:.1f} "
@@ -278,9 +288,15 @@ def _markdown(robot: RobotDescription, model: Model, summary: dict) -> str:
         """The joint's MAE and maximum error, whole log and servo on (mrad)."""
         return [
             "n/a" if value is None or np.isnan(value) else f"{value:.1f}"
-            for value in (values[key][joint] for key in (
-                "mae_mrad", "max_error_mrad", "mae_servo_on_mrad", "max_error_servo_on_mrad"
-            ))
+            for value in (
+                values[key][joint]
+                for key in (
+                    "mae_mrad",
+                    "max_error_mrad",
+                    "mae_servo_on_mrad",
+                    "max_error_servo_on_mrad",
+                )
+            )
         ]
 
     if isinstance(model, ServoParams):
@@ -290,7 +306,9 @@ def _markdown(robot: RobotDescription, model: Model, summary: dict) -> str:
         )
     else:
         gain = (
-            f" (at servo gain {model.gain:g}, rescaled to each log's)" if model.gain else ""
+            f" (at servo gain {model.gain:g}, rescaled to each log's)"
+            if model.gain
+            else ""
         )
         what = (
             f"Motor model `{summary['motor_model']}`{gain}, eq. 6 solved for the torque, "
@@ -320,13 +338,28 @@ def _markdown(robot: RobotDescription, model: Model, summary: dict) -> str:
         for joint in summary["joints"]
     ]
     rows += [  # the mean over the logs: no gain, duration, servo-on share
-        [f"**mean of {len(summary['logs'])}**", joint, None, None, None,
-         *errors(summary["mean"], joint), f"{summary['mean_rollout_wall_time_s']:.2f}"]
+        [
+            f"**mean of {len(summary['logs'])}**",
+            joint,
+            None,
+            None,
+            None,
+            *errors(summary["mean"], joint),
+            f"{summary['mean_rollout_wall_time_s']:.2f}",
+        ]
         for joint in summary["joints"]
     ]
     header = [
-        "log", "joint", "gain", "s", "servo on", "MAE", "max", "MAE servo on",
-        "max servo on", "wall (s)",
+        "log",
+        "joint",
+        "gain",
+        "s",
+        "servo on",
+        "MAE",
+        "max",
+        "MAE servo on",
+        "max servo on",
+        "wall (s)",
     ]
     lines += markdown_table(header, rows, align="ll" + "r" * 8)
     lines += [
