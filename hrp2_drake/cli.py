@@ -6,7 +6,7 @@
     hrp2-drake estimate [--robot R] --log LOG [--window N] [--out DIR]
     hrp2-drake validate [--robot R] --motor-model M --log LOG [LOG ...] [--out DIR]
     hrp2-drake calibrate [--config FILE] [--out DIR] [--install]
-    hrp2-drake experiment NAME | reproduce   (HRP-2, the paper's experiments; see --help)
+    hrp2-drake experiment NAME | reproduce  (HRP-2, the paper's experiments; see --help)
     hrp2-drake track [--robot R] [--motor-model M] [--quick]
     hrp2-drake tune [--config FILE] [--trials N] [--workers W] [--scheduler ADDRESS]
                     [--motor-model M] [--quick] [--out DIR]
@@ -444,7 +444,8 @@ def _estimation_experiment(args: argparse.Namespace) -> int:
         worst = analysis["windows"][str(best)]["right_leg_worst_ratio"]
         print(
             f"  {scenario}: best window {best}, worst right-leg RMS/peak "
-            f"{worst * 100:.2f}% (goal 3%: {'met' if analysis['goal_met'] else 'NOT met'})"
+            f"{worst * 100:.2f}% (goal 3%: "
+            f"{'met' if analysis['goal_met'] else 'NOT met'})"
         )
     return 0
 
@@ -461,7 +462,8 @@ def _motion_experiment(args: argparse.Namespace) -> int:
     for label, verdict in summary["verdicts"].items():
         print(
             f"  {label}: better than position control on "
-            f"{len(verdict['average'])}/5 (average), {len(verdict['maximum'])}/5 (maximum)"
+            f"{len(verdict['average'])}/5 (average), {len(verdict['maximum'])}/5 "
+            "(maximum)"
         )
     return 0
 
@@ -522,7 +524,8 @@ def _fault_campaign(args: argparse.Namespace) -> int:
     return 1 if raised else 0
 
 
-#: `hrp2-drake experiment NAME`: the paper's experiments, in the order --help lists them.
+#: `hrp2-drake experiment NAME`: the paper's experiments, in the order --help lists
+#: them.
 _EXPERIMENTS = {
     "estimation": _estimation_experiment,
     "motion": _motion_experiment,
@@ -573,7 +576,8 @@ def _calibrate_from_logs(args: argparse.Namespace) -> int:
         )
     if args.config:
         raise ValueError(
-            "calibrate --log: --config is HRP-2's CalibrationConfig; not used with --log"
+            "calibrate --log: --config is HRP-2's CalibrationConfig; not used with "
+            "--log"
         )
     config = TwinConfig()
     _set_given(config, args, max_evaluations="max_iterations", workers="jobs")
@@ -585,16 +589,16 @@ def _calibrate_from_logs(args: argparse.Namespace) -> int:
         + (f" (installed as {robot.servo_path('')})" if args.install else "")
     )
     print(
-        f"  {fit['rollouts']} rollouts of every log: RMS error {fit['rms_error_start_mrad']:.1f} "
-        f"-> {fit['rms_error_end_mrad']:.1f} mrad"
+        f"  {fit['rollouts']} rollouts of every log: RMS error "
+        f"{fit['rms_error_start_mrad']:.1f} -> {fit['rms_error_end_mrad']:.1f} mrad"
     )
     cross = summary.get("cross_gain")
     if cross:
         print(
-            f"  cross-gain mean MAE: twin {cross['twin_mean_mae_mrad']:.1f} mrad, least-squares "
-            f"model {cross['least_squares_mean_mae_mrad']:.1f} mrad "
-            f"({cross['twin_below_least_squares']:.0%} below; goal {cross['goal']:.0%}: "
-            f"{'met' if cross['goal_met'] else 'NOT met'})"
+            f"  cross-gain mean MAE: twin {cross['twin_mean_mae_mrad']:.1f} mrad, "
+            f"least-squares model {cross['least_squares_mean_mae_mrad']:.1f} mrad "
+            f"({cross['twin_below_least_squares']:.0%} below; goal "
+            f"{cross['goal']:.0%}: {'met' if cross['goal_met'] else 'NOT met'})"
         )
     return 0
 
@@ -641,9 +645,9 @@ def _tune(args: argparse.Namespace) -> int:
     )
     print(
         f"  best trial {best.number}: cost {best.value:.4f}, worst error ratio vs "
-        f"position control {best.user_attrs.get('worst_ratio', float('nan')):.3f} (goal "
-        f"{'met' if best.user_attrs.get('goal_met') else 'NOT met'}); {result.trials_run} "
-        f"trials in {result.wall_time:.0f} s on {result.executor}"
+        f"position control {best.user_attrs.get('worst_ratio', float('nan')):.3f} "
+        f"(goal {'met' if best.user_attrs.get('goal_met') else 'NOT met'}); "
+        f"{result.trials_run} trials in {result.wall_time:.0f} s on {result.executor}"
     )
     return 0
 
@@ -716,7 +720,8 @@ _SHARED_OPTIONS = {
     "lcm": {
         "required": True,
         "help": "LCM URL, e.g. udpm://239.255.76.67:7667?ttl=0 on a robot's network, "
-        "tcpq://127.0.0.1:7700 through `python -m hrp2_drake.hardware.tcpq_hub`, or memq://",
+        "tcpq://127.0.0.1:7700 through `python -m hrp2_drake.hardware.tcpq_hub`, or "
+        "memq://",
     },
     "scenario": {"choices": SCENARIOS},
     "duration": {"type": _number(float, 0.0)},
@@ -790,8 +795,8 @@ def _add_simulate(commands: _Commands) -> None:
         config="SimulateConfig YAML file",
         scenario="default: standing (a fixed robot: fixed_base)",
         duration="simulated seconds (default 5)",
-        trajectory="'default' (the robot's own, HRP-2: stair climbing) or a file: time + "
-        "the joint angles",
+        trajectory="'default' (the robot's own, HRP-2: stair climbing) or a file: time "
+        "+ the joint angles",
         seed={"type": _number(int, 0, strict=False), "help": "sensor noise seed"},
         out={"default": "out", "help": "output folder (default: out)"},
         html={"action": "store_true", "help": "write a Meshcat HTML replay"},
@@ -810,9 +815,9 @@ def _add_identify(commands: _Commands) -> None:
         config="IdentifyConfig YAML file",
         log={
             "nargs": "+",
-            "help": "identification logs instead of simulating: this project's .npz (see "
-            "README), or logs in the robot description's format (`logs`, e.g. BAM's JSON "
-            "for xl330_pendulum), at any rate; each log is its own segment",
+            "help": "identification logs instead of simulating: this project's .npz "
+            "(see README), or logs in the robot description's format (`logs`, e.g. "
+            "BAM's JSON for xl330_pendulum), at any rate; each log is its own segment",
         },
         fit={
             "choices": ("asymmetric", "least-squares", "coulomb", "two-stage"),
@@ -920,8 +925,8 @@ def _add_record(commands: _Commands) -> None:
         "record",
         _record,
         "record a robot's identification logs through its Dynamixel bus: the "
-        "description's excitation through the servos' own position control, one log per "
-        "P gain, in the robot's log format (for identify, validate, calibrate)",
+        "description's excitation through the servos' own position control, one log "
+        "per P gain, in the robot's log format (for identify, validate, calibrate)",
         robot=True,
         port={"required": True},
         gain={
@@ -983,8 +988,8 @@ def _add_sim_robot(commands: _Commands) -> None:
         commands,
         "sim-robot",
         _sim_robot,
-        "the simulated robot behind the LCM channels, in real time: what a real robot's "
-        "bridge must do",
+        "the simulated robot behind the LCM channels, in real time: what a real "
+        "robot's bridge must do",
         robot=True,
         lcm=True,
         scenario="default: hanging (fixed robots: fixed_base)",
@@ -995,8 +1000,8 @@ def _add_sim_robot(commands: _Commands) -> None:
         realtime_rate={
             "type": _number(float, 0.0),
             "default": 1.0,
-            "help": "target real-time rate (default 1; < 1 slows the robot's clock, for "
-            "tests)",
+            "help": "target real-time rate (default 1; < 1 slows the robot's clock, "
+            "for tests)",
         },
         lockstep={
             "action": "store_true",
@@ -1030,7 +1035,8 @@ def _add_calibrate(commands: _Commands) -> None:
         out=True,
         max_iterations={
             "type": _COUNT,
-            "help": "optimizer evaluations (with --log: rollouts of every log, default 150)",
+            "help": "optimizer evaluations (with --log: rollouts of every log, "
+            "default 150)",
         },
         jobs="parallel simulations (1 or 2)",
         install={
@@ -1057,7 +1063,8 @@ def _add_tune(commands: _Commands) -> None:
             "help": "trials in flight (default: 2 local processes, or the cluster's "
             "threads)",
         },
-        scheduler="a Dask scheduler's address, tcp://host:port (default: local processes)",
+        scheduler="a Dask scheduler's address, tcp://host:port (default: local "
+        "processes)",
         quick="0.4 s of motion, 4 trials",
         out="output folder (the study)",
     )
@@ -1083,8 +1090,9 @@ def _add_experiment(commands: _Commands) -> None:
         "experiment",
         _experiment,
         "run one experiment of the paper: estimation (Sec. 2), motion (5.3), force "
-        "(5.4), stability (5.2), or the fault campaign of the supervised torque control "
-        "(faults); the component analysis (5.5) needs motion and force: see reproduce",
+        "(5.4), stability (5.2), or the fault campaign of the supervised torque "
+        "control (faults); the component analysis (5.5) needs motion and force: see "
+        "reproduce",
     )
     experiment.add_argument("name", choices=list(_EXPERIMENTS))
     _add_options(
@@ -1122,8 +1130,9 @@ def _parser() -> argparse.ArgumentParser:
     """The command line: `hrp2-drake [--debug] <command> [options]`."""
     parser = _Parser(
         prog="hrp2-drake",
-        description="Torque control without joint-torque sensors (Del Prete et al. 2015) "
-        "on a simulated robot in Drake: HRP-2, the paper's, or any robot description.",
+        description="Torque control without joint-torque sensors (Del Prete et al. "
+        "2015) on a simulated robot in Drake: HRP-2, the paper's, or any robot "
+        "description.",
         parents=[_debug_option()],
     )
     commands = parser.add_subparsers(dest="command", required=True)

@@ -5,16 +5,20 @@ Sections (all by default; pick with --only):
   sim        real-time factor of the simulated HRP-2 per scenario (goal: >= 3x for
              fixed_base, >= 1x for standing, one core), and of the bare plant without
              servo and sensors (baseline: what our Python systems cost on top).
-  sg         per-tick cost of the Savitzky-Golay filters (scripts/bench_savitzky_golay.py).
-  estimator  per-tick cost of the floating-base torque estimator (scripts/bench_estimator.py).
+  sg         per-tick cost of the Savitzky-Golay filters
+             (scripts/bench_savitzky_golay.py).
+  estimator  per-tick cost of the floating-base torque estimator
+             (scripts/bench_estimator.py).
   control    per-tick cost of the controller stack and real-time factor of the motion
              experiment's diagrams (scripts/bench_control.py).
-  fit        fit_asymmetric from 10^3 to 10^6 samples, Newton and QP (scripts/bench_fitting.py).
-  tick       one 1 kHz tick of estimation plus control for HRP-2, part by part (bench_tick):
-             the two Savitzky-Golay filters, the floating-base estimator, the inverse
-             dynamics and the Δq controller of the right leg, their sum, the safety
-             supervisor apart, and a no-op Python LeafSystem tick with the estimator's
-             ports; PASS/FAIL against the budget (<= 100 us and <= 10 no-op ticks).
+  fit        fit_asymmetric from 10^3 to 10^6 samples, Newton and QP
+             (scripts/bench_fitting.py).
+  tick       one 1 kHz tick of estimation plus control for HRP-2, part by part
+             (bench_tick): the two Savitzky-Golay filters, the floating-base estimator,
+             the inverse dynamics and the Δq controller of the right leg, their sum,
+             the safety supervisor apart, and a no-op Python LeafSystem tick with the
+             estimator's ports; PASS/FAIL against the budget (<= 100 us and <= 10
+             no-op ticks).
   closed_loop  real-time factor of the motion experiment's closed loop, the unit of
              cost of a tuner (goal: >= 3x for torque control): torque control K6 = 0.1
              and position control, every port logged and only a tuner's, the bare

@@ -14,9 +14,9 @@ goal the measured pose.
 Reported per bus: the cycle's p50 and p99 (µs), the achieved rate (1 / p50), and the
 budget (`BusTiming.cycle` without adapter latency and compute): what the bytes take on
 the wire; the statuses that did not come (a period late enough for the SDK's 34 ms
-timeout: the emulator's own hiccups on a shared machine). On a real port, a USB adapter adds its latency timer to every sync read (an
-FTDI chip holds received bytes up to it: 1 ms with `setserial low_latency`, 16 ms
-without), the column `with a USB adapter`.
+timeout: the emulator's own hiccups on a shared machine). On a real port, a USB adapter
+adds its latency timer to every sync read (an FTDI chip holds received bytes up to it:
+1 ms with `setserial low_latency`, 16 ms without), the column `with a USB adapter`.
 
     python scripts/bench_bus.py [--cycles 2000] [--json out/bench_bus.json]
 """
@@ -150,15 +150,16 @@ def bench_bus(servos: int, baud: int, cycles: int, folder: Path) -> dict:
 
 def print_rows(rows: list[dict]) -> None:
     print(
-        "| servos | Mbit/s | cycle p50 (µs) | p99 (µs) | achieved (Hz) | wire budget (µs) | "
-        "budget rate (Hz) | with a USB adapter (Hz) | statuses missing |"
+        "| servos | Mbit/s | cycle p50 (µs) | p99 (µs) | achieved (Hz) | wire budget "
+        "(µs) | budget rate (Hz) | with a USB adapter (Hz) | statuses missing |"
     )
     print("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     for r in rows:
         print(
-            f"| {r['servos']} | {r['baud'] / 1e6:g} | {r['p50_us']:.0f} | {r['p99_us']:.0f} | "
-            f"{r['rate_hz']:.0f} | {r['budget_us']:.0f} | {r['budget_rate_hz']:.0f} | "
-            f"{r['with_usb_rate_hz']:.0f} | {r['missing_statuses']} |"
+            f"| {r['servos']} | {r['baud'] / 1e6:g} | {r['p50_us']:.0f} | "
+            f"{r['p99_us']:.0f} | {r['rate_hz']:.0f} | {r['budget_us']:.0f} | "
+            f"{r['budget_rate_hz']:.0f} | {r['with_usb_rate_hz']:.0f} | "
+            f"{r['missing_statuses']} |"
         )
 
 
@@ -174,8 +175,9 @@ def main(argv=None) -> list[dict]:
                 rows.append(bench_bus(servos, baud, args.cycles, Path(folder)))
                 r = rows[-1]
                 print(
-                    f"bus: {servos} servo(s) at {baud / 1e6:g} Mbit/s: p50 {r['p50_us']:.0f} µs, "
-                    f"p99 {r['p99_us']:.0f} µs (budget {r['budget_us']:.0f} µs)",
+                    f"bus: {servos} servo(s) at {baud / 1e6:g} Mbit/s: p50 "
+                    f"{r['p50_us']:.0f} µs, p99 {r['p99_us']:.0f} µs (budget "
+                    f"{r['budget_us']:.0f} µs)",
                     file=sys.stderr,
                 )
     print_rows(rows)

@@ -291,7 +291,8 @@ def bench_closed_loop(
     for row in rows:
         print(
             f"  {row['name']:<58s} {row['real_time_factor']:5.2f}x real time "
-            f"({row['cpu_real_time_factor']:5.2f}x CPU time) {row['us_per_step']:6.0f} us/step",
+            f"({row['cpu_real_time_factor']:5.2f}x CPU time) "
+            f"{row['us_per_step']:6.0f} us/step",
             file=sys.stderr,
         )
     return rows + breakdown(factories["torque control K6=0.1"], min(profile, end))

@@ -4,9 +4,9 @@
 Rows:
 - "estimator update ...": the discrete update alone (EvalUniquePeriodicDiscreteUpdate,
   then SetDiscreteState, as the simulator does it), inputs fixed on the context at
-  plausible values (half-sitting, small velocities and accelerations, standing wrenches);
-  variants: unknown wrench on the base (default) or on the torso, rotor inertia off,
-  during the F/T offset calibration.
+  plausible values (half-sitting, small velocities and accelerations, standing
+  wrenches); variants: unknown wrench on the base (default) or on the torso, rotor
+  inertia off, during the F/T offset calibration.
 - "estimate() ...": the context-free `estimate` method (offline use).
 - "baseline noop update": a Python LeafSystem with the same inputs whose periodic update
   only reads them: the framework's own per-tick cost (use it for ratios).
@@ -257,7 +257,8 @@ def bench_estimation_stage(num_ticks: int = 2000) -> list[dict]:
             "us_per_tick": encoder + sensor + update,
         },
         {
-            "name": "estimation stage: add_estimator chain simulated on constant signals",
+            "name": "estimation stage: add_estimator chain simulated on constant "
+            "signals",
             "us_per_tick": simulated,
         },
     ]

@@ -130,7 +130,8 @@ def bench_fused_tick(duration: float = 3.0) -> list[dict]:
     ratio = float(np.median(fused) / np.median(rnea))
     rows = [
         {
-            "name": "fused tick (HRP-2, 30 joints, IMU, 4 F/T, right leg, observer, supervisor)",
+            "name": "fused tick (HRP-2, 30 joints, IMU, 4 F/T, right leg, observer, "
+            "supervisor)",
             "p50_us": float(np.median(fused)),
             "p99_us": float(np.percentile(fused, 99)),
             "ticks": int(active.sum()),

@@ -3,11 +3,12 @@
 control` in two processes through the tcpq hub on 127.0.0.1. The controller (the fused
 controller in its message-driven loop) is pinned to CPU 0 and asks for SCHED_FIFO, with
 the hub beside it; the simulated robot has CPU 1 (it needs most of a core for its 1 kHz
-clock; the robot's side stands for the robot's own computer). HRP-2 runs the tuned K6 = 0.1
-controller (models/hrp2/torque_control_k6_0.1.yaml), the iiwa K6 = 0.1; both follow
-the sinusoid of `control`.
+clock; the robot's side stands for the robot's own computer). HRP-2 runs the tuned
+K6 = 0.1 controller (models/hrp2/torque_control_k6_0.1.yaml), the iiwa K6 = 0.1; both
+follow the sinusoid of `control`.
 
-    python scripts/bench_lcm.py [--robot hrp2] [--duration 60] [--lockstep] [--out out/bench_lcm]
+    python scripts/bench_lcm.py [--robot hrp2] [--duration 60] [--lockstep]
+        [--out out/bench_lcm]
 
 Real time is what a robot sees, but it measures the machine too: a simulated HRP-2 that
 cannot keep its 1 kHz clock is late, and the controller then tracks a robot that lags.
@@ -229,13 +230,14 @@ def bench_lcm(
         else "FAIL",
     }
     print(
-        f"  {row['name']}: latency p50 {row['p50_us']:.0f} µs, p99 {row['p99_us']:.0f} µs, "
-        f"p99.9 {row['p99.9_us']:.0f} µs, max {row['max_us']:.0f} µs; {row['overruns']} "
-        f"overruns in {row['ticks']} ticks; torque control {row['torque_share'] * 100:.1f}%, "
-        f"{row['fallbacks']} fallbacks; {row['scheduler']}; the robot: "
-        f"{row['robot_late_periods']} late periods, watchdog tripped "
-        f"{row['robot_watchdog_trips']} times; maximum error {row['max_error_mrad']:.2f} mrad "
-        f"({error_ratio:.2f}x in process): {row['goal']}",
+        f"  {row['name']}: latency p50 {row['p50_us']:.0f} µs, p99 {row['p99_us']:.0f} "
+        f"µs, p99.9 {row['p99.9_us']:.0f} µs, max {row['max_us']:.0f} µs; "
+        f"{row['overruns']} overruns in {row['ticks']} ticks; torque control "
+        f"{row['torque_share'] * 100:.1f}%, {row['fallbacks']} fallbacks; "
+        f"{row['scheduler']}; the robot: {row['robot_late_periods']} late periods, "
+        f"watchdog tripped {row['robot_watchdog_trips']} times; maximum error "
+        f"{row['max_error_mrad']:.2f} mrad ({error_ratio:.2f}x in process): "
+        f"{row['goal']}",
         file=sys.stderr,
     )
     return row

@@ -4,8 +4,8 @@ Two measures per filter size, plus a baseline in the same run:
 - "update": the discrete update alone (EvalUniquePeriodicDiscreteUpdate, then
   SetDiscreteState, as the simulator does), input fixed on the context;
 - "simulated": a Simulator advancing a ConstantVectorSource -> filter diagram, per tick;
-- "baseline ... noop": the same simulation with a Python LeafSystem whose periodic update
-  does nothing, i.e. the framework's own per-tick cost (use it for ratios).
+- "baseline ... noop": the same simulation with a Python LeafSystem whose periodic
+  update does nothing, i.e. the framework's own per-tick cost (use it for ratios).
 
 Run: .venv/bin/python scripts/bench_savitzky_golay.py
 """

@@ -71,7 +71,8 @@ def main() -> None:
     error = tau_hat[start:] - tau_true[start - lag : len(tau_true) - lag]
     rms = np.sqrt(np.mean(error**2, axis=0))
     print(
-        f"{robot.name}: τ̂ vs the servo's torque (RMS over {args.duration - 0.6:.1f} s, N·m)"
+        f"{robot.name}: τ̂ vs the servo's torque (RMS over {args.duration - 0.6:.1f} "
+        "s, N·m)"
     )
     for name, value, peak in zip(robot.joints, rms, np.abs(tau_true).max(axis=0)):
         print(f"  {name:>16}: {value:8.4f}   (|τ| up to {peak:7.2f})")

@@ -63,7 +63,8 @@ def main() -> None:
         fits[name] = fit_asymmetric(tau, v, delta_q, w=100.0, joint_name=name)
         check_identified(fits[name], tau, v, delta_q, min_explained=None)
         print(
-            f"  {name}: Kτ = {fits[name].k_tau[0]:.3e} rad/(N·m), Kv = {fits[name].k_v[0]:.4f} s"
+            f"  {name}: Kτ = {fits[name].k_tau[0]:.3e} rad/(N·m), Kv = "
+            f"{fits[name].k_v[0]:.4f} s"
         )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     MotorModel.from_joints(fits).save(args.out)

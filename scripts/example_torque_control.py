@@ -90,8 +90,8 @@ def main() -> None:
         robot,
     )
     print(
-        f"{robot.name}: maximum tracking error (mrad), position servo vs torque control "
-        f"K6 = {args.k6:g}"
+        f"{robot.name}: maximum tracking error (mrad), position servo vs torque "
+        f"control K6 = {args.k6:g}"
     )
     for name, p, t in zip(robot.labels(), position, torque):
         print(f"  {name:>12}: {p * 1e3:7.2f}  {t * 1e3:7.2f}")

@@ -14,14 +14,14 @@ unchanged (tests/test_lcm.py). Moved here from `hrp2_drake.hardware.lcm_station`
 
 .. code-block:: text
 
-                   ┌───────────────────────────────────────────┐
-      q_cmd ──────►│ encode ─► LcmPublisherSystem <P>_Q_CMD    │
-                   │                                           ├──► q_measured
-                   │ LcmSubscriberSystem <P>_Q_MEASURED ─┐     ├──► imu_linear_acceleration
-                   │ LcmSubscriberSystem <P>_IMU ────────┼► decode ► imu_angular_velocity
-                   │ LcmSubscriberSystem <P>_WRENCH_<S> ─┘     ├──► wrench_<s> (each)
-                   │ LcmInterfaceSystem                        ├──► sensor_time
-                   └───────────────────────────────────────────┘
+                ┌───────────────────────────────────────────┐
+   q_cmd ──────►│ encode ─► LcmPublisherSystem <P>_Q_CMD    │
+                │                                           ├──► q_measured
+                │ LcmSubscriberSystem <P>_Q_MEASURED ─┐     ├──► imu_linear_acceleration
+                │ LcmSubscriberSystem <P>_IMU ────────┼► decode ► imu_angular_velocity
+                │ LcmSubscriberSystem <P>_WRENCH_<S> ─┘     ├──► wrench_<s> (each)
+                │ LcmInterfaceSystem                        ├──► sensor_time
+                └───────────────────────────────────────────┘
 
 Messages cross the diagram as their bytes (`BytesSerializer`: pydrake's
 `PySerializer` hands Python message objects through the diagram, and the framework
@@ -53,7 +53,8 @@ from hrp2_drake.hardware.messages import SignalCodec
 
 
 class BytesSerializer(SerializerInterface):
-    """An LCM serializer whose AbstractValue is the message's bytes (empty: none yet)."""
+    """An LCM serializer whose AbstractValue is the message's bytes (empty: none
+    yet)."""
 
     def __init__(self):
         SerializerInterface.__init__(self)
@@ -82,7 +83,8 @@ class SensorDecoder(LeafSystem):
 
                                   ┌───────────────┐
         q_measured_message ──────►│               ├──► q_measured
-        imu_message (if IMU) ────►│ SensorDecoder ├──► imu_linear_acceleration, imu_angular_velocity
+        imu_message (if IMU) ────►│ SensorDecoder ├──► imu_linear_acceleration,
+                                  │               │    imu_angular_velocity
         wrench_<s>_message ──────►│               ├──► wrench_<s>
                                   │               ├──► sensor_time
                                   └───────────────┘

@@ -120,7 +120,8 @@ def test_a_period_the_bus_cannot_carry_is_one_line_with_the_budget():
     [
         (
             {"model": "XL999"},
-            "bus.model: unknown servo model 'XL999' (known: ['XL330-M288', 'XM430-W350'])",
+            "bus.model: unknown servo model 'XL999' (known: ['XL330-M288', "
+            "'XM430-W350'])",
         ),
         (
             {"baud": 4_500_000},

@@ -104,7 +104,8 @@ def short_runs(identified_model):
     """A fast second of the climbing swing at K6 = 1 and 0.1 (hanging), and one period
     of the force sinusoid (standing on the block), with an identified motor model."""
     motor_model = identified_model
-    # The `ideal` servo (the analysis is the subject; reproduce runs the calibrated one).
+    # The `ideal` servo (the analysis is the subject; reproduce runs the calibrated
+    # one).
     config = MotionConfig(
         station=StationConfig(scenario="hanging", servo_file="ideal"),
         start=3.0,

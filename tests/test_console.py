@@ -38,11 +38,11 @@ def test_a_repeated_warning_is_printed_once_then_counted(capsys):
     err = capsys.readouterr().err.splitlines()
     assert err == [
         "hrp2-drake experiment: warning: DeltaQTorqueController "
-        "::_::control::torque_controller: falling back to position control at t = 0.512 "
-        "s: |tau_estimated| exceeds tau_limit",
+        "::_::control::torque_controller: falling back to position control at "
+        "t = 0.512 s: |tau_estimated| exceeds tau_limit",
         "hrp2-drake experiment: warning: DeltaQTorqueController "
-        "::_::control::torque_controller: falling back to position control at t = 0.6 s: "
-        "q_measured is not finite",
+        "::_::control::torque_controller: falling back to position control at "
+        "t = 0.6 s: q_measured is not finite",
         "hrp2-drake experiment: motion: done in 12 s",
         "hrp2-drake experiment: warning: repeated 4 more times: DeltaQTorqueController "
         "::_::control::torque_controller: falling back to position control at t = … s: "
@@ -77,8 +77,8 @@ def test_counts_of_a_worker_are_printed_by_the_parent_at_the_end(capsys):
         parent.add_repeats(counts, "motion")
         parent.add_repeats({}, "force")
     assert capsys.readouterr().err.splitlines() == [
-        "hrp2-drake reproduce: motion: warning: repeated 6 more times: SafetySupervisor x: "
-        "fault at t = … s (encoder jump)"
+        "hrp2-drake reproduce: motion: warning: repeated 6 more times: "
+        "SafetySupervisor x: fault at t = … s (encoder jump)"
     ]
 
 

@@ -250,8 +250,8 @@ def test_the_emulator_killed_ends_the_run_with_a_report_and_one_line(tmp_path, a
         (["--ids", "11,12,13,15"], "servo ID 14 (joint4): no answer to PING"),
         (
             ["--fault", "wrong_model:12:XL330-M288"],
-            "servo ID 12 (joint2): model number 1200 (XL330-M288), but the description says "
-            "XM430-W350 (1020)",
+            "servo ID 12 (joint2): model number 1200 (XL330-M288), but the description "
+            "says XM430-W350 (1020)",
         ),
     ],
 )

@@ -49,7 +49,8 @@ def test_description_loads(robot):
     q0 = np.array(robot.initial_positions)
     assert np.all(q0 > plant.GetPositionLowerLimits())
     assert np.all(q0 < plant.GetPositionUpperLimits())
-    # Each actuator: the XM430-W350's gear ratio, a reflected inertia of 1.195e-2 kg m^2.
+    # Each actuator: the XM430-W350's gear ratio, a reflected inertia of
+    # 1.195e-2 kg m^2.
     for index in plant.GetJointActuatorIndices():
         actuator = plant.get_joint_actuator(index)
         assert actuator.default_gear_ratio() == 353.5

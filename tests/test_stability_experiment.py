@@ -190,8 +190,8 @@ def test_a_run_that_reached_its_limit_is_never_called_stable(tmp_path):
     )
     outcome = _push_outcome(asym)
     assert (
-        "reached its position limit without speeding up after the pushes at 2 rad/s (not stable)"
-        in outcome
+        "reached its position limit without speeding up after the pushes at 2 rad/s "
+        "(not stable)" in outcome
     )
     assert not outcome.startswith("stable after every push")
     write_stability_report(result, tmp_path)

@@ -889,8 +889,8 @@ def test_bad_config_and_inputs(motor):
 def test_config_from_yaml(motor):
     config = load_config(
         TorqueControllerConfig,
-        data=f"joints: {LEG}\nkp: [2.0]\ndelta_q_limit: [0.1, 0.1, 0.1, 0.1, 0.1, 0.05]\n"
-        "integral_limit: [.inf]\n",
+        data=f"joints: {LEG}\nkp: [2.0]\n"
+        "delta_q_limit: [0.1, 0.1, 0.1, 0.1, 0.1, 0.05]\nintegral_limit: [.inf]\n",
     )
     controller = DeltaQTorqueController(motor, config)
     assert controller.config().delta_q_limit[5] == 0.05

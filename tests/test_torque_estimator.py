@@ -56,7 +56,8 @@ def plant() -> MultibodyPlant:
 
 
 def _config(plant: MultibodyPlant, **changes) -> TorqueEstimatorConfig:
-    """The HRP-2 config, from the robot model's names (estimation never imports them)."""
+    """The HRP-2 config, from the robot model's names (estimation never imports
+    them)."""
     sensors = {
         name: ForceTorqueSensorConfig(
             # The fixed joint's child frame is the sensor frame.
@@ -274,7 +275,8 @@ def test_unknown_wrench(plant, truth, link):
     np.testing.assert_allclose(out["unknown"], sample["unknown"], rtol=0, atol=1e-8)
     np.testing.assert_allclose(out["tau"], sample["tau"], rtol=0, atol=1e-8)
     if link != hrp2.BASE_BODY:
-        # Assuming the wrench on the base instead gets the chest (and leg) torques wrong.
+        # Assuming the wrench on the base instead gets the chest (and leg) torques
+        # wrong.
         wrong = _estimate(plant, sample)
         assert np.max(np.abs(wrong["tau"] - sample["tau"])) > 1.0
 
@@ -854,8 +856,8 @@ def _tracking_errors(chain, logs, start: int) -> tuple[np.ndarray, np.ndarray]:
 
     τ̂ at sample i comes from the window of samples ending 2 samples earlier (the
     sensors' sample-and-hold and the estimator reading the filters' previous update)
-    and refers to its centre, (window - 1) / 2 samples before that. "raw" compares with the
-    true torque at that centre; "filtered" with the true torque passed through the
+    and refers to its centre, (window - 1) / 2 samples before that. "raw" compares with
+    the true torque at that centre; "filtered" with the true torque passed through the
     same Savitzky-Golay filter (order 1, as the F/T and IMU), i.e. what an estimator
     with perfect model and sensors can see through that filter.
     """

@@ -8,9 +8,10 @@
 
     build_torque_control:
         reference ─┬──────────────────────────────────────────► q_ref (other joints)
-                   └─► InverseDynamicsController ─► DeltaQTorqueController ─► merger ─► station
-                             ▲  q̂, q̂̇ (or encoders)      ▲ τ̂, q̂̇, encoders            │
-                             └──────── add_estimator (SG filters + RNEA) ◄──────────────┘
+                   ▼
+        InverseDynamicsController ─► DeltaQTorqueController ─► merger ─► station
+              ▲  q̂, q̂̇ (or encoders)      ▲ τ̂, q̂̇, encoders            │
+              └──────── add_estimator (SG filters + RNEA) ◄──────────────┘
 
 Both take the robot as data (its `RobotDescription`) and its station as a Diagram: a
 simulated one (`simulated_station(StationConfig)`, which also gives the control
@@ -407,7 +408,8 @@ def _check_controlled_joints(
     unknown = [j for j in joints if j not in robot.joints]
     if unknown:
         raise ValueError(
-            f"TorqueControlConfig.joints: {unknown} are not joints of robot '{robot.name}'"
+            f"TorqueControlConfig.joints: {unknown} are not joints of robot "
+            f"'{robot.name}'"
         )
     kp = config.controller.kp
     if len(kp) not in (1, len(joints)):

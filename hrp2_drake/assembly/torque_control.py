@@ -8,8 +8,8 @@ its own `validate()`: `estimator`, `controller`, `observer`, `supervisor` (a
 the top) is refused with one line naming each key's new place (`moved_keys`).
 
 Code that varies settings by name (the motion experiment's improvements, `hrp2-drake
-tune`'s search space) names them by path ("controller.k6"): `hrp2_drake.config.field_at`,
-`set_field_at`, `replace_fields`, `field_type`.
+tune`'s search space) names them by path ("controller.k6"):
+`hrp2_drake.config.field_at`, `set_field_at`, `replace_fields`, `field_type`.
 """
 
 import dataclasses
@@ -66,7 +66,8 @@ class EstimatorSettings:
             check_window(window, f"{where}.windows['{name}']")
         if self.evaluation not in EVALUATION_POINTS:
             raise ValueError(
-                f"{where}.evaluation: '{self.evaluation}', expected one of {EVALUATION_POINTS}"
+                f"{where}.evaluation: '{self.evaluation}', expected one of "
+                f"{EVALUATION_POINTS}"
             )
         check_finite(
             self.offset_calibration_time, f"{where}.offset_calibration_time", 0.0, False
@@ -126,8 +127,8 @@ class ControllerSettings:
     what makes the paper's eq. 12-13 as written unstable: with K6 = 1 it is the servo's
     whole stiffness acting on a 40 ms-old position (it diverges on the `ideal` servo,
     and, unsupervised, oscillates at 76-137 mrad on the calibrated one, bounded only by
-    the voltage limit); the raw encoders avoid it, as the authors' code did. Causal ("end")
-    filters remove the delay but their derivatives are too noisy for K_p = 2.
+    the voltage limit); the raw encoders avoid it, as the authors' code did. Causal
+    ("end") filters remove the delay but their derivatives are too noisy for K_p = 2.
     """
 
     k6: float = 1.0
@@ -165,15 +166,16 @@ class ControllerSettings:
                 )
         if not self.kp or not all(math.isfinite(k) and k >= 0 for k in self.kp):
             raise ValueError(
-                f"{where}.kp: {self.kp}: one value or one per joint, each finite and >= 0"
+                f"{where}.kp: {self.kp}: one value or one per joint, each finite and "
+                ">= 0"
             )
         check_finite(self.k6, f"{where}.k6", 0.0, strict=False)
         check_finite(self.damping_ratio, f"{where}.damping_ratio", 0.0, strict=False)
         check_finite(self.delta_q_limit, f"{where}.delta_q_limit", 0.0, strict=False)
         if len(self.kf) not in (1, 6):
             raise ValueError(
-                f"{where}.kf: {len(self.kf)} values, expected one or 6 (one per axis of "
-                "the wrench)"
+                f"{where}.kf: {len(self.kf)} values, expected one or 6 (one per axis "
+                "of the wrench)"
             )
         for k, gain in enumerate(self.kf):
             check_finite(gain, f"{where}.kf[{k}]", 0.0, strict=False)

@@ -8,8 +8,8 @@ The control law (per joint, all gains diagonal):
     τ* = τ_d + K_p e_τ + K_i ∫ e_τ dt,   e_τ = τ_d − τ̂                 (eq. 11)
          [− d̂, a DisturbanceObserver's estimate, with disturbance_compensation]
     Δq = K_τ τ* + K_v q̂̇                                               (eq. 10)
-    q_cmd = q_measured + Δq                                           (eq. 6: Δq is the
-                                                                       servo's input error)
+    q_cmd = q_measured + Δq                                           (eq. 6: Δq is
+                                                        the servo's input error)
 
 K_τ and K_v come from the identified MotorModel (eq. 6); the paper's controller has
 no Coulomb term, an option adds K_c tanh(q̂̇ / v_s).

@@ -301,12 +301,14 @@ class RobotDescription:
         self.contacts.validate()
         if not self.initial_positions and not self.trajectory_file:
             raise ValueError(
-                "initial_positions: empty and no trajectory_file to take the home pose from"
+                "initial_positions: empty and no trajectory_file to take the home pose "
+                "from"
             )
         hanging = self.scenarios.hanging
         if any(len(p) != 3 for p in hanging.points):
             raise ValueError(
-                f"scenarios.hanging.points: expected [x, y, z] points, got {hanging.points}"
+                "scenarios.hanging.points: expected [x, y, z] points, got "
+                f"{hanging.points}"
             )
         block = self.scenarios.block
         if block.sole and len(block.joints) != 3:
@@ -468,7 +470,8 @@ class RobotDescription:
         n = len(self.joints)
         if data.ndim != 2 or data.shape[1] < 1 + n:
             raise ValueError(
-                f"{path}: expected rows of time + {n} joint angles, got shape {data.shape}"
+                f"{path}: expected rows of time + {n} joint angles, got shape "
+                f"{data.shape}"
             )
         return data[:, 0], data[:, 1 : 1 + n]
 
@@ -491,8 +494,8 @@ class RobotDescription:
         base = plant.GetBodyByName(self.base_body)
         if self.base == "floating" and not base.is_floating_base_body():
             raise ValueError(
-                f"base: 'floating', but '{self.base_body}' is not a floating body of the "
-                "model (is it welded to the world?)"
+                f"base: 'floating', but '{self.base_body}' is not a floating body of "
+                "the model (is it welded to the world?)"
             )
         if self.base == "fixed" and plant.GetFloatingBaseBodies():
             names = [
@@ -525,8 +528,8 @@ class RobotDescription:
                 and plant.get_joint(j).name() not in listed
             ]
             raise ValueError(
-                f"joints: {len(self.joints)} listed, the model has {dofs} joint degrees "
-                f"of freedom; not listed: {missing}"
+                f"joints: {len(self.joints)} listed, the model has {dofs} joint "
+                f"degrees of freedom; not listed: {missing}"
             )
         actuated = {
             plant.get_joint_actuator(a).joint().name()
@@ -557,8 +560,8 @@ class RobotDescription:
             body = plant.GetBodyByName(body_name)
             if body.index() == base.index() or body.index() == world:
                 raise ValueError(
-                    f"{where}.body: '{body_name}' is the base; give the body right below "
-                    "the sensor"
+                    f"{where}.body: '{body_name}' is the base; give the body right "
+                    "below the sensor"
                 )
             welded = {b.index() for b in plant.GetBodiesWeldedTo(body)} | {body.index()}
             if frame.body().index() not in welded:
@@ -568,8 +571,9 @@ class RobotDescription:
                 )
             if is_strictly_below(parent, int(frame.body().index()), int(body.index())):
                 raise ValueError(
-                    f"{where}.body: '{body_name}' is above its frame '{sensor.frame}' (on "
-                    f"body '{frame.body().name()}'): give the body right below the sensor"
+                    f"{where}.body: '{body_name}' is above its frame '{sensor.frame}' "
+                    f"(on body '{frame.body().name()}'): give the body right below the "
+                    "sensor"
                 )
             below[name] = int(body.index())
         return below
@@ -635,8 +639,8 @@ class RobotDescription:
             )
             if not low - 1e-9 <= home[j] <= high + 1e-9:
                 raise ValueError(
-                    f"initial_positions[{j}]: {name} = {home[j]:.6g} rad is outside its "
-                    f"limits [{low:.6g}, {high:.6g}]"
+                    f"initial_positions[{j}]: {name} = {home[j]:.6g} rad is outside "
+                    f"its limits [{low:.6g}, {high:.6g}]"
                 )
 
 
@@ -717,7 +721,8 @@ def robot_file(robot: str | Path | None = None) -> Path:
     if not path.is_file():
         known = sorted(p.parent.name for p in models_root().glob("*/robot.yaml"))
         raise FileNotFoundError(
-            f"robot description '{spec}' not found: give a robot.yaml path or one of {known}"
+            f"robot description '{spec}' not found: give a robot.yaml path or one of "
+            f"{known}"
         )
     return path.resolve()
 

@@ -350,7 +350,8 @@ class BusDescription:
         ):
             raise ValueError(
                 f"bus.return_delay: {self.return_delay} s is not a whole number of "
-                f"{delay.unit * 1e6:g} µs from 0 to {delay.limits()[1] * delay.unit * 1e6:g} µs"
+                f"{delay.unit * 1e6:g} µs from 0 to "
+                f"{delay.limits()[1] * delay.unit * 1e6:g} µs"
             )
         if "present_position" not in self.read:
             raise ValueError(f"bus.read: {self.read} must include present_position")
@@ -455,6 +456,6 @@ def check_bus_period(
     if period < timing.cycle * (1 - 1e-9):
         raise ValueError(
             f"{where}: {period * 1e3:g} ms ({1 / period:.0f} Hz) is shorter than what "
-            f"{len(bus.ids)} {bus.model} servo(s) at {bus.baud / 1e6:g} Mbit/s need per "
-            f"period: {timing.describe()} (at most {1 / timing.cycle:.0f} Hz)"
+            f"{len(bus.ids)} {bus.model} servo(s) at {bus.baud / 1e6:g} Mbit/s need "
+            f"per period: {timing.describe()} (at most {1 / timing.cycle:.0f} Hz)"
         )

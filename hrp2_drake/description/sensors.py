@@ -107,8 +107,8 @@ class SensorsConfig:
             unknown = sorted(set(self.force_torque) - set(sensor_names))
             if unknown:
                 raise ValueError(
-                    f"SensorsConfig.force_torque: unknown sensors {unknown}, the robot has "
-                    f"{sorted(sensor_names)}"
+                    f"SensorsConfig.force_torque: unknown sensors {unknown}, the robot "
+                    f"has {sorted(sensor_names)}"
                 )
 
     @staticmethod

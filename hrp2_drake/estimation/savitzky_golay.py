@@ -1,13 +1,14 @@
 """Savitzky-Golay estimation of signals and their derivatives (paper Sec. 2.1, 3.4.3).
 
-A Savitzky-Golay filter fits a polynomial of order p to the last N samples of a signal by
-least squares and evaluates the polynomial and its derivatives at one point of the window.
-With a constant sampling period the least-squares pseudo-inverse is a constant matrix, so
-each estimate is one weighted sum of the window's samples (paper Sec. 2.1).
+A Savitzky-Golay filter fits a polynomial of order p to the last N samples of a signal
+by least squares and evaluates the polynomial and its derivatives at one point of the
+window. With a constant sampling period the least-squares pseudo-inverse is a constant
+matrix, so each estimate is one weighted sum of the window's samples (paper Sec. 2.1).
 
 - `savgol_coefficients` gives those weights.
-- `SavitzkyGolayFilter` is the causal, 1 kHz LeafSystem used in the controller's diagram;
-  `SavitzkyGolayStep` is its per-tick arithmetic on plain arrays (hrp2_drake.step).
+- `SavitzkyGolayFilter` is the causal, 1 kHz LeafSystem used in the controller's
+  diagram; `SavitzkyGolayStep` is its per-tick arithmetic on plain arrays
+  (hrp2_drake.step).
 - `savgol_filter_offline` applies the same weights to whole logged arrays, centred on
   every sample (the non-causal estimation used for identification, paper Sec. 3.4.3).
 
@@ -45,7 +46,8 @@ _NEWEST_ROW, _NUM_SAMPLES, _CONSECUTIVE_BAD, _TOTAL_BAD, _RING_START = range(5)
     _SPAN,  # N, the ring's rows
     _SIGNALS,  # k
     _ROWS,  # order + 1 estimates per signal
-    _SHARED,  # 1: one (order + 1, N) weight matrix for every signal; 0: (order + 1, N, k)
+    # 1: one (order + 1, N) weight matrix for every signal; 0: (order + 1, N, k)
+    _SHARED,
     _RING,  # where the named arrays start in the state: ring,
     _FIT,  # value (then the derivatives),
     _TIME,  # evaluation_time,
@@ -57,7 +59,8 @@ _FILTER = "SavitzkyGolayFilter"  # the name in error messages
 
 
 def _check_parameters(window: int, order: int, evaluation: str, where: str) -> None:
-    """Raises ValueError naming `where`, the field and its value if a parameter is bad."""
+    """Raises ValueError naming `where`, the field and its value if a parameter is
+    bad."""
     if not _is_integer(order) or order not in ORDERS:
         raise ValueError(f"{where}: order={order!r} must be one of {ORDERS}")
     if not _is_integer(window) or window < order + 1:
@@ -132,8 +135,8 @@ def _fit_weights(window: int, order: int, positions: np.ndarray) -> np.ndarray:
     """Least-squares weights in sample units.
 
     Returns W of shape (order + 1, len(positions), window): W[d, j] @ y is the d-th
-    derivative (per sample^d) at fractional sample index positions[j] (0 = oldest) of the
-    polynomial of `order` fitted to the window's samples y (oldest..newest).
+    derivative (per sample^d) at fractional sample index positions[j] (0 = oldest) of
+    the polynomial of `order` fitted to the window's samples y (oldest..newest).
     """
     # Sample times centred on the window keep the Vandermonde matrix well conditioned.
     centre = (window - 1) / 2
@@ -496,12 +499,12 @@ class SavitzkyGolayFilter(StepSystem):
     real controller. The arithmetic is `SavitzkyGolayStep`'s (its `initialize` and
     `step`), which this system runs on its context's state.
 
-    Start-up: at the first sample the whole window is filled with that sample, so value =
-    first sample and derivatives = 0. An initialization event does the same with the
-    input at initialization, so the outputs are meaningful from the simulator's first
-    step (a bare default context, never initialized, outputs zeros). Until N samples
-    have arrived the window holds copies of the first sample: estimates are finite and
-    continuous but biased towards that constant (derivatives ramp up from 0);
+    Start-up: at the first sample the whole window is filled with that sample, so
+    value = first sample and derivatives = 0. An initialization event does the same with
+    the input at initialization, so the outputs are meaningful from the simulator's
+    first step (a bare default context, never initialized, outputs zeros). Until N
+    samples have arrived the window holds copies of the first sample: estimates are
+    finite and continuous but biased towards that constant (derivatives ramp up from 0);
     is_ready(context) is False. From the N-th sample on, the estimates are exact for
     polynomials of degree <= order.
 
@@ -591,7 +594,8 @@ class SavitzkyGolayFilter(StepSystem):
         return context.get_discrete_state(group).get_value()[0]
 
     def bad_sample_count(self, context) -> int:
-        """How many samples had NaN or infinite entries (held, see the class docstring)."""
+        """How many samples had NaN or infinite entries (held, see the class
+        docstring)."""
         self._load_context(context)
         return self._step.bad_sample_count()
 

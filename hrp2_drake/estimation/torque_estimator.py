@@ -109,15 +109,15 @@ class FloatingBaseTorqueEstimator(StepSystem):
 
     .. code-block:: text
 
-                                   ┌─────────────────────────────┐
-        q ────────────────────────►│                             ├──► tau
-        v ────────────────────────►│                             ├──► unknown_wrench
-        vdot ─────────────────────►│ FloatingBaseTorqueEstimator ├──► external_wrench_<s>
-        imu_linear_acceleration ──►│                             │    (one per sensor s)
-        imu_angular_velocity ─────►│ (imu_*: only with an IMU)   │
-        imu_angular_acceleration ─►│                             │
-        wrench_<s> ───────────────►│ (one per sensor s)          │
-                                   └─────────────────────────────┘
+                                  ┌─────────────────────────────┐
+       q ────────────────────────►│                             ├──► tau
+       v ────────────────────────►│                             ├──► unknown_wrench
+       vdot ─────────────────────►│ FloatingBaseTorqueEstimator ├──► external_wrench_<s>
+       imu_linear_acceleration ──►│                             │    (one per sensor s)
+       imu_angular_velocity ─────►│ (imu_*: only with an IMU)   │
+       imu_angular_acceleration ─►│                             │
+       wrench_<s> ───────────────►│ (one per sensor s)          │
+                                  └─────────────────────────────┘
 
     Inputs:
         q, v, vdot (n each): joint positions (rad), velocities (rad/s), accelerations

@@ -179,8 +179,9 @@ class DynamixelBus:
         number, result, error = self._call(self._packet.ping, self._port, servo)
         if result != self._sdk.COMM_SUCCESS:
             raise ValueError(
-                f"{self._where(k)}no answer to PING ({self._packet.getTxRxResult(result)}): "
-                f"check its ID, the baud rate ({self.bus.baud} bit/s) and its power"
+                f"{self._where(k)}no answer to PING "
+                f"({self._packet.getTxRxResult(result)}): check its ID, the baud rate "
+                f"({self.bus.baud} bit/s) and its power"
             )
         if number != self.model.model_number:
             from hrp2_drake.description.bus import dynamixel_models
@@ -295,7 +296,8 @@ class DynamixelBus:
         result = self._call(writer.txPacket)
         if result != self._sdk.COMM_SUCCESS:
             raise BusClosed(
-                f"{self.port_name}: sync write not sent ({self._packet.getTxRxResult(result)})"
+                f"{self.port_name}: sync write not sent "
+                f"({self._packet.getTxRxResult(result)})"
             )
 
     def hardware_error(self, k: int) -> str:
@@ -305,7 +307,10 @@ class DynamixelBus:
             self._packet.read1ByteTxRx, self._port, self.ids[k], register.address
         )
         if result != self._sdk.COMM_SUCCESS:
-            return f"its hardware error status could not be read ({self._packet.getTxRxResult(result)})"
+            return (
+                "its hardware error status could not be read "
+                f"({self._packet.getTxRxResult(result)})"
+            )
         return self.model.describe_hardware_error(bits)
 
     def torque(self, on: bool) -> None:

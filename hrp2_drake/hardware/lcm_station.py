@@ -21,7 +21,7 @@ Channels (`LcmChannels`, prefix P = the robot's name in capitals by default), al
 (as Drake documents it). The controller uses it only to tell a new sample from a
 repeated one, and stamps each channel's signals with its own time of the sample
 (`sensor_time`), so that a silent or frozen sensor goes stale there.
-"""
+"""  # noqa: E501 (the channel table's rows cannot be split)
 
 from dataclasses import dataclass
 

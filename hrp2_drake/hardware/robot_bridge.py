@@ -150,8 +150,8 @@ class RobotBridge:
         has come, or, once commands have come, lockstep_timeout s of wall time (the
         controller gone: the watchdog counts these periods). Before the first
         command it waits as long as it takes, sending its first sample again every
-        lockstep_timeout (the controller ticks on it); holding its pose (the watchdog tripped) it
-        waits for nothing. False if `stopped()` says so meanwhile."""
+        lockstep_timeout (the controller ticks on it); holding its pose (the watchdog
+        tripped) it waits for nothing. False if `stopped()` says so meanwhile."""
         timeout = self.config.lockstep_timeout
         deadline = time.perf_counter() + timeout
         self.transport.handle(0.0)  # at least once: a command that came meanwhile
@@ -252,7 +252,10 @@ class RobotBridge:
                         self.transport.handle(remaining)
                     self._watchdog()
         except TransportClosed as error:
-            self.fault = f"the transport is gone at t = {self._context.get_time():.3f} s ({error})"
+            self.fault = (
+                f"the transport is gone at t = {self._context.get_time():.3f} s "
+                f"({error})"
+            )
             self.hold()
         finally:
             for s, handler in previous.items():

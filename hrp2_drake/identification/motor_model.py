@@ -257,7 +257,8 @@ class MotorModel:
         gains = {m.gain for m in models.values()}
         if len(gains) > 1:
             raise ValueError(
-                f"from_joints: the joints' models hold at different gains {sorted(gains)}"
+                "from_joints: the joints' models hold at different gains "
+                f"{sorted(gains)}"
             )
         fits = {m.fit for m in models.values()}
         return MotorModel(

@@ -1,4 +1,5 @@
-"""`hrp2-drake calibrate`: the emulated servo fitted to what was measured on the real HRP-2.
+"""`hrp2-drake calibrate`: the emulated servo fitted to what was measured on the real
+HRP-2.
 
 The emulated servo (hrp2_drake.robot.servo) stands for the real robot, so its hidden
 parameters come from the real robot's measurements, never from our own controllers'
@@ -185,7 +186,8 @@ class CalibrationConfig:
         lo, hi = self.no_load_speed_bounds
         if not 0 < lo < hi:
             raise ValueError(
-                f"CalibrationConfig.no_load_speed_bounds: need 0 < min < max, got {lo}, {hi}"
+                "CalibrationConfig.no_load_speed_bounds: need 0 < min < max, got "
+                f"{lo}, {hi}"
             )
         if not self.motor_no_load_speed > 0 or self.prior_weight < 0:
             raise ValueError(
@@ -397,9 +399,10 @@ class _Fit:
         )
         ratios = np.asarray(result["max"]) / PAPER_POSITION_MAX
         console.say(
-            f"simulation {len(self.history):2d} ({time.perf_counter() - self.wall0:5.0f} s): "
-            f"ω0 {np.array2string(np.exp(x), precision=2)} rad/s -> max error / "
-            f"paper {np.array2string(ratios, precision=2)}, cost {0.5 * r @ r:.4f}",
+            f"simulation {len(self.history):2d} "
+            f"({time.perf_counter() - self.wall0:5.0f} s): ω0 "
+            f"{np.array2string(np.exp(x), precision=2)} rad/s -> max error / paper "
+            f"{np.array2string(ratios, precision=2)}, cost {0.5 * r @ r:.4f}",
             self.stream,
         )
         return r
@@ -633,30 +636,31 @@ def _introduction(result: CalibrationResult, config: CalibrationConfig) -> list[
     return [
         "# Calibration of the emulated servo to the real HRP-2",
         "",
-        "The servo's linear part is the paper's Table 1; its dead zone and Coulomb friction "
-        "come from the authors' piecewise-linear fits on the real robot; the voltage limit "
-        "(no-load speed ω0 of each moving joint) is fitted to the position-control column of "
-        "Tables 2 and 3 (the hanging robot's own servo on the climbing swing). The torque-"
-        "control columns, Figure 5 and Sec. 5.2 are not used: they stay predictions.",
+        "The servo's linear part is the paper's Table 1; its dead zone and Coulomb "
+        "friction come from the authors' piecewise-linear fits on the real robot; the "
+        "voltage limit (no-load speed ω0 of each moving joint) is fitted to the "
+        "position-control column of Tables 2 and 3 (the hanging robot's own servo on "
+        "the climbing swing). The torque-control columns, Figure 5 and Sec. 5.2 are "
+        "not used: they stay predictions.",
         "",
         f"Optimizer: {result.optimizer['method']}; {result.optimizer['message']} "
-        f"({len(result.history)} simulations of the 20 s swing, {result.wall_time / 60:.1f} min "
-        f"with {config.jobs} processes).",
+        f"({len(result.history)} simulations of the 20 s swing, "
+        f"{result.wall_time / 60:.1f} min with {config.jobs} processes).",
         "",
         "## Table 2's N",
         "",
-        "Table 2 divides sqrt(Σ e²) by N, the number of samples of the paper's log, which the "
-        "paper does not give. Where the error is velocity-proportional (Kv q̇, the joints below "
-        "their speed limit) max|e| / sqrt(Σ e²) = max|q̇| / sqrt(Σ q̇²), so the paper's own ratio "
-        "of Table 3 to Table 2 fixes N: "
+        "Table 2 divides sqrt(Σ e²) by N, the number of samples of the paper's log, "
+        "which the paper does not give. Where the error is velocity-proportional (Kv "
+        "q̇, the joints below their speed limit) max|e| / sqrt(Σ e²) = max|q̇| / "
+        "sqrt(Σ q̇²), so the paper's own ratio of Table 3 to Table 2 fixes N: "
         + ", ".join(
             f"{label} {v:.0f}"
             for label, v in zip(MOVING_LABELS, result.sample_count["per_joint"])
         )
-        + f". The mean over {', '.join(result.sample_count['used'])} (the knee is at its speed "
-        f"limit, its error is not velocity-proportional): **N = {n:.0f}**, a "
-        f"{result.sample_count['log_duration']:.1f} s log at 1 kHz, about the moving part of the "
-        "19 s motion (1.1-14.9 s).",
+        + f". The mean over {', '.join(result.sample_count['used'])} (the knee is at "
+        f"its speed limit, its error is not velocity-proportional): **N = {n:.0f}**, a "
+        f"{result.sample_count['log_duration']:.1f} s log at 1 kHz, about the moving "
+        "part of the 19 s motion (1.1-14.9 s).",
         "",
     ]
 
@@ -808,9 +812,15 @@ def calibrate(
     stream = stream or sys.stderr
     result = run_calibration(config, out, stream)
     header = [
-        "Hidden parameters of the emulated HRP-2 position servo (docs/architecture.md), calibrated to",
+        (
+            "Hidden parameters of the emulated HRP-2 position servo "
+            "(docs/architecture.md), calibrated to"
+        ),
         "the real robot by `hrp2-drake calibrate` (hrp2_drake/paper/calibrate.py):",
-        "Table 1 (linear part), the authors' piecewise-linear fits (dead zone, Coulomb),",
+        (
+            "Table 1 (linear part), the authors' piecewise-linear fits (dead zone, "
+            "Coulomb),"
+        ),
         "the position-control column of Tables 2 and 3 (no-load speeds). Sources and",
         "report: models/hrp2/README.md. Only hrp2_drake/robot/ reads this file.",
         "Units: k1 N m/A, k2 N m s/rad, k3 N m, k4 A/rad, k5 A s/rad, i_* and",

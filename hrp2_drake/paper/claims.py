@@ -71,8 +71,8 @@ PAPER_CLAIMS: dict[float, dict] = {
         "max": ["lower"] * 5,
     },
     0.25: {
-        "text": "K6 = 0.25: average errors almost equivalent on most joints (ankle roll "
-        "significantly worse, knee better); still lower maximum errors except the "
+        "text": "K6 = 0.25: average errors almost equivalent on most joints (ankle "
+        "roll significantly worse, knee better); still lower maximum errors except the "
         "ankle roll",
         "average": ["equivalent", "equivalent", "lower", "equivalent", "higher"],
         "max": ["lower"] * 4 + ["not lower"],
@@ -124,7 +124,10 @@ def goal_verdict(row: dict) -> str:
     `motion._against` (ten cells against position control, `partial_verdict`); a
     controller that fell back to position control did not run: "does not hold"."""
     if row.get("fallback_time") is not None:
-        return f"does not hold (fell back to position control at {row['fallback_time']:.2f} s)"
+        return (
+            "does not hold (fell back to position control at "
+            f"{row['fallback_time']:.2f} s)"
+        )
     return partial_verdict(len(row["misses"]), 10)
 
 
@@ -323,9 +326,9 @@ def _identification_verdicts(results: dict) -> list[Verdict]:
             f"{len(joints)} joints × 2 parameters",
         ),
         _claim(
-            '"Using the symmetric penalty function, the model tends to over-estimate the '
-            "data for large velocities. [...] With the asymmetric penalty, the model no "
-            'longer over-estimates the data" (Sec. 5.2, Fig. 3)',
+            '"Using the symmetric penalty function, the model tends to over-estimate '
+            "the data for large velocities. [...] With the asymmetric penalty, the "
+            'model no longer over-estimates the data" (Sec. 5.2, Fig. 3)',
             "share of held-out samples whose Δq the model over-estimates in magnitude: "
             "under 5% on every joint with the asymmetric fit, and more on every joint "
             "with least squares than the asymmetric fit's worst joint",
@@ -490,11 +493,12 @@ def _force_verdicts(results: dict) -> list[Verdict]:
             "reading)",
         ),
         _claim(
-            '"The same 10% are observed as a coupling on the X axis." (Sec. 5.4, Fig. 5)',
+            '"The same 10% are observed as a coupling on the X axis." '
+            "(Sec. 5.4, Fig. 5)",
             "coupling on X within 5-15% of the z amplitude",
             partial_verdict(int(not 0.05 <= coupling <= 0.15), 1),
-            f"coupling on X {coupling * 100:.1f}% ({coupling / PAPER_COUPLING_X:.2f}x the "
-            "paper's 10%)",
+            f"coupling on X {coupling * 100:.1f}% ({coupling / PAPER_COUPLING_X:.2f}x "
+            "the paper's 10%)",
         ),
     ]
     improved = [v for v in force.get("variants", []) if v["name"] == "improved"]
@@ -515,9 +519,10 @@ def _force_verdicts(results: dict) -> list[Verdict]:
             "RMS force error no higher than the paper's controller's, overshoot ≤ "
             "10%, no fallback",
             partial_verdict(misses, 3, "criteria"),
-            f"RMS error {v['rms_error']:.1f} N (paper's controller {m['rms_error']:.1f}), "
-            f"apex {v['overshoot'] * 100:+.1f}%, lag {v['lag_ms']:+.0f} ms, amplitude "
-            f"ratio {v['amplitude_ratio']:.2f} (F/T reading)"
+            f"RMS error {v['rms_error']:.1f} N (paper's controller "
+            f"{m['rms_error']:.1f}), apex {v['overshoot'] * 100:+.1f}%, lag "
+            f"{v['lag_ms']:+.0f} ms, amplitude ratio {v['amplitude_ratio']:.2f} (F/T "
+            "reading)"
             + (f", fell back at {fallback:.2f} s" if fallback is not None else ""),
         )
     )
@@ -621,8 +626,8 @@ def _fault_verdicts(results: dict) -> list[Verdict]:
         _goal(
             "Supervised torque control survives sensor faults (not the paper's)",
             "nothing raises, every fault detected within 10 ms, no q_cmd step above "
-            f"{faults['step_bound'] * 1e3:g} mrad, tracking within position control's + "
-            f"{faults['tracking_margin'] * 1e3:g} mrad",
+            f"{faults['step_bound'] * 1e3:g} mrad, tracking within position control's "
+            f"+ {faults['tracking_margin'] * 1e3:g} mrad",
             partial_verdict(misses, len(criteria), "criteria"),
             f"{count} fault runs; "
             + "; ".join(
@@ -655,7 +660,8 @@ def _push_outcome(fit: dict) -> str:
     parts = []
     if fit["accelerates_at"]:
         parts.append(
-            f"accelerates away after the pushes at {speeds(fit['accelerates_at'])} rad/s"
+            f"accelerates away after the pushes at {speeds(fit['accelerates_at'])} "
+            "rad/s"
         )
     if fit.get("limit_at"):
         parts.append(

@@ -56,7 +56,8 @@ REVERSAL_MARGIN = 0.03  # s, see analyse
 
 @dataclass
 class JointSinusoid:
-    """q_cmd = q0 + envelope(t) · (offset + amplitude · sin(2π f (t − t_start) + phase)).
+    """q_cmd = q0 + envelope(t)
+    · (offset + amplitude · sin(2π f (t − t_start) + phase)).
 
     Args:
         joint: joint name (HRP-2).
@@ -701,7 +702,8 @@ def run_estimation_experiment(config: EstimationConfig, out: Path) -> dict:
             f"(window {PAPER_WINDOW}: "
             f"{100 * analysis['windows'][PAPER_WINDOW]['right_leg_worst_ratio']:.2f} %"
             + (
-                f"; per-signal windows: {100 * per_signal['right_leg_worst_ratio']:.2f} %)"
+                "; per-signal windows: "
+                f"{100 * per_signal['right_leg_worst_ratio']:.2f} %)"
                 if per_signal
                 else ")"
             )

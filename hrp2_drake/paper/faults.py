@@ -125,7 +125,8 @@ class FaultCampaignConfig:
         unknown = set(self.experiments) - {"motion", "force"}
         if unknown or not self.experiments:
             raise ValueError(
-                f"FaultCampaignConfig.experiments: {self.experiments}, expected motion and/or force"
+                f"FaultCampaignConfig.experiments: {self.experiments}, expected motion "
+                "and/or force"
             )
         if not self.motion_start < self.motion_end:
             raise ValueError(
@@ -479,12 +480,12 @@ def _report(summary: dict, out: Path) -> str:
     lines = [
         "# Fault campaign: the supervised torque control under faults",
         "",
-        "Calibrated robot, SafetySupervisor in the loop. Motion: the hanging robot on the "
-        "climbing swing's fastest part (K6 = 1), faults from the knee's fast phase; force: the "
-        "paper's experiment (K6 = 0.1), faults during the sinusoid. Errors in mrad on the "
-        "right leg, against the true joint angles (what a faulty encoder reads is not where "
-        "the leg is); `step` is how much farther q_cmd moved in one period than the reference "
-        "did, at most, during mode switches.",
+        "Calibrated robot, SafetySupervisor in the loop. Motion: the hanging robot on "
+        "the climbing swing's fastest part (K6 = 1), faults from the knee's fast "
+        "phase; force: the paper's experiment (K6 = 0.1), faults during the sinusoid. "
+        "Errors in mrad on the right leg, against the true joint angles (what a faulty "
+        "encoder reads is not where the leg is); `step` is how much farther q_cmd "
+        "moved in one period than the reference did, at most, during mode switches.",
         "",
         _check("nothing raised, nothing diverged", v, "nothing_raised", "raised"),
         _check(
@@ -510,9 +511,9 @@ def _report(summary: dict, out: Path) -> str:
     ]
     lines += [
         "",
-        "A fault the supervisor cannot see (a bias step, an extra latency, a wrong model) "
-        "is judged by its tracking; the IMU only enters the estimate of the base, which "
-        "the fixed-base controller does not use.",
+        "A fault the supervisor cannot see (a bias step, an extra latency, a wrong "
+        "model) is judged by its tracking; the IMU only enters the estimate of the "
+        "base, which the fixed-base controller does not use.",
         "",
     ]
     return "\n".join(lines)

@@ -433,10 +433,10 @@ def tracking_metrics(
 
     Returns:
         dict: overshoot (max over apexes of (|peak − f0,z| − A) / A),
-        overshoot_per_apex, amplitude_ratio, phase_delay_ms (sinusoid fit), lag_ms (cross-correlation),
-        rms_error (N) and rms_error_ratio (/ A) on f_z; coupling_x (max |f_x − f0,x| /
-        A), coupling_x_fit (fitted amplitude of f_x at the frequency / A) and the same
-        for every axis in coupling_fit.
+        overshoot_per_apex, amplitude_ratio, phase_delay_ms (sinusoid fit), lag_ms
+        (cross-correlation), rms_error (N) and rms_error_ratio (/ A) on f_z;
+        coupling_x (max |f_x − f0,x| / A), coupling_x_fit (fitted amplitude of f_x at
+        the frequency / A) and the same for every axis in coupling_fit.
     """
     dt = float(t[1] - t[0])
     t1, a, f = config.sinusoid_start, config.amplitude, config.frequency
@@ -762,10 +762,10 @@ def _markdown(result: ForceResult, summary: dict, figure: str) -> str:
         f"HRP-2 standing, right foot on a {c.station.block_height * 100:.0f} cm block; "
         f"right leg in torque control (K6 = {gains.k6:g}, K_p = "
         f"{', '.join(f'{k:g}' for k in gains.kp)}, K_f = {gains.kf[0]:g}, window "
-        f"{c.torque_control.estimator.window}), the other joints in position control. Reference: "
-        f"the standing pose; f_z = f0,z + {c.amplitude:g} sin(2π·{c.frequency:g} Hz·t) "
-        f"for {c.periods:g} periods after {c.settle:g} s of position control and "
-        f"{c.hold:g} s at f0; other axes "
+        f"{c.torque_control.estimator.window}), the other joints in position control. "
+        f"Reference: the standing pose; f_z = f0,z + {c.amplitude:g} "
+        f"sin(2π·{c.frequency:g} Hz·t) for {c.periods:g} periods after {c.settle:g} s "
+        f"of position control and {c.hold:g} s at f0; other axes "
         + ("held at their static values." if c.other_axes == "hold" else "zero.")
         + "",
         "",

@@ -611,10 +611,11 @@ def _introduction(result: MotionResult) -> list[str]:
         f"HRP-2 hanging, {result.duration:.1f} s simulated per controller. "
         "Errors in rad·10³ on the five moving joints; each cell: simulation (paper).",
         "",
-        f"Table 2's N = {n['n']:.0f} (the paper does not give it: derived from its own Tables 2 "
-        "and 3, see `derive_sample_count`). Cells: simulation (paper, simulation/paper). The "
-        "position-control column is what the servo was calibrated to (`hrp2-drake calibrate`); "
-        "the torque-control columns are predictions.",
+        f"Table 2's N = {n['n']:.0f} (the paper does not give it: derived from its own "
+        "Tables 2 and 3, see `derive_sample_count`). Cells: simulation (paper, "
+        "simulation/paper). The position-control column is what the servo was "
+        "calibrated to (`hrp2-drake calibrate`); the torque-control columns are "
+        "predictions.",
         "",
     ]
 
@@ -695,8 +696,8 @@ def _claim_lines(main: list[ControllerRun]) -> tuple[list[str], dict]:
         )
     lines.append(
         f'\n"Equivalent" is within ±{EQUIVALENT * 100:.0f}% (the paper\'s own "almost '
-        "equivalent\" cells at K6 = 0.25 span -20% to +14%); applied to the paper's own "
-        "Tables 2 and 3, every claim holds."
+        "equivalent\" cells at K6 = 0.25 span -20% to +14%); applied to the paper's "
+        "own Tables 2 and 3, every claim holds."
     )
     return lines, verdicts
 
@@ -718,11 +719,11 @@ def _variant_lines(variants: list[ControllerRun], default: ControllerRun) -> lis
         "",
         "## K6 = 1 with the estimates where the paper and the authors' code put them",
         "",
-        "The default controller uses the encoders in e_q and the reference velocity q̇_d "
-        "in K_v q̇ and K_d ė_q (`TorqueControlConfig`). The paper's eq. 12-13 as written "
-        "uses the 40 ms-delayed estimates q̂, q̂̇ in every term; the authors' code "
-        "(sot-torque-control) fed the estimator's q̂̇ to K_v q̇ and K_d ė_q and the raw "
-        "encoders to e_q.",
+        "The default controller uses the encoders in e_q and the reference velocity "
+        "q̇_d in K_v q̇ and K_d ė_q (`TorqueControlConfig`). The paper's eq. 12-13 as "
+        "written uses the 40 ms-delayed estimates q̂, q̂̇ in every term; the authors' "
+        "code (sot-torque-control) fed the estimator's q̂̇ to K_v q̇ and K_d ė_q and "
+        "the raw encoders to e_q.",
         "",
         *markdown_table(["maximum error (mrad)", *MOVING_LABELS, "outcome"], rows),
     ]
@@ -742,7 +743,8 @@ def _estimate_lines(runs: list[ControllerRun]) -> list[str]:
     ]
     return [
         "",
-        "## Torque estimate during the experiment (τ̂ vs ground truth, N·m RMS / peak |τ|)",
+        "## Torque estimate during the experiment "
+        "(τ̂ vs ground truth, N·m RMS / peak |τ|)",
         "",
         *markdown_table(["controller", *hrp2.RIGHT_LEG_LABELS], rows),
     ]
@@ -808,7 +810,8 @@ def _outcome(row: dict) -> str:
 
 
 def _average_max_cells(row: dict) -> list[str]:
-    """One controller's row of `_against`, as "average / maximum" (rad·10³) per joint."""
+    """One controller's row of `_against`, as "average / maximum" (rad·10³) per
+    joint."""
     return [
         f"{a * 1e3:.3f} / {m * 1e3:.2f}"
         for a, m in zip(row["average_error"], row["max_error"])
@@ -817,7 +820,8 @@ def _average_max_cells(row: dict) -> list[str]:
 
 def _improved_lines(summary: dict, labels: list[str]) -> list[str]:
     lines = [
-        "## Beyond the paper: K6 = 0.1 with its future work (tuned), and each part alone",
+        "## Beyond the paper: K6 = 0.1 with its future work (tuned), "
+        "and each part alone",
         "",
         "The paper's weakest result is K6 = 0.1 (less accurate than position control "
         "on four of five joints). The improved controller (`hrp2-drake tune`, "

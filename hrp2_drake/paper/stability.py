@@ -306,12 +306,12 @@ def stable_definition(config: StabilityConfig) -> str:
     """What the outcomes, "stable" above all, mean, in the words of the reports
     (stability.md, stability.json, the reproduce report's verdict of Sec. 5.2)."""
     return (
-        f"a run accelerates away when the joint's speed at the end of the observation "
-        f"(or at its position limit) exceeds {1 + config.growth_margin:g}x its speed at "
-        f"the release; it is stable when it slows down and stays more than "
-        f"{config.limit_margin:g} rad from its position limit for the {config.observe:g} "
-        "s observed; a run that reaches its limit without speeding up is reported as "
-        "such, never as stable"
+        "a run accelerates away when the joint's speed at the end of the observation "
+        f"(or at its position limit) exceeds {1 + config.growth_margin:g}x its speed "
+        "at the release; it is stable when it slows down and stays more than "
+        f"{config.limit_margin:g} rad from its position limit for the "
+        f"{config.observe:g} s observed; a run that reaches its limit without speeding "
+        "up is reported as such, never as stable"
     )
 
 

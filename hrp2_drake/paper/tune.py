@@ -437,14 +437,15 @@ class TuneConfig:
         motion_end = float(hrp2.load_trajectory()[0][-1])
         if not self.start + 0.001 <= self.end <= motion_end:
             raise ValueError(
-                f"TuneConfig.start, end: {self.start}-{self.end} s must be a part (1 ms "
-                f"or more) of the climbing motion, 0-{motion_end:g} s"
+                f"TuneConfig.start, end: {self.start}-{self.end} s must be a part (1 "
+                f"ms or more) of the climbing motion, 0-{motion_end:g} s"
             )
         robot = self.station.description()
         if robot.name != "hrp2":
             raise ValueError(
-                f"TuneConfig.station.robot: '{robot.name}', but tune searches on HRP-2's "
-                "climbing swing (its right leg): for another robot, `hrp2-drake track`"
+                f"TuneConfig.station.robot: '{robot.name}', but tune searches on "
+                "HRP-2's climbing swing (its right leg): for another robot, "
+                "`hrp2-drake track`"
             )
         check_for_robot(self.torque_control, robot, "TuneConfig.torque_control")
         joints = self.torque_control.controlled_joints(robot)
@@ -494,7 +495,8 @@ class TuneConfig:
 
 
 # --------------------------------------------------------------------------------------
-# One trial: a picklable task and a top-level function (spawned processes, Dask workers).
+# One trial: a picklable task and a top-level function (spawned processes, Dask
+# workers).
 
 
 @dataclass
@@ -705,8 +707,8 @@ def open_executor(config: TuneConfig):
         yield (
             executor,
             (
-                f"Dask cluster at {config.scheduler} ({len(client.nthreads())} workers, "
-                f"{threads} threads)"
+                f"Dask cluster at {config.scheduler} ({len(client.nthreads())} "
+                f"workers, {threads} threads)"
             ),
             workers,
         )
@@ -980,7 +982,8 @@ def _plots(study, out: Path) -> dict[str, str]:
         figures["history"] = "history.png"
         if len(completed) < 2:
             figures["importances"] = (
-                f"not drawn: {len(completed)} completed trial(s), importances need 2 or more"
+                f"not drawn: {len(completed)} completed trial(s), importances need 2 "
+                "or more"
             )
         else:
             try:
@@ -1013,11 +1016,12 @@ def _report(result: TuneResult, config: TuneConfig, figures: dict[str, str]) -> 
     lines = [
         "# Tuning the torque controller (`hrp2-drake tune`)",
         "",
-        f"K6 = {result.tuned.controller.k6:g}; the climbing swing {config.start:g}-{config.end:g}"
-        f" s after {config.settle:g} s holding its first pose, HRP-2 hanging. Cost: the worst "
-        f"ratio of torque control's error to position control's over the 5 moving joints "
-        f"and over average/maximum error (paper Tables 2-3), + {config.mean_weight:g} x "
-        f"the mean ratio, + {config.fallback_penalty:g} if it fell back, + "
+        f"K6 = {result.tuned.controller.k6:g}; the climbing swing "
+        f"{config.start:g}-{config.end:g} s after {config.settle:g} s holding its "
+        "first pose, HRP-2 hanging. Cost: the worst ratio of torque control's error to "
+        "position control's over the 5 moving joints and over average/maximum error "
+        f"(paper Tables 2-3), + {config.mean_weight:g} x the mean ratio, + "
+        f"{config.fallback_penalty:g} if it fell back, + "
         f"{config.saturation_penalty:g} x the share of saturated ticks.",
         "",
         f"- study: `{STUDY_FILE}` ('{config.study_name}'), {len(study.trials)} trials "
@@ -1030,8 +1034,8 @@ def _report(result: TuneResult, config: TuneConfig, figures: dict[str, str]) -> 
     ]
     if untuned is not None:
         lines.append(
-            f"- untuned (trial {untuned.number}): cost {untuned.value:.4f}, worst ratio "
-            f"{untuned.user_attrs.get('worst_ratio', float('nan')):.3f}"
+            f"- untuned (trial {untuned.number}): cost {untuned.value:.4f}, worst "
+            f"ratio {untuned.user_attrs.get('worst_ratio', float('nan')):.3f}"
         )
     lines += [f"- note: {note}" for note in result.notes]
     lines += ["", "## Best trial against position control", ""]
@@ -1068,9 +1072,11 @@ def _best_trial_lines(attrs: dict, position: dict, labels: list[str]) -> list[st
         [
             [
                 label,
-                f"{attrs['average_error'][j] * 1e3:.4f} ({position['average_error'][j] * 1e3:.4f})",
+                f"{attrs['average_error'][j] * 1e3:.4f} "
+                f"({position['average_error'][j] * 1e3:.4f})",
                 f"{attrs['average_ratio'][j]:.3f}",
-                f"{attrs['max_error'][j] * 1e3:.2f} ({position['max_error'][j] * 1e3:.2f})",
+                f"{attrs['max_error'][j] * 1e3:.2f} "
+                f"({position['max_error'][j] * 1e3:.2f})",
                 f"{attrs['max_ratio'][j]:.3f}",
             ]
             for j, label in enumerate(labels)

@@ -51,7 +51,8 @@ class SensorFault:
     def validate(self, where: str, sizes: dict[str, int]) -> None:
         if self.signal not in sizes:
             raise ValueError(
-                f"{where}.signal: unknown signal '{self.signal}', expected one of {sorted(sizes)}"
+                f"{where}.signal: unknown signal '{self.signal}', expected one of "
+                f"{sorted(sizes)}"
             )
         if self.kind not in FAULT_KINDS:
             raise ValueError(

@@ -96,7 +96,8 @@ class SampledSignal:
 
 
 def _raise_not_finite(name: str, signal: np.ndarray, t: float) -> None:
-    """Raises the error of a sensor whose signal is not finite (a diverged simulation)."""
+    """Raises the error of a sensor whose signal is not finite (a diverged
+    simulation)."""
     raise RuntimeError(
         f"{name}: signal not finite at t={t:.4f} s "
         f"(entries {np.flatnonzero(~np.isfinite(signal)).tolist()}): "
@@ -155,7 +156,8 @@ class NoisySampler(WitnessFreeLeafSystem):
 
 
 class ForceTorqueReadout(WitnessFreeLeafSystem):
-    """What F/T sensors read, from the reaction forces of the fixed joints at the sensors.
+    """What F/T sensors read, from the reaction forces of the fixed joints at the
+    sensors.
 
     .. code-block:: text
 
@@ -406,8 +408,8 @@ class SensorSampler(WitnessFreeLeafSystem):
         self._period = config.period
         if not 0 <= lead < config.period:
             raise ValueError(
-                f"SensorSampler: lead {lead} s must be >= 0 and shorter than the period "
-                f"({config.period} s)"
+                f"SensorSampler: lead {lead} s must be >= 0 and shorter than the "
+                f"period ({config.period} s)"
             )
         self._offset = (config.period - lead) % config.period
         laws = _sensor_laws(config, len(joint_names), encoder_resolution, imu, names)

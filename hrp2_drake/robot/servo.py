@@ -1,11 +1,11 @@
-"""EmulatedPositionServo: a robot's emulated position servo (docs/architecture.md), a current
-loop behind a position-error command as in closed-source servo boards (first
+"""EmulatedPositionServo: a robot's emulated position servo (docs/architecture.md), a
+current loop behind a position-error command as in closed-source servo boards (first
 modelled on HRP-2's); its parameters come from the robot description's servo_file
 (e.g. HRP-2: models/hrp2/servo.yaml; the iiwa: models/iiwa14/servo.yaml).
 
 Per joint, with e = q_cmd(t - d) - q_encoder (paper eq. 5, plus what the paper and the
-authors' measurements show of a real servo, Sec. 3.2; each robot's models/<name>/README.md
-gives the source of every mechanism and number):
+authors' measurements show of a real servo, Sec. 3.2; each robot's
+models/<name>/README.md gives the source of every mechanism and number):
 
     u        = K4 e - K5 q̇                                       current command, A
     i        = clip(deadzone(u, i_dz), i_lo(q̇), i_hi(q̇))        dead zone, limits
@@ -142,8 +142,9 @@ class ServoJointParams:
                 )
         if math.isfinite(self.stall_current) != math.isfinite(self.no_load_speed):
             raise ValueError(
-                f"{where}: stall_current and no_load_speed set the voltage limit together "
-                f"(both finite, or both .inf), got {self.stall_current}, {self.no_load_speed}"
+                f"{where}: stall_current and no_load_speed set the voltage limit "
+                f"together (both finite, or both .inf), got {self.stall_current}, "
+                f"{self.no_load_speed}"
             )
         if not 0 <= self.load_friction < 1:
             raise ValueError(
@@ -462,7 +463,8 @@ def _servo_law(c, q_cmd, q, v, direction, enabled, torque, out):
 
 @kernel
 def _encoder_readings(c, q, out):
-    """out[j]: what joint j's encoder reads of q[j] (`EmulatedPositionServo.encoder`)."""
+    """out[j]: what joint j's encoder reads of q[j]
+    (`EmulatedPositionServo.encoder`)."""
     for j in range(out.shape[0]):
         out[j] = _encoder_reading(c, j, q[j])
 
@@ -588,7 +590,8 @@ def _applied_parameters(
         delays[:] = 0
     if not (math.isfinite(extra_latency) and extra_latency >= 0):
         raise ValueError(
-            f"EmulatedPositionServo: extra_latency must be finite and >= 0, got {extra_latency}"
+            "EmulatedPositionServo: extra_latency must be finite and >= 0, got "
+            f"{extra_latency}"
         )
     delays = delays + int(np.rint(extra_latency / period))
     return p, delays
@@ -701,7 +704,8 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
         )
         if initial.shape != (n,):
             raise ValueError(
-                f"EmulatedPositionServo: initial_q_cmd has {initial.size} values, expected {n}"
+                f"EmulatedPositionServo: initial_q_cmd has {initial.size} values, "
+                f"expected {n}"
             )
         self._depth = depth
         # One discrete state group (one read and one write per update): the direction

@@ -5,8 +5,10 @@ as one Diagram with named ports.
 
                            ┌──────────────────────────────┐
     q_cmd ────────────────►│                              ├──► q_measured
-    applied_spatial_force ►│   MultibodyPlant (robot)     ├──► imu_linear_acceleration  (if an IMU)
-                           │ + EmulatedPositionServo      ├──► imu_angular_velocity     (if an IMU)
+    applied_spatial_force ►│   MultibodyPlant (robot)     ├──► imu_linear_acceleration
+                           │                              │    (if an IMU)
+                           │ + EmulatedPositionServo      ├──► imu_angular_velocity
+                           │                              │    (if an IMU)
                            │ + encoders, IMU, F/T         ├──► wrench_<sensor> (each)
                            │   (+ fault injection)        ├──► sensor_time
                            │   (noise, bias, 1 kHz)       ├──► joint_torque_true
@@ -21,8 +23,8 @@ Scenarios (`StationConfig.scenario`):
   - "fixed_base": the base welded at the description's base_pose (a fixed robot has
     only this one).
   - "hanging": floating base held by two strings (the description's
-    scenarios.hanging, e.g. HRP-2's shoulders; spring-dampers to fixed anchors, as in the
-    paper's Fig. 2b), feet in the air.
+    scenarios.hanging, e.g. HRP-2's shoulders; spring-dampers to fixed anchors, as in
+    the paper's Fig. 2b), feet in the air.
   - "standing": the soles (scenarios.soles) on flat ground.
   - "standing_on_block": one sole on a rigid block (the paper's Fig. 2a), the leg
     (scenarios.block) bent so that the sole rests on it.
@@ -301,13 +303,14 @@ class StationConfig:
             )
         if robot.base == "fixed" and self.scenario != "fixed_base":
             raise ValueError(
-                f"StationConfig.scenario: '{self.scenario}', but robot '{robot.name}' is "
-                "fixed-base: only 'fixed_base'"
+                f"StationConfig.scenario: '{self.scenario}', but robot '{robot.name}' "
+                "is fixed-base: only 'fixed_base'"
             )
         if self.scenario in needs and not needs[self.scenario]:
             raise ValueError(
-                f"StationConfig.scenario: '{self.scenario}' needs the robot description's "
-                f"scenarios section, which robot '{robot.name}' does not fill"
+                f"StationConfig.scenario: '{self.scenario}' needs the robot "
+                f"description's scenarios section, which robot '{robot.name}' does not "
+                "fill"
             )
         if len(self.hanging.sway_damping) != 2:
             raise ValueError(
@@ -337,9 +340,9 @@ class StationConfig:
         check_finite(self.sample_lead, "StationConfig.sample_lead", 0.0, False)
         if self.sample_lead_steps() * self.time_step >= period * (1 - 1e-9):
             raise ValueError(
-                f"StationConfig.sample_lead: {self.sample_lead:g} s (whole plant steps: "
-                f"{self.sample_lead_steps() * self.time_step:g} s) must be shorter than "
-                f"the sensors' period ({period:g} s)"
+                f"StationConfig.sample_lead: {self.sample_lead:g} s (whole plant "
+                f"steps: {self.sample_lead_steps() * self.time_step:g} s) must be "
+                f"shorter than the sensors' period ({period:g} s)"
             )
 
     def sample_lead_steps(self) -> int:
@@ -350,8 +353,8 @@ class StationConfig:
         n = len(robot.joints)
         if len(self.initial_positions) not in (0, n):
             raise ValueError(
-                f"StationConfig.initial_positions: {len(self.initial_positions)} values, "
-                f"expected {n} (or none for the home pose)"
+                f"StationConfig.initial_positions: {len(self.initial_positions)} "
+                f"values, expected {n} (or none for the home pose)"
             )
         if self.initial_positions:
             q = np.array(self.initial_positions, float)

@@ -84,8 +84,9 @@ class ControlConfig:
         default_factory=lambda: TorqueControlConfig(
             start_time=0.5,
             estimator=EstimatorSettings(window=41),
-            # A sample may come a few ms late over a network (and two real-time processes
-            # share 2 cores here): stale after 10 ms or 12 repeated samples, not 2.5 / 5.
+            # A sample may come a few ms late over a network (and two real-time
+            # processes share 2 cores here): stale after 10 ms or 12 repeated samples,
+            # not 2.5 / 5.
             supervisor=SafetyConfig(stale_time=0.010, stale_samples=12),
         )
     )
@@ -315,13 +316,13 @@ def _markdown(robot, config: ControlConfig, summary: dict) -> str:
     lines = [
         f"# Torque control of {robot.name} ({summary['link']['name']})",
         "",
-        f"{config.duration} s at {1 / config.period():.0f} Hz, {_clock(robot)}; motion: "
-        f"{config.motion}.",
+        f"{config.duration} s at {1 / config.period():.0f} Hz, {_clock(robot)}; "
+        f"motion: {config.motion}.",
         "",
         f"**How the run ended:** {_ending(summary)}",
         "",
-        f"**Torque control active:** {summary['torque_share'] * 100:.1f}% of the ticks after "
-        "start-up (start_time + the supervisor's ramp).",
+        f"**Torque control active:** {summary['torque_share'] * 100:.1f}% of the ticks "
+        "after start-up (start_time + the supervisor's ramp).",
         f"**Gave up for good** (more faults than the supervisor's max_reentries): "
         f"{'yes' if summary['gave_up'] else 'no'}.",
         "",
@@ -347,10 +348,11 @@ def _markdown(robot, config: ControlConfig, summary: dict) -> str:
     lines += [
         "## Ticks",
         "",
-        f"{summary['ticks']} ticks; samples in → command out (the tick and its send): p50 {lat['p50']:.0f} µs, "
-        f"p99 {lat['p99']:.0f} µs, p99.9 {lat['p99.9']:.0f} µs, max {lat['max']:.0f} µs; "
-        f"{summary['overruns']} periods whose exchange and tick took longer than the period (the longest run of consecutive "
-        f"ones: {summary['longest_overrun_run']}; followed by a fallback within 50 ms: "
+        f"{summary['ticks']} ticks; samples in → command out (the tick and its send): "
+        f"p50 {lat['p50']:.0f} µs, p99 {lat['p99']:.0f} µs, p99.9 {lat['p99.9']:.0f} "
+        f"µs, max {lat['max']:.0f} µs; {summary['overruns']} periods whose exchange "
+        "and tick took longer than the period (the longest run of consecutive ones: "
+        f"{summary['longest_overrun_run']}; followed by a fallback within 50 ms: "
         f"{summary['overruns_followed_by_a_fallback']}); {summary['refused_samples']} "
         "samples refused (timestamp not advancing).",
         f"Kernels compiled, or loaded from numba's cache, before the loop: "
@@ -399,9 +401,9 @@ def _ending(summary: dict) -> str:
 def _clock(robot: RobotDescription) -> str:
     if robot.bus.active:
         return (
-            f"the loop's own clock on the bus ({robot.bus.model} x {len(robot.bus.ids)} "
-            f"at {robot.bus.baud / 1e6:g} Mbit/s: one sync read and one sync write per "
-            "period)"
+            f"the loop's own clock on the bus ({robot.bus.model} x "
+            f"{len(robot.bus.ids)} at {robot.bus.baud / 1e6:g} Mbit/s: one sync read "
+            "and one sync write per period)"
         )
     return "message-driven (the robot's encoder message clocks each tick)"
 
@@ -426,13 +428,13 @@ def _bus_section(robot: RobotDescription, summary: dict) -> list[str]:
     return [
         "## The bus",
         "",
-        f"Budget per period (wire time, return delays, the adapter's latency timer, the "
+        "Budget per period (wire time, return delays, the adapter's latency timer, the "
         f"compute allowance): {timing.describe()}; the period is "
-        f"{summary['period'] * 1e6:.0f} µs. Measured, sync read to sync write sent: p50 "
-        f"{cycle['p50']:.0f} µs, p99 {cycle['p99']:.0f} µs, max {cycle['max']:.0f} µs; "
-        f"{link['late_periods']} periods started more than a period late (the largest "
-        f"lag {link['max_lag_ms']:.1f} ms); {link['incomplete_periods']} periods without "
-        "every servo's status.",
+        f"{summary['period'] * 1e6:.0f} µs. Measured, sync read to sync write sent: "
+        f"p50 {cycle['p50']:.0f} µs, p99 {cycle['p99']:.0f} µs, max {cycle['max']:.0f} "
+        f"µs; {link['late_periods']} periods started more than a period late (the "
+        f"largest lag {link['max_lag_ms']:.1f} ms); {link['incomplete_periods']} "
+        "periods without every servo's status.",
         "",
         *markdown_table(
             ["ID", "joint", "no status", "corrupt status", "hardware alerts"],

@@ -244,7 +244,8 @@ def _markdown(robot: RobotDescription, summary: dict) -> str:
         f"Log `{summary['log']}`, {summary['samples']} samples, centred Savitzky-Golay "
         f"window {summary['window']} (paper Sec. 3.4.3); estimator of paper Sec. 2 "
         f"({'IMU' if robot.has_imu() else 'fixed base, no IMU'}, F/T sensors "
-        f"{robot.sensor_names()}). Arrays: `estimate.npz`; plot: `estimate_torques.png`.",
+        f"{robot.sensor_names()}). Arrays: `estimate.npz`; plot: "
+        "`estimate_torques.png`.",
         "",
     ]
     truth = summary.get("rms_error_vs_truth")  # None: no ground truth in the log

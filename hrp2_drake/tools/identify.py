@@ -202,7 +202,8 @@ def _markdown(result: IdentificationResult, summary: dict, figures: list[str]) -
     joints = summary["joints"]
     at_gain = f" at servo gain {result.gain:g}" if result.gain else ""
     lines = [
-        f"# Motor identification of {robot.name} (paper Sec. 3, Table 1, Figures 1 and 3)",
+        f"# Motor identification of {robot.name} (paper Sec. 3, Table 1, Figures 1 "
+        "and 3)",
         "",
         f"Samples: {int(result.train.sum())} training, "
         f"{int((~result.train & result.held_out).sum())} held out "
@@ -211,8 +212,9 @@ def _markdown(result: IdentificationResult, summary: dict, figures: list[str]) -
         + ", ".join(f"{n} {what}" for what, n in result.excluded.items())
         + ".",
         "",
-        f"`motor_model.yaml` holds the **{config.fit.replace('_', ' ')}** fit{at_gain}; "
-        "every fit is also written as `motor_model_<fit>.yaml`. What each is for:",
+        f"`motor_model.yaml` holds the **{config.fit.replace('_', ' ')}** "
+        f"fit{at_gain}; every fit is also written as `motor_model_<fit>.yaml`. What "
+        "each is for:",
         "",
         *(f"- {m.replace('_', ' ')}: {FIT_PURPOSE[m]}." for m in FITS),
     ]
@@ -418,7 +420,10 @@ def _sweep_table(result, joints: dict, label) -> list[str]:
             cell = f"{v['overestimation'] * 100:.1f}%"
             if "emulator" in row:
                 e = row["emulator"]
-                cell += f" / {(v['k_tau'] / e['k_tau'] - 1) * 100:+.1f}%, {(v['k_v'] / e['k_v'] - 1) * 100:+.1f}%"
+                cell += (
+                    f" / {(v['k_tau'] / e['k_tau'] - 1) * 100:+.1f}%, "
+                    f"{(v['k_v'] / e['k_v'] - 1) * 100:+.1f}%"
+                )
             cells.append(cell)
         rows.append(cells)
     header = ["joint"] + [f"w = {w:g}" for w in config.w_sweep]

@@ -73,12 +73,13 @@ class RecordConfig:
         where = "RecordConfig"
         if not robot.bus.active:
             raise ValueError(
-                f"{where}.robot: '{robot.name}' has no bus in its description (bus.kind)"
+                f"{where}.robot: '{robot.name}' has no bus in its description "
+                "(bus.kind)"
             )
         if robot.identification.is_empty():
             raise ValueError(
-                f"{where}.robot: '{robot.name}' has no identification excitation in its "
-                "description (identification.sinusoids)"
+                f"{where}.robot: '{robot.name}' has no identification excitation in "
+                "its description (identification.sinusoids)"
             )
         model = robot.bus.servo_model()
         low, high = model.register("position_p_gain").limits()
@@ -220,8 +221,8 @@ def run_record(
     robot = config.description()
     if robot.logs.format == "npz":
         raise ValueError(
-            f"robot '{robot.name}': its log format is this project's npz; record writes "
-            "a robot's own format (logs.format json or csv)"
+            f"robot '{robot.name}': its log format is this project's npz; record "
+            "writes a robot's own format (logs.format json or csv)"
         )
     out.mkdir(parents=True, exist_ok=True)
     logs = []
@@ -295,11 +296,12 @@ def _markdown(robot: RobotDescription, summary: dict) -> str:
         "",
         f"Port {summary['port']}"
         + (" (a lock-step robot)" if summary["lockstep"] else "")
-        + f": {len(bus.ids)} {bus.model} servo(s) at {bus.baud / 1e6:g} Mbit/s, one sync "
-        f"read and one sync write every {robot.sensors.period * 1e3:g} ms. The servos' "
-        "own position control played the description's identification excitation, after "
-        "a move from the measured pose to its start. Read them with `hrp2-drake identify "
-        f"--robot {robot.name} --log <log>` (and `validate`, `calibrate`).",
+        + f": {len(bus.ids)} {bus.model} servo(s) at {bus.baud / 1e6:g} Mbit/s, one "
+        f"sync read and one sync write every {robot.sensors.period * 1e3:g} ms. The "
+        "servos' own position control played the description's identification "
+        "excitation, after a move from the measured pose to its start. Read them with "
+        f"`hrp2-drake identify --robot {robot.name} --log <log>` (and `validate`, "
+        "`calibrate`).",
         "",
         *markdown_table(
             [

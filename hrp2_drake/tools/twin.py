@@ -66,8 +66,8 @@ def run_calibrate_logs(
         f"{robot.name}'s emulated servo: a digital twin calibrated to {len(logs)} real "
         f"logs by rollout (hrp2-drake calibrate --log; {final.evaluations} rollouts of "
         f"every log, scipy least_squares). Logs: {', '.join(final.logs)}.",
-        f"Prior: the servo file before ({robot.servo_path('').name}). k5 = stall_current / "
-        "no_load_speed (one mechanism: a voltage-driven DC servo).",
+        f"Prior: the servo file before ({robot.servo_path('').name}). k5 = "
+        "stall_current / no_load_speed (one mechanism: a voltage-driven DC servo).",
     ]
     save_servo_params(final.params, out / "servo.yaml", header)
     if install:
@@ -165,7 +165,8 @@ def _markdown(robot, summary: dict, figures: list[str], install: bool) -> str:
             "",
             "Fitted on the logs of one gain, rolled out on the logs of the other: the "
             "twin, and the least-squares motor model (`identify --fit least-squares`) "
-            "identified on the same logs. Position MAE / maximum error (mrad), whole log.",
+            "identified on the same logs. Position MAE / maximum error (mrad), whole "
+            "log.",
             "",
             *_cross_gain_table(cross),
             "",

@@ -311,8 +311,8 @@ def _markdown(robot: RobotDescription, model: Model, summary: dict) -> str:
             else ""
         )
         what = (
-            f"Motor model `{summary['motor_model']}`{gain}, eq. 6 solved for the torque, "
-            "Δq clamped where the servo's output saturates"
+            f"Motor model `{summary['motor_model']}`{gain}, eq. 6 solved for the "
+            "torque, Δq clamped where the servo's output saturates"
         )
     lines = [
         f"# Rollout validation: {robot.name}",
