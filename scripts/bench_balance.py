@@ -193,19 +193,12 @@ def standing(robot):
     """The plant, a context at the standing pose (lowest sole on z = 0) and the
     joint indexing."""
     from hrp2_drake.multibody import joint_indexing
+    from hrp2_drake.robot.station import standing_positions
 
     plant = robot.make_plant()
     context = plant.CreateDefaultContext()
-    indexing = joint_indexing(plant, robot.joints)
-    q = plant.GetPositions(context)
-    q[indexing.q] = robot.home_positions()
-    plant.SetPositions(context, q)
-    q[6] -= min(
-        plant.GetFrameByName(s).CalcPoseInWorld(context).translation()[2]
-        for s in robot.scenarios.soles
-    )
-    plant.SetPositions(context, q)
-    return plant, context, indexing
+    plant.SetPositions(context, standing_positions(robot))
+    return plant, context, joint_indexing(plant, robot.joints)
 
 
 def states(plant, context, indexing, ticks, seed=0):

@@ -24,6 +24,7 @@ from hrp2_drake.control.balance import (
 from hrp2_drake.description import load_robot_description
 from hrp2_drake.description.contacts import ContactsDescription, SoleDescription
 from hrp2_drake.multibody import joint_indexing
+from hrp2_drake.robot.station import standing_positions
 
 TOLERANCE = 1e-6  # the solvers' (OSQP's eps 1e-9 on forces of hundreds of N)
 
@@ -38,16 +39,12 @@ def standing(robot):
     """The plant alone, its standing state (lowest sole on z = 0), the indexing."""
     plant = robot.make_plant()
     context = plant.CreateDefaultContext()
-    indexing = joint_indexing(plant, robot.joints)
-    q = plant.GetPositions(context)
-    q[indexing.q] = robot.home_positions()
-    plant.SetPositions(context, q)
-    q[6] -= min(
-        plant.GetFrameByName(s).CalcPoseInWorld(context).translation()[2]
-        for s in robot.scenarios.soles
+    plant.SetPositions(context, standing_positions(robot))
+    return (
+        plant,
+        plant.GetPositionsAndVelocities(context),
+        joint_indexing(plant, robot.joints),
     )
-    plant.SetPositions(context, q)
-    return plant, plant.GetPositionsAndVelocities(context), indexing
 
 
 @pytest.fixture(scope="module")

@@ -443,6 +443,20 @@ def _raise_sole(robot: RobotDescription, q: np.ndarray, height: float) -> np.nda
     return bent(fit.x)
 
 
+def standing_positions(
+    robot: RobotDescription, q: np.ndarray | None = None
+) -> np.ndarray:
+    """The generalized positions of the robot's model (`robot.make_plant()`'s order)
+    standing: the joints at q (default: the home pose), the base upright above the
+    origin with the lowest sole (`scenarios.soles`) on z = 0, as the "standing"
+    scenario starts."""
+    q = robot.home_positions() if q is None else np.asarray(q, float)
+    plant, context = _posed(
+        robot, q, RigidTransform([0.0, 0.0, -_lowest_sole_height(robot, q)])
+    )
+    return plant.GetPositions(context)
+
+
 def _lowest_sole_height(robot: RobotDescription, q: np.ndarray) -> float:
     """Height of the lowest sole when the base is at the origin, upright."""
     return min(_frame_position(robot, q, f)[2] for f in robot.scenarios.soles)
