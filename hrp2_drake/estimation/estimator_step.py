@@ -484,11 +484,10 @@ class TorqueEstimatorStep(Step):
 
     # ----------------------------------------------------------------- construction
 
-    def _check_rank(self, model: MultibodyPlant, frame) -> None:
-        """A = [J_uᵀ Sᵀ] must have full column rank (Sec. 2.4). Checked on the internal
-        model, whose root has 6 degrees of freedom for a fixed base too (the base's
-        rows), at its default configuration; the sensor joints' rows are left out."""
-        J_u = model.CalcJacobianSpatialVelocity(
+    def _frame_jacobian(self, model: MultibodyPlant, frame) -> np.ndarray:
+        """J_u: the spatial velocity Jacobian of `frame` (about its origin, expressed
+        in itself) on the internal model, at the step's context."""
+        return model.CalcJacobianSpatialVelocity(
             self._context,
             JacobianWrtVariable.kV,
             frame,
@@ -496,6 +495,12 @@ class TorqueEstimatorStep(Step):
             model.world_frame(),
             frame,
         )
+
+    def _check_rank(self, model: MultibodyPlant, frame) -> None:
+        """A = [J_uᵀ Sᵀ] must have full column rank (Sec. 2.4). Checked on the internal
+        model, whose root has 6 degrees of freedom for a fixed base too (the base's
+        rows), at its default configuration; the sensor joints' rows are left out."""
+        J_u = self._frame_jacobian(model, frame)
         columns = np.concatenate(
             [np.arange(self._root_v.start, self._root_v.stop), self._jv]
         )
@@ -591,14 +596,7 @@ class TorqueEstimatorStep(Step):
         if it is welded to the root, J_u is constant and f_u = T G_root with the
         constant 6x6 T = J_u,rootᵀ⁻¹ (then frame is None); else (frame, None) and J_u
         is computed at every update."""
-        J_u = model.CalcJacobianSpatialVelocity(
-            self._context,
-            JacobianWrtVariable.kV,
-            frame,
-            self._zero3,
-            model.world_frame(),
-            frame,
-        )
+        J_u = self._frame_jacobian(model, frame)
         others = np.ones(model.num_velocities(), dtype=bool)
         others[self._root_v] = False
         if np.any(J_u[:, others] != 0.0):
