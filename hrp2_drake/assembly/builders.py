@@ -792,10 +792,13 @@ def _add_disturbance_observer(
     builder.Connect(observer.get_output_port(), torque.GetInputPort("tau_disturbance"))
 
 
-def _add_command(builder, station, parts, blocks, torque) -> dict[str, OutputPort]:
+def _add_command(
+    builder, station, parts, blocks, torque, fallback: OutputPort | None = None
+) -> dict[str, OutputPort]:
     """q_cmd: the controlled joints' command merged with the other joints' reference,
-    through the safety supervisor if `parts.supervisor`. Returns the supervisor's
-    signals (supervisor_mode, _fault, _transition) if any, then q_cmd."""
+    through the safety supervisor if `parts.supervisor`, whose controller fallback is
+    `fallback` (default: the Δq controller's `fallback_active`). Returns the
+    supervisor's signals (supervisor_mode, _fault, _transition) if any, then q_cmd."""
     merger = builder.AddNamedSystem(
         "merger", JointCommandMerger(parts.all_joints, parts.joints)
     )
@@ -817,10 +820,9 @@ def _add_command(builder, station, parts, blocks, torque) -> dict[str, OutputPor
     builder.Connect(blocks["q_ref"], supervisor.GetInputPort("q_position"))
     for name in ("q_measured", *monitored):
         builder.Connect(station.GetOutputPort(name), supervisor.GetInputPort(name))
-    builder.Connect(
-        torque.GetOutputPort("fallback_active"),
-        supervisor.GetInputPort("controller_fallback"),
-    )
+    if fallback is None:
+        fallback = torque.GetOutputPort("fallback_active")
+    builder.Connect(fallback, supervisor.GetInputPort("controller_fallback"))
     builder.Connect(
         station.GetOutputPort("sensor_time"), supervisor.GetInputPort("sensor_time")
     )

@@ -1,0 +1,239 @@
+"""A floating-base robot standing on its soles, balanced by the whole-body QP with
+contacts over the paper's Δq torque control of its legs (issue 29).
+
+.. code-block:: text
+
+    com_ref ─────────────────────────┐
+    reference ─┬─────────────────────┼──────────────────────────► q_ref (other joints)
+               ▼  q_ref (posture)    ▼
+        FloatingBaseFromSoles ─► WholeBodyBalanceController ─► τ* (legs) ─►
+               ▲ encoders, q̂̇           fault ─┐
+               │                               ▼
+        DeltaQTorqueController (legs) ─► merger ─► SafetySupervisor ─► station
+               ▲ τ̂ (legs), q̂̇, encoders                 ▲ fallback = Δq's + QP's
+               └──── add_estimator (SG filters + RNEA, both soles' F/T) ◄── station
+
+The QP's τ* of the leg joints goes through the Δq controller (paper eq. 13) with τ̂
+from the paper's estimator; the other joints stay in position control on the
+reference. The QP reads the robot's state from the legs' kinematics (the base from
+the soles, `FloatingBaseFromSoles`), never from the plant. A QP fault (infeasible,
+failed, a non-finite input) is a fallback the supervisor ramps to position control
+on the reference, the inverse kinematics' pose, which is the position-controlled
+baseline's whole command.
+"""
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from pydrake.math import RigidTransform
+from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.systems.primitives import Adder, TrajectorySource
+from pydrake.trajectories import PiecewisePolynomial
+
+from hrp2_drake.assembly.builders import (
+    COMPONENTS,
+    ControlDiagram,
+    JointReference,
+    _add_command,
+    _add_controlled_signals,
+    _add_delay_predictor,
+    _add_disturbance_observer,
+    _add_reference,
+    _add_selector,
+    _add_station,
+    _build,
+    _station_ports,
+    borrowed,
+    torque_chain_parts,
+)
+from hrp2_drake.assembly.torque_control import TorqueControlConfig
+from hrp2_drake.control.balance import BalanceConfig, WholeBodyBalanceController
+from hrp2_drake.control.balance_reference import leg_joints
+from hrp2_drake.control.torque_controller import DeltaQTorqueController
+from hrp2_drake.description import RobotDescription
+from hrp2_drake.estimation.base_kinematics import FloatingBaseFromSoles
+from hrp2_drake.estimation.estimation_chain import add_estimator
+from hrp2_drake.identification.motor_model import MotorModel
+
+_WHERE = "BalanceControlConfig"
+
+
+@dataclass
+class BalanceControlConfig:
+    """The balance control: the QP's settings and the Δq chain's under it.
+
+    Args:
+        balance: the whole-body QP (its joints: every joint of the robot, filled
+            in by `build_balance_control` when empty; its period: the control
+            period).
+        torque: the Δq chain of the legs (its joints: the joints between the base
+            and the soles, filled in when empty): estimator, controller gains,
+            supervisor. Its K6 and damping ratio are unused (the QP replaces the
+            inverse dynamics).
+    """
+
+    balance: BalanceConfig = field(default_factory=BalanceConfig)
+    torque: TorqueControlConfig = field(default_factory=TorqueControlConfig)
+
+    def validate(self) -> None:
+        self.torque.validate()
+        if self.torque.controller.force_frame:
+            raise ValueError(
+                f"{_WHERE}.torque.controller.force_frame: the balance QP has its own "
+                "contact forces; leave it empty"
+            )
+
+
+def robot_model(robot: RobotDescription):
+    """The QP's and the base estimate's model: the robot alone, floating."""
+    if robot.base == "fixed" or not robot.contacts.soles:
+        raise ValueError(
+            f"balance: robot '{robot.name}' needs a floating base and soles (its "
+            "description's contacts.soles)"
+        )
+    return robot.make_plant()
+
+
+def resolved(
+    robot: RobotDescription, config: BalanceControlConfig, period: float
+) -> BalanceControlConfig:
+    """`config` with its joints and periods filled in for `robot` at `period`."""
+    plant = robot_model(robot)
+    soles = list(config.balance.soles or robot.contacts.soles)
+    balance = replace(
+        config.balance,
+        joints=list(config.balance.joints or robot.joints),
+        period=period,
+    )
+    torque = config.torque
+    if not torque.joints:
+        torque = replace(torque, joints=leg_joints(plant, robot.joints, soles))
+    torque = replace(torque, supervisor=replace(torque.supervisor, period=period))
+    return BalanceControlConfig(balance=balance, torque=torque)
+
+
+def sole_poses(robot: RobotDescription, positions: np.ndarray) -> dict:
+    """Each sole frame's pose in the world at the plant positions `positions`."""
+    plant = robot_model(robot)
+    context = plant.CreateDefaultContext()
+    plant.SetPositions(context, positions)
+    return {
+        name: RigidTransform(plant.GetFrameByName(name).CalcPoseInWorld(context))
+        for name in robot.contacts.soles
+    }
+
+
+def build_balance_control(
+    robot: RobotDescription,
+    station: Diagram,
+    reference: JointReference,
+    com_reference: PiecewisePolynomial,
+    standing: np.ndarray,
+    motor_model: MotorModel,
+    config: BalanceControlConfig,
+    *,
+    control_period: float,
+) -> ControlDiagram:
+    """Station + estimation chain + base from the soles + balance QP + Δq torque
+    control of the legs (module docstring).
+
+    Args:
+        robot: the robot of `station` (a floating base with soles).
+        station: a station Diagram with `make_station`'s ports, standing.
+        reference: every joint's reference (the posture task's, and the position
+            control's of the other joints and of a fallback).
+        com_reference: the CoM's position, velocity and acceleration (9 rows, m,
+            m/s, m/s², world).
+        standing: the plant positions (robot.make_plant()'s order) where the soles
+            stand: their poses anchor the base's estimate.
+        motor_model: the controller's model of the actuators (at least the legs).
+        config: the balance control (`resolved` fills its joints and periods).
+        control_period: the robot's sensor period (s).
+    """
+    config = resolved(robot, config, control_period)
+    config.validate()
+    if com_reference.rows() != 9:
+        raise ValueError(
+            f"build_balance_control: com_reference has {com_reference.rows()} rows, "
+            "expected 9 (position, velocity, acceleration)"
+        )
+    parts = torque_chain_parts(
+        robot, reference, motor_model, config.torque, period=control_period
+    )
+    builder = DiagramBuilder()
+    station = _add_station(builder, robot, station)
+    blocks = _add_reference(builder, reference, len(parts.all_joints))
+    chain = add_estimator(
+        builder, station, parts.estimator_plant, parts.estimator_config
+    )
+    model = robot_model(robot)
+    base = builder.AddNamedSystem(
+        "base_from_soles",
+        FloatingBaseFromSoles(
+            model,
+            list(robot.joints),
+            sole_poses(robot, standing),
+            control_period,
+        ),
+    )
+    builder.Connect(station.GetOutputPort("q_measured"), base.GetInputPort("q"))
+    builder.Connect(
+        chain.encoder_filter.GetOutputPort("derivative"), base.GetInputPort("v")
+    )
+    balance = builder.AddNamedSystem(
+        "balance", WholeBodyBalanceController(model, config.balance, robot.contacts)
+    )
+    com_source = builder.AddNamedSystem(
+        "com_reference", TrajectorySource(borrowed(com_reference))
+    )
+    builder.Connect(base.GetOutputPort("state"), balance.GetInputPort("state"))
+    builder.Connect(blocks["q_ref"], balance.GetInputPort("q_ref"))
+    builder.Connect(com_source.get_output_port(), balance.GetInputPort("com_ref"))
+
+    selected = _add_controlled_signals(builder, station, chain, parts, blocks)
+    predictor, v_estimate, torque_estimate = _add_delay_predictor(
+        builder, chain, parts, selected
+    )
+    torque = builder.AddNamedSystem(
+        "torque_controller",
+        DeltaQTorqueController(parts.controller_model, parts.controller_config),
+    )
+    tau_star = _add_selector(
+        builder, parts, "tau_desired_controlled", balance.GetOutputPort("tau_desired")
+    )
+    builder.Connect(tau_star, torque.GetInputPort("tau_desired"))
+    builder.Connect(torque_estimate, torque.GetInputPort("tau_estimated"))
+    velocity = {"estimate": v_estimate, "reference": selected["v_ref"]}
+    builder.Connect(velocity[parts.friction_velocity], torque.GetInputPort("v"))
+    if predictor is not None:
+        builder.Connect(
+            torque.GetOutputPort("delta_q"), predictor.GetInputPort("delta_q")
+        )
+    builder.Connect(selected["q_measured"], torque.GetInputPort("q_measured"))
+    builder.Connect(selected["q_ref"], torque.GetInputPort("q_ref"))
+    builder.Connect(chain.input_fault, torque.GetInputPort("sensor_fault"))
+    if parts.observer is not None:
+        _add_disturbance_observer(builder, parts, selected, torque)
+    # The supervisor's fallback: the Δq controller's, or any QP fault (its code > 0).
+    fallback = builder.AddNamedSystem("fallback", Adder(2, 1))
+    builder.Connect(torque.GetOutputPort("fallback_active"), fallback.get_input_port(0))
+    builder.Connect(balance.GetOutputPort("fault"), fallback.get_input_port(1))
+    ports = _add_command(
+        builder, station, parts, blocks, torque, fallback.get_output_port()
+    )
+    builder.Connect(ports["q_cmd"], station.GetInputPort("q_cmd"))
+    ports |= {
+        "tau_estimated": chain.estimator.GetOutputPort("tau"),
+        "tau_desired": balance.GetOutputPort("tau_desired"),
+        "delta_q": torque.GetOutputPort("delta_q"),
+        "fallback_active": torque.GetOutputPort("fallback_active"),
+        "sensor_fault": chain.input_fault,
+        "base_state": base.GetOutputPort("state"),
+        "com_ref": com_source.get_output_port(),
+        "q_ref": blocks["q_ref"],
+    }
+    for name in ("com", "sole_wrenches", "contact_forces", "fault", "fault_count"):
+        ports[f"balance_{name}"] = balance.GetOutputPort(name)
+    ports |= {name: torque.GetOutputPort(name) for name in COMPONENTS}
+    ports = _station_ports(station, robot) | ports
+    return _build(builder, station, ports, reference)
