@@ -382,6 +382,39 @@ def _sim_servo(args: argparse.Namespace) -> int:
     return _stopped(stopped if stopped and "closed" in stopped else None)
 
 
+def _balance(args: argparse.Namespace) -> int:
+    from hrp2_drake.identification.motor_model import MotorModel
+    from hrp2_drake.tools.balance import (
+        BalanceExperimentConfig,
+        identify_legs,
+        run_balance,
+        shortened,
+    )
+
+    config = _config(BalanceExperimentConfig, args)
+    _use_robot(config.station, args)
+    if args.quick:
+        config = shortened(config)
+    out = _validated_out(config, args)
+    motor_model = (
+        MotorModel.load(args.motor_model)
+        if args.motor_model
+        else identify_legs(config, out / "identify")
+    )
+    summary = run_balance(config, motor_model, out)
+    print(f"report: {out / 'balance.md'}")
+    for mode, metrics in summary["com_motion"].items():
+        print(
+            f"  {mode} control: CoM RMS error {metrics['com_rms_error_m'] * 1e3:.1f} mm"
+        )
+    for push in summary["pushes"]:
+        print(
+            f"  {push['mode']} control: largest {push['direction']} push survived "
+            f"{push['largest_survived_N']:g} N"
+        )
+    return 0
+
+
 def _stopped(reason: str | None) -> int:
     """The exit code of a run that talks to a robot: 1 after one line saying why it
     stopped (`reason`), 0 if it ran to its end (None)."""
@@ -895,6 +928,25 @@ def _add_track(commands: _Commands) -> None:
     )
 
 
+def _add_balance(commands: _Commands) -> None:
+    _add_command(
+        commands,
+        "balance",
+        _balance,
+        "a floating-base robot standing on its soles: the whole-body QP over the Δq "
+        "torque control of its legs against its position servo (the authors' CoM "
+        "sinusoid, pushes)",
+        robot=True,
+        config="BalanceExperimentConfig YAML file",
+        motor_model={
+            "help": "MotorModel YAML of the legs (default: identify them, "
+            "hrp2-drake identify)"
+        },
+        quick="shorter runs (CI)",
+        out=True,
+    )
+
+
 def _add_control(commands: _Commands) -> None:
     _add_command(
         commands,
@@ -1115,6 +1167,7 @@ _COMMANDS = (
     _add_estimate,
     _add_validate,
     _add_track,
+    _add_balance,
     _add_control,
     _add_sim_robot,
     _add_record,

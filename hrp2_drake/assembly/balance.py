@@ -76,6 +76,7 @@ class BalanceControlConfig:
     torque: TorqueControlConfig = field(default_factory=TorqueControlConfig)
 
     def validate(self) -> None:
+        self.balance.validate()
         self.torque.validate()
         if self.torque.controller.force_frame:
             raise ValueError(

@@ -272,6 +272,10 @@ def _build(
         ports = ports | {"contact_results": station.GetOutputPort("contact_results")}
     for name, port in ports.items():
         builder.ExportOutput(port, name)
+    if station.HasInputPort("applied_spatial_force"):  # pushes, from outside
+        builder.ExportInput(
+            station.GetInputPort("applied_spatial_force"), "applied_spatial_force"
+        )
     return ControlDiagram(builder.Build(), station, reference, force_reference)
 
 
@@ -411,12 +415,13 @@ def _check_controlled_joints(
             f"TorqueControlConfig.joints: {unknown} are not joints of robot "
             f"'{robot.name}'"
         )
-    kp = config.controller.kp
-    if len(kp) not in (1, len(joints)):
-        raise ValueError(
-            f"TorqueControlConfig.controller.kp: {len(kp)} values for {len(joints)} "
-            "joints (give one, or one per joint)"
-        )
+    for name in ("kp", "ki"):
+        gains = getattr(config.controller, name)
+        if len(gains) not in (1, len(joints)):
+            raise ValueError(
+                f"TorqueControlConfig.controller.{name}: {len(gains)} values for "
+                f"{len(joints)} joints (give one, or one per joint)"
+            )
 
 
 def _inverse_dynamics_plant(robot: RobotDescription, errors: dict):
@@ -462,6 +467,8 @@ def _torque_controller_config(
         joints=joints,
         period=period,
         kp=list(config.controller.kp),
+        ki=list(config.controller.ki),
+        integral_limit=[config.controller.integral_limit],
         delta_q_limit=[limit],
         delta_q_fallback_limit=[2 * limit],
         start_time=config.start_time,

@@ -96,6 +96,9 @@ class ControllerSettings:
         k6: position-feedback gain relative to the position servo (Sec. 4.2): 1 = the
             servo's own stiffness, 0.1 = 10% of it.
         kp: torque-feedback gain K_p (paper: 2), one value or one per joint.
+        ki: torque-feedback integral gain K_i (1/s, eq. 11; the paper's 0), one value
+            or one per joint.
+        integral_limit: the K_i term's anti-windup, a bound on |∫ e_τ dt| (N·m·s).
         damping_ratio: sets K_d from K_s and the joint inertia (see
             `inverse_dynamics_gains_for_k6`).
         position_source: "encoders" (e_q from the raw encoders, no delay; default) or
@@ -133,6 +136,8 @@ class ControllerSettings:
 
     k6: float = 1.0
     kp: list[float] = field(default_factory=lambda: [2.0])
+    ki: list[float] = field(default_factory=lambda: [0.0])
+    integral_limit: float = math.inf
     damping_ratio: float = 1.0
     position_source: str = "encoders"
     feedback_velocity: str = "reference"
@@ -146,6 +151,8 @@ class ControllerSettings:
         becomes a list of one, when the settings are made, not when validated."""
         if isinstance(self.kp, (int, float)):
             self.kp = [float(self.kp)]
+        if isinstance(self.ki, (int, float)):
+            self.ki = [float(self.ki)]
         if isinstance(self.kf, (int, float)):
             self.kf = [float(self.kf)]
 
@@ -158,7 +165,7 @@ class ControllerSettings:
         for name in ("feedback_velocity", "friction_velocity"):
             if getattr(self, name) not in ("estimate", "reference"):
                 raise ValueError(f"{where}.{name}: '{getattr(self, name)}'")
-        for name in ("kp", "kf"):
+        for name in ("kp", "ki", "kf"):
             if not isinstance(getattr(self, name), list):
                 raise ValueError(
                     f"{where}.{name}: {getattr(self, name)!r}, expected a list (one "
@@ -168,6 +175,16 @@ class ControllerSettings:
             raise ValueError(
                 f"{where}.kp: {self.kp}: one value or one per joint, each finite and "
                 ">= 0"
+            )
+        if not self.ki or not all(math.isfinite(k) and k >= 0 for k in self.ki):
+            raise ValueError(
+                f"{where}.ki: {self.ki}: one value or one per joint, each finite and "
+                ">= 0"
+            )
+        if not self.integral_limit > 0:
+            raise ValueError(
+                f"{where}.integral_limit: must be > 0 (N·m·s), got "
+                f"{self.integral_limit}"
             )
         check_finite(self.k6, f"{where}.k6", 0.0, strict=False)
         check_finite(self.damping_ratio, f"{where}.damping_ratio", 0.0, strict=False)

@@ -145,7 +145,8 @@ class BalanceConfig:
     def validate(self) -> None:
         """Raises ValueError naming the bad field (yaml_load_typed does not call it)."""
         where = "BalanceConfig"
-        check_joint_names(self.joints, where)
+        if self.joints:  # (empty: the robot's, filled in where it is known)
+            check_joint_names(self.joints, where)
         for name in (
             "friction",
             "min_normal_force",
@@ -571,6 +572,8 @@ class BalanceStep(Step):
         """
         super().__init__()
         config.validate()
+        if not config.joints:
+            raise ValueError("BalanceConfig.joints is empty: list every joint")
         contacts.validate()
         if not plant.is_finalized():
             raise ValueError(f"{_WHERE}: the plant must be finalized")

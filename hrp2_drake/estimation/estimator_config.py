@@ -14,6 +14,12 @@ from hrp2_drake.multibody import check_joint_names
 ANGULAR_ACCELERATION_MODES = ("gyro_derivative", "neglected")
 
 
+#: This project's goal for torque estimation (the paper states none): the RMS error
+#: of τ̂ under this share of each joint's peak |τ|. The estimation experiment judges
+#: the right leg by it, the balance experiment both legs in double support.
+GOAL_RMS_OVER_PEAK = 0.03
+
+
 @dataclass
 class ForceTorqueSensorConfig:
     """One 6-axis F/T sensor.

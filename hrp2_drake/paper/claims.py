@@ -11,6 +11,7 @@ paper does not state), and one rule for partial results, `partial_verdict`.
 from dataclasses import dataclass
 from typing import NamedTuple
 
+from hrp2_drake.estimation import estimator_config
 from hrp2_drake.paper import hrp2
 from hrp2_drake.report import markdown_table
 
@@ -218,8 +219,9 @@ def check_panel(panel: Panel, ranking: list[str]) -> bool:
 # ------------------------------------------------------ this project's goals
 
 #: Torque estimation: the RMS error of τ̂ under this share of the peak joint torque
-#: on every right-leg joint, at the best window (the issue's goal).
-GOAL_RMS_OVER_PEAK = 0.03
+#: on every right-leg joint, at the best window (the issue's goal; its one home is
+#: the estimation package, which the balance experiment judges by too).
+GOAL_RMS_OVER_PEAK = estimator_config.GOAL_RMS_OVER_PEAK
 
 
 # ------------------------------------------------------------------ verdicts
