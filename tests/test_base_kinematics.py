@@ -5,13 +5,17 @@ space of the soles' Jacobians; the whole scene turned); one sole is enough; sole
 that disagree give the documented average; a non-finite input keeps the last
 estimate; the LeafSystem outputs the step's numbers; the one-line errors."""
 
+import contextlib
+
 import numpy as np
 import pytest
 from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 from pydrake.multibody.tree import JacobianWrtVariable
 
+from hrp2_drake import kernels
 from hrp2_drake.control.balance_reference import StandingIk
 from hrp2_drake.description import load_robot_description
+from hrp2_drake.estimation import base_kinematics
 from hrp2_drake.estimation.base_kinematics import (
     BaseFromSolesStep,
     FloatingBaseFromSoles,
@@ -170,6 +174,23 @@ def test_one_sole_is_enough(hrp2, moved):
     )
 
 
+def test_the_plants_default_base_pose_does_not_enter(robot, hrp2, moved):
+    """A plant whose base has a default pose (not the identity) gives the same
+    estimate: the step's own context holds its base at the identity."""
+    plant, standing, indexing, soles = hrp2
+    other = robot.make_plant()
+    other.SetDefaultFloatingBaseBodyPose(
+        _base(other), RigidTransform(RollPitchYaw(0.1, 0.2, 0.3), [1.0, 2.0, 3.0])
+    )
+    poses = _sole_poses(plant, standing, soles)
+    velocities = _still_soles_velocity(plant, moved, soles)
+    q, v = moved[indexing.q], velocities[indexing.v]
+    steps = [BaseFromSolesStep(p, list(indexing.names), poses) for p in (plant, other)]
+    for step in steps:
+        step.step(0.0, q, v)
+    np.testing.assert_array_equal(steps[1].robot_state, steps[0].robot_state)
+
+
 def test_soles_that_disagree_give_the_average(hrp2, moved):
     """The left sole given 1 cm off (x) and turned 0.02 rad about its normal: the
     estimate is the mean of the two bases the legs give, X_WB_k = X_WS_k X_BS_k⁻¹:
@@ -282,10 +303,19 @@ def test_the_shell_outputs_the_steps_numbers(hrp2, moved):
             KeyError,
             "sole frame 'no_sole' is not a frame or body of the plant",
         ),
-        ({"fixed": True}, ValueError, "exactly one floating base"),
-        ({"joints": slice(1, None)}, ValueError, "29 joints given, the plant has 30"),
+        (
+            {"fixed": True},
+            ValueError,
+            r"exactly one floating base body, it has none \(a fixed base\)",
+        ),
+        (
+            {"joints": slice(1, None)},
+            ValueError,
+            r"29 joints given, the plant has 30: .* \(missing \['RLEG_JOINT0'\]\)",
+        ),
+        ({"joints": ["no_joint"]}, KeyError, "the plant has no joint named 'no_joint'"),
     ],
-    ids=["no_sole", "unknown_sole", "fixed_base", "missing_joint"],
+    ids=["no_sole", "unknown_sole", "fixed_base", "missing_joint", "unknown_joint"],
 )
 def test_errors_are_one_line_and_name_what_is_wrong(
     robot, hrp2, change, error, message
@@ -293,8 +323,87 @@ def test_errors_are_one_line_and_name_what_is_wrong(
     plant, standing, indexing, soles = hrp2
     if change.get("fixed"):
         plant = robot.make_plant(weld_base=True)
-    joints = list(indexing.names)[change.get("joints", slice(None))]
+    joints = change.get("joints", slice(None))
+    if isinstance(joints, slice):
+        joints = list(indexing.names)[joints]
     poses = change.get("sole_poses", _sole_poses(hrp2[0], standing, soles))
     with pytest.raises(error, match=message) as raised:
         BaseFromSolesStep(plant, joints, poses)
     assert "\n" not in str(raised.value)
+
+
+def _cases(hrp2, moved):
+    """(poses, q, v) of the kernels' tests: the scene turned (every quaternion
+    branch), soles that disagree, one sole; velocities that move the soles."""
+    plant, standing, indexing, soles = hrp2
+    rng = np.random.default_rng(4)
+    for turn in TURNS.values():
+        positions = _turned(plant, moved, turn)
+        poses = _sole_poses(plant, _turned(plant, standing, turn), soles)
+        yield poses, positions[indexing.q], rng.normal(0.0, 0.3, indexing.size)
+    poses = _sole_poses(plant, standing, soles)
+    poses["l_sole"] = (
+        RigidTransform(RollPitchYaw(0.02, 0.0, 0.03), [0.0, 0.01, 0.0])
+        @ (poses["l_sole"])
+    )
+    yield poses, moved[indexing.q], rng.normal(0.0, 0.3, indexing.size)
+    poses = _sole_poses(plant, standing, ["l_sole"])
+    yield poses, moved[indexing.q], rng.normal(0.0, 0.3, indexing.size)
+
+
+def test_the_compiled_kernels_equal_their_python_source(hrp2, moved):
+    """`base_joint_positions` and `base_from_soles` compiled and as Python
+    (`kernels.interpreted`) on the same inputs: the states equal to 1e-12 of their
+    size (loop-order sums both ways)."""
+    plant, _, indexing, _ = hrp2
+    results = []
+    for interpreted in (False, True):
+        context = kernels.interpreted() if interpreted else contextlib.nullcontext()
+        with context:
+            for poses, q, v in _cases(hrp2, moved):
+                step = BaseFromSolesStep(plant, list(indexing.names), poses)
+                step.step(0.0, q, v)
+                results.append(step.state.copy())
+    half = len(results) // 2
+    for compiled, python in zip(results[:half], results[half:]):
+        np.testing.assert_allclose(
+            compiled, python, rtol=0, atol=1e-12 * np.abs(python).max()
+        )
+
+
+def test_warm_up_compiles_without_changing_the_state(hrp2, moved):
+    """`warm_up` compiles (or loads) both kernels for a tick's arrays, the state
+    untouched; frozen, ticks of both shells run and float32 inputs raise instead of
+    compiling."""
+    plant, standing, indexing, soles = hrp2
+    poses = _sole_poses(plant, standing, soles)
+    step = BaseFromSolesStep(plant, list(indexing.names), poses)
+    q, v = moved[indexing.q], np.zeros(indexing.size)
+    step.step(0.0, q, v)
+    before = step.state.copy()
+    step.warm_up()
+    np.testing.assert_array_equal(step.state, before)
+    if kernels.jit_enabled():
+        mine = [
+            k
+            for k in kernels.kernels()
+            if k.py_func.__module__ == base_kinematics.__name__
+        ]
+        assert len(mine) == 2 and all(k.signatures for k in mine)
+    system = FloatingBaseFromSoles(plant, list(indexing.names), poses, 0.001)
+    context = system.CreateDefaultContext()
+    system.GetInputPort("q").FixValue(context, q)
+    system.GetInputPort("v").FixValue(context, v)
+    try:
+        kernels.freeze()
+        step.step(0.001, q, v)
+        np.testing.assert_array_equal(step.state, before)
+        context.SetDiscreteState(system.EvalUniquePeriodicDiscreteUpdate(context))
+        np.testing.assert_array_equal(
+            system.GetOutputPort("state").Eval(context), step.robot_state
+        )
+        if kernels.jit_enabled():
+            with pytest.raises(TypeError):
+                step.step(0.002, q.astype(np.float32), v)
+    finally:
+        kernels.thaw()
