@@ -1,9 +1,11 @@
 """The floating base from the soles' kinematics (estimation/base_kinematics.py) on
 HRP-2: with the soles where they stand, the estimate is the plant's own state (the
-standing pose; the base and legs moved by the standing IK, the velocities in the null
-space of the soles' Jacobians; the whole scene turned); one sole is enough; soles
-that disagree give the documented average; a non-finite input keeps the last
-estimate; the LeafSystem outputs the step's numbers; the one-line errors."""
+standing pose; the base and legs moved by the standing IK, velocities that keep the
+soles still; the whole scene turned); one sole is enough; soles that disagree give
+the documented average, the velocity numpy's least squares at the estimate; a
+non-finite input keeps the last estimate; the LeafSystem outputs the step's numbers;
+the one-line errors; the kernels compiled equal their Python source, and `warm_up`
+compiles them without changing the state."""
 
 import contextlib
 

@@ -21,8 +21,9 @@ base at the identity pose (where the world frame and the base's coincide), each
 sole's pose X_BS_k and its spatial-velocity Jacobian J_BS_k (the joint columns: the
 sole's velocity relative to the base, in B): one SetPositions and, per sole, one
 CalcRelativeTransform (read as a 4x4 matrix) and one Jacobian. The arithmetic is
-the numba kernel `base_from_soles`: the per-sole base poses, their mean, and the
-velocities. At the estimated pose (R, p), with r_k = R p_BS_k and the floating
+two numba kernels: `base_joint_positions` (the inputs' finiteness, the joints into
+the positions) and `base_from_soles` (the per-sole base poses, their mean, and the
+velocities). At the estimated pose (R, p), with r_k = R p_BS_k and the floating
 joint's velocities v_b = [ω_WB; v_WBo] (in the world), sole k's rows are
 
     ω_WB                 + R ω_BS_k = 0
@@ -33,9 +34,10 @@ Drake's Jacobians at the estimated pose hold (rigid-body kinematics; no second
 SetPositions, no second kinematics pass). The least-squares v_b solves the 6x6
 normal equations (Σ_k J_k,bᵀ J_k,b) v_b = −Σ_k J_k,bᵀ J_k,j v_j by Cholesky, in the
 kernel: each J_k,b is invertible (unit triangular), so the matrix is positive
-definite, and well conditioned (σ⁴ for one sole, σ = (|r| + √(|r|² + 4)) / 2: 3.6 on
-HRP-2, |r_k| ≈ 0.66 m), so the normal equations lose nothing against an SVD
-(numpy's lstsq on Drake's Jacobians at the estimate agrees to 1e-12, the tests).
+definite, and well conditioned (its condition number is σ⁴ for one sole, σ =
+(|r| + √(|r|² + 4)) / 2; 3.6 on HRP-2, |r_k| ≈ 0.66 m, one sole or both), so the
+normal equations lose nothing against an SVD (numpy's lstsq on Drake's Jacobians at
+the estimate agrees to 1e-12, the tests).
 
 .. code-block:: text
 
