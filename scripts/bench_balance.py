@@ -12,8 +12,11 @@ assemble the QP and write τ), each solver's solve on the same QP (the coefficie
 update and the solve: `QpBackend.update` + `solve`; each solver keeps its own warm
 start), and one `CalcInverseDynamics` (gravity included) of the full floating HRP-2
 (36 velocities) at the same state, the unit of the ratios: every time of a tick is
-taken under the same load. A solver's step is the rest plus its solve. The garbage
-collector is frozen and disabled, as in the control loop.
+taken under the same load. A solver's step is the rest plus its solve. Also per
+tick, the QP's input: the base's state from the soles' kinematics
+(`BaseFromSolesStep.step`, the soles where they stood) from the same joint angles
+and velocities. The garbage collector is frozen and disabled, as in the control
+loop.
 
 Solvers: pydrake's OsqpSolver and ClarabelSolver (MathematicalProgram built once,
 UpdateCoefficients on the bindings, the last solution as initial guess), the pip
@@ -234,7 +237,9 @@ def bench(robot, solvers, ticks):
     CalcInverseDynamics: every time of a tick under the same load."""
     from pydrake.multibody.tree import MultibodyForces
 
+    from hrp2_drake.assembly.balance import sole_poses
     from hrp2_drake.control.balance import BalanceConfig, BalanceStep
+    from hrp2_drake.estimation.base_kinematics import BaseFromSolesStep
 
     plant, context, indexing = standing(robot)
     com = plant.CalcCenterOfMassPositionInWorld(context)
@@ -242,6 +247,11 @@ def bench(robot, solvers, ticks):
     q_ref = robot.home_positions()
     step = BalanceStep(plant, BalanceConfig(joints=robot.joints), robot.contacts)
     step.warm_up()
+    base = BaseFromSolesStep(
+        plant, robot.joints, sole_poses(robot, plant.GetPositions(context))
+    )
+    base.warm_up()
+    nq = plant.num_positions()
     backends = [make_backend(step, solver) for solver in solvers]
     rnea_plant = robot.make_plant()
     rnea_context = rnea_plant.CreateDefaultContext()
@@ -250,6 +260,7 @@ def bench(robot, solvers, ticks):
     sequence = states(plant, context, indexing, ticks)
     solve_ns = np.zeros((len(solvers), ticks), np.int64)
     rest_ns = np.zeros(ticks, np.int64)
+    base_ns = np.zeros(ticks, np.int64)
     rnea_ns = np.zeros(ticks, np.int64)
     faults = np.zeros(len(solvers), int)
     tau_gap = np.zeros(len(solvers))
@@ -277,6 +288,10 @@ def bench(robot, solvers, ticks):
             for b, solution in enumerate(solutions):
                 step._accept(solution)
                 tau_gap[b] = max(tau_gap[b], np.abs(step.tau_desired - tau).max())
+            q, v = sequence[k, indexing.q], sequence[k, nq + indexing.v]
+            t0 = time.perf_counter_ns()
+            base.step(k * 0.001, q, v)
+            base_ns[k] = time.perf_counter_ns() - t0
             rnea_plant.SetPositionsAndVelocities(rnea_context, sequence[k])
             r0 = time.perf_counter_ns()
             rnea_plant.CalcForceElementsContribution(rnea_context, forces)
@@ -306,7 +321,7 @@ def bench(robot, solvers, ticks):
                 "tau_gap": float(tau_gap[b]),
             }
         )
-    return rows, stats(rest), stats(rnea)
+    return rows, stats(rest), stats(base_ns[skip:] * 1e-3), stats(rnea)
 
 
 def available(solver):
@@ -334,7 +349,7 @@ def main() -> int:
     args = parser.parse_args()
     robot = load_robot_description("hrp2")
     solvers = [s for s in args.solvers.split(",") if available(s)]
-    rows, rest, rnea = bench(robot, solvers, args.ticks)
+    rows, rest, base, rnea = bench(robot, solvers, args.ticks)
     print(
         f"HRP-2 double support, {args.ticks} ticks; CalcInverseDynamics (full HRP-2, "
         f"36 velocities, gravity) p50 {rnea['p50_us']:.1f} µs, p99 "
@@ -343,7 +358,12 @@ def main() -> int:
     print(
         f"the step without the solve (Drake's terms, the kernels): p50 "
         f"{rest['p50_us']:.0f} µs ({rest['p50']:.1f} ID), p99 "
-        f"{rest['p99_us']:.0f} µs ({rest['p99']:.1f} ID)\n"
+        f"{rest['p99_us']:.0f} µs ({rest['p99']:.1f} ID)"
+    )
+    print(
+        f"its input, the base from the soles (BaseFromSolesStep.step): p50 "
+        f"{base['p50_us']:.0f} µs ({base['p50']:.1f} ID), p99 "
+        f"{base['p99_us']:.0f} µs ({base['p99']:.1f} ID)\n"
     )
     print(
         "| solver | solve p50 / p99 (µs) | solve p50 / p99 (ID) "

@@ -6,12 +6,38 @@ the feet, fused with the IMU).
 Each sole k stays at its pose X_WS_k (given: where it stood when the run started),
 so the joint angles q_j give the base's pose X_WB_k = X_WS_k · X_BS_k(q_j)⁻¹ through
 each leg; the estimate is their mean (positions averaged; the rotations' unit
-quaternions averaged, signs aligned, and normalised). The velocities follow from the
-soles' not moving: J_k,b v_b + J_k,j v_j = 0 for every sole (6 rows each, Jacobians
-at the estimated pose), solved for the base's 6 velocities in the least-squares sense.
+quaternions averaged, signs aligned, and normalised: for two soles, the rotations'
+geodesic midpoint). So soles whose given poses disagree (a sole that slipped) give
+the average: a sole 1 cm off moves the estimate of two soles by 5 mm. The velocities
+follow from the soles' not moving: J_k,b v_b + J_k,j v_j = 0 for every sole (6 rows
+each, at the estimated pose), solved for the base's 6 velocities in the
+least-squares sense.
 
 Valid while every sole stays flat on the ground; a sole that slips or rotates makes
 the estimate drift by as much (the balance experiments report when a sole moved).
+
+Per tick (`BaseFromSolesStep.step`), Drake gives, with the joints at q_j and the
+base at the identity pose (where the world frame and the base's coincide), each
+sole's pose X_BS_k and its spatial-velocity Jacobian J_BS_k (the joint columns: the
+sole's velocity relative to the base, in B): one SetPositions and, per sole, one
+CalcRelativeTransform (read as a 4x4 matrix) and one Jacobian. The arithmetic is
+two numba kernels: `base_joint_positions` (the inputs' finiteness, the joints into
+the positions) and `base_from_soles` (the per-sole base poses, their mean, and the
+velocities). At the estimated pose (R, p), with r_k = R p_BS_k and the floating
+joint's velocities v_b = [ω_WB; v_WBo] (in the world), sole k's rows are
+
+    ω_WB                 + R ω_BS_k = 0
+    v_WBo − [r_k]× ω_WB  + R v_BS_k = 0      ([r]× x = r × x)
+
+i.e. J_k,b = [[I, 0], [−[r_k]×, I]] and J_k,j v_j = diag(R, R) J_BS_k v_j: what
+Drake's Jacobians at the estimated pose hold (rigid-body kinematics; no second
+SetPositions, no second kinematics pass). The least-squares v_b solves the 6x6
+normal equations (Σ_k J_k,bᵀ J_k,b) v_b = −Σ_k J_k,bᵀ J_k,j v_j by Cholesky, in the
+kernel: each J_k,b is invertible (unit triangular), so the matrix is positive
+definite, and well conditioned (its condition number is σ⁴ for one sole, σ =
+(|r| + √(|r|² + 4)) / 2; 3.6 on HRP-2, |r_k| ≈ 0.66 m, one sole or both), so the
+normal equations lose nothing against an SVD (numpy's lstsq on Drake's Jacobians at
+the estimate agrees to 1e-12, the tests).
 
 .. code-block:: text
 
@@ -25,16 +51,200 @@ the estimate drift by as much (the balance experiments report when a sole moved)
 import math
 
 import numpy as np
-from pydrake.common.eigen_geometry import Quaternion
-from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.math import RigidTransform, RollPitchYaw
+from pydrake.multibody.math import SpatialVelocity
 from pydrake.multibody.plant import MultibodyPlant
-from pydrake.multibody.tree import JacobianWrtVariable
+from pydrake.multibody.tree import JacobianWrtVariable, JointIndex
 from pydrake.systems.framework import Context, DiscreteValues
 
+from hrp2_drake.kernels import kernel
 from hrp2_drake.multibody import get_frame, joint_indexing
 from hrp2_drake.step import Step, StepSystem
 
 _WHERE = "FloatingBaseFromSoles"
+
+# The kernels' index table (`BaseFromSolesStep._pack`, int64): a header, then the
+# joints' positions in q and velocities in v.
+(
+    _NQ,  # the plant's positions
+    _NJ,  # the joints, n
+    _BASE_Q,  # the base's [w, x, y, z, p_x, p_y, p_z] in q
+    _BASE_V,  # its velocities [ω_WB; v_WBo] (in W) in v
+    _HEADER,
+) = range(5)
+# The kernel's work array (float64): the normal equations' matrix (6x6) and
+# right-hand side (6), one sole's J_k,b (6x6), J_BS_k v_j (6) and −J_k,j v_j (6),
+# R_WB (3x3).
+_A, _B, _JB, _S, _C, _R, _WORK = 0, 36, 42, 78, 84, 90, 99
+
+
+@kernel
+def base_joint_positions(q, v, positions, table):
+    """Whether q and v (the joints, constructor order) are finite; if they are, q
+    written into the plant positions `positions` (whose base stays at the identity
+    pose)."""
+    n = table[_NJ]
+    total = 0.0
+    for i in range(n):
+        total += q[i] + v[i]
+    if not math.isfinite(total):
+        return False
+    for i in range(n):
+        positions[table[_HEADER + i]] = q[i]
+    return True
+
+
+@kernel
+def base_from_soles(v, X_WS, X_BS, J, positions, table, work, robot_state):
+    """The robot's [q; v] (`robot_state`) from the soles' poses X_WS (soles, 4, 4),
+    the base-to-sole poses X_BS (soles, 4, 4) and Jacobians J (soles, 6, nv, the
+    joint columns: J_BS_k in B) at the joint positions `positions`, and the joint
+    velocities v (the module docstring has the equations). Sums in loop order."""
+    nq, n = table[_NQ], table[_NJ]
+    bq, bv = table[_BASE_Q], table[_BASE_V]
+    jv = _HEADER + n
+    soles = X_WS.shape[0]
+    R = work[_R:_WORK].reshape((3, 3))
+    # The base's pose through each sole, X_WB_k = X_WS_k X_BS_k⁻¹; the mean.
+    qw, qx, qy, qz = 0.0, 0.0, 0.0, 0.0
+    px, py, pz = 0.0, 0.0, 0.0
+    for k in range(soles):
+        for i in range(3):
+            for j in range(3):
+                R[i, j] = (
+                    X_WS[k, i, 0] * X_BS[k, j, 0]
+                    + X_WS[k, i, 1] * X_BS[k, j, 1]
+                    + X_WS[k, i, 2] * X_BS[k, j, 2]
+                )
+        px += X_WS[k, 0, 3] - (
+            R[0, 0] * X_BS[k, 0, 3] + R[0, 1] * X_BS[k, 1, 3] + R[0, 2] * X_BS[k, 2, 3]
+        )
+        py += X_WS[k, 1, 3] - (
+            R[1, 0] * X_BS[k, 0, 3] + R[1, 1] * X_BS[k, 1, 3] + R[1, 2] * X_BS[k, 2, 3]
+        )
+        pz += X_WS[k, 2, 3] - (
+            R[2, 0] * X_BS[k, 0, 3] + R[2, 1] * X_BS[k, 1, 3] + R[2, 2] * X_BS[k, 2, 3]
+        )
+        # R's unit quaternion: from its largest of trace and diagonal (Drake's
+        # RotationMatrix::ToQuaternion, simbody's), w >= 0.
+        trace = R[0, 0] + R[1, 1] + R[2, 2]
+        if trace >= R[0, 0] and trace >= R[1, 1] and trace >= R[2, 2]:
+            w = 1.0 + trace
+            x = R[2, 1] - R[1, 2]
+            y = R[0, 2] - R[2, 0]
+            z = R[1, 0] - R[0, 1]
+        elif R[0, 0] >= R[1, 1] and R[0, 0] >= R[2, 2]:
+            w = R[2, 1] - R[1, 2]
+            x = 1.0 - (trace - 2.0 * R[0, 0])
+            y = R[0, 1] + R[1, 0]
+            z = R[0, 2] + R[2, 0]
+        elif R[1, 1] >= R[2, 2]:
+            w = R[0, 2] - R[2, 0]
+            x = R[0, 1] + R[1, 0]
+            y = 1.0 - (trace - 2.0 * R[1, 1])
+            z = R[1, 2] + R[2, 1]
+        else:
+            w = R[1, 0] - R[0, 1]
+            x = R[0, 2] + R[2, 0]
+            y = R[1, 2] + R[2, 1]
+            z = 1.0 - (trace - 2.0 * R[2, 2])
+        scale = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
+        if w < 0.0:
+            scale = -scale
+        # Aligned with the sum so far (q and −q are the same rotation).
+        if qw * w + qx * x + qy * y + qz * z < 0.0:
+            scale = -scale
+        qw += scale * w
+        qx += scale * x
+        qy += scale * y
+        qz += scale * z
+    scale = 1.0 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    if qw < 0.0:
+        scale = -scale
+    qw, qx, qy, qz = scale * qw, scale * qx, scale * qy, scale * qz
+    for i in range(nq):
+        robot_state[i] = positions[i]
+    robot_state[bq] = qw
+    robot_state[bq + 1] = qx
+    robot_state[bq + 2] = qy
+    robot_state[bq + 3] = qz
+    robot_state[bq + 4] = px / soles
+    robot_state[bq + 5] = py / soles
+    robot_state[bq + 6] = pz / soles
+    # R of the estimate (of its quaternion, as Drake computes it from q).
+    R[0, 0] = 1.0 - 2.0 * (qy * qy + qz * qz)
+    R[0, 1] = 2.0 * (qx * qy - qw * qz)
+    R[0, 2] = 2.0 * (qx * qz + qw * qy)
+    R[1, 0] = 2.0 * (qx * qy + qw * qz)
+    R[1, 1] = 1.0 - 2.0 * (qx * qx + qz * qz)
+    R[1, 2] = 2.0 * (qy * qz - qw * qx)
+    R[2, 0] = 2.0 * (qx * qz - qw * qy)
+    R[2, 1] = 2.0 * (qy * qz + qw * qx)
+    R[2, 2] = 1.0 - 2.0 * (qx * qx + qy * qy)
+    # The soles do not move: Σ_k J_k,bᵀ J_k,b v_b = −Σ_k J_k,bᵀ J_k,j v_j.
+    A = work[_A:_B].reshape((6, 6))
+    b = work[_B:_JB]
+    Jb = work[_JB:_S].reshape((6, 6))
+    s = work[_S:_C]
+    c = work[_C:_R]
+    for i in range(6):
+        b[i] = 0.0
+        for j in range(6):
+            A[i, j] = 0.0
+            Jb[i, j] = 1.0 if i == j else 0.0
+    for k in range(soles):
+        # J_k,j v_j = diag(R, R) J_BS_k v_j: the joints' part in B, rotated.
+        for r in range(6):
+            total = 0.0
+            for i in range(n):
+                total += J[k, r, table[jv + i]] * v[i]
+            s[r] = total
+        for r in range(3):
+            c[r] = -(R[r, 0] * s[0] + R[r, 1] * s[1] + R[r, 2] * s[2])
+            c[3 + r] = -(R[r, 0] * s[3] + R[r, 1] * s[4] + R[r, 2] * s[5])
+        # J_k,b's lower-left block −[r_k]×, r_k = R p_BS_k.
+        x, y, z = X_BS[k, 0, 3], X_BS[k, 1, 3], X_BS[k, 2, 3]
+        r0 = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z
+        r1 = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z
+        r2 = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z
+        Jb[3, 1], Jb[3, 2] = r2, -r1
+        Jb[4, 0], Jb[4, 2] = -r2, r0
+        Jb[5, 0], Jb[5, 1] = r1, -r0
+        for i in range(6):
+            for j in range(6):
+                total = 0.0
+                for m in range(6):
+                    total += Jb[m, i] * Jb[m, j]
+                A[i, j] += total
+            total = 0.0
+            for m in range(6):
+                total += Jb[m, i] * c[m]
+            b[i] += total
+    # Cholesky, A = L Lᵀ (L in A's lower triangle), then L y = b, Lᵀ v_b = y.
+    for j in range(6):
+        total = A[j, j]
+        for m in range(j):
+            total -= A[j, m] * A[j, m]
+        A[j, j] = math.sqrt(total)
+        for i in range(j + 1, 6):
+            total = A[i, j]
+            for m in range(j):
+                total -= A[i, m] * A[j, m]
+            A[i, j] = total / A[j, j]
+    for i in range(6):
+        total = b[i]
+        for m in range(i):
+            total -= A[i, m] * b[m]
+        b[i] = total / A[i, i]
+    for i in range(5, -1, -1):
+        total = b[i]
+        for m in range(i + 1, 6):
+            total -= A[m, i] * b[m]
+        b[i] = total / A[i, i]
+    for i in range(6):
+        robot_state[nq + bv + i] = b[i]
+    for i in range(n):
+        robot_state[nq + table[jv + i]] = v[i]
 
 
 class BaseFromSolesStep(Step):
@@ -42,10 +252,15 @@ class BaseFromSolesStep(Step):
 
     State:
         robot_state (nq + nv): the robot's [q; v] in the plant's order (its
-            floating base's quaternion, position, ω and velocity in the world), at
-            the last tick.
+            floating base's quaternion [w, x, y, z] with w >= 0, position, ω and
+            velocity in the world), at the last tick.
         valid (1): 1 once a tick had finite inputs (before: the plant's default
             state with the joints at zero).
+
+    Per tick: one private context of the plant; Drake's calls: the positions, per
+    sole its pose in the base's frame (and its 4x4 matrix) and its Jacobian (7 on
+    two soles); the rest is two kernels (`base_joint_positions`, `base_from_soles`)
+    on arrays allocated once.
     """
 
     def __init__(
@@ -57,90 +272,164 @@ class BaseFromSolesStep(Step):
         """
         Args:
             plant: a finalized MultibodyPlant of the robot alone, one floating base
-                with a quaternion joint; it must outlive the step.
+                with a quaternion joint between the world and the base body's
+                frame; it must outlive the step and is never modified.
             joints: every joint of the robot, the order of the inputs q and v.
             sole_poses: each sole frame's pose in the world, X_WS (where it
                 stands; at least one sole).
 
         Raises:
-            ValueError: no sole, a plant whose joints are not all listed, a base
-                without a quaternion joint.
+            ValueError: no sole, a plant whose joints are not all listed (the
+                message names them), a plant without exactly one floating base,
+                a base without a quaternion joint.
             KeyError: an unknown joint or frame.
         """
         super().__init__()
         if not sole_poses:
-            raise ValueError(f"{_WHERE}: no sole poses")
+            raise ValueError(f"{_WHERE}: no sole poses (at least one sole is needed)")
         self._plant = plant
         self._context = plant.CreateDefaultContext()
-        self._indexing = joint_indexing(plant, joints)
-        bases = list(plant.GetFloatingBaseBodies())
-        if len(bases) != 1:
-            raise ValueError(f"{_WHERE}: the plant needs exactly one floating base")
-        base = plant.get_body(bases[0])
-        if not base.has_quaternion_dofs():
-            raise ValueError(f"{_WHERE}: the base needs a quaternion floating joint")
-        nv = plant.num_velocities()
-        if nv != 6 + self._indexing.size:
-            raise ValueError(
-                f"{_WHERE}: {self._indexing.size} joints given, the plant has "
-                f"{nv - 6}: list every joint"
-            )
-        self._base = base
+        try:
+            self._indexing = joint_indexing(plant, joints)
+            self._frames = [get_frame(plant, name, "sole frame") for name in sole_poses]
+        except KeyError as error:
+            raise KeyError(f"{_WHERE}: {error.args[0]}") from None
+        base = self._base = _floating_base(plant)
+        self._check_joints()
         self._base_frame = base.body_frame()
-        self._frames = [get_frame(plant, name, "sole frame") for name in sole_poses]
-        self._X_WS = [RigidTransform(X) for X in sole_poses.values()]
-        self._q0 = base.floating_positions_start()
-        self._v0 = base.floating_velocities_start_in_v()
-        self._nq = plant.num_positions()
-        self._J = np.zeros((6 * len(self._frames), nv))
+        self._world = plant.world_frame()
+        self._kV = JacobianWrtVariable.kV
+        ns, nv = len(self._frames), plant.num_velocities()
+        self._X_WS = np.array(
+            [RigidTransform(X).GetAsMatrix4() for X in sole_poses.values()]
+        )
+        self._X_BS = np.zeros((ns, 4, 4))
+        self._J = np.zeros((ns, 6, nv))
         self._zero3 = np.zeros(3)
+        self._work = np.zeros(_WORK)
+        self._table = self._pack()
+        # The joints' positions, the base at the identity pose (never changed; the
+        # plant's default pose of its base may be another).
+        self._positions = plant.GetPositions(self._context)
+        q0 = base.floating_positions_start()
+        self._positions[q0 : q0 + 7] = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
         self._declare("robot_state", plant.GetPositionsAndVelocities(self._context))
         self._declare("valid", [0.0])
         self._finalize()
 
+    def _pack(self) -> np.ndarray:
+        """The kernels' index table (int64; its header at the module's top)."""
+        base, indexing = self._base, self._indexing
+        header = [
+            self._plant.num_positions(),
+            indexing.size,
+            base.floating_positions_start(),
+            base.floating_velocities_start_in_v(),
+        ]
+        assert len(header) == _HEADER
+        return np.concatenate([header, indexing.q, indexing.v]).astype(np.int64)
+
+    def _check_joints(self) -> None:
+        """Every one-dof joint of the plant must be among the step's joints."""
+        plant, listed = self._plant, set(self._indexing.v.tolist())
+        missing = []
+        for index in plant.GetJointIndices():
+            joint = plant.get_joint(JointIndex(index))
+            if joint.num_velocities() == 1 and joint.velocity_start() not in listed:
+                missing.append(joint.name())
+        if missing or plant.num_velocities() != 6 + self._indexing.size:
+            raise ValueError(
+                f"{_WHERE}: {self._indexing.size} joints given, the plant has "
+                f"{plant.num_velocities() - 6}: list every joint (missing {missing})"
+            )
+
+    def warm_up(self) -> None:
+        """Compiles (or loads) the two kernels on copies of the step's arrays (the
+        inputs C-contiguous float64, as both shells pass them)."""
+        zeros = np.zeros(self._indexing.size)
+        positions = self._positions.copy()
+        base_joint_positions(zeros, zeros, positions, self._table)
+        X_BS = np.zeros_like(self._X_BS)
+        X_BS[:] = np.eye(4)
+        base_from_soles(
+            zeros,
+            self._X_WS,
+            X_BS,
+            np.zeros_like(self._J),
+            positions,
+            self._table,
+            np.zeros_like(self._work),
+            self.state[self.rows("robot_state")].copy(),
+        )
+
     def step(self, t: float, q: np.ndarray, v: np.ndarray) -> None:
         """One tick from the joint angles q (rad) and velocities v (rad/s), the
         constructor's joint order; a non-finite input keeps the last estimate."""
-        if not math.isfinite(q.sum() + v.sum()):
+        positions = self._positions
+        if not base_joint_positions(q, v, positions, self._table):
             return
-        plant, context = self._plant, self._context
-        positions = self.robot_state[: self._nq]
-        positions[self._indexing.q] = q
-        # The base at the origin: X_BS of each sole, then the base's pose per sole.
-        positions[self._q0 : self._q0 + 7] = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+        plant, context, base, world = (
+            self._plant,
+            self._context,
+            self._base_frame,
+            self._world,
+        )
+        X_BS, J, kV, zero3 = self._X_BS, self._J, self._kV, self._zero3
         plant.SetPositions(context, positions)
-        translation = np.zeros(3)
-        wxyz = np.zeros(4)
-        for frame, X_WS in zip(self._frames, self._X_WS):
-            X_BS = frame.CalcPose(context, self._base_frame)
-            X_WB = X_WS.multiply(X_BS.inverse())
-            translation += X_WB.translation()
-            quaternion = X_WB.rotation().ToQuaternion().wxyz()
-            if wxyz @ quaternion < 0.0:
-                quaternion = -quaternion
-            wxyz += quaternion
-        wxyz /= np.linalg.norm(wxyz)
-        translation /= len(self._frames)
-        X_WB = RigidTransform(RotationMatrix(Quaternion(wxyz)), translation)
-        plant.SetFreeBodyPose(context, self._base, X_WB)
-        positions[:] = plant.GetPositions(context)
-        # The soles do not move: J_b v_b = −J_j v_j, least squares.
+        # The base at the identity pose: the world is B, the Jacobian J_BS in B.
         for k, frame in enumerate(self._frames):
-            self._J[6 * k : 6 * k + 6] = plant.CalcJacobianSpatialVelocity(
-                context,
-                JacobianWrtVariable.kV,
-                frame,
-                self._zero3,
-                plant.world_frame(),
-                plant.world_frame(),
+            X_BS[k] = plant.CalcRelativeTransform(context, base, frame).GetAsMatrix4()
+            J[k] = plant.CalcJacobianSpatialVelocity(
+                context, kV, frame, zero3, world, world
             )
-        base = slice(self._v0, self._v0 + 6)
-        velocities = self.robot_state[self._nq :]
-        velocities[self._indexing.v] = v
-        velocities[base] = np.linalg.lstsq(
-            self._J[:, base], -self._J[:, self._indexing.v] @ v, rcond=None
-        )[0]
+        base_from_soles(
+            v,
+            self._X_WS,
+            X_BS,
+            J,
+            positions,
+            self._table,
+            self._work,
+            self.robot_state,
+        )
         self.valid[0] = 1.0
+
+
+def _floating_base(plant: MultibodyPlant):
+    """The plant's one floating base body, with a quaternion floating joint whose
+    positions are the body's pose in the world [w, x, y, z, p] and velocities its
+    [ω_WB; v_WBo] in the world (checked on a scratch context)."""
+    bases = list(plant.GetFloatingBaseBodies())
+    if len(bases) != 1:
+        names = sorted(plant.get_body(b).name() for b in bases)
+        raise ValueError(
+            f"{_WHERE}: the plant needs exactly one floating base body, it has "
+            f"{names or 'none (a fixed base)'}"
+        )
+    base = plant.get_body(bases[0])
+    if not base.has_quaternion_dofs():
+        raise ValueError(
+            f"{_WHERE}: the floating base '{base.name()}' needs a quaternion floating "
+            "joint"
+        )
+    context = plant.CreateDefaultContext()
+    X_WB = RigidTransform(RollPitchYaw(0.1, -0.2, 0.3), [0.4, -0.5, 0.6])
+    V_WB = SpatialVelocity(w=[0.1, 0.2, 0.3], v=[0.4, 0.5, 0.6])
+    plant.SetFreeBodyPose(context, base, X_WB)
+    plant.SetFreeBodySpatialVelocity(context, base, V_WB)
+    q0, v0 = base.floating_positions_start(), base.floating_velocities_start_in_v()
+    q = plant.GetPositions(context)[q0 : q0 + 7]
+    v = plant.GetVelocities(context)[v0 : v0 + 6]
+    expected_q = np.r_[X_WB.rotation().ToQuaternion().wxyz(), X_WB.translation()]
+    if not (
+        np.allclose(q, expected_q, rtol=0, atol=1e-15)
+        and np.allclose(v, V_WB.get_coeffs(), rtol=0, atol=1e-15)
+    ):
+        raise ValueError(
+            f"{_WHERE}: the floating base '{base.name()}''s joint must hold its pose "
+            "[w, x, y, z, p] and [ω_WB; v_WBo] in the world (no frame offsets)"
+        )
+    return base
 
 
 class FloatingBaseFromSoles(StepSystem):
@@ -161,6 +450,11 @@ class FloatingBaseFromSoles(StepSystem):
         sole_poses: dict[str, RigidTransform],
         period: float,
     ):
+        """
+        Args:
+            plant, joints, sole_poses: as `BaseFromSolesStep`'s.
+            period: the update period (s).
+        """
         super().__init__()
         step = BaseFromSolesStep(plant, joints, sole_poses)
         self._q = self.DeclareVectorInputPort("q", len(joints))
