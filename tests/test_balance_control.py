@@ -23,7 +23,7 @@ from hrp2_drake.control.balance_reference import StandingIk, leg_joints
 from hrp2_drake.control.fused import EventKind, FusedController
 from hrp2_drake.control.safety import describe_faults
 from hrp2_drake.hardware.in_process import run_in_process
-from hrp2_drake.robot.station import StationConfig, standing_positions
+from hrp2_drake.robot.station import StationConfig, make_station, standing_positions
 from hrp2_drake.simulation import add_loggers, logs_to_arrays
 from hrp2_drake.tools.ground_truth import true_motor_model
 
@@ -112,6 +112,7 @@ def test_a_qp_fault_is_an_event_and_keeps_position_control():
         )
     )
     controller.warm_up()
+    make_station(STANDING)  # its servo's and sensors' kernels, before freezing
     controller.com_ref[:] = com_reference.value(0.0).ravel()
     ticks = int(0.3 / period)
     with kernels.compile_disabled():
