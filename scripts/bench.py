@@ -29,6 +29,15 @@ Sections (all by default; pick with --only):
              right leg, observer, supervisor), p50/p99, and its ratio to Drake's
              CalcInverseDynamics on the full HRP-2 in the same run (goal <= 6;
              scripts/bench_fused.py).
+  balance    the fused controller with the balance front end (issue 29) on the
+             standing HRP-2 in closed loop (both legs, window 80, supervisor, the CoM
+             on the authors' sinusoid): the QP's solve (update + solve), the base from
+             the soles and the whole tick (tick + command), p50/p99 in µs and as
+             ratios to Drake's CalcInverseDynamics on the full HRP-2 in the same run,
+             for pydrake's OSQP (the default) and daqp (skipped with a line when not
+             installed), and what they mean at 1 kHz (1 ms a tick)
+             (scripts/bench_balance.py --closed-loop; --balance-duration, default
+             2 s simulated, torque control from 0.5 s).
   lcm        the controller over LCM in real time (fused controller, message-driven
              loop) against `hrp2-drake sim-robot` in another process, through the tcpq
              hub on 127.0.0.1 (scripts/bench_lcm.py; --lcm-duration, default 60 s):
@@ -45,6 +54,7 @@ Figures vary from run to run (2 cores, shared): compare rows of the same run.
     python scripts/bench.py [--only sim,sg] [--duration 3] [--json out/bench.json]
     python scripts/bench.py --only tick [--rounds 41]
     python scripts/bench.py --only fused
+    python scripts/bench.py --only balance [--balance-duration 2]
     python scripts/bench.py --only lcm [--lcm-duration 60]
     python scripts/bench.py --only closed_loop [--closed-loop-duration 5]
     python scripts/bench.py --only bus [--bus-cycles 2000]
@@ -391,12 +401,16 @@ def bench_tick(rounds: int = 41, ticks_per_round: int = 250) -> list[dict]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
-        "--only", default="sim,sg,estimator,control,fit,tick,fused,closed_loop,lcm,bus"
+        "--only",
+        default="sim,sg,estimator,control,fit,tick,fused,balance,closed_loop,lcm,bus",
     )
     parser.add_argument("--duration", type=float, default=3.0, help="simulated s")
     parser.add_argument("--json", type=Path, help="also write the rows here")
     parser.add_argument("--rounds", type=int, default=41, help="tick: rounds (median)")
     parser.add_argument("--lcm-duration", type=float, default=60.0, help="lcm: seconds")
+    parser.add_argument(
+        "--balance-duration", type=float, default=2.0, help="balance: simulated s"
+    )
     parser.add_argument(
         "--bus-cycles", type=int, default=2000, help="bus: cycles per bus"
     )
@@ -449,6 +463,11 @@ def main() -> int:
 
         print("fused", file=sys.stderr)
         results["fused"] = bench_fused_tick()
+    if "balance" in sections:
+        from bench_balance import closed_loop_rows
+
+        print("balance", file=sys.stderr)
+        results["balance"] = closed_loop_rows(args.balance_duration)
     if "closed_loop" in sections:
         from bench_closed_loop import bench_closed_loop
 

@@ -24,7 +24,13 @@ package daqp (the optional `qp` extra), and, only here, the pip packages proxsui
 (dense ProxQP, warm-started), osqp (its own workspace, warm-started) and quadprog
 (cold, dense). A solver not installed is skipped.
 
+With --closed-loop, the QP in its place instead: the fused balance controller on the
+simulated standing HRP-2 (`bench_closed_loop`; what `scripts/bench.py --only
+balance` reports): the QP's solve and the whole tick, per solver of pydrake's OSQP
+and daqp.
+
     python scripts/bench_balance.py [--ticks 2000] [--solvers osqp,daqp]
+    python scripts/bench_balance.py --closed-loop [--duration 2]
 """
 
 import argparse
@@ -304,24 +310,251 @@ def bench(robot, solvers, ticks):
     rnea = rnea_ns[skip:] * 1e-3
     rest = rest_ns[skip:] * 1e-3
     unit = float(np.median(rnea))
-
-    def stats(values):
-        p50, p99 = float(np.median(values)), float(np.percentile(values, 99))
-        return {"p50_us": p50, "p99_us": p99, "p50": p50 / unit, "p99": p99 / unit}
-
     rows = []
     for b, solver in enumerate(solvers):
         solve = solve_ns[b, skip:] * 1e-3
         rows.append(
             {
                 "solver": solver,
-                "solve": stats(solve),
-                "step": stats(solve + rest),
+                "solve": stats(solve, unit),
+                "step": stats(solve + rest, unit),
                 "faults": int(faults[b]),
                 "tau_gap": float(tau_gap[b]),
             }
         )
-    return rows, stats(rest), stats(base_ns[skip:] * 1e-3), stats(rnea)
+    return (
+        rows,
+        stats(rest, unit),
+        stats(base_ns[skip:] * 1e-3, unit),
+        stats(rnea, unit),
+    )
+
+
+def stats(values: np.ndarray, unit: float) -> dict[str, float]:
+    """p50 and p99 of times (µs), in µs and in `unit` (µs: CalcInverseDynamics'
+    p50 in the same run)."""
+    p50, p99 = float(np.median(values)), float(np.percentile(values, 99))
+    return {"p50_us": p50, "p99_us": p99, "p50": p50 / unit, "p99": p99 / unit}
+
+
+class TimedBackend:
+    """A step's QP backend, timed in place: `last_ns` is its last `update` +
+    `solve` (ns; the solve as `bench` times it), 0 when a tick solved nothing."""
+
+    def __init__(self, backend):
+        self.name = backend.name
+        self._backend = backend
+        self._start = 0
+        self.last_ns = 0
+
+    def update(self, qp) -> None:
+        self._start = time.perf_counter_ns()
+        self._backend.update(qp)
+
+    def solve(self):
+        result = self._backend.solve()
+        self.last_ns = time.perf_counter_ns() - self._start
+        return result
+
+
+class TimedCall:
+    """A function timed in place: `last_ns` is its last call's time (ns)."""
+
+    def __init__(self, function):
+        self._function = function
+        self.last_ns = 0
+
+    def __call__(self, *args):
+        start = time.perf_counter_ns()
+        result = self._function(*args)
+        self.last_ns = time.perf_counter_ns() - start
+        return result
+
+
+#: The closed loop's torque control starts here (s; the default start_time).
+CLOSED_LOOP_START = 0.5
+
+
+def balance_controller(solver: str, duration: float):
+    """HRP-2 standing (`StationConfig(scenario="standing")`), the default balance
+    control of both legs (window 80, torque control from 0.5 s, supervised) with
+    the QP solved by `solver`, as one fused controller; its joint reference (the
+    standing pose held) and its CoM reference per tick (the authors' sinusoid,
+    `sinusoid_com`, from 0.5 s), and the station's config."""
+    from hrp2_drake.assembly.balance import (
+        BalanceControlConfig,
+        balance_chain_parts,
+        resolved,
+    )
+    from hrp2_drake.assembly.builders import JointReference
+    from hrp2_drake.control.balance import BalanceConfig
+    from hrp2_drake.control.balance_reference import (
+        StandingIk,
+        leg_joints,
+        sinusoid_com,
+    )
+    from hrp2_drake.control.fused import FusedController
+    from hrp2_drake.robot.station import StationConfig, standing_positions
+    from hrp2_drake.tools.ground_truth import true_motor_model
+
+    station = StationConfig(scenario="standing")
+    robot = station.description()
+    period = station.sensors_config().period
+    standing = standing_positions(robot)
+    plant = robot.make_plant()
+    soles = list(robot.contacts.soles)
+    ik = StandingIk(plant, robot.joints, soles, standing)
+    reference = JointReference.hold(ik.joint_angles(standing), duration + 1.0)
+    t = np.arange(int(round(duration / period)) + 1) * period
+    com = sinusoid_com(ik.com(standing), np.maximum(t - CLOSED_LOOP_START, 0.0))
+    com[t < CLOSED_LOOP_START, 3:] = 0.0
+    config = resolved(
+        robot, BalanceControlConfig(balance=BalanceConfig(solver=solver)), period
+    )
+    motor_model = true_motor_model(robot, leg_joints(plant, robot.joints, soles))
+    parts = balance_chain_parts(
+        robot, reference, standing, motor_model, config, period=period
+    )
+    return FusedController(parts), reference, com, station
+
+
+def bench_closed_loop(solver: str, duration: float = 2.0) -> dict:
+    """The fused balance controller on the standing HRP-2 in closed loop
+    (`balance_controller`, the station simulated in the same process:
+    `run_in_process`), its QP solved by `solver`. Per tick, timed: the tick
+    (`tick` + `command`, as bench_fused times it) and, inside it, the QP's update
+    and solve (`TimedBackend`), the QP's step and the base's (`TimedCall`); then one
+    CalcInverseDynamics (gravity included) of the full floating HRP-2 (36
+    velocities) at the base's estimated state, the unit of the ratios. The ticks
+    in torque control (the supervisor's ramp done) count; the garbage collector
+    frozen and disabled, compiling frozen after `warm_up`, as in the control loop.
+    Returns the `stats` of the tick, the solve, the QP's step, the base, the rest
+    of the tick and the unit, the ticks counted and the QP faults."""
+    from pydrake.multibody.tree import MultibodyForces
+
+    from hrp2_drake import kernels
+    from hrp2_drake.hardware.in_process import run_in_process
+    from hrp2_drake.hardware.real_time import garbage_collector_frozen
+    from hrp2_drake.robot.station import make_station
+
+    controller, reference, com, station = balance_controller(solver, duration)
+    backend = controller.balance._backend = TimedBackend(controller.balance._backend)
+    base = controller.base.step = TimedCall(controller.base.step)
+    qp_step = controller.balance.step = TimedCall(controller.balance.step)
+    warm_up = controller.warm_up()
+    make_station(station)  # its servo's and sensors' kernels too, before freezing
+    plant = station.description().make_plant()
+    context = plant.CreateDefaultContext()
+    forces = MultibodyForces(plant)
+    vdot = np.full(plant.num_velocities(), 0.1)
+    ticks = len(com) - 1
+    tick_ns, solve_ns, base_ns, qp_ns, rnea_ns = np.zeros((5, ticks), np.int64)
+    active = np.zeros(ticks, bool)
+    counter = {"k": 0}
+    base_state = controller.signals()["base_state"]
+
+    def timed(step):
+        k = counter["k"]
+        controller.com_ref[:] = com[k]
+        backend.last_ns = 0
+        start = time.perf_counter_ns()
+        step()
+        middle = time.perf_counter_ns()
+        plant.SetPositionsAndVelocities(context, base_state)
+        r0 = time.perf_counter_ns()
+        plant.CalcForceElementsContribution(context, forces)
+        plant.CalcInverseDynamics(context, vdot, forces)
+        rnea_ns[k] = time.perf_counter_ns() - r0
+        tick_ns[k], solve_ns[k] = middle - start, backend.last_ns
+        base_ns[k], qp_ns[k] = base.last_ns, qp_step.last_ns
+        active[k] = controller.torque_active() >= 1.0
+        counter["k"] = k + 1
+
+    with garbage_collector_frozen(), kernels.compile_disabled():
+        run_in_process(station, controller, reference, ticks, on_tick=timed)
+    unit = float(np.median(rnea_ns[active])) * 1e-3
+    return {
+        "solver": solver,
+        "tick": stats(tick_ns[active] * 1e-3, unit),
+        "solve": stats(solve_ns[active] * 1e-3, unit),
+        "base": stats(base_ns[active] * 1e-3, unit),
+        "qp_step": stats(qp_ns[active] * 1e-3, unit),
+        "rest": stats((tick_ns - base_ns - qp_ns)[active] * 1e-3, unit),
+        "rnea": stats(rnea_ns[active] * 1e-3, unit),
+        "ticks": int(active.sum()),
+        "qp_faults": int(controller.signals()["balance_fault_count"][0]),
+        "warm_up_s": warm_up,
+    }
+
+
+#: A real robot's control period (s): HRP-2's 1 kHz.
+PERIOD_BUDGET_US = 1000.0
+
+
+def closed_loop_rows(duration: float = 2.0) -> list[dict]:
+    """`bench_closed_loop` for pydrake's OSQP (the default) and daqp (a line saying
+    it is skipped when it is not installed), as rows for scripts/bench.py; printed
+    as they come, with what they mean for a 1 kHz robot."""
+    rows = []
+
+    def say(row):
+        cells = [
+            f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
+            for k, v in row.items()
+        ]
+        print("  " + ", ".join(cells), file=sys.stderr)
+        rows.append(row)
+
+    for solver in ("osqp", "daqp"):
+        if not available(solver):
+            say(
+                {
+                    "name": f"{solver}: skipped (not installed: pip install "
+                    f"'hrp2_drake[qp]')"
+                }
+            )
+            continue
+        result = bench_closed_loop(solver, duration)
+        unit = result["rnea"]
+        say(
+            {
+                "name": f"CalcInverseDynamics, full HRP-2 ({solver} run)",
+                "p50_us": unit["p50_us"],
+                "p99_us": unit["p99_us"],
+            }
+        )
+        for what, key in (
+            ("QP solve (update + solve)", "solve"),
+            ("QP step (Drake's terms, assembly, solve, τ)", "qp_step"),
+            ("base from the soles (its step)", "base"),
+            ("the rest of the tick (filters, estimator, Δq, supervisor)", "rest"),
+            ("fused balance tick (tick + command)", "tick"),
+        ):
+            timed = result[key]
+            say({"name": f"{what}, {solver}", **timed, "ticks": result["ticks"]})
+        say(
+            {"name": meaning(solver, result["tick"])}
+            | {"qp_faults": result["qp_faults"], "warm_up_s": result["warm_up_s"]}
+        )
+    return rows
+
+
+def meaning(solver: str, tick: dict) -> str:
+    """What a tick's p50/p99 (µs) mean for a robot at 1 kHz (1 ms a tick, which
+    must also hold the link's I/O: receive, decode, publish)."""
+    p50, p99 = tick["p50_us"], tick["p99_us"]
+    budget = PERIOD_BUDGET_US
+    if p99 <= budget:
+        verdict = f"fits, {budget - p99:.0f} µs left at p99 for the link's I/O"
+    elif p50 <= budget:
+        verdict = "overruns on more than 1 % of the ticks"
+    else:
+        verdict = "overruns on most ticks"
+    return (
+        f"{solver} at 1 kHz on a real robot (1 ms a tick): p50 "
+        f"{100 * p50 / budget:.0f} %, p99 {100 * p99 / budget:.0f} % of the period: "
+        f"{verdict}; the rate its p99 allows, the I/O aside: {1e6 / p99:.0f} Hz"
+    )
 
 
 def available(solver):
@@ -346,7 +579,16 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--ticks", type=int, default=2000)
     parser.add_argument("--solvers", default=",".join(DRAKE_AND_OPTIONAL + BENCH_ONLY))
+    parser.add_argument(
+        "--closed-loop", action="store_true", help="the QP in the fused controller"
+    )
+    parser.add_argument(
+        "--duration", type=float, default=2.0, help="closed loop: simulated s"
+    )
     args = parser.parse_args()
+    if args.closed_loop:
+        closed_loop_rows(args.duration)
+        return 0
     robot = load_robot_description("hrp2")
     solvers = [s for s in args.solvers.split(",") if available(s)]
     rows, rest, base, rnea = bench(robot, solvers, args.ticks)

@@ -354,6 +354,35 @@ def test_the_compiled_kernels_equal_their_python_source(robot, standing):
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * np.abs(a).max())
 
 
+def test_warm_up_compiles_the_signatures_of_a_tick(robot, standing, monkeypatch):
+    """warm_up calls each kernel with arrays of the types and layouts a tick passes
+    (Drake's column-major mass matrix is copied into the step's own): a fused
+    loop, compiling frozen after warm_up, never meets a new signature. The
+    signatures are compared, not compiled: another test may have compiled them."""
+    import numba
+
+    from hrp2_drake.control import balance
+
+    seen = {"warm_up": set(), "tick": set()}
+    phase = ["warm_up"]
+    for name in ("balance_assemble", "balance_outputs"):
+        kernel = getattr(balance, name)
+
+        def typed(*args, kernel=kernel, name=name):
+            seen[phase[0]].add((name, tuple(numba.typeof(a) for a in args)))
+            return kernel(*args)
+
+        monkeypatch.setattr(balance, name, typed)
+    plant, x, _ = standing
+    step = BalanceStep(plant, BalanceConfig(joints=robot.joints), robot.contacts)
+    step.warm_up()
+    phase[0] = "tick"
+    for x, ref in perturbed_states(standing, 2, seed=5):
+        assert step.step(0.0, x, robot.home_positions(), ref) == BalanceFault.NONE
+    assert len(seen["tick"]) == 2  # one signature per kernel
+    assert seen["tick"] <= seen["warm_up"]
+
+
 def test_daqp_solves_the_same_qp_and_reports_infeasibility(robot, standing, step):
     """The optional solver (the `qp` extra): the same τ as OSQP's on perturbed
     states (to 1e-3 N·m: OSQP's tolerance on a cost that is flat in the forces'

@@ -20,13 +20,17 @@ the soles, `FloatingBaseFromSoles`), never from the plant. A QP fault (infeasibl
 failed, a non-finite input) is a fallback the supervisor ramps to position control
 on the reference, the inverse kinematics' pose, which is the position-controlled
 baseline's whole command.
+
+With `fused=True` the same chain, the base from the soles and the QP included, is one
+`FusedTorqueController` (the real-time path, `control/fused.py`): the same signals
+(tests/test_balance_control.py); `balance_chain_parts` is what both are built from.
 """
 
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 from pydrake.math import RigidTransform
-from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort
 from pydrake.systems.primitives import Adder, TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
@@ -49,6 +53,12 @@ from hrp2_drake.assembly.builders import (
 from hrp2_drake.assembly.torque_control import TorqueControlConfig
 from hrp2_drake.control.balance import BalanceConfig, WholeBodyBalanceController
 from hrp2_drake.control.balance_reference import leg_joints
+from hrp2_drake.control.fused import (
+    BALANCE_SIGNALS,
+    BalanceParts,
+    FusedTorqueController,
+    TorqueChainParts,
+)
 from hrp2_drake.control.torque_controller import DeltaQTorqueController
 from hrp2_drake.description import RobotDescription
 from hrp2_drake.estimation.base_kinematics import FloatingBaseFromSoles
@@ -154,6 +164,38 @@ def sole_poses(robot: RobotDescription, positions: np.ndarray) -> dict:
     }
 
 
+def balance_chain_parts(
+    robot: RobotDescription,
+    reference: JointReference,
+    standing: np.ndarray,
+    motor_model: MotorModel,
+    config: BalanceControlConfig,
+    *,
+    period: float,
+) -> TorqueChainParts:
+    """The models and configs of the balance control of `config` on `robot` (the
+    torque chain's, `torque_chain_parts`, with its balance front end): what both the
+    separate systems and the fused controller are built from.
+
+    Args:
+        robot, reference, standing, motor_model: as `build_balance_control`'s.
+        config: the balance control, resolved (`resolved`) and validated.
+        period: the control period (s).
+    """
+    parts = torque_chain_parts(
+        robot, reference, motor_model, config.torque, period=period
+    )
+    return replace(
+        parts,
+        balance=BalanceParts(
+            plant=robot_model(robot),
+            config=config.balance,
+            contacts=robot.contacts,
+            sole_poses=sole_poses(robot, standing),
+        ),
+    )
+
+
 def build_balance_control(
     robot: RobotDescription,
     station: Diagram,
@@ -164,6 +206,7 @@ def build_balance_control(
     config: BalanceControlConfig,
     *,
     control_period: float,
+    fused: bool = False,
 ) -> ControlDiagram:
     """Station + estimation chain + base from the soles + balance QP + Δq torque
     control of the legs (module docstring).
@@ -180,6 +223,9 @@ def build_balance_control(
         motor_model: the controller's model of the actuators (at least the legs).
         config: the balance control (`resolved` fills its joints and periods).
         control_period: the robot's sensor period (s).
+        fused: the whole chain, the base and the QP included, as one
+            `FusedTorqueController` (the real-time path; the same signals,
+            tests/test_balance_control.py) instead of its separate systems.
     """
     config = resolved(robot, config, control_period)
     config.validate()
@@ -188,23 +234,74 @@ def build_balance_control(
             f"build_balance_control: com_reference has {com_reference.rows()} rows, "
             "expected 9 (position, velocity, acceleration)"
         )
-    parts = torque_chain_parts(
-        robot, reference, motor_model, config.torque, period=control_period
+    parts = balance_chain_parts(
+        robot, reference, standing, motor_model, config, period=control_period
     )
     builder = DiagramBuilder()
     station = _add_station(builder, robot, station)
     blocks = _add_reference(builder, reference, len(parts.all_joints))
+    com_source = builder.AddNamedSystem(
+        "com_reference", TrajectorySource(borrowed(com_reference))
+    )
+    com_ref = com_source.get_output_port()
+    build = _add_fused_balance if fused else _add_separate_balance
+    ports = build(builder, station, parts, blocks, com_ref)
+    builder.Connect(ports["q_cmd"], station.GetInputPort("q_cmd"))
+    ports |= {"com_ref": com_ref, "q_ref": blocks["q_ref"]}
+    ports = _station_ports(station, robot) | ports
+    return _build(builder, station, ports, reference)
+
+
+#: The balance diagram's signals besides the station's, q_cmd, the supervisor's,
+#: com_ref and q_ref: the chain's, the base's and the QP's (`BALANCE_SIGNALS`).
+_SIGNALS = (
+    "tau_estimated",
+    "tau_desired",
+    "delta_q",
+    "fallback_active",
+    "sensor_fault",
+    "base_state",
+    *(f"balance_{name}" for name in BALANCE_SIGNALS),
+    *COMPONENTS,
+)
+
+
+def _add_fused_balance(
+    builder, station, parts, blocks, com_ref
+) -> dict[str, OutputPort]:
+    """The chain, the base and the QP as one `FusedTorqueController`."""
+    fused = builder.AddNamedSystem("fused_controller", FusedTorqueController(parts))
+    for k in range(fused.num_input_ports()):
+        port = fused.get_input_port(k)
+        name = port.get_name()
+        if name in blocks:
+            builder.Connect(blocks[name], port)
+        elif name == "com_ref":
+            builder.Connect(com_ref, port)
+        else:
+            builder.Connect(station.GetOutputPort(name), port)
+    names = ["q_cmd", *_SIGNALS]
+    if parts.supervisor is not None:
+        names += [f"supervisor_{name}" for name in ("mode", "fault", "transition")]
+    return {name: fused.GetOutputPort(name) for name in names}
+
+
+def _add_separate_balance(
+    builder, station, parts, blocks, com_ref
+) -> dict[str, OutputPort]:
+    """The chain, the base and the QP as separate LeafSystems (the module
+    docstring's diagram)."""
     chain = add_estimator(
         builder, station, parts.estimator_plant, parts.estimator_config
     )
-    model = robot_model(robot)
+    balance_parts = parts.balance
     base = builder.AddNamedSystem(
         "base_from_soles",
         FloatingBaseFromSoles(
-            model,
-            list(robot.joints),
-            sole_poses(robot, standing),
-            control_period,
+            balance_parts.plant,
+            list(parts.all_joints),
+            balance_parts.sole_poses,
+            parts.period,
         ),
     )
     builder.Connect(station.GetOutputPort("q_measured"), base.GetInputPort("q"))
@@ -212,14 +309,14 @@ def build_balance_control(
         chain.encoder_filter.GetOutputPort("derivative"), base.GetInputPort("v")
     )
     balance = builder.AddNamedSystem(
-        "balance", WholeBodyBalanceController(model, config.balance, robot.contacts)
-    )
-    com_source = builder.AddNamedSystem(
-        "com_reference", TrajectorySource(borrowed(com_reference))
+        "balance",
+        WholeBodyBalanceController(
+            balance_parts.plant, balance_parts.config, balance_parts.contacts
+        ),
     )
     builder.Connect(base.GetOutputPort("state"), balance.GetInputPort("state"))
     builder.Connect(blocks["q_ref"], balance.GetInputPort("q_ref"))
-    builder.Connect(com_source.get_output_port(), balance.GetInputPort("com_ref"))
+    builder.Connect(com_ref, balance.GetInputPort("com_ref"))
 
     selected = _add_controlled_signals(builder, station, chain, parts, blocks)
     predictor, v_estimate, torque_estimate = _add_delay_predictor(
@@ -252,7 +349,6 @@ def build_balance_control(
     ports = _add_command(
         builder, station, parts, blocks, torque, fallback.get_output_port()
     )
-    builder.Connect(ports["q_cmd"], station.GetInputPort("q_cmd"))
     ports |= {
         "tau_estimated": chain.estimator.GetOutputPort("tau"),
         "tau_desired": balance.GetOutputPort("tau_desired"),
@@ -260,11 +356,7 @@ def build_balance_control(
         "fallback_active": torque.GetOutputPort("fallback_active"),
         "sensor_fault": chain.input_fault,
         "base_state": base.GetOutputPort("state"),
-        "com_ref": com_source.get_output_port(),
-        "q_ref": blocks["q_ref"],
     }
-    for name in ("com", "sole_wrenches", "contact_forces", "fault", "fault_count"):
+    for name in BALANCE_SIGNALS:
         ports[f"balance_{name}"] = balance.GetOutputPort(name)
-    ports |= {name: torque.GetOutputPort(name) for name in COMPONENTS}
-    ports = _station_ports(station, robot) | ports
-    return _build(builder, station, ports, reference)
+    return ports | {name: torque.GetOutputPort(name) for name in COMPONENTS}

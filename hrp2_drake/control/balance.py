@@ -815,7 +815,10 @@ class BalanceStep(Step):
         qp, nv = self.qp, self._nv
         kV, world = JacobianWrtVariable.kV, self._world
         plant.SetPositionsAndVelocities(context, self._x)
-        self._M = M = plant.CalcMassMatrix(context)
+        # Into the step's own C-ordered M (Drake returns a column-major one): the
+        # kernels see the array types `warm_up` compiled them for.
+        M = self._M
+        M[:] = plant.CalcMassMatrix(context)
         h = plant.CalcBiasTerm(context)
         h -= plant.CalcGravityGeneralizedForces(context)
         self._h = h

@@ -12,6 +12,11 @@ module runs the same step objects in sequence:
 - `FusedTorqueController`: the same as one LeafSystem (one discrete update per period,
   one state vector), `build_torque_control(..., fused=True)`.
 
+With a balance front end (`BalanceParts`, issue 29: `build_balance_control(...,
+fused=True)`), the base from the soles' kinematics and the whole-body QP with
+contacts take the inverse dynamics' place: the QP's τ* of the controlled joints feeds
+the Δq controller, and a QP fault is a controller fallback for the supervisor.
+
 Timing is the diagram's, exactly: there every system's outputs are its discrete state,
 so a system reads what its upstream systems computed one period earlier. Here each
 tick first copies the whole state (`_previous`) and every step reads its upstream
@@ -23,9 +28,11 @@ as they are now. The two shells give the same signals to 1e-12 (tests/test_fused
     q_measured ─► SG order 2 ─► q̂, q̂̇, q̂̈ ──────────────┐
     imu, wrenches ─► SG order 1 ─► values, gyro rate ──► estimator ─► τ̂, f̂
     q_ref, v_ref, vdot_ref, f_ref ─► inverse dynamics (eq. 12) ─► τ_d ─┐
+      or, with balance: q_measured, q̂̇ ─► base from the soles ─► [q; v] ─┐  │
+                        q_ref, com_ref ─► balance QP ─► τ* (controlled) ─┴──┤
                         τ̂ (or predicted), q̂̇ ─► Δq controller (eq. 10-11) ─► q_cmd
-                              observer d̂ ─┘           │
-                                supervisor (faults, ramps) ◄──┘ ─► q_cmd to the servo
+                              observer d̂ ─┘           │       (QP fault ─┐)
+                                supervisor (faults, ramps) ◄──┘◄─────────┘ ─► q_cmd
 """
 
 import time
@@ -33,9 +40,11 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 
 import numpy as np
+from pydrake.math import RigidTransform
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.framework import BasicVector, Context, DiscreteValues
 
+from hrp2_drake.control.balance import BalanceConfig, BalanceStep
 from hrp2_drake.control.disturbance_observer import (
     DisturbanceObserverConfig,
     DisturbanceObserverStep,
@@ -53,6 +62,8 @@ from hrp2_drake.control.torque_controller import (
     TorqueControllerConfig,
 )
 from hrp2_drake.description import RobotDescription
+from hrp2_drake.description.contacts import ContactsDescription
+from hrp2_drake.estimation.base_kinematics import BaseFromSolesStep
 from hrp2_drake.estimation.estimator_config import TorqueEstimatorConfig, filter_windows
 from hrp2_drake.estimation.estimator_step import TorqueEstimatorStep
 from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayStep
@@ -60,14 +71,21 @@ from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.simulation import WitnessFreeLeafSystem
 from hrp2_drake.step import Step
 
+#: The balance QP's signals among the fused controller's (`balance_<name>`), as
+#: `build_balance_control` exports them.
+BALANCE_SIGNALS = ("com", "sole_wrenches", "contact_forces", "fault", "fault_count")
+
 
 class EventKind(IntEnum):
     """What the fused controller records of a tick's events (`FusedController.events`,
-    column 1); the code in column 2 is a `FallbackReason` or the supervisor's fault
-    bits (`control.safety.describe_faults`)."""
+    column 1); the code in column 2 is a `FallbackReason`, the supervisor's fault
+    bits (`control.safety.describe_faults`) or a `control.balance.BalanceFault`.
+    Each is recorded when it starts (a balance fault also when its kind changes),
+    not at every tick it lasts."""
 
     CONTROLLER_FALLBACK = 1
     SUPERVISOR_FAULT = 2
+    BALANCE_FAULT = 3
 
 
 @dataclass(frozen=True)
@@ -209,6 +227,28 @@ class SupervisorParts:
     num_stamps: int
 
 
+@dataclass(frozen=True)
+class BalanceParts:
+    """The balance front end of the chain (issue 29): the floating base's state from
+    the soles' kinematics (`BaseFromSolesStep`) and the whole-body QP with contacts
+    (`BalanceStep`), in the inverse dynamics' place.
+
+    Args:
+        plant: the robot alone with its floating base (the QP's and the base
+            estimate's model; both steps share it, each with its own context).
+        config: the QP; its joints are every joint of the robot, in its order.
+        contacts: the soles' rectangles and the ground's friction (the
+            description's `contacts`).
+        sole_poses: each sole frame's pose in the world where it stands (X_WS): the
+            anchors of the base's estimate.
+    """
+
+    plant: MultibodyPlant
+    config: BalanceConfig
+    contacts: ContactsDescription
+    sole_poses: dict[str, RigidTransform]
+
+
 @dataclass
 class TorqueChainParts:
     """Everything the torque-control chain is made of, as data: the models and configs
@@ -228,6 +268,11 @@ class TorqueChainParts:
         position_source: "encoders" or "estimate" (q of eq. 12).
         feedback_velocity, friction_velocity: "estimate" or "reference".
         force_sensor: the F/T sensor whose f̂ feeds the force task ("" = none).
+        period: the control period (s).
+        balance: the balance front end, or None: the inverse dynamics (id_plant,
+            id_config) gives τ_d. With it, the QP's τ* of `joints` does, and
+            id_plant, id_config, position_source, feedback_velocity and
+            force_sensor are unused.
     """
 
     all_joints: list[str]
@@ -246,6 +291,7 @@ class TorqueChainParts:
     friction_velocity: str = "reference"
     force_sensor: str = ""
     period: float = field(default=0.001)
+    balance: BalanceParts | None = None
 
 
 def _start_in(array: np.ndarray, view: np.ndarray) -> int:
@@ -264,7 +310,9 @@ class FusedController:
     sensor_time (the time of each signal's latest sample, if supervised)] as the
     station outputs them, its rows named by `layout` (views: `q_measured`,
     `sensor_values`, `sensor_time`, `q_measured_time`); the reference `q_ref`, `v_ref`,
-    `vdot_ref` (N each) at t, and `f_ref` (6) with a force task.
+    `vdot_ref` (N each) at t, `f_ref` (6) with a force task, and `com_ref` (9: the
+    CoM's position, velocity and acceleration in the world, m, m/s, m/s²) with a
+    balance front end.
 
     After a tick, `command(q_ref, out)` is the position command for the servo, and the
     steps' state arrays hold every signal the diagram logs (`signals()`).
@@ -282,6 +330,17 @@ class FusedController:
             raise ValueError(
                 "FusedController: the estimator's joints must be the robot's joints, "
                 "in its order"
+            )
+        balance = parts.balance
+        if balance is not None and list(balance.config.joints) != list(all_joints):
+            raise ValueError(
+                "FusedController: the balance QP's joints must be the robot's joints, "
+                "in its order"
+            )
+        if balance is not None and parts.force_sensor:
+            raise ValueError(
+                "FusedController: a force task and a balance QP (it has its own "
+                "contact forces)"
             )
         #: The rows of `sensor_buffer`, for every shell that fills it.
         self.layout = ControllerLayout(
@@ -330,7 +389,16 @@ class FusedController:
             else None
         )
         self.estimator = TorqueEstimatorStep(parts.estimator_plant, econfig)
-        self.inverse_dynamics = InverseDynamicsStep(parts.id_plant, parts.id_config)
+        balance = parts.balance
+        # τ_d: the inverse dynamics, or the base from the soles and the balance QP.
+        self.inverse_dynamics = self.base = self.balance = None
+        if balance is None:
+            self.inverse_dynamics = InverseDynamicsStep(parts.id_plant, parts.id_config)
+        else:
+            self.base = BaseFromSolesStep(
+                balance.plant, list(parts.all_joints), balance.sole_poses
+            )
+            self.balance = BalanceStep(balance.plant, balance.config, balance.contacts)
         self.torque = DeltaQTorqueStep(parts.controller_model, parts.controller_config)
         observer = parts.observer
         self.observer = (
@@ -360,6 +428,8 @@ class FusedController:
             ("sensor_filter", self.sensor_filter),
             ("estimator", self.estimator),
             ("inverse_dynamics", self.inverse_dynamics),
+            ("base", self.base),
+            ("balance", self.balance),
             ("torque", self.torque),
             ("observer", self.observer),
             ("predictor", self.predictor),
@@ -382,10 +452,11 @@ class FusedController:
         layout = self.layout
         # Everything a tick reads, in one buffer (`_sources`): the state at the start
         # of the tick (`_previous`), the station's signals (`sensor_buffer`, rows:
-        # `layout`), q_ref, v_ref, vdot_ref, f_ref, and six zeros (no force reading),
-        # so that `take`s with precomputed rows select the controlled joints' inputs
-        # (`_make_gathers`).
-        sizes = [self.state.size, layout.size, N, N, N, 6, 6]
+        # `layout`), q_ref, v_ref, vdot_ref, f_ref, com_ref (with balance), and six
+        # zeros (no force reading), so that `take`s with precomputed rows select the
+        # controlled joints' inputs (`_make_gathers`).
+        com_ref = 9 if self.balance is not None else 0
+        sizes = [self.state.size, layout.size, N, N, N, 6, com_ref, 6]
         self._sources = np.zeros(sum(sizes))
         ends = np.cumsum(sizes)
         (
@@ -395,20 +466,29 @@ class FusedController:
             self.v_ref,
             self.vdot_ref,
             self.f_ref,
+            self.com_ref,
             self._no_force,
         ) = (self._sources[end - size : end] for size, end in zip(sizes, ends))
         self.q_measured = self.sensor_buffer[layout.q_measured]
         self.sensor_values = self.sensor_buffer[layout.values]
         self.sensor_time = self.sensor_buffer[layout.stamps]
         self.q_measured_time = self.sensor_buffer[layout.q_measured_stamp]
-        # Selections of the controlled joints, previous and now (`_make_gathers`).
+        # Selections of the controlled joints, previous and now (`_make_gathers`);
+        # with balance, also the reference's and the QP's τ* (no inverse dynamics'
+        # inputs to take them from).
         names = ("q_measured", "q_hat", "v_hat", "vdot_hat", "tau_hat")
+        if self.balance is not None:
+            names += ("q_ref", "v_ref", "tau_star")
         self._gathered = np.zeros(len(names) * n)
         self._selected = {
             name: self._gathered[i * n : (i + 1) * n] for i, name in enumerate(names)
         }
         self._merged = np.zeros(N)
         self._fault = np.zeros(1)
+        # The supervisor's controller fallback with balance: the Δq controller's plus
+        # the QP's fault code, at the start of the tick and after it (`command`).
+        self._controller_fallback = np.zeros(1)
+        self._command_fallback = np.zeros(1)
         self._no_fault = np.zeros(1)  # the sensor filter's fault without one
 
     def _previous_view(self, step_name: str, array_name: str) -> np.ndarray:
@@ -454,7 +534,21 @@ class FusedController:
             if self.parts.force_sensor
             else None
         )
-        self._p_tau_desired = p("inverse_dynamics", "tau_desired")
+        self._p_q_cmd_controlled = p("torque", "q_cmd")
+        self._p_delta_q = p("torque", "delta_q")
+        self._p_fallback = p("torque", "fallback_active")
+        self._p_disturbance = p("observer", "disturbance") if self.observer else None
+        if self.predictor is not None:
+            self._p_v_predicted = p("predictor", "v_predicted")
+            self._p_tau_predicted = p("predictor", "tau_predicted")
+        if self.balance is None:
+            self._wire_inverse_dynamics()
+        else:
+            self._wire_balance()
+
+    def _wire_inverse_dynamics(self) -> None:
+        """τ_d and its terms (the Δq controller's inputs): the inverse dynamics'."""
+        self._p_tau_desired = self._previous_view("inverse_dynamics", "tau_desired")
         rows = [self.inverse_dynamics.rows(name) for name in TORQUE_COMPONENTS]
         start = self._offsets["inverse_dynamics"]
         contiguous = all(a.stop == b.start for a, b in zip(rows, rows[1:]))
@@ -463,13 +557,20 @@ class FusedController:
         self._p_terms = self._previous[
             start + rows[0].start : start + rows[-1].stop
         ].reshape(len(TORQUE_COMPONENTS), self._n)
-        self._p_q_cmd_controlled = p("torque", "q_cmd")
-        self._p_delta_q = p("torque", "delta_q")
-        self._p_fallback = p("torque", "fallback_active")
-        self._p_disturbance = p("observer", "disturbance") if self.observer else None
-        if self.predictor is not None:
-            self._p_v_predicted = p("predictor", "v_predicted")
-            self._p_tau_predicted = p("predictor", "tau_predicted")
+        self._supervisor_fallback = self._p_fallback
+
+    def _wire_balance(self) -> None:
+        """The balance front end's inputs: the base's state, the QP's τ* (all
+        joints; `_make_gathers` selects the controlled ones) and fault code. The Δq
+        controller gets τ* alone (no terms: τ_ff = τ*, as in the separate diagram),
+        the supervisor the sum of the two fallbacks (the separate diagram's
+        Adder)."""
+        p = self._previous_view
+        self._p_robot_state = p("base", "robot_state")
+        self._p_balance_tau = p("balance", "tau_desired")
+        self._p_balance_fault = p("balance", "fault")
+        self._p_terms = None
+        self._supervisor_fallback = self._controller_fallback
 
     def _source_rows(self, view: np.ndarray) -> np.ndarray:
         """The rows of `_sources` that a view on it covers."""
@@ -477,18 +578,45 @@ class FusedController:
         return np.arange(start, start + view.size)
 
     def _make_gathers(self) -> None:
-        """The two selections of a tick, as row indices into `_sources`: the inverse
+        """The selections of a tick, as row indices into `_sources`: the inverse
         dynamics' inputs, straight into its `inputs` ([q_ref; v_ref; vdot_ref;
         position; velocity (; f_ref; f̂)], controlled joints), and `_gathered`
-        ([q_measured; q̂; q̂̇; q̂̈; τ̂], controlled joints); and the views the steps
-        read them from."""
+        ([q_measured; q̂; q̂̇; q̂̈; τ̂ (; q_ref; v_ref; τ*)], controlled joints); and
+        the views the steps read them from."""
         rows, index, sel = self._source_rows, self._index, self._selected
-        parts = self.parts
+        gathered = [
+            self.q_measured,
+            self._p_q_hat,
+            self._p_v_hat,
+            self._p_vdot_hat,
+            self._p_tau,
+        ]
         if self.predictor is not None:
             v_estimate, tau_estimate = self._p_v_predicted, self._p_tau_predicted
-            v_estimate_rows = rows(v_estimate)
         else:
             v_estimate, tau_estimate = sel["v_hat"], sel["tau_hat"]
+        self._tau_estimate = tau_estimate
+        if self.balance is None:
+            q_ref, v_ref = self._gather_inverse_dynamics()
+        else:
+            gathered += [self.q_ref, self.v_ref, self._p_balance_tau]
+            q_ref, v_ref = sel["q_ref"], sel["v_ref"]
+            self._tau_desired = sel["tau_star"]
+        # In the order of `_gathered`'s names (`_make_buffers`).
+        self._gather = np.concatenate([rows(view)[index] for view in gathered])
+        # What the Δq controller reads besides: q_ref, τ̂ and the friction's q̂̇.
+        self._q_ref_controlled = q_ref
+        friction = {"estimate": v_estimate, "reference": v_ref}
+        self._v_friction = friction[self.parts.friction_velocity]
+
+    def _gather_inverse_dynamics(self) -> tuple[np.ndarray, np.ndarray]:
+        """The inverse dynamics' inputs as rows of `_sources` (`_make_gathers`);
+        returns the views of q_ref and v_ref (controlled joints) among them."""
+        rows, index = self._source_rows, self._index
+        parts = self.parts
+        if self.predictor is not None:
+            v_estimate_rows = rows(self._p_v_predicted)
+        else:
             v_estimate_rows = rows(self._p_v_hat)[index]
         velocity = {"estimate": v_estimate_rows, "reference": rows(self.v_ref)[index]}
         encoders = parts.position_source == "encoders"
@@ -508,20 +636,8 @@ class FusedController:
         self._id_gather = np.concatenate(id_rows)
         self._id_inputs = self.inverse_dynamics.inputs
         self._id_rows = self.inverse_dynamics.input_rows
-        # In the order of `_gathered`'s names (`_make_buffers`).
-        gathered = [
-            self.q_measured,
-            self._p_q_hat,
-            self._p_v_hat,
-            self._p_vdot_hat,
-            self._p_tau,
-        ]
-        self._gather = np.concatenate([rows(view)[index] for view in gathered])
-        # What the Δq controller reads besides: q_ref, τ̂ and the friction's q̂̇.
-        self._q_ref_controlled = self._id_rows[0]
-        self._tau_estimate = tau_estimate
-        friction = {"estimate": v_estimate, "reference": self._id_rows[1]}
-        self._v_friction = friction[parts.friction_velocity]
+        self._tau_desired = self._p_tau_desired
+        return self._id_rows[0], self._id_rows[1]
 
     # ------------------------------------------------------------------ ticks
 
@@ -559,11 +675,13 @@ class FusedController:
 
     def tick(self, t: float) -> None:
         """One control period at time t (s) from the current `sensor_buffer` and
-        reference buffers (q_ref, v_ref, vdot_ref, f_ref)."""
+        reference buffers (q_ref, v_ref, vdot_ref, f_ref; com_ref with balance)."""
         np.copyto(self._previous, self.state)
-        # Every selection of the controlled joints, now and previous: two takes.
+        # Every selection of the controlled joints, now and previous: two takes
+        # (one with balance).
         sources = self._sources
-        sources.take(self._id_gather, 0, self._id_inputs, "clip")
+        if self.balance is None:
+            sources.take(self._id_gather, 0, self._id_inputs, "clip")
         sources.take(self._gather, 0, self._gathered, "clip")
         sel = self._selected
         q_measured, v_hat, tau_hat = sel["q_measured"], sel["v_hat"], sel["tau_hat"]
@@ -581,14 +699,17 @@ class FusedController:
             self._p_alpha,
             self._p_wrenches,
         )
-        # Eq. 12 from its input rows, filled in place by the take above.
-        self.inverse_dynamics.step(t, *self._id_rows)
+        if self.balance is None:
+            # Eq. 12 from its input rows, filled in place by the take above.
+            self.inverse_dynamics.step(t, *self._id_rows)
+        else:
+            self._balance_tick(t)
         fault = self._fault
         fault[0] = self._p_encoder_fault[0] + self._p_sensor_fault[0]
         q_ref = self._q_ref_controlled
         reason = self.torque.step(
             t,
-            self._p_tau_desired,
+            self._tau_desired,
             self._tau_estimate,
             self._v_friction,
             q_measured,
@@ -614,11 +735,22 @@ class FusedController:
                 self.q_measured,
                 self.sensor_values,
                 None,
-                self._p_fallback,
+                self._supervisor_fallback,
                 self.sensor_time,
             )
             if bits:
                 self._record(t, EventKind.SUPERVISOR_FAULT, bits)
+
+    def _balance_tick(self, t: float) -> None:
+        """The balance front end's part of a tick: the base from the soles (the
+        encoders now, q̂̇ of the previous tick), the QP (the base's previous state,
+        q_ref and com_ref now), and the supervisor's controller fallback: the Δq
+        controller's plus the QP's fault code, both of the previous tick."""
+        self.base.step(t, self.q_measured, self._p_v_hat)
+        code = self.balance.step(t, self._p_robot_state, self.q_ref, self.com_ref)
+        if code and code != self._p_balance_fault[0]:
+            self._record(t, EventKind.BALANCE_FAULT, code)
+        self._controller_fallback[0] = self._p_fallback[0] + self._p_balance_fault[0]
 
     def command(self, q_ref: np.ndarray, out: np.ndarray) -> np.ndarray:
         """The position command for the servo (all joints) after a tick, with the
@@ -628,8 +760,12 @@ class FusedController:
         merged[self._index] = self.torque.q_cmd
         if self.supervisor is None:
             out[:] = merged
-        else:
-            self.supervisor.q_cmd(merged, q_ref, self.torque.fallback_active, out)
+            return out
+        fallback = self.torque.fallback_active
+        if self.balance is not None:
+            fallback = self._command_fallback
+            fallback[0] = self.torque.fallback_active[0] + self.balance.fault[0]
+        self.supervisor.q_cmd(merged, q_ref, fallback, out)
         return out
 
     def _record(self, t: float, kind: int, code: int) -> None:
@@ -656,13 +792,22 @@ class FusedController:
 
     def signals(self) -> dict[str, np.ndarray]:
         """The logged signals (views on the state): the names of
-        `build_torque_control`'s output ports."""
+        `build_torque_control`'s output ports (with balance, `build_balance_control`'s:
+        tau_desired is the QP's, of every joint; base_state, balance_com,
+        balance_sole_wrenches, balance_contact_forces, balance_fault,
+        balance_fault_count)."""
+        balance = self.balance
+        tau_desired = self.inverse_dynamics if balance is None else balance
         out = {
             "tau_estimated": self.estimator.tau,
-            "tau_desired": self.inverse_dynamics.tau_desired,
+            "tau_desired": tau_desired.tau_desired,
             "delta_q": self.torque.delta_q,
             "fallback_active": self.torque.fallback_active,
         }
+        if balance is not None:
+            out["base_state"] = self.base.robot_state
+            for name in BALANCE_SIGNALS:
+                out[f"balance_{name}"] = getattr(balance, name)
         for name in self.layout.sensor_names:
             wrench = f"external_wrench_{name}"
             out[wrench] = getattr(self.estimator, wrench)
@@ -675,7 +820,8 @@ class FusedController:
 
 
 class FusedTorqueController(WitnessFreeLeafSystem):
-    """The fused controller as one LeafSystem (`build_torque_control(..., fused=True)`).
+    """The fused controller as one LeafSystem (`build_torque_control(..., fused=True)`,
+    `build_balance_control(..., fused=True)`).
 
     .. code-block:: text
 
@@ -687,7 +833,11 @@ class FusedTorqueController(WitnessFreeLeafSystem):
         sensor_time ────────────►│                       ├──► external_wrench_<s>
         q_ref, v_ref, vdot_ref ─►│                       ├──► the six Δq components
         f_ref (force task) ─────►│                       ├──► supervisor_mode, _fault,
-                                 └───────────────────────┘    _transition (supervised)
+        com_ref (balance) ──────►│                       │    _transition (supervised)
+                                 │                       ├──► base_state, balance_com,
+                                 │                       │    _sole_wrenches,
+                                 │                       │    _contact_forces, _fault,
+                                 └───────────────────────┘    _fault_count (balance)
 
     One discrete state vector (`FusedController.state`) and one periodic update that
     runs every step; the outputs are slices of that state (no direct feedthrough),
@@ -719,6 +869,9 @@ class FusedTorqueController(WitnessFreeLeafSystem):
         ]
         self._f_ref = (
             self.DeclareVectorInputPort("f_ref", 6) if parts.force_sensor else None
+        )
+        self._com_ref = (
+            self.DeclareVectorInputPort("com_ref", 9) if parts.balance else None
         )
         self._group = int(self.DeclareDiscreteState(fused.state.copy()))
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
@@ -774,6 +927,8 @@ class FusedTorqueController(WitnessFreeLeafSystem):
             buffer[:] = port.Eval(context)
         if self._f_ref is not None:
             fused.f_ref[:] = self._f_ref.Eval(context)
+        if self._com_ref is not None:
+            fused.com_ref[:] = self._com_ref.Eval(context)
 
     def _initialize(self, context: Context, state: DiscreteValues) -> None:
         fused = self._fused

@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hrp2_drake import kernels
+from hrp2_drake.control.balance import BALANCE_FAULTS
 from hrp2_drake.control.fused import EventKind, FusedController
 from hrp2_drake.control.safety import describe_faults
 from hrp2_drake.control.torque_controller import FALLBACK_REASONS
@@ -336,6 +337,14 @@ class ControlLoop:
                         "t": t,
                         "what": "supervisor fault",
                         "reason": describe_faults(code),
+                    }
+                )
+            elif kind == EventKind.BALANCE_FAULT:
+                events.append(
+                    {
+                        "t": t,
+                        "what": "balance QP fault",
+                        "reason": BALANCE_FAULTS.get(code, str(code)),
                     }
                 )
         return events
