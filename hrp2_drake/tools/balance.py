@@ -187,6 +187,9 @@ class BalanceExperimentConfig:
         com_motion: the CoM tracking experiment.
         pushes: the push experiment.
         workers: processes running the simulations in parallel.
+        fused: the torque-control chain as one `FusedTorqueController` (the
+            real-time path, the separate systems' numbers to 1e-12, faster to
+            simulate) or as its separate LeafSystems.
     """
 
     station: StationConfig = field(
@@ -197,6 +200,7 @@ class BalanceExperimentConfig:
     com_motion: ComMotion = field(default_factory=ComMotion)
     pushes: PushSettings = field(default_factory=PushSettings)
     workers: int = 2
+    fused: bool = True
 
     def validate(self) -> None:
         if self.station.scenario != "standing":
@@ -366,6 +370,7 @@ def simulate_run(
             motor_model,
             config.control,
             control_period=period,
+            fused=config.fused,
         )
     else:
         control = build_position_control(robot, station, reference)
@@ -734,8 +739,16 @@ def run_balance(
         "push_comparison": _push_comparison(pushes),
     }
     out.mkdir(parents=True, exist_ok=True)
-    _figures(robot, config, com, pushes, out)
     (out / "balance.json").write_text(json.dumps(summary, indent=2))
+    np.savez_compressed(
+        out / "balance_com.npz",
+        **{
+            f"{mode}_{name}": value
+            for mode in MODES
+            for name, value in com[mode]["logs"].items()
+        },
+    )
+    _figures(robot, config, com, pushes, out)
     (out / "balance.md").write_text(_markdown(robot, config, summary))
     return summary
 
@@ -885,7 +898,7 @@ def _markdown(robot: RobotDescription, config, summary: dict) -> str:
             "time in torque control",
         ],
         rows,
-    ).splitlines()
+    )
     estimation = com["torque"].get("estimation")
     if estimation:
         lines += [
@@ -906,7 +919,7 @@ def _markdown(robot: RobotDescription, config, summary: dict) -> str:
                     estimation["rms_over_peak"],
                 )
             ],
-        ).splitlines()
+        )
     pushes = config.pushes
     lines += [
         "",
@@ -942,7 +955,7 @@ def _markdown(robot: RobotDescription, config, summary: dict) -> str:
             "fell back to position control",
         ],
         rows,
-    ).splitlines()
+    )
     comparison = summary["push_comparison"]
     if comparison:
         lines += ["", "At the largest push both controls survived:", ""]
@@ -973,7 +986,7 @@ def _markdown(robot: RobotDescription, config, summary: dict) -> str:
                 f"settle time to {pushes.settled * 1e3:g} mm (s)",
             ],
             rows,
-        ).splitlines()
+        )
     lines += [
         "",
         "![CoM and CoP](balance_com_cop.png)",
