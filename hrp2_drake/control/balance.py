@@ -117,8 +117,9 @@ class BalanceConfig:
         acceleration_limit: |v̇_j| bound of every joint (rad/s²); sot-torque-control
             used 30.
         solver: the QP solver: "osqp" or "clarabel" (pydrake's own), or "daqp"
-            (the pip package, the optional `qp` extra: about 15x faster per solve
-            on HRP-2, scripts/bench_balance.py).
+            (the pip package, the optional `qp` extra: per solve on HRP-2 about
+            6x faster than OSQP on replayed ticks, scripts/bench_balance.py, and
+            5x in closed loop, scripts/bench.py --only balance).
         period: the update period (s).
     """
 

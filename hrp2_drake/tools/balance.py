@@ -822,7 +822,7 @@ def _figures(robot, config, com: dict, pushes: list[dict], out: Path) -> None:
         X = plant.GetFrameByName(name).CalcPoseInWorld(context)
         corners = np.array([X.multiply(c) for c in sole.corners()[[0, 1, 3, 2, 0]]])
         ax_cop.plot(corners[:, 0] * 1e3, corners[:, 1] * 1e3, "k-", lw=1)
-    for mode, style in zip(MODES, ("-", "--")):
+    for mode, style, color in zip(MODES, ("-", "--"), ("C0", "C1")):
         soles = com[mode]["logs"]["soles"]
         window = com[mode]["logs"]["t"] >= config.settle
         for s in range(len(robot.contacts.soles)):
@@ -832,6 +832,7 @@ def _figures(robot, config, com: dict, pushes: list[dict], out: Path) -> None:
                 block[loaded, 3] * 1e3,
                 block[loaded, 4] * 1e3,
                 style,
+                color=color,
                 lw=0.8,
                 label=f"{mode} control" if s == 0 else None,
             )
