@@ -52,6 +52,7 @@ from hrp2_drake.assembly.balance import (
     build_balance_control,
     resolved,
     robot_model,
+    sole_poses,
 )
 from hrp2_drake.assembly.builders import JointReference, build_position_control
 from hrp2_drake.config import check_finite
@@ -813,13 +814,10 @@ def _figures(robot, config, com: dict, pushes: list[dict], out: Path) -> None:
     ax_com.set_title("CoM: the authors' sinusoid")
     legend_beside(ax_com)
     # The support polygon: each sole's rectangle at its standing pose.
-    plant = robot_model(robot)
-    context = plant.CreateDefaultContext()
-    plant.SetPositions(
-        context, standing_positions(robot, initial_joint_positions(config.station))
-    )
+    standing = standing_positions(robot, initial_joint_positions(config.station))
+    poses = sole_poses(robot, standing)
     for name, sole in robot.contacts.soles.items():
-        X = plant.GetFrameByName(name).CalcPoseInWorld(context)
+        X = poses[name]
         corners = np.array([X.multiply(c) for c in sole.corners()[[0, 1, 3, 2, 0]]])
         ax_cop.plot(corners[:, 0] * 1e3, corners[:, 1] * 1e3, "k-", lw=1)
     for mode, style, color in zip(MODES, ("-", "--"), ("C0", "C1")):
