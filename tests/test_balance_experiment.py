@@ -127,10 +127,17 @@ def _hold(robot, ik, standing, duration, com):
     return reference, com_reference
 
 
-def _simulate(diagram, duration):
-    simulator = Simulator(diagram)
+def _simulate(robot, standing, legs_model, references, config, duration):
+    """The balance control of `config` on the standing HRP-2 (its calibrated
+    servo) with `references` (joints, CoM), simulated for `duration` (s): the
+    ControlDiagram and the context at its end."""
+    station = make_station(StationConfig(scenario="standing"))
+    control = build_balance_control(
+        robot, station, *references, standing, legs_model, config, control_period=0.001
+    )
+    simulator = Simulator(control.diagram)
     simulator.AdvanceTo(duration)
-    return simulator.get_context()
+    return control, simulator.get_context()
 
 
 def test_the_com_task_tracks_a_step_through_the_chain(robot, standing, ik, legs_model):
@@ -143,22 +150,11 @@ def test_the_com_task_tracks_a_step_through_the_chain(robot, standing, ik, legs_
     CoM moved more than 1 cm."""
     com0 = ik.com(standing)
     target = com0 + [0.0, 0.015, 0.0]
-    reference, com_reference = _hold(robot, ik, standing, 2.0, target)
     config = BalanceControlConfig()
     config.torque.start_time = 0.3
     config.torque.estimator.window = 40
-    station = make_station(StationConfig(scenario="standing"))
-    control = build_balance_control(
-        robot,
-        station,
-        reference,
-        com_reference,
-        standing,
-        legs_model,
-        config,
-        control_period=0.001,
-    )
-    context = _simulate(control.diagram, 2.5)
+    references = _hold(robot, ik, standing, 2.0, target)
+    control, context = _simulate(robot, standing, legs_model, references, config, 2.5)
     plant = control.station.GetSubsystemByName("plant")
     state = control.diagram.GetOutputPort("state_true").Eval(context)
     plant_context = plant.CreateDefaultContext()
@@ -178,24 +174,13 @@ def test_an_infeasible_qp_falls_back_to_position_control(
     acceleration_limit 0): every solve is infeasible, the supervisor
     never hands the robot to torque control, q_cmd stays finite and the robot
     stands on its position servo."""
-    reference, com_reference = _hold(robot, ik, standing, 1.0, ik.com(standing))
     config = BalanceControlConfig()
     config.balance.torque_limit_scale = 0.0
     config.balance.acceleration_limit = 0.0
     config.torque.start_time = 0.2
     config.torque.estimator.window = 21
-    station = make_station(StationConfig(scenario="standing"))
-    control = build_balance_control(
-        robot,
-        station,
-        reference,
-        com_reference,
-        standing,
-        legs_model,
-        config,
-        control_period=0.001,
-    )
-    context = _simulate(control.diagram, 0.6)
+    references = _hold(robot, ik, standing, 1.0, ik.com(standing))
+    control, context = _simulate(robot, standing, legs_model, references, config, 0.6)
     diagram = control.diagram
     fault = diagram.GetOutputPort("balance_fault").Eval(context)[0]
     assert fault == BalanceFault.INFEASIBLE

@@ -47,6 +47,7 @@ from hrp2_drake.assembly.builders import (
     _add_station,
     _build,
     _station_ports,
+    add_fused_controller,
     borrowed,
     torque_chain_parts,
 )
@@ -56,7 +57,6 @@ from hrp2_drake.control.balance_reference import leg_joints
 from hrp2_drake.control.fused import (
     BALANCE_SIGNALS,
     BalanceParts,
-    FusedTorqueController,
     TorqueChainParts,
 )
 from hrp2_drake.control.torque_controller import DeltaQTorqueController
@@ -270,16 +270,7 @@ def _add_fused_balance(
     builder, station, parts, blocks, com_ref
 ) -> dict[str, OutputPort]:
     """The chain, the base and the QP as one `FusedTorqueController`."""
-    fused = builder.AddNamedSystem("fused_controller", FusedTorqueController(parts))
-    for k in range(fused.num_input_ports()):
-        port = fused.get_input_port(k)
-        name = port.get_name()
-        if name in blocks:
-            builder.Connect(blocks[name], port)
-        elif name == "com_ref":
-            builder.Connect(com_ref, port)
-        else:
-            builder.Connect(station.GetOutputPort(name), port)
+    fused = add_fused_controller(builder, station, parts, blocks | {"com_ref": com_ref})
     names = ["q_cmd", *_SIGNALS]
     if parts.supervisor is not None:
         names += [f"supervisor_{name}" for name in ("mode", "fault", "transition")]

@@ -634,19 +634,27 @@ def build_torque_control(
     return _build(builder, station, ports, reference, force_reference)
 
 
-def _add_fused_chain(
-    builder, station, robot, parts, blocks, f_ref
-) -> dict[str, OutputPort]:
+def add_fused_controller(
+    builder, station, parts, sources: dict[str, OutputPort]
+) -> FusedTorqueController:
+    """Adds the `FusedTorqueController` of `parts` as "fused_controller", each input
+    connected to the source of its name in `sources` (the reference's blocks, f_ref,
+    com_ref), or else to the station's output of its name."""
     fused = builder.AddNamedSystem("fused_controller", FusedTorqueController(parts))
     for k in range(fused.num_input_ports()):
         port = fused.get_input_port(k)
         name = port.get_name()
-        if name in blocks:
-            builder.Connect(blocks[name], port)
-        elif name == "f_ref":
-            builder.Connect(f_ref, port)
-        else:
-            builder.Connect(station.GetOutputPort(name), port)
+        source = sources.get(name)
+        builder.Connect(
+            source if source is not None else station.GetOutputPort(name), port
+        )
+    return fused
+
+
+def _add_fused_chain(
+    builder, station, robot, parts, blocks, f_ref
+) -> dict[str, OutputPort]:
+    fused = add_fused_controller(builder, station, parts, blocks | {"f_ref": f_ref})
     names = [
         "q_cmd",
         "tau_estimated",
