@@ -41,13 +41,13 @@ from hrp2_drake.assembly.builders import (
     _add_command,
     _add_controlled_signals,
     _add_delay_predictor,
-    _add_disturbance_observer,
     _add_reference,
     _add_selector,
     _add_station,
     _build,
     _station_ports,
     add_fused_controller,
+    add_torque_controller,
     borrowed,
     torque_chain_parts,
 )
@@ -59,7 +59,6 @@ from hrp2_drake.control.fused import (
     BalanceParts,
     TorqueChainParts,
 )
-from hrp2_drake.control.torque_controller import DeltaQTorqueController
 from hrp2_drake.description import RobotDescription
 from hrp2_drake.estimation.base_kinematics import FloatingBaseFromSoles
 from hrp2_drake.estimation.estimation_chain import add_estimator
@@ -313,26 +312,14 @@ def _add_separate_balance(
     predictor, v_estimate, torque_estimate = _add_delay_predictor(
         builder, chain, parts, selected
     )
-    torque = builder.AddNamedSystem(
-        "torque_controller",
-        DeltaQTorqueController(parts.controller_model, parts.controller_config),
+    velocity = {"estimate": v_estimate, "reference": selected["v_ref"]}
+    torque = add_torque_controller(
+        builder, chain, parts, selected, predictor, torque_estimate, velocity
     )
     tau_star = _add_selector(
         builder, parts, "tau_desired_controlled", balance.GetOutputPort("tau_desired")
     )
     builder.Connect(tau_star, torque.GetInputPort("tau_desired"))
-    builder.Connect(torque_estimate, torque.GetInputPort("tau_estimated"))
-    velocity = {"estimate": v_estimate, "reference": selected["v_ref"]}
-    builder.Connect(velocity[parts.friction_velocity], torque.GetInputPort("v"))
-    if predictor is not None:
-        builder.Connect(
-            torque.GetOutputPort("delta_q"), predictor.GetInputPort("delta_q")
-        )
-    builder.Connect(selected["q_measured"], torque.GetInputPort("q_measured"))
-    builder.Connect(selected["q_ref"], torque.GetInputPort("q_ref"))
-    builder.Connect(chain.input_fault, torque.GetInputPort("sensor_fault"))
-    if parts.observer is not None:
-        _add_disturbance_observer(builder, parts, selected, torque)
     # The supervisor's fallback: the Δq controller's, or any QP fault (its code > 0).
     fallback = builder.AddNamedSystem("fallback", Adder(2, 1))
     builder.Connect(torque.GetOutputPort("fallback_active"), fallback.get_input_port(0))

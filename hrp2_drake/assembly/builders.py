@@ -702,23 +702,10 @@ def _add_separate_chain(
             inverse_dynamics.GetInputPort("f"),
         )
 
-    torque = builder.AddNamedSystem(
-        "torque_controller",
-        DeltaQTorqueController(parts.controller_model, parts.controller_config),
+    torque = add_torque_controller(
+        builder, chain, parts, selected, predictor, torque_estimate, velocity
     )
     connect_inverse_dynamics(builder, inverse_dynamics, torque)
-    builder.Connect(torque_estimate, torque.GetInputPort("tau_estimated"))
-    builder.Connect(velocity[parts.friction_velocity], torque.GetInputPort("v"))
-    if predictor is not None:
-        builder.Connect(
-            torque.GetOutputPort("delta_q"), predictor.GetInputPort("delta_q")
-        )
-    builder.Connect(selected["q_measured"], torque.GetInputPort("q_measured"))
-    builder.Connect(selected["q_ref"], torque.GetInputPort("q_ref"))
-    builder.Connect(chain.input_fault, torque.GetInputPort("sensor_fault"))
-    if parts.observer is not None:
-        _add_disturbance_observer(builder, parts, selected, torque)
-
     ports = _add_command(builder, station, parts, blocks, torque) | {
         "tau_estimated": chain.estimator.GetOutputPort("tau"),
         "tau_desired": inverse_dynamics.GetOutputPort("tau_desired"),
@@ -730,6 +717,32 @@ def _add_separate_chain(
         name = f"external_wrench_{robot.force_sensor}"
         ports[name] = chain.estimator.GetOutputPort(name)
     return ports | {name: torque.GetOutputPort(name) for name in COMPONENTS}
+
+
+def add_torque_controller(
+    builder, chain, parts, selected, predictor, torque_estimate, velocity
+) -> DeltaQTorqueController:
+    """Adds the Δq torque controller of `parts` ("torque_controller") with every
+    input connected but τ_d and its terms (the caller's: inverse dynamics, or the
+    balance QP): τ̂ (`torque_estimate`), the friction velocity (`velocity`, by
+    source), the encoders, the reference, the chain's input fault, and its loops
+    with the delay predictor and the disturbance observer if any."""
+    torque = builder.AddNamedSystem(
+        "torque_controller",
+        DeltaQTorqueController(parts.controller_model, parts.controller_config),
+    )
+    builder.Connect(torque_estimate, torque.GetInputPort("tau_estimated"))
+    builder.Connect(velocity[parts.friction_velocity], torque.GetInputPort("v"))
+    if predictor is not None:
+        builder.Connect(
+            torque.GetOutputPort("delta_q"), predictor.GetInputPort("delta_q")
+        )
+    builder.Connect(selected["q_measured"], torque.GetInputPort("q_measured"))
+    builder.Connect(selected["q_ref"], torque.GetInputPort("q_ref"))
+    builder.Connect(chain.input_fault, torque.GetInputPort("sensor_fault"))
+    if parts.observer is not None:
+        _add_disturbance_observer(builder, parts, selected, torque)
+    return torque
 
 
 def _add_selector(builder, parts, name: str, source: OutputPort) -> OutputPort:
