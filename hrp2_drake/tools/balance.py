@@ -424,14 +424,15 @@ def simulate_run(
     )
     run_with_progress(simulator, duration, label, steps=4)
     logs = logs_to_arrays(loggers, simulator.get_context())
-    return {"spec": spec, "metrics": _metrics(config, robot, plant, spec, logs)} | (
-        {"logs": _kept_logs(robot, plant, logs)} if spec.kind == "com" else {}
+    truth = _truth(robot, plant, logs)
+    return {"spec": spec, "metrics": _metrics(config, robot, spec, logs, truth)} | (
+        {"logs": _kept_logs(logs, truth)} if spec.kind == "com" else {}
     )
 
 
 def _truth(robot: RobotDescription, plant: MultibodyPlant, logs: dict) -> dict:
-    """The true CoM, the soles' poses and the base height every METRIC_STRIDE
-    samples (evaluation only)."""
+    """The true CoM, the soles' poses, the base height and the positions every
+    METRIC_STRIDE samples (evaluation only): computed once per run."""
     context = plant.CreateDefaultContext()
     rows = np.arange(0, len(logs["t"]), METRIC_STRIDE)
     nq = plant.num_positions()
@@ -456,6 +457,7 @@ def _truth(robot: RobotDescription, plant: MultibodyPlant, logs: dict) -> dict:
         "sole_p": sole_p,
         "sole_tilt": np.arccos(np.clip(sole_z, -1.0, 1.0)),
         "base_z": base_z,
+        "positions": logs["state_true"][rows, :nq],
     }
 
 
@@ -483,17 +485,8 @@ def _cop_margins(robot: RobotDescription, soles_log: np.ndarray, sole_poses):
     return margins
 
 
-def _sole_poses(robot, plant, state):
-    context = plant.CreateDefaultContext()
-    plant.SetPositions(context, state[: plant.num_positions()])
-    return {
-        s: plant.GetFrameByName(s).CalcPoseInWorld(context)
-        for s in robot.contacts.soles
-    }
-
-
-def _metrics(config, robot, plant, spec: RunSpec, logs: dict) -> dict:
-    truth = _truth(robot, plant, logs)
+def _metrics(config, robot, spec: RunSpec, logs: dict, truth: dict) -> dict:
+    """A run's metrics from its logs and its ground truth (`_truth`)."""
     t = truth["t"]
     rows = truth["rows"]
     start = config.settle
@@ -521,7 +514,8 @@ def _metrics(config, robot, plant, spec: RunSpec, logs: dict) -> dict:
     soles_log = logs["soles"][rows]
     normal = soles_log[:, 2::5]
     out["peak_normal_force_N"] = np.nanmax(normal[window], axis=0).tolist()
-    poses = _sole_poses(robot, plant, logs["state_true"][rows[before]])
+    # (The station's plant orders its positions as the robot's model does.)
+    poses = sole_poses(robot, truth["positions"][before])
     margins = _cop_margins(robot, soles_log, poses)
     loaded = margins[window]
     out["cop_margin_min_m"] = (
@@ -594,10 +588,9 @@ def _estimation(robot: RobotDescription, config, logs: dict) -> dict:
     }
 
 
-def _kept_logs(robot, plant, logs: dict) -> dict:
+def _kept_logs(logs: dict, truth: dict) -> dict:
     """What the figures need, every 10 ms: t, the true CoM and its reference, the
     soles' forces and CoPs."""
-    truth = _truth(robot, plant, logs)
     keep = slice(None, None, 2)
     return {
         "t": truth["t"][keep],
