@@ -35,6 +35,41 @@ class WitnessFreeLeafSystem(LeafSystem):
     DoGetWitnessFunctions = LeafSystem.GetWitnessFunctions
 
 
+class SampleHold(WitnessFreeLeafSystem):
+    """Holds its input (`u`, size k) from one sampling instant to the next (`y`): at
+    `offset` (s, in [0, period)) plus every multiple of `period`, and at the
+    initialization. Drake's ZeroOrderHold, but for the latch at the initialization:
+    a controller's reference (or a bus's goal) read as the station samples its
+    sensors, so that a tick's inputs hold still between two samples."""
+
+    def __init__(
+        self,
+        size: int,
+        period: float,
+        offset: float = 0.0,
+        initial: np.ndarray | None = None,
+    ):
+        """`initial`: the output before the first sample (default zero): what the
+        other systems' initialization events read (they run together with this
+        system's latch)."""
+        super().__init__()
+        if not (period > 0 and 0 <= offset < period):
+            raise ValueError(
+                f"SampleHold: period {period} s must be > 0 and the offset {offset} s "
+                "in [0, period)"
+            )
+        self._u = self.DeclareVectorInputPort("u", size)
+        state = self.DeclareDiscreteState(
+            np.zeros(size) if initial is None else np.asarray(initial, float)
+        )
+        self.DeclareStateOutputPort("y", state)
+        self.DeclareInitializationDiscreteUpdateEvent(self._latch)
+        self.DeclarePeriodicDiscreteUpdateEvent(period, offset, self._latch)
+
+    def _latch(self, context, state) -> None:
+        state.set_value(0, self._u.Eval(context))
+
+
 @dataclass(frozen=True)
 class LoggedPort:
     """Where the samples of one logged port are: rows of a shared VectorLogSink."""

@@ -22,7 +22,8 @@ Two shells run the same steps:
 from collections.abc import Iterator
 
 import numpy as np
-from pydrake.systems.framework import DiscreteValues
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import Context, DiscreteValues, ValueProducer
 
 from hrp2_drake.simulation import WitnessFreeLeafSystem
 
@@ -122,12 +123,23 @@ class Step:
 
 
 class StepSystem(WitnessFreeLeafSystem):
-    """A LeafSystem shell around one `Step`: one discrete state group per named state
-    array (so each output is a state output port), copied into the step before its
-    update (`_load`) and back after it (`_store`)."""
+    """A LeafSystem shell around one `Step` that computes a tick in the tick its
+    samples arrive (the module docstring's timing rule).
+
+    The committed state: one discrete state group per named state array, and the time
+    of the sample now shown (`sample_time`). A cache entry (`ticked`) runs the step on
+    a copy of the committed state with the inputs as they are now: the outputs
+    declared with `_declare_step_output` are its rows (direct feedthrough from every
+    input), those declared `held=True` the committed state (no feedthrough: what
+    breaks a loop, one tick late). A periodic event at the sampling instants
+    (`_declare_commit`) commits the cached tick, the one of the sample shown until
+    then, and the new sample's time. A subclass implements `_tick(context, t)`: read
+    the inputs, call its step's `step(t, ...)` (the base loads the step's state before
+    and keeps it after)."""
 
     def _declare_step_state(self, step: Step) -> None:
-        """Declares the step's state groups (call once, in `__init__`)."""
+        """Declares the step's state groups, the sample time and the tick's cache
+        entry (call once in `__init__`, after the input ports)."""
         self._step = step
         self._step_groups: list[tuple[int, np.ndarray]] = []
         self._group_of: dict[str, int] = {}
@@ -135,13 +147,75 @@ class StepSystem(WitnessFreeLeafSystem):
             group = int(self.DeclareDiscreteState(step.state[rows].copy()))
             self._step_groups.append((group, step.state[rows]))
             self._group_of[name] = group
+        self._rows_of = dict(step.layout())
+        # The groups a tick reads (a subclass whose step rewrites some of its state
+        # every tick may narrow it to the others).
+        self._tick_loads = self._step_groups
+        self._sample_time = int(self.DeclareDiscreteState(1))
+        self.DeclareInitializationDiscreteUpdateEvent(self._latch_sample_time)
+        model = AbstractValue.Make(np.zeros(step.state_size))
+        self._ticked = self.DeclareCacheEntry(
+            "ticked",
+            ValueProducer(allocate=model.Clone, calc=self._calc_ticked),
+            {self.xd_ticket(), self.all_input_ports_ticket()},
+        )
 
-    def _declare_step_output(self, port_name: str, state_name: str = ""):
-        """A state output port of the named step array (default: the port's name)."""
-        from pydrake.systems.framework import DiscreteStateIndex
+    def _declare_commit(self, period: float, lead: float = 0.0) -> None:
+        """The commit at every sampling instant: `lead` (s, in [0, period)) before
+        each multiple of `period`, the station's sensor sampler's schedule; the first
+        after the initialization (at `period - lead`)."""
+        if not 0.0 <= lead < period:
+            raise ValueError(
+                f"{type(self).__name__}: sample lead {lead} s must be >= 0 and shorter "
+                f"than the period ({period} s)"
+            )
+        self.DeclarePeriodicDiscreteUpdateEvent(period, period - lead, self._commit)
 
-        group = self._group_of[state_name or port_name]
-        return self.DeclareStateOutputPort(port_name, DiscreteStateIndex(group))
+    def _declare_step_output(
+        self, port_name: str, state_name: str = "", held: bool = False
+    ):
+        """An output port of the named step array (default: the port's name): this
+        tick's value (direct feedthrough), or with `held` the committed one."""
+        name = state_name or port_name
+        if held:
+            from pydrake.systems.framework import DiscreteStateIndex
+
+            group = DiscreteStateIndex(self._group_of[name])
+            return self.DeclareStateOutputPort(port_name, group)
+        rows = self._rows_of[name]
+        ticked = self._ticked
+        return self.DeclareVectorOutputPort(
+            port_name,
+            rows.stop - rows.start,
+            lambda context, output: output.SetFromVector(ticked.Eval(context)[rows]),
+            {ticked.ticket()},
+        )
+
+    def _tick(self, context: Context, t: float) -> None:
+        """One tick of the step (its state loaded) at the sample time t (s), from the
+        inputs in `context`."""
+        raise NotImplementedError
+
+    def ticked(self, context: Context) -> np.ndarray:
+        """The step's state after the tick of the sample now shown (read-only)."""
+        return self._ticked.Eval(context)
+
+    def _calc_ticked(self, context: Context, value: AbstractValue) -> None:
+        state = context.get_discrete_state()
+        for group, view in self._tick_loads:
+            view[:] = state.get_value(group)
+        t = context.get_discrete_state(self._sample_time).get_value()[0]
+        self._tick(context, t)
+        value.get_mutable_value()[:] = self._step.state
+
+    def _commit(self, context: Context, state: DiscreteValues) -> None:
+        ticked = self._ticked.Eval(context)
+        for name, rows in self._rows_of.items():
+            state.set_value(self._group_of[name], ticked[rows])
+        state.get_mutable_value(self._sample_time)[0] = context.get_time()
+
+    def _latch_sample_time(self, context: Context, state: DiscreteValues) -> None:
+        state.get_mutable_value(self._sample_time)[0] = context.get_time()
 
     def step_group(self, name: str) -> int:
         """The discrete state group of the named step array."""

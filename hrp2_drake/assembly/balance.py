@@ -31,7 +31,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort
-from pydrake.systems.primitives import Adder, TrajectorySource
+from pydrake.systems.primitives import Adder
 from pydrake.trajectories import PiecewisePolynomial
 
 from hrp2_drake.assembly.builders import (
@@ -47,8 +47,10 @@ from hrp2_drake.assembly.builders import (
     _build,
     _station_ports,
     add_fused_controller,
+    add_sampled,
     add_torque_controller,
-    borrowed,
+    connect_command,
+    sample_lead,
     torque_chain_parts,
 )
 from hrp2_drake.assembly.torque_control import TorqueControlConfig
@@ -171,6 +173,7 @@ def balance_chain_parts(
     config: BalanceControlConfig,
     *,
     period: float,
+    sample_lead: float = 0.0,
 ) -> TorqueChainParts:
     """The models and configs of the balance control of `config` on `robot` (the
     torque chain's, `torque_chain_parts`, with its balance front end): what both the
@@ -180,9 +183,15 @@ def balance_chain_parts(
         robot, reference, standing, motor_model: as `build_balance_control`'s.
         config: the balance control, resolved (`resolved`) and validated.
         period: the control period (s).
+        sample_lead: the station samples this long (s) before each multiple of it.
     """
     parts = torque_chain_parts(
-        robot, reference, motor_model, config.torque, period=period
+        robot,
+        reference,
+        motor_model,
+        config.torque,
+        period=period,
+        sample_lead=sample_lead,
     )
     return replace(
         parts,
@@ -234,18 +243,21 @@ def build_balance_control(
             "expected 9 (position, velocity, acceleration)"
         )
     parts = balance_chain_parts(
-        robot, reference, standing, motor_model, config, period=control_period
+        robot,
+        reference,
+        standing,
+        motor_model,
+        config,
+        period=control_period,
+        sample_lead=sample_lead(station),
     )
     builder = DiagramBuilder()
     station = _add_station(builder, robot, station)
-    blocks = _add_reference(builder, reference, len(parts.all_joints))
-    com_source = builder.AddNamedSystem(
-        "com_reference", TrajectorySource(borrowed(com_reference))
-    )
-    com_ref = com_source.get_output_port()
+    blocks = _add_reference(builder, reference, len(parts.all_joints), parts)
+    com_ref = add_sampled(builder, "com_reference", com_reference, parts)
     build = _add_fused_balance if fused else _add_separate_balance
     ports = build(builder, station, parts, blocks, com_ref)
-    builder.Connect(ports["q_cmd"], station.GetInputPort("q_cmd"))
+    ports["q_cmd"] = connect_command(builder, station, ports["q_cmd"], parts)
     ports |= {"com_ref": com_ref, "q_ref": blocks["q_ref"]}
     ports = _station_ports(station, robot) | ports
     return _build(builder, station, ports, reference)
@@ -282,7 +294,11 @@ def _add_separate_balance(
     """The chain, the base and the QP as separate LeafSystems (the module
     docstring's diagram)."""
     chain = add_estimator(
-        builder, station, parts.estimator_plant, parts.estimator_config
+        builder,
+        station,
+        parts.estimator_plant,
+        parts.estimator_config,
+        lead=parts.sample_lead,
     )
     balance_parts = parts.balance
     base = builder.AddNamedSystem(
@@ -292,6 +308,7 @@ def _add_separate_balance(
             list(parts.all_joints),
             balance_parts.sole_poses,
             parts.period,
+            lead=parts.sample_lead,
         ),
     )
     builder.Connect(station.GetOutputPort("q_measured"), base.GetInputPort("q"))
@@ -301,7 +318,10 @@ def _add_separate_balance(
     balance = builder.AddNamedSystem(
         "balance",
         WholeBodyBalanceController(
-            balance_parts.plant, balance_parts.config, balance_parts.contacts
+            balance_parts.plant,
+            balance_parts.config,
+            balance_parts.contacts,
+            lead=parts.sample_lead,
         ),
     )
     builder.Connect(base.GetOutputPort("state"), balance.GetInputPort("state"))

@@ -74,7 +74,9 @@ from hrp2_drake.estimation import estimator_config as estimation_config
 from hrp2_drake.estimation.estimation_chain import add_estimator
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import joint_indexing
+from hrp2_drake.robot.sensors import SensorSampler
 from hrp2_drake.robot.station import StationConfig, make_station, sensor_sizes
+from hrp2_drake.simulation import SampleHold
 
 #: The six components of Δq of paper Sec. 5.5 (the controller's seventh, the torque
 #: integral, is zero with the paper's K_i = 0).
@@ -279,23 +281,85 @@ def _build(
     return ControlDiagram(builder.Build(), station, reference, force_reference)
 
 
-def _add_reference(builder: DiagramBuilder, reference: JointReference, n: int):
+def _add_reference(
+    builder: DiagramBuilder,
+    reference: JointReference,
+    n: int,
+    parts: TorqueChainParts | None = None,
+):
+    """q_ref, v_ref, vdot_ref of every joint from `reference`: as it is (position
+    control), or for a controller (`parts`) sampled as the station samples its
+    sensors (`add_sampled`)."""
     if reference.trajectory.rows() != 3 * n:
         raise ValueError(
             f"the joint reference has {reference.trajectory.rows()} rows, expected "
             f"3 x {n} joints"
         )
-    source = builder.AddNamedSystem(
-        "reference", TrajectorySource(borrowed(reference.trajectory))
-    )
+    if parts is not None:
+        source = add_sampled(builder, "reference", reference.trajectory, parts)
+    else:
+        source = builder.AddNamedSystem(
+            "reference", TrajectorySource(borrowed(reference.trajectory))
+        ).get_output_port()
     blocks = {}
     for k, name in enumerate(("q_ref", "v_ref", "vdot_ref")):
         select = np.zeros((n, 3 * n))
         select[:, k * n : (k + 1) * n] = np.eye(n)
         gain = builder.AddNamedSystem(f"{name}_all", MatrixGain(select))
-        builder.Connect(source.get_output_port(), gain.get_input_port())
+        builder.Connect(source, gain.get_input_port())
         blocks[name] = gain.get_output_port()
     return blocks
+
+
+def add_sampled(
+    builder: DiagramBuilder,
+    name: str,
+    trajectory: Trajectory,
+    parts: TorqueChainParts,
+) -> OutputPort:
+    """`trajectory` (a reference; a `TrajectorySource` "name") held from each of the
+    station's sampling instants to the next (`SampleHold` "name_sampled"): a tick's
+    inputs hold still between two samples, as on a controller that reads its
+    reference when its samples arrive. Its value at its start is the hold's before
+    the first sample (what the systems' initialization reads)."""
+    source = builder.AddNamedSystem(
+        name, TrajectorySource(borrowed(trajectory))
+    ).get_output_port()
+    initial = trajectory.value(trajectory.start_time()).ravel()
+    period, lead = parts.period, parts.sample_lead
+    hold = builder.AddNamedSystem(
+        f"{name}_sampled",
+        SampleHold(source.size(), period, (period - lead) % period, initial=initial),
+    )
+    builder.Connect(source, hold.get_input_port())
+    return hold.get_output_port()
+
+
+def connect_command(
+    builder: DiagramBuilder, station: Diagram, q_cmd: OutputPort, parts
+) -> OutputPort:
+    """The chain's q_cmd to the station's servo: as it is when the station samples
+    at the multiples of the period (its servo reads it at the next plant step); a bus
+    (samples `sample_lead` before them) writes its goal at the multiples, so it is
+    held from each to the next (`SampleHold` "goal_hold"). Returns what the servo
+    gets."""
+    if parts.sample_lead > 0:
+        hold = builder.AddNamedSystem(
+            "goal_hold", SampleHold(q_cmd.size(), parts.period, 0.0)
+        )
+        builder.Connect(q_cmd, hold.get_input_port())
+        q_cmd = hold.get_output_port()
+    builder.Connect(q_cmd, station.GetInputPort("q_cmd"))
+    return q_cmd
+
+
+def sample_lead(station: Diagram) -> float:
+    """How long (s) before each multiple of its period the station samples its
+    sensors (its `SensorSampler`'s lead; 0 for a station without one)."""
+    for system in station.GetSystems():
+        if isinstance(system, SensorSampler):
+            return system.lead()
+    return 0.0
 
 
 def _station_ports(station: Diagram, robot: RobotDescription) -> dict[str, OutputPort]:
@@ -522,13 +586,15 @@ def torque_chain_parts(
     config: TorqueControlConfig,
     *,
     period: float,
+    sample_lead: float = 0.0,
 ) -> TorqueChainParts:
     """The models and configs of the torque-control chain of `config` on `robot`: what
     both the separate systems and the fused controller are built from.
 
     `period`: the control period (s), the robot's sensor period (on a bus, the bus's):
     every step of the chain updates once per period, and the Savitzky-Golay filters
-    differentiate with it (`config` stated for it: `at_period`)."""
+    differentiate with it (`config` stated for it: `at_period`). `sample_lead`: the
+    station samples this long (s) before each multiple of it (`sample_lead`)."""
     config.validate()
     check_control_period(config, period)
     joints = config.controlled_joints(robot)
@@ -555,7 +621,7 @@ def torque_chain_parts(
     ks, kd = inverse_dynamics_gains_for_k6(
         controller_model.k_tau, gains.k6, inertia, gains.kp, gains.damping_ratio
     )
-    delay = estimation_config.estimation_delay(estimator_config)
+    delay = estimation_config.loop_delay(estimator_config)
     predictor = None
     if config.observer.predictor:
         predictor = DelayPredictorConfig(
@@ -580,6 +646,7 @@ def torque_chain_parts(
         if gains.force_frame
         else "",
         period=estimator_config.period,
+        sample_lead=sample_lead,
     )
 
 
@@ -612,11 +679,16 @@ def build_torque_control(
             the same signals to 1e-12) instead of its separate systems.
     """
     parts = torque_chain_parts(
-        robot, reference, motor_model, config, period=control_period
+        robot,
+        reference,
+        motor_model,
+        config,
+        period=control_period,
+        sample_lead=sample_lead(station),
     )
     builder = DiagramBuilder()
     station = _add_station(builder, robot, station)
-    blocks = _add_reference(builder, reference, len(parts.all_joints))
+    blocks = _add_reference(builder, reference, len(parts.all_joints), parts)
     f_ref = None
     if parts.force_sensor:  # a force frame: a force task
         if force_reference is None:
@@ -624,12 +696,10 @@ def build_torque_control(
                 f"build_torque_control: no force_reference for the force task at F/T "
                 f"sensor '{parts.force_sensor}' (TorqueControlConfig's force frame)"
             )
-        f_ref = builder.AddNamedSystem(
-            "force_reference", TrajectorySource(borrowed(force_reference))
-        ).get_output_port()
+        f_ref = add_sampled(builder, "force_reference", force_reference, parts)
     build = _add_fused_chain if fused else _add_separate_chain
     ports = build(builder, station, robot, parts, blocks, f_ref)
-    builder.Connect(ports["q_cmd"], station.GetInputPort("q_cmd"))
+    ports["q_cmd"] = connect_command(builder, station, ports["q_cmd"], parts)
     ports = _station_ports(station, robot) | ports | {"q_ref": blocks["q_ref"]}
     return _build(builder, station, ports, reference, force_reference)
 
@@ -676,10 +746,17 @@ def _add_separate_chain(
 ) -> dict[str, OutputPort]:
     """The chain as its separate LeafSystems (the design card's diagram)."""
     chain = add_estimator(
-        builder, station, parts.estimator_plant, parts.estimator_config
+        builder,
+        station,
+        parts.estimator_plant,
+        parts.estimator_config,
+        lead=parts.sample_lead,
     )
     inverse_dynamics = builder.AddNamedSystem(
-        "inverse_dynamics", InverseDynamicsController(parts.id_plant, parts.id_config)
+        "inverse_dynamics",
+        InverseDynamicsController(
+            parts.id_plant, parts.id_config, lead=parts.sample_lead
+        ),
     )
     selected = _add_controlled_signals(builder, station, chain, parts, blocks)
     for name in ("q_ref", "v_ref", "vdot_ref"):
@@ -729,7 +806,9 @@ def add_torque_controller(
     with the delay predictor and the disturbance observer if any."""
     torque = builder.AddNamedSystem(
         "torque_controller",
-        DeltaQTorqueController(parts.controller_model, parts.controller_config),
+        DeltaQTorqueController(
+            parts.controller_model, parts.controller_config, lead=parts.sample_lead
+        ),
     )
     builder.Connect(torque_estimate, torque.GetInputPort("tau_estimated"))
     builder.Connect(velocity[parts.friction_velocity], torque.GetInputPort("v"))
@@ -784,7 +863,8 @@ def _add_delay_predictor(builder, chain, parts, selected: dict[str, OutputPort])
     if parts.predictor is None:
         return None, selected["v_estimate"], selected["tau_estimate"]
     predictor = builder.AddNamedSystem(
-        "delay_predictor", DelayPredictor(parts.controller_model, parts.predictor)
+        "delay_predictor",
+        DelayPredictor(parts.controller_model, parts.predictor, lead=parts.sample_lead),
     )
     vdot_hat = _add_selector(
         builder,
@@ -812,7 +892,9 @@ def _add_disturbance_observer(
     controller: d̂ from Δq, q̂̇ and τ̂."""
     observer = builder.AddNamedSystem(
         "disturbance_observer",
-        DisturbanceObserver(parts.observer.model, parts.observer.config),
+        DisturbanceObserver(
+            parts.observer.model, parts.observer.config, lead=parts.sample_lead
+        ),
     )
     builder.Connect(torque.GetOutputPort("delta_q"), observer.GetInputPort("delta_q"))
     builder.Connect(selected["v_estimate"], observer.GetInputPort("v"))
@@ -842,6 +924,7 @@ def _add_command(
             monitored,
             parts.supervisor.config,
             num_sensor_stamps=parts.supervisor.num_stamps,
+            lead=parts.sample_lead,
         ),
     )
     builder.Connect(merger.get_output_port(), supervisor.GetInputPort("q_torque"))

@@ -54,7 +54,7 @@ from enum import IntEnum
 import numpy as np
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import BodyIndex, JacobianWrtVariable
-from pydrake.systems.framework import Context, DiscreteValues
+from pydrake.systems.framework import Context
 
 from hrp2_drake.description.contacts import ContactsDescription
 from hrp2_drake.kernels import kernel
@@ -929,10 +929,13 @@ class WholeBodyBalanceController(StepSystem):
         plant: MultibodyPlant,
         config: BalanceConfig,
         contacts: ContactsDescription,
+        lead: float = 0.0,
     ):
         """
         Args:
             plant, config, contacts: as `BalanceStep`'s.
+            lead: the samples arrive this long (s) before each multiple of the
+                period (`StepSystem`: the commits follow the sampler).
         """
         super().__init__()
         step = BalanceStep(plant, config, contacts)
@@ -953,17 +956,15 @@ class WholeBodyBalanceController(StepSystem):
             "fault_count",
         ):
             self._declare_step_output(name)
-        self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
+        self._declare_commit(config.period, lead)
 
     def step(self) -> BalanceStep:
         return self._step
 
-    def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
-        self._load(discrete_state)
+    def _tick(self, context: Context, t: float) -> None:
         self._step.step(
-            context.get_time(),
+            t,
             self._state.Eval(context),
             self._q_ref.Eval(context),
             self._com_ref.Eval(context),
         )
-        self._store(discrete_state)

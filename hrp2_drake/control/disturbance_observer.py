@@ -26,7 +26,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from pydrake.systems.framework import Context, DiscreteValues
+from pydrake.systems.framework import Context
 
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.kernels import kernel
@@ -295,14 +295,22 @@ class DisturbanceObserver(StepSystem):
         tau_estimated: the estimated joint torques τ̂ (N·m).
 
     Output:
-        disturbance (n): d̂ (N·m), discrete state; zero until the Δq buffer covers
-        `delay` (the first delay seconds).
+        disturbance (n): d̂ (N·m) of the previous tick (held: the loop's one tick,
+        `StepSystem`); zero until the Δq buffer covers `delay` (the first delay
+        seconds).
 
     A non-finite input holds d̂ (the sample is skipped, Δq still enters the buffer as
     zero): bad sensor data do not reach the estimate.
     """
 
-    def __init__(self, motor_model: MotorModel, config: DisturbanceObserverConfig):
+    def __init__(
+        self,
+        motor_model: MotorModel,
+        config: DisturbanceObserverConfig,
+        lead: float = 0.0,
+    ):
+        """`lead`: the samples arrive this long (s) before each multiple of the
+        period (`StepSystem`: the commits follow the sampler)."""
         super().__init__()
         step = DisturbanceObserverStep(motor_model, config)
         n = len(config.joints)
@@ -310,8 +318,9 @@ class DisturbanceObserver(StepSystem):
         self._v = self.DeclareVectorInputPort("v", n)
         self._tau = self.DeclareVectorInputPort("tau_estimated", n)
         self._declare_step_state(step)
-        self._declare_step_output("disturbance")
-        self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
+        # Held: in a loop with the Δq controller, whose Δq it reads this tick.
+        self._declare_step_output("disturbance", held=True)
+        self._declare_commit(config.period, lead)
 
     def config(self) -> DisturbanceObserverConfig:
         return self._step.config()
@@ -327,13 +336,10 @@ class DisturbanceObserver(StepSystem):
         array (`DisturbanceObserverStep.raw_disturbance`)."""
         return self._step.raw_disturbance(delta_q, v, tau)
 
-    def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
-        # (discrete_state holds the current discrete state on entry.)
-        self._load(discrete_state)
+    def _tick(self, context: Context, t: float) -> None:
         self._step.step(
-            context.get_time(),
+            t,
             self._delta_q.Eval(context),
             self._v.Eval(context),
             self._tau.Eval(context),
         )
-        self._store(discrete_state)

@@ -17,11 +17,15 @@ fused=True)`), the base from the soles' kinematics and the whole-body QP with
 contacts take the inverse dynamics' place: the QP's τ* of the controlled joints feeds
 the Δq controller, and a QP fault is a controller fallback for the supervisor.
 
-Timing is the diagram's, exactly: there every system's outputs are its discrete state,
-so a system reads what its upstream systems computed one period earlier. Here each
-tick first copies the whole state (`_previous`) and every step reads its upstream
-steps' outputs from that copy, while the station's signals and the reference are read
-as they are now. The two shells give the same signals to 1e-12 (tests/test_fused.py).
+Timing: one tick from sample to command, as the authors' graph computes every entity
+in the tick its samples arrive. A tick runs the steps in the chain's order, each
+reading what its upstream steps computed in this tick (`FusedController.tick`); the
+delays left are the filters' own (their window) and one sample between the command
+and the servo. Two loops close through the Δq controller: the disturbance observer
+and the delay predictor read this tick's Δq, and the controller reads their output of
+the previous tick. The Diagram's systems do the same (`hrp2_drake.step.StepSystem`:
+outputs computed from the current inputs, committed at the sampling instants); the
+two shells give the same signals to 1e-12 (tests/test_fused.py).
 
 .. code-block:: text
 
@@ -40,9 +44,15 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 
 import numpy as np
+from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.multibody.plant import MultibodyPlant
-from pydrake.systems.framework import BasicVector, Context, DiscreteValues
+from pydrake.systems.framework import (
+    BasicVector,
+    Context,
+    DiscreteValues,
+    ValueProducer,
+)
 
 from hrp2_drake.control.balance import BalanceConfig, BalanceStep
 from hrp2_drake.control.disturbance_observer import (
@@ -273,6 +283,9 @@ class TorqueChainParts:
             id_config) gives τ_d. With it, the QP's τ* of `joints` does, and
             id_plant, id_config, position_source, feedback_velocity and
             force_sensor are unused.
+        sample_lead: the station samples its sensors this long (s, less than a
+            period) before each multiple of the period (a bus: its read-to-write
+            delay); the Diagram shells commit each tick at the sampling instants.
     """
 
     all_joints: list[str]
@@ -292,6 +305,7 @@ class TorqueChainParts:
     force_sensor: str = ""
     period: float = field(default=0.001)
     balance: BalanceParts | None = None
+    sample_lead: float = 0.0
 
 
 def _start_in(array: np.ndarray, view: np.ndarray) -> int:
@@ -421,8 +435,8 @@ class FusedController:
         )
 
     def _make_state(self) -> None:
-        """One state vector for all steps (each step bound to its rows), and its copy
-        at the start of each tick."""
+        """One state vector for all steps, each step bound to its rows (moved into
+        `_sources` by `_make_buffers`)."""
         steps = [
             ("encoder_filter", self.encoder_filter),
             ("sensor_filter", self.sensor_filter),
@@ -450,17 +464,18 @@ class FusedController:
     def _make_buffers(self) -> None:
         N, n = self._N, self._n
         layout = self.layout
-        # Everything a tick reads, in one buffer (`_sources`): the state at the start
-        # of the tick (`_previous`), the station's signals (`sensor_buffer`, rows:
-        # `layout`), q_ref, v_ref, vdot_ref, f_ref, com_ref (with balance), and six
-        # zeros (no force reading), so that `take`s with precomputed rows select the
-        # controlled joints' inputs (`_make_gathers`).
+        # Everything a tick reads, in one buffer (`_sources`): the steps' state
+        # (`state`, moved here: what each step computed so far in the tick), the
+        # station's signals (`sensor_buffer`, rows: `layout`), q_ref, v_ref,
+        # vdot_ref, f_ref, com_ref (with balance), and six zeros (no force reading),
+        # so that `take`s with precomputed rows select the controlled joints' inputs
+        # (`_make_gathers`).
         com_ref = 9 if self.balance is not None else 0
         sizes = [self.state.size, layout.size, N, N, N, 6, com_ref, 6]
         self._sources = np.zeros(sum(sizes))
         ends = np.cumsum(sizes)
         (
-            self._previous,
+            state,
             self.sensor_buffer,
             self.q_ref,
             self.v_ref,
@@ -469,6 +484,10 @@ class FusedController:
             self.com_ref,
             self._no_force,
         ) = (self._sources[end - size : end] for size, end in zip(sizes, ends))
+        for name, step in self._steps.items():
+            start = self._offsets[name]
+            step.bind(state[start : start + step.state_size])
+        self.state = state
         self.q_measured = self.sensor_buffer[layout.q_measured]
         self.sensor_values = self.sensor_buffer[layout.values]
         self.sensor_time = self.sensor_buffer[layout.stamps]
@@ -491,24 +510,25 @@ class FusedController:
         self._command_fallback = np.zeros(1)
         self._no_fault = np.zeros(1)  # the sensor filter's fault without one
 
-    def _previous_view(self, step_name: str, array_name: str) -> np.ndarray:
-        """The named array of a step as it was at the start of the tick."""
+    def _state_view(self, step_name: str, array_name: str) -> np.ndarray:
+        """The named array of a step: what it computed last (this tick's once it
+        stepped in the tick, the previous tick's before)."""
         step = self._steps[step_name]
         rows = step.rows(array_name)
         start = self._offsets[step_name]
-        return self._previous[start + rows.start : start + rows.stop]
+        return self.state[start + rows.start : start + rows.stop]
 
     def _wire(self) -> None:
-        p = self._previous_view
-        self._p_q_hat = p("encoder_filter", "value")
-        self._p_v_hat = p("encoder_filter", "derivative")
-        self._p_vdot_hat = p("encoder_filter", "second_derivative")
-        self._p_encoder_fault = p("encoder_filter", "input_fault")
-        self._p_sensor_fault = self._no_fault
+        s = self._state_view
+        self._s_q_hat = s("encoder_filter", "value")
+        self._s_v_hat = s("encoder_filter", "derivative")
+        self._s_vdot_hat = s("encoder_filter", "second_derivative")
+        self._s_encoder_fault = s("encoder_filter", "input_fault")
+        self._s_sensor_fault = self._no_fault
         if self.sensor_filter is not None:
-            values = p("sensor_filter", "value")
-            rates = p("sensor_filter", "derivative")
-            self._p_sensor_fault = p("sensor_filter", "input_fault")
+            values = s("sensor_filter", "value")
+            rates = s("sensor_filter", "derivative")
+            self._s_sensor_fault = s("sensor_filter", "input_fault")
             layout = self.layout
             rows = {
                 name: layout.in_values(signal)
@@ -517,30 +537,30 @@ class FusedController:
             }
             imu = layout.has_imu
             acc, gyro = "imu_linear_acceleration", "imu_angular_velocity"
-            self._p_acc = values[rows[acc]] if imu else None
-            self._p_gyro = values[rows[gyro]] if imu else None
-            self._p_alpha = rates[rows[gyro]] if imu else None
+            self._s_acc = values[rows[acc]] if imu else None
+            self._s_gyro = values[rows[gyro]] if imu else None
+            self._s_alpha = rates[rows[gyro]] if imu else None
             names = layout.sensor_names
-            self._p_wrenches = (
+            self._s_wrenches = (
                 values[rows[f"wrench_{names[0]}"].start :].reshape(len(names), 6)
                 if names
                 else None
             )
         else:
-            self._p_acc = self._p_gyro = self._p_alpha = self._p_wrenches = None
-        self._p_tau = p("estimator", "tau")
-        self._p_force = (
-            p("estimator", f"external_wrench_{self.parts.force_sensor}")
+            self._s_acc = self._s_gyro = self._s_alpha = self._s_wrenches = None
+        self._s_tau = s("estimator", "tau")
+        self._s_force = (
+            s("estimator", f"external_wrench_{self.parts.force_sensor}")
             if self.parts.force_sensor
             else None
         )
-        self._p_q_cmd_controlled = p("torque", "q_cmd")
-        self._p_delta_q = p("torque", "delta_q")
-        self._p_fallback = p("torque", "fallback_active")
-        self._p_disturbance = p("observer", "disturbance") if self.observer else None
+        self._s_q_cmd_controlled = s("torque", "q_cmd")
+        self._s_delta_q = s("torque", "delta_q")
+        self._s_fallback = s("torque", "fallback_active")
+        self._s_disturbance = s("observer", "disturbance") if self.observer else None
         if self.predictor is not None:
-            self._p_v_predicted = p("predictor", "v_predicted")
-            self._p_tau_predicted = p("predictor", "tau_predicted")
+            self._s_v_predicted = s("predictor", "v_predicted")
+            self._s_tau_predicted = s("predictor", "tau_predicted")
         if self.balance is None:
             self._wire_inverse_dynamics()
         else:
@@ -548,16 +568,16 @@ class FusedController:
 
     def _wire_inverse_dynamics(self) -> None:
         """τ_d and its terms (the Δq controller's inputs): the inverse dynamics'."""
-        self._p_tau_desired = self._previous_view("inverse_dynamics", "tau_desired")
+        self._s_tau_desired = self._state_view("inverse_dynamics", "tau_desired")
         rows = [self.inverse_dynamics.rows(name) for name in TORQUE_COMPONENTS]
         start = self._offsets["inverse_dynamics"]
         contiguous = all(a.stop == b.start for a, b in zip(rows, rows[1:]))
         if not contiguous:
             raise ValueError("InverseDynamicsStep: the torque terms must be contiguous")
-        self._p_terms = self._previous[
+        self._s_terms = self.state[
             start + rows[0].start : start + rows[-1].stop
         ].reshape(len(TORQUE_COMPONENTS), self._n)
-        self._supervisor_fallback = self._p_fallback
+        self._supervisor_fallback = self._s_fallback
 
     def _wire_balance(self) -> None:
         """The balance front end's inputs: the base's state, the QP's τ* (all
@@ -565,11 +585,11 @@ class FusedController:
         controller gets τ* alone (no terms: τ_ff = τ*, as in the separate diagram),
         the supervisor the sum of the two fallbacks (the separate diagram's
         Adder)."""
-        p = self._previous_view
-        self._p_robot_state = p("base", "robot_state")
-        self._p_balance_tau = p("balance", "tau_desired")
-        self._p_balance_fault = p("balance", "fault")
-        self._p_terms = None
+        s = self._state_view
+        self._s_robot_state = s("base", "robot_state")
+        self._s_balance_tau = s("balance", "tau_desired")
+        self._s_balance_fault = s("balance", "fault")
+        self._s_terms = None
         self._supervisor_fallback = self._controller_fallback
 
     def _source_rows(self, view: np.ndarray) -> np.ndarray:
@@ -586,20 +606,20 @@ class FusedController:
         rows, index, sel = self._source_rows, self._index, self._selected
         gathered = [
             self.q_measured,
-            self._p_q_hat,
-            self._p_v_hat,
-            self._p_vdot_hat,
-            self._p_tau,
+            self._s_q_hat,
+            self._s_v_hat,
+            self._s_vdot_hat,
+            self._s_tau,
         ]
         if self.predictor is not None:
-            v_estimate, tau_estimate = self._p_v_predicted, self._p_tau_predicted
+            v_estimate, tau_estimate = self._s_v_predicted, self._s_tau_predicted
         else:
             v_estimate, tau_estimate = sel["v_hat"], sel["tau_hat"]
         self._tau_estimate = tau_estimate
         if self.balance is None:
             q_ref, v_ref = self._gather_inverse_dynamics()
         else:
-            gathered += [self.q_ref, self.v_ref, self._p_balance_tau]
+            gathered += [self.q_ref, self.v_ref, self._s_balance_tau]
             q_ref, v_ref = sel["q_ref"], sel["v_ref"]
             self._tau_desired = sel["tau_star"]
         # In the order of `_gathered`'s names (`_make_buffers`).
@@ -615,12 +635,12 @@ class FusedController:
         rows, index = self._source_rows, self._index
         parts = self.parts
         if self.predictor is not None:
-            v_estimate_rows = rows(self._p_v_predicted)
+            v_estimate_rows = rows(self._s_v_predicted)
         else:
-            v_estimate_rows = rows(self._p_v_hat)[index]
+            v_estimate_rows = rows(self._s_v_hat)[index]
         velocity = {"estimate": v_estimate_rows, "reference": rows(self.v_ref)[index]}
         encoders = parts.position_source == "encoders"
-        position = self.q_measured if encoders else self._p_q_hat
+        position = self.q_measured if encoders else self._s_q_hat
         id_rows = [
             rows(self.q_ref)[index],
             rows(self.v_ref)[index],
@@ -629,14 +649,14 @@ class FusedController:
             velocity[parts.feedback_velocity],
         ]
         if self.inverse_dynamics.has_force_task():  # f_d and f̂, or zeros
-            if self._p_force is not None:
-                id_rows += [rows(self.f_ref), rows(self._p_force)]
+            if self._s_force is not None:
+                id_rows += [rows(self.f_ref), rows(self._s_force)]
             else:
                 id_rows += [rows(self._no_force)] * 2
         self._id_gather = np.concatenate(id_rows)
         self._id_inputs = self.inverse_dynamics.inputs
         self._id_rows = self.inverse_dynamics.input_rows
-        self._tau_desired = self._p_tau_desired
+        self._tau_desired = self._s_tau_desired
         return self._id_rows[0], self._id_rows[1]
 
     # ------------------------------------------------------------------ ticks
@@ -675,59 +695,65 @@ class FusedController:
 
     def tick(self, t: float) -> None:
         """One control period at time t (s) from the current `sensor_buffer` and
-        reference buffers (q_ref, v_ref, vdot_ref, f_ref; com_ref with balance)."""
-        np.copyto(self._previous, self.state)
-        # Every selection of the controlled joints, now and previous: two takes
-        # (one with balance).
+        reference buffers (q_ref, v_ref, vdot_ref, f_ref; com_ref with balance).
+
+        One tick from sample to command: the steps run in the chain's order and each
+        reads what its upstream steps computed in this tick; the observer and the
+        predictor close loops through the Δq controller, which reads their output of
+        the previous tick (module docstring)."""
         sources = self._sources
-        if self.balance is None:
-            sources.take(self._id_gather, 0, self._id_inputs, "clip")
-        sources.take(self._gather, 0, self._gathered, "clip")
-        sel = self._selected
-        q_measured, v_hat, tau_hat = sel["q_measured"], sel["v_hat"], sel["tau_hat"]
-        # Filters and estimator (paper Sec. 2).
+        # Filters and estimator (paper Sec. 2), on this tick's samples.
         self.encoder_filter.step(t, self.q_measured)
         if self.sensor_filter is not None:
             self.sensor_filter.step(t, self.sensor_values)
         self.estimator.step(
             t,
-            self._p_q_hat,
-            self._p_v_hat,
-            self._p_vdot_hat,
-            self._p_acc,
-            self._p_gyro,
-            self._p_alpha,
-            self._p_wrenches,
+            self._s_q_hat,
+            self._s_v_hat,
+            self._s_vdot_hat,
+            self._s_acc,
+            self._s_gyro,
+            self._s_alpha,
+            self._s_wrenches,
         )
         if self.balance is None:
-            # Eq. 12 from its input rows, filled in place by the take above.
+            # Eq. 12 from its input rows, filled in place by the take.
+            sources.take(self._id_gather, 0, self._id_inputs, "clip")
             self.inverse_dynamics.step(t, *self._id_rows)
         else:
             self._balance_tick(t)
+        # Every selection of the controlled joints the Δq controller and the loops
+        # read: one take.
+        sources.take(self._gather, 0, self._gathered, "clip")
+        sel = self._selected
+        q_measured, v_hat, tau_hat = sel["q_measured"], sel["v_hat"], sel["tau_hat"]
         fault = self._fault
-        fault[0] = self._p_encoder_fault[0] + self._p_sensor_fault[0]
-        q_ref = self._q_ref_controlled
+        fault[0] = self._s_encoder_fault[0] + self._s_sensor_fault[0]
         reason = self.torque.step(
             t,
             self._tau_desired,
             self._tau_estimate,
             self._v_friction,
             q_measured,
-            q_ref,
+            self._q_ref_controlled,
             fault,
-            self._p_terms,
-            self._p_disturbance,
+            self._s_terms,
+            self._s_disturbance,
         )
         if reason:
             self._record(t, EventKind.CONTROLLER_FALLBACK, reason)
+        if self.balance is not None:  # the supervisor's controller fallback
+            self._controller_fallback[0] = (
+                self._s_fallback[0] + self._s_balance_fault[0]
+            )
         if self.observer is not None:
-            self.observer.step(t, self._p_delta_q, v_hat, tau_hat)
+            self.observer.step(t, self._s_delta_q, v_hat, tau_hat)
         if self.predictor is not None:
-            self.predictor.step(t, v_hat, sel["vdot_hat"], tau_hat, self._p_delta_q)
+            self.predictor.step(t, v_hat, sel["vdot_hat"], tau_hat, self._s_delta_q)
         if self.supervisor is not None:
             merged = self._merged
             merged[:] = self.q_ref
-            merged[self._index] = self._p_q_cmd_controlled
+            merged[self._index] = self._s_q_cmd_controlled
             bits = self.supervisor.step(
                 t,
                 merged,
@@ -743,14 +769,13 @@ class FusedController:
 
     def _balance_tick(self, t: float) -> None:
         """The balance front end's part of a tick: the base from the soles (the
-        encoders now, q̂̇ of the previous tick), the QP (the base's previous state,
-        q_ref and com_ref now), and the supervisor's controller fallback: the Δq
-        controller's plus the QP's fault code, both of the previous tick."""
-        self.base.step(t, self.q_measured, self._p_v_hat)
-        code = self.balance.step(t, self._p_robot_state, self.q_ref, self.com_ref)
-        if code and code != self._p_balance_fault[0]:
+        encoders and q̂̇ of this tick), then the QP (the base's state of this tick,
+        q_ref and com_ref)."""
+        self.base.step(t, self.q_measured, self._s_v_hat)
+        previous = self._s_balance_fault[0]
+        code = self.balance.step(t, self._s_robot_state, self.q_ref, self.com_ref)
+        if code and code != previous:
             self._record(t, EventKind.BALANCE_FAULT, code)
-        self._controller_fallback[0] = self._p_fallback[0] + self._p_balance_fault[0]
 
     def command(self, q_ref: np.ndarray, out: np.ndarray) -> np.ndarray:
         """The position command for the servo (all joints) after a tick, with the
@@ -839,10 +864,12 @@ class FusedTorqueController(WitnessFreeLeafSystem):
                                  │                       │    _contact_forces, _fault,
                                  └───────────────────────┘    _fault_count (balance)
 
-    One discrete state vector (`FusedController.state`) and one periodic update that
-    runs every step; the outputs are slices of that state (no direct feedthrough),
-    except q_cmd, which blends the state with the current q_ref as the supervisor's
-    (or the merger's) output does.
+    One discrete state vector (`FusedController.state`, committed) and the time of
+    the sample now shown, as every `StepSystem`: a cache entry runs the tick on a
+    copy of the committed state with the inputs as they are now, the outputs are
+    slices of it (direct feedthrough: the tick of the sample now shown), q_cmd its
+    command with the current q_ref; a periodic event at the sampling instants
+    (`period - lead`, then every period) commits it.
     """
 
     def __init__(self, parts: TorqueChainParts):
@@ -874,16 +901,24 @@ class FusedTorqueController(WitnessFreeLeafSystem):
             self.DeclareVectorInputPort("com_ref", 9) if parts.balance else None
         )
         self._group = int(self.DeclareDiscreteState(fused.state.copy()))
+        self._sample_time = int(self.DeclareDiscreteState(1))
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
-        self.DeclarePeriodicDiscreteUpdateEvent(parts.period, 0.0, self._update)
-        state_only = {self.xd_ticket()}
+        period, lead = parts.period, parts.sample_lead
+        self.DeclarePeriodicDiscreteUpdateEvent(period, period - lead, self._commit)
+        model = AbstractValue.Make(np.zeros(fused.state.size))
+        self._ticked = self.DeclareCacheEntry(
+            "ticked",
+            ValueProducer(allocate=model.Clone, calc=self._calc_ticked),
+            {self.xd_ticket(), self.all_input_ports_ticket()},
+        )
+        ticked = {self._ticked.ticket()}
         q_ref_port = self._reference_ports[0][0]
         self._q_cmd_out = np.zeros(N)
         self.DeclareVectorOutputPort(
             "q_cmd",
             N,
             self._calc_q_cmd,
-            prerequisites_of_calc={self.xd_ticket(), q_ref_port.ticket()},
+            prerequisites_of_calc=ticked | {q_ref_port.ticket()},
         )
         for name, view in fused.signals().items():
             rows = self._rows_of(view)
@@ -891,9 +926,9 @@ class FusedTorqueController(WitnessFreeLeafSystem):
                 name,
                 len(view),
                 lambda context, output, rows=rows: output.SetFromVector(
-                    context.get_discrete_state(self._group).get_value()[rows]
+                    self._ticked.Eval(context)[rows]
                 ),
-                prerequisites_of_calc=state_only,
+                prerequisites_of_calc=ticked,
             )
         fault_rows = [self._rows_of(fused.encoder_filter.input_fault)]
         if fused.sensor_filter is not None:
@@ -902,14 +937,9 @@ class FusedTorqueController(WitnessFreeLeafSystem):
             "sensor_fault",
             1,
             lambda context, output: output.SetFromVector(
-                [
-                    sum(
-                        context.get_discrete_state(self._group).get_value()[r][0]
-                        for r in fault_rows
-                    )
-                ]
+                [sum(self._ticked.Eval(context)[r][0] for r in fault_rows)]
             ),
-            prerequisites_of_calc=state_only,
+            prerequisites_of_calc=ticked,
         )
 
     def _rows_of(self, view: np.ndarray) -> slice:
@@ -936,16 +966,21 @@ class FusedTorqueController(WitnessFreeLeafSystem):
         self._read_inputs(context)
         fused.initialize(context.get_time())
         state.set_value(self._group, fused.state)
+        state.get_mutable_value(self._sample_time)[0] = context.get_time()
 
-    def _update(self, context: Context, state: DiscreteValues) -> None:
+    def _calc_ticked(self, context: Context, value: AbstractValue) -> None:
         fused = self._fused
-        fused.state[:] = state.get_value(self._group)
+        fused.state[:] = context.get_discrete_state(self._group).get_value()
         self._read_inputs(context)
-        fused.tick(context.get_time())
-        state.set_value(self._group, fused.state)
+        fused.tick(context.get_discrete_state(self._sample_time).get_value()[0])
+        value.get_mutable_value()[:] = fused.state
+
+    def _commit(self, context: Context, state: DiscreteValues) -> None:
+        state.set_value(self._group, self._ticked.Eval(context))
+        state.get_mutable_value(self._sample_time)[0] = context.get_time()
 
     def _calc_q_cmd(self, context: Context, output: BasicVector) -> None:
         fused = self._fused
-        fused.state[:] = context.get_discrete_state(self._group).get_value()
+        fused.state[:] = self._ticked.Eval(context)
         q_ref = self._reference_ports[0][0].Eval(context)
         output.SetFromVector(fused.command(q_ref, self._q_cmd_out))

@@ -49,7 +49,7 @@ from pydrake.multibody.tree import (
     SpatialInertia,
     WeldJoint,
 )
-from pydrake.systems.framework import Context, DiscreteValues, InputPort
+from pydrake.systems.framework import Context, InputPort
 
 from hrp2_drake.kernels import kernel
 from hrp2_drake.multibody import (
@@ -1075,6 +1075,7 @@ class InverseDynamicsController(StepSystem):
         plant: MultibodyPlant,
         config: InverseDynamicsConfig,
         nominal_positions: np.ndarray | None = None,
+        lead: float = 0.0,
     ):
         """
         Args:
@@ -1087,6 +1088,8 @@ class InverseDynamicsController(StepSystem):
             nominal_positions: the plant's position vector (plant.num_positions())
                 that sets every position other than the controlled joints' (and the
                 floating base's); default: the plant's default positions.
+            lead: the samples arrive this long (s) before each multiple of the
+                period (`StepSystem`: the commits follow the sampler).
         """
         super().__init__()
         step = InverseDynamicsStep(plant, config, nominal_positions)
@@ -1111,10 +1114,10 @@ class InverseDynamicsController(StepSystem):
         self._declare_step_state(step)
         for name in ("tau_desired", *TORQUE_COMPONENTS):
             self._declare_step_output(name)
-        self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
+        self._declare_commit(config.period, lead)
         # Per tick, the step's state arrays that it reads (it rewrites the others):
         # the only ones loaded from the context.
-        self._carried = [
+        self._tick_loads = [
             (self.step_group(name), step.state[step.rows(name)])
             for name in step.carried
         ]
@@ -1192,10 +1195,8 @@ class InverseDynamicsController(StepSystem):
             return None
         return port.Eval(context)
 
-    def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
+    def _tick(self, context: Context, t: float) -> None:
         # The hot path of every control period (scripts/bench.py --only tick).
-        for group, view in self._carried:
-            view[:] = discrete_state.get_value(group)
         f_ref = f = None
         if self._f is not None:
             f_ref, f = self._f_ref.Eval(context), self._f.Eval(context)
@@ -1206,7 +1207,7 @@ class InverseDynamicsController(StepSystem):
                 self._optional(self._base_angular_velocity, context),
             )
         new_nan = self._step.step(
-            context.get_time(),
+            t,
             self._q_ref.Eval(context),
             self._v_ref.Eval(context),
             self._vdot_ref.Eval(context),
@@ -1218,7 +1219,6 @@ class InverseDynamicsController(StepSystem):
         )
         if new_nan:
             self._log_nan(context)
-        self._store(discrete_state)
 
     def _log_nan(self, context: Context) -> None:
         # A bad sample must not take the loop down: NaN in, NaN out (the Δq controller

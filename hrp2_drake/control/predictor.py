@@ -76,7 +76,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from pydrake.systems.framework import Context, DiscreteValues
+from pydrake.systems.framework import Context
 
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.kernels import kernel
@@ -520,7 +520,14 @@ class DelayPredictor(StepSystem):
     (`bad_input_count`, `input_fault`); the first good one predicts afresh.
     """
 
-    def __init__(self, motor_model: MotorModel, config: DelayPredictorConfig):
+    def __init__(
+        self,
+        motor_model: MotorModel,
+        config: DelayPredictorConfig,
+        lead: float = 0.0,
+    ):
+        """`lead`: the samples arrive this long (s) before each multiple of the
+        period (`StepSystem`: the commits follow the sampler)."""
         super().__init__()
         step = DelayPredictorStep(motor_model, config)
         n, k = len(config.joints), int(config.wrench_size)
@@ -536,9 +543,11 @@ class DelayPredictor(StepSystem):
         outputs = ("v_predicted", "tau_predicted", "wrench_predicted", "input_fault")
         for name in outputs:
             if k or name != "wrench_predicted":
-                self._declare_step_output(name)
+                # Held: in a loop with the Δq controller, whose Δq it reads
+                # this tick.
+                self._declare_step_output(name, held=True)
         self._counters = self.step_group("counters")
-        self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
+        self._declare_commit(config.period, lead)
 
     def config(self) -> DelayPredictorConfig:
         return self._step.config()
@@ -566,16 +575,14 @@ class DelayPredictor(StepSystem):
         counters = context.get_discrete_state(self._counters).get_value()
         return int(counters[_TOTAL_BAD])
 
-    def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
-        # (discrete_state holds the current discrete state on entry.) Never raises
-        # on bad data (class docstring).
-        self._load(discrete_state)
+    def _tick(self, context: Context, t: float) -> None:
+        # Never raises on bad data (class docstring).
         wrench = rate = None
         if self._wrench is not None:
             wrench = self._wrench.Eval(context)
             rate = self._wrench_rate.Eval(context)
         self._step.step(
-            context.get_time(),
+            t,
             self._v.Eval(context),
             self._vdot.Eval(context),
             self._tau.Eval(context),
@@ -583,4 +590,3 @@ class DelayPredictor(StepSystem):
             wrench,
             rate,
         )
-        self._store(discrete_state)

@@ -628,8 +628,8 @@ class SafetySupervisor(StepSystem):
     Inputs: q_torque, q_position, q_measured (n each, rad), one port per monitored
     sensor (named after it), e_stop (1, optional), controller_fallback (1,
     optional), sensor_time (num_sensor_stamps, s; only if num_sensor_stamps > 0).
-    Outputs: q_cmd (n, rad, direct feedthrough of q_torque, q_position and
-    controller_fallback), and the state outputs mode, fault, transition.
+    Outputs: q_cmd (n, rad), mode, fault, transition: this tick's (direct
+    feedthrough, `StepSystem`).
     """
 
     def __init__(
@@ -638,7 +638,11 @@ class SafetySupervisor(StepSystem):
         sensors: dict[str, str],
         config: SafetyConfig,
         num_sensor_stamps: int = 0,
+        lead: float = 0.0,
     ):
+        """The arguments of `SafetySupervisorStep`; `lead`: the samples arrive this
+        long (s) before each multiple of the period (`StepSystem`: the commits follow
+        the sampler)."""
         super().__init__()
         step = SafetySupervisorStep(num_joints, sensors, config, num_sensor_stamps)
         n = num_joints
@@ -660,13 +664,13 @@ class SafetySupervisor(StepSystem):
         )
         self._declare_step_state(step)
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
-        self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
+        self._declare_commit(config.period, lead)
         self.DeclareVectorOutputPort(
             "q_cmd",
             n,
             self._calc_q_cmd,
             prerequisites_of_calc={
-                self.xd_ticket(),
+                self._ticked.ticket(),
                 self._q_torque.ticket(),
                 self._q_position.ticket(),
                 self._controller_fallback.ticket(),
@@ -721,10 +725,7 @@ class SafetySupervisor(StepSystem):
         )
         self._store(state)
 
-    def _update(self, context: Context, state: DiscreteValues) -> None:
-        # (state holds the current discrete state on entry.)
-        t = context.get_time()
-        self._load(state)
+    def _tick(self, context: Context, t: float) -> None:
         new_fault = self._step.step(
             t,
             self._q_torque.Eval(context),
@@ -735,7 +736,6 @@ class SafetySupervisor(StepSystem):
             _optional(self._controller_fallback, context),
             _optional(self._sensor_time, context),
         )
-        self._store(state)
         if new_fault:
             _logger.warning(
                 "SafetySupervisor %s: fault at t = %.6g s (%s): to position control",
@@ -747,7 +747,8 @@ class SafetySupervisor(StepSystem):
     # ----------------------------------------------------------------- output
 
     def _calc_q_cmd(self, context: Context, output: BasicVector) -> None:
-        self._load_context(context)
+        # The command of this tick: from the state after it.
+        self._step.state[:] = self.ticked(context)
         self._step.q_cmd(
             self._q_torque.Eval(context),
             self._q_position.Eval(context),

@@ -820,12 +820,19 @@ class DeltaQTorqueController(StepSystem):
     simulated HRP-2.
     """
 
-    def __init__(self, motor_model: MotorModel, config: TorqueControllerConfig):
+    def __init__(
+        self,
+        motor_model: MotorModel,
+        config: TorqueControllerConfig,
+        lead: float = 0.0,
+    ):
         """
         Args:
             motor_model: the identified K_τ (rad/(N·m)), K_v (s), K_c (rad) (eq. 6);
                 it must have every joint of config.joints, with K_τ > 0.
             config: joints, gains, limits (validated here).
+            lead: the samples arrive this long (s) before each multiple of the
+                period (`StepSystem`: the commits follow the sampler).
         """
         super().__init__()
         step = DeltaQTorqueStep(motor_model, config)
@@ -857,18 +864,14 @@ class DeltaQTorqueController(StepSystem):
         ):
             self._declare_step_output(name)
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
-        self.DeclarePeriodicDiscreteUpdateEvent(config.period, 0.0, self._update)
+        self._declare_commit(config.period, lead)
 
         # Per tick: the step's state arrays that it reads or keeps are the only ones
-        # loaded from the context, those it may change the only ones stored (the
-        # context's discrete update starts from the current state); the tau_* inputs
-        # land in the rows of one work array.
+        # loaded from the context; the tau_* inputs land in the rows of one work
+        # array.
         views = {name: step.state[rows] for name, rows in step.layout()}
-        self._carried = [(self.step_group(name), views[name]) for name in step.carried]
-        self._written = [
-            (self.step_group(name), view)
-            for name, view in views.items()
-            if name not in step.unused
+        self._tick_loads = [
+            (self.step_group(name), views[name]) for name in step.carried
         ]
         self._terms = np.zeros((len(TORQUE_COMPONENTS), n))
         self._term_rows = list(zip(self._terms, self._tau_terms))
@@ -943,11 +946,9 @@ class DeltaQTorqueController(StepSystem):
         self._step.initialize(context.get_time(), q_measured, q_ref)
         self._store(discrete_state)
 
-    def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
-        # The hot path of every control period: one Eval per input, the step, one
-        # set_value per state group (scripts/bench.py --only tick).
-        for group, view in self._carried:
-            view[:] = discrete_state.get_value(group)
+    def _tick(self, context: Context, t: float) -> None:
+        # The hot path of every control period: one Eval per input and the step
+        # (scripts/bench.py --only tick).
         q_ref = sensor_fault = disturbance = None
         if self._q_ref.HasValue(context):
             q_ref = self._q_ref.Eval(context)
@@ -956,7 +957,7 @@ class DeltaQTorqueController(StepSystem):
         if self._tau_disturbance is not None:
             disturbance = self._tau_disturbance.Eval(context)
         reason = self._step.step(
-            context.get_time(),
+            t,
             self._tau_desired.Eval(context),
             self._tau_estimated.Eval(context),
             self._v.Eval(context),
@@ -971,8 +972,6 @@ class DeltaQTorqueController(StepSystem):
                 "%s %s: falling back to position control at t = %.6g s: %s",
                 _WHERE,
                 self.GetSystemPathname(),
-                context.get_time(),
+                t,
                 FALLBACK_REASONS[reason],
             )
-        for group, view in self._written:
-            discrete_state.set_value(group, view)

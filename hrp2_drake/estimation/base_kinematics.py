@@ -55,7 +55,7 @@ from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.multibody.math import SpatialVelocity
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import JacobianWrtVariable, JointIndex
-from pydrake.systems.framework import Context, DiscreteValues
+from pydrake.systems.framework import Context
 
 from hrp2_drake.kernels import kernel
 from hrp2_drake.multibody import get_frame, joint_indexing
@@ -439,7 +439,7 @@ class FloatingBaseFromSoles(StepSystem):
         q (n, rad), v (n, rad/s): every joint, the constructor's joint order (the
             encoders or the Savitzky-Golay estimates).
 
-    Output (discrete state, updated every `period`):
+    Output (this tick's, `StepSystem`):
         state (nq + nv): the plant's [q; v] with the base from the soles.
     """
 
@@ -449,11 +449,14 @@ class FloatingBaseFromSoles(StepSystem):
         joints: list[str],
         sole_poses: dict[str, RigidTransform],
         period: float,
+        lead: float = 0.0,
     ):
         """
         Args:
             plant, joints, sole_poses: as `BaseFromSolesStep`'s.
             period: the update period (s).
+            lead: the samples arrive this long (s) before each multiple of `period`
+                (`StepSystem`: the commits follow the sampler).
         """
         super().__init__()
         step = BaseFromSolesStep(plant, joints, sole_poses)
@@ -461,14 +464,10 @@ class FloatingBaseFromSoles(StepSystem):
         self._v = self.DeclareVectorInputPort("v", len(joints))
         self._declare_step_state(step)
         self._declare_step_output("state", "robot_state")
-        self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
+        self._declare_commit(period, lead)
 
     def step(self) -> BaseFromSolesStep:
         return self._step
 
-    def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
-        self._load(discrete_state)
-        self._step.step(
-            context.get_time(), self._q.Eval(context), self._v.Eval(context)
-        )
-        self._store(discrete_state)
+    def _tick(self, context: Context, t: float) -> None:
+        self._step.step(t, self._q.Eval(context), self._v.Eval(context))

@@ -56,6 +56,7 @@ def add_estimator(
     gyroscope: str = "imu_angular_velocity",
     wrench_prefix: str = "wrench_",
     name: str = "torque_estimator",
+    lead: float = 0.0,
 ) -> EstimationChain:
     """Adds the whole estimation chain of paper Sec. 2 to `builder` and connects it to
     the output ports of `station` (a robot diagram, simulated or real, already added to
@@ -91,6 +92,8 @@ def add_estimator(
         wrench_prefix: the F/T port of sensor s is wrench_prefix + s.
         name: name of the estimator; the other systems' names start with it (give
             another to add a second chain to the same builder).
+        lead: the station samples this long (s) before each multiple of the period
+            (`hrp2_drake.step.StepSystem`: the systems commit at its samples).
 
     Returns:
         The added systems (their outputs are the estimator's ports).
@@ -102,13 +105,15 @@ def add_estimator(
     imu_ports = [accelerometer, gyroscope] if config.imu_frame else []
     sensor_ports = imu_ports + [wrench_prefix + s for s in config.sensors]
     _check_station_ports(station, config, encoders, sensor_ports)
-    estimator = builder.AddNamedSystem(name, FloatingBaseTorqueEstimator(plant, config))
+    estimator = builder.AddNamedSystem(
+        name, FloatingBaseTorqueEstimator(plant, config, lead=lead)
+    )
     encoder_filter = _add_encoder_filter(
-        builder, station, estimator, config, encoders, name
+        builder, station, estimator, config, encoders, name, lead
     )
     faults = [encoder_filter.GetOutputPort("input_fault")]
     sensor_filter = _add_sensor_filter(
-        builder, station, estimator, config, sensor_ports, name
+        builder, station, estimator, config, sensor_ports, name, lead
     )
     if sensor_filter is not None:
         faults.append(sensor_filter.GetOutputPort("input_fault"))
@@ -150,6 +155,7 @@ def _add_encoder_filter(
     config: TorqueEstimatorConfig,
     encoders: str,
     name: str,
+    lead: float,
 ) -> SavitzkyGolayFilter:
     """Adds the encoders' Savitzky-Golay filter (order 2) between the station's port
     `encoders` and the estimator's q, v and vdot inputs; returns it."""
@@ -163,6 +169,7 @@ def _add_encoder_filter(
             config.period,
             config.evaluation,
             span=config.span(),
+            lead=lead,
         ),
     )
     builder.Connect(station.GetOutputPort(encoders), encoder_filter.get_input_port())
@@ -184,6 +191,7 @@ def _add_sensor_filter(
     config: TorqueEstimatorConfig,
     sensor_ports: list[str],
     name: str,
+    lead: float,
 ) -> SavitzkyGolayFilter | None:
     """Adds the IMU's and F/T sensors' Savitzky-Golay filter (order 1) between the
     station's `sensor_ports` (accelerometer and gyroscope with an IMU, then each F/T
@@ -208,6 +216,7 @@ def _add_sensor_filter(
             config.period,
             config.evaluation,
             span=config.span(),
+            lead=lead,
         ),
     )
     builder.Connect(mux.get_output_port(), sensor_filter.get_input_port())

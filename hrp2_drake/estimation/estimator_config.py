@@ -222,10 +222,19 @@ def filter_windows(config: TorqueEstimatorConfig) -> tuple[list[int], list[int]]
 
 def estimation_delay(config: TorqueEstimatorConfig) -> float:
     """Seconds between the robot state the estimation chain's outputs describe and the
-    time they are output: the filters' common evaluation point plus two periods (a
-    sensor sample taken at t enters the filters at t + period, the estimator reads the
-    filters' update at t + 2 periods). For the paper's N = 80 at 1 kHz: 41.5 ms.
+    sample they are computed from: the filters' common evaluation point, nothing more
+    (the chain computes in the tick its samples arrive). For the paper's N = 80 at
+    1 kHz: 39.5 ms.
 
     The one place this delay is computed: the chain (`EstimationChain.delay`), the
-    fused controller, the observer's and the predictor's delay, the experiments."""
-    return (config.delay_samples() + 2) * config.period
+    fused controller, the observer's and the predictor's delay (this plus the
+    command's sample to the servo, `loop_delay`), the experiments."""
+    return config.delay_samples() * config.period
+
+
+def loop_delay(config: TorqueEstimatorConfig) -> float:
+    """Seconds from the robot state the estimates describe to the instant the Δq of
+    the same tick starts to act: `estimation_delay` plus the one period between a
+    command and the servo. The disturbance observer meets its Δq with the estimates
+    over it; the delay predictor carries the estimates across it."""
+    return estimation_delay(config) + config.period

@@ -524,6 +524,7 @@ class SavitzkyGolayFilter(StepSystem):
         period: float = 1e-3,
         evaluation: str = "centre",
         span: int | None = None,
+        lead: float = 0.0,
     ):
         """
         Args:
@@ -538,6 +539,8 @@ class SavitzkyGolayFilter(StepSystem):
             span: the window whose centre every window shares (default: the
                 longest; >= every window, same parity): give two filters the same span
                 to align them, e.g. the encoders' and the other sensors'.
+            lead: the samples arrive this long (s) before each multiple of `period`
+                (`StepSystem`: the commits follow the sampler).
         """
         super().__init__()
         step = SavitzkyGolayStep(num_signals, window, order, period, evaluation, span)
@@ -545,7 +548,7 @@ class SavitzkyGolayFilter(StepSystem):
         self._declare_step_state(step)
         for name in step.output_names():
             self._declare_step_output(name)
-        self.DeclarePeriodicDiscreteUpdateEvent(step.period(), 0.0, self._update)
+        self._declare_commit(step.period(), lead)
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
 
     @classmethod
@@ -604,11 +607,9 @@ class SavitzkyGolayFilter(StepSystem):
         self._step.initialize(context.get_time(), self._signal.Eval(context))
         self._store(discrete_state)
 
-    def _update(self, context, discrete_state):
+    def _tick(self, context, t):
         # The hot path of every control period (scripts/bench.py --only tick).
-        self._load(discrete_state)
-        self._step.step(context.get_time(), self._signal.Eval(context))
-        self._store(discrete_state)
+        self._step.step(t, self._signal.Eval(context))
 
 
 def savgol_filter_offline(

@@ -93,7 +93,7 @@ base's proper acceleration without IMU); τ̂ is the torque the actuators transm
 import numpy as np
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import RigidBody
-from pydrake.systems.framework import Context, DiscreteValues
+from pydrake.systems.framework import Context
 
 from hrp2_drake.estimation.estimator_config import TorqueEstimatorConfig
 from hrp2_drake.estimation.estimator_step import TorqueEstimate, TorqueEstimatorStep
@@ -193,7 +193,9 @@ class FloatingBaseTorqueEstimator(StepSystem):
     prismatic and weld joints besides; its force elements are ignored.
     """
 
-    def __init__(self, plant: MultibodyPlant, config: TorqueEstimatorConfig):
+    def __init__(
+        self, plant: MultibodyPlant, config: TorqueEstimatorConfig, lead: float = 0.0
+    ):
         """
         Args:
             plant: a finalized MultibodyPlant holding only the robot, with a floating
@@ -201,6 +203,8 @@ class FloatingBaseTorqueEstimator(StepSystem):
                 the world (a fixed base; then config.imu_frame may be empty). It must
                 outlive the estimator; it is never modified.
             config: joint, frame and sensor names and options (validated here).
+            lead: the samples arrive this long (s) before each multiple of the
+                period (`StepSystem`: the commits follow the sampler).
         """
         super().__init__()
         step = TorqueEstimatorStep(plant, config)
@@ -227,7 +231,7 @@ class FloatingBaseTorqueEstimator(StepSystem):
         self._declare_step_state(step)
         for name in step.output_names():
             self._declare_step_output(name)
-        self.DeclarePeriodicDiscreteUpdateEvent(step.period(), 0.0, self._update)
+        self._declare_commit(step.period(), lead)
 
     # ----------------------------------------------------------------- accessors
 
@@ -314,14 +318,13 @@ class FloatingBaseTorqueEstimator(StepSystem):
 
     # ----------------------------------------------------------------- per tick
 
-    def _update(self, context: Context, discrete_state: DiscreteValues) -> None:
-        self._load(discrete_state)
+    def _tick(self, context: Context, t: float) -> None:
         for port, row in self._sensor_inputs:
             row[:] = port.Eval(context)
         imu = self._acc_port is not None
         try:
             self._step.step(
-                context.get_time(),
+                t,
                 self._q_port.Eval(context),
                 self._v_port.Eval(context),
                 self._vdot_port.Eval(context),
@@ -333,7 +336,6 @@ class FloatingBaseTorqueEstimator(StepSystem):
         except ValueError:
             self._check_ports(context)  # raises naming the port, if one is not finite
             raise
-        self._store(discrete_state)
 
     def _check_ports(self, context: Context) -> None:
         """ValueError naming the first port (in port order) that is read and not

@@ -412,6 +412,7 @@ class SensorSampler(WitnessFreeLeafSystem):
                 f"period ({config.period} s)"
             )
         self._offset = (config.period - lead) % config.period
+        self._lead = lead
         laws = _sensor_laws(config, len(joint_names), encoder_resolution, imu, names)
         starts = self._make_buffers(laws)
         self._declare_inputs(plant, joint_names, starts, imu, force_torque)
@@ -420,6 +421,14 @@ class SensorSampler(WitnessFreeLeafSystem):
             config.period, self._offset, self._update
         )
         self.warm_up()
+
+    def period(self) -> float:
+        """The sampling period (s)."""
+        return self._period
+
+    def lead(self) -> float:
+        """How long (s) before each multiple of the period the sensors sample."""
+        return self._lead
 
     def _make_buffers(self, laws: dict[str, SampledSignal]) -> dict[str, int]:
         """One buffer of every clean signal, channel after channel (the noisy ones
