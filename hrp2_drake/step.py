@@ -2,21 +2,29 @@
 
 A `Step` holds its state as named float64 arrays packed in one flat vector
 (`Step.state`), and its `step(...)` maps input arrays to that state in place. Its
-outputs are named state arrays (what a LeafSystem exposes with
-`DeclareStateOutputPort`): a consumer reads them one tick later, the one-sample delay of
-a real controller. A step holds no systems Context (a MultibodyPlant context as a
-computation workspace is fine), allocates nothing per tick, and never logs: it counts
-events in its state and its shell reports them. Its arithmetic is a numba kernel
-(`hrp2_drake.kernels`), which `warm_up` compiles before a loop starts.
+outputs are named state arrays. A step holds no systems Context (a MultibodyPlant
+context as a computation workspace is fine), allocates nothing per tick, and never
+logs: it counts events in its state and its shell reports them. Its arithmetic is a
+numba kernel (`hrp2_drake.kernels`), which `warm_up` compiles before a loop starts.
+
+The timing rule, written once: one tick from sample to command. At tick k every
+step reads what its upstream steps computed at tick k, from the station's samples
+of tick k and the reference at their instant; a step in a loop (the disturbance
+observer, the delay predictor: both read the Δq controller's output and feed it)
+is read by its consumer one tick late. The delays left are the filters' own (their
+window) and one sample between the command and the servo, as on a real robot.
 
 Two shells run the same steps:
 
 - the step's LeafSystem (`StepSystem`): one discrete state group per named array,
-  copied into the step before each update and back after it, so that Drake's Context
-  stays the state's owner (several contexts, simulator resets, `FixValue` in tests);
+  the committed state, so that Drake's Context stays the state's owner (several
+  contexts, simulator resets, `FixValue` in tests). Its outputs run the step on the
+  inputs as they are now (direct feedthrough, cached) and a periodic event at the
+  station's sampling instants commits that tick; a loop's outputs are the committed
+  state (`held`), which breaks the algebraic loop;
 - the fused controller (`hrp2_drake.control.fused`): every step's state in one flat
-  vector (`Step.bind`), the steps run in sequence in one update, or in a hardware loop
-  with no Drake at all.
+  vector (`Step.bind`), the steps run in the chain's order in one update, or in a
+  hardware loop with no Drake at all.
 """
 
 from collections.abc import Iterator

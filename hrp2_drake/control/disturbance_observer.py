@@ -11,10 +11,11 @@ as a torque disturbance
 
 the joint torque the estimator measures minus the one the model predicts for the Δq
 the controller sent. τ̂ and q̂̇ come from the estimation chain, delayed by its window
-(`EstimationChain.delay()`, 41.5 ms for the paper's 80 samples), so Δq is taken
-`delay` seconds old from a buffer of what was sent: every term refers to the same
-instant. The raw d is low-passed (first order, `bandwidth`), so that the observer
-passes the slow disturbance and not the estimate's noise:
+(`EstimationChain.delay()`, 39.5 ms for the paper's 80 samples), and a Δq acts one
+period after it is sent, so Δq is taken `delay` seconds old (the two together:
+`estimator_config.loop_delay`, 40.5 ms) from a buffer of what was sent: every term
+refers to the same instant. The raw d is low-passed (first order, `bandwidth`), so
+that the observer passes the slow disturbance and not the estimate's noise:
 
     d̂[k+1] = d̂[k] + α (d[k] − d̂[k]),    α = 1 − exp(−bandwidth · period).
 
@@ -45,8 +46,10 @@ class DisturbanceObserverConfig:
             every vector of the observer.
         bandwidth: of the first-order low-pass on the raw disturbance (rad/s); its
             time constant is 1 / bandwidth.
-        delay: the age of τ̂ and q̂̇ when they arrive (s): the estimation chain's
-            delay. Δq is delayed by it (rounded to whole periods) to meet them.
+        delay: how long before the Δq sent now the Δq that acted at the instant
+            τ̂ and q̂̇ describe was sent (s): the estimation chain's delay plus the
+            period before a Δq acts (`estimator_config.loop_delay`). Δq is delayed
+            by it (rounded to whole periods) to meet them.
         limit: |d̂| is clipped to this (N·m), one value for every joint or one per
             joint; .inf: no clip.
         period: the update period (s).
@@ -54,7 +57,7 @@ class DisturbanceObserverConfig:
 
     joints: list[str] = field(default_factory=list)
     bandwidth: float = 10.0
-    delay: float = 0.0415
+    delay: float = 0.0405
     limit: list[float] = field(default_factory=lambda: [math.inf])
     period: float = 0.001
 

@@ -4,8 +4,9 @@ algorithm could also exploit [the identified model] to predict the future state 
 so nullify estimation delays").
 
 The estimation chain (Savitzky-Golay filters + RNEA) outputs q̂̇, q̂̈, τ̂ and f̂ that
-describe the robot `delay` seconds ago (41.5 ms for the paper's 80-sample window at
-1 kHz, `EstimationChain.delay()`), but the Δq the controller sent since then is known.
+describe the robot `delay` seconds ago (39.5 ms for the paper's 80-sample window at
+1 kHz, `EstimationChain.delay()`, and one period more when the predictor's output is
+read, `loop_delay`), but the Δq the controller sent since then is known.
 Per joint, the motor model (eq. 6, without its Coulomb term)
 
     Δq = K_τ τ + K_v q̇,            τ = m q̈ + τ_rest
@@ -40,8 +41,12 @@ buffered Δq (the weights are precomputed; one pass of O(M n) per tick):
 
 Alignment (all times on the controller's clock, ticks t_k = k · period):
   - the estimates read at tick k describe the robot at t_k − delay (`delay` may be a
-    fraction of a period: the paper's 41.5 ms is 41.5 periods, and the first step of
-    the recurrence is then the fraction);
+    fraction of a period: the paper's 40.5 ms is 40.5 periods, and the first step of
+    the recurrence is then the fraction). In the torque chain the predictor steps
+    after the Δq controller of its tick and the controller reads it at the next
+    (the loop's one tick): its inputs of tick k serve tick k + 1, which is this
+    alignment with `delay` = `estimator_config.loop_delay` (the estimation delay
+    plus that period);
   - the Δq read at tick k was computed by the controller at tick k − 1 and acts on
     the joint over [t_{k−1} + λ, t_k + λ), λ = `command_latency` (whole periods). In
     a Drake diagram with a discrete plant stepping at the control period λ = one
@@ -101,7 +106,8 @@ class DelayPredictorConfig:
         joints: the predicted joints (the torque-controlled ones), in the order of
             every joint vector of the predictor; the motor model must have them all.
         delay: the age of q̂̇, q̂̈, τ̂ (and f̂, ḟ̂) when the predictor reads them (s):
-            the estimation chain's `delay()`; need not be whole periods.
+            in the torque chain `estimator_config.loop_delay` (the Alignment in
+            the module docstring); need not be whole periods.
         inertia: the joint-space inertia diagonal m, one value > 0 per joint (kg·m²),
             e.g. of the mass matrix at the start pose (rotor inertia included).
         command_latency: from the controller's update that computes a Δq to the
@@ -120,7 +126,7 @@ class DelayPredictorConfig:
     """
 
     joints: list[str] = field(default_factory=list)
-    delay: float = 0.0415
+    delay: float = 0.0405
     inertia: list[float] = field(default_factory=list)
     command_latency: float = 0.001
     wrench_size: int = 0

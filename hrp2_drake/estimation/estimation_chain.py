@@ -41,7 +41,7 @@ class EstimationChain:
     def delay(self) -> float:
         """Seconds between the robot state an output of the estimator describes and the
         time it is output (`estimation_delay`). For the paper's N = 80 at 1 kHz:
-        41.5 ms."""
+        39.5 ms."""
         return estimation_delay(self.estimator.config())
 
 

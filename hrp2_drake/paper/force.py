@@ -21,7 +21,7 @@ Wrench conventions (as InverseDynamicsController's force task): f = [torque; for
 sensor frame "RLEG_FOOT", expressed in it; standing flat, f_z is the vertical load of
 the right foot (about half the robot's weight, 260 N here). The controller's f̂ is the
 estimator's external_wrench_right_foot (the F/T reading compensated for the foot's
-weight and inertia, delayed by the Savitzky-Golay window, 41.5 ms for N = 80).
+weight and inertia, delayed by the Savitzky-Golay window, 39.5 ms for N = 80).
 
 What "zero on the other axes" means here. The paper keeps "the force on the other
 axes to zero". A foot standing on a block carries a static wrench on every axis

@@ -103,7 +103,7 @@ def improvement_alone(
     name: str, paper: TorqueControlConfig, tuned: TorqueControlConfig
 ) -> TorqueControlConfig:
     """`paper` with one improvement of `tuned`. The observer keeps the tuned
-    bandwidth × estimation delay (what the tuner searches: at the paper's 41.5 ms
+    bandwidth × estimation delay (what the tuner searches: at the paper's 39.5 ms
     delay the tuned bandwidth itself would break the bound the tuner kept)."""
     changes = {f: field_at(tuned, f) for f in IMPROVEMENTS[name]}
     if name == "disturbance observer":
