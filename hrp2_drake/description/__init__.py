@@ -179,6 +179,12 @@ class RobotDescription:
         force_sensor: the F/T sensor that measures the force task's wrench.
         servo_file: the emulated position servo's parameters (simulation only).
         servo_presets: other servo files by preset name, e.g. {ideal: servo_ideal.yaml}.
+        control_file: the torque control's settings that work on this robot at its
+            rate: a YAML file with a `torque_control:` mapping, what a user's
+            --config holds for it (e.g. `torque_control: {controller: {kp: [1.0]}}`).
+            `hrp2-drake control` and `track` start from it: the command's defaults,
+            this file over them, the user's --config over both. Empty: none (the
+            commands' defaults, the paper's).
         sensors: noise, bias and sampling of the simulated sensors.
         initial_positions: the home pose (rad, `joints` order); empty: the first
             sample of trajectory_file.
@@ -221,6 +227,7 @@ class RobotDescription:
     force_sensor: str = ""
     servo_file: str = "servo.yaml"
     servo_presets: dict[str, str] = field(default_factory=dict)
+    control_file: str = ""
     sensors: SensorsConfig = field(default_factory=SensorsConfig)
     initial_positions: list[float] = field(default_factory=list)
     trajectory_file: str = ""
@@ -364,6 +371,10 @@ class RobotDescription:
         if preset in self.servo_presets:
             return self.path(self.servo_presets[preset])
         return Path(preset)
+
+    def control_path(self) -> Path | None:
+        """The robot's control file (`control_file`), or None if it has none."""
+        return self.path(self.control_file) if self.control_file else None
 
     def labels(self) -> list[str]:
         """Labels of the controlled joints (their names if none are given)."""
@@ -754,6 +765,9 @@ def _load(path: str, mtime: int, check: bool) -> RobotDescription:
         raise ValueError(
             f"{path}: trajectory_file: '{description.path(trajectory)}' not found"
         )
+    control = description.control_path()
+    if control is not None and not control.is_file():
+        raise FileNotFoundError(f"{path}: control_file: '{control}' not found")
     if check:
         try:
             plant = description.make_plant()
