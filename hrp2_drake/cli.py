@@ -38,6 +38,7 @@ import yaml
 
 from hrp2_drake import console
 from hrp2_drake.config import (
+    field_at,
     load_config,
     one_line,
     parse_yaml,
@@ -63,6 +64,20 @@ def _config(schema, args: argparse.Namespace):
     if not args.config:
         return schema()
     return load_config(schema, filename=args.config, validate=False)
+
+
+def _config_on_robot(schema, args: argparse.Namespace, robot_key: str):
+    """(config, sources): the --config file read into `schema` (a config with a
+    `torque_control`) over the robot's torque-control settings (`load_on_robot`: the
+    command's defaults < the robot's control file < --config < the options, which the
+    command applies after); not validated yet. The robot: --robot, else the file's
+    (its field at `robot_key`, e.g. "station.robot"), else the schema's default.
+    `sources` (a `TorqueControlSources`) says where the settings came from."""
+    from hrp2_drake.description import load_robot_description
+    from hrp2_drake.tools.robot_control import load_on_robot
+
+    spec = args.robot or field_at(_config(schema, args), robot_key)
+    return load_on_robot(schema, load_robot_description(spec or None), args.config)
 
 
 def _config_sets(args: argparse.Namespace, key: str) -> bool:
@@ -260,7 +275,7 @@ def _validate_logs(args: argparse.Namespace) -> int:
 def _track(args: argparse.Namespace) -> int:
     from hrp2_drake.tools.track import TrackConfig, can_press, run_track
 
-    config = _config(TrackConfig, args)
+    config, sources = _config_on_robot(TrackConfig, args, "station.robot")
     # --robot R, floating: hanging unless the file says otherwise (the iiwa's default
     # station is fixed_base).
     _use_robot(config.station, args, floating="hanging" if args.robot else "")
@@ -276,7 +291,9 @@ def _track(args: argparse.Namespace) -> int:
     identify = IdentifyConfig(
         station=config.station, duration_scale=0.5 if args.quick else 1.0
     )
-    summary = run_track(config, _motor_model(args, out, config, identify), out)
+    summary = run_track(
+        config, _motor_model(args, out, config, identify), out, sources=sources
+    )
     print(f"report: {out / 'track.md'}")
     for name, errors in summary["tracking"].items():
         print(f"  {name}: maximum error {max(errors['maximum']) * 1e3:.2f} mrad")
@@ -288,7 +305,7 @@ def _track(args: argparse.Namespace) -> int:
 def _control(args: argparse.Namespace) -> int:
     from hrp2_drake.tools.control import ControlConfig, _ending, run_control
 
-    config = _config(ControlConfig, args)
+    config, sources = _config_on_robot(ControlConfig, args, "robot")
     if args.robot:
         config.robot = args.robot
     _set_given(config, args, "duration", "motion")
@@ -306,6 +323,7 @@ def _control(args: argparse.Namespace) -> int:
         lcm_url=args.lcm,
         port=args.port,
         lockstep=args.lockstep,
+        sources=sources,
     )
     lat = summary["latency_us"]
     print(

@@ -43,8 +43,12 @@ def test_track_runs_on_the_twin(tmp_path, capsys):
     assert "| position control |" in report
     assert "| torque control K6=1 |" in report
     assert "HRP-2" not in report
+    # Its own torque-control settings (K_p = 1), named; the --config sets none.
+    assert "the robot's control file `" in report and "K_p = 1," in report
     summary = json.loads((tmp_path / "track.json").read_text())
     assert summary["robot"] == ROBOT
+    assert summary["torque_control_from"]["robot_file"].endswith("control.yaml")
+    assert summary["torque_control_from"]["user_file"] == ""
     assert "force_task" not in summary
     # The model identified on the twin holds at the station's servo gain (servo.yaml's).
     gain = StationConfig(robot=ROBOT, scenario="fixed_base").servo_gain_in_use()

@@ -45,6 +45,7 @@ from hrp2_drake.hardware.transport import open_transport
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure
 from hrp2_drake.robot.station import StationConfig
+from hrp2_drake.tools.robot_control import TorqueControlSources
 from hrp2_drake.tools.track import TrackConfig, check_sinusoid, sinusoid_reference
 
 
@@ -201,12 +202,15 @@ def run_control(
     lcm_url: str = "",
     port: str = "",
     lockstep: bool = False,
+    sources: TorqueControlSources | None = None,
 ) -> dict:
     """The whole `hrp2-drake control`: build the fused controller, connect to the
     robot (over LCM at `lcm_url`, or on its bus at `port`), move to home and run the
     control loop, report (control.md with a latency histogram, control.json,
     control.npz). The summary says why the run ended ("fault"). `config` is validated
-    where it was loaded (`validate_config`)."""
+    where it was loaded (`validate_config`); `sources`: where its torque-control
+    settings came from (`load_on_robot`; None: `config` as the caller made it), for
+    the report."""
     robot = config.description()
     torque_control = config.torque_control_at_period()
     if (
@@ -248,6 +252,7 @@ def run_control(
         link.close()
     summary["approach_s"] = approach
     summary["warm_up_s"] = warm_up
+    summary["torque_control_from"] = (sources or TorqueControlSources()).summary()
     return _report(
         config, robot, loop, summary, out, torque_control.start_time + approach
     )
@@ -318,6 +323,10 @@ def _markdown(robot, config: ControlConfig, summary: dict) -> str:
         "",
         f"{config.duration} s at {1 / config.period():.0f} Hz, {_clock(robot)}; "
         f"motion: {config.motion}.",
+        "",
+        TorqueControlSources(**summary["torque_control_from"]).markdown(
+            config.torque_control
+        ),
         "",
         f"**How the run ended:** {_ending(summary)}",
         "",

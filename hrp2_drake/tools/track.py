@@ -66,6 +66,7 @@ from hrp2_drake.robot.station import (
     make_station,
 )
 from hrp2_drake.simulation import run_with_progress
+from hrp2_drake.tools.robot_control import TorqueControlSources
 
 
 @dataclass
@@ -646,10 +647,18 @@ def _plot_force(
     save_figure(fig, path, dpi=100, tight=True)
 
 
-def run_track(config: TrackConfig, motor_model: MotorModel, out: Path) -> dict:
+def run_track(
+    config: TrackConfig,
+    motor_model: MotorModel,
+    out: Path,
+    sources: TorqueControlSources | None = None,
+) -> dict:
     """The whole `hrp2-drake track`: tracking, the force task, report and plots.
-    `config` is validated where it was loaded (`validate_config`)."""
+    `config` is validated where it was loaded (`validate_config`); `sources`: where
+    its torque-control settings came from (`load_on_robot`; None: `config` as the
+    caller made it), for the report."""
     robot = config.station.description()
+    sources = sources or TorqueControlSources()
     out.mkdir(parents=True, exist_ok=True)
     # The one place where track reads the motor model: at the station's servo gain.
     motor_model = motor_model_at_station_gain(motor_model, config.station)
@@ -657,6 +666,7 @@ def run_track(config: TrackConfig, motor_model: MotorModel, out: Path) -> dict:
         "robot": robot.name,
         "joints": list(robot.controlled_joints),
         "motor_model_gain": motor_model.gain,
+        "torque_control_from": sources.summary(),
     }
     summary["tracking"] = run_tracking(config, motor_model)
     if robot.bus.active:
@@ -670,7 +680,7 @@ def run_track(config: TrackConfig, motor_model: MotorModel, out: Path) -> dict:
         summary["force_task"] = run_force_task(config, motor_model, out)
     (out / "track.json").write_text(json.dumps(summary, indent=2))
     _plot_tracking(robot, summary["tracking"], out / "track_errors.png")
-    (out / "track.md").write_text(_markdown(robot, config, summary))
+    (out / "track.md").write_text(_markdown(robot, config, summary, sources))
     return summary
 
 
@@ -687,7 +697,12 @@ def _plot_tracking(robot: RobotDescription, runs: dict, path: Path) -> None:
     save_figure(fig, path, dpi=100, tight=True)
 
 
-def _markdown(robot: RobotDescription, config: TrackConfig, summary: dict) -> str:
+def _markdown(
+    robot: RobotDescription,
+    config: TrackConfig,
+    summary: dict,
+    sources: TorqueControlSources,
+) -> str:
     labels = robot.labels()
     spread = len(robot.controlled_joints) > 1
     phases = " (phases spread over the joints)" if spread else ""
@@ -700,6 +715,8 @@ def _markdown(robot: RobotDescription, config: TrackConfig, summary: dict) -> st
         f"{config.frequency} Hz around the home pose for {config.duration} s{phases}, "
         "after a settle at home. Errors of the true joint angles (mrad), from the end "
         f"of the settle. Plot: `track_errors.png`.{model}",
+        "",
+        sources.markdown(config.torque_control),
         "",
     ]
     rows = [
