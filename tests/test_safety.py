@@ -6,6 +6,7 @@ import hashlib
 
 import numpy as np
 import pytest
+from ticks import commit
 
 from hrp2_drake import kernels
 from hrp2_drake.control.safety import (
@@ -20,7 +21,15 @@ PERIOD = 0.001
 
 
 class _Harness:
-    """The supervisor alone, its inputs fixed, stepped like the simulator does."""
+    """The supervisor alone, its inputs fixed, stepped like the simulator does.
+
+    The timing rule (`hrp2_drake.step`): `step()` presents one sample and leaves the
+    context where a Simulator's AdvanceTo to the next sampling instant leaves it: the
+    outputs are the tick of that sample (direct feedthrough), its commit at the
+    context's time, the next instant, still to come (it runs when the next sample is
+    presented). So `h.context.get_time()` is the time of the next sample, as before
+    one tick of sample to command.
+    """
 
     def __init__(self, **config):
         defaults = {"start_time": 0.0, "ramp_time": 0.01, "reentry_time": 0.02}
@@ -36,22 +45,31 @@ class _Harness:
         self.fix()
 
     def fix(self, **changes):
+        """Changes the inputs of the sample now held (its tick is recomputed)."""
         self.inputs |= changes
         for name, value in self.inputs.items():
             self.system.GetInputPort(name).FixValue(self.context, value)
 
     def step(self, n: int = 1, noisy: bool = True, **changes):
-        """n periods; a fresh noisy F/T sample each period unless `wrench_x` given."""
+        """n periods, each a new sample (a fresh noisy F/T sample unless `wrench_x`
+        given): the tick of the sample held is committed at the context's time (none
+        is held at 0, the first commit is one period after), the new sample fixed,
+        and the context's time the next sampling instant."""
         for _ in range(n):
+            t = self.context.get_time()
+            if t > 0:
+                commit(self.system, self.context, t)
             if noisy and "wrench_x" not in changes:
                 self.fix(wrench_x=self.rng.normal(0.0, 0.5, 6))
             if changes:
                 self.fix(**changes)
-            self.context.SetDiscreteState(
-                self.system.EvalUniquePeriodicDiscreteUpdate(self.context)
-            )
-            self.context.SetTime(self.context.get_time() + PERIOD)
+            self.context.SetTime(t + PERIOD)
         return self
+
+    def committed(self, name):
+        """The committed state (the tick before the sample now held)."""
+        group = self.system.step_group(name)
+        return self.context.get_discrete_state(group).get_value().copy()
 
     def out(self, name):
         return self.system.GetOutputPort(name).Eval(self.context).copy()
@@ -89,11 +107,15 @@ def test_ramps_into_torque_control_without_a_step():
         "command_nan",
     ],
 )
-def test_each_fault_is_detected_at_the_next_period_and_ramps_down(changes, bit):
+def test_each_fault_is_detected_in_the_tick_of_its_sample_and_ramps_down(changes, bit):
+    """One tick from sample to command: the tick of the faulty sample reports the
+    fault and commands the first period of the ramp down, before that tick is
+    committed (it was one period later when the outputs were the committed state)."""
     h = _Harness().step(20)
     assert h.out("mode")[0] == 1.0
     last = h.out("q_cmd")
     h.step(**changes)
+    assert h.committed("fault")[0] == 0.0 and h.committed("mode")[0] == 1.0
     assert int(h.out("fault")[0]) & bit, describe_faults(h.out("fault")[0])
     assert h.out("transition")[1] == h.out("fault")[0]
     assert h.out("mode")[0] == pytest.approx(0.9)
