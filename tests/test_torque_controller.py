@@ -22,6 +22,7 @@ from pydrake.systems.primitives import (
     VectorLogSink,
 )
 from pydrake.trajectories import PiecewisePolynomial
+from ticks import commit
 
 from hrp2_drake import kernels
 from hrp2_drake.config import load_config
@@ -90,7 +91,13 @@ def _inputs(seed: int) -> dict:
 
 
 class _Fixture:
-    """A controller, its context with fixed inputs, and one-update stepping."""
+    """A controller, its context with fixed inputs, and one-tick stepping.
+
+    The timing rule (`hrp2_drake.step`): the inputs fixed are the sample now held;
+    `step()` reads the outputs of its tick (direct feedthrough) and commits that tick
+    at the next sampling instant (`tests/ticks.commit`), where the context's time
+    then is. Fix the next sample's inputs after `step()`, not before it.
+    """
 
     def __init__(self, controller: DeltaQTorqueController, inputs: dict):
         self.controller = controller
@@ -102,13 +109,11 @@ class _Fixture:
             self.controller.GetInputPort(name).FixValue(self.context, value)
 
     def step(self) -> dict:
-        """One periodic update (as the simulator does it) at the next period."""
-        context = self.context
-        context.SetDiscreteState(
-            self.controller.EvalUniquePeriodicDiscreteUpdate(context)
-        )
-        context.SetTime(context.get_time() + PERIOD)
-        return self.outputs()
+        """One tick: the outputs of the sample now held, then its commit at the next
+        sampling instant (as the simulator does it)."""
+        out = self.outputs()
+        commit(self.controller, self.context, self.context.get_time() + PERIOD)
+        return out
 
     def outputs(self) -> dict:
         names = (
@@ -343,11 +348,11 @@ def test_initialization_and_start_time(motor):
     np.testing.assert_array_equal(
         controller.GetOutputPort("q_cmd").Eval(context), inputs["q_measured"]
     )
-    simulator.AdvanceTo(0.0041)  # updates at 0, 1, 2, 3, 4 ms: all before start
+    simulator.AdvanceTo(0.0041)  # the ticks of the samples at 0 to 4 ms: before start
     np.testing.assert_array_equal(
         controller.GetOutputPort("q_cmd").Eval(context), inputs["q_measured"]
     )
-    simulator.AdvanceTo(0.0051)  # the update at 5 ms is torque control
+    simulator.AdvanceTo(0.0051)  # the tick of the sample at 5 ms is torque control
     np.testing.assert_allclose(
         controller.GetOutputPort("delta_q").Eval(context), _eq10_11(inputs)[1]
     )
@@ -432,8 +437,8 @@ def test_composed_controller_is_eqs_13_14(motor, fixed_plant):
         sub = system.GetMyContextFromRoot(context)
         for name, value in values.items():
             system.GetInputPort(name).FixValue(sub, value)
-    for _ in range(2):  # τ_d reaches the torque controller one period later
-        context.SetDiscreteState(diagram.EvalUniquePeriodicDiscreteUpdate(context))
+    # One tick from sample to command: the outputs are the tick of these samples,
+    # with the τ_d of the same tick (no update needed).
     sub = controller.GetMyContextFromRoot(context)
     out = {
         name: controller.GetOutputPort(name).Eval(sub) for name in DELTA_Q_COMPONENTS
@@ -503,7 +508,9 @@ class _Twins:
         self.compare()
 
     def tick(self, **changes) -> int:
-        """One update of both at the fixture's time; the step's return value."""
+        """One tick of both at the fixture's time, compared by the controller's
+        outputs of that tick and then by its state once committed; the step's return
+        value."""
         values = dict(self.inputs, **changes)
         self.fixture.fix(**values)
         reason = self.step.step(
@@ -514,7 +521,7 @@ class _Twins:
             self.terms,
             self.disturbance,
         )
-        self.fixture.step()
+        self.compare(self.fixture.step())
         self.compare()
         return reason
 
@@ -523,9 +530,17 @@ class _Twins:
         self.controller.reset_fallback(self.fixture.context)
         self.compare()
 
-    def compare(self) -> None:
+    def compare(self, out: dict | None = None) -> None:
+        """The step's arrays against the outputs `out` of a tick or, without them,
+        against the controller's committed state."""
         step, context = self.step, self.fixture.context
-        out = self.fixture.outputs()
+        if out is None:
+            out = {
+                name: context.get_discrete_state(
+                    self.controller.step_group(name)
+                ).get_value()
+                for name in self.OUTPUTS
+            }
         for name in self.OUTPUTS:
             np.testing.assert_array_equal(getattr(step, name), out[name], name)
         np.testing.assert_array_equal(
