@@ -99,7 +99,8 @@ def test_fused_balance_control_equals_the_separate_systems():
 
 def test_a_qp_fault_is_an_event_and_keeps_position_control():
     """An infeasible QP (no torque, no joint acceleration allowed) at every tick:
-    one BALANCE_FAULT event (when it starts), the supervisor never hands over to
+    one BALANCE_FAULT event (when it starts) and the supervisor's fault in the same
+    tick (one tick from sample to command), the supervisor never hands over to
     torque control, and the command is the reference. The kernels compiled by
     warm_up alone: compiling is frozen while the loop runs."""
     balance = BalanceConfig(torque_limit_scale=0.0, acceleration_limit=0.0)
@@ -117,11 +118,11 @@ def test_a_qp_fault_is_an_event_and_keeps_position_control():
     ticks = int(0.3 / period)
     with kernels.compile_disabled():
         out = run_in_process(STANDING, controller, reference, ticks)
-    # The QP's fault when it starts, then the supervisor's, a tick later (its
-    # controller fallback: the Δq controller's plus the QP's code, one tick old).
+    # The QP's fault when it starts, and the supervisor's in the same tick (its
+    # controller fallback: the Δq controller's plus the QP's code of this tick).
     assert controller.recorded_events() == [
         (0.0, EventKind.BALANCE_FAULT, BalanceFault.INFEASIBLE),
-        (period, EventKind.SUPERVISOR_FAULT, 128),
+        (0.0, EventKind.SUPERVISOR_FAULT, 128),
     ]
     assert describe_faults(128) == "torque controller fallback"
     signals = controller.signals()
