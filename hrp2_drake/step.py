@@ -130,6 +130,20 @@ class Step:
         layouts, the step's state left as it was. A step without kernels: nothing."""
 
 
+def sampling_offset(period: float, lead: float, where: str) -> float:
+    """The offset (s) of the sampling instants `lead` before each multiple of
+    `period`: the station's sensor sampler's, the commits of a tick and the held
+    references'. One expression, so that their events fall at the same float times
+    (Drake's event times are offset + k·period). A ValueError naming `where` unless
+    0 <= lead < period."""
+    if not 0.0 <= lead < period:
+        raise ValueError(
+            f"{where}: sample lead {lead} s must be >= 0 and shorter than the period "
+            f"({period} s)"
+        )
+    return (period - lead) % period
+
+
 class StepSystem(WitnessFreeLeafSystem):
     """A LeafSystem shell around one `Step` that computes a tick in the tick its
     samples arrive (the module docstring's timing rule).
@@ -170,14 +184,13 @@ class StepSystem(WitnessFreeLeafSystem):
 
     def _declare_commit(self, period: float, lead: float = 0.0) -> None:
         """The commit at every sampling instant: `lead` (s, in [0, period)) before
-        each multiple of `period`, the station's sensor sampler's schedule; the first
-        after the initialization (at `period - lead`)."""
-        if not 0.0 <= lead < period:
-            raise ValueError(
-                f"{type(self).__name__}: sample lead {lead} s must be >= 0 and shorter "
-                f"than the period ({period} s)"
-            )
-        self.DeclarePeriodicDiscreteUpdateEvent(period, period - lead, self._commit)
+        each multiple of `period`, the station's sensor sampler's schedule, declared
+        as the sampler declares it (`sampling_offset`), so that Drake's event times are
+        the same floats; an instant at the initialization's time commits nothing
+        (its sample is the one the initialization read)."""
+        self.DeclarePeriodicDiscreteUpdateEvent(
+            period, sampling_offset(period, lead, type(self).__name__), self._commit
+        )
 
     def _declare_step_output(
         self, port_name: str, state_name: str = "", held: bool = False
@@ -217,10 +230,13 @@ class StepSystem(WitnessFreeLeafSystem):
         value.get_mutable_value()[:] = self._step.state
 
     def _commit(self, context: Context, state: DiscreteValues) -> None:
+        t = context.get_time()
+        if t <= context.get_discrete_state(self._sample_time).get_value()[0]:
+            return  # the initialization's instant
         ticked = self._ticked.Eval(context)
         for name, rows in self._rows_of.items():
             state.set_value(self._group_of[name], ticked[rows])
-        state.get_mutable_value(self._sample_time)[0] = context.get_time()
+        state.get_mutable_value(self._sample_time)[0] = t
 
     def _latch_sample_time(self, context: Context, state: DiscreteValues) -> None:
         state.get_mutable_value(self._sample_time)[0] = context.get_time()

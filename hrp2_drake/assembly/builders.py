@@ -77,6 +77,7 @@ from hrp2_drake.multibody import joint_indexing
 from hrp2_drake.robot.sensors import SensorSampler
 from hrp2_drake.robot.station import StationConfig, make_station, sensor_sizes
 from hrp2_drake.simulation import SampleHold
+from hrp2_drake.step import sampling_offset
 
 #: The six components of Δq of paper Sec. 5.5 (the controller's seventh, the torque
 #: integral, is zero with the paper's K_i = 0).
@@ -329,7 +330,12 @@ def add_sampled(
     period, lead = parts.period, parts.sample_lead
     hold = builder.AddNamedSystem(
         f"{name}_sampled",
-        SampleHold(source.size(), period, (period - lead) % period, initial=initial),
+        SampleHold(
+            source.size(),
+            period,
+            sampling_offset(period, lead, name),
+            initial=initial,
+        ),
     )
     builder.Connect(source, hold.get_input_port())
     return hold.get_output_port()

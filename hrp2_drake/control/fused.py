@@ -79,7 +79,7 @@ from hrp2_drake.estimation.estimator_step import TorqueEstimatorStep
 from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayStep
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.simulation import WitnessFreeLeafSystem
-from hrp2_drake.step import Step
+from hrp2_drake.step import Step, sampling_offset
 
 #: The balance QP's signals among the fused controller's (`balance_<name>`), as
 #: `build_balance_control` exports them.
@@ -868,8 +868,8 @@ class FusedTorqueController(WitnessFreeLeafSystem):
     the sample now shown, as every `StepSystem`: a cache entry runs the tick on a
     copy of the committed state with the inputs as they are now, the outputs are
     slices of it (direct feedthrough: the tick of the sample now shown), q_cmd its
-    command with the current q_ref; a periodic event at the sampling instants
-    (`period - lead`, then every period) commits it.
+    command with the current q_ref; a periodic event at the station's sampling
+    instants (`hrp2_drake.step.sampling_offset`) commits it.
     """
 
     def __init__(self, parts: TorqueChainParts):
@@ -903,8 +903,10 @@ class FusedTorqueController(WitnessFreeLeafSystem):
         self._group = int(self.DeclareDiscreteState(fused.state.copy()))
         self._sample_time = int(self.DeclareDiscreteState(1))
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
-        period, lead = parts.period, parts.sample_lead
-        self.DeclarePeriodicDiscreteUpdateEvent(period, period - lead, self._commit)
+        offset = sampling_offset(
+            parts.period, parts.sample_lead, "FusedTorqueController"
+        )
+        self.DeclarePeriodicDiscreteUpdateEvent(parts.period, offset, self._commit)
         model = AbstractValue.Make(np.zeros(fused.state.size))
         self._ticked = self.DeclareCacheEntry(
             "ticked",
@@ -976,8 +978,11 @@ class FusedTorqueController(WitnessFreeLeafSystem):
         value.get_mutable_value()[:] = fused.state
 
     def _commit(self, context: Context, state: DiscreteValues) -> None:
+        t = context.get_time()
+        if t <= context.get_discrete_state(self._sample_time).get_value()[0]:
+            return  # the initialization's instant (`StepSystem._commit`)
         state.set_value(self._group, self._ticked.Eval(context))
-        state.get_mutable_value(self._sample_time)[0] = context.get_time()
+        state.get_mutable_value(self._sample_time)[0] = t
 
     def _calc_q_cmd(self, context: Context, output: BasicVector) -> None:
         fused = self._fused

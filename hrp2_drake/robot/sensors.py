@@ -34,6 +34,7 @@ from hrp2_drake.kernels import kernel
 from hrp2_drake.multibody import joint_indexing
 from hrp2_drake.robot.faults import SensorFault, freeze_windows, update_stamps
 from hrp2_drake.simulation import WitnessFreeLeafSystem
+from hrp2_drake.step import sampling_offset
 
 
 class SampledSignal:
@@ -406,12 +407,7 @@ class SensorSampler(WitnessFreeLeafSystem):
         super().__init__()
         names = [sensor[0] for sensor in force_torque]
         self._period = config.period
-        if not 0 <= lead < config.period:
-            raise ValueError(
-                f"SensorSampler: lead {lead} s must be >= 0 and shorter than the "
-                f"period ({config.period} s)"
-            )
-        self._offset = (config.period - lead) % config.period
+        self._offset = sampling_offset(config.period, lead, "SensorSampler")
         self._lead = lead
         laws = _sensor_laws(config, len(joint_names), encoder_resolution, imu, names)
         starts = self._make_buffers(laws)
