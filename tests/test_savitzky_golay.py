@@ -8,6 +8,7 @@ from pydrake.common.yaml import yaml_load_typed
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantVectorSource, TrajectorySource
+from ticks import commit, run_ticks
 
 from hrp2_drake.estimation.savitzky_golay import (
     SavitzkyGolayConfig,
@@ -16,6 +17,7 @@ from hrp2_drake.estimation.savitzky_golay import (
     savgol_coefficients,
     savgol_filter_offline,
 )
+from hrp2_drake.simulation import SampleHold
 
 PERIOD = 1e-3  # s
 _RING = 4  # SavitzkyGolayStep.ring's bookkeeping entries
@@ -47,11 +49,12 @@ class _PolynomialSource(LeafSystem):
         output.SetFromVector([np.polyval(c, t) for c in self._coefficients])
 
 
-def _step(system: SavitzkyGolayFilter, context, t: float, u) -> None:
-    """One periodic update at time t with input u, as the simulator does it."""
-    context.SetTime(t)
-    system.get_input_port().FixValue(context, u)
-    context.SetDiscreteState(system.EvalUniquePeriodicDiscreteUpdate(context))
+def _sampled(builder: DiagramBuilder, port, size: int, initial) -> object:
+    """`port` (a signal of time) as the station's sampler holds it: sample k from k
+    periods on (and `initial` before, what the initialization reads)."""
+    hold = builder.AddSystem(SampleHold(size, PERIOD, initial=np.asarray(initial)))
+    builder.Connect(port, hold.get_input_port())
+    return hold.get_output_port()
 
 
 def _outputs(system: SavitzkyGolayFilter, context) -> list[np.ndarray]:
@@ -161,7 +164,10 @@ def test_ports_and_delay():
     assert system.get_input_port().get_name() == "signal"
     assert system.get_input_port().size() == 4
     assert system.delay() == pytest.approx(0.0395)  # (80 - 1) / 2 ms
-    assert not system.HasAnyDirectFeedthrough()
+    # One tick from sample to estimate: every output is the tick of the sample now
+    # held (direct feedthrough); the delay is the window's evaluation point alone.
+    for i in range(system.num_output_ports()):
+        assert system.HasDirectFeedthrough(0, i)
     first_order = SavitzkyGolayFilter(4, window=80, order=1, evaluation="end")
     assert first_order.num_output_ports() == 4
     assert not first_order.HasOutputPort("second_derivative")
@@ -179,16 +185,22 @@ def test_filter_in_diagram_exact_on_polynomial(window, order, evaluation):
     system = builder.AddSystem(
         SavitzkyGolayFilter(3, window, order, PERIOD, evaluation)
     )
-    builder.Connect(source.get_output_port(), system.get_input_port())
+    initial = [np.polyval(c, 0.0) for c in coefficients]
+    builder.Connect(
+        _sampled(builder, source.get_output_port(), 3, initial),
+        system.get_input_port(),
+    )
     simulator = Simulator(builder.Build())
-    # Events at the final time are not handled: the last update is at t = 0.150 s.
+    # Events at the final time are not handled: the last sample is at t = 0.150 s.
     simulator.AdvanceTo(0.1505)
     context = system.GetMyContextFromRoot(simulator.get_context())
 
     assert system.is_ready(context)
+    # The outputs: the tick of the sample held, the one taken at 0.150 s.
     t_eval = system.GetOutputPort("evaluation_time").Eval(context)[0]
     assert t_eval == pytest.approx(0.150 - system.delay(), abs=1e-12)
-    assert system.evaluation_time(context) == t_eval
+    # The accessor reads the committed state: the previous sample's tick.
+    assert system.evaluation_time(context) == pytest.approx(t_eval - PERIOD, abs=1e-12)
     expected = _derivatives(coefficients, t_eval)
     for d, output in enumerate(_outputs(system, context)):
         np.testing.assert_allclose(output, expected[d], rtol=1e-7, atol=1e-7)
@@ -198,15 +210,21 @@ def test_start_up_behaviour():
     window = 10
     system = SavitzkyGolayFilter(2, window, order=2, period=PERIOD)
     context = system.CreateDefaultContext()
-    # A bare default context: zeros, not ready.
-    assert not system.is_ready(context)
-    for output in _outputs(system, context):
-        np.testing.assert_array_equal(output, [0.0, 0.0])
 
-    # Initialization fills the window with the input: the estimate of a constant.
     def ramp(t):
         return np.array([1.0 + 3.0 * t, -2.0 + 50.0 * t])
 
+    # A bare default context: a committed state of zeros, not ready; its outputs
+    # are already the tick of the sample held, whose first sample fills the window.
+    assert not system.is_ready(context)
+    assert system.evaluation_time(context) == 0.0
+    system.get_input_port().FixValue(context, ramp(0.0))
+    value, derivative, second_derivative = _outputs(system, context)
+    np.testing.assert_array_equal(value, ramp(0.0))
+    np.testing.assert_array_equal(derivative, [0.0, 0.0])
+
+    # Initialization fills the window with the input: the estimate of a constant.
+    context = system.CreateDefaultContext()
     context.SetTime(0.0)
     system.get_input_port().FixValue(context, ramp(0.0))
     Simulator(system, context).Initialize()
@@ -217,25 +235,60 @@ def test_start_up_behaviour():
     assert system.evaluation_time(context) == pytest.approx(-system.delay())
     assert not system.is_ready(context)
 
-    # Then each sample replaces one copy of the first: a fit of the padded window.
+    # Then each sample replaces one copy of the first: a fit of the padded window,
+    # in the outputs of the tick of that sample; the commit at the next sampling
+    # instant makes it the state (what the accessors read).
     weights = savgol_coefficients(window, 2, PERIOD, "centre")
     for m in range(1, window + 1):  # m samples received
-        _step(system, context, (m - 1) * PERIOD, ramp((m - 1) * PERIOD))
+        t_newest = (m - 1) * PERIOD
+        context.SetTime(t_newest)
+        system.get_input_port().FixValue(context, ramp(t_newest))
         received = [ramp(i * PERIOD) for i in range(m)]
         padded = np.array([received[0]] * (window - m) + received)
-        for d, output in enumerate(_outputs(system, context)):
+        outputs = _outputs(system, context)
+        for d, output in enumerate(outputs):
             np.testing.assert_allclose(output, weights[d] @ padded, atol=1e-9)
+        t_port = system.GetOutputPort("evaluation_time").Eval(context)[0]
+        assert t_port == pytest.approx(t_newest - system.delay())
+        commit(system, context, m * PERIOD)
         assert system.is_ready(context) == (m == window)
-        t_newest = (m - 1) * PERIOD
-        assert system.evaluation_time(context) == pytest.approx(
-            t_newest - system.delay()
-        )
+        assert system.evaluation_time(context) == t_port
     # Ready: exact on the ramp, at the window's centre.
     t_eval = system.evaluation_time(context)
-    value, derivative, second_derivative = _outputs(system, context)
+    value, derivative, second_derivative = outputs
     np.testing.assert_allclose(value, ramp(t_eval), atol=1e-12)
     np.testing.assert_allclose(derivative, [3.0, 50.0], rtol=1e-9)
     np.testing.assert_allclose(second_derivative, [0.0, 0.0], atol=1e-6)
+
+
+def test_each_sample_enters_once_in_a_simulator():
+    """Behind a sampler (offset 0, the station's with no lead), the filter commits at
+    the same float instants as the sampler latches: each sample k is the tick at
+    [k, k + 1) periods and enters the window once (a commit a rounding later than the
+    latch would take sample k + 1 as tick k's, then see it twice). A ramp of one per
+    sample: the last two samples' slope is 1/period at every tick, over 2 s."""
+    from pydrake.trajectories import PiecewisePolynomial
+
+    count = 2000
+    times = PERIOD * (np.arange(count + 1) - 0.5)
+    ramp = np.arange(count + 1, dtype=float)[None, :]
+    builder = DiagramBuilder()
+    source = builder.AddSystem(
+        TrajectorySource(PiecewisePolynomial.ZeroOrderHold(times, ramp))
+    )
+    system = builder.AddSystem(SavitzkyGolayFilter(1, 2, 1, PERIOD, "end"))
+    builder.Connect(
+        _sampled(builder, source.get_output_port(), 1, [0.0]), system.get_input_port()
+    )
+    simulator = Simulator(builder.Build())
+    context = system.GetMyContextFromRoot(simulator.get_context())
+    value, slope = [], []
+    for k in range(1, count - 1):
+        simulator.AdvanceTo((k + 0.5) * PERIOD)
+        value.append(system.GetOutputPort("value").Eval(context)[0])
+        slope.append(system.GetOutputPort("derivative").Eval(context)[0])
+    np.testing.assert_allclose(value, np.arange(1, count - 1), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(slope, 1 / PERIOD, rtol=1e-9)
 
 
 def test_causal_centre_equals_offline_on_noise():
@@ -245,16 +298,27 @@ def test_causal_centre_equals_offline_on_noise():
     x = np.random.default_rng(1).normal(size=(num_samples, 3))
     offline = savgol_filter_offline(x, PERIOD, window, 2)
     system = SavitzkyGolayFilter(3, window, 2, PERIOD, "centre")
-    context = system.CreateDefaultContext()
     half = (window - 1) // 2
-    for m in range(num_samples):
-        _step(system, context, m * PERIOD, x[m])
+    checked = []
+
+    def check(m, context):
         if m >= window - 1:
-            assert system.evaluation_time(context) == pytest.approx((m - half) * PERIOD)
+            t_eval = system.GetOutputPort("evaluation_time").Eval(context)[0]
+            assert t_eval == pytest.approx((m - half) * PERIOD)
             for d, output in enumerate(_outputs(system, context)):
                 np.testing.assert_allclose(
                     output, offline[d][m - half], rtol=1e-9, atol=1e-9
                 )
+            checked.append(m)
+
+    run_ticks(
+        system,
+        system.CreateDefaultContext(),
+        {system.get_input_port(): x},
+        PERIOD,
+        check,
+    )
+    assert len(checked) == num_samples - window + 1
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf])
@@ -273,7 +337,9 @@ def test_non_finite_samples_are_held_and_flagged(bad):
     builder = DiagramBuilder()
     src = builder.AddSystem(TrajectorySource(source))
     system = builder.AddNamedSystem("q_filter", SavitzkyGolayFilter(4, 10, 2))
-    builder.Connect(src.get_output_port(), system.get_input_port())
+    builder.Connect(
+        _sampled(builder, src.get_output_port(), 4, good), system.get_input_port()
+    )
     simulator = Simulator(builder.Build())
     context = system.GetMyContextFromRoot(simulator.get_context())
     faults = []
@@ -343,24 +409,23 @@ def test_offline_bad_inputs_raise():
 
 
 def _run_on_noise(system: SavitzkyGolayFilter, samples: np.ndarray) -> list[np.ndarray]:
-    """Feeds `samples` (T, k) one per period; returns the outputs after the last."""
-    return _outputs(system, _feed(system, samples))
+    """Feeds `samples` (T, k) one per period; returns the outputs of the last tick."""
+    last = []
+
+    def keep(k, context):
+        if k == len(samples) - 1:
+            last.extend(output.copy() for output in _outputs(system, context))
+
+    _feed(system, samples, keep)
+    return last
 
 
 def _feed(system: SavitzkyGolayFilter, samples: np.ndarray, each=None):
-    """Simulates the filter with samples[k] at its update k; calls each(context)
-    after every update; returns the context."""
-    simulator = Simulator(system)
-    context = simulator.get_mutable_context()
-    port = system.get_input_port()
-    port.FixValue(context, samples[0])
-    simulator.Initialize()
-    for k, sample in enumerate(samples):
-        port.FixValue(context, sample)
-        simulator.AdvanceTo((k + 0.5) * PERIOD)
-        if each is not None:
-            each(k, context)
-    return context
+    """Runs the filter tick by tick as the sampler does (`tests.ticks`): sample k
+    held at tick k, after the initialization on sample 0; calls each(k, context) with
+    the outputs of tick k; returns the context."""
+    context = system.CreateDefaultContext()
+    return run_ticks(system, context, {system.get_input_port(): samples}, PERIOD, each)
 
 
 def test_per_signal_windows_are_centred_on_one_instant():
@@ -390,12 +455,18 @@ def test_per_signal_windows_exact_on_polynomials_at_the_common_time(span):
     system = builder.AddSystem(
         SavitzkyGolayFilter(3, [11, 31, 41], 2, PERIOD, span=span)
     )
-    builder.Connect(source.get_output_port(), system.get_input_port())
+    initial = [np.polyval(c, 0.0) for c in coefficients]
+    builder.Connect(
+        _sampled(builder, source.get_output_port(), 3, initial),
+        system.get_input_port(),
+    )
     simulator = Simulator(builder.Build())
     simulator.AdvanceTo(0.1005)
     context = system.GetMyContextFromRoot(simulator.get_context())
     assert system.delay() == pytest.approx(((span or 41) - 1) / 2 * PERIOD)
-    expected = _derivatives(coefficients, system.evaluation_time(context))
+    t_eval = system.GetOutputPort("evaluation_time").Eval(context)[0]
+    assert t_eval == pytest.approx(0.100 - system.delay(), abs=1e-12)
+    expected = _derivatives(coefficients, t_eval)
     for d, output in enumerate(_outputs(system, context)):
         np.testing.assert_allclose(output, expected[d], rtol=1e-7, atol=1e-7)
 
