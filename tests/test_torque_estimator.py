@@ -21,6 +21,7 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
 from pydrake.systems.sensors import Accelerometer, Gyroscope
+from ticks import commit
 
 from hrp2_drake import kernels
 from hrp2_drake.description.sensors import SensorsConfig
@@ -233,16 +234,19 @@ def _fix(estimator: FloatingBaseTorqueEstimator, context, sample: dict) -> None:
 
 
 def _step(estimator: FloatingBaseTorqueEstimator, context, t: float = 0.0) -> dict:
-    """One periodic update at time t, as the simulator does it; returns the outputs."""
+    """The tick of the sample now fixed, taken at t, as the sampler presents it
+    (`tests.ticks`): its outputs (returned), then its commit at the next sampling
+    instant, t + period."""
     context.SetTime(t)
-    context.SetDiscreteState(estimator.EvalUniquePeriodicDiscreteUpdate(context))
     out = {
-        "tau": estimator.GetOutputPort("tau").Eval(context),
-        "unknown": estimator.GetOutputPort("unknown_wrench").Eval(context),
+        "tau": estimator.GetOutputPort("tau").Eval(context).copy(),
+        "unknown": estimator.GetOutputPort("unknown_wrench").Eval(context).copy(),
     }
     out["external"] = [
-        estimator.GetOutputPort(f"external_wrench_{s}").Eval(context) for s in SENSORS
+        estimator.GetOutputPort(f"external_wrench_{s}").Eval(context).copy()
+        for s in SENSORS
     ]
+    commit(estimator, context, t + estimator.config().period)
     return out
 
 
@@ -854,16 +858,18 @@ def _closed_loop(
 def _tracking_errors(chain, logs, start: int) -> tuple[np.ndarray, np.ndarray]:
     """τ̂ minus the true torque, both delayed by the pipeline: (raw, filtered).
 
-    τ̂ at sample i comes from the window of samples ending 2 samples earlier (the
-    sensors' sample-and-hold and the estimator reading the filters' previous update)
-    and refers to its centre, (window - 1) / 2 samples before that. "raw" compares with
-    the true torque at that centre; "filtered" with the true torque passed through the
-    same Savitzky-Golay filter (order 1, as the F/T and IMU), i.e. what an estimator
-    with perfect model and sensors can see through that filter.
+    τ̂ logged at sample i comes from the window of samples ending 1 sample earlier and
+    refers to its centre, (window - 1) / 2 samples before that (chain.delay(), the
+    filters' evaluation point: the chain computes in the tick its sample arrives). The
+    one sample is the log's: a publish at i·period comes before the updates at that
+    instant, so it shows the tick of the sample held until then, i - 1. "raw" compares
+    with the true torque at that centre; "filtered" with the true torque passed
+    through the same Savitzky-Golay filter (order 1, as the F/T and IMU), i.e. what an
+    estimator with perfect model and sensors can see through that filter.
     """
     window, period = chain.encoder_filter.window(), chain.encoder_filter.period()
-    lag = round(chain.delay() / period - (window - 1) / 2)
-    assert lag == 2
+    assert round(chain.delay() / period - (window - 1) / 2) == 0
+    lag = 1  # the publish before the update (the docstring)
     tau, true = logs["tau"], logs["true"]
     weights = savgol_coefficients(window, 1, period)[0]
     rows = np.arange(start, len(tau))
@@ -967,7 +973,9 @@ def test_per_signal_windows_keep_one_delay(plant):
     foot = 6 + 6 * list(config.sensors).index("right_foot")
     assert sensor_windows[foot : foot + 6] == (11,) * 6
     assert chain.encoder_filter.delay() == chain.sensor_filter.delay() == 0.030
-    assert chain.delay() == pytest.approx(0.032)
+    # The chain's delay is the filters' evaluation point alone (one tick from sample
+    # to estimate).
+    assert chain.delay() == pytest.approx(0.030)
 
 
 @pytest.mark.parametrize(
