@@ -29,6 +29,7 @@ from pydrake.multibody.tree import (
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
+from ticks import commit
 
 from hrp2_drake import kernels
 from hrp2_drake.estimation.estimation_chain import add_estimator
@@ -609,12 +610,13 @@ def _fix(estimator, context, sample: dict) -> None:
 
 
 def _step(estimator, context, t: float = 0.0) -> dict:
-    """One periodic update at time t, as the simulator does it; returns the outputs."""
+    """The tick of the sample now fixed, taken at t, as the sampler presents it
+    (`tests.ticks`): its outputs (returned), then its commit at the next sampling
+    instant, t + period."""
     context.SetTime(t)
-    context.SetDiscreteState(estimator.EvalUniquePeriodicDiscreteUpdate(context))
-    return {
-        "tau": estimator.GetOutputPort("tau").Eval(context),
-        "unknown": estimator.GetOutputPort("unknown_wrench").Eval(context),
+    outputs = {
+        "tau": estimator.GetOutputPort("tau").Eval(context).copy(),
+        "unknown": estimator.GetOutputPort("unknown_wrench").Eval(context).copy(),
         "external": np.array(
             [
                 estimator.GetOutputPort(f"external_wrench_{s}").Eval(context)
@@ -622,10 +624,12 @@ def _step(estimator, context, t: float = 0.0) -> dict:
             ]
         ),
     }
+    commit(estimator, context, t + estimator.config().period)
+    return outputs
 
 
 def test_system_matches_estimate(arm, arm_truth, legs):
-    """The LeafSystem's discrete update gives what `estimate` gives; the fixed-base
+    """The LeafSystem's outputs give what `estimate` gives; the fixed-base
     estimator without IMU has no imu ports."""
     arm_estimator = FloatingBaseTorqueEstimator(arm, _arm_config())
     for name in IMU_NAMES:
