@@ -82,6 +82,7 @@ def _rack(folder: Path, servos: int, baud: int) -> Path:
         "initial_positions": [0.0] * servos,
         "identification": {},
         "logs": {"format": "npz"},
+        "control_file": "",  # the bus alone: no torque control
     }
     description["bus"] |= {
         "ids": list(range(1, servos + 1)),

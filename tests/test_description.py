@@ -49,7 +49,7 @@ def _write(tmp_path: Path, source: str, edit) -> Path:
     file given by absolute path."""
     folder = MODELS / source
     text = (folder / "robot.yaml").read_text()
-    for key in ("model_file", "trajectory_file", "servo_file"):
+    for key in ("model_file", "trajectory_file", "servo_file", "control_file"):
         text = re.sub(
             rf"^{key}: (\S+)",
             lambda m, key=key: f"{key}: {folder / m.group(1)}",

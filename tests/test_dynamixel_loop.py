@@ -20,11 +20,13 @@ import pytest
 
 from hrp2_drake.assembly.builders import torque_chain_parts
 from hrp2_drake.control.fused import FusedController
+from hrp2_drake.description import load_robot_description
 from hrp2_drake.hardware.in_process import run_on_bus_in_process
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.robot.station import StationConfig
 from hrp2_drake.tools.control import ControlConfig, control_reference
 from hrp2_drake.tools.ground_truth import true_motor_model
+from hrp2_drake.tools.robot_control import load_on_robot
 
 CLI = [sys.executable, "-m", "hrp2_drake.cli"]
 
@@ -131,7 +133,10 @@ def test_control_on_the_bus_equals_the_fused_controller_in_process(tmp_path):
     assert report["fault"] == "" and report["ramped"] and report["approach_s"] == 0.0
     signals = np.load(tmp_path / "control" / "control.npz")
 
-    config = ControlConfig(robot=robot, duration=1.5)
+    # The command's settings: its defaults under the robot's control file (K_p = 1).
+    assert report["torque_control_from"]["robot_file"].endswith("control.yaml")
+    config, _ = load_on_robot(ControlConfig, load_robot_description(robot))
+    config.robot, config.duration = robot, 1.5
     description = config.description()
     motor_model = MotorModel.load(model_path)
     if motor_model.gain:
