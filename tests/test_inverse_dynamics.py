@@ -13,6 +13,7 @@ from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 from pydrake.multibody.math import SpatialForce
 from pydrake.multibody.plant import ExternallyAppliedSpatialForce, MultibodyPlant
 from pydrake.multibody.tree import JacobianWrtVariable, MultibodyForces
+from ticks import commit
 
 from hrp2_drake import kernels
 from hrp2_drake.config import load_config
@@ -84,11 +85,10 @@ def _inputs(seed: int, force: bool = True) -> dict:
 
 
 def _step(controller: InverseDynamicsController, inputs: dict) -> dict:
-    """One periodic update with the inputs fixed; returns every output."""
+    """Every output of the first tick, with the inputs fixed (its sample)."""
     context = controller.CreateDefaultContext()
     for name, value in inputs.items():
         controller.GetInputPort(name).FixValue(context, value)
-    context.SetDiscreteState(controller.EvalUniquePeriodicDiscreteUpdate(context))
     names = ("tau_desired", *TORQUE_COMPONENTS)
     return {name: controller.GetOutputPort(name).Eval(context).copy() for name in names}
 
@@ -293,15 +293,38 @@ def test_floating_base_option(fixed_plant, floating_plant):
     )
 
 
-def test_outputs_are_discrete_state(fixed_plant):
+def test_outputs_are_this_ticks(fixed_plant):
+    """One tick from sample to command: the outputs are eq. 12 on the inputs as they
+    are now (direct feedthrough from every input), before any update; the commit at
+    the next sampling instant stores that tick as the state, whatever the inputs do
+    afterwards, and the outputs follow the new inputs at once."""
     controller = InverseDynamicsController(fixed_plant, _config())
-    context = controller.CreateDefaultContext()
-    assert not np.any(controller.GetOutputPort("tau_desired").Eval(context))
     for i in range(controller.num_input_ports()):
         for j in range(controller.num_output_ports()):
-            assert not controller.HasDirectFeedthrough(i, j)
+            assert controller.HasDirectFeedthrough(i, j)
     timing = controller.GetUniquePeriodicDiscreteUpdateAttribute()
     assert (timing.period_sec(), timing.offset_sec()) == (0.001, 0.0)
+
+    context = controller.CreateDefaultContext()
+    group = controller.step_group("tau_desired")
+    first, second = _inputs(0), _inputs(1)
+    expected = [_step(controller, inputs)["tau_desired"] for inputs in (first, second)]
+    assert np.all(np.abs(expected[0] - expected[1]) > 1e-6)
+    for name, value in first.items():
+        controller.GetInputPort(name).FixValue(context, value)
+    tau = controller.GetOutputPort("tau_desired")
+
+    def committed():
+        return context.get_discrete_state(group).get_value()
+
+    np.testing.assert_array_equal(tau.Eval(context), expected[0])
+    assert not np.any(committed())  # no update yet
+    commit(controller, context, 0.001)
+    np.testing.assert_array_equal(committed(), expected[0])
+    for name, value in second.items():
+        controller.GetInputPort(name).FixValue(context, value)
+    np.testing.assert_array_equal(tau.Eval(context), expected[1])
+    np.testing.assert_array_equal(committed(), expected[0])
 
 
 def test_config_from_yaml():
