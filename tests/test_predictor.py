@@ -11,6 +11,7 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, MatrixGain
 from scipy.integrate import solve_ivp
+from ticks import commit
 
 from hrp2_drake import kernels
 from hrp2_drake.control import predictor
@@ -81,8 +82,10 @@ def _excitation(steps):
 
 
 def _drive(predictor, ticks, inputs):
-    """Fixes the inputs of each tick (a dict of name -> (ticks, size) arrays), runs
-    the periodic discrete update through Drake; returns each output per tick."""
+    """Fixes the inputs of each tick k (a dict of name -> (ticks, size) arrays) at
+    k periods, commits the tick at the next sampling instant (`tests.ticks`) and
+    reads its outputs there: they are held (the committed state), what the Δq
+    controller reads at tick k + 1. Returns each output per tick."""
     context = predictor.CreateDefaultContext()
     ports = [predictor.get_output_port(i) for i in range(predictor.num_output_ports())]
     names = [port.get_name() for port in ports]
@@ -91,7 +94,7 @@ def _drive(predictor, ticks, inputs):
         context.SetTime(k * PERIOD)
         for name, values in inputs.items():
             predictor.GetInputPort(name).FixValue(context, values[k])
-        context.SetDiscreteState(predictor.EvalUniquePeriodicDiscreteUpdate(context))
+        commit(predictor, context, (k + 1) * PERIOD)
         for name in names:
             out[name].append(predictor.GetOutputPort(name).Eval(context).copy())
     return {name: np.array(values) for name, values in out.items()}, context
@@ -259,8 +262,11 @@ def test_in_a_loop_with_a_feedthrough_controller():
     gain = builder.AddSystem(MatrixGain(np.diag(K_V)))  # Δq = K_v q̇_pred
     builder.Connect(predictor.GetOutputPort("v_predicted"), gain.get_input_port())
     builder.Connect(gain.get_output_port(), predictor.GetInputPort("delta_q"))
+    assert not predictor.HasAnyDirectFeedthrough()
     simulator = Simulator(builder.Build())
-    simulator.AdvanceTo(0.2)  # ticks at 0, 1, ..., 199 ms
+    # Ticks at 0, 1, ..., 199 ms, each committed at the next sampling instant (the
+    # last at 200 ms: an update at the final time waits for the next step).
+    simulator.AdvanceTo(0.2005)
     context = predictor.GetMyContextFromRoot(simulator.get_context())
     assert predictor.is_ready(context)
     # The same loop by hand: the Δq read at tick k is K_v times the v_predicted of
@@ -270,11 +276,10 @@ def test_in_a_loop_with_a_feedthrough_controller():
     manual.GetInputPort("v_estimated").FixValue(manual_context, [0.1, -0.2, 0.0])
     manual.GetInputPort("vdot_estimated").FixValue(manual_context, np.zeros(3))
     manual.GetInputPort("tau_estimated").FixValue(manual_context, TAU_REST)
-    for _ in range(200):
+    for k in range(200):
         v = manual.GetOutputPort("v_predicted").Eval(manual_context)
         manual.GetInputPort("delta_q").FixValue(manual_context, K_V * v)
-        update = manual.EvalUniquePeriodicDiscreteUpdate(manual_context)
-        manual_context.SetDiscreteState(update)
+        commit(manual, manual_context, (k + 1) * PERIOD)
     for name in ("v_predicted", "tau_predicted"):
         value = predictor.GetOutputPort(name).Eval(context)
         assert np.all(np.isfinite(value))
@@ -288,7 +293,9 @@ def test_config_loads_from_yaml():
         data="joints: [hip, knee, ankle]\ninertia: [1.5, 0.8, 0.3]\nwrench_size: 12\n",
     )
     config.validate()
-    assert config.delay == 0.0415 and config.command_latency == 0.001
+    # The default delay: the torque chain's loop_delay at N = 80, 1 kHz (the
+    # estimation delay, 39.5 ms, plus the one tick of the loop).
+    assert config.delay == 0.0405 and config.command_latency == 0.001
     with pytest.raises(RuntimeError, match="horizon"):
         yaml_load_typed(schema=DelayPredictorConfig, data="joints: [hip]\nhorizon: 1\n")
 
