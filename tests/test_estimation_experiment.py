@@ -57,8 +57,8 @@ def test_report_files(report):
     for scenario in ("hanging", "standing"):
         assert f"### {scenario}, per-signal windows (encoders 17, imu 41)" in text
         per_signal = summary["scenarios"][scenario]["per_signal"]
-        assert per_signal["delay_samples"] == pytest.approx(20 + 2)
-        assert abs(per_signal["best_shift_samples"] - 22) <= 1.5, per_signal
+        assert per_signal["delay_samples"] == pytest.approx(20)
+        assert abs(per_signal["best_shift_samples"] - 20) <= 1.5, per_signal
 
 
 @pytest.mark.parametrize("scenario", ["hanging", "standing"])
@@ -68,7 +68,7 @@ def test_delay_is_the_chains(report, scenario):
     joint_torque_true is stamped at the end of its step: measured −1 hanging, where
     q̈ carries the torque, 0 standing, where the F/T sensors do)."""
     for window, w in report[1]["scenarios"][scenario]["windows"].items():
-        assert w["delay_samples"] == pytest.approx((int(window) - 1) / 2 + 2)
+        assert w["delay_samples"] == pytest.approx((int(window) - 1) / 2)
         assert abs(w["best_shift_samples"] - w["delay_samples"]) <= 1.0
 
 

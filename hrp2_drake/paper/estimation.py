@@ -578,7 +578,7 @@ def markdown(results: dict, config: EstimationConfig) -> str:
         "The station runs with noisy default sensors while the position servo tracks "
         "sinusoids (`hrp2_drake/paper/estimation.py`); one estimation chain per "
         "Savitzky-Golay window reads the same sensors. τ̂ is compared with "
-        "`joint_torque_true` delayed by the chain's delay ((N − 1)/2 + 2 samples); "
+        "`joint_torque_true` delayed by the chain's delay ((N − 1)/2 samples); "
         f"errors from t = {config.settle} s (motion start). Goal: RMS error < "
         f"{100 * GOAL_RMS_OVER_PEAK:.0f} % of peak abs(τ) on every right-leg joint at "
         "the best window. The last column of the joint tables is the share of the "
