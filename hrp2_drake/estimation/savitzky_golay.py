@@ -491,18 +491,20 @@ class SavitzkyGolayFilter(StepSystem):
     - evaluation_time (1): the time (s) the three outputs refer to: the time of the
       newest sample minus delay(). Align downstream signals with it.
 
-    Every `period` seconds (offset 0) a discrete update reads `signal`, stores it in a
-    ring buffer of the last N samples and computes the outputs with precomputed
-    weights (savgol_coefficients) read in the window's order from the ring's position,
-    so a step neither refits nor shifts nor allocates the buffer. The outputs (and
-    `input_fault`) are discrete state: no direct feedthrough, the one-sample delay of a
-    real controller. The arithmetic is `SavitzkyGolayStep`'s (its `initialize` and
-    `step`), which this system runs on its context's state.
+    A tick stores the sample `signal` holds in a ring buffer of the last N samples and
+    computes the outputs with precomputed weights (savgol_coefficients) read in the
+    window's order from the ring's position, so a step neither refits nor shifts nor
+    allocates the buffer. The outputs (and `input_fault`) are the tick of the sample
+    now held (direct feedthrough), committed at the next sampling instant
+    (`hrp2_drake.step.StepSystem`: one tick from sample to command). The arithmetic is
+    `SavitzkyGolayStep`'s (its `initialize` and `step`), which this system runs on its
+    context's state.
 
     Start-up: at the first sample the whole window is filled with that sample, so
     value = first sample and derivatives = 0. An initialization event does the same with
     the input at initialization, so the outputs are meaningful from the simulator's
-    first step (a bare default context, never initialized, outputs zeros). Until N
+    first step (a bare default context, never initialized, fills its window with the
+    sample it is given at its first tick). Until N
     samples have arrived the window holds copies of the first sample: estimates are
     finite and continuous but biased towards that constant (derivatives ramp up from 0);
     is_ready(context) is False. From the N-th sample on, the estimates are exact for
@@ -582,8 +584,8 @@ class SavitzkyGolayFilter(StepSystem):
 
     def delay(self) -> float:
         """Seconds the outputs lag the newest sample: (N - 1) / 2 * period for "centre"
-        (N the longest window), 0 for "end". (A consumer updating on the same clock
-        reads them one period later.)"""
+        (N the longest window), 0 for "end"; a consumer reads them in the same
+        tick."""
         return self._step.delay()
 
     def is_ready(self, context) -> bool:
@@ -592,7 +594,8 @@ class SavitzkyGolayFilter(StepSystem):
         return self._step.is_ready()
 
     def evaluation_time(self, context) -> float:
-        """The time (s) the outputs refer to (same as the evaluation_time port)."""
+        """The time (s) the committed outputs refer to: the evaluation_time port's
+        of the previous tick (the accessors read the committed state)."""
         group = self.step_group("evaluation_time")
         return context.get_discrete_state(group).get_value()[0]
 
