@@ -912,7 +912,8 @@ class WholeBodyBalanceController(StepSystem):
         com_ref (9): the CoM's reference position, velocity and acceleration in the
             world (m, m/s, m/s²).
 
-    Outputs (discrete state, updated every config.period; see `BalanceStep`):
+    Outputs (the tick of the inputs held now, direct feedthrough, committed every
+    config.period; see `BalanceStep`):
         tau_desired (n, N·m, config.joints order), vdot (nv), contact_forces (12
         per sole, N, each corner's force in its sole's frame), sole_wrenches (6 per
         sole, [torque; force] about the sole frame's origin, in it), com (3, m),

@@ -1022,8 +1022,8 @@ class InverseDynamicsController(StepSystem):
             (rad/s), expressed in the base frame B (as a gyro on the base reads it).
             Unconnected: zero.
 
-    Outputs (discrete state, updated every config.period; zero before the first
-    update), N·m, n each:
+    Outputs (the tick of the inputs held now, direct feedthrough; committed every
+    config.period, `hrp2_drake.step.StepSystem`), N·m, n each:
         tau_desired: τ_d of eq. 12.
         tau_feedforward: M_j q̈_d + ĥ_j − J_jᵀ f_d (without a force task, M_j q̈_d
             + ĥ_j).

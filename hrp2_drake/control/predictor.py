@@ -511,8 +511,8 @@ class DelayPredictor(StepSystem):
         wrench_estimated (k, only if k > 0): f̂, the F/T wrenches (N, N·m), as old.
         wrench_rate (k, only if k > 0): ḟ̂ (N/s, N·m/s), the F/T filter's derivative.
 
-    Outputs (discrete state, updated every period, no direct feedthrough: the system
-    can sit between the estimator and the Δq controller without an algebraic loop):
+    Outputs (held: the committed state of the previous tick, no direct feedthrough:
+    the system closes a loop through the Δq controller without an algebraic loop):
         v_predicted (n): q̇ at t + command_latency (rad/s).
         tau_predicted (n): τ at t + command_latency (N·m).
         wrench_predicted (k, only if k > 0): f̂ + H ḟ̂.

@@ -748,7 +748,8 @@ class DeltaQTorqueController(StepSystem):
             InverseDynamicsController (see its docstring), used only to split Δq into
             its components.
 
-    Outputs (discrete state, updated every config.period):
+    Outputs (the tick of the inputs held now, direct feedthrough; committed every
+    config.period, `hrp2_drake.step.StepSystem`):
         q_cmd (n): the position command for the servo (rad).
         delta_q (n): q_cmd − q_measured, what the servo receives (rad): the
             saturated Δq in torque control, the servo error of the position command

@@ -134,7 +134,8 @@ class FloatingBaseTorqueEstimator(StepSystem):
         The three imu_* ports exist only with an IMU (config.imu_frame not empty); a
         robot welded to the world may have none (`has_imu()`).
 
-    Outputs (discrete state, updated every config.period; zero before the first update):
+    Outputs (the tick of the inputs held now, direct feedthrough; committed every
+    config.period, `hrp2_drake.step.StepSystem`):
         tau (n): estimated joint torques τ̂ (N·m), config.joints order.
         unknown_wrench (6): the unknown wrench f_u [torque; force] (N·m, N) on the
             unknown-wrench link u (config.unknown_wrench_body, default the base), about
