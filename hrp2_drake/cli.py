@@ -303,7 +303,7 @@ def _track(args: argparse.Namespace) -> int:
 
 
 def _control(args: argparse.Namespace) -> int:
-    from hrp2_drake.tools.control import ControlConfig, _ending, run_control
+    from hrp2_drake.tools.control import ControlConfig, run_control, run_ending
 
     config, sources = _config_on_robot(ControlConfig, args, "robot")
     if args.robot:
@@ -333,7 +333,7 @@ def _control(args: argparse.Namespace) -> int:
         f"start-up, {len(summary['events'])} fallbacks"
         + (", gave up for good" if summary["gave_up"] else "")
     )
-    return _stopped(_ending(summary) if summary["fault"] else None)
+    return _stopped(run_ending(summary) if summary["fault"] else None)
 
 
 def _sim_robot(args: argparse.Namespace) -> int:

@@ -110,3 +110,36 @@ def test_the_checker_sees_an_upward_import(tmp_path, monkeypatch):
         AssertionError, match="control/bad.py:2 imports hrp2_drake.paper"
     ):
         test_imports_go_down(bad)
+
+
+def _private_imports(path: Path) -> list[str]:
+    """`module.name` of every private name (a leading underscore) that `path` imports
+    from another module of the package."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith(
+            "hrp2_drake"
+        ):
+            found += [
+                f"{node.module}.{alias.name}"
+                for alias in node.names
+                if alias.name.startswith("_")
+            ]
+    return found
+
+
+def test_no_module_imports_another_modules_private_names():
+    """A name another module needs is public (issue 34): e.g. the balance builder
+    wires the torque chain with the builders' public helpers."""
+    found = {
+        str(path.relative_to(PACKAGE)): names
+        for path in _sources()
+        if (names := _private_imports(path))
+    }
+    assert found == {}
+
+
+def test_the_private_import_check_sees_one(tmp_path):
+    module = tmp_path / "module.py"
+    module.write_text("from hrp2_drake.assembly.builders import _hidden\n")
+    assert _private_imports(module) == ["hrp2_drake.assembly.builders._hidden"]

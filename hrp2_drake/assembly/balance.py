@@ -38,19 +38,19 @@ from hrp2_drake.assembly.builders import (
     COMPONENTS,
     ControlDiagram,
     JointReference,
-    _add_command,
-    _add_controlled_signals,
-    _add_delay_predictor,
-    _add_reference,
-    _add_selector,
-    _add_station,
-    _build,
-    _station_ports,
+    add_command,
+    add_controlled_signals,
+    add_delay_predictor,
     add_fused_controller,
+    add_reference,
     add_sampled,
+    add_selector,
+    add_station,
     add_torque_controller,
+    build_control_diagram,
     connect_command,
     sample_lead,
+    station_ports,
     torque_chain_parts,
 )
 from hrp2_drake.assembly.torque_control import TorqueControlConfig
@@ -252,15 +252,15 @@ def build_balance_control(
         sample_lead=sample_lead(station),
     )
     builder = DiagramBuilder()
-    station = _add_station(builder, robot, station)
-    blocks = _add_reference(builder, reference, len(parts.all_joints), parts)
+    station = add_station(builder, robot, station)
+    blocks = add_reference(builder, reference, len(parts.all_joints), parts)
     com_ref = add_sampled(builder, "com_reference", com_reference, parts)
     build = _add_fused_balance if fused else _add_separate_balance
     ports = build(builder, station, parts, blocks, com_ref)
     ports["q_cmd"] = connect_command(builder, station, ports["q_cmd"], parts)
     ports |= {"com_ref": com_ref, "q_ref": blocks["q_ref"]}
-    ports = _station_ports(station, robot) | ports
-    return _build(builder, station, ports, reference)
+    ports = station_ports(station, robot) | ports
+    return build_control_diagram(builder, station, ports, reference)
 
 
 #: The balance diagram's signals besides the station's, q_cmd, the supervisor's,
@@ -328,15 +328,15 @@ def _add_separate_balance(
     builder.Connect(blocks["q_ref"], balance.GetInputPort("q_ref"))
     builder.Connect(com_ref, balance.GetInputPort("com_ref"))
 
-    selected = _add_controlled_signals(builder, station, chain, parts, blocks)
-    predictor, v_estimate, torque_estimate = _add_delay_predictor(
+    selected = add_controlled_signals(builder, station, chain, parts, blocks)
+    predictor, v_estimate, torque_estimate = add_delay_predictor(
         builder, chain, parts, selected
     )
     velocity = {"estimate": v_estimate, "reference": selected["v_ref"]}
     torque = add_torque_controller(
         builder, chain, parts, selected, predictor, torque_estimate, velocity
     )
-    tau_star = _add_selector(
+    tau_star = add_selector(
         builder, parts, "tau_desired_controlled", balance.GetOutputPort("tau_desired")
     )
     builder.Connect(tau_star, torque.GetInputPort("tau_desired"))
@@ -344,7 +344,7 @@ def _add_separate_balance(
     fallback = builder.AddNamedSystem("fallback", Adder(2, 1))
     builder.Connect(torque.GetOutputPort("fallback_active"), fallback.get_input_port(0))
     builder.Connect(balance.GetOutputPort("fault"), fallback.get_input_port(1))
-    ports = _add_command(
+    ports = add_command(
         builder, station, parts, blocks, torque, fallback.get_output_port()
     )
     ports |= {

@@ -264,7 +264,7 @@ class ControlDiagram:
         ]
 
 
-def _build(
+def build_control_diagram(
     builder: DiagramBuilder,
     station: Diagram,
     ports: dict[str, OutputPort],
@@ -282,7 +282,7 @@ def _build(
     return ControlDiagram(builder.Build(), station, reference, force_reference)
 
 
-def _add_reference(
+def add_reference(
     builder: DiagramBuilder,
     reference: JointReference,
     n: int,
@@ -368,7 +368,7 @@ def sample_lead(station: Diagram) -> float:
     return 0.0
 
 
-def _station_ports(station: Diagram, robot: RobotDescription) -> dict[str, OutputPort]:
+def station_ports(station: Diagram, robot: RobotDescription) -> dict[str, OutputPort]:
     """The station's logged ports (ground truth only if it has it: a simulation)."""
     names = ["q_measured", "joint_torque_true", "state_true"]
     if robot.force_sensor:
@@ -408,7 +408,7 @@ def simulated_station(
     )
 
 
-def _add_station(
+def add_station(
     builder: DiagramBuilder, robot: RobotDescription, station: Diagram
 ) -> Diagram:
     """Adds `station` (a simulated or a hardware station) to `builder` as "station",
@@ -443,8 +443,8 @@ def build_position_control(
             reference as it is.
     """
     builder = DiagramBuilder()
-    station = _add_station(builder, robot, station)
-    blocks = _add_reference(builder, reference, len(robot.joints))
+    station = add_station(builder, robot, station)
+    blocks = add_reference(builder, reference, len(robot.joints))
     q_cmd = blocks["q_ref"]
     if command_period > 0:
         hold = builder.AddNamedSystem(
@@ -453,8 +453,8 @@ def build_position_control(
         builder.Connect(q_cmd, hold.get_input_port())
         q_cmd = hold.get_output_port()
     builder.Connect(q_cmd, station.GetInputPort("q_cmd"))
-    ports = _station_ports(station, robot) | {"q_ref": blocks["q_ref"], "q_cmd": q_cmd}
-    return _build(builder, station, ports, reference)
+    ports = station_ports(station, robot) | {"q_ref": blocks["q_ref"], "q_cmd": q_cmd}
+    return build_control_diagram(builder, station, ports, reference)
 
 
 def _joint_inertia(
@@ -693,8 +693,8 @@ def build_torque_control(
         sample_lead=sample_lead(station),
     )
     builder = DiagramBuilder()
-    station = _add_station(builder, robot, station)
-    blocks = _add_reference(builder, reference, len(parts.all_joints), parts)
+    station = add_station(builder, robot, station)
+    blocks = add_reference(builder, reference, len(parts.all_joints), parts)
     f_ref = None
     if parts.force_sensor:  # a force frame: a force task
         if force_reference is None:
@@ -706,8 +706,8 @@ def build_torque_control(
     build = _add_fused_chain if fused else _add_separate_chain
     ports = build(builder, station, robot, parts, blocks, f_ref)
     ports["q_cmd"] = connect_command(builder, station, ports["q_cmd"], parts)
-    ports = _station_ports(station, robot) | ports | {"q_ref": blocks["q_ref"]}
-    return _build(builder, station, ports, reference, force_reference)
+    ports = station_ports(station, robot) | ports | {"q_ref": blocks["q_ref"]}
+    return build_control_diagram(builder, station, ports, reference, force_reference)
 
 
 def add_fused_controller(
@@ -764,10 +764,10 @@ def _add_separate_chain(
             parts.id_plant, parts.id_config, lead=parts.sample_lead
         ),
     )
-    selected = _add_controlled_signals(builder, station, chain, parts, blocks)
+    selected = add_controlled_signals(builder, station, chain, parts, blocks)
     for name in ("q_ref", "v_ref", "vdot_ref"):
         builder.Connect(selected[name], inverse_dynamics.GetInputPort(name))
-    predictor, v_estimate, torque_estimate = _add_delay_predictor(
+    predictor, v_estimate, torque_estimate = add_delay_predictor(
         builder, chain, parts, selected
     )
     velocity = {"estimate": v_estimate, "reference": selected["v_ref"]}
@@ -789,7 +789,7 @@ def _add_separate_chain(
         builder, chain, parts, selected, predictor, torque_estimate, velocity
     )
     connect_inverse_dynamics(builder, inverse_dynamics, torque)
-    ports = _add_command(builder, station, parts, blocks, torque) | {
+    ports = add_command(builder, station, parts, blocks, torque) | {
         "tau_estimated": chain.estimator.GetOutputPort("tau"),
         "tau_desired": inverse_dynamics.GetOutputPort("tau_desired"),
         "delta_q": torque.GetOutputPort("delta_q"),
@@ -830,7 +830,7 @@ def add_torque_controller(
     return torque
 
 
-def _add_selector(builder, parts, name: str, source: OutputPort) -> OutputPort:
+def add_selector(builder, parts, name: str, source: OutputPort) -> OutputPort:
     """`source`, a vector of all joints, restricted to the controlled joints by the
     selector system `name`."""
     selector = builder.AddNamedSystem(
@@ -840,7 +840,7 @@ def _add_selector(builder, parts, name: str, source: OutputPort) -> OutputPort:
     return selector.get_output_port()
 
 
-def _add_controlled_signals(
+def add_controlled_signals(
     builder, station, chain, parts, blocks
 ) -> dict[str, OutputPort]:
     """The controlled joints' reference (q_ref, v_ref, vdot_ref), encoders
@@ -853,12 +853,12 @@ def _add_controlled_signals(
         "tau_estimate": chain.estimator.GetOutputPort("tau"),
     }
     return {
-        name: _add_selector(builder, parts, f"{name}_controlled", source)
+        name: add_selector(builder, parts, f"{name}_controlled", source)
         for name, source in sources.items()
     }
 
 
-def _add_delay_predictor(builder, chain, parts, selected: dict[str, OutputPort]):
+def add_delay_predictor(builder, chain, parts, selected: dict[str, OutputPort]):
     """τ̂ and q̂̇ carried from the chain's delay to the present, if `parts.predictor`
     (its Δq input is for the caller to connect, once the controller exists).
 
@@ -872,7 +872,7 @@ def _add_delay_predictor(builder, chain, parts, selected: dict[str, OutputPort])
         "delay_predictor",
         DelayPredictor(parts.controller_model, parts.predictor, lead=parts.sample_lead),
     )
-    vdot_hat = _add_selector(
+    vdot_hat = add_selector(
         builder,
         parts,
         "vdot_estimate_controlled",
@@ -908,7 +908,7 @@ def _add_disturbance_observer(
     builder.Connect(observer.get_output_port(), torque.GetInputPort("tau_disturbance"))
 
 
-def _add_command(
+def add_command(
     builder, station, parts, blocks, torque, fallback: OutputPort | None = None
 ) -> dict[str, OutputPort]:
     """q_cmd: the controlled joints' command merged with the other joints' reference,

@@ -582,8 +582,8 @@ def _stability_verdicts(results: dict) -> list[Verdict]:
     holds = bool(ls["accelerates_at"]) and _all_stable(asym)
     others = "; ".join(
         f"with δc = {delay} compensated: least squares "
-        f"{_push_outcome(v['least_squares'])}, asymmetric "
-        f"{_push_outcome(v['asymmetric'])}"
+        f"{push_outcome(v['least_squares'])}, asymmetric "
+        f"{push_outcome(v['asymmetric'])}"
         for delay, v in stability["verdicts"].items()
         if delay != "0 ms"
     )
@@ -598,7 +598,7 @@ def _stability_verdicts(results: dict) -> list[Verdict]:
             "stable; "
             + stability.get("stable_means", "a run is stable when it slows down"),
             partial_verdict(int(not holds), 1),
-            f"least squares {_push_outcome(ls)}, asymmetric {_push_outcome(asym)}"
+            f"least squares {push_outcome(ls)}, asymmetric {push_outcome(asym)}"
             + (f" ({others}: not the verdict)" if others else ""),
         )
     ]
@@ -653,7 +653,7 @@ def _all_stable(fit: dict) -> bool:
     return not fit["accelerates_at"] and not fit.get("limit_at")
 
 
-def _push_outcome(fit: dict) -> str:
+def push_outcome(fit: dict) -> str:
     """What the open-loop joint did after the pushes of one fit (stability verdicts):
     a run that reached its position limit is never called stable."""
     speeds = lambda values: ", ".join(f"{v:g}" for v in sorted(values))  # noqa: E731

@@ -30,7 +30,7 @@ from hrp2_drake import console
 from hrp2_drake.paper.claims import (
     PAPER_COUPLING_X,
     PAPER_OVERSHOOT,
-    _push_outcome,
+    push_outcome,
     verdict_tables,
 )
 from hrp2_drake.report import markdown_table
@@ -423,13 +423,13 @@ def _predictions(results: dict) -> list[str]:
             [
                 "Sec. 5.2",
                 f"least squares: unstable once a speed is reached (controller {label})",
-                _push_outcome(v["least_squares"]),
+                push_outcome(v["least_squares"]),
                 "-",
             ],
             [
                 "Sec. 5.2",
                 f"asymmetric fit: stable (controller {label})",
-                _push_outcome(v["asymmetric"]),
+                push_outcome(v["asymmetric"]),
                 "-",
             ],
         ]

@@ -328,7 +328,7 @@ def _markdown(robot, config: ControlConfig, summary: dict) -> str:
             config.torque_control
         ),
         "",
-        f"**How the run ended:** {_ending(summary)}",
+        f"**How the run ended:** {run_ending(summary)}",
         "",
         f"**Torque control active:** {summary['torque_share'] * 100:.1f}% of the ticks "
         "after start-up (start_time + the supervisor's ramp).",
@@ -400,7 +400,7 @@ def _markdown(robot, config: ControlConfig, summary: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _ending(summary: dict) -> str:
+def run_ending(summary: dict) -> str:
     """Why the run ended and what the robot was left with, in one sentence."""
     what = summary["fault"] or "its duration"
     when = f" at t = {summary['fault_time']:.3f} s" if summary["fault"] else ""
