@@ -48,6 +48,7 @@ from hrp2_drake.assembly.builders import (
     add_station,
     add_torque_controller,
     build_control_diagram,
+    chain_signals,
     connect_command,
     sample_lead,
     station_ports,
@@ -263,29 +264,12 @@ def build_balance_control(
     return build_control_diagram(builder, station, ports, reference)
 
 
-#: The balance diagram's signals besides the station's, q_cmd, the supervisor's,
-#: com_ref and q_ref: the chain's, the base's and the QP's (`BALANCE_SIGNALS`).
-_SIGNALS = (
-    "tau_estimated",
-    "tau_desired",
-    "delta_q",
-    "fallback_active",
-    "sensor_fault",
-    "base_state",
-    *(f"balance_{name}" for name in BALANCE_SIGNALS),
-    *COMPONENTS,
-)
-
-
 def _add_fused_balance(
     builder, station, parts, blocks, com_ref
 ) -> dict[str, OutputPort]:
     """The chain, the base and the QP as one `FusedTorqueController`."""
     fused = add_fused_controller(builder, station, parts, blocks | {"com_ref": com_ref})
-    names = ["q_cmd", *_SIGNALS]
-    if parts.supervisor is not None:
-        names += [f"supervisor_{name}" for name in ("mode", "fault", "transition")]
-    return {name: fused.GetOutputPort(name) for name in names}
+    return {name: fused.GetOutputPort(name) for name in chain_signals(parts)}
 
 
 def _add_separate_balance(
@@ -357,4 +341,5 @@ def _add_separate_balance(
     }
     for name in BALANCE_SIGNALS:
         ports[f"balance_{name}"] = balance.GetOutputPort(name)
-    return ports | {name: torque.GetOutputPort(name) for name in COMPONENTS}
+    ports |= {name: torque.GetOutputPort(name) for name in COMPONENTS}
+    return {name: ports[name] for name in chain_signals(parts)}

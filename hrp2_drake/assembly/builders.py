@@ -46,6 +46,7 @@ from hrp2_drake.control.disturbance_observer import (
     DisturbanceObserverConfig,
 )
 from hrp2_drake.control.fused import (
+    BALANCE_SIGNALS,
     FusedTorqueController,
     ObserverParts,
     SupervisorParts,
@@ -727,23 +728,28 @@ def add_fused_controller(
     return fused
 
 
+def chain_signals(parts: TorqueChainParts, logged_wrench: str = "") -> list[str]:
+    """The chain's logged signals, by name, in order: the output ports that
+    `build_torque_control` and `build_balance_control` export from the chain, fused
+    or separate (both shells are built to give exactly these). `logged_wrench`: the
+    F/T sensor whose compensated external wrench is logged ("" for none)."""
+    names = ["q_cmd", "tau_estimated", "tau_desired", "delta_q", "fallback_active"]
+    names.append("sensor_fault")
+    if parts.balance is not None:
+        names += ["base_state", *(f"balance_{name}" for name in BALANCE_SIGNALS)]
+    names += list(COMPONENTS)
+    if parts.supervisor is not None:
+        names += [f"supervisor_{name}" for name in ("mode", "fault", "transition")]
+    if logged_wrench:
+        names.append(f"external_wrench_{logged_wrench}")
+    return names
+
+
 def _add_fused_chain(
     builder, station, robot, parts, blocks, f_ref
 ) -> dict[str, OutputPort]:
     fused = add_fused_controller(builder, station, parts, blocks | {"f_ref": f_ref})
-    names = [
-        "q_cmd",
-        "tau_estimated",
-        "tau_desired",
-        "delta_q",
-        "fallback_active",
-        "sensor_fault",
-        *COMPONENTS,
-    ]
-    if parts.supervisor is not None:
-        names += [f"supervisor_{name}" for name in ("mode", "fault", "transition")]
-    if robot.force_sensor:
-        names.append(f"external_wrench_{robot.force_sensor}")
+    names = chain_signals(parts, robot.force_sensor)
     return {name: fused.GetOutputPort(name) for name in names}
 
 
@@ -799,7 +805,8 @@ def _add_separate_chain(
     if robot.force_sensor:
         name = f"external_wrench_{robot.force_sensor}"
         ports[name] = chain.estimator.GetOutputPort(name)
-    return ports | {name: torque.GetOutputPort(name) for name in COMPONENTS}
+    ports |= {name: torque.GetOutputPort(name) for name in COMPONENTS}
+    return {name: ports[name] for name in chain_signals(parts, robot.force_sensor)}
 
 
 def add_torque_controller(
