@@ -86,9 +86,12 @@ def test_base_configuration_round_trips_through_the_space():
     tuned = apply_params(base, params, space, LEG)
     # imu: 81, implicit
     assert tuned.estimator.windows == {"RLEG_JOINT3": 9, "RLEG_JOINT4": 57}
-    # The window of 81 delays the estimates by 42 ms: a bandwidth of 0.5 / 0.042.
+    # The window of 81 delays the estimates by its evaluation point, (81 − 1)/2
+    # samples at 1 kHz (40 ms; 42 ms when each stage added a period): a bandwidth of
+    # 0.5 / 0.040.
+    delay = (81 - 1) / 2 * 0.001
     assert tuned.controller.kp[2] == 3.0
-    assert tuned.observer.disturbance_observer == pytest.approx(0.5 / 0.042)
+    assert tuned.observer.disturbance_observer == pytest.approx(0.5 / delay)
     params |= {"window": 80, "windows[RLEG_JOINT3]": 0.5}
     assert apply_params(base, params, space, LEG).estimator.windows["RLEG_JOINT3"] == 40
     assert base == TuneConfig().base()  # apply_params leaves its base alone
