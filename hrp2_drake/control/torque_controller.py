@@ -904,8 +904,8 @@ class DeltaQTorqueController(StepSystem):
         return self._value(context, "tau_error_integral").copy()
 
     def reset_fallback(self, context: Context) -> None:
-        """Leaves the fallback: torque control resumes at the next update (with a
-        zero torque-error integral)."""
+        """Leaves the fallback: torque control resumes in the tick of the sample now
+        held (with a zero torque-error integral)."""
         step = self._step
         step.reset_fallback()
         for name in step.RESET_STATE:
