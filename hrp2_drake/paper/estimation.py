@@ -141,7 +141,7 @@ class EstimationConfig:
             windows (TorqueEstimatorConfig.window and .windows: the encoders' window
             and, by joint, F/T sensor or "imu", the others; every window centred on
             the longest's centre). The default, the encoders at 17 and the IMU at 41
-            (delay 22 ms), was chosen on the hanging run; 0: no such chain.
+            (delay 20 ms), was chosen on the hanging run; 0: no such chain.
         duration: simulated time per scenario (s), settle and ramp included.
         settle: time the initial pose is held before the motion starts (s); the
             errors are measured from then on (the filters are full by then).
