@@ -37,8 +37,8 @@ class WitnessFreeLeafSystem(LeafSystem):
 
 class SampleHold(WitnessFreeLeafSystem):
     """Holds its input (`u`, size k) from one sampling instant to the next (`y`): at
-    `offset` (s, in [0, period)) plus every multiple of `period`, and at the
-    initialization. Drake's ZeroOrderHold, but for the latch at the initialization:
+    `offset` (s, in [0, period)) plus every multiple of `period`, and (`latch`) at
+    the initialization. Drake's ZeroOrderHold, but for the latch at the initialization:
     a controller's reference (or a bus's goal) read as the station samples its
     sensors, so that a tick's inputs hold still between two samples."""
 
@@ -48,10 +48,12 @@ class SampleHold(WitnessFreeLeafSystem):
         period: float,
         offset: float = 0.0,
         initial: np.ndarray | None = None,
+        latch: bool = True,
     ):
         """`initial`: the output before the first sample (default zero): what the
         other systems' initialization events read (they run together with this
-        system's latch)."""
+        system's latch). `latch`: whether the initialization latches the input too
+        (not where the input is not meaningful before the first sample)."""
         super().__init__()
         if not (period > 0 and 0 <= offset < period):
             raise ValueError(
@@ -63,7 +65,8 @@ class SampleHold(WitnessFreeLeafSystem):
             np.zeros(size) if initial is None else np.asarray(initial, float)
         )
         self.DeclareStateOutputPort("y", state)
-        self.DeclareInitializationDiscreteUpdateEvent(self._latch)
+        if latch:
+            self.DeclareInitializationDiscreteUpdateEvent(self._latch)
         self.DeclarePeriodicDiscreteUpdateEvent(period, offset, self._latch)
 
     def _latch(self, context, state) -> None:

@@ -258,7 +258,7 @@ def build_balance_control(
     com_ref = add_sampled(builder, "com_reference", com_reference, parts)
     build = _add_fused_balance if fused else _add_separate_balance
     ports = build(builder, station, parts, blocks, com_ref)
-    ports["q_cmd"] = connect_command(builder, station, ports["q_cmd"], parts)
+    connect_command(builder, station, ports["q_cmd"], parts, reference.at(0.0)[0])
     ports |= {"com_ref": com_ref, "q_ref": blocks["q_ref"]}
     ports = station_ports(station, robot) | ports
     return build_control_diagram(builder, station, ports, reference)

@@ -343,21 +343,27 @@ def add_sampled(
 
 
 def connect_command(
-    builder: DiagramBuilder, station: Diagram, q_cmd: OutputPort, parts
-) -> OutputPort:
-    """The chain's q_cmd to the station's servo: as it is when the station samples
-    at the multiples of the period (its servo reads it at the next plant step); a bus
-    (samples `sample_lead` before them) writes its goal at the multiples, so it is
-    held from each to the next (`SampleHold` "goal_hold"). Returns what the servo
-    gets."""
-    if parts.sample_lead > 0:
-        hold = builder.AddNamedSystem(
-            "goal_hold", SampleHold(q_cmd.size(), parts.period, 0.0)
-        )
-        builder.Connect(q_cmd, hold.get_input_port())
-        q_cmd = hold.get_output_port()
-    builder.Connect(q_cmd, station.GetInputPort("q_cmd"))
-    return q_cmd
+    builder: DiagramBuilder,
+    station: Diagram,
+    q_cmd: OutputPort,
+    parts,
+    initial: np.ndarray,
+) -> None:
+    """The chain's q_cmd to the station's servo, which takes it at each multiple of
+    the period and holds it to the next (`SampleHold` "goal_hold"): the one sample
+    between a command and the servo of a real robot. (A discrete plant's state port
+    shows, when the samplers latch it, the state its next step starts from: a
+    command of the tick's own sample, read by the plant as it is, would act in that
+    very step, with no delay at all.) On a bus, whose sensors sample `sample_lead`
+    before each multiple, the goal computed from them is written at the multiple.
+    `initial`: the command before the first multiple (the reference's first pose:
+    the servo holds it)."""
+    hold = builder.AddNamedSystem(
+        "goal_hold",
+        SampleHold(q_cmd.size(), parts.period, 0.0, initial=initial, latch=False),
+    )
+    builder.Connect(q_cmd, hold.get_input_port())
+    builder.Connect(hold.get_output_port(), station.GetInputPort("q_cmd"))
 
 
 def sample_lead(station: Diagram) -> float:
@@ -706,7 +712,7 @@ def build_torque_control(
         f_ref = add_sampled(builder, "force_reference", force_reference, parts)
     build = _add_fused_chain if fused else _add_separate_chain
     ports = build(builder, station, robot, parts, blocks, f_ref)
-    ports["q_cmd"] = connect_command(builder, station, ports["q_cmd"], parts)
+    connect_command(builder, station, ports["q_cmd"], parts, reference.at(0.0)[0])
     ports = station_ports(station, robot) | ports | {"q_ref": blocks["q_ref"]}
     return build_control_diagram(builder, station, ports, reference, force_reference)
 
