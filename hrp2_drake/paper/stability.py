@@ -25,30 +25,22 @@ velocity" of the paper.
 
 Two things of the loop around the servo matter as much as the fit, and are reported:
 
-- The delay of the command. The controller computes q_cmd = q_measured + Δq in the
-  tick of the encoders' sample, and the servo compares q_cmd with those same
-  encoders (one tick from sample to command, `hrp2_drake.step`; measured on the log,
-  ankle pitch at 2 rad/s: q_cmd − Δq equals the true angle of the servo's step to
-  2 µrad, the encoder noise, where a period's delay would be 2 mrad): the servo
-  receives Δq itself, and the fit's K̂_v acts as identified. With one period per
-  stage (before) it received Δq − q̇ δ, δ = 1 ms: a K_v smaller by 1 ms against
-  K_v = 6-8 ms on the leg, 12-15%, more than the least-squares fit over-estimates K_v
-  on the emulated servo (3-7%), so that every run stopped. `command_delay_compensation`
-  adds δ_c to every K̂_v, which is the same as predicting the encoders δ_c ahead
-  (q_cmd = q_measured + δ_c q̂̇ + Δq): it compensates a command applied δ_c after its
-  sample, which this chain does not have, so here it over-compensates the viscous
-  friction by δ_c. Runs are made with 0 (the controller as it is) and 1 ms.
+- The one-sample delay of the command. The controller sends q_cmd = q_measured + Δq
+  with the encoders of the previous period, while the servo's error uses the current
+  encoders: the servo receives Δq − q̇ δ (δ = 1 ms at 1 kHz, measured on the log). In
+  the Δq-q̇ plane this is a K_v smaller by δ, 1 ms against K_v = 6-8 ms on the leg:
+  12-15%, more than the least-squares fit over-estimates K_v on the emulated servo
+  (3-7%). `command_delay_compensation` adds δ_c to every K̂_v, which is the same as
+  predicting the encoders to the time the servo applies the command (q_cmd =
+  q_measured + δ_c q̂̇ + Δq); runs are made with 0 (the controller as it is) and 1 ms.
 - The estimator's delay: q̂̇ lags q̇ by (N − 1)/2 periods (39.5 ms for N = 80). At a
   constant velocity it does not matter; while the joint accelerates q̂̇ < q̇ (the
   friction compensation lags) and while it decelerates q̂̇ > q̇: the delay slows
   both the divergence and the decay, it does not destabilise the joint by itself
-  (measured, ankle pitch, δc = 0, the reproduce's fits: the asymmetric run pushed at
-  2 rad/s stops 0.73 s after the release with N = 80, 0.30 s with N = 20; pushed at
-  2.5 rad/s it is still at 2.07 rad/s when it reaches its position limit 0.56 s
-  after the release with N = 80, and stops within 0.54 s with N = 20; the
-  least-squares run pushed at 1.5 rad/s reaches 3.1 rad/s at its limit, 0.76 s
-  after the release, with N = 80, 4.3 rad/s after 0.53 s with N = 20). The window
-  is a config field.
+  (measured, ankle pitch, δc = 1 ms: with N = 80 the asymmetric run pushed at 2 rad/s
+  is still at 1.55 rad/s 0.8 s later, with N = 20 it stops within 1 s; the
+  least-squares run pushed at 1.5 rad/s reaches 2.0 rad/s with N = 80, 3.4 rad/s
+  with N = 20). The window is a config field.
 
 Each run gets one of three outcomes (`StabilityRun.outcome`), from the joint's speed
 (ground truth, from the plant state):
@@ -95,11 +87,8 @@ from hrp2_drake.robot.station import (
 #: The fits of Sec. 5.2, in the order of the report.
 MODEL_NAMES = ("least_squares", "asymmetric")
 #: The delay between the encoders the torque controller adds Δq to and the encoders
-#: the servo compares q_cmd with that `predicted_thresholds` assumes (s): one period
-#: of the 1 kHz controller, measured on the logs of the chain with one period per
-#: stage (q_cmd sent at t_k was q(t_{k−1}) + Δq, applied against q(t_k)). The chain
-#: of one tick from sample to command has none (module docstring): the predictions
-#: made with this value are a period's delay away from the runs.
+#: the servo compares q_cmd with: one period of the 1 kHz controller (measured on
+#: the logs: q_cmd sent at t_k is q(t_{k−1}) + Δq, applied against q(t_k)), s.
 COMMAND_DELAY = 0.001
 
 
@@ -407,8 +396,7 @@ def predicted_thresholds(
     """The speed above which the open-loop joint accelerates, per direction ("+",
     "-"), predicted from the emulated servo's hidden parameters (ground truth: for
     the report only) at steady speed: the smallest v > 0 where the servo's net torque
-    with Δq = (K̂_v + δ_c − δ − d) q̇ (δ = `COMMAND_DELAY`, 1 ms: the command's delay
-    with one period per stage, which the one-tick chain no longer has; d, the servo's
+    with Δq = (K̂_v + δ_c − δ − d) q̇ (δ = 1 ms, the command's delay; d, the servo's
     command latency) pushes the joint along q̇, the current limited by the voltage
     limit; None if none below 10 rad/s."""
     from hrp2_drake.robot.servo import load_servo_params, servo_torque
@@ -604,22 +592,20 @@ def _markdown(result: StabilityResult, summary: dict, figure: str) -> str:
     )
     lines += [
         "",
-        "## The command's delay and δc",
+        "## Why the command's delay decides",
         "",
-        "The controller computes q_cmd = q_measured + Δq in the tick of the encoders' "
-        "sample, and the servo compares q_cmd with those same encoders (one tick from "
-        "sample to command): it receives Δq, and the fits' K̂_v act as identified. δc "
-        "adds δc · q̂̇ to Δq, the compensation of a command applied δc after its "
-        "sample, which this chain does not have: it over-compensates the viscous "
-        "friction by δc. The emulator's K_v (evaluation only) is "
-        f"{truth['k_v+'] * 1e3:.3f} ms moving in +, {truth['k_v-'] * 1e3:.3f} ms in "
-        f"−; the fits exceed the + value by {over}. The least-squares fit "
-        "over-compensates the viscous friction (it folds the Coulomb friction and the "
-        "dead zone into K_v). With one period per stage the command was applied a "
-        f"period after its sample, as if K̂_v were {COMMAND_DELAY * 1e3:g} ms "
-        "smaller, which hid that over-compensation at δc = 0. The predicted speeds "
-        f"above assume that {COMMAND_DELAY * 1e3:g} ms delay: a row δc predicts what "
-        f"the chain as it is does at δc − {COMMAND_DELAY * 1e3:g} ms.",
+        "The controller sends q_cmd = q_measured + Δq with the encoders of the "
+        "previous period, and the servo compares q_cmd with the current encoders: it "
+        f"receives Δq − {COMMAND_DELAY * 1e3:g} ms · q̇, as if K̂_v were "
+        f"{COMMAND_DELAY * 1e3:g} ms smaller. The emulator's K_v (evaluation "
+        f"only) is {truth['k_v+'] * 1e3:.3f} ms moving in +, "
+        f"{truth['k_v-'] * 1e3:.3f} ms in −; the fits exceed the + value by {over}. "
+        "The least-squares fit over-compensates the viscous friction (it folds the "
+        "Coulomb friction and the dead zone into K_v) by less than the delay takes "
+        "away, so with the controller as it is (δc = 0) every run stops; on the real "
+        "robot the over-estimate was evidently larger, since the paper saw the "
+        "instability. With the encoders predicted over the delay (δc = 1 ms) the "
+        "fits act as identified, and the paper's contrast appears.",
     ]
     lines += ["", "## Verdict", ""]
     for delay, found in summary["contrast"].items():
