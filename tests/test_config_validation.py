@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_errors import refused
 
 import hrp2_drake
-from hrp2_drake.cli import main
 from hrp2_drake.config import _callable_without_arguments, nested_configs
 from hrp2_drake.description import load_robot_description
 from hrp2_drake.tools.record import RecordConfig
@@ -135,19 +135,6 @@ def test_a_plain_gain_becomes_a_list_when_made_not_when_validated():
 
 
 # ------------------------------------------- bad input through the command line
-def refused(capsys, argv: list[str], *culprits: str) -> str:
-    """Runs the command; asserts exit code 2 and ONE error line naming `culprits`, no
-    traceback; returns the line."""
-    code = main(argv)
-    err = capsys.readouterr().err
-    assert "Traceback" not in err
-    lines = err.strip().splitlines()
-    assert code == 2, err
-    assert len(lines) == 1, err
-    assert lines[0].startswith(f"hrp2-drake {argv[0]}: error: "), lines[0]
-    for culprit in culprits:
-        assert culprit in lines[0], lines[0]
-    return lines[0]
 
 
 def simulated(*args, **kwargs):

@@ -15,6 +15,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+from cli_errors import refused
 
 import hrp2_drake
 from hrp2_drake.assembly.torque_control import TorqueControlConfig
@@ -172,21 +173,6 @@ def robot_with_control(tmp_path: Path, text: str, name: str = "control.yaml") ->
     if text is not None:
         (folder / name).write_text(text)
     return folder / "robot.yaml"
-
-
-def refused(capsys, argv: list[str], *culprits: str) -> str:
-    """Runs the command; asserts exit code 2 and ONE error line naming `culprits`, no
-    traceback; returns the line."""
-    code = main(argv)
-    err = capsys.readouterr().err
-    assert "Traceback" not in err
-    lines = err.strip().splitlines()
-    assert code == 2, err
-    assert len(lines) == 1, err
-    assert lines[0].startswith(f"hrp2-drake {argv[0]}: error: "), lines[0]
-    for culprit in culprits:
-        assert culprit in lines[0], lines[0]
-    return lines[0]
 
 
 @pytest.mark.parametrize(
