@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+from ticks import commit
 
 from hrp2_drake import kernels
 from hrp2_drake.control import disturbance_observer
@@ -37,7 +38,8 @@ def _signals(disturbance, steps: int, nan_at=()):
 
 
 def _run(disturbance, config: DisturbanceObserverConfig, steps: int = 800, nan_at=()):
-    """Feeds the observer τ̂ and q̂̇ delayed by DELAY, Δq as sent; returns d̂ per step."""
+    """Feeds the observer τ̂ and q̂̇ delayed by DELAY, Δq as sent, one sample a tick
+    (tests/ticks.commit); returns d̂ per step."""
     observer = DisturbanceObserver(MODEL, config)
     context = observer.CreateDefaultContext()
     delta_q, v, tau, d = _signals(disturbance, steps, nan_at)
@@ -46,8 +48,8 @@ def _run(disturbance, config: DisturbanceObserverConfig, steps: int = 800, nan_a
         observer.get_input_port(0).FixValue(context, delta_q[k])
         observer.get_input_port(1).FixValue(context, v[k])
         observer.get_input_port(2).FixValue(context, tau[k])
-        update = observer.EvalUniquePeriodicDiscreteUpdate(context)
-        context.SetDiscreteState(update)
+        # Tick k committed at the next sampling instant: its d̂ is the held output.
+        commit(observer, context, (k + 1) * PERIOD)
         out.append(observer.get_output_port().Eval(context).copy())
     return np.array(out), d
 
