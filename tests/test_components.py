@@ -135,45 +135,23 @@ def test_components_of_the_papers_experiments(short_runs, tmp_path):
         # The six components add up to the Δq the servo receives.
         assert panel["sum_residual_max"] < 1e-9, key
         assert panel["samples"] > 900
-    # Motion control (Fig. 6a-d), RMS over the window (mrad; measured with one tick
-    # from sample to command): the friction feedforward first everywhere and more
-    # than half of the command (share 0.73, 0.74, 0.84, 0.83 in a-d). At the hip
-    # pitch the position feedback next, as in the paper (a: 7.64, 1.41, then the
-    # acceleration feedback 0.82; b: 7.64, 1.28, 0.93).
+    # Motion control (Fig. 6a-d): friction feedforward first, position feedback next,
+    # and the friction feedforward is more than half of the command.
     for key in "abcd":
-        assert panels[key]["ranking"][0] == "feedforward_friction"
-        assert panels[key]["components"]["feedforward_friction"]["share"] > 0.5
-    for key in "ab":
         assert panels[key]["ranking"][:2] == [
             "feedforward_friction",
             "feedback_position",
         ]
-    # At the knee the acceleration feedback comes second at K6 = 0.1 (c: 11.76, then
-    # the acceleration feedback 0.91, the torque feedforward 0.66, the position
-    # feedback 0.61; with one period per stage, the position feedback was second),
-    # and ties with the position feedback at K6 = 1 (d: 11.76, 0.895, 0.883): the
-    # paper's "then feedback position" does not hold in panel c.
-    c, d = panels["c"], panels["d"]
-    assert c["ranking"][:2] == ["feedforward_friction", "feedback_acceleration"]
-    knee_01 = c["components"]
-    assert (
-        knee_01["feedback_position"]["rms"]
-        < 0.8 * knee_01["feedback_acceleration"]["rms"]
-    )
-    assert not c["holds"] and not summary["conclusions"]["motion"]
-    assert set(d["ranking"][1:3]) == {"feedback_acceleration", "feedback_position"}
-    knee_1 = d["components"]
-    tie = knee_1["feedback_position"]["rms"] / knee_1["feedback_acceleration"]["rms"]
-    assert 0.8 < tie < 1.25
+        assert panels[key]["components"]["feedforward_friction"]["share"] > 0.5
+    assert summary["conclusions"]["motion"]
     # Force control (Fig. 6e-f): the torque feedforward (mostly the static load) first.
     for key in "ef":
         assert panels[key]["ranking"][0] == "feedforward_torque"
     # Ankle pitch: then the force and position feedbacks, as in the paper.
     assert panels["f"]["holds"]
-    # Knee: the position feedback is as large as the force feedback (measured 0.18 vs
-    # 0.12 mrad RMS on this period, 0.31 vs 0.31 on the reproduce's 3: the stance's
-    # compliance moves the leg, see force.md), so the paper's "then feedback force"
-    # is a near tie here.
+    # Knee: the position feedback is as large as the force feedback (measured 0.36 vs
+    # 0.30 mrad RMS on 3 periods: the stance's compliance moves the leg, see
+    # force.md), so the paper's "then feedback force" is a near tie here.
     knee = panels["e"]["components"]
     ratio = knee["feedback_position"]["rms"] / knee["feedback_force"]["rms"]
     assert 0.5 < ratio < 2.0
