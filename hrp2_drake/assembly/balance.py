@@ -43,13 +43,15 @@ from hrp2_drake.assembly.builders import (
     add_delay_predictor,
     add_fused_controller,
     add_reference,
-    add_sampled,
     add_selector,
     add_station,
     add_torque_controller,
+    add_trajectory,
     build_control_diagram,
+    chain_inputs,
     chain_signals,
     connect_command,
+    hold_sampled,
     sample_lead,
     station_ports,
     torque_chain_parts,
@@ -254,11 +256,17 @@ def build_balance_control(
     )
     builder = DiagramBuilder()
     station = add_station(builder, robot, station)
-    blocks = add_reference(builder, reference, len(parts.all_joints), parts)
-    com_ref = add_sampled(builder, "com_reference", com_reference, parts)
+    sampled = None if fused else parts  # (the fused controller holds its own)
+    blocks = add_reference(builder, reference, len(parts.all_joints), sampled)
+    com_ref = add_trajectory(builder, "com_reference", com_reference)
+    chain_com_ref = com_ref
+    if sampled is not None:
+        initial = com_reference.value(com_reference.start_time()).ravel()
+        chain_com_ref = hold_sampled(builder, "com_reference", com_ref, initial, parts)
     build = _add_fused_balance if fused else _add_separate_balance
-    ports = build(builder, station, parts, blocks, com_ref)
-    connect_command(builder, station, ports["q_cmd"], parts, reference.at(0.0)[0])
+    ports = build(builder, station, parts, chain_inputs(blocks), chain_com_ref)
+    if not fused:
+        connect_command(builder, station, ports["q_cmd"], parts, reference.at(0.0)[0])
     ports |= {"com_ref": com_ref, "q_ref": blocks["q_ref"]}
     ports = station_ports(station, robot) | ports
     return build_control_diagram(builder, station, ports, reference)

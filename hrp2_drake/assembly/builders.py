@@ -287,47 +287,69 @@ def add_reference(
     builder: DiagramBuilder,
     reference: JointReference,
     n: int,
-    parts: TorqueChainParts | None = None,
-):
-    """q_ref, v_ref, vdot_ref of every joint from `reference`: as it is (position
-    control), or for a controller (`parts`) sampled as the station samples its
-    sensors (`add_sampled`)."""
+    sampled: TorqueChainParts | None = None,
+) -> dict[str, OutputPort]:
+    """q_ref, v_ref, vdot_ref of every joint from `reference`, as it is (a function
+    of time), and with `sampled` (a separate chain's parts) also "sampled_q_ref",
+    "sampled_v_ref", "sampled_vdot_ref": the reference held from each of the
+    station's sampling instants to the next (`hold_sampled`), what the separate
+    systems read (the fused controller holds its reference itself). The logged
+    q_ref is the reference as it is, at the log's time."""
     if reference.trajectory.rows() != 3 * n:
         raise ValueError(
             f"the joint reference has {reference.trajectory.rows()} rows, expected "
             f"3 x {n} joints"
         )
-    if parts is not None:
-        source = add_sampled(builder, "reference", reference.trajectory, parts)
-    else:
-        source = builder.AddNamedSystem(
-            "reference", TrajectorySource(borrowed(reference.trajectory))
-        ).get_output_port()
+    source = builder.AddNamedSystem(
+        "reference", TrajectorySource(borrowed(reference.trajectory))
+    ).get_output_port()
+    sources = {"": source}
+    if sampled is not None:
+        initial = np.concatenate(reference.at(reference.trajectory.start_time()))
+        sources["sampled_"] = hold_sampled(
+            builder, "reference", source, initial, sampled
+        )
     blocks = {}
-    for k, name in enumerate(("q_ref", "v_ref", "vdot_ref")):
-        select = np.zeros((n, 3 * n))
-        select[:, k * n : (k + 1) * n] = np.eye(n)
-        gain = builder.AddNamedSystem(f"{name}_all", MatrixGain(select))
-        builder.Connect(source, gain.get_input_port())
-        blocks[name] = gain.get_output_port()
+    for prefix, port in sources.items():
+        for k, name in enumerate(("q_ref", "v_ref", "vdot_ref")):
+            select = np.zeros((n, 3 * n))
+            select[:, k * n : (k + 1) * n] = np.eye(n)
+            gain = builder.AddNamedSystem(f"{prefix}{name}_all", MatrixGain(select))
+            builder.Connect(port, gain.get_input_port())
+            blocks[f"{prefix}{name}"] = gain.get_output_port()
     return blocks
 
 
-def add_sampled(
+def add_trajectory(
     builder: DiagramBuilder,
     name: str,
     trajectory: Trajectory,
-    parts: TorqueChainParts,
+    sampled: TorqueChainParts | None = None,
 ) -> OutputPort:
-    """`trajectory` (a reference; a `TrajectorySource` "name") held from each of the
-    station's sampling instants to the next (`SampleHold` "name_sampled"): a tick's
-    inputs hold still between two samples, as on a controller that reads its
-    reference when its samples arrive. Its value at its start is the hold's before
-    the first sample (what the systems' initialization reads)."""
+    """`trajectory` (a reference: f_ref, com_ref) as a `TrajectorySource` "name", and
+    with `sampled` (a separate chain's parts) held from each of the station's
+    sampling instants to the next (`hold_sampled`)."""
     source = builder.AddNamedSystem(
         name, TrajectorySource(borrowed(trajectory))
     ).get_output_port()
+    if sampled is None:
+        return source
     initial = trajectory.value(trajectory.start_time()).ravel()
+    return hold_sampled(builder, name, source, initial, sampled)
+
+
+def hold_sampled(
+    builder: DiagramBuilder,
+    name: str,
+    source: OutputPort,
+    initial: np.ndarray,
+    parts: TorqueChainParts,
+) -> OutputPort:
+    """`source` held from each of the station's sampling instants to the next
+    (`SampleHold` "name_sampled"): a tick's inputs hold still between two samples, as
+    on a controller that reads its reference when its samples arrive. `initial` (the
+    reference at its start) is the hold's value before the first sample, what the
+    systems' initialization reads."""
     period, lead = parts.period, parts.sample_lead
     hold = builder.AddNamedSystem(
         f"{name}_sampled",
@@ -701,7 +723,8 @@ def build_torque_control(
     )
     builder = DiagramBuilder()
     station = add_station(builder, robot, station)
-    blocks = add_reference(builder, reference, len(parts.all_joints), parts)
+    sampled = None if fused else parts
+    blocks = add_reference(builder, reference, len(parts.all_joints), sampled)
     f_ref = None
     if parts.force_sensor:  # a force frame: a force task
         if force_reference is None:
@@ -709,10 +732,11 @@ def build_torque_control(
                 f"build_torque_control: no force_reference for the force task at F/T "
                 f"sensor '{parts.force_sensor}' (TorqueControlConfig's force frame)"
             )
-        f_ref = add_sampled(builder, "force_reference", force_reference, parts)
+        f_ref = add_trajectory(builder, "force_reference", force_reference, sampled)
     build = _add_fused_chain if fused else _add_separate_chain
-    ports = build(builder, station, robot, parts, blocks, f_ref)
-    connect_command(builder, station, ports["q_cmd"], parts, reference.at(0.0)[0])
+    ports = build(builder, station, robot, parts, chain_inputs(blocks), f_ref)
+    if not fused:
+        connect_command(builder, station, ports["q_cmd"], parts, reference.at(0.0)[0])
     ports = station_ports(station, robot) | ports | {"q_ref": blocks["q_ref"]}
     return build_control_diagram(builder, station, ports, reference, force_reference)
 
@@ -731,6 +755,9 @@ def add_fused_controller(
         builder.Connect(
             source if source is not None else station.GetOutputPort(name), port
         )
+    # The servo's command: the one the fused controller holds from each multiple of
+    # the period (`connect_command` for the separate systems).
+    builder.Connect(fused.GetOutputPort("servo_command"), station.GetInputPort("q_cmd"))
     return fused
 
 
@@ -749,6 +776,15 @@ def chain_signals(parts: TorqueChainParts, logged_wrench: str = "") -> list[str]
     if logged_wrench:
         names.append(f"external_wrench_{logged_wrench}")
     return names
+
+
+def chain_inputs(blocks: dict[str, OutputPort]) -> dict[str, OutputPort]:
+    """The reference a chain reads, by name (q_ref, v_ref, vdot_ref): the sampled
+    blocks of `add_reference` where there are, else the reference as it is."""
+    return {
+        name: blocks.get(f"sampled_{name}", blocks[name])
+        for name in ("q_ref", "v_ref", "vdot_ref")
+    }
 
 
 def _add_fused_chain(

@@ -488,6 +488,9 @@ class FusedController:
             start = self._offsets[name]
             step.bind(state[start : start + step.state_size])
         self.state = state
+        #: The whole reference in one view: [q_ref; v_ref; vdot_ref; f_ref; com_ref].
+        start = ends[1]
+        self.reference = self._sources[start : start + 3 * N + 6 + com_ref]
         self.q_measured = self.sensor_buffer[layout.q_measured]
         self.sensor_values = self.sensor_buffer[layout.values]
         self.sensor_time = self.sensor_buffer[layout.stamps]
@@ -851,7 +854,7 @@ class FusedTorqueController(WitnessFreeLeafSystem):
     .. code-block:: text
 
                                  ┌───────────────────────┐
-        q_measured ─────────────►│                       ├──► q_cmd
+        q_measured ─────────────►│                       ├──► q_cmd, servo_command
         imu_linear_acceleration ►│                       ├──► tau_estimated, tau_desired
         imu_angular_velocity ───►│                       ├──► delta_q, fallback_active
         wrench_<s> (each) ──────►│ FusedTorqueController ├──► sensor_fault
@@ -864,12 +867,19 @@ class FusedTorqueController(WitnessFreeLeafSystem):
                                  │                       │    _contact_forces, _fault,
                                  └───────────────────────┘    _fault_count (balance)
 
-    One discrete state vector (`FusedController.state`, committed) and the time of
-    the sample now shown, as every `StepSystem`: a cache entry runs the tick on a
-    copy of the committed state with the inputs as they are now, the outputs are
-    slices of it (direct feedthrough: the tick of the sample now shown), q_cmd its
-    command with the current q_ref; a periodic event at the station's sampling
-    instants (`hrp2_drake.step.sampling_offset`) commits it.
+    The timing of the separate systems and of the samplers around them
+    (`hrp2_drake.step.StepSystem`, `assembly.builders`), in one system. Its state:
+    the committed `FusedController.state`, the time of the sample now shown, the
+    reference held from its sampling instant (q_ref, v_ref, vdot_ref, f_ref,
+    com_ref: the reference ports are read as they are, a function of time, and
+    latched at each sampling instant) and the command the servo holds
+    (`servo_command`, taken at each multiple of the period: the one sample between a
+    command and the servo). A cache entry runs the tick on a copy of the committed
+    state with the sensors as they are now and the held reference; the outputs are
+    slices of it (direct feedthrough from the sensors), q_cmd its command. A periodic
+    event at the station's sampling instants (`hrp2_drake.step.sampling_offset`)
+    commits the tick and latches the reference (and, without a lead, the servo's
+    command; on a bus, at each multiple).
     """
 
     def __init__(self, parts: TorqueChainParts):
@@ -890,38 +900,51 @@ class FusedTorqueController(WitnessFreeLeafSystem):
             if layout.num_stamps
             else None
         )
+        # The reference ports, each with its rows of `FusedController.reference`.
         self._reference_ports = [
             (self.DeclareVectorInputPort(name, N), getattr(fused, name))
             for name in ("q_ref", "v_ref", "vdot_ref")
         ]
-        self._f_ref = (
-            self.DeclareVectorInputPort("f_ref", 6) if parts.force_sensor else None
-        )
-        self._com_ref = (
-            self.DeclareVectorInputPort("com_ref", 9) if parts.balance else None
-        )
+        if parts.force_sensor:
+            self._reference_ports.append(
+                (self.DeclareVectorInputPort("f_ref", 6), fused.f_ref)
+            )
+        if parts.balance:
+            self._reference_ports.append(
+                (self.DeclareVectorInputPort("com_ref", 9), fused.com_ref)
+            )
         self._group = int(self.DeclareDiscreteState(fused.state.copy()))
         self._sample_time = int(self.DeclareDiscreteState(1))
+        self._reference = int(self.DeclareDiscreteState(fused.reference.copy()))
+        self._command = self.DeclareDiscreteState(N)
+        self._q_ref_rows = slice(0, N)  # of the held reference
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
+        self._lead = parts.sample_lead
         offset = sampling_offset(
             parts.period, parts.sample_lead, "FusedTorqueController"
         )
         self.DeclarePeriodicDiscreteUpdateEvent(parts.period, offset, self._commit)
+        if self._lead > 0:  # the servo takes its command at the multiples
+            self.DeclarePeriodicDiscreteUpdateEvent(parts.period, 0.0, self._send)
         model = AbstractValue.Make(np.zeros(fused.state.size))
+        sensors = [port.ticket() for port, _ in self._sensor_ports]
+        if self._stamp_port is not None:
+            sensors.append(self._stamp_port.ticket())
         self._ticked = self.DeclareCacheEntry(
             "ticked",
             ValueProducer(allocate=model.Clone, calc=self._calc_ticked),
-            {self.xd_ticket(), self.all_input_ports_ticket()},
+            {self.xd_ticket(), *sensors},
         )
         ticked = {self._ticked.ticket()}
-        q_ref_port = self._reference_ports[0][0]
         self._q_cmd_out = np.zeros(N)
         self.DeclareVectorOutputPort(
             "q_cmd",
             N,
             self._calc_q_cmd,
-            prerequisites_of_calc=ticked | {q_ref_port.ticket()},
+            prerequisites_of_calc=ticked | {self.xd_ticket()},
         )
+        self.DeclareStateOutputPort("servo_command", self._command)
+        self._command = int(self._command)
         for name, view in fused.signals().items():
             rows = self._rows_of(view)
             self.DeclareVectorOutputPort(
@@ -943,49 +966,72 @@ class FusedTorqueController(WitnessFreeLeafSystem):
             ),
             prerequisites_of_calc=ticked,
         )
+        # The cache value whose contents `fused.state` holds (None: unknown).
+        self._holds = None
 
     def _rows_of(self, view: np.ndarray) -> slice:
         """The rows of the fused state that a state view covers."""
         start = _start_in(self._fused.state, view)
         return slice(start, start + view.size)
 
-    def _read_inputs(self, context: Context) -> None:
+    def _read_sensors(self, context: Context) -> None:
         for port, rows in self._sensor_ports:
             rows[:] = port.Eval(context)
-        fused = self._fused
         if self._stamp_port is not None:
-            fused.sensor_time[:] = self._stamp_port.Eval(context)
+            self._fused.sensor_time[:] = self._stamp_port.Eval(context)
+
+    def _read_reference(self, context: Context) -> None:
+        """The reference ports as they are now, into `FusedController.reference`."""
         for port, buffer in self._reference_ports:
             buffer[:] = port.Eval(context)
-        if self._f_ref is not None:
-            fused.f_ref[:] = self._f_ref.Eval(context)
-        if self._com_ref is not None:
-            fused.com_ref[:] = self._com_ref.Eval(context)
 
     def _initialize(self, context: Context, state: DiscreteValues) -> None:
         fused = self._fused
+        self._holds = None
         fused.state[:] = state.get_value(self._group)
-        self._read_inputs(context)
+        self._read_sensors(context)
+        self._read_reference(context)
         fused.initialize(context.get_time())
         state.set_value(self._group, fused.state)
         state.get_mutable_value(self._sample_time)[0] = context.get_time()
+        state.set_value(self._reference, fused.reference)
+        # Before the first multiple the servo holds the reference's pose.
+        state.set_value(self._command, fused.q_ref)
 
     def _calc_ticked(self, context: Context, value: AbstractValue) -> None:
         fused = self._fused
         fused.state[:] = context.get_discrete_state(self._group).get_value()
-        self._read_inputs(context)
+        self._read_sensors(context)
+        fused.reference[:] = context.get_discrete_state(self._reference).get_value()
         fused.tick(context.get_discrete_state(self._sample_time).get_value()[0])
-        value.get_mutable_value()[:] = fused.state
+        ticked = value.get_mutable_value()
+        ticked[:] = fused.state
+        self._holds = ticked  # the cache value `fused.state` equals now
+
+    def _command_now(self, context: Context) -> np.ndarray:
+        """The command of the tick now shown (into a work array)."""
+        fused = self._fused
+        ticked = self._ticked.Eval(context)
+        if ticked is not self._holds:  # another context's tick ran since
+            fused.state[:] = ticked
+            self._holds = ticked
+        held = context.get_discrete_state(self._reference).get_value()
+        return fused.command(held[self._q_ref_rows], self._q_cmd_out)
 
     def _commit(self, context: Context, state: DiscreteValues) -> None:
         t = context.get_time()
-        if t <= context.get_discrete_state(self._sample_time).get_value()[0]:
-            return  # the initialization's instant (`StepSystem._commit`)
-        state.set_value(self._group, self._ticked.Eval(context))
-        state.get_mutable_value(self._sample_time)[0] = t
+        if self._lead == 0:
+            self._send(context, state)
+        if t > context.get_discrete_state(self._sample_time).get_value()[0]:
+            state.set_value(self._group, self._ticked.Eval(context))
+            state.get_mutable_value(self._sample_time)[0] = t
+        # (at the initialization's instant only the reference: the same)
+        self._read_reference(context)
+        state.set_value(self._reference, self._fused.reference)
+
+    def _send(self, context: Context, state: DiscreteValues) -> None:
+        """The servo takes the command of the tick now shown."""
+        state.set_value(self._command, self._command_now(context))
 
     def _calc_q_cmd(self, context: Context, output: BasicVector) -> None:
-        fused = self._fused
-        fused.state[:] = self._ticked.Eval(context)
-        q_ref = self._reference_ports[0][0].Eval(context)
-        output.SetFromVector(fused.command(q_ref, self._q_cmd_out))
+        output.SetFromVector(self._command_now(context))
