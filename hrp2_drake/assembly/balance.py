@@ -31,7 +31,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort
-from pydrake.systems.primitives import Adder
+from pydrake.systems.primitives import Adder, TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
 from hrp2_drake.assembly.builders import (
@@ -46,12 +46,12 @@ from hrp2_drake.assembly.builders import (
     add_selector,
     add_station,
     add_torque_controller,
-    add_trajectory,
+    borrowed,
     build_control_diagram,
+    chain_clock,
     chain_inputs,
     chain_signals,
     connect_command,
-    hold_sampled,
     sample_lead,
     station_ports,
     torque_chain_parts,
@@ -256,17 +256,17 @@ def build_balance_control(
     )
     builder = DiagramBuilder()
     station = add_station(builder, robot, station)
-    sampled = None if fused else parts  # (the fused controller holds its own)
-    blocks = add_reference(builder, reference, len(parts.all_joints), sampled)
-    com_ref = add_trajectory(builder, "com_reference", com_reference)
-    chain_com_ref = com_ref
-    if sampled is not None:
-        initial = com_reference.value(com_reference.start_time()).ravel()
-        chain_com_ref = hold_sampled(builder, "com_reference", com_ref, initial, parts)
+    clock = chain_clock(station, parts, fused)
+    blocks = add_reference(builder, reference, len(parts.all_joints), clock)
+    com_ref = builder.AddNamedSystem(
+        "com_reference", TrajectorySource(borrowed(com_reference))
+    ).get_output_port()  # (the logged one)
+    chain_com_ref = clock.source(builder, "chain_com_reference", com_reference)
     build = _add_fused_balance if fused else _add_separate_balance
     ports = build(builder, station, parts, chain_inputs(blocks), chain_com_ref)
     if not fused:
-        connect_command(builder, station, ports["q_cmd"], parts, reference.at(0.0)[0])
+        initial = clock.initial_command(reference)
+        connect_command(builder, station, ports["q_cmd"], parts, initial)
     ports |= {"com_ref": com_ref, "q_ref": blocks["q_ref"]}
     ports = station_ports(station, robot) | ports
     return build_control_diagram(builder, station, ports, reference)

@@ -28,6 +28,7 @@ from typing import NamedTuple
 
 import numpy as np
 from pydrake.geometry import Meshcat
+from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort, PortDataType
 from pydrake.systems.primitives import MatrixGain, TrajectorySource, ZeroOrderHold
 from pydrake.trajectories import (
@@ -211,7 +212,7 @@ class JointReference:
         return self.trajectory.end_time()
 
 
-def borrowed(trajectory: Trajectory) -> FunctionHandleTrajectory:
+def borrowed(trajectory: Trajectory, shift: float = 0.0) -> FunctionHandleTrajectory:
     """`trajectory` for a `TrajectorySource`, neither copied nor kept alive by it:
     the source evaluates `trajectory` itself (the same values) as long as the
     caller keeps it alive (a `ControlDiagram` keeps its own).
@@ -222,6 +223,9 @@ def borrowed(trajectory: Trajectory) -> FunctionHandleTrajectory:
     Python LeafSystem (every control diagram here: such a system's tp_traverse
     visits its __dict__ twice, so the garbage collector takes the cycles through it
     for reachable). A copy per diagram stayed for the life of the process.
+
+    `shift` (s): the source gives the trajectory `shift` ahead, its value at t +
+    shift (`chain_reference_shift`).
     """
     owner = weakref.ref(trajectory)
 
@@ -232,14 +236,14 @@ def borrowed(trajectory: Trajectory) -> FunctionHandleTrajectory:
                 "the trajectory of this TrajectorySource was freed: keep its "
                 "ControlDiagram while simulating the diagram"
             )
-        return alive.value(t)
+        return alive.value(t + shift)
 
     return FunctionHandleTrajectory(
         value,
         trajectory.rows(),
         trajectory.cols(),
-        trajectory.start_time(),
-        trajectory.end_time(),
+        trajectory.start_time() - shift,
+        trajectory.end_time() - shift,
     )
 
 
@@ -287,27 +291,25 @@ def add_reference(
     builder: DiagramBuilder,
     reference: JointReference,
     n: int,
-    sampled: TorqueChainParts | None = None,
+    chain: "ChainClock | None" = None,
 ) -> dict[str, OutputPort]:
     """q_ref, v_ref, vdot_ref of every joint from `reference`, as it is (a function
-    of time), and with `sampled` (a separate chain's parts) also "sampled_q_ref",
-    "sampled_v_ref", "sampled_vdot_ref": the reference held from each of the
-    station's sampling instants to the next (`hold_sampled`), what the separate
-    systems read (the fused controller holds its reference itself). The logged
-    q_ref is the reference as it is, at the log's time."""
+    of time: what position control follows and what is logged), and with `chain`
+    also "chain_q_ref", "chain_v_ref", "chain_vdot_ref": what the torque chain
+    reads (`ChainClock`)."""
     if reference.trajectory.rows() != 3 * n:
         raise ValueError(
             f"the joint reference has {reference.trajectory.rows()} rows, expected "
             f"3 x {n} joints"
         )
-    source = builder.AddNamedSystem(
-        "reference", TrajectorySource(borrowed(reference.trajectory))
-    ).get_output_port()
-    sources = {"": source}
-    if sampled is not None:
-        initial = np.concatenate(reference.at(reference.trajectory.start_time()))
-        sources["sampled_"] = hold_sampled(
-            builder, "reference", source, initial, sampled
+    sources = {
+        "": builder.AddNamedSystem(
+            "reference", TrajectorySource(borrowed(reference.trajectory))
+        ).get_output_port()
+    }
+    if chain is not None:
+        sources["chain_"] = chain.source(
+            builder, "chain_reference", reference.trajectory
         )
     blocks = {}
     for prefix, port in sources.items():
@@ -320,22 +322,58 @@ def add_reference(
     return blocks
 
 
-def add_trajectory(
-    builder: DiagramBuilder,
-    name: str,
-    trajectory: Trajectory,
-    sampled: TorqueChainParts | None = None,
-) -> OutputPort:
-    """`trajectory` (a reference: f_ref, com_ref) as a `TrajectorySource` "name", and
-    with `sampled` (a separate chain's parts) held from each of the station's
-    sampling instants to the next (`hold_sampled`)."""
-    source = builder.AddNamedSystem(
-        name, TrajectorySource(borrowed(trajectory))
-    ).get_output_port()
-    if sampled is None:
-        return source
-    initial = trajectory.value(trajectory.start_time()).ravel()
-    return hold_sampled(builder, name, source, initial, sampled)
+@dataclass(frozen=True)
+class ChainClock:
+    """How the torque chain of a diagram reads its references (joints, force, CoM).
+
+    A discrete MultibodyPlant takes its step before the samplers of the same
+    instant latch its state: the sample latched at t is the state of t + its time
+    step (`shift`; a ZeroOrderHold on its state port logs the plant's own state at
+    every instant). So the chain reads each reference `shift` ahead, at the time of
+    the state its samples hold. The separate systems (`sampled`) read it held from
+    each of the station's sampling instants to the next (`hold_sampled`); the fused
+    controller latches it itself.
+
+    Args:
+        parts: the chain's parts (its period and the station's sample lead).
+        sampled: hold the references (the separate systems).
+        shift: the station plant's time step (s; 0 for a continuous plant).
+    """
+
+    parts: TorqueChainParts
+    sampled: bool
+    shift: float
+
+    def source(self, builder: DiagramBuilder, name: str, trajectory: Trajectory):
+        """`trajectory` as the chain reads it: a `TrajectorySource` "name" `shift`
+        ahead, held if `sampled`."""
+        source = builder.AddNamedSystem(
+            name, TrajectorySource(borrowed(trajectory, self.shift))
+        ).get_output_port()
+        if not self.sampled:
+            return source
+        initial = self.first(trajectory)
+        return hold_sampled(builder, name, source, initial, self.parts)
+
+    def first(self, trajectory: Trajectory) -> np.ndarray:
+        """The value the chain reads of `trajectory` first (at its start, `shift`
+        ahead)."""
+        return trajectory.value(trajectory.start_time() + self.shift).ravel()
+
+    def initial_command(self, reference: JointReference) -> np.ndarray:
+        """The servo's command before the first multiple of the period: the pose of
+        the reference the chain reads first."""
+        return self.first(reference.trajectory)[: reference.trajectory.rows() // 3]
+
+
+def chain_clock(station: Diagram, parts: TorqueChainParts, fused: bool) -> ChainClock:
+    """The `ChainClock` of a chain on `station`: the plant's time step from the
+    station's MultibodyPlant."""
+    shift = 0.0
+    for system in station.GetSystems():
+        if isinstance(system, MultibodyPlant):
+            shift = system.time_step()
+    return ChainClock(parts, sampled=not fused, shift=shift)
 
 
 def hold_sampled(
@@ -723,8 +761,8 @@ def build_torque_control(
     )
     builder = DiagramBuilder()
     station = add_station(builder, robot, station)
-    sampled = None if fused else parts
-    blocks = add_reference(builder, reference, len(parts.all_joints), sampled)
+    clock = chain_clock(station, parts, fused)
+    blocks = add_reference(builder, reference, len(parts.all_joints), clock)
     f_ref = None
     if parts.force_sensor:  # a force frame: a force task
         if force_reference is None:
@@ -732,11 +770,12 @@ def build_torque_control(
                 f"build_torque_control: no force_reference for the force task at F/T "
                 f"sensor '{parts.force_sensor}' (TorqueControlConfig's force frame)"
             )
-        f_ref = add_trajectory(builder, "force_reference", force_reference, sampled)
+        f_ref = clock.source(builder, "force_reference", force_reference)
     build = _add_fused_chain if fused else _add_separate_chain
     ports = build(builder, station, robot, parts, chain_inputs(blocks), f_ref)
     if not fused:
-        connect_command(builder, station, ports["q_cmd"], parts, reference.at(0.0)[0])
+        initial = clock.initial_command(reference)
+        connect_command(builder, station, ports["q_cmd"], parts, initial)
     ports = station_ports(station, robot) | ports | {"q_ref": blocks["q_ref"]}
     return build_control_diagram(builder, station, ports, reference, force_reference)
 
@@ -779,12 +818,9 @@ def chain_signals(parts: TorqueChainParts, logged_wrench: str = "") -> list[str]
 
 
 def chain_inputs(blocks: dict[str, OutputPort]) -> dict[str, OutputPort]:
-    """The reference a chain reads, by name (q_ref, v_ref, vdot_ref): the sampled
-    blocks of `add_reference` where there are, else the reference as it is."""
-    return {
-        name: blocks.get(f"sampled_{name}", blocks[name])
-        for name in ("q_ref", "v_ref", "vdot_ref")
-    }
+    """The reference a chain reads, by name (q_ref, v_ref, vdot_ref): the chain's
+    blocks of `add_reference` (`ChainClock`)."""
+    return {name: blocks[f"chain_{name}"] for name in ("q_ref", "v_ref", "vdot_ref")}
 
 
 def _add_fused_chain(
