@@ -37,23 +37,16 @@ class WitnessFreeLeafSystem(LeafSystem):
 
 class SampleHold(WitnessFreeLeafSystem):
     """Holds its input (`u`, size k) from one sampling instant to the next (`y`): at
-    `offset` (s, in [0, period)) plus every multiple of `period`, and (`latch`) at
-    the initialization. Drake's ZeroOrderHold, but for the latch at the initialization:
-    a controller's reference (or a bus's goal) read as the station samples its
+    `offset` (s, in [0, period)) plus every multiple of `period`. Drake's
+    ZeroOrderHold with a given value before the first sample (its is zero): a
+    controller's reference (or the servo's command) read as the station samples its
     sensors, so that a tick's inputs hold still between two samples."""
 
     def __init__(
-        self,
-        size: int,
-        period: float,
-        offset: float = 0.0,
-        initial: np.ndarray | None = None,
-        latch: bool = True,
-    ):
-        """`initial`: the output before the first sample (default zero): what the
-        other systems' initialization events read (they run together with this
-        system's latch). `latch`: whether the initialization latches the input too
-        (not where the input is not meaningful before the first sample)."""
+        self, size: int, period: float, offset: float, initial: np.ndarray
+    ) -> None:
+        """`initial` (k): the output before the first sample, what the other systems'
+        initialization events read."""
         super().__init__()
         if not (period > 0 and 0 <= offset < period):
             raise ValueError(
@@ -61,12 +54,8 @@ class SampleHold(WitnessFreeLeafSystem):
                 "in [0, period)"
             )
         self._u = self.DeclareVectorInputPort("u", size)
-        state = self.DeclareDiscreteState(
-            np.zeros(size) if initial is None else np.asarray(initial, float)
-        )
-        self.DeclareStateOutputPort("y", state)
-        if latch:
-            self.DeclareInitializationDiscreteUpdateEvent(self._latch)
+        held = self.DeclareDiscreteState(np.array(initial, dtype=float).reshape(size))
+        self.DeclareStateOutputPort("y", held)
         self.DeclarePeriodicDiscreteUpdateEvent(period, offset, self._latch)
 
     def _latch(self, context, state) -> None:

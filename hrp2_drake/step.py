@@ -144,6 +144,14 @@ def sampling_offset(period: float, lead: float, where: str) -> float:
     return (period - lead) % period
 
 
+def new_sample(context: Context, sample_time_group: int) -> bool:
+    """Whether a commit event in `context` falls at a new sampling instant: after the
+    time of the sample held (the discrete state group `sample_time_group`), not at
+    the initialization's instant, whose sample the initialization read."""
+    held = context.get_discrete_state(sample_time_group).get_value()[0]
+    return context.get_time() > held
+
+
 class StepSystem(WitnessFreeLeafSystem):
     """A LeafSystem shell around one `Step` that computes a tick in the tick its
     samples arrive (the module docstring's timing rule).
@@ -230,13 +238,12 @@ class StepSystem(WitnessFreeLeafSystem):
         value.get_mutable_value()[:] = self._step.state
 
     def _commit(self, context: Context, state: DiscreteValues) -> None:
-        t = context.get_time()
-        if t <= context.get_discrete_state(self._sample_time).get_value()[0]:
-            return  # the initialization's instant
+        if not new_sample(context, self._sample_time):
+            return
         ticked = self._ticked.Eval(context)
         for name, rows in self._rows_of.items():
             state.set_value(self._group_of[name], ticked[rows])
-        state.get_mutable_value(self._sample_time)[0] = t
+        state.get_mutable_value(self._sample_time)[0] = context.get_time()
 
     def _latch_sample_time(self, context: Context, state: DiscreteValues) -> None:
         state.get_mutable_value(self._sample_time)[0] = context.get_time()

@@ -74,7 +74,7 @@ def _sample_station(robot, period: float, samples: dict[str, np.ndarray]):
             TrajectorySource(PiecewisePolynomial.ZeroOrderHold(times, held)),
         )
         hold = builder.AddNamedSystem(
-            f"{name}_sampler", SampleHold(values.shape[1], period, initial=values[0])
+            f"{name}_sampler", SampleHold(values.shape[1], period, 0.0, values[0])
         )
         builder.Connect(source.get_output_port(), hold.get_input_port())
         builder.ExportOutput(hold.get_output_port(), name)

@@ -52,7 +52,7 @@ class _PolynomialSource(LeafSystem):
 def _sampled(builder: DiagramBuilder, port, size: int, initial) -> object:
     """`port` (a signal of time) as the station's sampler holds it: sample k from k
     periods on (and `initial` before, what the initialization reads)."""
-    hold = builder.AddSystem(SampleHold(size, PERIOD, initial=np.asarray(initial)))
+    hold = builder.AddSystem(SampleHold(size, PERIOD, 0.0, np.asarray(initial, float)))
     builder.Connect(port, hold.get_input_port())
     return hold.get_output_port()
 

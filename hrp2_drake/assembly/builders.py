@@ -420,7 +420,7 @@ def connect_command(
     the servo holds it)."""
     hold = builder.AddNamedSystem(
         "goal_hold",
-        SampleHold(q_cmd.size(), parts.period, 0.0, initial=initial, latch=False),
+        SampleHold(q_cmd.size(), parts.period, 0.0, initial),
     )
     builder.Connect(q_cmd, hold.get_input_port())
     builder.Connect(hold.get_output_port(), station.GetInputPort("q_cmd"))

@@ -79,7 +79,7 @@ from hrp2_drake.estimation.estimator_step import TorqueEstimatorStep
 from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayStep
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.simulation import WitnessFreeLeafSystem
-from hrp2_drake.step import Step, sampling_offset
+from hrp2_drake.step import Step, new_sample, sampling_offset
 
 #: The balance QP's signals among the fused controller's (`balance_<name>`), as
 #: `build_balance_control` exports them.
@@ -1019,12 +1019,11 @@ class FusedTorqueController(WitnessFreeLeafSystem):
         return fused.command(held[self._q_ref_rows], self._q_cmd_out)
 
     def _commit(self, context: Context, state: DiscreteValues) -> None:
-        t = context.get_time()
         if self._lead == 0:
             self._send(context, state)
-        if t > context.get_discrete_state(self._sample_time).get_value()[0]:
+        if new_sample(context, self._sample_time):
             state.set_value(self._group, self._ticked.Eval(context))
-            state.get_mutable_value(self._sample_time)[0] = t
+            state.get_mutable_value(self._sample_time)[0] = context.get_time()
         # (at the initialization's instant only the reference: the same)
         self._read_reference(context)
         state.set_value(self._reference, self._fused.reference)
