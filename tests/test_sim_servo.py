@@ -634,10 +634,7 @@ def test_close_fault_takes_the_port_away():
 
 def test_gain_applies_when_all_servos_of_a_robot_agree():
     robot = "open_manipulator_x"
-    try:
-        description = StationConfig(robot=robot, scenario="fixed_base").description()
-    except Exception as error:  # being written by someone else
-        pytest.skip(f"models/{robot} is not usable yet: {error}")
+    description = StationConfig(robot=robot, scenario="fixed_base").description()
     with serving(robot=robot) as bus:
         ids = list(description.bus.ids)
         physics = bus.emulator.groups[0].physics
