@@ -225,7 +225,7 @@ def borrowed(trajectory: Trajectory, shift: float = 0.0) -> FunctionHandleTrajec
     for reachable). A copy per diagram stayed for the life of the process.
 
     `shift` (s): the source gives the trajectory `shift` ahead, its value at t +
-    shift (`chain_reference_shift`).
+    shift (`ChainClock`).
     """
     owner = weakref.ref(trajectory)
 
@@ -331,8 +331,9 @@ class ChainClock:
     step (`shift`; a ZeroOrderHold on its state port logs the plant's own state at
     every instant). So the chain reads each reference `shift` ahead, at the time of
     the state its samples hold. The separate systems (`sampled`) read it held from
-    each of the station's sampling instants to the next (`hold_sampled`); the fused
-    controller latches it itself.
+    each of the station's sampling instants to the next (a `SampleHold`, so that a
+    tick's inputs hold still between two samples); the fused controller latches it
+    itself.
 
     Args:
         parts: the chain's parts (its period and the station's sample lead).
@@ -352,8 +353,18 @@ class ChainClock:
         ).get_output_port()
         if not self.sampled:
             return source
-        initial = self.first(trajectory)
-        return hold_sampled(builder, name, source, initial, self.parts)
+        period, lead = self.parts.period, self.parts.sample_lead
+        hold = builder.AddNamedSystem(
+            f"{name}_sampled",
+            SampleHold(
+                source.size(),
+                period,
+                sampling_offset(period, lead, name),
+                self.first(trajectory),  # what the initialization events read
+            ),
+        )
+        builder.Connect(source, hold.get_input_port())
+        return hold.get_output_port()
 
     def first(self, trajectory: Trajectory) -> np.ndarray:
         """The value the chain reads of `trajectory` first (at its start, `shift`
@@ -374,32 +385,6 @@ def chain_clock(station: Diagram, parts: TorqueChainParts, fused: bool) -> Chain
         if isinstance(system, MultibodyPlant):
             shift = system.time_step()
     return ChainClock(parts, sampled=not fused, shift=shift)
-
-
-def hold_sampled(
-    builder: DiagramBuilder,
-    name: str,
-    source: OutputPort,
-    initial: np.ndarray,
-    parts: TorqueChainParts,
-) -> OutputPort:
-    """`source` held from each of the station's sampling instants to the next
-    (`SampleHold` "name_sampled"): a tick's inputs hold still between two samples, as
-    on a controller that reads its reference when its samples arrive. `initial` (the
-    reference at its start) is the hold's value before the first sample, what the
-    systems' initialization reads."""
-    period, lead = parts.period, parts.sample_lead
-    hold = builder.AddNamedSystem(
-        f"{name}_sampled",
-        SampleHold(
-            source.size(),
-            period,
-            sampling_offset(period, lead, name),
-            initial=initial,
-        ),
-    )
-    builder.Connect(source, hold.get_input_port())
-    return hold.get_output_port()
 
 
 def connect_command(

@@ -508,9 +508,8 @@ class FusedController:
         self._merged = np.zeros(N)
         self._fault = np.zeros(1)
         # The supervisor's controller fallback with balance: the Δq controller's plus
-        # the QP's fault code, at the start of the tick and after it (`command`).
+        # the QP's fault code (`_balance_fallback`).
         self._controller_fallback = np.zeros(1)
-        self._command_fallback = np.zeros(1)
         self._no_fault = np.zeros(1)  # the sensor filter's fault without one
 
     def _state_view(self, step_name: str, array_name: str) -> np.ndarray:
@@ -746,9 +745,7 @@ class FusedController:
         if reason:
             self._record(t, EventKind.CONTROLLER_FALLBACK, reason)
         if self.balance is not None:  # the supervisor's controller fallback
-            self._controller_fallback[0] = (
-                self._s_fallback[0] + self._s_balance_fault[0]
-            )
+            self._balance_fallback()
         if self.observer is not None:
             self.observer.step(t, self._s_delta_q, v_hat, tau_hat)
         if self.predictor is not None:
@@ -791,10 +788,17 @@ class FusedController:
             return out
         fallback = self.torque.fallback_active
         if self.balance is not None:
-            fallback = self._command_fallback
-            fallback[0] = self.torque.fallback_active[0] + self.balance.fault[0]
+            fallback = self._balance_fallback()
         self.supervisor.q_cmd(merged, q_ref, fallback, out)
         return out
+
+    def _balance_fallback(self) -> np.ndarray:
+        """The supervisor's controller fallback with balance, of the tick in the
+        state: the Δq controller's plus the QP's fault code (the separate diagram's
+        Adder)."""
+        fallback = self._controller_fallback
+        fallback[0] = self.torque.fallback_active[0] + self.balance.fault[0]
+        return fallback
 
     def _record(self, t: float, kind: int, code: int) -> None:
         row = self.events[self.num_events % len(self.events)]
