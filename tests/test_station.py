@@ -2,6 +2,8 @@
 of the project stands on (standing still, hanging, the F/T and IMU readings)."""
 
 import dataclasses
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +15,7 @@ from pydrake.systems.primitives import ConstantVectorSource
 
 from hrp2_drake.config import load_config
 from hrp2_drake.description.sensors import NoiseConfig, SensorsConfig
+from hrp2_drake.multibody import joint_indexing
 from hrp2_drake.paper import hrp2
 from hrp2_drake.robot.faults import SensorClock, SensorFault
 from hrp2_drake.robot.sensors import ForceTorqueReadout, NoisySampler, SensorSampler
@@ -497,3 +500,49 @@ def test_an_encoder_of_resolution_zero_is_not_quantized():
         atol=1e-6,
     )
     assert np.all(q_measured[zero] != np.round(q_measured[zero] / 1e-5) * 1e-5)
+
+
+MODELS = Path(__file__).resolve().parents[1] / "models"
+
+
+def _iiwa_with_actuators_reordered(folder: Path, order: list[int]) -> Path:
+    """models/iiwa14 with its URDF's transmissions (so the plant's actuators) declared
+    in `order` (1-based joint numbers), its joints as they were."""
+    source = MODELS / "iiwa14"
+    urdf = (source / "iiwa14.urdf").read_text()
+    blocks = re.findall(r"  <transmission name=.*?</transmission>\n", urdf, re.S)
+    assert len(blocks) == 7
+    first = urdf.index(blocks[0])
+    rest = urdf[first:]
+    for block in blocks:
+        rest = rest.replace(block, "", 1)
+    reordered = "".join(blocks[k - 1] for k in order)
+    (folder / "iiwa14.urdf").write_text(urdf[:first] + reordered + rest)
+    text = (source / "robot.yaml").read_text()
+    text = text.replace(
+        "servo_file: servo.yaml", f"servo_file: {source / 'servo.yaml'}"
+    )
+    (folder / "robot.yaml").write_text(text)
+    return folder / "robot.yaml"
+
+
+def test_joint_torque_true_is_in_joint_order_whatever_the_actuators_order(tmp_path):
+    """On an iiwa whose URDF declares its actuators in another order than its joints,
+    `joint_torque_true` is each joint's torque in the description's joint order: the
+    same vector as the iiwa as shipped (actuators in joint order), not its actuators'
+    order (which would put A2's 48 N·m of gravity on another joint)."""
+    order = [7, 4, 1, 6, 2, 5, 3]
+    robot = _iiwa_with_actuators_reordered(tmp_path, order)
+    reordered = StationConfig(robot=str(robot), scenario="fixed_base")
+    plant = reordered.description().make_plant()
+    names = reordered.description().joints
+    u = joint_indexing(plant, names).u
+    np.testing.assert_array_equal(u[np.array(order) - 1], np.arange(7))
+    torques = []
+    for config in (StationConfig(robot="iiwa14", scenario="fixed_base"), reordered):
+        station, context, _ = _run(config, 0.2)
+        torques.append(station.GetOutputPort("joint_torque_true").Eval(context).copy())
+    shipped, permuted = torques
+    # the description's note: gravity torques A2 -48.4 N·m, A4 30.9 N·m at home
+    assert shipped[1] < -40.0 and shipped[3] > 25.0
+    np.testing.assert_allclose(permuted, shipped, rtol=0.0, atol=1e-9)

@@ -33,8 +33,10 @@ boxes (e.g. a table for an arm's force task).
 
 `joint_torque_true` and `state_true` are ground truth, for evaluation only: estimators,
 identification and controllers must not read them. `joint_torque_true` is the torque
-the servo applied over the last plant step (the plant's net actuation, in the
-description's joint order), the same step the accelerometer and F/T readings come from.
+the servo applied over the last plant step (the plant's net actuation, taken from the
+actuators' order into the description's joint order: a URDF may declare its
+transmissions in another order than its joints), the same step the accelerometer and
+F/T readings come from.
 
 The noise of every sensor is a pure function of `SensorsConfig.seed` and the sample
 index (`SampledSignal`), so every run of a config repeats the same noise. One
@@ -64,6 +66,7 @@ from pydrake.multibody.plant import (
 )
 from pydrake.multibody.tree import LinearBushingRollPitchYaw, LinearSpringDamper
 from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort
+from pydrake.systems.primitives import Selector, SelectorParams
 from pydrake.systems.sensors import Accelerometer, Gyroscope
 
 from hrp2_drake.config import check_finite
@@ -603,7 +606,7 @@ def make_station(
         config.sample_lead_steps() * config.time_step,
     )
 
-    builder.ExportOutput(plant.get_net_actuation_output_port(), "joint_torque_true")
+    builder.ExportOutput(_in_joint_order(builder, plant, indexing), "joint_torque_true")
     builder.ExportOutput(plant.get_state_output_port(), "state_true")
     builder.ExportOutput(plant.get_body_poses_output_port(), "body_poses")
     builder.ExportOutput(plant.get_contact_results_output_port(), "contact_results")
@@ -617,6 +620,30 @@ def make_station(
     diagram = builder.Build()
     diagram.set_name(f"{robot.name}_station_{config.scenario}")
     return diagram
+
+
+def _in_joint_order(
+    builder: DiagramBuilder, plant: MultibodyPlant, indexing: JointIndexing
+) -> OutputPort:
+    """The plant's net actuation (actuator order) in `indexing`'s joint order: each
+    joint's entry is its actuator's (`JointIndexing.u`), copied, never summed."""
+    rows = SelectorParams.OutputSelection
+    params = SelectorParams(
+        inputs=[
+            SelectorParams.InputPortParams(name="actuation", size=plant.num_actuators())
+        ],
+        outputs=[
+            SelectorParams.OutputPortParams(
+                name="joint_torque",
+                selections=[
+                    rows(input_port_index=0, input_offset=int(u)) for u in indexing.u
+                ],
+            )
+        ],
+    )
+    order = builder.AddNamedSystem("joint_order", Selector(params))
+    builder.Connect(plant.get_net_actuation_output_port(), order.get_input_port())
+    return order.get_output_port()
 
 
 def _add_strings(
