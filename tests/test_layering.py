@@ -4,7 +4,8 @@ package, at module level or inside a function, goes down or sideways, never up.
 From the bottom: the shared helpers; the robot description (plain data); the
 algorithms (estimation, identification, control), which serve any robot from a
 MultibodyPlant and names; the robot (simulated, or over LCM); the closed-loop assembly;
-the any-robot tools; the paper on HRP-2; the command line, which dispatches to all.
+the any-robot tools; the paper on HRP-2; the commands, one module a command, which
+import no other command; the command line, which only dispatches to the commands.
 """
 
 import ast
@@ -15,7 +16,16 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "hrp2_drake"
 
-HELPERS = {"config", "multibody", "console", "simulation", "step", "report", "kernels"}
+HELPERS = {
+    "config",
+    "multibody",
+    "console",
+    "simulation",
+    "step",
+    "chain",
+    "report",
+    "kernels",
+}
 ALGORITHMS = {"estimation", "identification", "control"}
 ROBOT = {"robot", "hardware"}
 
@@ -28,6 +38,7 @@ ALLOWED: dict[str, set[str]] = {
     "kernels": set(),
     "simulation": {"console"},
     "step": {"simulation", "console"},
+    "chain": {"step", "simulation", "console"},
     "description": {"config", "multibody"},
     "estimation": HELPERS | {"description"},
     "identification": HELPERS | {"description", "estimation"},
@@ -37,8 +48,15 @@ ALLOWED: dict[str, set[str]] = {
     "assembly": HELPERS | {"description"} | ALGORITHMS | ROBOT,
     "tools": HELPERS | {"description", "assembly"} | ALGORITHMS | ROBOT,
     "paper": HELPERS | {"description", "assembly", "tools"} | ALGORITHMS | ROBOT,
-    "cli": HELPERS | {"description", "assembly", "tools", "paper"} | ALGORITHMS | ROBOT,
+    "commands": HELPERS
+    | {"description", "assembly", "tools", "paper"}
+    | ALGORITHMS
+    | ROBOT,
+    "cli": {"commands", "config", "console"},
 }
+
+#: The module of `commands/` that every command may import: what they share.
+COMMANDS_SHARED = "options"
 
 
 def _part(path: Path) -> str:
@@ -92,7 +110,9 @@ def test_imports_go_down(path):
 def test_the_rules_of_issue_19_are_in_the_table():
     """The three rules the layering must enforce, read from the table itself."""
     assert all(
-        "paper" not in allowed for part, allowed in ALLOWED.items() if part != "cli"
+        "paper" not in allowed
+        for part, allowed in ALLOWED.items()
+        if part not in ("commands", "cli")
     )
     assert ALLOWED["description"] <= {"config", "multibody"}
     for part in ALGORITHMS:
@@ -110,6 +130,65 @@ def test_the_checker_sees_an_upward_import(tmp_path, monkeypatch):
         AssertionError, match="control/bad.py:2 imports hrp2_drake.paper"
     ):
         test_imports_go_down(bad)
+
+
+def test_only_the_command_line_imports_the_commands():
+    """Issue 37: the commands are the top of the house; `cli.py` dispatches to them
+    and imports nothing else of the package but the console and the config."""
+    assert [part for part, allowed in ALLOWED.items() if "commands" in allowed] == [
+        "cli"
+    ]
+    assert ALLOWED["cli"] == {"commands", "config", "console"}
+
+
+def _command_imports(path: Path) -> list[tuple[int, str]]:
+    """(line, module) of every import of a module of `commands/` in `path`."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            modules = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            modules = [node.module]
+            if node.module == "hrp2_drake.commands":  # from ... import options
+                modules = [f"hrp2_drake.commands.{a.name}" for a in node.names]
+        else:
+            continue
+        found += [
+            (node.lineno, module.split(".")[2])
+            for module in modules
+            if module.startswith("hrp2_drake.commands.")
+        ]
+    return found
+
+
+def _commands() -> list[Path]:
+    return sorted(
+        p
+        for p in (PACKAGE / "commands").glob("*.py")
+        if p.stem not in ("__init__", COMMANDS_SHARED)
+    )
+
+
+@pytest.mark.parametrize("path", _commands(), ids=lambda p: p.stem)
+def test_a_command_imports_no_other_command(path):
+    """Each command is one module that registers its parser and runs it (issue 37):
+    it imports what the commands share (`commands/options.py`), never another
+    command; the pipeline two commands run lives below, in its layer."""
+    wrong = [
+        f"{path.relative_to(PACKAGE.parent)}:{line} imports hrp2_drake.commands.{name}"
+        for line, name in _command_imports(path)
+        if name != COMMANDS_SHARED
+    ]
+    assert not wrong, "\n".join(wrong)
+
+
+def test_the_command_check_sees_one(tmp_path):
+    module = tmp_path / "bad.py"
+    module.write_text(
+        "from hrp2_drake.commands import identify, options\n"
+        "def run():\n    from hrp2_drake.commands.track import run\n"
+    )
+    assert _command_imports(module) == [(1, "identify"), (1, "options"), (3, "track")]
 
 
 def _private_imports(path: Path) -> list[str]:

@@ -586,6 +586,14 @@ def run_identify(
     return write_report(result, out, simulated, config.station.servo_file)
 
 
+def identify_motor_model(config: IdentifyConfig, out: Path) -> Path:
+    """A motor model identified now, for a run given none: `run_identify` (validated
+    `config`; its log, report and fits under `out`); the path of the model it wrote,
+    out/motor_model.yaml (the `config.fit` fit)."""
+    run_identify(config, out)
+    return out / "motor_model.yaml"
+
+
 def collected_log(config: IdentifyConfig, arrays: dict, names: list[str]) -> RobotLog:
     """The collection's arrays (`collect_log`) as a log: the simulated servo ran at the
     station's gain, so the model holds at it."""

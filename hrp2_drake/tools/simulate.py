@@ -5,6 +5,7 @@ Also the building blocks the other experiments reuse: a joint-reference source f
 sampled waypoints, loggers for named ports, and a simulation loop with progress.
 """
 
+import json
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -247,3 +248,21 @@ def summarize(result: SimulationResult, config: SimulateConfig) -> dict[str, flo
         summary["base_drift_m"] = float(np.linalg.norm(base_xyz[-1] - base_xyz[0]))
         summary["base_height_final_m"] = float(base_xyz[-1, 2])
     return summary
+
+
+def write_simulation(
+    result: SimulationResult, config: SimulateConfig, out: Path
+) -> tuple[dict[str, Path], dict[str, float]]:
+    """Writes the run under `out`, named by its scenario: the logged signals
+    (simulate_<scenario>.npz), its summary (`summarize`, .json) and, if recorded, its
+    Meshcat replay (.html). Returns (the files by kind: "log", "summary", "replay";
+    the summary)."""
+    stem = out / f"simulate_{config.station.scenario}"
+    files = {"log": stem.with_suffix(".npz"), "summary": stem.with_suffix(".json")}
+    np.savez_compressed(files["log"], **result.signals)
+    summary = summarize(result, config)
+    files["summary"].write_text(json.dumps(summary, indent=2))
+    if result.html is not None:
+        files["replay"] = stem.with_suffix(".html")
+        files["replay"].write_text(result.html)
+    return files, summary
