@@ -142,7 +142,7 @@ def test_a_period_the_bus_cannot_carry_is_one_line_with_the_budget():
             "bus.read: 'goal_speed' is not an item",
         ),
         ({"direction": [2]}, "bus.direction: [2], each +1 or -1"),
-        ({"kind": "feetech"}, "bus.kind: 'feetech', expected one of ('dynamixel',)"),
+        ({"kind": "can"}, "bus.kind: 'can', expected one of ('dynamixel', 'feetech')"),
     ],
 )
 def test_a_bad_bus_is_one_line_naming_the_field(changes, message):

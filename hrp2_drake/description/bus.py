@@ -1,7 +1,11 @@
 """A robot's servo bus, as its description holds it (`RobotDescription.bus`): plain
 data, and the bus arithmetic that both ends of the wire need, written once.
 
-A Dynamixel robot's servos share one half-duplex serial line (Protocol 2.0). Every
+A servo-bus robot's servos share one half-duplex serial line: Dynamixel's Protocol
+2.0 (`kind: dynamixel`) or Feetech's STS/SMS protocol (`kind: feetech`, Dynamixel
+Protocol 1.0's framing: `FF FF ID LEN INSTR params CHK`). The two differ in their
+packets' bytes (`Framing`), their control tables and their value encodings (two's
+complement or sign-magnitude, `Register`); the rest is common. Every
 control period the host sends one SYNC_READ (one instruction for every ID), each
 servo answers with a status packet in turn, the host computes, then sends one
 SYNC_WRITE of the goal positions. Nothing else crosses the wire in a period, so the
@@ -16,8 +20,9 @@ servo's absolute encoder, `zero` pulses at q = 0, `direction` +1 or -1
 (`BusDescription.to_pulses`, `to_radians`); the other registers in their e-manual
 units (`DynamixelModel.si`).
 
-The servo models' control tables are data (`dynamixel_models.yaml` beside this file,
-transcribed from ROBOTIS' e-manual, each with its source): a model is added there.
+The servo models' control tables are data, one file per kind beside this file
+(`dynamixel_models.yaml` from ROBOTIS' e-manual, `feetech_models.yaml` from Feetech's
+memory table, each model with its source): a model is added there.
 """
 
 import functools
@@ -30,12 +35,36 @@ import numpy as np
 from hrp2_drake.config import load_config
 
 #: The bus kinds a description may name ("": no bus).
-BUS_KINDS = ("dynamixel",)
+BUS_KINDS = ("dynamixel", "feetech")
 #: Bits on the wire per byte: start bit, 8 data bits, stop bit (8N1).
 BITS_PER_BYTE = 10
 #: Bytes of a Protocol 2.0 packet around its parameters: header (3) + reserved (1)
 #: + ID (1) + length (2) + instruction (1) + CRC (2).
 PACKET_OVERHEAD = 10
+
+
+@dataclass(frozen=True)
+class Framing:
+    """The bytes of a bus kind's packets (what `BusTiming` counts).
+
+    Args:
+        overhead: bytes of an instruction packet around its parameters.
+        status_overhead: bytes of a status packet around its data.
+        field: bytes of an address or a length in READ, SYNC_READ, SYNC_WRITE.
+    """
+
+    overhead: int
+    status_overhead: int
+    field: int
+
+
+#: Per bus kind. Protocol 2.0: header, reserved, ID, length (2), instruction, CRC (2);
+#: its status adds the error byte after the instruction (0x55). Feetech: FF FF, ID,
+#: LEN, INSTR, checksum; its status has the error byte in the instruction's place.
+FRAMINGS = {
+    "dynamixel": Framing(overhead=PACKET_OVERHEAD, status_overhead=11, field=2),
+    "feetech": Framing(overhead=6, status_overhead=6, field=1),
+}
 #: The broadcast ID (SYNC_READ, SYNC_WRITE, broadcast PING).
 BROADCAST_ID = 0xFE
 #: The highest servo ID (0xFD and 0xFF are header bytes).
@@ -56,6 +85,9 @@ class Register:
         unit: SI units per count (rad, rad/s, A, V, °C, s, or a fraction for a PWM
             duty); 0: a plain count (an ID, a mode, a gain).
         signed: two's complement over `size` bytes (velocities, currents, positions).
+        sign_bit: sign-magnitude instead (Feetech): the bit that holds the sign, the
+            bits below it the magnitude (15 for positions and speeds, 10 for the
+            load); 0: none.
         eeprom: in the EEPROM area: writable only with torque off.
     """
 
@@ -67,30 +99,65 @@ class Register:
     high: int = 0
     unit: float = 0.0
     signed: bool = False
+    sign_bit: int = 0
     eeprom: bool = False
 
     def limits(self) -> tuple[int, int]:
         """(low, high): the counts a WRITE may set."""
         if self.low or self.high:
             return self.low, self.high
+        return self.counts_range()
+
+    def counts_range(self) -> tuple[int, int]:
+        """(low, high): the counts the item's bytes can hold."""
         bits = 8 * self.size
+        if self.sign_bit:
+            return -((1 << self.sign_bit) - 1), (1 << self.sign_bit) - 1
         if self.signed:
             return -(1 << (bits - 1)), (1 << (bits - 1)) - 1
         return 0, (1 << bits) - 1
 
+    def from_raw(self, raw: int) -> int:
+        """The counts an unsigned word of the item's size holds (its encoding:
+        two's complement, sign-magnitude or none)."""
+        raw = int(raw)
+        if self.sign_bit:
+            magnitude = raw & ((1 << self.sign_bit) - 1)
+            return -magnitude if raw >> self.sign_bit & 1 else magnitude
+        bits = 8 * self.size
+        if self.signed and raw >= 1 << (bits - 1):
+            return raw - (1 << bits)
+        return raw
+
+    def to_raw(self, value: int) -> int:
+        """The unsigned word of the item's size that holds `value` counts (within
+        `counts_range`)."""
+        value = int(value)
+        if self.sign_bit:
+            return -value | 1 << self.sign_bit if value < 0 else value
+        return value & ((1 << (8 * self.size)) - 1)
+
 
 @dataclass
-class DynamixelModel:
-    """A Dynamixel servo model: its model number, its control table and its facts.
+class ServoModel:
+    """A bus servo model: its model number, its control table and its facts.
+
+    The item names are snake_case and shared by the kinds where the item is the
+    same thing (Feetech's P Coefficient is `position_p_gain`, its Status
+    `hardware_error_status`, its Unloading Condition `shutdown`): what the link and
+    the emulator do with an item is written once.
 
     Args:
-        model_number: what PING and the Model Number item (address 0) return.
+        model_number: what the Model Number item returns (and Protocol 2.0's PING).
         firmware: the firmware version the emulator reports.
         source: where the numbers come from.
         pulses_per_turn: the absolute encoder's resolution.
-        baud_rates: bit/s by value of the Baud Rate item (address 8): 0, 1, ...
-        hardware_errors: what each bit of the Hardware Error Status item (address
-            70) means, by bit: 0, 1, ... ("" for an unused bit).
+        byte_order: "little" (Dynamixel, Feetech STS/SMS) or "big" (Feetech SCS).
+        position_modes: the Operating Mode values that are position control (the
+            first: what the link sets).
+        baud_rates: bit/s by value of the Baud Rate item: 0, 1, ...
+        hardware_errors: what each bit of the Hardware Error Status item means, by
+            bit: 0, 1, ... ("" for an unused bit).
         registers: the control table by snake_case name.
     """
 
@@ -98,9 +165,20 @@ class DynamixelModel:
     firmware: int = 0
     source: str = ""
     pulses_per_turn: int = 4096
+    byte_order: str = "little"
+    position_modes: list[int] = field(default_factory=lambda: [3, 4])
     baud_rates: list[int] = field(default_factory=list)
     hardware_errors: list[str] = field(default_factory=list)
     registers: dict[str, Register] = field(default_factory=dict)
+
+    def decode(self, name: str, data: bytes) -> int:
+        """Item `name`'s counts from its bytes."""
+        return self.registers[name].from_raw(int.from_bytes(data, self.byte_order))
+
+    def encode(self, name: str, value: int) -> bytes:
+        """Item `name`'s bytes for `value` counts."""
+        register = self.registers[name]
+        return register.to_raw(value).to_bytes(register.size, self.byte_order)
 
     def register(self, name: str, where: str = "") -> Register:
         """The item `name`; a ValueError naming `where` and the known items."""
@@ -119,7 +197,10 @@ class DynamixelModel:
         """The item's counts in SI units (its `unit`); signed items as such."""
         register = self.registers[name]
         counts = np.asarray(counts, dtype=np.int64)
-        if register.signed:
+        if register.sign_bit:
+            magnitude = counts & ((1 << register.sign_bit) - 1)
+            counts = np.where(counts >> register.sign_bit & 1, -magnitude, magnitude)
+        elif register.signed:
             bits = 8 * register.size
             counts = np.where(counts >= 1 << (bits - 1), counts - (1 << bits), counts)
         return counts * (register.unit or 1.0)
@@ -134,7 +215,7 @@ class DynamixelModel:
         return ", ".join(names) or f"status 0x{bits:02x}"
 
     def validate(self, name: str = "") -> None:
-        where = f"dynamixel model {name}"
+        where = f"servo model {name}"
         if not self.model_number:
             raise ValueError(f"{where}: model_number missing")
         needed = (
@@ -156,29 +237,42 @@ class DynamixelModel:
                 raise ValueError(
                     f"{where}: register {item}: size 1, 2 or 4 and access R or RW"
                 )
+            if register.sign_bit and not 0 < register.sign_bit < 8 * register.size:
+                raise ValueError(f"{where}: register {item}: sign_bit inside its bytes")
+        if self.byte_order not in ("little", "big") or not self.position_modes:
+            raise ValueError(f"{where}: byte_order little or big, position_modes set")
+
+
+#: The Dynamixel name the package used before Feetech's models came.
+DynamixelModel = ServoModel
 
 
 @dataclass
 class _Models:
-    models: dict[str, DynamixelModel] = field(default_factory=dict)
+    models: dict[str, ServoModel] = field(default_factory=dict)
 
 
-MODELS_FILE = Path(__file__).with_name("dynamixel_models.yaml")
+#: The control tables of each bus kind.
+MODELS_FILES = {
+    "dynamixel": Path(__file__).with_name("dynamixel_models.yaml"),
+    "feetech": Path(__file__).with_name("feetech_models.yaml"),
+}
+MODELS_FILE = MODELS_FILES["dynamixel"]
 
 
-@functools.lru_cache(maxsize=1)
-def dynamixel_models() -> dict[str, DynamixelModel]:
-    """The servo models this package knows (dynamixel_models.yaml), by name."""
-    models = load_config(_Models, filename=MODELS_FILE).models
+@functools.cache
+def servo_models(kind: str = "dynamixel") -> dict[str, ServoModel]:
+    """The servo models this package knows on a bus of `kind`, by name."""
+    models = load_config(_Models, filename=MODELS_FILES[kind]).models
     for name, model in models.items():
         model.validate(name)
     return models
 
 
-def dynamixel_model(name: str, where: str = "bus.model") -> DynamixelModel:
-    """The servo model `name` ("XL330-M288"); a ValueError naming `where` and the
-    known models."""
-    models = dynamixel_models()
+def servo_model(kind: str, name: str, where: str = "bus.model") -> ServoModel:
+    """The servo model `name` of bus kind `kind`; a ValueError naming `where` and
+    the known models."""
+    models = servo_models(kind)
     if name not in models:
         raise ValueError(
             f"{where}: unknown servo model '{name}' (known: {sorted(models)})"
@@ -186,25 +280,40 @@ def dynamixel_model(name: str, where: str = "bus.model") -> DynamixelModel:
     return models[name]
 
 
+def dynamixel_models() -> dict[str, ServoModel]:
+    """The Dynamixel models (dynamixel_models.yaml), by name."""
+    return servo_models("dynamixel")
+
+
+def dynamixel_model(name: str, where: str = "bus.model") -> ServoModel:
+    """The Dynamixel model `name` ("XL330-M288")."""
+    return servo_model("dynamixel", name, where)
+
+
 def wire_time(num_bytes: int, baud: float) -> float:
     """Seconds `num_bytes` take on a serial line at `baud` bit/s (8N1)."""
     return num_bytes * BITS_PER_BYTE / baud
 
 
-def sync_read_bytes(num_servos: int) -> int:
+_DYNAMIXEL = FRAMINGS["dynamixel"]
+
+
+def sync_read_bytes(num_servos: int, framing: Framing = _DYNAMIXEL) -> int:
     """Bytes of a SYNC_READ instruction for `num_servos` IDs (before byte stuffing):
-    the packet's overhead, address (2), length (2), one byte per ID."""
-    return PACKET_OVERHEAD + 4 + num_servos
+    the packet's overhead, address, length, one byte per ID."""
+    return framing.overhead + 2 * framing.field + num_servos
 
 
-def status_bytes(data_length: int) -> int:
-    """Bytes of a status packet carrying `data_length` bytes: overhead, error (1)."""
-    return PACKET_OVERHEAD + 1 + data_length
+def status_bytes(data_length: int, framing: Framing = _DYNAMIXEL) -> int:
+    """Bytes of a status packet carrying `data_length` bytes (error byte included)."""
+    return framing.status_overhead + data_length
 
 
-def sync_write_bytes(num_servos: int, data_length: int) -> int:
+def sync_write_bytes(
+    num_servos: int, data_length: int, framing: Framing = _DYNAMIXEL
+) -> int:
     """Bytes of a SYNC_WRITE of `data_length` bytes to each of `num_servos` IDs."""
-    return PACKET_OVERHEAD + 4 + num_servos * (1 + data_length)
+    return framing.overhead + 2 * framing.field + num_servos * (1 + data_length)
 
 
 @dataclass
@@ -262,11 +371,13 @@ class BusDescription:
     `position_loop.gain`: the gain its motor model and twin are stated at.
 
     Args:
-        kind: "dynamixel" (Protocol 2.0), or empty for a robot without a bus.
-        protocol: the protocol version (2.0).
+        kind: "dynamixel" (Protocol 2.0), "feetech" (STS/SMS), or empty for a robot
+            without a bus.
+        protocol: the Dynamixel protocol version (2.0; not read for Feetech).
         baud: the line's rate (bit/s), as set in every servo.
         ids: the servo IDs, in the description's `joints` order.
-        model: the servo model (`dynamixel_models.yaml`), e.g. "XL330-M288".
+        model: the servo model (`dynamixel_models.yaml`, `feetech_models.yaml`),
+            e.g. "XL330-M288", "STS3215".
         return_delay: each servo's Return Delay Time (s; written in units of the
             model's register, 2 µs; the factory value is 500 µs).
         read: the items read every period, one contiguous block per servo (its
@@ -304,8 +415,13 @@ class BusDescription:
         """Whether the robot has a bus."""
         return bool(self.kind)
 
-    def servo_model(self) -> DynamixelModel:
-        return dynamixel_model(self.model)
+    def servo_model(self) -> ServoModel:
+        return servo_model(self.kind, self.model)
+
+    @property
+    def framing(self) -> Framing:
+        """The bytes of this bus's packets."""
+        return FRAMINGS[self.kind]
 
     def validate(self, num_joints: int | None = None) -> None:
         """Raises ValueError naming the field (`num_joints`: how many the robot has)."""
@@ -313,7 +429,7 @@ class BusDescription:
             return
         if self.kind not in BUS_KINDS:
             raise ValueError(f"bus.kind: '{self.kind}', expected one of {BUS_KINDS}")
-        if self.protocol != 2.0:
+        if self.kind == "dynamixel" and self.protocol != 2.0:
             raise ValueError(
                 f"bus.protocol: {self.protocol}, only Protocol 2.0 is supported"
             )
@@ -412,13 +528,14 @@ class BusDescription:
         n = len(self.ids)
         _, length = self.read_block()
         goal = self.servo_model().register("goal_position")
-        status = wire_time(status_bytes(length), self.baud)
+        framing = self.framing
+        status = wire_time(status_bytes(length, framing), self.baud)
         return BusTiming(
-            read_instruction=wire_time(sync_read_bytes(n), self.baud),
+            read_instruction=wire_time(sync_read_bytes(n, framing), self.baud),
             statuses=n * (self.return_delay + status),
             adapter=self.adapter_latency,
             compute=self.compute_time if compute_time is None else compute_time,
-            write=wire_time(sync_write_bytes(n, goal.size), self.baud),
+            write=wire_time(sync_write_bytes(n, goal.size, framing), self.baud),
         )
 
 
