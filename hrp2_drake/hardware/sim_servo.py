@@ -1,13 +1,25 @@
-"""Emulated Dynamixel servos on a pseudo-terminal: the far end of a servo bus, whose
-physics is the robot's simulation (`hrp2-drake sim-servo`).
+"""Emulated bus servos on a pseudo-terminal: the far end of a servo bus, whose
+physics is the robot's simulation (`hrp2-drake sim-servo`). One emulator, two
+protocols: Dynamixel's Protocol 2.0 and Feetech's STS/SMS protocol, as the robot's
+`bus.kind` says (`WireProtocol`: the packets of `hardware.protocol2` or
+`hardware.feetech_protocol`; the servos, their tables, the timing and the faults are
+the same code).
 
 `ServoBusEmulator` opens a pseudo-terminal (`os.openpty`) and serves its slave
-(`port`) as a Protocol 2.0 bus: behind it, every servo ID of the robot's
+(`port`) as the robot's bus: behind it, every servo ID of the robot's
 description (`BusDescription.ids`, or an `ids` override) is an `EmulatedServo`
 whose joint is the robot's simulated station (`robot.bus_servos.SimulatedServos`:
 for the XL330, its digital twin). A controller talks to it through ROBOTIS' own
-client, `dynamixel_sdk`, exactly as to a USB adapter: it is a real test of the
-client's path. The packets are `hardware.protocol2`'s.
+client, `dynamixel_sdk` (a Feetech bus: Feetech's `scservo_sdk`), exactly as to a USB
+adapter: it is a real test of the client's path.
+
+Feetech's differences (its protocol manual and memory table; `feetech_protocol`):
+addresses and lengths of one byte; a status's error byte is the servo's Status bits
+(no protocol error codes: a bad checksum or an unknown instruction gets no status, a
+refused write a status without error bits; ours, undocumented by Feetech); PING
+answers no parameters (the client reads the model number at address 3); Response
+Status Level 0 answers PING and reads, 1 everything; position control is Operating
+Mode 0; no REBOOT or BULK instructions; values sign-magnitude (`Register.sign_bit`).
 
 The servos
 ----------
@@ -133,24 +145,16 @@ from hrp2_drake.description.bus import (
     BROADCAST_ID,
     MAX_ID,
     BusDescription,
-    DynamixelModel,
     Register,
-    dynamixel_model,
+    ServoModel,
+    servo_model,
     wire_time,
 )
-from hrp2_drake.hardware.protocol2 import (
-    Instruction,
-    Packet,
-    PacketParser,
-    StatusError,
-    encode_status,
-)
+from hrp2_drake.hardware import feetech_protocol, protocol2
+from hrp2_drake.hardware.protocol2 import Instruction, Packet, StatusError
 from hrp2_drake.report import markdown_table
 from hrp2_drake.robot.bus_servos import SimulatedServos
 
-#: Operating modes the physics runs (a position servo): position control and
-#: extended (multi-turn) position control.
-POSITION_MODES = (3, 4)
 #: The Goal Position's range in extended position control mode (pulses, ±256
 #: turns; e-manual, X-series "Goal Position(116)").
 EXTENDED_POSITION_RANGE = 1_048_575
@@ -166,6 +170,7 @@ LIMITED_BY = {
 #: Items computed from the physics at the time of a read.
 COMPUTED = (
     "present_pwm",
+    "present_load",
     "present_current",
     "present_velocity",
     "present_position",
@@ -187,13 +192,70 @@ KEEP_UP = 0.001
 #: An unfinished packet is dropped after this long without bytes (wall s): a real
 #: device's receive timeout.
 PARTIAL_TIMEOUT = 0.1
-#: Which instructions a Status Return Level answers (e-manual, Status Return
-#: Level(68)); the other instructions need level 2.
-ANSWERED_AT_LEVEL = {
-    Instruction.PING: 0,
-    Instruction.READ: 1,
-    Instruction.SYNC_READ: 1,
-    Instruction.BULK_READ: 1,
+
+
+@dataclass(frozen=True)
+class WireProtocol:
+    """What the emulator needs of a bus kind's wire (module docstring).
+
+    Args:
+        name: the protocol's name, for reports.
+        parser: a new packet parser (`feed(bytes) -> [Packet]`).
+        field: bytes of an address or a length in an instruction's parameters.
+        instructions: the instructions its servos implement (others: an
+            instruction error).
+        answered_at_level: the lowest Status Return Level that answers each
+            instruction; `default_level` for the others.
+        status: (ID, `StatusError`, Hardware Error Status bits, parameters) -> the
+            status packet's bytes (empty: no status).
+        ping_params: whether PING's status carries the model number and firmware.
+    """
+
+    name: str
+    parser: Callable
+    field: int
+    instructions: frozenset
+    answered_at_level: dict
+    default_level: int
+    status: Callable[[int, int, int, bytes], bytes]
+    ping_params: bool
+
+
+#: Per bus kind. Protocol 2.0's Status Return Level (e-manual, item 68): 0 PING,
+#: 1 also the reads, 2 every instruction. Feetech's Response Status Level (item 8):
+#: 0 PING and READ (and SYNC_READ), 1 every instruction.
+PROTOCOLS = {
+    "dynamixel": WireProtocol(
+        name="Protocol 2.0",
+        parser=protocol2.PacketParser,
+        field=2,
+        instructions=frozenset(Instruction) - {Instruction.STATUS},
+        answered_at_level={
+            Instruction.PING: 0,
+            Instruction.READ: 1,
+            Instruction.SYNC_READ: 1,
+            Instruction.BULK_READ: 1,
+        },
+        default_level=2,
+        status=lambda servo_id, error, hardware, params: protocol2.encode_status(
+            servo_id, error, params, alert=hardware != 0
+        ),
+        ping_params=True,
+    ),
+    "feetech": WireProtocol(
+        name="Feetech STS/SMS",
+        parser=feetech_protocol.PacketParser,
+        field=1,
+        instructions=feetech_protocol.INSTRUCTIONS,
+        answered_at_level={
+            Instruction.PING: 0,
+            Instruction.READ: 0,
+            Instruction.SYNC_READ: 0,
+        },
+        default_level=1,
+        status=feetech_protocol.encode_status,
+        ping_params=False,
+    ),
 }
 
 
@@ -294,10 +356,7 @@ def parse_faults(specs: Sequence) -> list[ServoFault]:
 
 def _counts_range(register: Register) -> tuple[int, int]:
     """The counts an item's bytes can hold."""
-    bits = 8 * register.size
-    if register.signed:
-        return -(1 << (bits - 1)), (1 << (bits - 1)) - 1
-    return 0, (1 << bits) - 1
+    return register.counts_range()
 
 
 class ServoGroup:
@@ -313,6 +372,7 @@ class ServoGroup:
         self.physics = physics
         self.bus = bus
         self.model = bus.servo_model()
+        self.protocol = PROTOCOLS[bus.kind]
         self.members: list[EmulatedServo] = []
         self.gain_disagreements = 0
         self._counts: dict[str, np.ndarray] | None = None
@@ -331,6 +391,7 @@ class ServoGroup:
             ("present_velocity", readings.velocity),
             ("present_current", readings.current),
             ("present_pwm", readings.pwm),
+            ("present_load", readings.pwm),
             ("present_input_voltage", readings.voltage),
             ("present_temperature", readings.temperature),
         ):
@@ -387,7 +448,8 @@ class EmulatedServo:
         id_taken: Callable[[int], bool] | None = None,
     ):
         self.group = group
-        self.model: DynamixelModel = group.model
+        self.model: ServoModel = group.model
+        self.protocol = group.protocol
         self.joint = joint
         self._id_taken = id_taken or (lambda other: False)
         self._registers = self.model.registers
@@ -436,7 +498,7 @@ class EmulatedServo:
         """Item `name` in counts (signed items as such)."""
         register = self._registers[name]
         data = self.table[register.address : register.address + register.size]
-        return int.from_bytes(data, "little", signed=register.signed)
+        return self.model.decode(name, data)
 
     def put(self, name: str, value: int) -> None:
         """Writes item `name` (counts, clipped to what its bytes hold)."""
@@ -444,7 +506,7 @@ class EmulatedServo:
         low, high = _counts_range(register)
         value = min(max(int(value), low), high)
         self.table[register.address : register.address + register.size] = (
-            value.to_bytes(register.size, "little", signed=register.signed)
+            self.model.encode(name, value)
         )
 
     @property
@@ -471,25 +533,28 @@ class EmulatedServo:
 
     def answers(self, instruction: int) -> bool:
         """Whether its Status Return Level sends a status for `instruction`."""
+        protocol = self.protocol
         level = (
             self.get("status_return_level")
             if "status_return_level" in self._registers
-            else 2
+            else protocol.default_level
         )
-        return level >= ANSWERED_AT_LEVEL.get(instruction, 2)
+        return level >= protocol.answered_at_level.get(
+            instruction, protocol.default_level
+        )
 
     def status(
         self, error: int, params: bytes = b"", reply_id: int | None = None
     ) -> bytes:
         """Its status packet (from `reply_id`, default its ID): the alert bit while
         it has a hardware error, and a corrupted CRC while a `crc` fault lasts."""
-        packet = encode_status(
+        packet = self.protocol.status(
             self.id if reply_id is None else reply_id,
             error,
+            self.get("hardware_error_status"),
             params,
-            alert=self.get("hardware_error_status") != 0,
         )
-        if self.corrupt_left > 0:
+        if packet and self.corrupt_left > 0:
             self.corrupt_left -= 1
             packet = packet[:-1] + bytes((packet[-1] ^ 0xFF,))
         return packet
@@ -497,7 +562,10 @@ class EmulatedServo:
     # ---------------------------------------------------------------- instructions
 
     def ping(self) -> bytes:
-        """PING's parameters: model number (2 bytes), firmware version."""
+        """PING's parameters: model number (2 bytes), firmware version (Feetech:
+        none)."""
+        if not self.protocol.ping_params:
+            return b""
         firmware = (
             self.get("firmware_version") if "firmware_version" in self._registers else 0
         )
@@ -580,21 +648,24 @@ class EmulatedServo:
             if register.access != "RW" or (register.eeprom and torque_on):
                 return StatusError.ACCESS, {}
             chunk = data[position - address : position - address + register.size]
-            values[name] = int.from_bytes(chunk, "little", signed=register.signed)
+            values[name] = self.model.decode(name, chunk)
             position += register.size
         return StatusError.NONE, values
 
     def _range(self, name: str) -> tuple[int, int]:
         """The counts item `name` takes (its range; the Goal Position's in extended
         position control mode)."""
-        if name == "goal_position" and self.get("operating_mode") == 4:
+        if name == "goal_position" and self._extended(self.get("operating_mode")):
             return -EXTENDED_POSITION_RANGE, EXTENDED_POSITION_RANGE
         return self._registers[name].limits()
 
     def _limit(self, name: str, value_of: Callable[[str], int]) -> tuple[float, float]:
         """The bounds other items set on item `name` (`LIMITED_BY`; none: ±inf)."""
         bounds = [item for item in LIMITED_BY.get(name, ()) if item in self._registers]
-        if not bounds or (name == "goal_position" and value_of("operating_mode") != 3):
+        position_control = self.model.position_modes[0]
+        if not bounds or (
+            name == "goal_position" and value_of("operating_mode") != position_control
+        ):
             return -math.inf, math.inf
         if len(bounds) == 2:
             return value_of(bounds[0]), value_of(bounds[1])
@@ -606,13 +677,18 @@ class EmulatedServo:
             return False  # e-manual: only REBOOT turns torque on after a shutdown
         if (
             "operating_mode" in values
-            and values["operating_mode"] not in POSITION_MODES
+            and values["operating_mode"] not in self.model.position_modes
         ):
             return False
         if values.get("position_p_gain", 1) <= 0:
             return False  # the twin's law is stated at a gain > 0
         new_id = values.get("id", self.id)
         return new_id == self.id or not self._id_taken(new_id)
+
+    def _extended(self, mode: int) -> bool:
+        """Whether Operating Mode `mode` is extended (multi-turn) position control:
+        the model's second position mode (Dynamixel's 4)."""
+        return mode in self.model.position_modes[1:]
 
     def hardware_error(self, name: str) -> bool:
         """Raises the hardware error `name` (one of the model's `hardware_errors`);
@@ -649,8 +725,9 @@ class _Reply:
     data: bytes
 
 
-def _word(data: bytes, offset: int) -> int:
-    return data[offset] | data[offset + 1] << 8
+def _word(data: bytes, offset: int, size: int = 2) -> int:
+    """The little-endian field of `size` bytes (1 or 2) at `offset`."""
+    return data[offset] | (data[offset + 1] << 8 if size == 2 else 0)
 
 
 def status_times(
@@ -705,6 +782,8 @@ class ServoBusEmulator:
         self.robot = copies[0].robot
         self.bus = self.robot.bus
         self.model = self.bus.servo_model()
+        self.protocol = PROTOCOLS[self.bus.kind]
+        self._f = self.protocol.field
         self.ids = self._check_ids(ids, len(copies))
         if not (math.isfinite(rate) and rate > 0):
             raise ValueError(f"sim-servo: rate {rate}, must be finite and > 0")
@@ -720,7 +799,7 @@ class ServoBusEmulator:
         self.applied_faults: list[dict] = []
         self._timed = self._prepare_faults(parse_faults(faults))
         self._open_pty()
-        self._parser = PacketParser()
+        self._parser = self.protocol.parser()
         self._dirty: dict[int, set[str]] = {}
         self._stop = threading.Event()
         self.stopped = ""
@@ -776,7 +855,8 @@ class ServoBusEmulator:
             servo = self._servo(fault.servo_id, where)
             if fault.kind == "wrong_model":
                 servo.put(
-                    "model_number", dynamixel_model(fault.detail, where).model_number
+                    "model_number",
+                    servo_model(self.bus.kind, fault.detail, where).model_number,
                 )
                 self.applied_faults.append({"fault": fault.spec(), "time": 0.0})
                 continue
@@ -943,7 +1023,7 @@ class ServoBusEmulator:
         self._advance(t)
         if self.stopped:
             return
-        replies = self._dispatch(packet)
+        replies = [reply for reply in self._dispatch(packet) if reply.data]
         if not self.lockstep:
             self._send(replies, t)
         for index, names in self._dirty.items():
@@ -982,9 +1062,10 @@ class ServoBusEmulator:
 
     def _is_period(self, params: bytes) -> bool:
         """Whether a SYNC_READ's block contains Present Position."""
-        if len(params) < 4:
+        f = self._f
+        if len(params) < 2 * f:
             return False
-        address, length = _word(params, 0), _word(params, 2)
+        address, length = _word(params, 0, f), _word(params, f, f)
         position = self.model.registers["present_position"]
         return (
             address <= position.address
@@ -1045,7 +1126,10 @@ class ServoBusEmulator:
             Instruction.BULK_WRITE: self._bulk_write,
             Instruction.STATUS: lambda packet: [],  # another device's status
         }.get(packet.instruction)
-        if handler is None:
+        if handler is None or (
+            packet.instruction != Instruction.STATUS
+            and packet.instruction not in self.protocol.instructions
+        ):
             return self._unicast(packet, StatusError.INSTRUCTION)
         return handler(packet)
 
@@ -1088,9 +1172,10 @@ class ServoBusEmulator:
         servo = self._listening().get(packet.id)
         if servo is None:  # broadcast READ: no status (e-manual)
             return []
-        if len(packet.params) != 4:
+        f = self._f
+        if len(packet.params) != 2 * f:
             return self._reply(servo, Instruction.READ, StatusError.DATA_LENGTH)
-        error, data = servo.read(_word(packet.params, 0), _word(packet.params, 2))
+        error, data = servo.read(_word(packet.params, 0, f), _word(packet.params, f, f))
         return self._reply(servo, Instruction.READ, error, data)
 
     def _each(
@@ -1118,9 +1203,10 @@ class ServoBusEmulator:
 
     def _write_instruction(self, packet: Packet) -> list[_Reply]:
         def write(servo: EmulatedServo) -> int:
-            if len(packet.params) < 3:
+            f = self._f
+            if len(packet.params) < f + 1:
                 return StatusError.DATA_LENGTH
-            error, names = servo.write(_word(packet.params, 0), packet.params[2:])
+            error, names = servo.write(_word(packet.params, 0, f), packet.params[f:])
             self._written(servo, names)
             return error
 
@@ -1128,9 +1214,10 @@ class ServoBusEmulator:
 
     def _reg_write(self, packet: Packet) -> list[_Reply]:
         def register(servo: EmulatedServo) -> int:
-            if len(packet.params) < 3:
+            f = self._f
+            if len(packet.params) < f + 1:
                 return StatusError.DATA_LENGTH
-            address, data = _word(packet.params, 0), bytes(packet.params[2:])
+            address, data = _word(packet.params, 0, f), bytes(packet.params[f:])
             error, _ = servo.check_write(address, data)
             if not error:
                 servo.registered = (address, data)
@@ -1159,13 +1246,13 @@ class ServoBusEmulator:
         return self._each(packet, reboot)
 
     def _sync_read(self, packet: Packet) -> list[_Reply]:
-        params = packet.params
-        if packet.id != BROADCAST_ID or len(params) < 5:
+        params, f = packet.params, self._f
+        if packet.id != BROADCAST_ID or len(params) < 2 * f + 1:
             self.counters["malformed"] += 1
             return []
-        address, length = _word(params, 0), _word(params, 2)
+        address, length = _word(params, 0, f), _word(params, f, f)
         return self._chain(
-            [(servo_id, address, length) for servo_id in params[4:]],
+            [(servo_id, address, length) for servo_id in params[2 * f :]],
             Instruction.SYNC_READ,
         )
 
@@ -1197,12 +1284,12 @@ class ServoBusEmulator:
         return replies
 
     def _sync_write(self, packet: Packet) -> list[_Reply]:
-        params = packet.params
-        if packet.id != BROADCAST_ID or len(params) < 4:
+        params, f = packet.params, self._f
+        if packet.id != BROADCAST_ID or len(params) < 2 * f:
             self.counters["malformed"] += 1
             return []
-        address, length = _word(params, 0), _word(params, 2)
-        blocks = params[4:]
+        address, length = _word(params, 0, f), _word(params, f, f)
+        blocks = params[2 * f :]
         if length < 1 or len(blocks) % (1 + length):
             self.counters["malformed"] += 1
             return []
