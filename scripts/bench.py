@@ -30,12 +30,12 @@ Sections (all by default; pick with --only):
              CalcInverseDynamics on the full HRP-2 in the same run (goal <= 6;
              scripts/bench_fused.py).
   balance    the fused controller with the balance front end (issue 29) on the
-             standing HRP-2 in closed loop (both legs, window 80, supervisor, the CoM
-             on the authors' sinusoid): the QP's solve (update + solve), the base from
-             the soles and the whole tick (tick + command), p50/p99 in µs and as
-             ratios to Drake's CalcInverseDynamics on the full HRP-2 in the same run,
-             for pydrake's OSQP (the default) and daqp (skipped with a line when not
-             installed), and what they mean at 1 kHz (1 ms a tick)
+             standing HRP-2 in closed loop (both legs, BalanceControlConfig's
+             defaults, supervisor, the CoM on the authors' sinusoid): the QP's solve
+             (update + solve), the base from the soles and the whole tick (tick +
+             command), p50/p99 in µs and as ratios to Drake's CalcInverseDynamics on
+             the full HRP-2 in the same run, for daqp (the default) and pydrake's
+             OSQP, and what they mean at 1 kHz (1 ms a tick)
              (scripts/bench_balance.py --closed-loop; --balance-duration, default
              2 s simulated, torque control from 0.5 s).
   lcm        the controller over LCM in real time (fused controller, message-driven

@@ -20,14 +20,14 @@ loop.
 
 Solvers: pydrake's OsqpSolver and ClarabelSolver (MathematicalProgram built once,
 UpdateCoefficients on the bindings, the last solution as initial guess), the pip
-package daqp (the optional `qp` extra), and, only here, the pip packages proxsuite
+package daqp (a dependency, the default), and, only here, the pip packages proxsuite
 (dense ProxQP, warm-started), osqp (its own workspace, warm-started) and quadprog
 (cold, dense). A solver not installed is skipped.
 
 With --closed-loop, the QP in its place instead: the fused balance controller on the
 simulated standing HRP-2 (`bench_closed_loop`; what `scripts/bench.py --only
-balance` reports): the QP's solve and the whole tick, per solver of pydrake's OSQP
-and daqp.
+balance` reports): the QP's solve and the whole tick, per solver: daqp (the
+default) and pydrake's OSQP.
 
     python scripts/bench_balance.py [--ticks 2000] [--solvers osqp,daqp]
     python scripts/bench_balance.py --closed-loop [--duration 2]
@@ -377,7 +377,8 @@ CLOSED_LOOP_START = 0.5
 
 def balance_controller(solver: str, duration: float):
     """HRP-2 standing (`StationConfig(scenario="standing")`), the default balance
-    control of both legs (window 80, torque control from 0.5 s, supervised) with
+    control of both legs (`BalanceControlConfig`'s defaults, torque control from
+    0.5 s, supervised) with
     the QP solved by `solver`, as one fused controller; its joint reference (the
     standing pose held) and its CoM reference per tick (the authors' sinusoid,
     `sinusoid_com`, from 0.5 s), and the station's config."""
@@ -492,8 +493,8 @@ PERIOD_BUDGET_US = 1000.0
 
 
 def closed_loop_rows(duration: float = 2.0) -> list[dict]:
-    """`bench_closed_loop` for pydrake's OSQP (the default) and daqp (a line saying
-    it is skipped when it is not installed), as rows for scripts/bench.py; printed
+    """`bench_closed_loop` for daqp (the default) and pydrake's OSQP, as rows for
+    scripts/bench.py (a line saying a solver is skipped if it is not installed); printed
     as they come, with what they mean for a 1 kHz robot."""
     rows = []
 
@@ -505,14 +506,9 @@ def closed_loop_rows(duration: float = 2.0) -> list[dict]:
         print("  " + ", ".join(cells), file=sys.stderr)
         rows.append(row)
 
-    for solver in ("osqp", "daqp"):
+    for solver in ("daqp", "osqp"):
         if not available(solver):
-            say(
-                {
-                    "name": f"{solver}: skipped (not installed: pip install "
-                    f"'hrp2_drake[qp]')"
-                }
-            )
+            say({"name": f"{solver}: skipped (not installed: pip install {solver})"})
             continue
         result = bench_closed_loop(solver, duration)
         unit = result["rnea"]

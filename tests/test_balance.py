@@ -26,7 +26,7 @@ from hrp2_drake.description.contacts import ContactsDescription, SoleDescription
 from hrp2_drake.multibody import joint_indexing
 from hrp2_drake.robot.station import standing_positions
 
-TOLERANCE = 1e-6  # the solvers' (OSQP's eps 1e-9 on forces of hundreds of N)
+TOLERANCE = 1e-6  # the solvers' (daqp's; OSQP's eps 1e-9 on forces of hundreds of N)
 
 
 @pytest.fixture(scope="module")
@@ -383,20 +383,22 @@ def test_warm_up_compiles_the_signatures_of_a_tick(robot, standing, monkeypatch)
     assert seen["tick"] <= seen["warm_up"]
 
 
-def test_daqp_solves_the_same_qp_and_reports_infeasibility(robot, standing, step):
-    """The optional solver (the `qp` extra): the same τ as OSQP's on perturbed
-    states (to 1e-3 N·m: OSQP's tolerance on a cost that is flat in the forces'
-    distribution), warm-started tick after tick; the infeasible problem is a fault."""
-    pytest.importorskip("daqp")
+def test_daqp_solves_the_same_qp_as_osqp_and_reports_infeasibility(robot, standing):
+    """daqp (the default solver) and pydrake's OSQP (selectable): the same τ on
+    perturbed states (to 1e-3 N·m: OSQP's tolerance on a cost that is flat in the
+    forces' distribution), warm-started tick after tick; the infeasible problem is a
+    fault."""
     plant, x, _ = standing
     home = robot.home_positions()
-    fast = BalanceStep(
-        plant, BalanceConfig(joints=robot.joints, solver="daqp"), robot.contacts
+    assert BalanceConfig().solver == "daqp"
+    fast = BalanceStep(plant, BalanceConfig(joints=robot.joints), robot.contacts)
+    osqp = BalanceStep(
+        plant, BalanceConfig(joints=robot.joints, solver="osqp"), robot.contacts
     )
     for state, ref in perturbed_states(standing, 3, seed=4):
-        assert step.step(0.0, state, home, ref) == BalanceFault.NONE
+        assert osqp.step(0.0, state, home, ref) == BalanceFault.NONE
         assert fast.step(0.0, state, home, ref) == BalanceFault.NONE
-        np.testing.assert_allclose(fast.tau_desired, step.tau_desired, atol=1e-3)
+        np.testing.assert_allclose(fast.tau_desired, osqp.tau_desired, atol=1e-3)
     # 1 % of the torque limits, no joint acceleration (with both at 0, daqp finds
     # the bounds' working set overdetermined: exit -6, a SOLVER_FAILED).
     config = BalanceConfig(

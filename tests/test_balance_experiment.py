@@ -170,12 +170,14 @@ def test_the_com_task_tracks_a_step_through_the_chain(robot, standing, ik, legs_
 def test_an_infeasible_qp_falls_back_to_position_control(
     robot, standing, ik, legs_model
 ):
-    """No torque and no joint acceleration (torque_limit_scale and
-    acceleration_limit 0): every solve is infeasible, the supervisor
+    """1 % of the torque limits and no joint acceleration (torque_limit_scale
+    0.01, acceleration_limit 0; with both at 0 daqp, the default solver, finds its
+    bounds' working set overdetermined, a SOLVER_FAILED): every solve is
+    infeasible, the supervisor
     never hands the robot to torque control, q_cmd stays finite and the robot
     stands on its position servo."""
     config = BalanceControlConfig()
-    config.balance.torque_limit_scale = 0.0
+    config.balance.torque_limit_scale = 0.01
     config.balance.acceleration_limit = 0.0
     config.torque.start_time = 0.2
     config.torque.estimator.window = 21

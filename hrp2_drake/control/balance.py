@@ -116,10 +116,11 @@ class BalanceConfig:
             (a test of the fault).
         acceleration_limit: |v̇_j| bound of every joint (rad/s²); sot-torque-control
             used 30.
-        solver: the QP solver: "osqp" or "clarabel" (pydrake's own), or "daqp"
-            (the pip package, the optional `qp` extra: per solve on HRP-2 about
-            6x faster than OSQP on replayed ticks, scripts/bench_balance.py, and
-            5x in closed loop, scripts/bench.py --only balance).
+        solver: the QP solver: "daqp" (the default, a dependency: a dense
+            active-set solver warm-started from its last active set; faster than
+            OSQP per solve on HRP-2, `scripts/bench_balance.py` and
+            `scripts/bench.py --only balance` measure both), or pydrake's own
+            "osqp" or "clarabel".
         period: the update period (s).
     """
 
@@ -140,7 +141,7 @@ class BalanceConfig:
     acceleration_weight: float = 1e-6
     torque_limit_scale: float = 1.0
     acceleration_limit: float = 30.0
-    solver: str = "osqp"
+    solver: str = "daqp"
     period: float = 0.001
 
     def validate(self) -> None:
@@ -284,7 +285,7 @@ class DrakeQp(QpBackend):
 
 
 class DaqpQp(QpBackend):
-    """daqp (a dense active-set solver, pip `daqp`; the optional `qp` extra): every
+    """daqp (a dense active-set solver, pip `daqp`; the default solver): every
     constraint as a two-sided row, the equalities immutable; the bounds as simple
     bounds; warm-started with the last solve's multipliers (`dual_start`: its
     active set). Its time on HRP-2 is mostly its setup (H's factorisation, ~90 µs
@@ -293,7 +294,7 @@ class DaqpQp(QpBackend):
     name = "daqp"
 
     def __init__(self, qp: QpData):
-        import daqp  # noqa: F401 (the optional extra: fail here, not per tick)
+        import daqp  # noqa: F401 (if it is missing: fail here, not per tick)
 
         n, n_eq, n_in = qp.sizes
         self._A = np.zeros((n_eq + n_in, n))
@@ -352,7 +353,7 @@ def make_qp_backend(qp: QpData, solver: str) -> QpBackend:
 
     Raises:
         ValueError: an unknown solver, or a pip solver that is not installed (the
-            message says which extra installs it).
+            message says how to install it).
     """
     if solver in ("osqp", "clarabel"):
         return DrakeQp(qp, solver)
@@ -362,7 +363,7 @@ def make_qp_backend(qp: QpData, solver: str) -> QpBackend:
     except ImportError:
         raise ValueError(
             f"BalanceConfig.solver: '{solver}' is not installed: pip install "
-            f"'hrp2_drake[qp]' (or {solver})"
+            f"{solver} (a dependency of hrp2_drake), or choose solver: osqp"
         ) from None
     raise ValueError(f"BalanceConfig.solver: '{solver}', expected one of {QP_SOLVERS}")
 
