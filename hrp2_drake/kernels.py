@@ -28,7 +28,6 @@ once per run); where that folder is not writable (a system-wide install), in
 
 import contextlib
 import sys
-import time
 from collections.abc import Callable, Iterator
 
 import numba
@@ -111,11 +110,3 @@ def interpreted() -> Iterator[None]:
     finally:
         for module, name, dispatcher in swapped:
             setattr(module, name, dispatcher)
-
-
-def timed_warm_up(warm_up: Callable[[], None]) -> float:
-    """Runs `warm_up` (compiles, or loads from the cache, every kernel it calls); its
-    wall time (s)."""
-    start = time.perf_counter()
-    warm_up()
-    return time.perf_counter() - start

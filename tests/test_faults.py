@@ -167,7 +167,7 @@ def test_model_error_and_extra_latency():
         exact, params, hrp2.JOINT_NAMES, 1e-3, extra_latency=0.002
     )
     base = EmulatedPositionServo(exact, params, hrp2.JOINT_NAMES, 1e-3)
-    np.testing.assert_array_equal(servo.latency_periods, base.latency_periods + 2)
+    np.testing.assert_array_equal(servo._delays, base._delays + 2)  # in periods
 
 
 def test_sensor_clock_stops_for_a_frozen_driver():

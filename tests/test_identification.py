@@ -40,7 +40,7 @@ def test_increasing_sinusoid_is_the_papers_and_ends_at_rest():
 
 
 def test_plan_rejects_unknown_joints():
-    config = hrp2.right_leg_collection(0.25)
+    config = hrp2.description().identification.scaled(0.25, 0)
     config.sinusoids[0].joint = "RLEG_JOINT9"
     with pytest.raises(KeyError, match="RLEG_JOINT9"):
         make_plan(config, hrp2.JOINT_NAMES, hrp2.half_sitting())

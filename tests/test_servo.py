@@ -115,31 +115,24 @@ def test_servo_rejects_nan_command(params, plant):
         servo.get_output_port().Eval(context)
 
 
-def test_deprecated_name_warns_and_builds_the_same_servo(calibrated, plant):
-    """`Hrp2ServoEmulation`, the old name, warns once naming the new class and builds
-    the same system: same ports, same torques for the same inputs."""
-    with pytest.warns(DeprecationWarning, match="EmulatedPositionServo") as warned:
-        from hrp2_drake.robot.servo import Hrp2ServoEmulation
-    assert len(warned) == 1 and Hrp2ServoEmulation is EmulatedPositionServo
-    q0 = hrp2.half_sitting()
-    x = np.zeros(plant.num_positions() + plant.num_velocities())
-    x[: plant.num_positions()] = plant.GetPositions(plant.CreateDefaultContext())
-    torques = []
-    for servo_class in (Hrp2ServoEmulation, EmulatedPositionServo):
-        servo = servo_class(
-            plant, calibrated, hrp2.JOINT_NAMES, 1e-3, q0, enable_port=True
-        )
-        names = [
-            servo.get_input_port(i).get_name() for i in range(servo.num_input_ports())
-        ]
-        assert names == ["q_cmd", "state", "enabled"]
-        context = servo.CreateDefaultContext()
-        servo.get_input_port(0).FixValue(context, q0 + 0.01)
-        servo.get_input_port(1).FixValue(context, x)
-        servo.get_input_port(2).FixValue(context, np.ones(len(q0)))
-        torques.append(servo.get_output_port().Eval(context))
-    np.testing.assert_array_equal(torques[0], torques[1])
-    assert np.any(torques[0] != 0)
+def kernel_torque(servo, error, v, direction, enabled=None) -> np.ndarray:
+    """The servo's per-step law (its kernel, with its packed constants) on the position
+    error itself: what `servo_torque` computes from its parameters."""
+    from hrp2_drake.robot.servo import _servo_law
+
+    tau = np.empty(len(error))
+    empty = np.zeros(0)
+    _servo_law(
+        servo._constants,
+        np.asarray(error, dtype=float),
+        empty,
+        np.asarray(v, dtype=float),
+        np.asarray(direction, dtype=float),
+        empty if enabled is None else np.asarray(enabled, dtype=float),
+        True,
+        tau,
+    )
+    return tau
 
 
 def dahl_step(s: np.ndarray, dq: np.ndarray, width: np.ndarray) -> np.ndarray:
@@ -222,7 +215,7 @@ def test_per_step_law_is_servo_torque_bit_for_bit(calibrated, plant):
             v = rng.normal(0.0, scale_v, len(names))
             direction = rng.uniform(-1.0, 1.0, len(names))
             expected = servo_torque(p, error, v, direction)
-            actual = servo._servo_torque(error, v, direction)
+            actual = kernel_torque(servo, error, v, direction)
             assert actual.tobytes() == expected.tobytes()
 
 
@@ -708,7 +701,7 @@ def test_kernels_give_servo_torque_bit_for_bit_at_the_edges(calibrated, plant):
         enabled = rng.choice([0.0, 0.5, 1.0, np.nan], n) if trial % 2 else None
         with np.errstate(invalid="ignore"):  # inf / inf, inf · 0: NaN
             expected = servo_torque(p, error, v, direction, enabled)
-            actual = servo._servo_torque(error, v, direction, enabled)
+            actual = kernel_torque(servo, error, v, direction, enabled)
         nan = np.isnan(expected)
         np.testing.assert_array_equal(np.isnan(actual), nan)
         assert actual[~nan].tobytes() == expected[~nan].tobytes(), trial

@@ -15,7 +15,6 @@ from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.paper import hrp2
 from hrp2_drake.paper.stability import (
     StabilityConfig,
-    models_from_identification,
     predicted_thresholds,
     push_reference,
     run_stability,
@@ -25,6 +24,16 @@ from hrp2_drake.paper.stability import (
 from hrp2_drake.robot.station import StationConfig
 
 JOINT = "RLEG_JOINT4"  # ankle pitch
+
+
+def models_from_identification(result, joints) -> dict[str, MotorModel]:
+    """{"least_squares", "asymmetric"} models of `joints` from an
+    `identification.IdentificationResult` (its per-joint fits of the same data)."""
+    by_joint = {r.joint: r for r in result.joints}
+    return {
+        name: MotorModel.from_joints({j: by_joint[j].models[name] for j in joints})
+        for name in ("least_squares", "asymmetric")
+    }
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,6 @@ from hrp2_drake.description import (
     load_robot_description,
     models_root,
 )
-from hrp2_drake.description.excitation import CollectionConfig
 from hrp2_drake.estimation import estimator_config as estimation_config
 from hrp2_drake.estimation.estimator_config import TorqueEstimatorConfig
 from hrp2_drake.identification.motor_model import MotorModel
@@ -128,16 +127,6 @@ def estimator_plant(add_model=add_hrp2) -> MultibodyPlant:
     add_model(plant)
     plant.Finalize()
     return plant
-
-
-def right_leg_collection(
-    duration_scale: float = 1.0, seed: int = 0
-) -> CollectionConfig:
-    """HRP-2's identification excitation (models/hrp2/robot.yaml): high-torque pushes
-    on the right foot in three leg configurations, then one increasing-amplitude
-    sinusoid per right-leg joint; the left leg spread out of the way.
-    `duration_scale` shortens everything (e.g. 0.25 for tests)."""
-    return description().identification.scaled(duration_scale, seed)
 
 
 def true_motor_model(

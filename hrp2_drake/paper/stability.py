@@ -84,8 +84,6 @@ from hrp2_drake.robot.station import (
     make_station,
 )
 
-#: The fits of Sec. 5.2, in the order of the report.
-MODEL_NAMES = ("least_squares", "asymmetric")
 #: The delay between the encoders the torque controller adds Δq to and the encoders
 #: the servo compares q_cmd with: one period of the 1 kHz controller (measured on
 #: the logs: q_cmd sent at t_k is q(t_{k−1}) + Δq, applied against q(t_k)), s.
@@ -457,17 +455,6 @@ def run_stability(
                     "delta_q": signals["delta_q"][:, 0],  # the one joint
                 }
     return StabilityResult(config, runs, traces, predicted)
-
-
-def models_from_identification(result, joints=None) -> dict[str, MotorModel]:
-    """{"least_squares", "asymmetric"} right-leg models from an
-    `identification.IdentificationResult` (its per-joint fits of the same data)."""
-    joints = joints or [r.joint for r in result.joints]
-    by_joint = {r.joint: r for r in result.joints}
-    return {
-        name: MotorModel.from_joints({j: by_joint[j].models[name] for j in joints})
-        for name in MODEL_NAMES
-    }
 
 
 def emulator_parameters(joint: str, servo_file: str = "") -> dict[str, float]:

@@ -180,7 +180,3 @@ class SimulatedServos:
             voltage=self._voltage.copy(),
             temperature=self.temperature.copy(),
         )
-
-    def true_state(self) -> np.ndarray:
-        """The plant's state [q; v] (ground truth, for evaluation only)."""
-        return self._state.Eval(self._context).copy()

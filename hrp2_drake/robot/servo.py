@@ -49,7 +49,6 @@ discrete closed loop; tests/test_servo.py checks it and a closed-loop run.
 import copy
 import functools
 import math
-import warnings
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -812,11 +811,6 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
     def joint_names(self) -> tuple[str, ...]:
         return self._indexing.names
 
-    @property
-    def latency_periods(self) -> np.ndarray:
-        """Command latency of each joint in servo periods."""
-        return self._delays.copy()
-
     def _vector(self, values) -> np.ndarray:
         """`values` (one per joint, or one for all) as a new float64 joint vector:
         the type the kernels are compiled for."""
@@ -889,28 +883,6 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
             current,
         )
         return current
-
-    def _servo_torque(
-        self,
-        error: np.ndarray,
-        v: np.ndarray,
-        direction: np.ndarray,
-        enabled: np.ndarray | None = None,
-    ) -> np.ndarray:
-        """servo_torque(self's parameters, error, v, direction): the same numbers
-        (the servo's kernel on the position error itself)."""
-        tau = np.empty(self._n)
-        _servo_law(
-            self._constants,
-            self._vector(error),
-            self._empty,
-            self._vector(v),
-            self._vector(direction),
-            self._enabled_vector(enabled),
-            True,
-            tau,
-        )
-        return tau
 
     def _joint_state(self, context: Context) -> tuple[np.ndarray, np.ndarray]:
         x = self._state.Eval(context)
@@ -989,21 +961,3 @@ class EmulatedPositionServo(WitnessFreeLeafSystem):
             output.get_mutable_value(),
         ):
             self._raise_not_finite(q_cmd)
-
-
-def __getattr__(name: str):
-    """The deprecated name `Hrp2ServoEmulation` (the class was renamed
-    `EmulatedPositionServo`, which drives any robot): importing it warns once per
-    place that imports it, and gives `EmulatedPositionServo` itself.
-
-    Why it stays: deprecated on 2026-11-25 (issue 19) with the promise of one more
-    release; it goes in the release after 0.1.0 (0.2.0), and this function with it."""
-    if name == "Hrp2ServoEmulation":
-        warnings.warn(
-            "hrp2_drake.robot.servo.Hrp2ServoEmulation is deprecated: use "
-            "EmulatedPositionServo (the same class, renamed)",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return EmulatedPositionServo
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
