@@ -394,6 +394,9 @@ class BusDescription:
             their input voltage.
         silent_periods: a servo that answers no sync read for this many periods in a
             row ends torque control (a ramp to position control).
+        status_timeout: how long the host waits for a sync read's statuses (s, from
+            the instruction); 0: the SDK's own packet timeout (34 ms and the bytes'
+            time with dynamixel-sdk and feetech-servo-sdk).
     """
 
     kind: str = ""
@@ -409,6 +412,7 @@ class BusDescription:
     compute_time: float = 0.0005
     supply_voltage: float = 5.0
     silent_periods: int = 3
+    status_timeout: float = 0.0
 
     @property
     def active(self) -> bool:
@@ -473,7 +477,12 @@ class BusDescription:
             raise ValueError(f"bus.read: {self.read} must include present_position")
         for item in self.read:
             model.register(item, "bus.read")
-        for name in ("adapter_latency", "compute_time", "supply_voltage"):
+        for name in (
+            "adapter_latency",
+            "compute_time",
+            "supply_voltage",
+            "status_timeout",
+        ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"bus.{name}: {value} must be finite and >= 0")

@@ -4,9 +4,9 @@
 (`hardware.link.RobotLink`) writes the period's samples into the fused controller's
 buffers (their rows: `FusedController.layout`), one tick of the `FusedController`
 runs, and the link sends the command at once. Over LCM (`hardware.lcm_link.LcmLink`)
-the robot's encoder message is the clock; on a Dynamixel bus
-(`hardware.dynamixel.DynamixelLink`) the loop's own clock, one sync read and one sync
-write per period. No Simulator paces it, and Python's garbage collector does not run
+the robot's encoder message is the clock; on a servo bus (`hardware.bus_link.BusLink`,
+Dynamixel or Feetech) the loop's own clock, one sync read and one sync write per
+period. No Simulator paces it, and Python's garbage collector does not run
 inside the loop (`hardware.real_time.garbage_collector_frozen`). It refuses to start
 before the fused controller's kernels are compiled (`FusedController.warm_up`), and
 nothing compiles while it runs (`hrp2_drake.kernels.freeze`: a kernel called with a
@@ -34,8 +34,9 @@ import numpy as np
 
 from hrp2_drake import kernels
 from hrp2_drake.control.balance import BALANCE_FAULTS
-from hrp2_drake.control.fused import EventKind, FusedController
+from hrp2_drake.control.fused import FusedController
 from hrp2_drake.control.safety import describe_faults
+from hrp2_drake.control.torque_chain import EventKind
 from hrp2_drake.control.torque_controller import FALLBACK_REASONS
 from hrp2_drake.hardware.link import LinkClosed, LoopFault, RobotLink
 from hrp2_drake.hardware.real_time import (

@@ -82,10 +82,10 @@ def run_on_bus_in_process(
     station_config, controller: FusedController, reference, ticks: int, on_tick=None
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """The fused controller on the simulated robot's servos (`SimulatedServos`) in one
-    process, without a wire, with the bus loop's timing: what `DynamixelLink` and a
+    process, without a wire, with the bus loop's timing: what `BusLink` and a
     lock-step emulator (`hardware.sim_servo`) do, call for call.
 
-    Start-up at robot time 0, as `DynamixelBus.start`: the P gain set
+    Start-up at robot time 0, as `ServoBus.start`: the P gain set
     (`position_loop.gain`), the present pose read (through the goal register's
     pulses) and made the goal, torque on. Then period k: the servos sample at k·T,
     one tick at t = k·T, and the command, in pulses, reaches them at k·T + d (d: the

@@ -2,8 +2,8 @@
 samples come in and its command goes out. The controller's loop
 (`hardware.control_loop.ControlLoop`) is one loop for every link: over LCM
 (`hardware.lcm_link.LcmLink`: the robot's encoder message is the clock) and on a
-Dynamixel bus (`hardware.dynamixel.DynamixelLink`: the loop's own clock, one sync
-read and one sync write per period).
+servo bus (`hardware.bus_link.BusLink`, Dynamixel or Feetech: the loop's own clock,
+one sync read and one sync write per period).
 
 A link raises `LoopFault` for what makes the loop hand the robot back to its servos
 (a malformed or stale message, a silent or faulting servo) and `LinkClosed` when

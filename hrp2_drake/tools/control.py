@@ -179,14 +179,14 @@ def open_link(
     simulation."""
     robot = config.description()
     if port:
-        from hrp2_drake.hardware.dynamixel import DynamixelLink
+        from hrp2_drake.hardware.bus_link import BusLink
 
         if not robot.bus.active:
             raise ValueError(
                 f"--port {port}: robot '{robot.name}' has no bus in its description "
                 "(use --lcm for a robot with an LCM bridge)"
             )
-        return DynamixelLink(robot, port, lockstep=lockstep)
+        return BusLink(robot, port, lockstep=lockstep)
     from hrp2_drake.hardware.lcm_link import LcmLink
 
     transport = open_transport(lcm_url, timeout=min(config.loop.wait_timeout, 2.0))

@@ -28,8 +28,8 @@ from hrp2_drake.assembly.builders import SmoothMove
 from hrp2_drake.config import check_finite
 from hrp2_drake.console import say
 from hrp2_drake.description import RobotDescription, load_robot_description
+from hrp2_drake.hardware.bus_link import BusLink
 from hrp2_drake.hardware.control_loop import LoopSettings
-from hrp2_drake.hardware.dynamixel import DynamixelLink
 from hrp2_drake.hardware.link import LinkClosed, LoopFault
 from hrp2_drake.hardware.real_time import garbage_collector_frozen
 from hrp2_drake.identification.excitation import make_plan
@@ -122,7 +122,7 @@ def record_one(
     bus = robot.bus
     n = len(robot.joints)
     buffers = SimpleNamespace(q_measured=np.zeros(n), q_measured_time=np.zeros(1))
-    link = DynamixelLink(robot, port, lockstep=lockstep, gain=gain, skip_late=True)
+    link = BusLink(robot, port, lockstep=lockstep, gain=gain, skip_late=True)
     try:
         start = link.connect(buffers)
         plan = make_plan(
@@ -148,7 +148,7 @@ def record_one(
 
 
 def _play(
-    link: DynamixelLink,
+    link: BusLink,
     buffers,
     excitation: _Excitation,
     config: RecordConfig,

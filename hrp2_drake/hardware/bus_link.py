@@ -1,0 +1,536 @@
+"""A robot's servo bus from the controller's side, for every bus kind: the bus
+(`ServoBus`, through the maintainers' own client: `hardware.dynamixel.DynamixelBus`
+on ROBOTIS' `dynamixel_sdk`, `hardware.feetech.FeetechBus` on Feetech's
+`scservo_sdk`) and the control loop's link over it (`BusLink`). No protocol code of
+our own is on this side: packets, checksums and byte stuffing are the SDKs'.
+
+The two SDKs share one shape (PortHandler, PacketHandler, GroupSyncRead,
+GroupSyncWrite, `readRx`, `ping`, `readNByteTxRx`, `writeNByteTxRx`), so what the
+bus does is written once; a subclass names its SDK and reads its status error byte.
+`ServoBus` is what the control loop and `hrp2-drake record` need of the servos:
+
+- `start()`: open the port at the description's baud rate; ping every ID and check
+  its model number; with torque off, set and read back the return delay, the
+  position control mode (the model's) and the position P gain (`position_loop.gain`,
+  the gain the motor model and the twin are stated at); read the present pose, make
+  it the goal, torque on: the servos hold where they are.
+- `read()`: one SYNC_READ of the description's `read` block (`BusDescription.read`),
+  each servo's status taken with its error byte (the SDK's `readRx`: its
+  `GroupSyncRead.rxPacket` drops it and stops at the first failure): positions in
+  rad, and what went wrong per servo (no status, a corrupt one, a hardware alert).
+- `write(q)`: one SYNC_WRITE of the goal positions (pulses, `BusDescription.to_pulses`,
+  in the item's encoding: `ServoModel.encode`).
+- `hardware_error(k)`: the Hardware Error Status of servo k, in words.
+
+Every problem at start-up is one ValueError naming the port, the servo ID and its
+joint; a port that disappears mid-run (the adapter unplugged, the emulator killed)
+raises `BusClosed`.
+"""
+
+import termios
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import serial
+
+from hrp2_drake.description import RobotDescription
+from hrp2_drake.description.bus import servo_models
+from hrp2_drake.hardware.link import LinkClosed, LoopFault, RobotLink
+
+#: What each servo's status in a period was (`BusRead.status`).
+STATUS_OK, STATUS_SILENT, STATUS_CORRUPT = 0, 1, 2
+
+
+class BusClosed(LinkClosed):
+    """The serial port is gone (unplugged, closed by the other end)."""
+
+
+@dataclass
+class BusRead:
+    """One period's sync read.
+
+    Attributes:
+        position: joint angles (rad, joint order); a servo that did not answer keeps
+            its previous value.
+        values: each `read` item of each servo in SI units ({item: array}), the same
+            way.
+        status: per servo, STATUS_OK, STATUS_SILENT (no status) or STATUS_CORRUPT
+            (a status with a bad CRC or length).
+        alert: per servo, the hardware alert bit of its status (bit 7 of the error
+            byte: a hardware error; `ServoBus.hardware_error` says which).
+        error: per servo, the status's error number (bits 0-6: 0 none).
+    """
+
+    position: np.ndarray
+    values: dict[str, np.ndarray]
+    status: np.ndarray
+    alert: np.ndarray
+    error: np.ndarray
+    complete: bool = field(default=False)
+
+
+class ServoBus:
+    """The robot's servos on their bus (module docstring), through the maintainers'
+    SDK that a subclass names (`_open_sdk`): `hardware.dynamixel.DynamixelBus`,
+    `hardware.feetech.FeetechBus`.
+
+    Args:
+        robot: the robot description (its `bus`, joints, `position_loop.gain`).
+        port: the serial port (e.g. /dev/ttyUSB0, or the emulator's pseudo-terminal).
+    """
+
+    def _open_sdk(self):
+        """(the SDK's module, its PacketHandler) for this bus kind."""
+        raise NotImplementedError
+
+    def _split_error(self, error: int) -> tuple[bool, int]:
+        """(hardware alert, error number) of a status's error byte."""
+        raise NotImplementedError
+
+    def _error_text(self, k: int, error: int) -> str:
+        """A status's error in words (its error number's), for servo k."""
+        return self._packet.getRxPacketError(error)
+
+    def _before_sync_read(self) -> None:
+        """Drops what came in since the last period (a status later than the SDK's
+        packet timeout), counted in `stale_bytes`: both SDKs' `clearPort` flushes
+        the output only, and `readRx` takes the first status with the ID it waits
+        for, so a late status would pass for this period's, and every period after
+        it would read the one before."""
+        waiting = self._call(self._port.getBytesAvailable)
+        if waiting:
+            self._call(self._port.readPort, waiting)
+            self.stale_bytes += waiting
+
+    def _after_sync_read_sent(self) -> None:
+        """The SDK's packet timeout for the statuses: the description's
+        `status_timeout` if set (the SDKs' own: 34 ms plus the bytes' time with
+        dynamixel-sdk and feetech-servo-sdk 1.0, 50 ms plus with
+        ftservo-python-sdk and LeRobot's patch of the former)."""
+        if self.bus.status_timeout:
+            self._port.setPacketTimeoutMillis(self.bus.status_timeout * 1e3)
+
+    def __init__(self, robot: RobotDescription, port: str):
+        self.robot = robot
+        self.bus = bus = robot.bus
+        if not bus.active:
+            raise ValueError(f"robot '{robot.name}': its description has no bus")
+        self.port_name = port
+        self.model = bus.servo_model()
+        self.ids = list(bus.ids)
+        self._sdk, self._packet = self._open_sdk()
+        self._port = self._sdk.PortHandler(port)
+        self.stale_bytes = 0
+        self._address, self._length = bus.read_block()
+        self._items = [
+            (
+                item,
+                self.model.register(item).address - self._address,
+                self.model.register(item).size,
+            )
+            for item in bus.read
+        ]
+        goal = self.model.register("goal_position")
+        self._writer = self._sdk.GroupSyncWrite(
+            self._port, self._packet, goal.address, goal.size
+        )
+        self._reader = self._sdk.GroupSyncRead(
+            self._port, self._packet, self._address, self._length
+        )
+        for servo in self.ids:
+            self._reader.addParam(servo)
+        n = len(self.ids)
+        self._last = BusRead(
+            position=np.zeros(n),
+            values={item: np.zeros(n) for item in bus.read},
+            status=np.zeros(n, dtype=int),
+            alert=np.zeros(n, dtype=bool),
+            error=np.zeros(n, dtype=int),
+        )
+        self._raw = {item: np.zeros(n, dtype=np.int64) for item in bus.read}
+        self.is_open = False
+
+    # ---------------------------------------------------------------- naming
+
+    def name(self, k: int) -> str:
+        """Servo k as a person finds it: "servo ID 11 (joint1)"."""
+        return f"servo ID {self.ids[k]} ({self.robot.joints[k]})"
+
+    def _where(self, k: int | None = None) -> str:
+        return f"{self.port_name}: " + (f"{self.name(k)}: " if k is not None else "")
+
+    # ---------------------------------------------------------------- start-up
+
+    def open(self) -> None:
+        """Opens the port at the bus's baud rate; a ValueError naming it if it cannot
+        be opened."""
+        try:
+            opened = self._port.openPort() and self._port.setBaudRate(self.bus.baud)
+        except Exception as error:  # pyserial: SerialException, OSError
+            raise ValueError(
+                f"{self.port_name}: cannot open the port ({error})"
+            ) from None
+        if not opened:
+            raise ValueError(
+                f"{self.port_name}: cannot open the port at {self.bus.baud} bit/s"
+            )
+        self.is_open = True
+
+    def start(self, gain: float | None = None) -> np.ndarray:
+        """The start-up (module docstring), with the position P gain `gain` (the
+        servo's units; None: the description's `position_loop.gain`); the present
+        pose (rad), which the servos now hold with torque on."""
+        gain = self.robot.position_loop.gain if gain is None else gain
+        if not self.is_open:
+            self.open()
+        for k in range(len(self.ids)):
+            self._check_model(k)
+        for k in range(len(self.ids)):
+            self._write_checked(k, "torque_enable", 0)
+            delay = self.model.register("return_delay_time")
+            self._write_checked(
+                k, "return_delay_time", round(self.bus.return_delay / delay.unit)
+            )
+            self._write_checked(k, "operating_mode", self.model.position_modes[0])
+            self._write_checked(k, "position_p_gain", int(gain))
+        # One READ and one WRITE per servo, not the periods' sync read and write: a
+        # lock-step robot counts those as its periods.
+        present = np.array(
+            [self._read_checked(k, "present_position") for k in range(len(self.ids))]
+        )
+        q = self.bus.to_radians(present)
+        goal = self.bus.to_pulses(q)
+        for k in range(len(self.ids)):
+            self._write_checked(k, "goal_position", int(goal[k]))
+            self._write_checked(k, "torque_enable", 1)
+        self._last.position[:] = q
+        return q
+
+    def _check_model(self, k: int) -> None:
+        servo = self.ids[k]
+        number, result, error = self._call(self._packet.ping, self._port, servo)
+        if result != self._sdk.COMM_SUCCESS:
+            raise ValueError(
+                f"{self._where(k)}no answer to PING "
+                f"({self._packet.getTxRxResult(result)}): check its ID, the baud rate "
+                f"({self.bus.baud} bit/s) and its power"
+            )
+        if number != self.model.model_number:
+            models = servo_models(self.bus.kind)
+            known = {m.model_number: name for name, m in models.items()}
+            other = known.get(number, "a model this package does not know")
+            raise ValueError(
+                f"{self._where(k)}model number {number} ({other}), but the description "
+                f"says {self.bus.model} ({self.model.model_number})"
+            )
+
+    def _write_checked(self, k: int, item: str, value: int) -> None:
+        """Writes `item` of servo k and reads it back; a ValueError if either fails."""
+        register = self.model.register(item)
+        write = {
+            1: self._packet.write1ByteTxRx,
+            2: self._packet.write2ByteTxRx,
+            4: self._packet.write4ByteTxRx,
+        }[register.size]
+        unsigned = register.to_raw(value)
+        result, error = self._call(
+            write, self._port, self.ids[k], register.address, unsigned
+        )
+        self._check_result(k, f"writing {item} = {value}", result, error)
+        back = self._read_checked(k, item, "reading it back")
+        if back != value:
+            raise ValueError(f"{self._where(k)}{item}: wrote {value}, read back {back}")
+
+    def _read_checked(self, k: int, item: str, what: str = "") -> int:
+        """`item` of servo k (signed items as such); a ValueError if the read fails."""
+        register = self.model.register(item)
+        read = {
+            1: self._packet.read1ByteTxRx,
+            2: self._packet.read2ByteTxRx,
+            4: self._packet.read4ByteTxRx,
+        }[register.size]
+        value, result, error = self._call(
+            read, self._port, self.ids[k], register.address
+        )
+        self._check_result(k, what or f"reading {item}", result, error)
+        return register.from_raw(value)
+
+    def _check_result(self, k: int, what: str, result: int, error: int) -> None:
+        if result != self._sdk.COMM_SUCCESS:
+            raise ValueError(
+                f"{self._where(k)}{what}: {self._packet.getTxRxResult(result)}"
+            )
+        alert, number = self._split_error(error)
+        if alert:
+            raise ValueError(
+                f"{self._where(k)}{what}: hardware error: {self.hardware_error(k)}"
+            )
+        if number:
+            raise ValueError(f"{self._where(k)}{what}: {self._error_text(k, number)}")
+
+    def _call(self, function, *args):
+        """An SDK call; a vanished port (pyserial's OSError or SerialException, or
+        termios.error from a hung-up terminal) is `BusClosed`."""
+        try:
+            return function(*args)
+        except (OSError, termios.error, serial.SerialException) as error:
+            raise BusClosed(f"{self.port_name}: {error}") from None
+
+    # ---------------------------------------------------------------- periods
+
+    def read(self) -> BusRead:
+        """One SYNC_READ (`BusRead`; the object is reused: copy what you keep)."""
+        sdk, packet, port = self._sdk, self._packet, self._port
+        last = self._last
+        self._before_sync_read()
+        result = self._call(self._reader.txPacket)
+        if result != sdk.COMM_SUCCESS:
+            raise BusClosed(
+                f"{self.port_name}: sync read not sent ({packet.getTxRxResult(result)})"
+            )
+        self._after_sync_read_sent()
+        status, alert, errors = last.status, last.alert, last.error
+        for k, servo in enumerate(self.ids):
+            data, result, error = self._call(packet.readRx, port, servo, self._length)
+            if result != sdk.COMM_SUCCESS or len(data) != self._length:
+                status[k] = (
+                    STATUS_SILENT if result == sdk.COMM_RX_TIMEOUT else STATUS_CORRUPT
+                )
+                continue
+            status[k] = STATUS_OK
+            alert[k], errors[k] = self._split_error(error)
+            for item, offset, size in self._items:
+                self._raw[item][k] = self.model.decode(
+                    item, bytes(data[offset : offset + size])
+                )
+        ok = status == STATUS_OK
+        last.position[ok] = self.bus.to_radians(self._raw["present_position"])[ok]
+        for item in self.bus.read:
+            register = self.model.registers[item]
+            last.values[item][ok] = (self._raw[item] * (register.unit or 1.0))[ok]
+        last.values["present_position"][:] = last.position
+        last.complete = bool(ok.all())
+        return last
+
+    def write(self, q: np.ndarray) -> None:
+        """One SYNC_WRITE of the goal positions q (rad, joint order)."""
+        pulses = self.bus.to_pulses(q)
+        writer, encode = self._writer, self.model.encode
+        writer.clearParam()
+        for servo, value in zip(self.ids, pulses):
+            writer.addParam(servo, list(encode("goal_position", int(value))))
+        result = self._call(writer.txPacket)
+        if result != self._sdk.COMM_SUCCESS:
+            raise BusClosed(
+                f"{self.port_name}: sync write not sent "
+                f"({self._packet.getTxRxResult(result)})"
+            )
+
+    def hardware_error(self, k: int) -> str:
+        """Servo k's Hardware Error Status in words (or why it could not be read)."""
+        register = self.model.register("hardware_error_status")
+        bits, result, _ = self._call(
+            self._packet.read1ByteTxRx, self._port, self.ids[k], register.address
+        )
+        if result != self._sdk.COMM_SUCCESS:
+            return (
+                "its hardware error status could not be read "
+                f"({self._packet.getTxRxResult(result)})"
+            )
+        return self.model.describe_hardware_error(bits)
+
+    def torque(self, on: bool) -> None:
+        """Torque enable of every servo (no read-back: used at the end of a run)."""
+        register = self.model.register("torque_enable")
+        for servo in self.ids:
+            self._call(
+                self._packet.write1ByteTxRx,
+                self._port,
+                servo,
+                register.address,
+                int(on),
+            )
+
+    def close(self) -> None:
+        if self.is_open:
+            try:
+                self._port.closePort()
+            except Exception:  # already gone
+                pass
+            self.is_open = False
+
+
+def servo_bus(robot: RobotDescription, port: str) -> ServoBus:
+    """The robot's bus at `port`, through its kind's SDK (`bus.kind`)."""
+    kind = robot.bus.kind
+    if kind == "feetech":
+        from hrp2_drake.hardware.feetech import FeetechBus
+
+        return FeetechBus(robot, port)
+    if kind == "dynamixel":
+        from hrp2_drake.hardware.dynamixel import DynamixelBus
+
+        return DynamixelBus(robot, port)
+    raise ValueError(f"robot '{robot.name}': its description has no bus (bus.kind)")
+
+
+class BusLink(RobotLink):
+    """A robot on its servo bus (Dynamixel or Feetech) as the control loop's link
+    (`hardware.link`).
+
+    The loop's own clock: period k starts at k·T on the wall clock from the first
+    `receive` (T: the description's `sensors.period`, the bus's) with one sync read,
+    and its command is one sync write. A period that starts late runs at once (it is
+    counted; a loop more than the loop's silence timeout behind is a fault), or, with
+    `skip_late`, skips to the period of now. With `lockstep` (a lock-step simulation
+    behind the port: its clock is the bus traffic) nothing waits for the wall clock.
+    The samples of period k have time k·T; their stamp moves only when every servo
+    answered.
+
+    Bus faults are counted per servo: no status, a corrupt status (CRC, length), a
+    hardware alert. A servo with a hardware alert, or without a valid status for
+    `bus.silent_periods` periods in a row, is a `LoopFault` naming it: the loop ramps
+    to position control where the bus still works.
+
+    Args:
+        robot: the robot description (its `bus`).
+        port: the serial port.
+        lockstep: the robot's clock is the bus traffic.
+        gain: the position P gain to set (None: the description's).
+        skip_late: a period that starts more than a period late skips to the period
+            of now (counted), rather than running late: a recording, whose log takes
+            the host's clock (a controller runs every period).
+    """
+
+    def __init__(
+        self,
+        robot: RobotDescription,
+        port: str,
+        lockstep: bool = False,
+        gain: float | None = None,
+        skip_late: bool = False,
+    ):
+        self.robot = robot
+        self.gain = gain
+        self.skip_late = skip_late
+        self.skipped = 0
+        self.bus = servo_bus(robot, port)
+        self.name = port
+        self.lockstep = lockstep
+        self.period = robot.sensors.period
+        n = len(robot.joints)
+        self._k = 0
+        self._t0 = 0.0
+        self._failures = np.zeros(n, dtype=int)  # consecutive, per servo
+        self.silent = np.zeros(n, dtype=int)
+        self.corrupt = np.zeros(n, dtype=int)
+        self.alerts = np.zeros(n, dtype=int)
+        self.incomplete = 0
+        self.late = 0
+        self.max_lag = 0.0
+        self.reading: BusRead | None = None  # the latest sync read
+
+    def connect(self, controller) -> np.ndarray:
+        q = self.bus.start(self.gain)
+        controller.q_measured[:] = q
+        return q
+
+    def receive(self, controller, timeout: float) -> float | None:
+        if self._k == 0:
+            self._t0 = time.perf_counter()  # the clock starts with the first period
+        t = self._k * self.period
+        if not self.lockstep:
+            lag = time.perf_counter() - (self._t0 + t)
+            if lag < 0:
+                time.sleep(-lag)
+            elif lag > self.period:
+                self.late += 1
+                self.max_lag = max(self.max_lag, lag)
+                if self.skip_late:  # on to the period of now
+                    skipped = int(lag / self.period)
+                    self.skipped += skipped
+                    self._k += skipped
+                    t = self._k * self.period
+                elif lag > timeout:
+                    raise LoopFault(
+                        f"{self.name}: the loop is {lag * 1e3:.0f} ms behind the bus "
+                        f"period ({self.period * 1e3:g} ms)",
+                        t,
+                    )
+        self.started_ns = time.perf_counter_ns()
+        self.reading = reading = self.bus.read()
+        self.received_ns = time.perf_counter_ns()
+        self._tally(reading, t)
+        controller.q_measured[:] = reading.position
+        if reading.complete:
+            controller.q_measured_time[:] = t
+        else:
+            self.incomplete += 1
+        self._k += 1
+        return t
+
+    def _tally(self, reading: BusRead, t: float) -> None:
+        """Counts the period's bus faults (the period at t, s); a LoopFault for a
+        servo's hardware alert or a servo without a valid status for
+        `silent_periods` periods."""
+        ok = reading.status == STATUS_OK
+        self.silent += reading.status == STATUS_SILENT
+        self.corrupt += reading.status == STATUS_CORRUPT
+        self._failures = np.where(ok, 0, self._failures + 1)
+        alert = ok & reading.alert
+        self.alerts += alert
+        for k in np.flatnonzero(alert):
+            raise LoopFault(
+                f"{self.bus.name(k)}: hardware error: {self.bus.hardware_error(k)}", t
+            )
+        limit = self.robot.bus.silent_periods
+        for k in np.flatnonzero(self._failures >= limit):
+            what = (
+                "no status"
+                if reading.status[k] == STATUS_SILENT
+                else "a corrupt status"
+            )
+            raise LoopFault(
+                f"{self.bus.name(k)}: {what} in {self._failures[k]} periods in a row "
+                f"(silent_periods: {limit})",
+                t,
+            )
+
+    def send(self, q_cmd: np.ndarray, t: float) -> None:
+        self.bus.write(q_cmd)
+
+    def gone(self, error) -> str:
+        return f"the bus is gone: {error}"
+
+    def ending(self, ramped: bool) -> str:
+        if ramped:
+            return (
+                "the goal then ramped to the measured pose: the servos' own position "
+                "loop holds the robot"
+            )
+        return (
+            "nothing could be sent any more: the servos hold their last goal "
+            "position (their own position loop)"
+        )
+
+    def counters(self) -> dict:
+        per_servo = {
+            str(servo): {
+                "no_status": int(self.silent[k]),
+                "corrupt": int(self.corrupt[k]),
+                "hardware_alerts": int(self.alerts[k]),
+            }
+            for k, servo in enumerate(self.bus.ids)
+        }
+        return {
+            "servos": per_servo,
+            "incomplete_periods": int(self.incomplete),
+            "late_periods": int(self.late),
+            "skipped_periods": int(self.skipped),
+            "max_lag_ms": self.max_lag * 1e3,
+            "stale_bytes": int(self.bus.stale_bytes),
+        }
+
+    def close(self) -> None:
+        self.bus.close()
