@@ -1,18 +1,19 @@
 #!/usr/bin/env python3
-"""The whole-body balance QP's solve on HRP-2, per solver, against Drake's own
-`CalcInverseDynamics` on the full HRP-2 in the same run (issue 29: choose the solver
+"""The whole-body balance QP's solve on a robot standing on its soles (--robot: a
+robot description with contacts; default HRP-2), per solver, against Drake's own
+`CalcInverseDynamics` on the full robot in the same run (issue 29: choose the solver
 by measurement).
 
-HRP-2 in double support (60 variables, 18 equalities, 62 inequality rows and 38
-bounds: `BalanceStep.sizes`), at states of a smooth 1 kHz sequence around the
-standing (half-sitting) pose: every joint oscillating by a few 0.01 rad at 0.5-2 Hz
-with its velocity, the CoM's reference 2 cm to the left. One `BalanceStep` built
-once; per tick, timed: the rest of the step (Drake's terms and the kernels that
+The robot in double support (HRP-2: 60 variables, 18 equalities, 62 inequality rows
+and 38 bounds: `BalanceStep.sizes`), at states of a smooth 1 kHz sequence around the
+standing pose (HRP-2: half-sitting): every joint oscillating by a few 0.01 rad at
+0.5-2 Hz with its velocity, the CoM's reference 2 cm to the left. One `BalanceStep`
+built once; per tick, timed: the rest of the step (Drake's terms and the kernels that
 assemble the QP and write τ), each solver's solve on the same QP (the coefficients'
 update and the solve: `QpBackend.update` + `solve`; each solver keeps its own warm
-start), and one `CalcInverseDynamics` (gravity included) of the full floating HRP-2
-(36 velocities) at the same state, the unit of the ratios: every time of a tick is
-taken under the same load. A solver's step is the rest plus its solve. Also per
+start), and one `CalcInverseDynamics` (gravity included) of the full floating robot
+(HRP-2: 36 velocities) at the same state, the unit of the ratios: every time of a
+tick is taken under the same load. A solver's step is the rest plus its solve. Also per
 tick, the QP's input: the base's state from the soles' kinematics
 (`BaseFromSolesStep.step`, the soles where they stood) from the same joint angles
 and velocities. The garbage collector is frozen and disabled, as in the control
@@ -25,12 +26,12 @@ package daqp (a dependency, the default), and, only here, the pip packages proxs
 (cold, dense). A solver not installed is skipped.
 
 With --closed-loop, the QP in its place instead: the fused balance controller on the
-simulated standing HRP-2 (`bench_closed_loop`; what `scripts/bench.py --only
+simulated standing robot (`bench_closed_loop`; what `scripts/bench.py --only
 balance` reports): the QP's solve and the whole tick, per solver: daqp (the
 default) and pydrake's OSQP.
 
-    python scripts/bench_balance.py [--ticks 2000] [--solvers osqp,daqp]
-    python scripts/bench_balance.py --closed-loop [--duration 2]
+    python scripts/bench_balance.py [--robot R] [--ticks 2000] [--solvers osqp,daqp]
+    python scripts/bench_balance.py [--robot R] --closed-loop [--duration 2]
 """
 
 import argparse
@@ -375,8 +376,9 @@ class TimedCall:
 CLOSED_LOOP_START = 0.5
 
 
-def balance_controller(solver: str, duration: float):
-    """HRP-2 standing (`StationConfig(scenario="standing")`), the default balance
+def balance_controller(solver: str, duration: float, robot: str = "hrp2"):
+    """The robot `robot` (a description's name or file) standing
+    (`StationConfig(robot, scenario="standing")`), the default balance
     control of both legs (`BalanceControlConfig`'s defaults, torque control from
     0.5 s, supervised) with
     the QP solved by `solver`, as one fused controller; its joint reference (the
@@ -398,7 +400,8 @@ def balance_controller(solver: str, duration: float):
     from hrp2_drake.robot.station import StationConfig, standing_positions
     from hrp2_drake.tools.ground_truth import true_motor_model
 
-    station = StationConfig(scenario="standing")
+    station = StationConfig(robot=robot, scenario="standing")
+    station.validate()
     robot = station.description()
     period = station.sensors_config().period
     standing = standing_positions(robot)
@@ -419,13 +422,13 @@ def balance_controller(solver: str, duration: float):
     return FusedController(parts), reference, com, station
 
 
-def bench_closed_loop(solver: str, duration: float = 2.0) -> dict:
-    """The fused balance controller on the standing HRP-2 in closed loop
+def bench_closed_loop(solver: str, duration: float = 2.0, robot: str = "hrp2") -> dict:
+    """The fused balance controller on the standing `robot` in closed loop
     (`balance_controller`, the station simulated in the same process:
     `run_in_process`), its QP solved by `solver`. Per tick, timed: the tick
     (`tick` + `command`, as bench_fused times it) and, inside it, the QP's update
     and solve (`TimedBackend`), the QP's step and the base's (`TimedCall`); then one
-    CalcInverseDynamics (gravity included) of the full floating HRP-2 (36
+    CalcInverseDynamics (gravity included) of the full floating robot (HRP-2: 36
     velocities) at the base's estimated state, the unit of the ratios. The ticks
     in torque control (the supervisor's ramp done) count; the garbage collector
     frozen and disabled, compiling frozen after `warm_up`, as in the control loop.
@@ -438,7 +441,7 @@ def bench_closed_loop(solver: str, duration: float = 2.0) -> dict:
     from hrp2_drake.hardware.real_time import garbage_collector_frozen
     from hrp2_drake.robot.station import make_station
 
-    controller, reference, com, station = balance_controller(solver, duration)
+    controller, reference, com, station = balance_controller(solver, duration, robot)
     backend = controller.balance._backend = TimedBackend(controller.balance._backend)
     base = controller.base.step = TimedCall(controller.base.step)
     qp_step = controller.balance.step = TimedCall(controller.balance.step)
@@ -476,6 +479,7 @@ def bench_closed_loop(solver: str, duration: float = 2.0) -> dict:
     unit = float(np.median(rnea_ns[active])) * 1e-3
     return {
         "solver": solver,
+        "robot": station.description().name,
         "tick": stats(tick_ns[active] * 1e-3, unit),
         "solve": stats(solve_ns[active] * 1e-3, unit),
         "base": stats(base_ns[active] * 1e-3, unit),
@@ -492,10 +496,10 @@ def bench_closed_loop(solver: str, duration: float = 2.0) -> dict:
 PERIOD_BUDGET_US = 1000.0
 
 
-def closed_loop_rows(duration: float = 2.0) -> list[dict]:
-    """`bench_closed_loop` for daqp (the default) and pydrake's OSQP, as rows for
-    scripts/bench.py (a line saying a solver is skipped if it is not installed); printed
-    as they come, with what they mean for a 1 kHz robot."""
+def closed_loop_rows(duration: float = 2.0, robot: str = "hrp2") -> list[dict]:
+    """`bench_closed_loop` on `robot` for daqp (the default) and pydrake's OSQP, as
+    rows for scripts/bench.py (a line saying a solver is skipped if it is not
+    installed); printed as they come, with what they mean for a 1 kHz robot."""
     rows = []
 
     def say(row):
@@ -510,11 +514,11 @@ def closed_loop_rows(duration: float = 2.0) -> list[dict]:
         if not available(solver):
             say({"name": f"{solver}: skipped (not installed: pip install {solver})"})
             continue
-        result = bench_closed_loop(solver, duration)
+        result = bench_closed_loop(solver, duration, robot)
         unit = result["rnea"]
         say(
             {
-                "name": f"CalcInverseDynamics, full HRP-2 ({solver} run)",
+                "name": f"CalcInverseDynamics, full {result['robot']} ({solver} run)",
                 "p50_us": unit["p50_us"],
                 "p99_us": unit["p99_us"],
             }
@@ -573,6 +577,12 @@ def main() -> int:
     from hrp2_drake.description import load_robot_description
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--robot",
+        default="hrp2",
+        help="a robot description with soles (a robot.yaml or a name in models/; "
+        "default: hrp2)",
+    )
     parser.add_argument("--ticks", type=int, default=2000)
     parser.add_argument("--solvers", default=",".join(DRAKE_AND_OPTIONAL + BENCH_ONLY))
     parser.add_argument(
@@ -582,16 +592,21 @@ def main() -> int:
         "--duration", type=float, default=2.0, help="closed loop: simulated s"
     )
     args = parser.parse_args()
+    try:
+        robot = load_robot_description(args.robot)
+    except (ValueError, OSError) as error:
+        parser.error(f"--robot {args.robot}: {error}")
+    if robot.base == "fixed" or not robot.contacts.soles:
+        parser.error(f"--robot {args.robot}: no soles to stand on (contacts.soles)")
     if args.closed_loop:
-        closed_loop_rows(args.duration)
+        closed_loop_rows(args.duration, args.robot)
         return 0
-    robot = load_robot_description("hrp2")
     solvers = [s for s in args.solvers.split(",") if available(s)]
     rows, rest, base, rnea = bench(robot, solvers, args.ticks)
     print(
-        f"HRP-2 double support, {args.ticks} ticks; CalcInverseDynamics (full HRP-2, "
-        f"36 velocities, gravity) p50 {rnea['p50_us']:.1f} µs, p99 "
-        f"{rnea['p99_us']:.1f} µs: the unit (ID)"
+        f"{robot.name} double support, {args.ticks} ticks; CalcInverseDynamics (full "
+        f"{robot.name}, {robot.make_plant().num_velocities()} velocities, gravity) p50 "
+        f"{rnea['p50_us']:.1f} µs, p99 {rnea['p99_us']:.1f} µs: the unit (ID)"
     )
     print(
         f"the step without the solve (Drake's terms, the kernels): p50 "
