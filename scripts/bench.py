@@ -438,13 +438,10 @@ def main() -> int:
         print("savitzky-golay", file=sys.stderr)
         results["sg"] = bench_savitzky_golay()
     if "estimator" in sections:
-        try:
-            from bench_estimator import bench_estimator
-        except ImportError as error:
-            print(f"estimator: skipped ({error})", file=sys.stderr)
-        else:
-            print("estimator", file=sys.stderr)
-            results["estimator"] = bench_estimator()
+        from bench_estimator import bench_estimator
+
+        print("estimator", file=sys.stderr)
+        results["estimator"] = bench_estimator()
     if "control" in sections:
         from bench_control import bench_controller_stack, bench_motion_experiment
 
