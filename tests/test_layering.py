@@ -66,23 +66,28 @@ def _part(path: Path) -> str:
     return relative.parts[0] if len(relative.parts) > 1 else relative.stem
 
 
-def _imports(path: Path) -> list[tuple[int, str]]:
-    """(line, imported part of the package) of every import of the package in `path`."""
+def _imported_modules(path: Path) -> list[tuple[int, str]]:
+    """(line, module) of every absolute import in `path`, at module level or inside a
+    function; `from package import name` gives package and package.name (a module,
+    or a name of package)."""
     found = []
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
-            modules = [alias.name for alias in node.names]
+            found += [(node.lineno, alias.name) for alias in node.names]
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            modules = [node.module]
-            if node.module == "hrp2_drake":  # from hrp2_drake import console
-                modules = [f"hrp2_drake.{alias.name}" for alias in node.names]
-        else:
-            continue
-        for module in modules:
-            parts = module.split(".")
-            if parts[0] == "hrp2_drake" and len(parts) > 1:
-                found.append((node.lineno, parts[1]))
+            found.append((node.lineno, node.module))
+            found += [(node.lineno, f"{node.module}.{a.name}") for a in node.names]
     return found
+
+
+def _imports(path: Path) -> list[tuple[int, str]]:
+    """(line, imported part of the package) of every import of the package in `path`."""
+    found = []
+    for line, module in _imported_modules(path):
+        parts = module.split(".")
+        if parts[0] == "hrp2_drake" and len(parts) > 1:
+            found.append((line, parts[1]))
+    return sorted(set(found))
 
 
 def _sources() -> list[Path]:
@@ -142,23 +147,14 @@ def test_only_the_command_line_imports_the_commands():
 
 
 def _command_imports(path: Path) -> list[tuple[int, str]]:
-    """(line, module) of every import of a module of `commands/` in `path`."""
-    found = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Import):
-            modules = [alias.name for alias in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            modules = [node.module]
-            if node.module == "hrp2_drake.commands":  # from ... import options
-                modules = [f"hrp2_drake.commands.{a.name}" for a in node.names]
-        else:
-            continue
-        found += [
-            (node.lineno, module.split(".")[2])
-            for module in modules
-            if module.startswith("hrp2_drake.commands.")
-        ]
-    return found
+    """(line, name) of every import of a module of `commands/` in `path`."""
+    return sorted(
+        {
+            (line, module.split(".")[2])
+            for line, module in _imported_modules(path)
+            if module.startswith("hrp2_drake.commands.") and len(module.split(".")) == 3
+        }
+    )
 
 
 def _commands() -> list[Path]:
