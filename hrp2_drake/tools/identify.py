@@ -196,14 +196,27 @@ def _label(joint: str, robot: RobotDescription | None = None) -> str:
 
 
 def _markdown(result: IdentificationResult, summary: dict, figures: list[str]) -> str:
-    config = result.config
     robot = result.robot
     label = functools.partial(_label, robot=robot)
     joints = summary["joints"]
+    lines = _intro(result)
+    lines += _logs_table(result)
+    lines += _parameter_table(result, joints, label)
+    lines += _gain_table(result, joints, label)
+    lines += _validation_table(result, joints, label)
+    lines += _sweep_table(result, joints, label)
+    lines += _estimation_table(summary, label)
+    lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures]
+    return "\n".join(lines) + "\n"
+
+
+def _intro(result: IdentificationResult) -> list[str]:
+    """The report's title, its samples and what each fit is for."""
+    config = result.config
     at_gain = f" at servo gain {result.gain:g}" if result.gain else ""
-    lines = [
-        f"# Motor identification of {robot.name} (paper Sec. 3, Table 1, Figures 1 "
-        "and 3)",
+    return [
+        f"# Motor identification of {result.robot.name} (paper Sec. 3, Table 1, "
+        "Figures 1 and 3)",
         "",
         f"Samples: {int(result.train.sum())} training, "
         f"{int((~result.train & result.held_out).sum())} held out "
@@ -218,36 +231,43 @@ def _markdown(result: IdentificationResult, summary: dict, figures: list[str]) -
         "",
         *(f"- {m.replace('_', ' ')}: {FIT_PURPOSE[m]}." for m in FITS),
     ]
-    if result.logs:
-        lines += [
-            "",
-            "## Logs",
-            "",
-            *markdown_table(
+
+
+def _logs_table(result: IdentificationResult) -> list[str]:
+    """The logs read (none for a collection): rate, duration, gain, servo on, gaps."""
+    if not result.logs:
+        return []
+    return [
+        "",
+        "## Logs",
+        "",
+        *markdown_table(
+            [
+                "log",
+                "raw rate (Hz)",
+                "duration (s)",
+                "gain",
+                "servo on",
+                "longest gap (ms)",
+            ],
+            [
                 [
-                    "log",
-                    "raw rate (Hz)",
-                    "duration (s)",
-                    "gain",
-                    "servo on",
-                    "longest gap (ms)",
-                ],
-                [
-                    [
-                        r["log"],
-                        f"{r['raw_rate_hz']:g}",
-                        f"{r['duration_s']:g}",
-                        "–" if r["gain"] is None else f"{r['gain']:g}",
-                        f"{r['valid_share'] * 100:.0f}%",
-                        f"{r['longest_gap_s'] * 1e3:.1f}",
-                    ]
-                    for r in result.logs
-                ],
-            ),
-        ]
-    lines += _parameter_table(result, joints, label)
-    lines += _gain_table(result, joints, label)
-    lines += [
+                    r["log"],
+                    f"{r['raw_rate_hz']:g}",
+                    f"{r['duration_s']:g}",
+                    "–" if r["gain"] is None else f"{r['gain']:g}",
+                    f"{r['valid_share'] * 100:.0f}%",
+                    f"{r['longest_gap_s'] * 1e3:.1f}",
+                ]
+                for r in result.logs
+            ],
+        ),
+    ]
+
+
+def _validation_table(result: IdentificationResult, joints: dict, label) -> list[str]:
+    """Every fit on the held-out samples, and the piecewise-linear model's notes."""
+    lines = [
         "",
         "## Validation on held-out samples",
         "",
@@ -287,27 +307,30 @@ def _markdown(result: IdentificationResult, summary: dict, figures: list[str]) -
             "",
             *notes,
         ]
-    lines += _sweep_table(result, joints, label)
-    if "torque_estimation" in summary:
-        lines += [
-            "",
-            "## Non-causal torque estimate vs ground truth",
-            "",
-            *markdown_table(
-                ["joint", "RMS error (N·m)", "peak |τ| (N·m)", "RMS / peak"],
+    return lines
+
+
+def _estimation_table(summary: dict, label) -> list[str]:
+    """The non-causal torque estimate against the simulated truth (a collection)."""
+    if "torque_estimation" not in summary:
+        return []
+    return [
+        "",
+        "## Non-causal torque estimate vs ground truth",
+        "",
+        *markdown_table(
+            ["joint", "RMS error (N·m)", "peak |τ| (N·m)", "RMS / peak"],
+            [
                 [
-                    [
-                        label(j),
-                        f"{v['rms']:.3f}",
-                        f"{v['peak']:.1f}",
-                        f"{v['rms'] / v['peak'] * 100:.2f}%",
-                    ]
-                    for j, v in summary["torque_estimation"].items()
-                ],
-            ),
-        ]
-    lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures]
-    return "\n".join(lines) + "\n"
+                    label(j),
+                    f"{v['rms']:.3f}",
+                    f"{v['peak']:.1f}",
+                    f"{v['rms'] / v['peak'] * 100:.2f}%",
+                ]
+                for j, v in summary["torque_estimation"].items()
+            ],
+        ),
+    ]
 
 
 def _parameter_table(result, joints: dict, label) -> list[str]:
