@@ -307,7 +307,14 @@ def bench(robot, solvers, ticks):
     finally:
         gc.enable()
         gc.unfreeze()
-    skip = min(50, ticks // 10)  # the first solves (cold caches, first warm start)
+    return _bench_rows(solvers, solve_ns, rest_ns, base_ns, rnea_ns, faults, tau_gap)
+
+
+def _bench_rows(solvers, solve_ns, rest_ns, base_ns, rnea_ns, faults, tau_gap):
+    """`bench`'s times (ns, a column per tick; the solves a row per solver) as
+    (a row per solver, the rest of the step, the base, CalcInverseDynamics): `stats`
+    in CalcInverseDynamics' p50, the first ticks left out."""
+    skip = min(50, rnea_ns.size // 10)  # the first solves (cold caches, warm start)
     rnea = rnea_ns[skip:] * 1e-3
     rest = rest_ns[skip:] * 1e-3
     unit = float(np.median(rnea))
