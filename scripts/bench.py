@@ -195,30 +195,29 @@ def _tick_systems() -> dict[str, _Ticker]:
     (half-sitting, small velocities, standing wrenches), initialized."""
     from bench_estimator import _fix, _inputs
 
-    from hrp2_drake.control.inverse_dynamics import (
-        TORQUE_COMPONENTS,
-        InverseDynamicsConfig,
-        InverseDynamicsController,
-        make_fixed_base_plant,
-    )
-    from hrp2_drake.control.safety import (
-        SafetyConfig,
-        SafetySupervisor,
-        supervisor_sensors,
-    )
-    from hrp2_drake.control.torque_controller import (
-        DeltaQTorqueController,
-        TorqueControllerConfig,
-    )
-    from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayFilter
-    from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
     from hrp2_drake.paper import hrp2
 
     config = hrp2.estimator_config()
     sensors = list(config.sensors)
-    n_all = hrp2.NUM_JOINTS
     inputs = _inputs(len(sensors))
-    systems = {}
+    systems = _estimation_tickers(config, inputs)
+    systems |= _control_tickers()
+    systems["safety supervisor (update + q_cmd)"] = _supervisor_ticker(sensors)
+    noop = _NoopTick(hrp2.NUM_JOINTS, sensors)
+    context = noop.CreateDefaultContext()
+    _fix(noop, context, inputs, sensors)
+    systems["no-op LeafSystem (the estimator's ports)"] = _Ticker(noop, context)
+    return systems
+
+
+def _estimation_tickers(config, inputs: dict) -> dict[str, _Ticker]:
+    """The SG filters of the encoders and of the sensors, and the estimator, with
+    `config` (HRP-2's `estimator_config`) on `inputs` (bench_estimator's)."""
+    from bench_estimator import _fix
+
+    from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayFilter
+    from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
+    from hrp2_drake.paper import hrp2
 
     def filter_ticker(system, signal):
         context = system.CreateDefaultContext()
@@ -226,8 +225,11 @@ def _tick_systems() -> dict[str, _Ticker]:
         system.ExecuteInitializationEvents(context)
         return _Ticker(system, context)
 
+    systems = {}
     systems["SG encoder filter (30, order 2)"] = filter_ticker(
-        SavitzkyGolayFilter(n_all, config.window, 2, config.period, config.evaluation),
+        SavitzkyGolayFilter(
+            hrp2.NUM_JOINTS, config.window, 2, config.period, config.evaluation
+        ),
         inputs["q"],
     )
     sensor_signal = np.concatenate(
@@ -243,11 +245,26 @@ def _tick_systems() -> dict[str, _Ticker]:
         ),
         sensor_signal,
     )
-
     estimator = FloatingBaseTorqueEstimator(hrp2.estimator_plant(), config)
     context = estimator.CreateDefaultContext()
-    _fix(estimator, context, inputs, sensors)
+    _fix(estimator, context, inputs, list(config.sensors))
     systems["estimator (30 joints, IMU, 4 F/T)"] = _Ticker(estimator, context)
+    return systems
+
+
+def _control_tickers() -> dict[str, _Ticker]:
+    """Inverse dynamics and the Δq torque controller of the right leg."""
+    from hrp2_drake.control.inverse_dynamics import (
+        TORQUE_COMPONENTS,
+        InverseDynamicsConfig,
+        InverseDynamicsController,
+        make_fixed_base_plant,
+    )
+    from hrp2_drake.control.torque_controller import (
+        DeltaQTorqueController,
+        TorqueControllerConfig,
+    )
+    from hrp2_drake.paper import hrp2
 
     joints = list(hrp2.RIGHT_LEG)
     n = len(joints)
@@ -267,7 +284,7 @@ def _tick_systems() -> dict[str, _Ticker]:
     }
     for name, value in id_inputs.items():
         inverse_dynamics.GetInputPort(name).FixValue(context, value)
-    systems["inverse dynamics (right leg)"] = _Ticker(inverse_dynamics, context)
+    systems = {"inverse dynamics (right leg)": _Ticker(inverse_dynamics, context)}
 
     torque = DeltaQTorqueController(
         hrp2.true_motor_model(joints), TorqueControllerConfig(joints=joints)
@@ -287,13 +304,23 @@ def _tick_systems() -> dict[str, _Ticker]:
         torque.GetInputPort(name).FixValue(context, value)
     torque.ExecuteInitializationEvents(context)
     systems["Δq torque controller (right leg)"] = _Ticker(torque, context)
+    return systems
 
-    # The safety supervisor (30 joints, IMU + 4 F/T, stamps) as bench_control measures
-    # it: update + q_cmd, fresh noisy samples and stamps every tick (a noisy sensor
-    # that repeats its sample is stale).
+
+def _supervisor_ticker(sensors: list[str]) -> _Ticker:
+    """The safety supervisor (30 joints, IMU + 4 F/T, stamps) as bench_control
+    measures it: update + q_cmd, fresh noisy samples and stamps every tick (a noisy
+    sensor that repeats its sample is stale)."""
+    from hrp2_drake.control.safety import (
+        SafetyConfig,
+        SafetySupervisor,
+        supervisor_sensors,
+    )
+    from hrp2_drake.paper import hrp2
+
     monitored = supervisor_sensors(sensors)
     supervisor = SafetySupervisor(
-        n_all, monitored, SafetyConfig(start_time=0.0), num_sensor_stamps=7
+        hrp2.NUM_JOINTS, monitored, SafetyConfig(start_time=0.0), num_sensor_stamps=7
     )
     context = supervisor.CreateDefaultContext()
     q30 = hrp2.half_sitting()
@@ -314,16 +341,9 @@ def _tick_systems() -> dict[str, _Ticker]:
 
     fresh_samples(0)
     supervisor.ExecuteInitializationEvents(context)
-
-    systems["safety supervisor (update + q_cmd)"] = _Ticker(
+    return _Ticker(
         supervisor, context, supervisor.GetOutputPort("q_cmd"), fresh_samples
     )
-
-    noop = _NoopTick(n_all, sensors)
-    context = noop.CreateDefaultContext()
-    _fix(noop, context, inputs, sensors)
-    systems["no-op LeafSystem (the estimator's ports)"] = _Ticker(noop, context)
-    return systems
 
 
 ESTIMATION_AND_CONTROL = (
@@ -398,12 +418,116 @@ def bench_tick(rounds: int = 41, ticks_per_round: int = 250) -> list[dict]:
     return rows
 
 
-def main() -> int:
+def _sim(args) -> list[dict]:
+    print("simulation", file=sys.stderr)
+    return bench_simulation(args.duration)
+
+
+def _sg(args) -> list[dict]:
+    from bench_savitzky_golay import bench_savitzky_golay
+
+    print("savitzky-golay", file=sys.stderr)
+    return bench_savitzky_golay()
+
+
+def _estimator(args) -> list[dict]:
+    from bench_estimator import bench_estimator
+
+    print("estimator", file=sys.stderr)
+    return bench_estimator()
+
+
+def _control(args) -> list[dict]:
+    from bench_control import bench_controller_stack, bench_motion_experiment
+
+    print("control", file=sys.stderr)
+    return bench_controller_stack() + bench_motion_experiment()
+
+
+def _fit(args) -> list[dict]:
+    from bench_fitting import bench_fitting
+
+    print("fitting", file=sys.stderr)
+    return bench_fitting()
+
+
+def _tick(args) -> list[dict]:
+    print("tick", file=sys.stderr)
+    return bench_tick(args.rounds)
+
+
+def _fused(args) -> list[dict]:
+    from bench_fused import bench_fused_tick
+
+    print("fused", file=sys.stderr)
+    return bench_fused_tick()
+
+
+def _balance(args) -> list[dict]:
+    from bench_balance import closed_loop_rows
+
+    print("balance", file=sys.stderr)
+    return closed_loop_rows(args.balance_duration)
+
+
+def _closed_loop(args) -> list[dict]:
+    from bench_closed_loop import bench_closed_loop
+
+    print("closed loop", file=sys.stderr)
+    return bench_closed_loop(args.closed_loop_duration, args.closed_loop_profile)
+
+
+def _lcm(args) -> list[dict]:
+    from bench_lcm import bench_lcm
+
+    print("lcm", file=sys.stderr)
+    return [
+        bench_lcm(
+            robot,
+            args.lcm_duration,
+            Path("out/bench_lcm") / (robot + ("_lockstep" if lockstep else "")),
+            lockstep=lockstep,
+        )
+        for robot in ("hrp2", "iiwa14")
+        for lockstep in (False, True)
+    ]
+
+
+def _bus(args) -> list[dict]:
+    import tempfile
+
+    from bench_bus import BAUDS, SERVOS, bench_bus
+
+    print("bus", file=sys.stderr)
+    with tempfile.TemporaryDirectory() as folder:
+        return [
+            {"name": f"{n} x XL330 at {baud / 1e6:g} Mbit/s"}
+            | bench_bus(n, baud, args.bus_cycles, Path(folder))
+            for n in SERVOS
+            for baud in BAUDS
+        ]
+
+
+#: The sections (`--only`), in the order they run: each prints its name and returns
+#: its rows.
+SECTIONS = {
+    "sim": _sim,
+    "sg": _sg,
+    "estimator": _estimator,
+    "control": _control,
+    "fit": _fit,
+    "tick": _tick,
+    "fused": _fused,
+    "balance": _balance,
+    "closed_loop": _closed_loop,
+    "lcm": _lcm,
+    "bus": _bus,
+}
+
+
+def _arguments() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument(
-        "--only",
-        default="sim,sg,estimator,control,fit,tick,fused,balance,closed_loop,lcm,bus",
-    )
+    parser.add_argument("--only", default=",".join(SECTIONS))
     parser.add_argument("--duration", type=float, default=3.0, help="simulated s")
     parser.add_argument("--json", type=Path, help="also write the rows here")
     parser.add_argument("--rounds", type=int, default=41, help="tick: rounds (median)")
@@ -425,81 +549,11 @@ def main() -> int:
         default=4.0,
         help="closed_loop: simulated s of the per-system breakdown",
     )
-    args = parser.parse_args()
-    sections = set(args.only.split(","))
+    return parser.parse_args()
 
-    results: dict[str, list[dict]] = {}
-    if "sim" in sections:
-        print("simulation", file=sys.stderr)
-        results["sim"] = bench_simulation(args.duration)
-    if "sg" in sections:
-        from bench_savitzky_golay import bench_savitzky_golay
 
-        print("savitzky-golay", file=sys.stderr)
-        results["sg"] = bench_savitzky_golay()
-    if "estimator" in sections:
-        from bench_estimator import bench_estimator
-
-        print("estimator", file=sys.stderr)
-        results["estimator"] = bench_estimator()
-    if "control" in sections:
-        from bench_control import bench_controller_stack, bench_motion_experiment
-
-        print("control", file=sys.stderr)
-        results["control"] = bench_controller_stack() + bench_motion_experiment()
-    if "fit" in sections:
-        from bench_fitting import bench_fitting
-
-        print("fitting", file=sys.stderr)
-        results["fit"] = bench_fitting()
-    if "tick" in sections:
-        print("tick", file=sys.stderr)
-        results["tick"] = bench_tick(args.rounds)
-    if "fused" in sections:
-        from bench_fused import bench_fused_tick
-
-        print("fused", file=sys.stderr)
-        results["fused"] = bench_fused_tick()
-    if "balance" in sections:
-        from bench_balance import closed_loop_rows
-
-        print("balance", file=sys.stderr)
-        results["balance"] = closed_loop_rows(args.balance_duration)
-    if "closed_loop" in sections:
-        from bench_closed_loop import bench_closed_loop
-
-        print("closed loop", file=sys.stderr)
-        results["closed_loop"] = bench_closed_loop(
-            args.closed_loop_duration, args.closed_loop_profile
-        )
-    if "lcm" in sections:
-        from bench_lcm import bench_lcm
-
-        print("lcm", file=sys.stderr)
-        results["lcm"] = [
-            bench_lcm(
-                robot,
-                args.lcm_duration,
-                Path("out/bench_lcm") / (robot + ("_lockstep" if lockstep else "")),
-                lockstep=lockstep,
-            )
-            for robot in ("hrp2", "iiwa14")
-            for lockstep in (False, True)
-        ]
-    if "bus" in sections:
-        import tempfile
-
-        from bench_bus import BAUDS, SERVOS, bench_bus
-
-        print("bus", file=sys.stderr)
-        with tempfile.TemporaryDirectory() as folder:
-            results["bus"] = [
-                {"name": f"{n} x XL330 at {baud / 1e6:g} Mbit/s"}
-                | bench_bus(n, baud, args.bus_cycles, Path(folder))
-                for n in SERVOS
-                for baud in BAUDS
-            ]
-
+def _print_tables(results: dict[str, list[dict]]) -> None:
+    """Each section's rows as a markdown table, on stdout."""
     for section, rows in results.items():
         print(f"\n## {section}")
         keys = sorted({k for row in rows for k in row if k != "name"})
@@ -515,6 +569,13 @@ def main() -> int:
                 for k in keys
             ]
             print(f"| {row['name']} | " + " | ".join(cells) + " |")
+
+
+def main() -> int:
+    args = _arguments()
+    sections = set(args.only.split(","))
+    results = {name: run(args) for name, run in SECTIONS.items() if name in sections}
+    _print_tables(results)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(results, indent=2))
