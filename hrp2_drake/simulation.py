@@ -1,6 +1,6 @@
 """Simulation helpers every layer may use: the base class of this project's Python
-LeafSystems, a logger for named ports, logs as arrays, and a simulation loop that
-shows progress.
+LeafSystems, a logger for named ports, logs as arrays, a joint reference through
+sampled positions, and a simulation loop that shows progress.
 """
 
 import sys
@@ -12,6 +12,7 @@ import numpy as np
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem, OutputPort
 from pydrake.systems.primitives import Multiplexer, VectorLogSink
+from pydrake.trajectories import PiecewisePolynomial
 
 from hrp2_drake import console
 
@@ -117,6 +118,27 @@ def logs_to_arrays(
             out["t"] = times.copy()
         out[name] = data.T.copy()
     return out
+
+
+def joint_reference(
+    times: np.ndarray, positions: np.ndarray, start: float = 0.0
+) -> PiecewisePolynomial:
+    """A C2 cubic spline through (times + start, positions), held before and after.
+
+    Args:
+        times: (m,) sample times (s), increasing.
+        positions: (m, n) joint positions (rad).
+        start: time shift (s); the first sample is held on [0, start].
+    """
+    times = np.asarray(times, float) - times[0] + start
+    positions = np.asarray(positions, float)
+    if start > 0:
+        times = np.concatenate([[0.0], times])
+        positions = np.vstack([positions[:1], positions])
+    zero = np.zeros((positions.shape[1], 1))
+    return PiecewisePolynomial.CubicWithContinuousSecondDerivatives(
+        times, positions.T, zero, zero
+    )
 
 
 def run_with_progress(

@@ -45,8 +45,12 @@ from hrp2_drake.robot.station import (
     initial_joint_positions,
     make_station,
 )
-from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
-from hrp2_drake.tools.simulate import joint_reference
+from hrp2_drake.simulation import (
+    add_loggers,
+    joint_reference,
+    logs_to_arrays,
+    run_with_progress,
+)
 
 SCENARIOS = ("hanging", "standing")
 PAPER_WINDOW = 80  # samples (paper Sec. 5.1)

@@ -1,8 +1,6 @@
 """`hrp2-drake simulate`: run a scenario with the servo holding a pose or following a
-trajectory, log every station signal at 1 kHz, optionally record a Meshcat replay.
-
-Also the building blocks the other experiments reuse: a joint-reference source from
-sampled waypoints, loggers for named ports, and a simulation loop with progress.
+trajectory, log every station signal at 1 kHz, optionally record a Meshcat replay;
+write the run (`write_simulation`).
 """
 
 import json
@@ -18,7 +16,6 @@ from pydrake.systems.primitives import (
     TrajectorySource,
     VectorLogSink,
 )
-from pydrake.trajectories import PiecewisePolynomial
 
 from hrp2_drake.config import check_finite
 from hrp2_drake.description import RobotDescription, check_joint_positions
@@ -27,7 +24,12 @@ from hrp2_drake.robot.station import (
     initial_joint_positions,
     make_station,
 )
-from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
+from hrp2_drake.simulation import (
+    add_loggers,
+    joint_reference,
+    logs_to_arrays,
+    run_with_progress,
+)
 
 
 @dataclass
@@ -88,27 +90,6 @@ def check_joint_limits(
     """Raises ValueError naming `where`, the first offending joint and row unless every
     row of q (m, n) lies within the robot's joint position limits (default: HRP-2)."""
     check_joint_positions(q, where, robot or StationConfig().description(), tolerance)
-
-
-def joint_reference(
-    times: np.ndarray, positions: np.ndarray, start: float = 0.0
-) -> PiecewisePolynomial:
-    """A C2 cubic spline through (times + start, positions), held before and after.
-
-    Args:
-        times: (m,) sample times (s), increasing.
-        positions: (m, n) joint positions (rad).
-        start: time shift (s); the first sample is held on [0, start].
-    """
-    times = np.asarray(times, float) - times[0] + start
-    positions = np.asarray(positions, float)
-    if start > 0:
-        times = np.concatenate([[0.0], times])
-        positions = np.vstack([positions[:1], positions])
-    zero = np.zeros((positions.shape[1], 1))
-    return PiecewisePolynomial.CubicWithContinuousSecondDerivatives(
-        times, positions.T, zero, zero
-    )
 
 
 def load_joint_trajectory(
