@@ -1,14 +1,25 @@
 #!/usr/bin/env python3
-"""Writes the results pages from a `hrp2-drake reproduce` run.
+"""Writes the results pages from a `hrp2-drake reproduce` run or a `hrp2-drake
+balance` run.
 
     hrp2-drake reproduce --out out/reproduce
     python scripts/update_readme_results.py out/reproduce [--root REPO]
+    hrp2-drake balance --robot hrp2 --out out/balance
+    python scripts/update_readme_results.py out/balance [--root REPO]
 
-Replaces the text between the RESULTS markers of docs/results.md with the verdicts,
-Tables 1-3, the controllers beyond the paper and the force metrics of that run, and the
-text between the HEADLINE markers of README.md with its one result table (the paper's
-claims, judged) and Figure 4; copies the two figures to docs/. REPO (default: the
-repository this script is in) is where README.md and docs/ are written.
+A reproduce run: replaces the text between the RESULTS markers of docs/results.md with
+the verdicts, Tables 1-3, the controllers beyond the paper and the force metrics of that
+run, and the text between the HEADLINE markers of README.md with its one result table
+(the paper's claims, judged) and Figure 4; copies the two figures to docs/.
+
+A balance run (a folder with a balance.json): replaces the text between the BALANCE
+markers of README.md with the run's table, and between the BALANCE_COM,
+BALANCE_ESTIMATION and BALANCE_PUSHES markers of docs/balance.md with its tables
+(`hrp2_drake.tools.balance_report`, the ones its balance.md has); copies its two
+figures to docs/.
+
+REPO (default: the repository this script is in) is where README.md and docs/ are
+written. A page is written only if every page of the run can be.
 """
 
 import argparse
@@ -24,6 +35,19 @@ HEADLINE = ("<!-- HEADLINE:BEGIN -->", "<!-- HEADLINE:END -->")
 FIGURES = {
     "motion/figure4_tracking_error.png": "docs/figure4_tracking_error.png",
     "force/figure5_force_tracking.png": "docs/figure5_force_tracking.png",
+}
+#: A balance run's markers: README's, and docs/balance.md's three.
+BALANCE = ("<!-- BALANCE:BEGIN -->", "<!-- BALANCE:END -->")
+BALANCE_COM = ("<!-- BALANCE_COM:BEGIN -->", "<!-- BALANCE_COM:END -->")
+BALANCE_ESTIMATION = (
+    "<!-- BALANCE_ESTIMATION:BEGIN -->",
+    "<!-- BALANCE_ESTIMATION:END -->",
+)
+BALANCE_PUSHES = ("<!-- BALANCE_PUSHES:BEGIN -->", "<!-- BALANCE_PUSHES:END -->")
+#: A balance run's figures and where they are copied.
+BALANCE_FIGURES = {
+    "balance_com_cop.png": "docs/balance_com_cop.png",
+    "balance_pushes.png": "docs/balance_pushes.png",
 }
 #: The run's files this script reads (and the figures).
 INPUTS = (
@@ -195,26 +219,93 @@ def replace_between(
     return before + "\n".join([begin, *lines, end]) + after
 
 
+def _balance_summary(run: Path) -> dict:
+    """The run's balance.json, checked for every key the tables read."""
+    from hrp2_drake.tools.balance_report import SummaryError, check_summary
+
+    path = run / "balance.json"
+    try:
+        return check_summary(json.loads(path.read_text()), str(path))
+    except json.JSONDecodeError as error:
+        raise UpdateError(f"{path}: not JSON ({error})") from None
+    except SummaryError as error:
+        raise UpdateError(str(error)) from None
+
+
+def balance_sections(run: Path) -> dict[str, list[tuple[tuple[str, str], list[str]]]]:
+    """README.md's and docs/balance.md's texts between their markers, by page."""
+    from hrp2_drake.tools import balance_report as report
+
+    summary = _balance_summary(run)
+    source = report.run_line(summary)
+    readme = ["", source, "", *report.headline_table(summary), ""]
+    com = ["", source, "", *report.com_table(summary), ""]
+    estimation = report.estimation_table(summary)
+    if estimation:
+        met, judged = report.estimation_met(summary)
+        goal = summary["settings"]["estimation_goal"]
+        estimation = [
+            "",
+            f"RMS of τ̂ − τ per leg joint against {goal * 100:g}% of its peak |τ| "
+            f"(bold: within; {len(met)} of {judged}).",
+            "",
+            *estimation,
+            "",
+        ]
+    else:
+        estimation = ["", "(This run has no estimation.)", ""]
+    pushes = ["", *report.push_table(summary), ""]
+    comparison = report.comparison_table(summary)
+    if comparison:
+        pushes += ["At the largest push both controls survived:", "", *comparison, ""]
+    return {
+        "README.md": [(BALANCE, readme)],
+        "docs/balance.md": [
+            (BALANCE_COM, com),
+            (BALANCE_ESTIMATION, estimation),
+            (BALANCE_PUSHES, pushes),
+        ],
+    }
+
+
+def _write(
+    root: Path, run: Path, sections: dict, figures: dict[str, str]
+) -> list[Path]:
+    """Every page's sections replaced, checked before any is written; then the
+    figures copied. Returns the files written."""
+    texts = {}
+    for name, replacements in sections.items():
+        page = root / name
+        if not page.is_file():
+            raise UpdateError(f"{page}: no such page")
+        text = page.read_text()
+        for markers, lines in replacements:
+            text = replace_between(text, markers, lines, str(page))
+        texts[page] = text
+    for page, text in texts.items():
+        page.write_text(text)
+    for source, target in figures.items():
+        shutil.copyfile(run / source, root / target)
+    return [*texts, *(root / target for target in figures.values())]
+
+
 def update(run: Path, root: Path) -> list[Path]:
-    """Writes docs/results.md and README.md under `root` from the run in `run`, and
+    """Writes the pages of the run in `run` under `root` (a balance run's if it has
+    a balance.json, else a reproduce run's: docs/results.md and README.md), and
     copies its figures; returns the files written."""
+    if (run / "balance.json").is_file():
+        missing = [name for name in BALANCE_FIGURES if not (run / name).is_file()]
+        if missing:
+            raise UpdateError(f"{run}: a balance run without {', '.join(missing)}")
+        return _write(root, run, balance_sections(run), BALANCE_FIGURES)
     missing = [name for name in INPUTS if not (run / name).is_file()]
     if missing:
         raise UpdateError(f"{run}: not a reproduce run: no {', '.join(missing)}")
-    pages = {
-        root / "docs" / "results.md": (RESULTS, results_section(run)),
-        root / "README.md": (HEADLINE, headline_section(run)),
+    sections = {
+        "docs/results.md": [(RESULTS, results_section(run))],
+        "README.md": [(HEADLINE, headline_section(run))],
     }
-    texts = {}
-    for page, (markers, lines) in pages.items():
-        if not page.is_file():
-            raise UpdateError(f"{page}: no such page")
-        texts[page] = replace_between(page.read_text(), markers, lines, str(page))
-    for page, text in texts.items():
-        page.write_text(text)
-    for source, target in FIGURES.items():
-        shutil.copyfile(run / source, root / target)
-    return [*texts, *(root / target for target in FIGURES.values())]
+    return _write(root, run, sections, FIGURES)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -222,7 +313,9 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__.splitlines()[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("run", type=Path, help="the output folder of a reproduce run")
+    parser.add_argument(
+        "run", type=Path, help="the output folder of a reproduce or a balance run"
+    )
     parser.add_argument(
         "--root",
         type=Path,

@@ -24,6 +24,7 @@ from hrp2_drake.tools.balance import (
     RunSpec,
     simulate_run,
 )
+from hrp2_drake.tools.balance_report import check_summary, report_markdown
 
 
 @pytest.fixture(scope="module")
@@ -245,7 +246,8 @@ def test_a_motor_model_without_the_legs_is_one_line(tmp_path, capsys, legs_model
 
 def test_balance_quick_writes_its_report(tmp_path, legs_model):
     """`hrp2-drake balance --quick`: both controls, the CoM sinusoid (one period)
-    and forward pushes; the report, the JSON and the figures."""
+    and forward pushes; the report, the JSON and the figures; the report is the
+    JSON's (`tools.balance_report`)."""
     model = tmp_path / "legs.yaml"
     legs_model.save(model)
     out = tmp_path / "balance"
@@ -263,3 +265,7 @@ def test_balance_quick_writes_its_report(tmp_path, legs_model):
     for name in ("balance.md", "balance_com_cop.png", "balance_pushes.png"):
         assert (out / name).stat().st_size > 0
     assert "Estimation in double support" in (out / "balance.md").read_text()
+    # The summary alone writes the report (and the README's and docs' tables:
+    # scripts/update_readme_results.py).
+    check_summary(summary, "balance.json")
+    assert (out / "balance.md").read_text() == report_markdown(summary)

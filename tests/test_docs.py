@@ -200,3 +200,183 @@ def test_update_refuses_a_report_without_its_table(tmp_path, update_script, caps
     assert update_script.main([str(run), "--root", str(root)]) == 2
     error = capsys.readouterr().err
     assert error.count("\n") == 1 and "motion.md: no heading with 'Table 3'" in error
+
+
+def _balance_summary() -> dict:
+    """A balance run's summary as `hrp2-drake balance` writes it, small."""
+    com = {
+        "com_rms_error_m": 0.0024,
+        "com_max_error_m": 0.0032,
+        "cop_margin_min_m": 0.0185,
+        "peak_normal_force_N": [396.0, 444.0],
+        "sole_tilt_max_rad": 0.0004,
+        "survived": True,
+        "failures": [],
+    }
+    push = {
+        "survived": True,
+        "failures": [],
+        "com_excursion_m": 0.0092,
+        "peak_normal_force_N": [280.0, 287.0],
+        "cop_margin_min_m": 0.01,
+        "settle_time_s": 0.46,
+    }
+    failed = push | {"survived": False, "failures": ["a sole lifted or rotated"]}
+    return {
+        "robot": "hrp2",
+        "controlled_joints": ["RLEG_JOINT3", "LLEG_JOINT3"],
+        "settings": {
+            "solver": "daqp",
+            "com_motion": {
+                "axis": "y",
+                "amplitude_m": 0.03,
+                "period_s": 2.0,
+                "duration_s": 10.0,
+            },
+            "pushes": {
+                "body": "CHEST_LINK1",
+                "directions": ["forward"],
+                "duration_s": 0.1,
+                "first_N": 50.0,
+                "resolution_N": 10.0,
+                "sole_slip_m": 0.005,
+                "sole_tilt_rad": 0.01,
+                "fall_drop_m": 0.05,
+                "settled_m": 0.002,
+            },
+            "estimation_goal": 0.03,
+        },
+        "com_motion": {
+            "torque": com
+            | {
+                "torque_share": 1.0,
+                "estimation": {
+                    "joints": ["RLEG_JOINT0", "RLEG_JOINT3", "LLEG_JOINT3"],
+                    "rms_error_Nm": [0.09, 0.94, 1.57],
+                    "peak_torque_Nm": [0.5, 45.9, 7.5],
+                    "rms_over_peak": [0.191, 0.020, 0.211],
+                    "goal": 0.03,
+                    "met": False,
+                },
+            },
+            "position": com | {"com_rms_error_m": 0.0017, "cop_margin_min_m": 0.0297},
+        },
+        "pushes": [
+            {
+                "mode": "torque",
+                "direction": "forward",
+                "largest_survived_N": 231.0,
+                "smallest_failed_N": 241.0,
+                "runs": {"231": push, "241": failed},
+            },
+            {
+                "mode": "position",
+                "direction": "forward",
+                "largest_survived_N": 106.0,
+                "smallest_failed_N": 116.0,
+                "runs": {"106": push, "116": failed},
+            },
+        ],
+        "push_comparison": {
+            "forward": {
+                "force_N": 100.0,
+                "torque": push,
+                "position": push | {"com_excursion_m": 0.0116, "settle_time_s": 0.9},
+            }
+        },
+    }
+
+
+def _fake_balance(run: Path, root: Path, summary: dict) -> None:
+    run.mkdir(parents=True)
+    (run / "balance.json").write_text(json.dumps(summary))
+    (run / "balance_com_cop.png").write_bytes(b"com cop")
+    (run / "balance_pushes.png").write_bytes(b"pushes")
+    (root / "docs").mkdir(parents=True)
+    readme = "# Readme\n\n{}\nOLD TABLE\n{}\n\ntail\n"
+    (root / "README.md").write_text(readme.format(*BALANCE_MARKERS["README"]))
+    page = "# Balance\n\n" + "".join(
+        f"## {name}\n\n{begin}\nOLD {name}\n{end}\n\n"
+        for name, (begin, end) in BALANCE_MARKERS.items()
+        if name != "README"
+    )
+    (root / "docs" / "balance.md").write_text(page)
+
+
+BALANCE_MARKERS = {
+    "README": ("<!-- BALANCE:BEGIN -->", "<!-- BALANCE:END -->"),
+    "com": ("<!-- BALANCE_COM:BEGIN -->", "<!-- BALANCE_COM:END -->"),
+    "estimation": (
+        "<!-- BALANCE_ESTIMATION:BEGIN -->",
+        "<!-- BALANCE_ESTIMATION:END -->",
+    ),
+    "pushes": ("<!-- BALANCE_PUSHES:BEGIN -->", "<!-- BALANCE_PUSHES:END -->"),
+}
+
+
+def test_update_writes_a_balance_runs_tables_between_their_markers(
+    tmp_path, update_script
+):
+    """A balance run's balance.json: README's table and docs/balance.md's three,
+    the better control's cells in bold, the goal met in bold; the figures copied."""
+    run, root = tmp_path / "balance", tmp_path / "repo"
+    _fake_balance(run, root, _balance_summary())
+    assert update_script.main([str(run), "--root", str(root)]) == 0
+    readme = (root / "README.md").read_text()
+    assert "OLD TABLE" not in readme and readme.endswith("-->\n\ntail\n")
+    assert "| experiment | torque control | position control |" in readme
+    assert "(±3 cm along y, 2 s period, 10 s): RMS / max CoM error" in readme
+    assert "| 2.4 / 3.2 mm | **1.7 / 3.2 mm** |" in readme
+    assert "| its smallest CoP margin inside the soles | 18.5 mm | **29.7 mm** |" in (
+        readme
+    )
+    assert "0.1 s on CHEST_LINK1, both feet flat | **231 N** | 106 N |" in readme
+    # (RLEG_JOINT0's peak, 0.5 N·m, is below the 5 N·m the row judges from)
+    assert (
+        "peak \\|τ\\| > 5 N·m within 3% RMS / peak | 1 of 2 (RLEG_JOINT3) |" in readme
+    )
+    page = (root / "docs" / "balance.md").read_text()
+    assert "OLD" not in page
+    assert (
+        "| torque control | 2.4 | 3.2 | 18.5 | 396, 444 | 0.40 | yes | 100% |" in page
+    )
+    assert "| position control | **1.7** | 3.2 | **29.7** |" in page
+    assert "| RLEG_JOINT3 | 0.94 | 45.9 | **2.0%** |" in page
+    assert "| LLEG_JOINT3 | 1.57 | 7.5 | 21.1% |" in page
+    assert "| RLEG_JOINT0 | 0.09 | 0.5 | 19.1% |" in page
+    assert "| forward | torque control | **231** | **23.1** | 241 |" in page
+    assert (
+        "| forward | 100 | torque control | **9.2** | 280, 287 | 10.0 | **0.46** |"
+        in (page)
+    )
+    assert "settle time to 2 mm (s)" in page
+    assert (root / "docs" / "balance_pushes.png").read_bytes() == b"pushes"
+
+
+def test_update_refuses_a_balance_json_of_another_version(
+    tmp_path, update_script, capsys
+):
+    """A balance.json without the settings the tables show: one line, nothing
+    written."""
+    summary = _balance_summary()
+    del summary["settings"]
+    run, root = tmp_path / "balance", tmp_path / "repo"
+    _fake_balance(run, root, summary)
+    readme = (root / "README.md").read_text()
+    assert update_script.main([str(run), "--root", str(root)]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "balance.json: no 'settings'" in error
+    assert (root / "README.md").read_text() == readme
+
+
+def test_update_refuses_a_balance_page_without_its_markers(
+    tmp_path, update_script, capsys
+):
+    run, root = tmp_path / "balance", tmp_path / "repo"
+    _fake_balance(run, root, _balance_summary())
+    (root / "docs" / "balance.md").write_text("# Balance without markers\n")
+    readme = (root / "README.md").read_text()
+    assert update_script.main([str(run), "--root", str(root)]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "needs one '<!-- BALANCE_COM:BEGIN -->'" in error
+    assert (root / "README.md").read_text() == readme  # nothing half-written

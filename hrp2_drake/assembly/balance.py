@@ -99,21 +99,20 @@ class BalanceControlConfig:
 
     The defaults differ from the QP's and the paper's where a measurement says so
     (HRP-2 standing on the calibrated servo, the authors' CoM sinusoid for one
-    period; CoM RMS error, smallest CoP margin):
+    period; each step's CoM RMS error and smallest CoP margin are in
+    docs/balance.md, "The sweep behind the defaults"):
     - the paper's chain under TSID-like gains (K_p,com 30/s², the 80-sample
-      window, K_i = 0): 7.3 mm, 34 mm. The CoM sags and lags: the legs' torque
-      errors (2-5 N·m: the servo's dead zone and friction at small torques, and
-      τ̂'s own error with the F/T sensors' biases uncalibrated on the ground) over
-      a soft CoM task;
-    - K_p,com 100/s², K_d,com 20/s (critically damped): 3.4 mm, 2.6 mm;
-    - a 40-sample window (20 ms less delay): 3.3 mm, 2.6 mm;
+      window, K_i = 0): the CoM sags and lags: the legs' torque errors (the
+      servo's dead zone and friction at small torques, and τ̂'s own error with the
+      F/T sensors' biases uncalibrated on the ground) over a soft CoM task;
+    - K_p,com 100/s², K_d,com 20/s (critically damped);
+    - a 40-sample window (20 ms less delay);
     - the Δq controller's torque integral (eq. 11's K_i = 10/s, the paper's 0):
-      1.7 mm, but the CoP reaches a sole's edge where the sinusoid starts (its
-      acceleration steps by 0.3 m/s²); an anti-windup of 0.5 N·m·s (5 N·m at
-      most from the integral) and a least normal force of 10 N per corner: 2.2
-      mm, 5.4 mm (the defaults);
-    - K_p,com 60/s² with the same: 3.2 mm, 27.5 mm.
-    The robot's position control on the same reference: 1.4 mm, 30 mm.
+      a smaller CoM error, but the CoP reaches a sole's edge where the sinusoid
+      starts (its acceleration steps by 0.3 m/s²); an anti-windup of 0.5 N·m·s
+      (5 N·m at most from the integral) and a least normal force of 10 N per
+      corner (the defaults);
+    - K_p,com 60/s² with the same: a wider CoP margin for a larger CoM error.
     """
 
     balance: BalanceConfig = field(default_factory=_balance_defaults)

@@ -28,7 +28,8 @@ the sensors. The motor model is identified first (`hrp2-drake identify`) unless 
 is given: the description's identification, then each `identify_*.yaml` of the
 robot's folder (HRP-2: the left leg's), merged.
 
-Writes balance.md, balance.json and figures. Nothing here knows a robot's names.
+Writes balance.md (`tools.balance_report`, from the summary alone), balance.json
+and figures. Nothing here knows a robot's names.
 """
 
 import json
@@ -63,7 +64,7 @@ from hrp2_drake.description import RobotDescription
 from hrp2_drake.estimation.estimator_config import GOAL_RMS_OVER_PEAK
 from hrp2_drake.identification.excitation import PushSource
 from hrp2_drake.identification.motor_model import MotorModel
-from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure
+from hrp2_drake.report import legend_beside, pyplot, save_figure
 from hrp2_drake.robot.station import (
     StationConfig,
     initial_joint_positions,
@@ -71,10 +72,9 @@ from hrp2_drake.robot.station import (
     standing_positions,
 )
 from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
+from hrp2_drake.tools.balance_report import MODES, report_markdown
 
 _WHERE = "BalanceExperimentConfig"
-#: The two controls, in the report's order.
-MODES = ("torque", "position")
 #: Push directions: the unit force in the world.
 DIRECTIONS = {"forward": (1.0, 0.0, 0.0), "sideways": (0.0, 1.0, 0.0)}
 #: A sole carrying less than this (N) is not loaded: its CoP is not counted.
@@ -132,8 +132,8 @@ class PushSettings:
         observe: how long after the pulse a run goes on (s).
         sole_slip: a sole that moves this far (m) from where it stood slid or lifted.
         sole_tilt: a sole that tilts this much (rad) rotated: its heel or toes
-            lifted (standing still, and along the CoM sinusoid, the soles tilt
-            0.0004 rad at most in the compliant contact).
+            lifted (far above what the compliant contact tilts a flat sole: the
+            report's CoM table gives the largest tilt along the sinusoid).
         fall_drop: a base that drops this far (m) fell.
         settled: the CoM is settled once within this distance (m) of where it was
             before the push, for the rest of the run.
@@ -744,6 +744,7 @@ def run_balance(
     summary = {
         "robot": robot.name,
         "controlled_joints": joints,
+        "settings": _settings(robot, config),
         "com_motion": {mode: com[mode]["metrics"] for mode in MODES},
         "pushes": pushes,
         "push_comparison": _push_comparison(pushes),
@@ -759,8 +760,34 @@ def run_balance(
         },
     )
     _figures(robot, config, com, pushes, out)
-    (out / "balance.md").write_text(_markdown(robot, config, summary))
+    (out / "balance.md").write_text(report_markdown(summary))
     return summary
+
+
+def _settings(robot: RobotDescription, config: BalanceExperimentConfig) -> dict:
+    """What the run was asked, as its report shows it (`tools.balance_report`)."""
+    motion, pushes = config.com_motion, config.pushes
+    return {
+        "solver": config.control.balance.solver,
+        "com_motion": {
+            "axis": motion.axis,
+            "amplitude_m": motion.amplitude,
+            "period_s": motion.period,
+            "duration_s": motion.duration,
+        },
+        "pushes": {
+            "body": config.push_body(robot),
+            "directions": list(pushes.directions),
+            "duration_s": pushes.duration,
+            "first_N": pushes.first,
+            "resolution_N": pushes.resolution,
+            "sole_slip_m": pushes.sole_slip,
+            "sole_tilt_rad": pushes.sole_tilt,
+            "fall_drop_m": pushes.fall_drop,
+            "settled_m": pushes.settled,
+        },
+        "estimation_goal": GOAL_RMS_OVER_PEAK,
+    }
 
 
 def _push_comparison(pushes: list[dict]) -> dict:
@@ -857,158 +884,6 @@ def _figures(robot, config, com: dict, pushes: list[dict], out: Path) -> None:
         ax.set_title(f"{direction} pushes (x: the robot failed)")
         legend_beside(ax)
     save_figure(fig, out / "balance_pushes.png", tight=True)
-
-
-def _mm(value) -> str:
-    return "–" if value is None or not np.isfinite(value) else f"{value * 1e3:.1f}"
-
-
-def _markdown(robot: RobotDescription, config, summary: dict) -> str:
-    motion = config.com_motion
-    com = summary["com_motion"]
-    lines = [
-        f"# Balance of {robot.name}: torque against position control",
-        "",
-        f"Torque control: the whole-body QP with both soles' contacts "
-        f"({config.control.balance.solver}), its τ* through the Δq controller of "
-        f"{len(summary['controlled_joints'])} leg joints with τ̂ from the paper's "
-        "estimator; the other joints in position control. Position control: the "
-        "same CoM reference through inverse kinematics, the robot's servo tracking "
-        "it. Contact forces, CoP and CoM are ground truth.",
-        "",
-        f"## CoM tracking: {motion.axis} to +{motion.amplitude * 100:g} cm, then a "
-        f"sinusoid ±{motion.amplitude * 100:g} cm, period {motion.period:g} s, for "
-        f"{motion.duration:g} s",
-        "",
-    ]
-    rows = []
-    for mode in MODES:
-        m = com[mode]
-        rows.append(
-            [
-                f"{mode} control",
-                _mm(m["com_rms_error_m"]),
-                _mm(m["com_max_error_m"]),
-                _mm(m["cop_margin_min_m"]),
-                ", ".join(f"{f:.0f}" for f in m["peak_normal_force_N"]),
-                "yes" if m["survived"] else "; ".join(m["failures"]),
-                f"{m['torque_share'] * 100:.1f}%" if "torque_share" in m else "–",
-            ]
-        )
-    lines += markdown_table(
-        [
-            "control",
-            "CoM RMS error (mm)",
-            "CoM max error (mm)",
-            "smallest CoP margin (mm)",
-            "peak normal force per sole (N)",
-            "feet flat, no fallback",
-            "time in torque control",
-        ],
-        rows,
-    )
-    estimation = com["torque"].get("estimation")
-    if estimation:
-        lines += [
-            "",
-            f"Estimation in double support (torque control): RMS of τ̂ − τ per leg "
-            f"joint against {estimation['goal'] * 100:g}% of its peak |τ| (this "
-            f"project's goal; met: {'yes' if estimation['met'] else 'no'}).",
-            "",
-        ]
-        lines += markdown_table(
-            ["joint", "RMS error (N·m)", "peak |τ| (N·m)", "RMS / peak"],
-            [
-                [j, f"{r:.2f}", f"{p:.1f}", f"{x * 100:.1f}%"]
-                for j, r, p, x in zip(
-                    estimation["joints"],
-                    estimation["rms_error_Nm"],
-                    estimation["peak_torque_Nm"],
-                    estimation["rms_over_peak"],
-                )
-            ],
-        )
-    pushes = config.pushes
-    lines += [
-        "",
-        f"## Pushes: {pushes.duration:g} s pulses on {config.push_body(robot)}",
-        "",
-        f"Failure: a sole slides or lifts {pushes.sole_slip * 1e3:g} mm or tilts "
-        f"{pushes.sole_tilt:g} rad (its heel or toes lift), the base drops "
-        f"{pushes.fall_drop * 1e3:g} mm, or torque control falls back to position "
-        "control. "
-        f"Forces doubled from {pushes.first:g} N, then bisected to "
-        f"{pushes.resolution:g} N.",
-        "",
-    ]
-    rows = []
-    for push in summary["pushes"]:
-        failed = push["smallest_failed_N"]
-        why = (
-            "; ".join(push["runs"][f"{failed:g}"]["failures"])
-            if failed is not None
-            else "–"
-        )
-        rows.append(
-            [
-                push["direction"],
-                f"{push['mode']} control",
-                f"{push['largest_survived_N']:g}",
-                "–" if failed is None else f"{failed:g}",
-                f"{push['largest_survived_N'] * pushes.duration:.1f}",
-                why,
-            ]
-        )
-    lines += markdown_table(
-        [
-            "direction",
-            "control",
-            "largest survived (N)",
-            "smallest failed (N)",
-            "impulse survived (N·s)",
-            "the smallest failed push: what failed",
-        ],
-        rows,
-    )
-    comparison = summary["push_comparison"]
-    if comparison:
-        lines += ["", "At the largest push both controls survived:", ""]
-        rows = []
-        for direction, entry in sorted(comparison.items()):
-            for mode in MODES:
-                m = entry[mode]
-                settle = m["settle_time_s"]
-                rows.append(
-                    [
-                        direction,
-                        f"{entry['force_N']:g}",
-                        f"{mode} control",
-                        _mm(m["com_excursion_m"]),
-                        ", ".join(f"{f:.0f}" for f in m["peak_normal_force_N"]),
-                        _mm(m["cop_margin_min_m"]),
-                        "never" if settle is None else f"{settle:.2f}",
-                    ]
-                )
-        lines += markdown_table(
-            [
-                "direction",
-                "push (N)",
-                "control",
-                "CoM excursion (mm)",
-                "peak normal force per sole (N)",
-                "smallest CoP margin (mm)",
-                f"settle time to {pushes.settled * 1e3:g} mm (s)",
-            ],
-            rows,
-        )
-    lines += [
-        "",
-        "![CoM and CoP](balance_com_cop.png)",
-        "",
-        "![Pushes](balance_pushes.png)",
-        "",
-    ]
-    return "\n".join(lines)
 
 
 def shortened(config: BalanceExperimentConfig) -> BalanceExperimentConfig:

@@ -1,0 +1,394 @@
+"""The report of a balance run (`hrp2-drake balance`), from its summary alone.
+
+`tools/balance.py` writes a run's summary into `balance.json` and its report,
+`balance.md`, with these; `scripts/update_readme_results.py` writes README's balance
+table and docs/balance.md's tables from a run's `balance.json` with the same ones,
+so that no measured figure is copied by hand. Nothing here reads a robot or a
+config: every number and setting a table shows is in the summary (its `settings`
+say what the run was asked).
+
+    summary = json.loads(Path("out/balance/balance.json").read_text())
+    check_summary(summary, "balance.json")
+    lines = com_table(summary)
+"""
+
+import math
+from collections.abc import Sequence
+
+from hrp2_drake.report import markdown_table
+
+#: The two controls, in the report's order.
+MODES = ("torque", "position")
+
+#: README's row of τ̂ judges the leg joints loaded more than this (N·m) at their
+#: peak (issue 35's table: a joint that standing barely loads has a large ratio
+#: for a small error).
+HEADLINE_MIN_PEAK_NM = 5.0
+
+#: What a summary needs (`check_summary`): its keys and its settings' keys.
+SUMMARY_KEYS = ("robot", "controlled_joints", "com_motion", "pushes", "settings")
+SETTINGS_KEYS = ("solver", "com_motion", "pushes", "estimation_goal")
+
+
+class SummaryError(ValueError):
+    """A summary these tables cannot use: its message is one line."""
+
+
+def check_summary(summary: object, source: str) -> dict:
+    """`summary` if it is a balance run's summary with every key the tables read;
+    SummaryError naming `source` and the first missing key otherwise."""
+    if not isinstance(summary, dict):
+        raise SummaryError(f"{source}: not a balance summary (a JSON object)")
+    missing = [key for key in SUMMARY_KEYS if key not in summary]
+    if missing:
+        raise SummaryError(
+            f"{source}: no '{missing[0]}' (a balance.json from another version: "
+            "run hrp2-drake balance again)"
+        )
+    settings = summary["settings"]
+    missing = [key for key in SETTINGS_KEYS if key not in settings]
+    if missing:
+        raise SummaryError(f"{source}: no 'settings.{missing[0]}'")
+    absent = [mode for mode in MODES if mode not in summary["com_motion"]]
+    if absent:
+        raise SummaryError(f"{source}: no 'com_motion.{absent[0]}'")
+    return summary
+
+
+def _mm(value) -> str:
+    """A length (m) in mm to 0.1 ("0.0", never "-0.0"); "–" if there is none."""
+    if value is None or not math.isfinite(value):
+        return "–"
+    return f"{round(value * 1e3, 1) + 0.0:.1f}"
+
+
+def _newton(force: float) -> str:
+    """A push (N) to 1 N: the search's resolution is 10 N."""
+    return f"{force:.0f}"
+
+
+def _bold_if(cell: str, best: bool) -> str:
+    return f"**{cell}**" if best else cell
+
+
+def _best(values: Sequence[float | None], larger: bool) -> list[bool]:
+    """Which of two values is strictly better (none on a tie or a missing one)."""
+    if len(values) != 2 or any(v is None or not math.isfinite(v) for v in values):
+        return [False] * len(values)
+    a, b = values
+    if a == b:
+        return [False, False]
+    first = a > b if larger else a < b
+    return [first, not first]
+
+
+def _rounded_mm(value: float | None) -> float | None:
+    """A length as the tables print it (0.1 mm), so that a bold cell is one that
+    reads better."""
+    return None if value is None or not math.isfinite(value) else round(value * 1e3, 1)
+
+
+def sinusoid_text(summary: dict) -> str:
+    motion = summary["settings"]["com_motion"]
+    amplitude = motion["amplitude_m"] * 100
+    return (
+        f"±{amplitude:g} cm along {motion['axis']}, {motion['period_s']:g} s period, "
+        f"{motion['duration_s']:g} s"
+    )
+
+
+def com_table(summary: dict) -> list[str]:
+    """The CoM sinusoid under both controls: CoM errors, the smallest CoP margin,
+    the soles' peak normal forces and largest tilt, the time in torque control."""
+    com = summary["com_motion"]
+    best = {
+        key: _best([_rounded_mm(com[m][key]) for m in MODES], larger)
+        for key, larger in (
+            ("com_rms_error_m", False),
+            ("com_max_error_m", False),
+            ("cop_margin_min_m", True),
+        )
+    }
+    rows = []
+    for k, mode in enumerate(MODES):
+        m = com[mode]
+        rows.append(
+            [
+                f"{mode} control",
+                *(
+                    _bold_if(_mm(m[key]), best[key][k])
+                    for key in (
+                        "com_rms_error_m",
+                        "com_max_error_m",
+                        "cop_margin_min_m",
+                    )
+                ),
+                ", ".join(f"{f:.0f}" for f in m["peak_normal_force_N"]),
+                f"{m['sole_tilt_max_rad'] * 1e3:.2f}",
+                "yes" if m["survived"] else "; ".join(m["failures"]),
+                f"{m['torque_share'] * 100:.0f}%" if "torque_share" in m else "–",
+            ]
+        )
+    return markdown_table(
+        [
+            "control",
+            "CoM RMS error (mm)",
+            "CoM max error (mm)",
+            "smallest CoP margin (mm)",
+            "peak normal force per sole (N)",
+            "largest sole tilt (mrad)",
+            "feet flat, no fallback",
+            "time in torque control",
+        ],
+        rows,
+    )
+
+
+def estimation_table(summary: dict) -> list[str]:
+    """τ̂'s RMS error against each torque-controlled joint's peak |τ| along the
+    sinusoid (bold: within the goal); empty if the run has no estimation."""
+    estimation = summary["com_motion"]["torque"].get("estimation")
+    if not estimation:
+        return []
+    goal = estimation["goal"]
+    return markdown_table(
+        ["joint", "RMS error (N·m)", "peak \\|τ\\| (N·m)", "RMS / peak"],
+        [
+            [j, f"{r:.2f}", f"{p:.1f}", _bold_if(f"{x * 100:.1f}%", x < goal)]
+            for j, r, p, x in zip(
+                estimation["joints"],
+                estimation["rms_error_Nm"],
+                estimation["peak_torque_Nm"],
+                estimation["rms_over_peak"],
+            )
+        ],
+    )
+
+
+def estimation_met(summary: dict, min_peak: float = 0.0) -> tuple[list[str], int]:
+    """The joints whose τ̂ meets the goal among those whose peak |τ| exceeds
+    `min_peak` (N·m), and how many joints that is."""
+    estimation = summary["com_motion"]["torque"].get("estimation") or {}
+    judged = [
+        (j, x)
+        for j, x, peak in zip(
+            estimation.get("joints", []),
+            estimation.get("rms_over_peak", []),
+            estimation.get("peak_torque_Nm", []),
+        )
+        if peak > min_peak
+    ]
+    return [j for j, x in judged if x < estimation["goal"]], len(judged)
+
+
+def _pushes_by(summary: dict) -> dict[tuple[str, str], dict]:
+    return {(p["direction"], p["mode"]): p for p in summary["pushes"]}
+
+
+def push_table(summary: dict) -> list[str]:
+    """The largest push each control survived per direction (bold: the larger),
+    its impulse, and what failed at the next push."""
+    duration = summary["settings"]["pushes"]["duration_s"]
+    by = _pushes_by(summary)
+    rows = []
+    for push in summary["pushes"]:
+        other = by.get(
+            (push["direction"], "position" if push["mode"] == "torque" else "torque")
+        )
+        survived = push["largest_survived_N"]
+        better = other is not None and survived > other["largest_survived_N"]
+        failed = push["smallest_failed_N"]
+        why = (
+            "; ".join(push["runs"][f"{failed:g}"]["failures"])
+            if failed is not None
+            else "–"
+        )
+        rows.append(
+            [
+                push["direction"],
+                f"{push['mode']} control",
+                _bold_if(_newton(survived), better),
+                _bold_if(f"{survived * duration:.1f}", better),
+                "–" if failed is None else _newton(failed),
+                why,
+            ]
+        )
+    return markdown_table(
+        [
+            "direction",
+            "control",
+            "largest push survived (N)",
+            "impulse (N·s)",
+            "next push (N)",
+            "what failed at the next push",
+        ],
+        rows,
+    )
+
+
+def comparison_table(summary: dict) -> list[str]:
+    """At the largest push both controls survived, per direction: the CoM's
+    excursion, the peak normal forces, the smallest CoP margin and the time to
+    settle (bold: the smaller excursion, the larger margin, the shorter settling)."""
+    settled = summary["settings"]["pushes"]["settled_m"]
+    rows = []
+    for direction, entry in sorted(summary.get("push_comparison", {}).items()):
+        runs = [entry[mode] for mode in MODES]
+        excursion = _best([_rounded_mm(r["com_excursion_m"]) for r in runs], False)
+        margin = _best([_rounded_mm(r["cop_margin_min_m"]) for r in runs], True)
+        settle = _best(
+            [
+                math.inf if r["settle_time_s"] is None else round(r["settle_time_s"], 2)
+                for r in runs
+            ],
+            False,
+        )
+        for k, (mode, m) in enumerate(zip(MODES, runs)):
+            time = m["settle_time_s"]
+            rows.append(
+                [
+                    direction,
+                    _newton(entry["force_N"]),
+                    f"{mode} control",
+                    _bold_if(_mm(m["com_excursion_m"]), excursion[k]),
+                    ", ".join(f"{f:.0f}" for f in m["peak_normal_force_N"]),
+                    _bold_if(_mm(m["cop_margin_min_m"]), margin[k]),
+                    _bold_if("never" if time is None else f"{time:.2f}", settle[k]),
+                ]
+            )
+    if not rows:
+        return []
+    return markdown_table(
+        [
+            "direction",
+            "push (N)",
+            "control",
+            "CoM excursion (mm)",
+            "peak normal force per sole (N)",
+            "smallest CoP margin (mm)",
+            f"settle time to {settled * 1e3:g} mm (s)",
+        ],
+        rows,
+    )
+
+
+def headline_table(summary: dict) -> list[str]:
+    """README's table: the sinusoid's CoM errors and CoP margin, the largest push
+    per direction, and τ̂ against its goal, torque against position control (bold:
+    the better)."""
+    settings = summary["settings"]
+    com = summary["com_motion"]
+    rms = [_rounded_mm(com[m]["com_rms_error_m"]) for m in MODES]
+    best = _best(rms, False)
+    rows = [
+        [
+            f"the authors' CoM sinusoid ({sinusoid_text(summary)}): RMS / max CoM "
+            "error",
+            *(
+                _bold_if(
+                    f"{_mm(com[m]['com_rms_error_m'])} / "
+                    f"{_mm(com[m]['com_max_error_m'])} mm",
+                    best[k],
+                )
+                for k, m in enumerate(MODES)
+            ),
+        ]
+    ]
+    best = _best([_rounded_mm(com[m]["cop_margin_min_m"]) for m in MODES], True)
+    rows.append(
+        [
+            "its smallest CoP margin inside the soles",
+            *(
+                _bold_if(f"{_mm(com[m]['cop_margin_min_m'])} mm", best[k])
+                for k, m in enumerate(MODES)
+            ),
+        ]
+    )
+    pushes = settings["pushes"]
+    by = _pushes_by(summary)
+    for direction in pushes["directions"]:
+        if not all((direction, m) in by for m in MODES):
+            continue
+        forces = [by[(direction, m)]["largest_survived_N"] for m in MODES]
+        best = _best(forces, True)
+        what = (
+            f"largest {direction} push, {pushes['duration_s']:g} s on "
+            f"{pushes['body']}, both feet flat"
+        )
+        rows.append(
+            [what, *(_bold_if(f"{_newton(f)} N", b) for f, b in zip(forces, best))]
+        )
+    met, judged = estimation_met(summary, HEADLINE_MIN_PEAK_NM)
+    if judged:
+        goal = summary["com_motion"]["torque"]["estimation"]["goal"]
+        rows.append(
+            [
+                f"τ̂ in double support: leg joints with peak \\|τ\\| > "
+                f"{HEADLINE_MIN_PEAK_NM:g} N·m within {goal * 100:g}% RMS / peak",
+                f"{len(met)} of {judged}" + (f" ({', '.join(met)})" if met else ""),
+                "–",
+            ]
+        )
+    return markdown_table(["experiment", "torque control", "position control"], rows)
+
+
+def run_line(summary: dict) -> str:
+    """Which run a page's tables are from."""
+    return (
+        f"From one run of `hrp2-drake balance --robot {summary['robot']}` (its "
+        f"`balance.json`; the QP solved by {summary['settings']['solver']})."
+    )
+
+
+def report_markdown(summary: dict) -> str:
+    """A run's `balance.md`."""
+    settings = summary["settings"]
+    pushes = settings["pushes"]
+    lines = [
+        f"# Balance of {summary['robot']}: torque against position control",
+        "",
+        f"Torque control: the whole-body QP with both soles' contacts "
+        f"({settings['solver']}), its τ* through the Δq controller of "
+        f"{len(summary['controlled_joints'])} leg joints with τ̂ from the paper's "
+        "estimator; the other joints in position control. Position control: the "
+        "same CoM reference through inverse kinematics, the robot's servo tracking "
+        "it. Contact forces, CoP and CoM are ground truth.",
+        "",
+        f"## CoM tracking: the authors' sinusoid ({sinusoid_text(summary)})",
+        "",
+        *com_table(summary),
+    ]
+    estimation = estimation_table(summary)
+    if estimation:
+        met, judged = estimation_met(summary)
+        lines += [
+            "",
+            f"Estimation in double support (torque control): RMS of τ̂ − τ per leg "
+            f"joint against {settings['estimation_goal'] * 100:g}% of its peak |τ| "
+            f"(this project's goal; met on {len(met)} of {judged}).",
+            "",
+            *estimation,
+        ]
+    lines += [
+        "",
+        f"## Pushes: {pushes['duration_s']:g} s pulses on {pushes['body']}",
+        "",
+        f"Failure: a sole slides or lifts {pushes['sole_slip_m'] * 1e3:g} mm or "
+        f"tilts {pushes['sole_tilt_rad']:g} rad (its heel or toes lift), the base "
+        f"drops {pushes['fall_drop_m'] * 1e3:g} mm, or torque control falls back to "
+        f"position control. Forces doubled from {pushes['first_N']:g} N, then "
+        f"bisected to {pushes['resolution_N']:g} N.",
+        "",
+        *push_table(summary),
+    ]
+    comparison = comparison_table(summary)
+    if comparison:
+        lines += ["", "At the largest push both controls survived:", "", *comparison]
+    lines += [
+        "",
+        "![CoM and CoP](balance_com_cop.png)",
+        "",
+        "![Pushes](balance_pushes.png)",
+        "",
+    ]
+    return "\n".join(lines)
