@@ -4,7 +4,9 @@ robot gets; on any fault it hands the robot back to its position servo, bumpless
 
 Sensor health (each a bit of the `fault` output, `FAULT_BITS`):
   - a NaN or infinite sample (encoders, IMU, F/T) or torque-chain command;
-  - a value out of range (F/T force and torque, accelerometer, gyroscope);
+  - a value out of range (F/T force and torque, accelerometer, gyroscope) for
+    `range_samples` consecutive samples (a sole landing gives its F/T sensor an
+    impact spike of a sample or two: not a sensor's fault);
   - an encoder jump no joint can make in one period (a glitch);
   - a stale sensor: its latest sample older than `stale_time` (the `sensor_time`
     input: the stamps or sequence counters a driver sends); a noisy sensor (IMU, F/T)
@@ -97,6 +99,9 @@ class SafetyConfig:
         encoder_jump_speed: a joint moving faster than this between two samples is a
             glitch (rad/s).
         force_limit, torque_limit: F/T range (N, N·m).
+        range_samples: consecutive samples out of its range that make a sensor's
+            entry faulty (1: any one sample). A sole's landing is an impact: its
+            F/T sensor's reading spikes for a sample or two.
         acceleration_limit: accelerometer range (m/s²).
         angular_velocity_limit: gyroscope range (rad/s).
         stale_time: a sensor whose latest sample is older than this is stale (s; the
@@ -115,6 +120,7 @@ class SafetyConfig:
     encoder_motion: float = 0.001
     encoder_jump_speed: float = 10.0
     force_limit: float = 2000.0
+    range_samples: int = 3
     torque_limit: float = 300.0
     acceleration_limit: float = 100.0
     angular_velocity_limit: float = 20.0
@@ -152,6 +158,10 @@ class SafetyConfig:
             raise ValueError(
                 f"{where}.max_reentries: must be >= 0, got {self.max_reentries}"
             )
+        if self.range_samples < 1:
+            raise ValueError(
+                f"{where}.range_samples: must be >= 1, got {self.range_samples}"
+            )
         if self.encoder_stale_samples < 2:
             raise ValueError(
                 f"{where}.encoder_stale_samples: must be >= 2, "
@@ -169,7 +179,8 @@ _CLEAR_ROW, _FAULTS_ROW, _WANT_ROW, _PRESSED_ROW = range(4)
 # Where the step's named arrays start in its flat state (their declaration order in
 # `SafetySupervisorStep.__init__`, checked there): mode, fault, transition (2), memory.
 # The memory's blocks follow its 4 scalar rows: the held pose (n), the last healthy
-# offset (n), the last samples (n + s), their repeat counts (n + s), the anchors (n).
+# offset (n), the last samples (n + s), their repeat counts (n + s), the anchors (n),
+# the sensors' consecutive samples out of range (s).
 _MODE, _FAULT, _TRANSITION, _MEMORY = 0, 1, 2, 4
 _HOLD = _MEMORY + 4
 
@@ -188,8 +199,9 @@ _HOLD = _MEMORY + 4
     _C_ENCODER_MOTION,
     _C_STALE_TIME,
     _C_STAMPS,
+    _C_RANGE_SAMPLES,
     _C_LIMITS,
-) = range(13)
+) = range(14)
 
 #: What a kernel gets for an input that is not connected (None): no entries.
 _ABSENT = np.zeros(0)
@@ -223,7 +235,7 @@ def _supervise(
     if (
         q_torque.shape[0] != n
         or q_position.shape[0] != n
-        or state.shape[0] != _HOLD + 5 * n + 2 * s
+        or state.shape[0] != _HOLD + 5 * n + 3 * s
         or constants.shape[0] != _C_LIMITS + s
         or (stamped and sensor_time.shape[0] != int(constants[_C_STAMPS]))
     ):
@@ -232,6 +244,7 @@ def _supervise(
     last = last_torque + n  # [q_measured (n); sensors (s)]
     count = last + n + s
     anchor = count + n + s
+    outside = anchor + n  # (s)
     period = constants[_C_PERIOD]
     previous_bits = int(state[_FAULT])
     alpha = state[_MODE]
@@ -284,9 +297,11 @@ def _supervise(
                 bits |= 32
             state[last + i] = q
     if sensors_finite:
-        # Range, and a noisy sensor repeating its sample (stale_samples; 0: no check).
+        # Range (for range_samples samples in a row), and a noisy sensor repeating
+        # its sample (stale_samples; 0: no check).
         stale_check = constants[_C_STALE_SAMPLES] != 0
         stale_count = constants[_C_STALE_COUNT]
+        range_samples = constants[_C_RANGE_SAMPLES]
         for j in range(s):
             value = sensors[j]
             row = last + n + j
@@ -296,6 +311,11 @@ def _supervise(
                 repeats = 0.0
             state[count + n + j] = repeats
             if abs(value) > constants[_C_LIMITS + j]:
+                over = state[outside + j] + 1.0
+            else:
+                over = 0.0
+            state[outside + j] = over
+            if over >= range_samples:
                 bits |= 4
             if stale_check and repeats >= stale_count:
                 bits |= 16
@@ -426,11 +446,12 @@ class SafetySupervisorStep(Step):
 
     State (`Step`): `mode` (1, α), `fault` (1, the bits of the last period, see
     FAULT_BITS), `transition` (2, [time (s), bits] of the last switch: bits 0 for a
-    ramp up), and `memory` (4 + 5 n + 2 s, s the sensors' total size): [time clear
+    ramp up), and `memory` (4 + 5 n + 3 s, s the sensors' total size): [time clear
     (s), faults since start_time, torque wanted, e-stop pressed; the e-stop's held
     pose (n, rad); q_torque − q_position of the last healthy period (n, rad); the
     last samples [q_measured (n); sensors (s)]; how many periods each has repeated
-    (n + s); q_position when each encoder stopped (n, rad)].
+    (n + s); q_position when each encoder stopped (n, rad); how many samples in a row
+    each sensor entry has been out of its range (s)].
     """
 
     def __init__(
@@ -473,16 +494,19 @@ class SafetySupervisorStep(Step):
         constants[_C_ENCODER_MOTION] = config.encoder_motion
         constants[_C_STALE_TIME] = config.stale_time
         constants[_C_STAMPS] = num_sensor_stamps
+        constants[_C_RANGE_SAMPLES] = float(config.range_samples)
         constants[_C_LIMITS:] = limits
         self._constants = constants
         size = n + sensor_size  # the monitored samples, [q_measured; sensors]
         rows = _layout([0, 0, 0, 0, n, n, size, size, n])
         self._hold_rows, self._last_torque_rows = rows[4], rows[5]
         self._last_rows, self._count_rows, self._anchor_rows = rows[6:]
+        end = self._anchor_rows.stop
+        self._outside_rows = slice(end, end + sensor_size)
         self._declare("mode", 0.0)
         self._declare("fault", 0.0)
         self._declare("transition", np.zeros(2))
-        self._declare("memory", np.zeros(self._anchor_rows.stop))
+        self._declare("memory", np.zeros(self._outside_rows.stop))
         self._finalize()
         # The kernels' layout of the state (_MODE, ...): the declarations above.
         names = ("mode", "fault", "transition", "memory")
