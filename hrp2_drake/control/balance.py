@@ -230,8 +230,8 @@ class DrakeQp(QpBackend):
     `update` replaces (UpdateCoefficients on the bindings); solved by OsqpSolver
     (eps 1e-9: the base's rows of the dynamics to ~1e-8 N) or ClarabelSolver. The
     last solution is passed as the initial guess, but neither warm-starts from it
-    through pydrake (measured on HRP-2: OSQP takes its 225 iterations with or
-    without it; Drake sets OSQP up anew at each Solve, without the duals)."""
+    through pydrake (on HRP-2, OSQP takes as many iterations with it as without:
+    Drake sets OSQP up anew at each Solve, without the duals)."""
 
     def __init__(self, qp: QpData, solver: str):
         from pydrake.solvers import (
@@ -288,8 +288,8 @@ class DaqpQp(QpBackend):
     """daqp (a dense active-set solver, pip `daqp`; the default solver): every
     constraint as a two-sided row, the equalities immutable; the bounds as simple
     bounds; warm-started with the last solve's multipliers (`dual_start`: its
-    active set). Its time on HRP-2 is mostly its setup (H's factorisation, ~90 µs
-    of ~120): the warm start saves ~10 %."""
+    active set). Its time on HRP-2 is mostly its setup (H's factorisation), which
+    the warm start does not save (`scripts/bench_balance.py` measures both)."""
 
     name = "daqp"
 
@@ -812,7 +812,7 @@ class BalanceStep(Step):
         (h_lin + m g) / m (g the gravity vector), equal to Drake's
         CalcJacobianCenterOfMassTranslationalVelocity and
         CalcBiasCenterOfMassTranslationalAcceleration to rounding (2e-16; the
-        latter costs ~150 µs a call on HRP-2)."""
+        latter is a slow call on HRP-2, which this spares)."""
         plant, context = self._plant, self._context
         qp, nv = self.qp, self._nv
         kV, world = JacobianWrtVariable.kV, self._world
