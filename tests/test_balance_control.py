@@ -20,8 +20,9 @@ from hrp2_drake.assembly.builders import JointReference, simulated_station
 from hrp2_drake.assembly.torque_control import EstimatorSettings, TorqueControlConfig
 from hrp2_drake.control.balance import BalanceConfig, BalanceFault
 from hrp2_drake.control.balance_reference import StandingIk, leg_joints
-from hrp2_drake.control.fused import EventKind, FusedController
+from hrp2_drake.control.fused import FusedController
 from hrp2_drake.control.safety import describe_faults
+from hrp2_drake.control.torque_chain import EventKind
 from hrp2_drake.hardware.in_process import run_in_process
 from hrp2_drake.robot.station import StationConfig, make_station, standing_positions
 from hrp2_drake.simulation import add_loggers, logs_to_arrays

@@ -30,43 +30,30 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from pydrake.math import RigidTransform
-from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort
-from pydrake.systems.primitives import Adder, TrajectorySource
+from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.systems.primitives import TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
 from hrp2_drake.assembly.builders import (
-    COMPONENTS,
     ControlDiagram,
     JointReference,
-    add_command,
-    add_controlled_signals,
-    add_delay_predictor,
-    add_fused_controller,
     add_reference,
-    add_selector,
     add_station,
-    add_torque_controller,
+    add_torque_chain,
     borrowed,
     build_control_diagram,
     chain_clock,
-    chain_inputs,
-    chain_signals,
+    chain_references,
     connect_command,
     sample_lead,
     station_ports,
     torque_chain_parts,
 )
 from hrp2_drake.assembly.torque_control import TorqueControlConfig
-from hrp2_drake.control.balance import BalanceConfig, WholeBodyBalanceController
+from hrp2_drake.control.balance import BalanceConfig
 from hrp2_drake.control.balance_reference import leg_joints
-from hrp2_drake.control.fused import (
-    BALANCE_SIGNALS,
-    BalanceParts,
-    TorqueChainParts,
-)
+from hrp2_drake.control.torque_chain import BalanceParts, TorqueChainParts
 from hrp2_drake.description import RobotDescription
-from hrp2_drake.estimation.base_kinematics import FloatingBaseFromSoles
-from hrp2_drake.estimation.estimation_chain import add_estimator
 from hrp2_drake.identification.motor_model import MotorModel
 
 _WHERE = "BalanceControlConfig"
@@ -260,93 +247,12 @@ def build_balance_control(
     com_ref = builder.AddNamedSystem(
         "com_reference", TrajectorySource(borrowed(com_reference))
     ).get_output_port()  # (the logged one)
-    chain_com_ref = clock.source(builder, "chain_com_reference", com_reference)
-    build = _add_fused_balance if fused else _add_separate_balance
-    ports = build(builder, station, parts, chain_inputs(blocks), chain_com_ref)
+    references = chain_references(blocks)
+    references["com_ref"] = clock.source(builder, "chain_com_reference", com_reference)
+    ports = add_torque_chain(builder, station, parts, references, fused)
     if not fused:
         initial = clock.initial_command(reference)
         connect_command(builder, station, ports["q_cmd"], parts, initial)
     ports |= {"com_ref": com_ref, "q_ref": blocks["q_ref"]}
     ports = station_ports(station, robot) | ports
     return build_control_diagram(builder, station, ports, reference)
-
-
-def _add_fused_balance(
-    builder, station, parts, blocks, com_ref
-) -> dict[str, OutputPort]:
-    """The chain, the base and the QP as one `FusedTorqueController`."""
-    fused = add_fused_controller(builder, station, parts, blocks | {"com_ref": com_ref})
-    return {name: fused.GetOutputPort(name) for name in chain_signals(parts)}
-
-
-def _add_separate_balance(
-    builder, station, parts, blocks, com_ref
-) -> dict[str, OutputPort]:
-    """The chain, the base and the QP as separate LeafSystems (the module
-    docstring's diagram)."""
-    chain = add_estimator(
-        builder,
-        station,
-        parts.estimator_plant,
-        parts.estimator_config,
-        lead=parts.sample_lead,
-    )
-    balance_parts = parts.balance
-    base = builder.AddNamedSystem(
-        "base_from_soles",
-        FloatingBaseFromSoles(
-            balance_parts.plant,
-            list(parts.all_joints),
-            balance_parts.sole_poses,
-            parts.period,
-            lead=parts.sample_lead,
-        ),
-    )
-    builder.Connect(station.GetOutputPort("q_measured"), base.GetInputPort("q"))
-    builder.Connect(
-        chain.encoder_filter.GetOutputPort("derivative"), base.GetInputPort("v")
-    )
-    balance = builder.AddNamedSystem(
-        "balance",
-        WholeBodyBalanceController(
-            balance_parts.plant,
-            balance_parts.config,
-            balance_parts.contacts,
-            lead=parts.sample_lead,
-        ),
-    )
-    builder.Connect(base.GetOutputPort("state"), balance.GetInputPort("state"))
-    builder.Connect(blocks["q_ref"], balance.GetInputPort("q_ref"))
-    builder.Connect(com_ref, balance.GetInputPort("com_ref"))
-
-    selected = add_controlled_signals(builder, station, chain, parts, blocks)
-    predictor, v_estimate, torque_estimate = add_delay_predictor(
-        builder, chain, parts, selected
-    )
-    velocity = {"estimate": v_estimate, "reference": selected["v_ref"]}
-    torque = add_torque_controller(
-        builder, chain, parts, selected, predictor, torque_estimate, velocity
-    )
-    tau_star = add_selector(
-        builder, parts, "tau_desired_controlled", balance.GetOutputPort("tau_desired")
-    )
-    builder.Connect(tau_star, torque.GetInputPort("tau_desired"))
-    # The supervisor's fallback: the Δq controller's, or any QP fault (its code > 0).
-    fallback = builder.AddNamedSystem("fallback", Adder(2, 1))
-    builder.Connect(torque.GetOutputPort("fallback_active"), fallback.get_input_port(0))
-    builder.Connect(balance.GetOutputPort("fault"), fallback.get_input_port(1))
-    ports = add_command(
-        builder, station, parts, blocks, torque, fallback.get_output_port()
-    )
-    ports |= {
-        "tau_estimated": chain.estimator.GetOutputPort("tau"),
-        "tau_desired": balance.GetOutputPort("tau_desired"),
-        "delta_q": torque.GetOutputPort("delta_q"),
-        "fallback_active": torque.GetOutputPort("fallback_active"),
-        "sensor_fault": chain.input_fault,
-        "base_state": base.GetOutputPort("state"),
-    }
-    for name in BALANCE_SIGNALS:
-        ports[f"balance_{name}"] = balance.GetOutputPort(name)
-    ports |= {name: torque.GetOutputPort(name) for name in COMPONENTS}
-    return {name: ports[name] for name in chain_signals(parts)}

@@ -42,49 +42,31 @@ from hrp2_drake.assembly.torque_control import (
     check_control_period,
     delta_q_limit,
 )
-from hrp2_drake.control.disturbance_observer import (
-    DisturbanceObserver,
-    DisturbanceObserverConfig,
-)
-from hrp2_drake.control.fused import (
-    BALANCE_SIGNALS,
-    FusedTorqueController,
-    ObserverParts,
-    SupervisorParts,
-    TorqueChainParts,
-)
+from hrp2_drake.chain import Chain, add_chain
+from hrp2_drake.control.disturbance_observer import DisturbanceObserverConfig
+from hrp2_drake.control.fused import FusedTorqueController
 from hrp2_drake.control.gains import inverse_dynamics_gains_for_k6
 from hrp2_drake.control.inverse_dynamics import (
     InverseDynamicsConfig,
-    InverseDynamicsController,
     make_fixed_base_plant,
 )
-from hrp2_drake.control.predictor import DelayPredictor, DelayPredictorConfig
-from hrp2_drake.control.safety import SafetySupervisor, supervisor_sensors
-from hrp2_drake.control.torque_controller import (
-    DELTA_Q_COMPONENTS,
-    DeltaQTorqueController,
-    TorqueControllerConfig,
+from hrp2_drake.control.predictor import DelayPredictorConfig
+from hrp2_drake.control.safety import supervisor_sensors
+from hrp2_drake.control.torque_chain import (
+    ObserverParts,
+    SupervisorParts,
+    TorqueChainParts,
+    torque_chain,
 )
-from hrp2_drake.control.wiring import (
-    JointCommandMerger,
-    connect_inverse_dynamics,
-    make_joint_selector,
-)
+from hrp2_drake.control.torque_controller import TorqueControllerConfig
 from hrp2_drake.description import RobotDescription
 from hrp2_drake.estimation import estimator_config as estimation_config
-from hrp2_drake.estimation.estimation_chain import add_estimator
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import joint_indexing
 from hrp2_drake.robot.sensors import SensorSampler
 from hrp2_drake.robot.station import StationConfig, make_station, sensor_sizes
 from hrp2_drake.simulation import SampleHold
 from hrp2_drake.step import sampling_offset
-
-#: The six components of Δq of paper Sec. 5.5 (the controller's seventh, the torque
-#: integral, is zero with the paper's K_i = 0).
-COMPONENTS = DELTA_Q_COMPONENTS[:6]
-
 
 #: Segments per piece of `first_order_hold`.
 HOLD_PIECE = 1000
@@ -748,21 +730,51 @@ def build_torque_control(
     station = add_station(builder, robot, station)
     clock = chain_clock(station, parts, fused)
     blocks = add_reference(builder, reference, len(parts.all_joints), clock)
-    f_ref = None
+    references = chain_references(blocks)
     if parts.force_sensor:  # a force frame: a force task
         if force_reference is None:
             raise ValueError(
                 f"build_torque_control: no force_reference for the force task at F/T "
                 f"sensor '{parts.force_sensor}' (TorqueControlConfig's force frame)"
             )
-        f_ref = clock.source(builder, "force_reference", force_reference)
-    build = _add_fused_chain if fused else _add_separate_chain
-    ports = build(builder, station, robot, parts, chain_inputs(blocks), f_ref)
+        references["f_ref"] = clock.source(builder, "force_reference", force_reference)
+    ports = add_torque_chain(
+        builder, station, parts, references, fused, logged_wrench=robot.force_sensor
+    )
     if not fused:
         initial = clock.initial_command(reference)
         connect_command(builder, station, ports["q_cmd"], parts, initial)
     ports = station_ports(station, robot) | ports | {"q_ref": blocks["q_ref"]}
     return build_control_diagram(builder, station, ports, reference, force_reference)
+
+
+def add_torque_chain(
+    builder: DiagramBuilder,
+    station: Diagram,
+    parts: TorqueChainParts,
+    references: dict[str, OutputPort],
+    fused: bool,
+    logged_wrench: str = "",
+) -> dict[str, OutputPort]:
+    """Adds the torque-control chain of `parts` (its table, `torque_chain`) between
+    `station` and the references it reads (`references`: q_ref, v_ref, vdot_ref, and
+    f_ref or com_ref where the chain has them, by name): as one
+    `FusedTorqueController`, or as the table's separate LeafSystems. Returns the
+    logged signals' ports by name (`chain_signals`); the command to the servo is the
+    caller's to connect for the separate systems (`connect_command`), the fused
+    controller's own (its servo_command)."""
+    chain = torque_chain(parts)
+    names = chain_signals(chain, logged_wrench)
+    if fused:
+        system = add_fused_controller(builder, station, parts, references)
+        return {name: system.GetOutputPort(name) for name in names}
+    signals = {
+        f"station/{station.get_output_port(k).get_name()}": station.get_output_port(k)
+        for k in range(station.num_output_ports())
+    }
+    signals |= {f"reference/{name}": port for name, port in references.items()}
+    added = add_chain(builder, chain, signals)
+    return {name: added.logged[name] for name in names}
 
 
 def add_fused_controller(
@@ -785,236 +797,20 @@ def add_fused_controller(
     return fused
 
 
-def chain_signals(parts: TorqueChainParts, logged_wrench: str = "") -> list[str]:
-    """The chain's logged signals, by name, in order: the output ports that
-    `build_torque_control` and `build_balance_control` export from the chain, fused
-    or separate (both shells are built to give exactly these). `logged_wrench`: the
-    F/T sensor whose compensated external wrench is logged ("" for none)."""
-    names = ["q_cmd", "tau_estimated", "tau_desired", "delta_q", "fallback_active"]
-    names.append("sensor_fault")
-    if parts.balance is not None:
-        names += ["base_state", *(f"balance_{name}" for name in BALANCE_SIGNALS)]
-    names += list(COMPONENTS)
-    if parts.supervisor is not None:
-        names += [f"supervisor_{name}" for name in ("mode", "fault", "transition")]
-    if logged_wrench:
-        names.append(f"external_wrench_{logged_wrench}")
-    return names
+def chain_signals(chain: Chain, logged_wrench: str = "") -> list[str]:
+    """The chain's logged signals, by name, in order (`Chain.logged`): the output
+    ports that `build_torque_control` and `build_balance_control` export from the
+    chain, fused or separate. Of the F/T sensors' compensated external wrenches, only
+    `logged_wrench`'s ("" for none)."""
+    wrench = f"external_wrench_{logged_wrench}"
+    return [
+        name
+        for name in chain.logged()
+        if not name.startswith("external_wrench_") or name == wrench
+    ]
 
 
-def chain_inputs(blocks: dict[str, OutputPort]) -> dict[str, OutputPort]:
+def chain_references(blocks: dict[str, OutputPort]) -> dict[str, OutputPort]:
     """The reference a chain reads, by name (q_ref, v_ref, vdot_ref): the chain's
     blocks of `add_reference` (`ChainClock`)."""
     return {name: blocks[f"chain_{name}"] for name in ("q_ref", "v_ref", "vdot_ref")}
-
-
-def _add_fused_chain(
-    builder, station, robot, parts, blocks, f_ref
-) -> dict[str, OutputPort]:
-    fused = add_fused_controller(builder, station, parts, blocks | {"f_ref": f_ref})
-    names = chain_signals(parts, robot.force_sensor)
-    return {name: fused.GetOutputPort(name) for name in names}
-
-
-def _add_separate_chain(
-    builder, station, robot, parts, blocks, f_ref
-) -> dict[str, OutputPort]:
-    """The chain as its separate LeafSystems (the design card's diagram)."""
-    chain = add_estimator(
-        builder,
-        station,
-        parts.estimator_plant,
-        parts.estimator_config,
-        lead=parts.sample_lead,
-    )
-    inverse_dynamics = builder.AddNamedSystem(
-        "inverse_dynamics",
-        InverseDynamicsController(
-            parts.id_plant, parts.id_config, lead=parts.sample_lead
-        ),
-    )
-    selected = add_controlled_signals(builder, station, chain, parts, blocks)
-    for name in ("q_ref", "v_ref", "vdot_ref"):
-        builder.Connect(selected[name], inverse_dynamics.GetInputPort(name))
-    predictor, v_estimate, torque_estimate = add_delay_predictor(
-        builder, chain, parts, selected
-    )
-    velocity = {"estimate": v_estimate, "reference": selected["v_ref"]}
-    position = selected[
-        "q_measured" if parts.position_source == "encoders" else "q_estimate"
-    ]
-    builder.Connect(position, inverse_dynamics.GetInputPort("q"))
-    builder.Connect(
-        velocity[parts.feedback_velocity], inverse_dynamics.GetInputPort("v")
-    )
-    if parts.force_sensor:
-        builder.Connect(f_ref, inverse_dynamics.GetInputPort("f_ref"))
-        builder.Connect(
-            chain.estimator.GetOutputPort(f"external_wrench_{parts.force_sensor}"),
-            inverse_dynamics.GetInputPort("f"),
-        )
-
-    torque = add_torque_controller(
-        builder, chain, parts, selected, predictor, torque_estimate, velocity
-    )
-    connect_inverse_dynamics(builder, inverse_dynamics, torque)
-    ports = add_command(builder, station, parts, blocks, torque) | {
-        "tau_estimated": chain.estimator.GetOutputPort("tau"),
-        "tau_desired": inverse_dynamics.GetOutputPort("tau_desired"),
-        "delta_q": torque.GetOutputPort("delta_q"),
-        "fallback_active": torque.GetOutputPort("fallback_active"),
-        "sensor_fault": chain.input_fault,
-    }
-    if robot.force_sensor:
-        name = f"external_wrench_{robot.force_sensor}"
-        ports[name] = chain.estimator.GetOutputPort(name)
-    ports |= {name: torque.GetOutputPort(name) for name in COMPONENTS}
-    return {name: ports[name] for name in chain_signals(parts, robot.force_sensor)}
-
-
-def add_torque_controller(
-    builder, chain, parts, selected, predictor, torque_estimate, velocity
-) -> DeltaQTorqueController:
-    """Adds the Δq torque controller of `parts` ("torque_controller") with every
-    input connected but τ_d and its terms (the caller's: inverse dynamics, or the
-    balance QP): τ̂ (`torque_estimate`), the friction velocity (`velocity`, by
-    source), the encoders, the reference, the chain's input fault, and its loops
-    with the delay predictor and the disturbance observer if any."""
-    torque = builder.AddNamedSystem(
-        "torque_controller",
-        DeltaQTorqueController(
-            parts.controller_model, parts.controller_config, lead=parts.sample_lead
-        ),
-    )
-    builder.Connect(torque_estimate, torque.GetInputPort("tau_estimated"))
-    builder.Connect(velocity[parts.friction_velocity], torque.GetInputPort("v"))
-    if predictor is not None:
-        builder.Connect(
-            torque.GetOutputPort("delta_q"), predictor.GetInputPort("delta_q")
-        )
-    builder.Connect(selected["q_measured"], torque.GetInputPort("q_measured"))
-    builder.Connect(selected["q_ref"], torque.GetInputPort("q_ref"))
-    builder.Connect(chain.input_fault, torque.GetInputPort("sensor_fault"))
-    if parts.observer is not None:
-        _add_disturbance_observer(builder, parts, selected, torque)
-    return torque
-
-
-def add_selector(builder, parts, name: str, source: OutputPort) -> OutputPort:
-    """`source`, a vector of all joints, restricted to the controlled joints by the
-    selector system `name`."""
-    selector = builder.AddNamedSystem(
-        name, make_joint_selector(parts.all_joints, parts.joints)
-    )
-    builder.Connect(source, selector.get_input_port())
-    return selector.get_output_port()
-
-
-def add_controlled_signals(
-    builder, station, chain, parts, blocks
-) -> dict[str, OutputPort]:
-    """The controlled joints' reference (q_ref, v_ref, vdot_ref), encoders
-    (q_measured) and estimates (q_estimate, v_estimate, tau_estimate), by name; each
-    selected by a system named `<name>_controlled`."""
-    sources = {name: blocks[name] for name in ("q_ref", "v_ref", "vdot_ref")} | {
-        "q_measured": station.GetOutputPort("q_measured"),
-        "q_estimate": chain.encoder_filter.GetOutputPort("value"),
-        "v_estimate": chain.encoder_filter.GetOutputPort("derivative"),
-        "tau_estimate": chain.estimator.GetOutputPort("tau"),
-    }
-    return {
-        name: add_selector(builder, parts, f"{name}_controlled", source)
-        for name, source in sources.items()
-    }
-
-
-def add_delay_predictor(builder, chain, parts, selected: dict[str, OutputPort]):
-    """τ̂ and q̂̇ carried from the chain's delay to the present, if `parts.predictor`
-    (its Δq input is for the caller to connect, once the controller exists).
-
-    Returns:
-        (the DelayPredictor or None, the velocity estimate, the torque estimate): the
-        predicted ones, or without a predictor q̂̇ and τ̂.
-    """
-    if parts.predictor is None:
-        return None, selected["v_estimate"], selected["tau_estimate"]
-    predictor = builder.AddNamedSystem(
-        "delay_predictor",
-        DelayPredictor(parts.controller_model, parts.predictor, lead=parts.sample_lead),
-    )
-    vdot_hat = add_selector(
-        builder,
-        parts,
-        "vdot_estimate_controlled",
-        chain.encoder_filter.GetOutputPort("second_derivative"),
-    )
-    for source, target in (
-        (selected["v_estimate"], "v_estimated"),
-        (vdot_hat, "vdot_estimated"),
-        (selected["tau_estimate"], "tau_estimated"),
-    ):
-        builder.Connect(source, predictor.GetInputPort(target))
-    return (
-        predictor,
-        predictor.GetOutputPort("v_predicted"),
-        predictor.GetOutputPort("tau_predicted"),
-    )
-
-
-def _add_disturbance_observer(
-    builder, parts, selected: dict[str, OutputPort], torque
-) -> None:
-    """The disturbance observer of `parts.observer`, in a loop with the torque
-    controller: d̂ from Δq, q̂̇ and τ̂."""
-    observer = builder.AddNamedSystem(
-        "disturbance_observer",
-        DisturbanceObserver(
-            parts.observer.model, parts.observer.config, lead=parts.sample_lead
-        ),
-    )
-    builder.Connect(torque.GetOutputPort("delta_q"), observer.GetInputPort("delta_q"))
-    builder.Connect(selected["v_estimate"], observer.GetInputPort("v"))
-    builder.Connect(selected["tau_estimate"], observer.GetInputPort("tau_estimated"))
-    builder.Connect(observer.get_output_port(), torque.GetInputPort("tau_disturbance"))
-
-
-def add_command(
-    builder, station, parts, blocks, torque, fallback: OutputPort | None = None
-) -> dict[str, OutputPort]:
-    """q_cmd: the controlled joints' command merged with the other joints' reference,
-    through the safety supervisor if `parts.supervisor`, whose controller fallback is
-    `fallback` (default: the Δq controller's `fallback_active`). Returns the
-    supervisor's signals (supervisor_mode, _fault, _transition) if any, then q_cmd."""
-    merger = builder.AddNamedSystem(
-        "merger", JointCommandMerger(parts.all_joints, parts.joints)
-    )
-    builder.Connect(blocks["q_ref"], merger.GetInputPort("q_ref"))
-    builder.Connect(torque.GetOutputPort("q_cmd"), merger.GetInputPort("q_controlled"))
-    if parts.supervisor is None:
-        return {"q_cmd": merger.get_output_port()}
-    monitored = parts.supervisor.monitored
-    supervisor = builder.AddNamedSystem(
-        "safety_supervisor",
-        SafetySupervisor(
-            len(parts.all_joints),
-            monitored,
-            parts.supervisor.config,
-            num_sensor_stamps=parts.supervisor.num_stamps,
-            lead=parts.sample_lead,
-        ),
-    )
-    builder.Connect(merger.get_output_port(), supervisor.GetInputPort("q_torque"))
-    builder.Connect(blocks["q_ref"], supervisor.GetInputPort("q_position"))
-    for name in ("q_measured", *monitored):
-        builder.Connect(station.GetOutputPort(name), supervisor.GetInputPort(name))
-    if fallback is None:
-        fallback = torque.GetOutputPort("fallback_active")
-    builder.Connect(fallback, supervisor.GetInputPort("controller_fallback"))
-    builder.Connect(
-        station.GetOutputPort("sensor_time"), supervisor.GetInputPort("sensor_time")
-    )
-    ports = {
-        f"supervisor_{name}": supervisor.GetOutputPort(name)
-        for name in ("mode", "fault", "transition")
-    }
-    return ports | {"q_cmd": supervisor.GetOutputPort("q_cmd")}

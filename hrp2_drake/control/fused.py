@@ -40,13 +40,10 @@ two shells give the same signals to 1e-12 (tests/test_fused.py).
 """
 
 import time
-from dataclasses import dataclass, field
-from enum import IntEnum
+from dataclasses import dataclass
 
 import numpy as np
 from pydrake.common.value import AbstractValue
-from pydrake.math import RigidTransform
-from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.framework import (
     BasicVector,
     Context,
@@ -54,48 +51,15 @@ from pydrake.systems.framework import (
     ValueProducer,
 )
 
-from hrp2_drake.control.balance import BalanceConfig, BalanceStep
-from hrp2_drake.control.disturbance_observer import (
-    DisturbanceObserverConfig,
-    DisturbanceObserverStep,
-)
-from hrp2_drake.control.inverse_dynamics import (
-    TORQUE_COMPONENTS,
-    InverseDynamicsConfig,
-    InverseDynamicsStep,
-)
-from hrp2_drake.control.predictor import DelayPredictorConfig, DelayPredictorStep
-from hrp2_drake.control.safety import SafetyConfig, SafetySupervisorStep
-from hrp2_drake.control.torque_controller import (
-    DELTA_Q_COMPONENTS,
-    DeltaQTorqueStep,
-    TorqueControllerConfig,
+from hrp2_drake.chain import FusedChain, Take
+from hrp2_drake.control.torque_chain import (
+    EventKind,
+    TorqueChainParts,
+    torque_chain,
 )
 from hrp2_drake.description import RobotDescription
-from hrp2_drake.description.contacts import ContactsDescription
-from hrp2_drake.estimation.base_kinematics import BaseFromSolesStep
-from hrp2_drake.estimation.estimator_config import TorqueEstimatorConfig, filter_windows
-from hrp2_drake.estimation.estimator_step import TorqueEstimatorStep
-from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayStep
-from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.simulation import WitnessFreeLeafSystem
-from hrp2_drake.step import Step, new_sample, sampling_offset
-
-#: The balance QP's signals among the fused controller's (`balance_<name>`), as
-#: `build_balance_control` exports them.
-BALANCE_SIGNALS = ("com", "sole_wrenches", "contact_forces", "fault", "fault_count")
-
-
-class EventKind(IntEnum):
-    """What the fused controller records of a tick's events (`FusedController.events`,
-    column 1); the code in column 2 is a `FallbackReason`, the supervisor's fault
-    bits (`control.safety.describe_faults`) or a `control.balance.BalanceFault`.
-    Each is recorded when it starts (a balance fault also when its kind changes),
-    not at every tick it lasts."""
-
-    CONTROLLER_FALLBACK = 1
-    SUPERVISOR_FAULT = 2
-    BALANCE_FAULT = 3
+from hrp2_drake.step import new_sample, sampling_offset
 
 
 @dataclass(frozen=True)
@@ -218,103 +182,6 @@ class SensorChannel:
     stamp_rows: slice
 
 
-@dataclass(frozen=True)
-class ObserverParts:
-    """The disturbance observer's model (the controller's, without Coulomb friction)
-    and config."""
-
-    model: MotorModel
-    config: DisturbanceObserverConfig
-
-
-@dataclass(frozen=True)
-class SupervisorParts:
-    """The safety supervisor's monitored sensors ({station port: kind}), config, and
-    the number of sensor stamps it checks (`sensor_time`, one per signal)."""
-
-    monitored: dict[str, str]
-    config: SafetyConfig
-    num_stamps: int
-
-
-@dataclass(frozen=True)
-class BalanceParts:
-    """The balance front end of the chain (issue 29): the floating base's state from
-    the soles' kinematics (`BaseFromSolesStep`) and the whole-body QP with contacts
-    (`BalanceStep`), in the inverse dynamics' place.
-
-    Args:
-        plant: the robot alone with its floating base (the QP's and the base
-            estimate's model; both steps share it, each with its own context).
-        config: the QP; its joints are every joint of the robot, in its order.
-        contacts: the soles' rectangles and the ground's friction (the
-            description's `contacts`).
-        sole_poses: each sole frame's pose in the world where it stands (X_WS): the
-            anchors of the base's estimate.
-    """
-
-    plant: MultibodyPlant
-    config: BalanceConfig
-    contacts: ContactsDescription
-    sole_poses: dict[str, RigidTransform]
-
-
-@dataclass
-class TorqueChainParts:
-    """Everything the torque-control chain is made of, as data: the models and configs
-    that the separate LeafSystems and the fused controller are both built from
-    (`hrp2_drake.assembly.builders.torque_chain_parts` makes it).
-
-    Args:
-        all_joints: the robot's joints (every joint vector of the station).
-        joints: the torque-controlled joints (a subset, any order).
-        estimator_plant, estimator_config: the floating-base estimator's model.
-        id_plant, id_config: the inverse dynamics' fixed-base model and gains.
-        controller_model, controller_config: the Δq controller (eq. 10-11).
-        observer: the disturbance observer's model and config, or None.
-        predictor: the delay predictor's config (model: controller_model), or None.
-        supervisor: the safety supervisor's parts, or None: the Δq controller's
-            latched fallback alone.
-        position_source: "encoders" or "estimate" (q of eq. 12).
-        feedback_velocity, friction_velocity: "estimate" or "reference".
-        force_sensor: the F/T sensor whose f̂ feeds the force task ("" = none).
-        period: the control period (s).
-        balance: the balance front end, or None: the inverse dynamics (id_plant,
-            id_config) gives τ_d. With it, the QP's τ* of `joints` does, and
-            id_plant, id_config, position_source, feedback_velocity and
-            force_sensor are unused.
-        sample_lead: the station samples its sensors this long (s, less than a
-            period) before each multiple of the period (a bus: its read-to-write
-            delay); the Diagram shells commit each tick at the sampling instants.
-    """
-
-    all_joints: list[str]
-    joints: list[str]
-    estimator_plant: MultibodyPlant
-    estimator_config: TorqueEstimatorConfig
-    id_plant: MultibodyPlant
-    id_config: InverseDynamicsConfig
-    controller_model: MotorModel
-    controller_config: TorqueControllerConfig
-    observer: ObserverParts | None = None
-    predictor: DelayPredictorConfig | None = None
-    supervisor: SupervisorParts | None = None
-    position_source: str = "encoders"
-    feedback_velocity: str = "reference"
-    friction_velocity: str = "reference"
-    force_sensor: str = ""
-    period: float = field(default=0.001)
-    balance: BalanceParts | None = None
-    sample_lead: float = 0.0
-
-
-def _start_in(array: np.ndarray, view: np.ndarray) -> int:
-    """The index in the 1-D `array` of the first entry of `view`, a contiguous view on
-    it."""
-    offset = view.__array_interface__["data"][0] - array.__array_interface__["data"][0]
-    return offset // array.itemsize
-
-
 class FusedController:
     """The whole torque-control chain as one plain object (module docstring).
 
@@ -337,329 +204,58 @@ class FusedController:
         self._period = parts.period
         all_joints, joints = parts.all_joints, parts.joints
         self._N = len(all_joints)
-        self._n = len(joints)
         self._index = np.array([all_joints.index(j) for j in joints])
+        #: The table the controller runs (`control.torque_chain`).
+        self.chain = torque_chain(parts)
         econfig = parts.estimator_config
-        if list(econfig.joints) != list(all_joints):
-            raise ValueError(
-                "FusedController: the estimator's joints must be the robot's joints, "
-                "in its order"
-            )
-        balance = parts.balance
-        if balance is not None and list(balance.config.joints) != list(all_joints):
-            raise ValueError(
-                "FusedController: the balance QP's joints must be the robot's joints, "
-                "in its order"
-            )
-        if balance is not None and parts.force_sensor:
-            raise ValueError(
-                "FusedController: a force task and a balance QP (it has its own "
-                "contact forces)"
-            )
         #: The rows of `sensor_buffer`, for every shell that fills it.
-        self.layout = ControllerLayout(
+        self.layout = layout = ControllerLayout(
             num_joints=self._N,
             has_imu=bool(econfig.imu_frame),
             sensor_names=tuple(econfig.sensors),
             num_stamps=parts.supervisor.num_stamps if parts.supervisor else 0,
         )
-        self._make_steps()
-        self._make_state()
-        self._make_buffers()
-        self._wire()
-        self._make_gathers()
+        station = [
+            (f"station/{name}", rows.stop - rows.start)
+            for name, rows in layout.signals().items()
+        ]
+        if layout.num_stamps:
+            station.append(("station/sensor_time", layout.num_stamps))
+        references = [
+            (f"reference/{n}", size) for n, size in self.chain.references.items()
+        ]
         # Events: (t, kind, code) rows, a ring of the latest ones, and counts.
         self.events = np.zeros((256, 3))
         self.num_events = 0
         self.event_counts = {kind: 0 for kind in EventKind}
-        self.warmed_up = False  # (`warm_up`)
-
-    # ------------------------------------------------------------------ wiring
-
-    def _make_steps(self) -> None:
-        """The steps of the chain, from `parts` (None for a step it does not have)."""
-        parts, N = self.parts, self._N
-        econfig = parts.estimator_config
-        encoder_windows, sensor_windows = filter_windows(econfig)
-        self.encoder_filter = SavitzkyGolayStep(
-            N,
-            encoder_windows,
-            2,
-            econfig.period,
-            econfig.evaluation,
-            span=econfig.span(),
-        )
-        num_values = self.layout.num_values
-        self.sensor_filter = (
-            SavitzkyGolayStep(
-                num_values,
-                sensor_windows,
-                1,
-                econfig.period,
-                econfig.evaluation,
-                span=econfig.span(),
-            )
-            if num_values
-            else None
-        )
-        self.estimator = TorqueEstimatorStep(parts.estimator_plant, econfig)
-        balance = parts.balance
-        # τ_d: the inverse dynamics, or the base from the soles and the balance QP.
-        self.inverse_dynamics = self.base = self.balance = None
-        if balance is None:
-            self.inverse_dynamics = InverseDynamicsStep(parts.id_plant, parts.id_config)
-        else:
-            self.base = BaseFromSolesStep(
-                balance.plant, list(parts.all_joints), balance.sole_poses
-            )
-            self.balance = BalanceStep(balance.plant, balance.config, balance.contacts)
-        self.torque = DeltaQTorqueStep(parts.controller_model, parts.controller_config)
-        observer = parts.observer
-        self.observer = (
-            DisturbanceObserverStep(observer.model, observer.config)
-            if observer
-            else None
-        )
-        self.predictor = (
-            DelayPredictorStep(parts.controller_model, parts.predictor)
-            if parts.predictor
-            else None
-        )
-        supervisor = parts.supervisor
-        self.supervisor = (
-            SafetySupervisorStep(
-                N, supervisor.monitored, supervisor.config, supervisor.num_stamps
-            )
-            if supervisor
-            else None
-        )
-
-    def _make_state(self) -> None:
-        """One state vector for all steps, each step bound to its rows (moved into
-        `_sources` by `_make_buffers`)."""
-        steps = [
-            ("encoder_filter", self.encoder_filter),
-            ("sensor_filter", self.sensor_filter),
-            ("estimator", self.estimator),
-            ("inverse_dynamics", self.inverse_dynamics),
-            ("base", self.base),
-            ("balance", self.balance),
-            ("torque", self.torque),
-            ("observer", self.observer),
-            ("predictor", self.predictor),
-            ("supervisor", self.supervisor),
-        ]
-        self._steps: dict[str, Step] = {name: s for name, s in steps if s is not None}
-        self._offsets: dict[str, int] = {}
-        size = 0
-        for name, step in self._steps.items():
-            self._offsets[name] = size
-            size += step.state_size
-        self.state = np.zeros(size)
-        for name, step in self._steps.items():
-            start = self._offsets[name]
-            step.bind(self.state[start : start + step.state_size])
+        self._chain = FusedChain(self.chain, station + references, self._record)
+        #: Each row's step by name, and as an attribute (None: a step the chain
+        #: does not have).
+        self.steps = self._chain.steps
+        for name in _STEP_NAMES:
+            setattr(self, name, self.steps.get(name))
+        self.state = self._chain.state
         self._initial_state = self.state.copy()
-
-    def _make_buffers(self) -> None:
-        N, n = self._N, self._n
-        layout = self.layout
-        # Everything a tick reads, in one buffer (`_sources`): the steps' state
-        # (`state`, moved here: what each step computed so far in the tick), the
-        # station's signals (`sensor_buffer`, rows: `layout`), q_ref, v_ref,
-        # vdot_ref, f_ref, com_ref (with balance), and six zeros (no force reading),
-        # so that `take`s with precomputed rows select the controlled joints' inputs
-        # (`_make_gathers`).
-        com_ref = 9 if self.balance is not None else 0
-        sizes = [self.state.size, layout.size, N, N, N, 6, com_ref, 6]
-        self._sources = np.zeros(sum(sizes))
-        ends = np.cumsum(sizes)
-        (
-            state,
-            self.sensor_buffer,
-            self.q_ref,
-            self.v_ref,
-            self.vdot_ref,
-            self.f_ref,
-            self.com_ref,
-            self._no_force,
-        ) = (self._sources[end - size : end] for size, end in zip(sizes, ends))
-        for name, step in self._steps.items():
-            start = self._offsets[name]
-            step.bind(state[start : start + step.state_size])
-        self.state = state
-        #: The whole reference in one view: [q_ref; v_ref; vdot_ref; f_ref; com_ref].
-        start = ends[1]
-        self.reference = self._sources[start : start + 3 * N + 6 + com_ref]
+        sources = self._chain.sources
+        start = self.state.size
+        self.sensor_buffer = sources[start : start + layout.size]
         self.q_measured = self.sensor_buffer[layout.q_measured]
         self.sensor_values = self.sensor_buffer[layout.values]
         self.sensor_time = self.sensor_buffer[layout.stamps]
         self.q_measured_time = self.sensor_buffer[layout.q_measured_stamp]
-        # Selections of the controlled joints, previous and now (`_make_gathers`);
-        # with balance, also the reference's and the QP's τ* (no inverse dynamics'
-        # inputs to take them from).
-        names = ("q_measured", "q_hat", "v_hat", "vdot_hat", "tau_hat")
-        if self.balance is not None:
-            names += ("q_ref", "v_ref", "tau_star")
-        self._gathered = np.zeros(len(names) * n)
-        self._selected = {
-            name: self._gathered[i * n : (i + 1) * n] for i, name in enumerate(names)
-        }
-        self._merged = np.zeros(N)
-        self._fault = np.zeros(1)
-        # The supervisor's controller fallback with balance: the Δq controller's plus
-        # the QP's fault code (`_balance_fallback`).
-        self._controller_fallback = np.zeros(1)
-        self._no_fault = np.zeros(1)  # the sensor filter's fault without one
-
-    def _state_view(self, step_name: str, array_name: str) -> np.ndarray:
-        """The named array of a step: what it computed last (this tick's once it
-        stepped in the tick, the previous tick's before)."""
-        step = self._steps[step_name]
-        rows = step.rows(array_name)
-        start = self._offsets[step_name]
-        return self.state[start + rows.start : start + rows.stop]
-
-    def _wire(self) -> None:
-        s = self._state_view
-        self._s_q_hat = s("encoder_filter", "value")
-        self._s_v_hat = s("encoder_filter", "derivative")
-        self._s_vdot_hat = s("encoder_filter", "second_derivative")
-        self._s_encoder_fault = s("encoder_filter", "input_fault")
-        self._s_sensor_fault = self._no_fault
-        if self.sensor_filter is not None:
-            values = s("sensor_filter", "value")
-            rates = s("sensor_filter", "derivative")
-            self._s_sensor_fault = s("sensor_filter", "input_fault")
-            layout = self.layout
-            rows = {
-                name: layout.in_values(signal)
-                for name, signal in layout.signals().items()
-                if name != "q_measured"
-            }
-            imu = layout.has_imu
-            acc, gyro = "imu_linear_acceleration", "imu_angular_velocity"
-            self._s_acc = values[rows[acc]] if imu else None
-            self._s_gyro = values[rows[gyro]] if imu else None
-            self._s_alpha = rates[rows[gyro]] if imu else None
-            names = layout.sensor_names
-            self._s_wrenches = (
-                values[rows[f"wrench_{names[0]}"].start :].reshape(len(names), 6)
-                if names
-                else None
-            )
-        else:
-            self._s_acc = self._s_gyro = self._s_alpha = self._s_wrenches = None
-        self._s_tau = s("estimator", "tau")
-        self._s_force = (
-            s("estimator", f"external_wrench_{self.parts.force_sensor}")
-            if self.parts.force_sensor
-            else None
+        start += layout.size
+        #: The whole reference in one view: [q_ref; v_ref; vdot_ref (; f_ref with a
+        #: force task; com_ref with balance)].
+        self.reference = sources[start : start + sum(n for _, n in references)]
+        view = self._chain.view
+        self.q_ref, self.v_ref, self.vdot_ref = (
+            view(f"reference/{name}") for name in ("q_ref", "v_ref", "vdot_ref")
         )
-        self._s_q_cmd_controlled = s("torque", "q_cmd")
-        self._s_delta_q = s("torque", "delta_q")
-        self._s_fallback = s("torque", "fallback_active")
-        self._s_disturbance = s("observer", "disturbance") if self.observer else None
-        if self.predictor is not None:
-            self._s_v_predicted = s("predictor", "v_predicted")
-            self._s_tau_predicted = s("predictor", "tau_predicted")
-        if self.balance is None:
-            self._wire_inverse_dynamics()
-        else:
-            self._wire_balance()
-
-    def _wire_inverse_dynamics(self) -> None:
-        """τ_d and its terms (the Δq controller's inputs): the inverse dynamics'."""
-        self._s_tau_desired = self._state_view("inverse_dynamics", "tau_desired")
-        rows = [self.inverse_dynamics.rows(name) for name in TORQUE_COMPONENTS]
-        start = self._offsets["inverse_dynamics"]
-        contiguous = all(a.stop == b.start for a, b in zip(rows, rows[1:]))
-        if not contiguous:
-            raise ValueError("InverseDynamicsStep: the torque terms must be contiguous")
-        self._s_terms = self.state[
-            start + rows[0].start : start + rows[-1].stop
-        ].reshape(len(TORQUE_COMPONENTS), self._n)
-        self._supervisor_fallback = self._s_fallback
-
-    def _wire_balance(self) -> None:
-        """The balance front end's inputs: the base's state, the QP's τ* (all
-        joints; `_make_gathers` selects the controlled ones) and fault code. The Δq
-        controller gets τ* alone (no terms: τ_ff = τ*, as in the separate diagram),
-        the supervisor the sum of the two fallbacks (the separate diagram's
-        Adder)."""
-        s = self._state_view
-        self._s_robot_state = s("base", "robot_state")
-        self._s_balance_tau = s("balance", "tau_desired")
-        self._s_balance_fault = s("balance", "fault")
-        self._s_terms = None
-        self._supervisor_fallback = self._controller_fallback
-
-    def _source_rows(self, view: np.ndarray) -> np.ndarray:
-        """The rows of `_sources` that a view on it covers."""
-        start = _start_in(self._sources, view)
-        return np.arange(start, start + view.size)
-
-    def _make_gathers(self) -> None:
-        """The selections of a tick, as row indices into `_sources`: the inverse
-        dynamics' inputs, straight into its `inputs` ([q_ref; v_ref; vdot_ref;
-        position; velocity (; f_ref; f̂)], controlled joints), and `_gathered`
-        ([q_measured; q̂; q̂̇; q̂̈; τ̂ (; q_ref; v_ref; τ*)], controlled joints); and
-        the views the steps read them from."""
-        rows, index, sel = self._source_rows, self._index, self._selected
-        gathered = [
-            self.q_measured,
-            self._s_q_hat,
-            self._s_v_hat,
-            self._s_vdot_hat,
-            self._s_tau,
-        ]
-        if self.predictor is not None:
-            v_estimate, tau_estimate = self._s_v_predicted, self._s_tau_predicted
-        else:
-            v_estimate, tau_estimate = sel["v_hat"], sel["tau_hat"]
-        self._tau_estimate = tau_estimate
-        if self.balance is None:
-            q_ref, v_ref = self._gather_inverse_dynamics()
-        else:
-            gathered += [self.q_ref, self.v_ref, self._s_balance_tau]
-            q_ref, v_ref = sel["q_ref"], sel["v_ref"]
-            self._tau_desired = sel["tau_star"]
-        # In the order of `_gathered`'s names (`_make_buffers`).
-        self._gather = np.concatenate([rows(view)[index] for view in gathered])
-        # What the Δq controller reads besides: q_ref, τ̂ and the friction's q̂̇.
-        self._q_ref_controlled = q_ref
-        friction = {"estimate": v_estimate, "reference": v_ref}
-        self._v_friction = friction[self.parts.friction_velocity]
-
-    def _gather_inverse_dynamics(self) -> tuple[np.ndarray, np.ndarray]:
-        """The inverse dynamics' inputs as rows of `_sources` (`_make_gathers`);
-        returns the views of q_ref and v_ref (controlled joints) among them."""
-        rows, index = self._source_rows, self._index
-        parts = self.parts
-        if self.predictor is not None:
-            v_estimate_rows = rows(self._s_v_predicted)
-        else:
-            v_estimate_rows = rows(self._s_v_hat)[index]
-        velocity = {"estimate": v_estimate_rows, "reference": rows(self.v_ref)[index]}
-        encoders = parts.position_source == "encoders"
-        position = self.q_measured if encoders else self._s_q_hat
-        id_rows = [
-            rows(self.q_ref)[index],
-            rows(self.v_ref)[index],
-            rows(self.vdot_ref)[index],
-            rows(position)[index],
-            velocity[parts.feedback_velocity],
-        ]
-        if self.inverse_dynamics.has_force_task():  # f_d and f̂, or zeros
-            if self._s_force is not None:
-                id_rows += [rows(self.f_ref), rows(self._s_force)]
-            else:
-                id_rows += [rows(self._no_force)] * 2
-        self._id_gather = np.concatenate(id_rows)
-        self._id_inputs = self.inverse_dynamics.inputs
-        self._id_rows = self.inverse_dynamics.input_rows
-        self._tau_desired = self._s_tau_desired
-        return self._id_rows[0], self._id_rows[1]
+        refs = self.chain.references
+        self.f_ref = view("reference/f_ref") if "f_ref" in refs else np.zeros(6)
+        self.com_ref = view("reference/com_ref") if "com_ref" in refs else np.zeros(0)
+        self._merged = np.zeros(self._N)
+        self.warmed_up = False  # (`warm_up`)
 
     # ------------------------------------------------------------------ ticks
 
@@ -670,7 +266,7 @@ class FusedController:
         refuses to start before it (`warmed_up`) and forbids compiling while it runs
         (`hrp2_drake.kernels.freeze`)."""
         start = time.perf_counter()
-        for step in self._steps.values():
+        for step in self.steps.values():
             step.warm_up()
         self.warmed_up = True
         return time.perf_counter() - start
@@ -685,97 +281,17 @@ class FusedController:
     def initialize(self, t: float) -> None:
         """The initialization events of the chain's systems, from the current
         `sensor_buffer` and reference (the station's first sample)."""
-        q_measured, q_ref = self._selected["q_measured"], self._q_ref_controlled
-        self.q_measured.take(self._index, out=q_measured, mode="clip")
-        self.q_ref.take(self._index, out=q_ref, mode="clip")
-        self.encoder_filter.initialize(t, self.q_measured)
-        if self.sensor_filter is not None:
-            self.sensor_filter.initialize(t, self.sensor_values)
-        self.torque.initialize(t, q_measured, q_ref)
-        if self.supervisor is not None:
-            self.supervisor.initialize(self.q_measured, self.q_ref, self.sensor_values)
+        self._chain.initialize(t)
 
     def tick(self, t: float) -> None:
         """One control period at time t (s) from the current `sensor_buffer` and
         reference buffers (q_ref, v_ref, vdot_ref, f_ref; com_ref with balance).
 
-        One tick from sample to command: the steps run in the chain's order and each
-        reads what its upstream steps computed in this tick; the observer and the
-        predictor close loops through the Δq controller, which reads their output of
-        the previous tick (module docstring)."""
-        sources = self._sources
-        # Filters and estimator (paper Sec. 2), on this tick's samples.
-        self.encoder_filter.step(t, self.q_measured)
-        if self.sensor_filter is not None:
-            self.sensor_filter.step(t, self.sensor_values)
-        self.estimator.step(
-            t,
-            self._s_q_hat,
-            self._s_v_hat,
-            self._s_vdot_hat,
-            self._s_acc,
-            self._s_gyro,
-            self._s_alpha,
-            self._s_wrenches,
-        )
-        if self.balance is None:
-            # Eq. 12 from its input rows, filled in place by the take.
-            sources.take(self._id_gather, 0, self._id_inputs, "clip")
-            self.inverse_dynamics.step(t, *self._id_rows)
-        else:
-            self._balance_tick(t)
-        # Every selection of the controlled joints the Δq controller and the loops
-        # read: one take.
-        sources.take(self._gather, 0, self._gathered, "clip")
-        sel = self._selected
-        q_measured, v_hat, tau_hat = sel["q_measured"], sel["v_hat"], sel["tau_hat"]
-        fault = self._fault
-        fault[0] = self._s_encoder_fault[0] + self._s_sensor_fault[0]
-        reason = self.torque.step(
-            t,
-            self._tau_desired,
-            self._tau_estimate,
-            self._v_friction,
-            q_measured,
-            self._q_ref_controlled,
-            fault,
-            self._s_terms,
-            self._s_disturbance,
-        )
-        if reason:
-            self._record(t, EventKind.CONTROLLER_FALLBACK, reason)
-        if self.balance is not None:  # the supervisor's controller fallback
-            self._balance_fallback()
-        if self.observer is not None:
-            self.observer.step(t, self._s_delta_q, v_hat, tau_hat)
-        if self.predictor is not None:
-            self.predictor.step(t, v_hat, sel["vdot_hat"], tau_hat, self._s_delta_q)
-        if self.supervisor is not None:
-            merged = self._merged
-            merged[:] = self.q_ref
-            merged[self._index] = self._s_q_cmd_controlled
-            bits = self.supervisor.step(
-                t,
-                merged,
-                self.q_ref,
-                self.q_measured,
-                self.sensor_values,
-                None,
-                self._supervisor_fallback,
-                self.sensor_time,
-            )
-            if bits:
-                self._record(t, EventKind.SUPERVISOR_FAULT, bits)
-
-    def _balance_tick(self, t: float) -> None:
-        """The balance front end's part of a tick: the base from the soles (the
-        encoders and q̂̇ of this tick), then the QP (the base's state of this tick,
-        q_ref and com_ref)."""
-        self.base.step(t, self.q_measured, self._s_v_hat)
-        previous = self._s_balance_fault[0]
-        code = self.balance.step(t, self._s_robot_state, self.q_ref, self.com_ref)
-        if code and code != previous:
-            self._record(t, EventKind.BALANCE_FAULT, code)
+        One tick from sample to command: the rows of the chain's table run in order
+        and each reads what the rows above it computed in this tick; the observer and
+        the predictor close loops through the Δq controller, which reads their output
+        of the previous tick (`hrp2_drake.chain`)."""
+        self._chain.tick(t)
 
     def command(self, q_ref: np.ndarray, out: np.ndarray) -> np.ndarray:
         """The position command for the servo (all joints) after a tick, with the
@@ -786,19 +302,12 @@ class FusedController:
         if self.supervisor is None:
             out[:] = merged
             return out
-        fallback = self.torque.fallback_active
-        if self.balance is not None:
-            fallback = self._balance_fallback()
+        # The supervisor's controller fallback, from the state now (with balance,
+        # the sum of the Δq controller's and the QP's).
+        self._chain.refresh("supervisor")
+        fallback = self._chain.argument("supervisor", "controller_fallback")
         self.supervisor.q_cmd(merged, q_ref, fallback, out)
         return out
-
-    def _balance_fallback(self) -> np.ndarray:
-        """The supervisor's controller fallback with balance, of the tick in the
-        state: the Δq controller's plus the QP's fault code (the separate diagram's
-        Adder)."""
-        fallback = self._controller_fallback
-        fallback[0] = self.torque.fallback_active[0] + self.balance.fault[0]
-        return fallback
 
     def _record(self, t: float, kind: int, code: int) -> None:
         row = self.events[self.num_events % len(self.events)]
@@ -823,32 +332,35 @@ class FusedController:
         return 0.0 if self.torque.fallback_active[0] else 1.0
 
     def signals(self) -> dict[str, np.ndarray]:
-        """The logged signals (views on the state): the names of
-        `build_torque_control`'s output ports (with balance, `build_balance_control`'s:
-        tau_desired is the QP's, of every joint; base_state, balance_com,
-        balance_sole_wrenches, balance_contact_forces, balance_fault,
-        balance_fault_count)."""
-        balance = self.balance
-        tau_desired = self.inverse_dynamics if balance is None else balance
-        out = {
-            "tau_estimated": self.estimator.tau,
-            "tau_desired": tau_desired.tau_desired,
-            "delta_q": self.torque.delta_q,
-            "fallback_active": self.torque.fallback_active,
-        }
-        if balance is not None:
-            out["base_state"] = self.base.robot_state
-            for name in BALANCE_SIGNALS:
-                out[f"balance_{name}"] = getattr(balance, name)
-        for name in self.layout.sensor_names:
-            wrench = f"external_wrench_{name}"
-            out[wrench] = getattr(self.estimator, wrench)
-        for name in DELTA_Q_COMPONENTS[:6]:
-            out[name] = getattr(self.torque, name)
-        if self.supervisor is not None:
-            for name in ("mode", "fault", "transition"):
-                out[f"supervisor_{name}"] = getattr(self.supervisor, name)
+        """The logged signals that are rows of the state (views on it): the chain's
+        logged signals (`Chain.logged`) but the command and the sums."""
+        out = {}
+        for name, source in self.chain.logged().items():
+            if name == "q_cmd" or not isinstance(source, Take):
+                continue
+            rows = self._chain.logged_rows(source)
+            if isinstance(rows, list):
+                out[name] = self.state[rows[0]]
         return out
+
+    def logged_rows(self, name: str) -> list[slice] | np.ndarray:
+        """The rows of `state` of a logged signal (`FusedChain.logged_rows`)."""
+        return self._chain.logged_rows(self.chain.logged()[name])
+
+
+#: The rows a torque chain may have, by name (`FusedController`'s attributes).
+_STEP_NAMES = (
+    "encoder_filter",
+    "sensor_filter",
+    "estimator",
+    "inverse_dynamics",
+    "base",
+    "balance",
+    "torque",
+    "observer",
+    "predictor",
+    "supervisor",
+)
 
 
 class FusedTorqueController(WitnessFreeLeafSystem):
@@ -906,17 +418,9 @@ class FusedTorqueController(WitnessFreeLeafSystem):
         )
         # The reference ports, each with its rows of `FusedController.reference`.
         self._reference_ports = [
-            (self.DeclareVectorInputPort(name, N), getattr(fused, name))
-            for name in ("q_ref", "v_ref", "vdot_ref")
+            (self.DeclareVectorInputPort(name, size), getattr(fused, name))
+            for name, size in fused.chain.references.items()
         ]
-        if parts.force_sensor:
-            self._reference_ports.append(
-                (self.DeclareVectorInputPort("f_ref", 6), fused.f_ref)
-            )
-        if parts.balance:
-            self._reference_ports.append(
-                (self.DeclareVectorInputPort("com_ref", 9), fused.com_ref)
-            )
         self._group = int(self.DeclareDiscreteState(fused.state.copy()))
         self._sample_time = int(self.DeclareDiscreteState(1))
         self._reference = int(self.DeclareDiscreteState(fused.reference.copy()))
@@ -949,34 +453,23 @@ class FusedTorqueController(WitnessFreeLeafSystem):
         )
         self.DeclareStateOutputPort("servo_command", self._command)
         self._command = int(self._command)
-        for name, view in fused.signals().items():
-            rows = self._rows_of(view)
+        # Every logged signal of the chain but the command: rows of the tick's state
+        # (a sum of rows for the filters' input fault).
+        for name in fused.chain.logged():
+            if name == "q_cmd":
+                continue
+            rows = fused.logged_rows(name)
+            size = rows[0].stop - rows[0].start if isinstance(rows, list) else rows.size
             self.DeclareVectorOutputPort(
                 name,
-                len(view),
+                size,
                 lambda context, output, rows=rows: output.SetFromVector(
-                    self._ticked.Eval(context)[rows]
+                    _read_rows(self._ticked.Eval(context), rows)
                 ),
                 prerequisites_of_calc=ticked,
             )
-        fault_rows = [self._rows_of(fused.encoder_filter.input_fault)]
-        if fused.sensor_filter is not None:
-            fault_rows.append(self._rows_of(fused.sensor_filter.input_fault))
-        self.DeclareVectorOutputPort(
-            "sensor_fault",
-            1,
-            lambda context, output: output.SetFromVector(
-                [sum(self._ticked.Eval(context)[r][0] for r in fault_rows)]
-            ),
-            prerequisites_of_calc=ticked,
-        )
         # The cache value whose contents `fused.state` holds (None: unknown).
         self._holds = None
-
-    def _rows_of(self, view: np.ndarray) -> slice:
-        """The rows of the fused state that a state view covers."""
-        start = _start_in(self._fused.state, view)
-        return slice(start, start + view.size)
 
     def _read_sensors(self, context: Context) -> None:
         for port, rows in self._sensor_ports:
@@ -1038,3 +531,13 @@ class FusedTorqueController(WitnessFreeLeafSystem):
 
     def _calc_q_cmd(self, context: Context, output: BasicVector) -> None:
         output.SetFromVector(self._command_now(context))
+
+
+def _read_rows(state: np.ndarray, rows: list[slice] | np.ndarray) -> np.ndarray:
+    """A logged signal from a state vector: its rows (one slice), the sum of several
+    slices, or a take of indices."""
+    if not isinstance(rows, list):
+        return state[rows]
+    if len(rows) == 1:
+        return state[rows[0]]
+    return sum(state[r] for r in rows)

@@ -1,20 +1,32 @@
-"""`add_estimator`: the whole estimation chain of paper Sec. 2 (the Savitzky-Golay
-filters of Sec. 5.1 and the `FloatingBaseTorqueEstimator`) wired to a robot diagram's
-sensor ports, and `EstimationChain`, the systems it adds.
+"""The estimation chain of paper Sec. 2 (the Savitzky-Golay filters of Sec. 5.1 and
+the `FloatingBaseTorqueEstimator`) as rows of a chain (`estimation_rows`,
+`hrp2_drake.chain`), and `add_estimator`, which adds them to a robot diagram wired
+to its sensor ports; `EstimationChain`, the systems it adds.
 """
 
 from dataclasses import dataclass
 
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.framework import DiagramBuilder, OutputPort, System
-from pydrake.systems.primitives import Adder, Demultiplexer, Multiplexer
 
+from hrp2_drake.chain import (
+    Arg,
+    Chain,
+    Row,
+    Sum,
+    add_chain,
+    args,
+    concatenated,
+    entries,
+    whole,
+)
 from hrp2_drake.estimation.estimator_config import (
     TorqueEstimatorConfig,
     estimation_delay,
     filter_windows,
 )
-from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayFilter
+from hrp2_drake.estimation.estimator_step import TorqueEstimatorStep
+from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayFilter, SavitzkyGolayStep
 from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
 
 
@@ -64,21 +76,21 @@ def add_estimator(
     encoders (q, v, vdot), of order 1 on the IMU and the F/T sensors (values; the gyro's
     derivative is the angular acceleration), one window for all (config.window) or one
     per signal (config.windows), every filter evaluated at config.window's point (one
-    delay everywhere).
+    delay everywhere). The systems and their wiring are `estimation_rows`'.
 
     .. code-block:: text
 
         q_measured ──────────► SG order 2 ─► value, derivative, second_derivative
                                              = q, v, vdot ──────────────────┐
         imu_linear_acceleration ─┐                                          ▼
-        imu_angular_velocity ────┼─► Mux ─► SG order 1 ─► value ─► Demux ─► estimator
-        wrench_<s> (each) ───────┘                    └─► derivative ─► Demux ─┘
-                                     (the gyro's derivative: imu_angular_acceleration)
+        imu_angular_velocity ────┼─► SG order 1 ─► value (entries) ──────► estimator
+        wrench_<s> (each) ───────┘             └─► derivative (the gyro's) ─┘
+                                     (imu_angular_acceleration)
 
     Without IMU (config.imu_frame empty, a fixed base) the two imu ports are neither
-    read nor needed: the Mux, the order-1 filter and the value Demux carry the F/T
-    sensors only, and there is no derivative Demux; without F/T sensors either, there
-    is no order-1 filter at all (EstimationChain.sensor_filter is None).
+    read nor needed: the order-1 filter carries the F/T sensors only; without F/T
+    sensors either, there is no order-1 filter at all (EstimationChain.sensor_filter
+    is None).
 
     Args:
         builder: the builder that holds `station`.
@@ -102,26 +114,157 @@ def add_estimator(
         KeyError: a port the station lacks (named), an unknown frame/joint.
     """
     config.validate()
-    imu_ports = [accelerometer, gyroscope] if config.imu_frame else []
-    sensor_ports = imu_ports + [wrench_prefix + s for s in config.sensors]
-    _check_station_ports(station, config, encoders, sensor_ports)
-    estimator = builder.AddNamedSystem(
-        name, FloatingBaseTorqueEstimator(plant, config, lead=lead)
-    )
-    encoder_filter = _add_encoder_filter(
-        builder, station, estimator, config, encoders, name, lead
-    )
-    faults = [encoder_filter.GetOutputPort("input_fault")]
-    sensor_filter = _add_sensor_filter(
-        builder, station, estimator, config, sensor_ports, name, lead
-    )
-    if sensor_filter is not None:
-        faults.append(sensor_filter.GetOutputPort("input_fault"))
-    fault = builder.AddNamedSystem(f"{name}_input_fault", Adder(len(faults), 1))
-    for k, port in enumerate(faults):
-        builder.Connect(port, fault.get_input_port(k))
+    ports = StationPorts(encoders, accelerometer, gyroscope, wrench_prefix)
+    _check_station_ports(station, config, encoders, ports.sensors(config))
+    rows = estimation_rows(plant, config, lead=lead, ports=ports, name=name)
+    signals = {
+        f"station/{port}": station.GetOutputPort(port)
+        for port in [encoders, *ports.sensors(config)]
+    }
+    added = add_chain(builder, Chain(tuple(rows), None, {}), signals)
+    systems = added.systems
     return EstimationChain(
-        estimator, encoder_filter, sensor_filter, fault.get_output_port()
+        systems["estimator"],
+        systems["encoder_filter"],
+        systems.get("sensor_filter"),
+        added.logged["sensor_fault"],
+    )
+
+
+@dataclass(frozen=True)
+class StationPorts:
+    """The station's sensor ports the estimation chain reads, by role."""
+
+    encoders: str = "q_measured"
+    accelerometer: str = "imu_linear_acceleration"
+    gyroscope: str = "imu_angular_velocity"
+    wrench_prefix: str = "wrench_"
+
+    def sensors(self, config: TorqueEstimatorConfig) -> list[str]:
+        """The ports the order-1 filter reads, in its order: the IMU's, then each
+        F/T sensor's."""
+        imu = [self.accelerometer, self.gyroscope] if config.imu_frame else []
+        return imu + [self.wrench_prefix + s for s in config.sensors]
+
+
+def estimation_rows(
+    plant: MultibodyPlant,
+    config: TorqueEstimatorConfig,
+    *,
+    lead: float = 0.0,
+    ports: StationPorts = StationPorts(),
+    name: str = "torque_estimator",
+) -> list[Row]:
+    """The estimation chain's rows (`hrp2_drake.chain`): the encoders' filter
+    ("encoder_filter"), the IMU's and F/T sensors' ("sensor_filter", if any) and the
+    estimator ("estimator"), reading the station's signals (`ports`). The last row
+    logs tau_estimated, every external_wrench_<s> and sensor_fault (the sum of the
+    filters' input_fault: consecutive NaN or infinite samples held)."""
+    encoder_windows, sensor_windows = filter_windows(config)
+    period, evaluation, span = config.period, config.evaluation, config.span()
+    N = len(config.joints)
+
+    def sg(size, windows, order):
+        return dict(
+            make_step=lambda: SavitzkyGolayStep(
+                size, windows, order, period, evaluation, span=span
+            ),
+            make_system=lambda: SavitzkyGolayFilter(
+                size, windows, order, period, evaluation, span=span, lead=lead
+            ),
+        )
+
+    estimates = ("value", "derivative", "second_derivative")
+    rows = [
+        Row(
+            name="encoder_filter",
+            system_name=f"{name}_encoder_filter",
+            inputs={"signal": whole(f"station/{ports.encoders}")},
+            arguments=args("signal"),
+            outputs={e: e for e in (*estimates, "input_fault")},
+            initialize=args("signal"),
+            **sg(N, encoder_windows, 2),
+        )
+    ]
+    sensor_ports = ports.sensors(config)
+    imu = bool(config.imu_frame)
+    names = list(config.sensors)
+    faults = ["encoder_filter/input_fault"]
+    if sensor_ports:
+        size = 3 * (2 if imu else 0) + 6 * len(names)
+        rows.append(
+            Row(
+                name="sensor_filter",
+                system_name=f"{name}_sensor_filter",
+                inputs={
+                    "signal": concatenated(
+                        *(f"station/{p}" for p in sensor_ports),
+                        name=f"{name}_sensor_signals",
+                    )
+                },
+                arguments=args("signal"),
+                outputs={e: e for e in (*estimates[:2], "input_fault")},
+                initialize=args("signal"),
+                **sg(size, sensor_windows, 1),
+            )
+        )
+        faults.append("sensor_filter/input_fault")
+    rows.append(_estimator_row(plant, config, lead, name, imu, names, faults))
+    return rows
+
+
+def _estimator_row(plant, config, lead, name, imu, names, faults) -> Row:
+    """The estimator's row: q, v, vdot from the encoders' filter; the IMU's and the
+    F/T sensors' filtered values (and the gyro's derivative) as entries of the
+    sensor filter's outputs."""
+    inputs = {
+        port: whole(f"encoder_filter/{source}")
+        for port, source in (
+            ("q", "value"),
+            ("v", "derivative"),
+            ("vdot", "second_derivative"),
+        )
+    }
+    start = 0
+    if imu:
+        for port, source, rows in (
+            ("imu_linear_acceleration", "value", range(0, 3)),
+            ("imu_angular_velocity", "value", range(3, 6)),
+            ("imu_angular_acceleration", "derivative", range(3, 6)),
+        ):
+            inputs[port] = entries(
+                f"sensor_filter/{source}", rows, name=f"{name}_{port}"
+            )
+        start = 6
+    wrenches = tuple(f"wrench_{s}" for s in names)
+    for k, port in enumerate(wrenches):
+        rows = range(start + 6 * k, start + 6 * k + 6)
+        inputs[port] = entries("sensor_filter/value", rows, name=f"{name}_{port}")
+    imu_args = (
+        args(
+            "imu_linear_acceleration",
+            "imu_angular_velocity",
+            "imu_angular_acceleration",
+        )
+        if imu
+        else (Arg(), Arg(), Arg())
+    )
+    wrench_arg = Arg(wrenches, (len(names), 6)) if names else Arg()
+    externals = [f"external_wrench_{s}" for s in names]
+    fault = Sum(tuple(faults), name=f"{name}_input_fault")
+    return Row(
+        name="estimator",
+        system_name=name,
+        make_step=lambda: TorqueEstimatorStep(plant, config),
+        make_system=lambda: FloatingBaseTorqueEstimator(plant, config, lead=lead),
+        inputs=inputs,
+        arguments=(*args("q", "v", "vdot"), *imu_args, wrench_arg),
+        outputs={o: o for o in ("tau", *externals)},
+        logged={
+            "tau_estimated": whole("estimator/tau"),
+            "sensor_fault": fault,
+            **{e: whole(f"estimator/{e}") for e in externals},
+        },
     )
 
 
@@ -146,95 +289,3 @@ def _check_station_ports(
             f"add_estimator: port '{encoders}' has "
             f"{station.GetOutputPort(encoders).size()} entries, config.joints has {n}"
         )
-
-
-def _add_encoder_filter(
-    builder: DiagramBuilder,
-    station: System,
-    estimator: FloatingBaseTorqueEstimator,
-    config: TorqueEstimatorConfig,
-    encoders: str,
-    name: str,
-    lead: float,
-) -> SavitzkyGolayFilter:
-    """Adds the encoders' Savitzky-Golay filter (order 2) between the station's port
-    `encoders` and the estimator's q, v and vdot inputs; returns it."""
-    encoder_windows, _ = filter_windows(config)
-    encoder_filter = builder.AddNamedSystem(
-        f"{name}_encoder_filter",
-        SavitzkyGolayFilter(
-            len(config.joints),
-            encoder_windows,
-            2,
-            config.period,
-            config.evaluation,
-            span=config.span(),
-            lead=lead,
-        ),
-    )
-    builder.Connect(station.GetOutputPort(encoders), encoder_filter.get_input_port())
-    for source, target in (
-        ("value", "q"),
-        ("derivative", "v"),
-        ("second_derivative", "vdot"),
-    ):
-        builder.Connect(
-            encoder_filter.GetOutputPort(source), estimator.GetInputPort(target)
-        )
-    return encoder_filter
-
-
-def _add_sensor_filter(
-    builder: DiagramBuilder,
-    station: System,
-    estimator: FloatingBaseTorqueEstimator,
-    config: TorqueEstimatorConfig,
-    sensor_ports: list[str],
-    name: str,
-    lead: float,
-) -> SavitzkyGolayFilter | None:
-    """Adds the IMU's and F/T sensors' Savitzky-Golay filter (order 1) between the
-    station's `sensor_ports` (accelerometer and gyroscope with an IMU, then each F/T
-    sensor's) and the estimator: a Mux, the filter, a Demux of its values, and with an
-    IMU a Demux of its derivatives for the gyro's (imu_angular_acceleration). Returns
-    the filter, or None (and adds nothing) without any of these sensors."""
-    names = list(config.sensors)
-    num_imu_ports = len(sensor_ports) - len(names)
-    sizes = [3] * num_imu_ports + [6] * len(names)
-    if not sizes:
-        return None
-    _, sensor_windows = filter_windows(config)
-    mux = builder.AddNamedSystem(f"{name}_sensor_mux", Multiplexer(sizes))
-    for k, port in enumerate(sensor_ports):
-        builder.Connect(station.GetOutputPort(port), mux.get_input_port(k))
-    sensor_filter = builder.AddNamedSystem(
-        f"{name}_sensor_filter",
-        SavitzkyGolayFilter(
-            sum(sizes),
-            sensor_windows,
-            1,
-            config.period,
-            config.evaluation,
-            span=config.span(),
-            lead=lead,
-        ),
-    )
-    builder.Connect(mux.get_output_port(), sensor_filter.get_input_port())
-    values = builder.AddNamedSystem(f"{name}_sensor_values", Demultiplexer(sizes))
-    builder.Connect(sensor_filter.GetOutputPort("value"), values.get_input_port())
-    imu_targets = ["imu_linear_acceleration", "imu_angular_velocity"]
-    targets = imu_targets[:num_imu_ports] + [f"wrench_{n}" for n in names]
-    for k, target in enumerate(targets):
-        builder.Connect(values.get_output_port(k), estimator.GetInputPort(target))
-    if num_imu_ports:
-        rates = builder.AddNamedSystem(
-            f"{name}_sensor_derivatives", Demultiplexer(sizes)
-        )
-        builder.Connect(
-            sensor_filter.GetOutputPort("derivative"), rates.get_input_port()
-        )
-        builder.Connect(
-            rates.get_output_port(1),
-            estimator.GetInputPort("imu_angular_acceleration"),
-        )
-    return sensor_filter

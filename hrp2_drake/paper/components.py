@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hrp2_drake.assembly.builders import COMPONENTS
+from hrp2_drake.control.torque_chain import COMPONENTS
 from hrp2_drake.paper import hrp2
 from hrp2_drake.paper.claims import PANELS, check_panel
 from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure

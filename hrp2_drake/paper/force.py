@@ -61,13 +61,13 @@ import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
 
 from hrp2_drake.assembly.builders import (
-    COMPONENTS,
     JointReference,
     build_torque_control,
     simulated_station,
 )
 from hrp2_drake.assembly.torque_control import ControllerSettings, TorqueControlConfig
 from hrp2_drake.config import field_at, replace_fields
+from hrp2_drake.control.torque_chain import COMPONENTS
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.paper import hrp2
 from hrp2_drake.paper.claims import PAPER_COUPLING_X, PAPER_OVERSHOOT, force_verdict
