@@ -394,9 +394,9 @@ class BusDescription:
             their input voltage.
         silent_periods: a servo that answers no sync read for this many periods in a
             row ends torque control (a ramp to position control).
-        status_timeout: how long the host waits for a sync read's statuses (s, from
-            the instruction); 0: the SDK's own packet timeout (34 ms and the bytes'
-            time with dynamixel-sdk and feetech-servo-sdk).
+        status_timeout: how long the host waits for a status in a period, beyond
+            its bytes' wire time (s; the SDK's packet timeout); 0: the SDK's own
+            (34 ms with dynamixel-sdk and feetech-servo-sdk 1.0).
     """
 
     kind: str = ""

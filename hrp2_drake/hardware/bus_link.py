@@ -38,6 +38,10 @@ from hrp2_drake.description import RobotDescription
 from hrp2_drake.description.bus import servo_models
 from hrp2_drake.hardware.link import LinkClosed, LoopFault, RobotLink
 
+#: How long start-up waits for each status beyond its bytes' wire time (s): a servo
+#: silent this long is absent. Generous: start-up is not timed, and a loaded host or
+#: emulator may be late by more than the SDKs' own 34 ms.
+STARTUP_WAIT = 0.5
 #: What each servo's status in a period was (`BusRead.status`).
 STATUS_OK, STATUS_SILENT, STATUS_CORRUPT = 0, 1, 2
 
@@ -103,14 +107,6 @@ class ServoBus:
             self._call(self._port.readPort, waiting)
             self.stale_bytes += waiting
 
-    def _after_sync_read_sent(self) -> None:
-        """The SDK's packet timeout for the statuses: the description's
-        `status_timeout` if set (the SDKs' own: 34 ms plus the bytes' time with
-        dynamixel-sdk and feetech-servo-sdk 1.0, 50 ms plus with
-        ftservo-python-sdk and LeRobot's patch of the former)."""
-        if self.bus.status_timeout:
-            self._port.setPacketTimeoutMillis(self.bus.status_timeout * 1e3)
-
     def __init__(self, robot: RobotDescription, port: str):
         self.robot = robot
         self.bus = bus = robot.bus
@@ -120,7 +116,7 @@ class ServoBus:
         self.model = bus.servo_model()
         self.ids = list(bus.ids)
         self._sdk, self._packet = self._open_sdk()
-        self._port = self._sdk.PortHandler(port)
+        self._port = _port_handler(self._sdk)(port)
         self.stale_bytes = 0
         self._address, self._length = bus.read_block()
         self._items = [
@@ -182,6 +178,7 @@ class ServoBus:
         servo's units; None: the description's `position_loop.gain`); the present
         pose (rad), which the servos now hold with torque on."""
         gain = self.robot.position_loop.gain if gain is None else gain
+        self._port.wait = STARTUP_WAIT
         if not self.is_open:
             self.open()
         for k in range(len(self.ids)):
@@ -205,7 +202,13 @@ class ServoBus:
             self._write_checked(k, "goal_position", int(goal[k]))
             self._write_checked(k, "torque_enable", 1)
         self._last.position[:] = q
+        self.set_status_wait(self.bus.status_timeout or None)
         return q
+
+    def set_status_wait(self, wait: float | None) -> None:
+        """How long to wait for a status beyond its bytes' wire time (s; None: the
+        SDK's own packet timeout)."""
+        self._port.wait = wait
 
     def _check_model(self, k: int) -> None:
         servo = self.ids[k]
@@ -289,7 +292,6 @@ class ServoBus:
             raise BusClosed(
                 f"{self.port_name}: sync read not sent ({packet.getTxRxResult(result)})"
             )
-        self._after_sync_read_sent()
         status, alert, errors = last.status, last.alert, last.error
         for k, servo in enumerate(self.ids):
             data, result, error = self._call(packet.readRx, port, servo, self._length)
@@ -359,6 +361,28 @@ class ServoBus:
             except Exception:  # already gone
                 pass
             self.is_open = False
+
+
+def _port_handler(sdk):
+    """The SDK's PortHandler class with the wait for a status set by the bus: its
+    `wait` (s; None: the SDK's own: 2 x 16 ms + 2 ms with dynamixel-sdk and
+    feetech-servo-sdk 1.0, 50 ms with ftservo-python-sdk; LeRobot patches the
+    latter's timeout into the former). Each SDK computes its packet timeout in
+    `setPacketTimeout(bytes)` after sending an instruction: the bytes' wire time
+    plus a fixed wait, which this subclass sets (the same fields in both SDKs)."""
+
+    class PortHandler(sdk.PortHandler):
+        wait: float | None = None
+
+        def setPacketTimeout(self, packet_length):  # noqa: N802 (the SDK's name)
+            if self.wait is None:
+                return super().setPacketTimeout(packet_length)
+            self.packet_start_time = self.getCurrentTime()
+            self.packet_timeout = (
+                self.tx_time_per_byte * packet_length + self.wait * 1e3
+            )
+
+    return PortHandler
 
 
 def servo_bus(robot: RobotDescription, port: str) -> ServoBus:
@@ -433,6 +457,10 @@ class BusLink(RobotLink):
 
     def connect(self, controller) -> np.ndarray:
         q = self.bus.start(self.gain)
+        if self.lockstep:
+            # Nothing waits for the wall clock: the wait only tells an absent
+            # status from a late one (a loaded host or emulator), as at start-up.
+            self.bus.set_status_wait(STARTUP_WAIT)
         controller.q_measured[:] = q
         return q
 
