@@ -44,9 +44,10 @@ Sections (all by default; pick with --only):
              receive-to-publish latency p50/p99/p99.9/max (goal p99 <= 250 us),
              overruns of the 1 ms period, torque-control share, fallbacks; in real
              time and with the robot in lock step (the controller without a late robot).
-  bus        the Dynamixel bus loop through the emulated servos (`sim-servo`), back to
-             back: cycle p50/p99 and the achieved rate for 1, 6 and 12 XL330s at 1, 2
-             and 4 Mbit/s, beside the wire-time budget and what a USB adapter's 1 ms
+  bus        the bus loop through the emulated servos (`sim-servo`), back to back:
+             cycle p50/p99 and the achieved rate for 1, 6 and 12 XL330s at 1, 2 and
+             4 Mbit/s (Dynamixel) and 1, 6 and 12 STS3215s at 0.5 and 1 Mbit/s
+             (Feetech), beside the wire-time budget and what a USB adapter's 1 ms
              latency timer leaves (scripts/bench_bus.py; --bus-cycles, default 2000).
 
 Figures vary from run to run (2 cores, shared): compare rows of the same run.
@@ -496,15 +497,16 @@ def _lcm(args) -> list[dict]:
 def _bus(args) -> list[dict]:
     import tempfile
 
-    from bench_bus import BAUDS, SERVOS, bench_bus
+    from bench_bus import KIND_BAUDS, bench_bus, bus_grid
 
     print("bus", file=sys.stderr)
+    servo = {"dynamixel": "XL330", "feetech": "STS3215"}
     with tempfile.TemporaryDirectory() as folder:
         return [
-            {"name": f"{n} x XL330 at {baud / 1e6:g} Mbit/s"}
-            | bench_bus(n, baud, args.bus_cycles, Path(folder))
-            for n in SERVOS
-            for baud in BAUDS
+            {"name": f"{n} x {servo[kind]} at {baud / 1e6:g} Mbit/s"}
+            | bench_bus(n, baud, args.bus_cycles, Path(folder), kind)
+            for kind in KIND_BAUDS
+            for n, baud in bus_grid(kind)
         ]
 
 

@@ -1,15 +1,17 @@
 #!/usr/bin/env python3
-"""The Dynamixel bus loop's rate and jitter through the emulated servos: 1, 6 and 12
-XL330s at 1, 2 and 4 Mbit/s, each beside the wire-time budget (the physical limit).
+"""The bus loop's rate and jitter through the emulated servos: 1, 6 and 12 XL330s at
+1, 2 and 4 Mbit/s on a Dynamixel bus, and 1, 6 and 12 STS3215s at 0.5 and 1 Mbit/s
+(the STS3215's fastest) on a Feetech bus, each beside the wire-time budget (the
+physical limit).
 
 For each bus, `hrp2-drake sim-servo` serves a rack of N XL330 pendulums (one robot, one
 plant, IDs 1..N, the twin's servo on each joint) on a pseudo-terminal in real time,
 honouring every byte's wire time and the servos' return delay (0 here, as the
 description sets it);
-the host runs the bus loop's own bus (`hardware.dynamixel.DynamixelBus`, through
-dynamixel-sdk) back to back, without waiting for a clock: one sync read of
-[present_velocity, present_position] and one sync write of the goals per cycle, the
-goal the measured pose.
+the host runs the bus loop's own bus (`hardware.bus_link.ServoBus`: through
+dynamixel-sdk or Feetech's scservo_sdk) back to back, without waiting for a clock:
+one sync read of [present_velocity, present_position] and one sync write of the goals
+per cycle, the goal the measured pose.
 
 Reported per bus: the cycle's p50 and p99 (µs), the achieved rate (1 / p50), and the
 budget (`BusTiming.cycle` without adapter latency and compute): what the bytes take on
@@ -18,7 +20,11 @@ timeout: the emulator's own hiccups on a shared machine). On a real port, a USB 
 adds its latency timer to every sync read (an FTDI chip holds received bytes up to it:
 1 ms with `setserial low_latency`, 16 ms without), the column `with a USB adapter`.
 
-    python scripts/bench_bus.py [--cycles 2000] [--json out/bench_bus.json]
+A Feetech rack is the same pendulums (the XL330's links and twin: the bus, not the
+physics, is measured) on an STS3215 bus (Feetech's framing, sign-magnitude values,
+P coefficient 32).
+
+    python scripts/bench_bus.py [--cycles 2000] [--kind feetech] [--json out/b.json]
 """
 
 import argparse
@@ -37,17 +43,19 @@ from hrp2_drake.description import load_robot_description, models_root
 
 SERVOS = (1, 6, 12)
 BAUDS = (1_000_000, 2_000_000, 4_000_000)
+#: The bauds measured per bus kind (the STS3215's fastest is 1 Mbit/s).
+KIND_BAUDS = {"dynamixel": BAUDS, "feetech": (500_000, 1_000_000)}
 #: An FTDI adapter's latency timer in low-latency mode (s).
 USB_LATENCY = 0.001
 
 
-def _rack(folder: Path, servos: int, baud: int) -> Path:
+def _rack(folder: Path, servos: int, baud: int, kind: str = "dynamixel") -> Path:
     """A robot of `servos` XL330 pendulums side by side on one base, one joint each
     (IDs 1..N on one bus at `baud`, no adapter latency: a pseudo-terminal; no compute
     allowance: the host's time is measured), each pendulum and servo the XL330
     pendulum's (its URDF's links, its twin's servo.yaml): its robot.yaml."""
     source = models_root() / "xl330_pendulum"
-    target = folder / f"rack_{servos}_{baud}"
+    target = folder / f"rack_{kind}_{servos}_{baud}"
     target.mkdir(parents=True, exist_ok=True)
     urdf = (source / "xl330_pendulum.urdf").read_text()
     head, _, rest = urdf.partition('<link name="pendulum">')
@@ -90,6 +98,9 @@ def _rack(folder: Path, servos: int, baud: int) -> Path:
         "adapter_latency": 0.0,
         "compute_time": 0.0,
     }
+    if kind == "feetech":
+        description["bus"] |= {"kind": "feetech", "model": "STS3215"}
+        description["position_loop"]["gain"] = 32.0  # a P coefficient (0-254)
     description["sensors"]["period"] = 0.05  # a period the slowest bus here carries
     (target / "robot.yaml").write_text(yaml.safe_dump(description, sort_keys=False))
     twin = yaml.safe_load((source / "servo.yaml").read_text())["joints"]["servo"]
@@ -99,10 +110,12 @@ def _rack(folder: Path, servos: int, baud: int) -> Path:
     return target / "robot.yaml"
 
 
-def bench_bus(servos: int, baud: int, cycles: int, folder: Path) -> dict:
-    from hrp2_drake.hardware.dynamixel import STATUS_OK, DynamixelBus
+def bench_bus(
+    servos: int, baud: int, cycles: int, folder: Path, kind: str = "dynamixel"
+) -> dict:
+    from hrp2_drake.hardware.bus_link import STATUS_OK, servo_bus
 
-    robot_file = _rack(folder, servos, baud)
+    robot_file = _rack(folder, servos, baud, kind)
     emulator = subprocess.Popen(
         [
             sys.executable,
@@ -120,7 +133,7 @@ def bench_bus(servos: int, baud: int, cycles: int, folder: Path) -> dict:
         line = emulator.stdout.readline()
         port = line.split(" on ")[1].split()[0]
         robot = load_robot_description(robot_file)
-        bus = DynamixelBus(robot, port)
+        bus = servo_bus(robot, port)
         q = bus.start()
         cycle = np.zeros(cycles)
         missing = 0
@@ -136,6 +149,7 @@ def bench_bus(servos: int, baud: int, cycles: int, folder: Path) -> dict:
         emulator.wait(30)
     timing = robot.bus.timing()
     return {
+        "kind": kind,
         "servos": servos,
         "baud": baud,
         "cycles": cycles,
@@ -149,15 +163,21 @@ def bench_bus(servos: int, baud: int, cycles: int, folder: Path) -> dict:
     }
 
 
+def bus_grid(kind: str) -> list[tuple[int, int]]:
+    """(servos, baud) of each bus measured on a `kind` bus."""
+    return [(n, baud) for n in SERVOS for baud in KIND_BAUDS[kind]]
+
+
 def print_rows(rows: list[dict]) -> None:
     print(
-        "| servos | Mbit/s | cycle p50 (µs) | p99 (µs) | achieved (Hz) | wire budget "
-        "(µs) | budget rate (Hz) | with a USB adapter (Hz) | statuses missing |"
+        "| bus | servos | Mbit/s | cycle p50 (µs) | p99 (µs) | achieved (Hz) | wire "
+        "budget (µs) | budget rate (Hz) | with a USB adapter (Hz) | statuses missing |"
     )
-    print("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     for r in rows:
         print(
-            f"| {r['servos']} | {r['baud'] / 1e6:g} | {r['p50_us']:.0f} | "
+            f"| {r['kind']} | {r['servos']} | {r['baud'] / 1e6:g} | "
+            f"{r['p50_us']:.0f} | "
             f"{r['p99_us']:.0f} | {r['rate_hz']:.0f} | {r['budget_us']:.0f} | "
             f"{r['budget_rate_hz']:.0f} | {r['with_usb_rate_hz']:.0f} | "
             f"{r['missing_statuses']} |"
@@ -167,16 +187,19 @@ def print_rows(rows: list[dict]) -> None:
 def main(argv=None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cycles", type=int, default=2000)
+    parser.add_argument(
+        "--kind", action="append", choices=sorted(KIND_BAUDS), help="default: both"
+    )
     parser.add_argument("--json", default="")
     args = parser.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory() as folder:
-        for servos in SERVOS:
-            for baud in BAUDS:
-                rows.append(bench_bus(servos, baud, args.cycles, Path(folder)))
+        for kind in args.kind or list(KIND_BAUDS):
+            for servos, baud in bus_grid(kind):
+                rows.append(bench_bus(servos, baud, args.cycles, Path(folder), kind))
                 r = rows[-1]
                 print(
-                    f"bus: {servos} servo(s) at {baud / 1e6:g} Mbit/s: p50 "
+                    f"bus: {kind}, {servos} servo(s) at {baud / 1e6:g} Mbit/s: p50 "
                     f"{r['p50_us']:.0f} µs, p99 {r['p99_us']:.0f} µs (budget "
                     f"{r['budget_us']:.0f} µs)",
                     file=sys.stderr,
