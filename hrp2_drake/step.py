@@ -12,7 +12,9 @@ step reads what its upstream steps computed at tick k, from the station's sample
 of tick k and the reference at their instant; a step in a loop (the disturbance
 observer, the delay predictor: both read the Δq controller's output and feed it)
 is read by its consumer one tick late. The delays left are the filters' own (their
-window) and one sample between the command and the servo, as on a real robot.
+window) and one sample between the command and the servo, as on a real robot. A
+chain's table (`hrp2_drake.chain.Chain`) enforces it: it refuses a row that reads a
+row below it, but through an output that row holds.
 
 Two shells run the same steps:
 

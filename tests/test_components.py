@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from hrp2_drake.control.torque_chain import COMPONENTS
 from hrp2_drake.assembly.torque_control import TorqueControlConfig
+from hrp2_drake.control.torque_chain import COMPONENTS
 from hrp2_drake.paper import hrp2
 from hrp2_drake.paper.claims import PANELS, check_panel
 from hrp2_drake.paper.components import (

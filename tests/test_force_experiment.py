@@ -9,8 +9,8 @@ import json
 import numpy as np
 import pytest
 
-from hrp2_drake.control.torque_chain import COMPONENTS
 from hrp2_drake.config import load_config
+from hrp2_drake.control.torque_chain import COMPONENTS
 from hrp2_drake.paper.force import (
     FX,
     FZ,
