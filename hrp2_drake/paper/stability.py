@@ -480,7 +480,7 @@ def summarize(result: StabilityResult) -> dict:
                 for r in result.runs
                 if r.model == name and r.delay_compensation == delay
             ]
-            for name in {r.model for r in result.runs}
+            for name in dict.fromkeys(r.model for r in result.runs)  # run order
         }
         verdicts[f"{delay * 1e3:g} ms"] = {
             name: {
