@@ -432,18 +432,19 @@ class FusedChain:
             event_view,
         )
 
-    def refresh(self, row_name: str) -> None:
-        """Recomputes a row's gathered and summed arguments from `sources`."""
-        _, _, take, sums, *_ = self._plan[self._index(row_name)]
-        self._gather(take, sums)
-
-    def argument(self, row_name: str, port: str) -> np.ndarray:
+    def argument(self, row_name: str, port: str) -> tuple[np.ndarray, Callable | None]:
         """The argument of a row's step that is its input `port` alone (a view, or
-        the buffer its take or sum fills)."""
-        return self._resolved[row_name][Arg((port,))]
-
-    def _index(self, row_name: str) -> int:
-        return next(k for k, row in enumerate(self.chain.rows) if row.name == row_name)
+        the buffer its take or sum fills), and what recomputes it from `sources` now
+        (None for a view)."""
+        value = self._resolved[row_name][Arg((port,))]
+        k = next(k for k, row in enumerate(self.chain.rows) if row.name == row_name)
+        _, _, take, sums, *_ = self._plan[k]
+        if any(buffer is value for buffer, _ in sums):
+            views = next(views for buffer, views in sums if buffer is value)
+            return value, lambda: self._gather(None, [(value, views)])
+        if take is not None and _within(value, take[1]):
+            return value, lambda: self._gather(take, [])
+        return value, None
 
     def _gather(self, take, sums) -> None:
         if take is not None:
@@ -491,3 +492,8 @@ class FusedChain:
         if rows.size and np.array_equal(rows, np.arange(rows[0], rows[0] + rows.size)):
             return [slice(int(rows[0]), int(rows[0]) + rows.size)]
         return rows
+
+
+def _within(view: np.ndarray, buffer: np.ndarray) -> bool:
+    """Whether `view` is a view on `buffer`."""
+    return view.base is buffer or (view.base is not None and view.base is buffer.base)

@@ -255,6 +255,12 @@ class FusedController:
         self.f_ref = view("reference/f_ref") if "f_ref" in refs else np.zeros(6)
         self.com_ref = view("reference/com_ref") if "com_ref" in refs else np.zeros(0)
         self._merged = np.zeros(self._N)
+        #: The supervisor's controller fallback as `command` reads it.
+        self._fallback = (
+            self._chain.argument("supervisor", "controller_fallback")
+            if self.supervisor is not None
+            else None
+        )
         self.warmed_up = False  # (`warm_up`)
 
     # ------------------------------------------------------------------ ticks
@@ -304,8 +310,9 @@ class FusedController:
             return out
         # The supervisor's controller fallback, from the state now (with balance,
         # the sum of the Δq controller's and the QP's).
-        self._chain.refresh("supervisor")
-        fallback = self._chain.argument("supervisor", "controller_fallback")
+        fallback, update = self._fallback
+        if update is not None:
+            update()
         self.supervisor.q_cmd(merged, q_ref, fallback, out)
         return out
 
