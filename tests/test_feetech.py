@@ -30,7 +30,7 @@ from hrp2_drake.hardware.feetech_protocol import (
     encode_status,
 )
 from hrp2_drake.hardware.protocol2 import StatusError
-from hrp2_drake.hardware.sim_servo import ServoBusEmulator
+from hrp2_drake.hardware.sim_servo import ServoBusEmulator, parse_fault
 from hrp2_drake.robot.bus_servos import SimulatedServos
 from hrp2_drake.robot.station import StationConfig
 
@@ -291,3 +291,22 @@ def test_response_status_level_and_unknown_instructions():
         b.port.setPacketTimeoutMillis(100)
         assert b.sdk.rxPacket(b.port)[1] == TIMEOUT
         assert b.emulator.summary()["packets"]["REBOOT"] == 1
+
+
+def test_a_push_moves_the_joint_the_servo_holds_by_its_stiffness():
+    """`push:ID@T:TAU`: an external torque on servo ID's joint from T on (a hand);
+    the servo holding the arm (P 32: 17.8 N m/rad, K_tau = 0.0562 rad/(N m)) gives
+    way by TAU K_tau, to the encoder's pulse."""
+    with pytest.raises(ValueError, match="not a torque"):
+        parse_fault("push:1@1.0:hard")
+    assert parse_fault("push:2@1.5:-0.2").spec() == "push:2@1.5:-0.2"
+    with bus(faults=["push:1@0.5:0.2"]) as b:
+        physics = b.emulator.groups[0].physics
+        physics.set_goal(physics.present().position)
+        physics.set_enabled(np.ones(6))
+        b.emulator._advance(0.5)
+        before = physics.present().position.copy()
+        assert physics.external_torque.tolist() == [0.2, 0, 0, 0, 0, 0]
+        b.emulator._advance(1.5)
+        moved = physics.present().position - before
+        assert moved[0] == pytest.approx(0.2 * 0.0561887, abs=2 * np.pi / 4096)

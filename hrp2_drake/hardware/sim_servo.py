@@ -112,8 +112,10 @@ Faults (`ServoFault`, parsed from one word by `parse_fault`), at robot time:
 `hardware_errors` with spaces written `_`; every later status has the alert bit;
 if the Shutdown item (63) selects that error, torque goes off, as a real X-series
 servo does, and only REBOOT lets it on again), `close@T` (the emulator closes the
-pty and stops: the host sees its port vanish), and at start-up
-`wrong_model:ID:MODEL` (the servo reports MODEL's model number).
+pty and stops: the host sees its port vanish), `push:ID@T:TAU` (from T on, an
+external torque of TAU N·m on the joint of servo ID, as a hand pushing it; 0 lets
+go: `SimulatedServos.set_external_torque`), and at start-up `wrong_model:ID:MODEL`
+(the servo reports MODEL's model number).
 
 The emulator keeps its own slave fd open (raw mode), so the host may close and
 reopen the port between commands. It runs until a duration (robot time), SIGTERM or
@@ -267,12 +269,13 @@ class ServoFault:
     """A fault injected on the bus (module docstring; `parse_fault`).
 
     Args:
-        kind: "silent", "crc", "hardware", "close" or "wrong_model".
+        kind: "silent", "crc", "hardware", "close", "push" or "wrong_model".
         servo_id: the servo it hits (-1: none, for "close").
         at: robot time it starts (s); 0 for "wrong_model" (at start-up).
         count: "crc": how many statuses are corrupted.
         detail: "hardware": the error's name ("overload"); "wrong_model": the
-            model whose model number the servo reports ("XM430-W350").
+            model whose model number the servo reports ("XM430-W350"); "push": the
+            torque (N·m, "-0.2").
     """
 
     kind: str
@@ -290,13 +293,14 @@ class ServoFault:
         spec = f"{self.kind}:{self.servo_id}@{self.at:g}"
         if self.kind == "crc" and self.count != 1:
             spec += f"x{self.count}"
-        if self.kind == "hardware":
+        if self.kind in ("hardware", "push"):
             spec += f":{self.detail.replace(' ', '_')}"
         return spec
 
 
 FAULT_SYNTAX = (
-    "silent:ID@T, crc:ID@T[xN], hardware:ID@T:ERROR, close@T, wrong_model:ID:MODEL"
+    "silent:ID@T, crc:ID@T[xN], hardware:ID@T:ERROR, close@T, wrong_model:ID:MODEL, "
+    "push:ID@T:TAU"
 )
 _FAULT = re.compile(
     r"(?P<kind>[a-z_]+)(?::(?P<id>\d+))?(?:@(?P<at>[0-9.eE+-]+?)(?:x(?P<count>\d+))?)?"
@@ -309,6 +313,7 @@ _FAULT_PARTS = {
     "hardware": ({"id", "at", "detail"}, set()),
     "close": ({"at"}, set()),
     "wrong_model": ({"id", "detail"}, set()),
+    "push": ({"id", "at", "detail"}, set()),
 }
 
 
@@ -343,6 +348,13 @@ def parse_fault(spec: str) -> ServoFault:
     detail = match["detail"] or ""
     if kind == "hardware":
         detail = detail.replace("_", " ").replace("-", " ").lower()
+    if kind == "push":
+        try:
+            torque = float(detail)
+        except ValueError:
+            torque = math.nan
+        if not math.isfinite(torque):
+            raise ValueError(f"{where}: '{detail}' is not a torque in N·m")
     return ServoFault(kind, servo_id, at, count, detail)
 
 
@@ -933,6 +945,11 @@ class ServoBusEmulator:
             servo.corrupt_left += fault.count
         elif fault.kind == "hardware" and servo.hardware_error(fault.detail):
             servo.group.apply({"torque_enable"})
+        elif fault.kind == "push":
+            group = servo.group
+            torque = group.physics.external_torque
+            torque[servo.joint] = float(fault.detail)
+            group.physics.set_external_torque(torque)
 
     def _sleep_until(self, wall: float) -> None:
         """Sleeps until perf_counter() reaches `wall`, spinning the last `SPIN`."""

@@ -6,10 +6,11 @@ A bus servo is a set of registers over a physical joint. Here the joint is the
 robot's simulated station (MultibodyPlant, the emulated position servo: for a real
 servo, its digital twin), advanced on demand (`advance_to`). What a servo's
 registers set goes in: its goal position (`set_goal`), its torque enable
-(`set_enabled`), its position P gain (`set_gain`). What it measures comes out
-(`present`): its encoder (the joint angle at the encoder's resolution), its velocity,
-its motor current, its PWM duty (the documented position loop's output), its supply
-voltage and its temperature.
+(`set_enabled`), its position P gain (`set_gain`); and what a hand does to the
+joints (`set_external_torque`: a push, for hand-guiding experiments). What it
+measures comes out (`present`): its encoder (the joint angle at the encoder's
+resolution), its velocity, its motor current, its PWM duty (the documented position
+loop's output), its supply voltage and its temperature.
 
 The robot side of the simulation: it reads the plant's state and the servo's
 parameters, as the real servo's own electronics measure them. Nothing on the
@@ -81,6 +82,7 @@ class SimulatedServos:
         n = len(self.joints)
         self._goal = initial_joint_positions(config)
         self._enabled = np.zeros(n)
+        self._external = np.zeros(n)
         self._gain = float(config.servo_gain_in_use() or robot.position_loop.gain)
         self._simulator = None
         self._build(self._gain)
@@ -109,6 +111,9 @@ class SimulatedServos:
         indexing = joint_indexing(plant, self.joints)
         self._q_rows = indexing.q
         self._v_rows = plant.num_positions() + indexing.v
+        self._plant, self._plant_context = plant, plant.GetMyContextFromRoot(context)
+        self._indexing_v = indexing.v
+        self._fix_external()
         initialized = self._simulator is not None
         self._simulator = simulator
         if not initialized:
@@ -134,6 +139,25 @@ class SimulatedServos:
         """The goal positions of every servo (rad, joint order)."""
         self._goal[:] = q
         self._q_cmd.FixValue(self._context, self._goal)
+
+    @property
+    def external_torque(self) -> np.ndarray:
+        return self._external.copy()
+
+    def set_external_torque(self, tau: np.ndarray) -> None:
+        """An external torque on every joint (N·m, joint order), held until changed:
+        what a hand pushing the arm applies (the plant's applied generalized force,
+        which the station leaves free)."""
+        self._external[:] = tau
+        self._fix_external()
+
+    def _fix_external(self) -> None:
+        plant = self._plant
+        forces = np.zeros(plant.num_velocities())
+        forces[self._indexing_v] = self._external
+        plant.get_applied_generalized_force_input_port().FixValue(
+            self._plant_context, forces
+        )
 
     def set_enabled(self, enabled: np.ndarray) -> None:
         """Torque enable per servo (1 on, 0 off)."""
