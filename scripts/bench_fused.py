@@ -1,20 +1,22 @@
 #!/usr/bin/env python3
-"""The fused controller's tick on HRP-2, closed loop, against Drake's own
-`CalcInverseDynamics` on the full HRP-2 in the same run.
+"""The fused controller's tick on a robot (--robot; default HRP-2), closed loop,
+against Drake's own `CalcInverseDynamics` on the full robot in the same run.
 
 HRP-2 hanging (30 joints, the IMU, 4 F/T sensors), the tuned K6 = 0.1 controller of the
 right leg (models/hrp2/torque_control_k6_0.1.yaml: per-signal windows, disturbance
-observer) with the safety supervisor, following the LCM sinusoid; the station is
+observer) with the safety supervisor, following the LCM sinusoid (another robot:
+hanging if it floats, its torque-control settings as `control` reads them, the
+robot's control file over the defaults); the station is
 simulated in the same process (`run_in_process`), and only the tick (`tick` +
 `command`) is timed, with the garbage collector frozen and disabled as in the LCM
 loop, its kernels compiled first and compiling frozen. Each tick is followed by one
-`CalcInverseDynamics` (gravity included) of the full floating-base HRP-2 (36
+`CalcInverseDynamics` (gravity included) of the full robot (HRP-2: floating, 36
 velocities) at the same state: the unit of the ratio; and by the tick's own Drake
 calls replayed alone (the estimator's SetPositionsAndVelocities, inverse dynamics and
 sensor Jacobians, the inverse dynamics' SetPositionsAndVelocities, gravity and inverse
 dynamics, on their own contexts): the floor Python cannot go below, in the same unit.
 
-    python scripts/bench_fused.py [--duration 3]
+    python scripts/bench_fused.py [--robot R] [--duration 3]
 """
 
 import argparse
@@ -26,6 +28,8 @@ import numpy as np
 
 #: The issue's goal for the fused tick, in CalcInverseDynamics units (p50; issue 27).
 GOAL_RATIO = 6.0
+#: HRP-2's tuned controller (the paper's future work, `hrp2-drake tune`).
+TUNED = "torque_control_k6_0.1.yaml"
 
 
 def drake_calls(controller):
@@ -57,7 +61,7 @@ def tuned_config(station):
 
     config = yaml_load_typed(
         schema=TorqueControlConfig,
-        filename=str(station.description().path("torque_control_k6_0.1.yaml")),
+        filename=str(station.description().path(TUNED)),
         defaults=TorqueControlConfig(),
     )
     return replace(
@@ -67,7 +71,33 @@ def tuned_config(station):
     )
 
 
-def bench_fused_tick(duration: float = 3.0) -> list[dict]:
+def control_config(robot: str, duration: float):
+    """(station, the control's config) of `robot`: HRP-2 hanging with its tuned
+    controller (`tuned_config`); another robot hanging if it floats, with its
+    torque-control settings as `hrp2-drake control` reads them (`load_on_robot`)."""
+    from hrp2_drake.description import load_robot_description
+    from hrp2_drake.robot.station import StationConfig
+    from hrp2_drake.tools.control import ControlConfig
+    from hrp2_drake.tools.robot_control import load_on_robot
+
+    description = load_robot_description(robot)
+    floating = description.base != "fixed"
+    station = StationConfig(
+        robot=robot, scenario="hanging" if floating else "fixed_base"
+    )
+    if description.path(TUNED).is_file():
+        config = ControlConfig(
+            robot=robot, duration=duration, torque_control=tuned_config(station)
+        )
+    else:
+        config, _ = load_on_robot(ControlConfig, description)
+        config.robot, config.duration = robot, duration
+    station.validate()
+    config.validate()
+    return station, config
+
+
+def bench_fused_tick(duration: float = 3.0, robot: str = "hrp2") -> list[dict]:
     from pydrake.multibody.tree import MultibodyForces
 
     from hrp2_drake import kernels
@@ -75,14 +105,11 @@ def bench_fused_tick(duration: float = 3.0) -> list[dict]:
     from hrp2_drake.control.fused import FusedController
     from hrp2_drake.hardware.in_process import run_in_process
     from hrp2_drake.hardware.real_time import garbage_collector_frozen
-    from hrp2_drake.robot.station import StationConfig, make_station
-    from hrp2_drake.tools.control import ControlConfig, control_reference
+    from hrp2_drake.robot.station import make_station
+    from hrp2_drake.tools.control import control_reference
     from hrp2_drake.tools.ground_truth import true_motor_model
 
-    station = StationConfig(scenario="hanging")
-    config = ControlConfig(
-        robot=station.robot, duration=duration, torque_control=tuned_config(station)
-    )
+    station, config = control_config(robot, duration)
     robot = station.description()
     reference = control_reference(config)
     controller = FusedController(
@@ -90,7 +117,7 @@ def bench_fused_tick(duration: float = 3.0) -> list[dict]:
             robot,
             reference,
             true_motor_model(robot),
-            config.torque_control,
+            config.torque_control_at_period(),
             period=config.period(),
         )
     )
@@ -101,7 +128,7 @@ def bench_fused_tick(duration: float = 3.0) -> list[dict]:
     context = plant.CreateDefaultContext()
     forces = MultibodyForces(plant)
     vdot = np.full(plant.num_velocities(), 0.1)
-    ticks = int(duration / 0.001)
+    ticks = int(round(duration / config.period()))
     fused_ns = np.zeros(ticks, dtype=np.int64)
     rnea_ns = np.zeros(ticks, dtype=np.int64)
     drake_ns = np.zeros(ticks, dtype=np.int64)
@@ -128,16 +155,22 @@ def bench_fused_tick(duration: float = 3.0) -> list[dict]:
     rnea = rnea_ns[active] * 1e-3
     drake = drake_ns[active] * 1e-3
     ratio = float(np.median(fused) / np.median(rnea))
+    sensors = (["IMU"] if robot.has_imu() else []) + (
+        [f"{len(robot.force_torque_sensors)} F/T"] if robot.force_torque_sensors else []
+    )
+    controlled = config.torque_control.controlled_joints(robot)
     rows = [
         {
-            "name": "fused tick (HRP-2, 30 joints, IMU, 4 F/T, right leg, observer, "
-            "supervisor)",
+            "name": f"fused tick ({robot.name}, {len(robot.joints)} joints, "
+            + ", ".join(sensors + [f"{len(controlled)} torque-controlled"])
+            + ")",
             "p50_us": float(np.median(fused)),
             "p99_us": float(np.percentile(fused, 99)),
             "ticks": int(active.sum()),
         },
         {
-            "name": "CalcInverseDynamics, full HRP-2 (36 velocities, gravity)",
+            "name": f"CalcInverseDynamics, full {robot.name} "
+            f"({plant.num_velocities()} velocities, gravity)",
             "p50_us": float(np.median(rnea)),
             "p99_us": float(np.percentile(rnea, 99)),
             "ticks": int(active.sum()),
@@ -173,9 +206,14 @@ def bench_fused_tick(duration: float = 3.0) -> list[dict]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--robot",
+        default="hrp2",
+        help="a robot description (a robot.yaml or a name in models/; default: hrp2)",
+    )
     parser.add_argument("--duration", type=float, default=3.0, help="simulated s")
     args = parser.parse_args()
-    bench_fused_tick(args.duration)
+    bench_fused_tick(args.duration, args.robot)
     return 0
 
 
