@@ -13,7 +13,7 @@ from hrp2_drake.control.fused import FusedController
 from hrp2_drake.hardware.control_loop import ControlLoop
 from hrp2_drake.hardware.in_process import run_in_process
 from hrp2_drake.hardware.link import RobotLink
-from hrp2_drake.robot.station import StationConfig
+from hrp2_drake.robot.station import StationConfig, make_station
 from hrp2_drake.tools.control import ControlConfig, control_reference
 from hrp2_drake.tools.ground_truth import true_motor_model
 
@@ -45,6 +45,9 @@ def test_the_loop_refuses_to_start_before_the_kernels_are_compiled():
 def test_frozen_the_controller_ticks_and_a_new_signature_raises():
     controller, reference = _controller()
     controller.warm_up()
+    # The simulated robot's kernels (its servo's, its sensors') compile when a station
+    # is made: before freezing, as a real robot's are compiled before its loop.
+    make_station(IIWA)
     try:
         kernels.freeze()
         # A tick on the real arrays runs without compiling.
