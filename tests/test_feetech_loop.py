@@ -134,7 +134,9 @@ def _run(*args: str, timeout: float = 900) -> subprocess.CompletedProcess:
 def test_record_identify_control_on_the_emulated_so101(tmp_path):
     """An SO-101 owner's path, on the emulated arm: record the identification
     excitation at two P coefficients (16: LeRobot's; 32: the factory's) through the
-    bus, identify a motor model from those logs, torque-control the arm with it."""
+    bus, identify a motor model from those logs, calibrate the digital twin on them
+    (2 rollouts: the command's path, not its optimum), torque-control the arm with
+    the model."""
     servo = SimServo(ROBOT)
     try:
         recorded = _run(
@@ -153,6 +155,12 @@ def test_record_identify_control_on_the_emulated_so101(tmp_path):
         truth = true_motor_model(load_robot_description(ROBOT))
         k_tau = model.at_gain(32).k_tau
         np.testing.assert_allclose(k_tau, truth.k_tau, rtol=0.1)
+        calibrated = _run(
+            "calibrate", "--robot", ROBOT, "--log", *map(str, logs),
+            "--max-iterations", "2", "--out", str(tmp_path / "calibrate"),
+        )  # fmt: skip
+        assert calibrated.returncode == 0, calibrated.stderr[-3000:]
+        assert (tmp_path / "calibrate" / "servo.yaml").exists()
         done = control(
             tmp_path, ROBOT, servo.port, tmp_path / "identify" / "motor_model.yaml", 2.0
         )
