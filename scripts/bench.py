@@ -316,12 +316,17 @@ def _supervisor_ticker(sensors: list[str]) -> _Ticker:
         SafetyConfig,
         SafetySupervisor,
         supervisor_sensors,
+        with_sensor_ranges,
     )
+    from hrp2_drake.description import load_robot_description
     from hrp2_drake.paper import hrp2
 
     monitored = supervisor_sensors(sensors)
+    config = with_sensor_ranges(
+        SafetyConfig(start_time=0.0), monitored, load_robot_description().sensor_ranges
+    )
     supervisor = SafetySupervisor(
-        hrp2.NUM_JOINTS, monitored, SafetyConfig(start_time=0.0), num_sensor_stamps=7
+        hrp2.NUM_JOINTS, monitored, config, num_sensor_stamps=7
     )
     context = supervisor.CreateDefaultContext()
     q30 = hrp2.half_sitting()

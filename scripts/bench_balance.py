@@ -252,7 +252,11 @@ def bench(robot, solvers, ticks):
     com = plant.CalcCenterOfMassPositionInWorld(context)
     com_ref = np.r_[com + [0.0, 0.02, 0.0], np.zeros(6)]
     q_ref = robot.home_positions()
-    step = BalanceStep(plant, BalanceConfig(joints=robot.joints), robot.contacts)
+    step = BalanceStep(
+        plant,
+        BalanceConfig(joints=robot.joints).for_robot(robot.balance, robot.source_file),
+        robot.contacts,
+    )
     step.warm_up()
     base = BaseFromSolesStep(
         plant, robot.joints, sole_poses(robot, plant.GetPositions(context))

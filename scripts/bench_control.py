@@ -22,11 +22,17 @@ from hrp2_drake.control.inverse_dynamics import (
     InverseDynamicsController,
     make_fixed_base_plant,
 )
-from hrp2_drake.control.safety import SafetyConfig, SafetySupervisor, supervisor_sensors
+from hrp2_drake.control.safety import (
+    SafetyConfig,
+    SafetySupervisor,
+    supervisor_sensors,
+    with_sensor_ranges,
+)
 from hrp2_drake.control.torque_controller import (
     DeltaQTorqueController,
     TorqueControllerConfig,
 )
+from hrp2_drake.description import load_robot_description
 from hrp2_drake.paper import hrp2
 from hrp2_drake.paper.motion import MotionConfig, motion_reference
 
@@ -76,9 +82,10 @@ def bench_controller_stack(ticks: int = 2000) -> list[dict]:
     # The safety supervisor of the 30 joints with HRP-2's sensors (stamps included):
     # its update, and its q_cmd output (computed from live inputs every period).
     sensors = supervisor_sensors(list(hrp2.FT_SENSORS))
-    supervisor = SafetySupervisor(
-        hrp2.NUM_JOINTS, sensors, SafetyConfig(start_time=0.0), num_sensor_stamps=7
+    config = with_sensor_ranges(
+        SafetyConfig(start_time=0.0), sensors, load_robot_description().sensor_ranges
     )
+    supervisor = SafetySupervisor(hrp2.NUM_JOINTS, sensors, config, num_sensor_stamps=7)
     context = supervisor.CreateDefaultContext()
     rng = np.random.default_rng(0)
     q30 = hrp2.half_sitting()

@@ -22,11 +22,20 @@ from hrp2_drake.control.balance import (
     make_qp_backend,
 )
 from hrp2_drake.description import load_robot_description
-from hrp2_drake.description.contacts import ContactsDescription, SoleDescription
+from hrp2_drake.description.contacts import (
+    BalanceDescription,
+    ContactsDescription,
+    SoleDescription,
+)
 from hrp2_drake.multibody import joint_indexing
 from hrp2_drake.robot.station import standing_positions
 
 TOLERANCE = 1e-6  # the solvers' (daqp's; OSQP's eps 1e-9 on forces of hundreds of N)
+
+
+def _config(robot, **settings) -> BalanceConfig:
+    """A BalanceConfig of `settings` with the robot's settings filled in."""
+    return BalanceConfig(**settings).for_robot(robot.balance)
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +58,7 @@ def standing(robot):
 
 @pytest.fixture(scope="module")
 def step(robot, standing):
-    return BalanceStep(standing[0], BalanceConfig(joints=robot.joints), robot.contacts)
+    return BalanceStep(standing[0], _config(robot, joints=robot.joints), robot.contacts)
 
 
 def perturbed_states(standing, count, seed=1, reach=0.02):
@@ -85,7 +94,7 @@ def test_the_solution_satisfies_every_constraint(robot, standing, tight):
     accelerations' rows from the QP makes this test fail (checked by hand); the
     f_z >= f_min bound alone is implied by the pyramids when f_min = 0."""
     plant, _, indexing = standing
-    config = BalanceConfig(joints=robot.joints)
+    config = _config(robot, joints=robot.joints)
     if tight:
         config.torque_limit_scale, config.acceleration_limit = 0.2, 5.0
     step = BalanceStep(plant, config, robot.contacts)
@@ -175,7 +184,7 @@ def test_the_com_task_tracks_a_step_in_closed_loop(robot):
     model = robot.make_plant()
     controller = builder.AddSystem(
         WholeBodyBalanceController(
-            model, BalanceConfig(joints=robot.joints), robot.contacts
+            model, _config(robot, joints=robot.joints), robot.contacts
         )
     )
     indexing = joint_indexing(plant, robot.joints)
@@ -218,8 +227,8 @@ def test_an_infeasible_problem_is_a_fault_without_nan(robot, standing):
     context = plant.CreateDefaultContext()
     plant.SetPositionsAndVelocities(context, x)
     ref = np.r_[plant.CalcCenterOfMassPositionInWorld(context), np.zeros(6)]
-    config = BalanceConfig(
-        joints=robot.joints, torque_limit_scale=0.0, acceleration_limit=0.0
+    config = _config(
+        robot, joints=robot.joints, torque_limit_scale=0.0, acceleration_limit=0.0
     )
     step = BalanceStep(plant, config, robot.contacts)
     fault = step.step(0.0, x, home, ref)
@@ -227,7 +236,7 @@ def test_an_infeasible_problem_is_a_fault_without_nan(robot, standing):
     assert step.fault[0] == fault and step.fault_count[0] == 1
     assert np.all(np.isfinite(step.state))
     assert np.abs(step.tau_desired).max() > 1.0  # the static torque, not zero
-    good = BalanceStep(plant, BalanceConfig(joints=robot.joints), robot.contacts)
+    good = BalanceStep(plant, _config(robot, joints=robot.joints), robot.contacts)
     assert good.step(0.0, x, home, ref) == BalanceFault.NONE
     tau = good.tau_desired.copy()
     bad = x.copy()
@@ -244,7 +253,7 @@ def test_the_shell_outputs_the_steps_numbers(robot, standing, step):
     plant.SetPositionsAndVelocities(context, x)
     ref = np.r_[plant.CalcCenterOfMassPositionInWorld(context) + [0, 0.01, 0], [0] * 6]
     system = WholeBodyBalanceController(
-        plant, BalanceConfig(joints=robot.joints), robot.contacts
+        plant, _config(robot, joints=robot.joints), robot.contacts
     )
     system_context = system.CreateDefaultContext()
     system.GetInputPort("state").FixValue(system_context, x)
@@ -274,17 +283,41 @@ def test_the_shell_outputs_the_steps_numbers(robot, standing, step):
     ],
 )
 def test_config_errors_name_the_field(robot, standing, change, message):
-    config = BalanceConfig(joints=robot.joints)
+    config = _config(robot, joints=robot.joints)
     for key, value in change.items():
         setattr(config, key, value)
     with pytest.raises(ValueError, match=message):
         BalanceStep(standing[0], config, robot.contacts)
 
 
+def test_the_robot_gives_what_the_config_leaves_unset(robot, standing):
+    """BalanceConfig's friction, least corner force and CoM gains left None are the
+    robot's (HRP-2's robot.yaml `balance`); a value the config sets wins; a robot
+    that gives none has the generic ones but no friction (one line naming the field);
+    a step refuses a config never filled in."""
+    filled = BalanceConfig().for_robot(robot.balance)
+    assert (filled.friction, filled.min_normal_force) == (0.3, 10.0)
+    assert (filled.com_kp, filled.com_kd) == (100.0, 20.0)
+    assert BalanceConfig(com_kp=60.0).for_robot(robot.balance).com_kp == 60.0
+    bare = BalanceDescription()
+    generic = BalanceConfig(friction=0.5).for_robot(bare)
+    assert (generic.min_normal_force, generic.com_kp, generic.com_kd) == (
+        0.0,
+        30.0,
+        11.0,
+    )
+    with pytest.raises(ValueError, match=r"^r.yaml: balance.friction: not given"):
+        BalanceConfig().for_robot(bare, where="r.yaml")
+    with pytest.raises(ValueError, match="unset .None: the robot's.: fill them"):
+        BalanceStep(standing[0], BalanceConfig(joints=robot.joints), robot.contacts)
+
+
 def test_every_joint_must_be_listed(robot, standing):
     message = "BalanceConfig.joints: 29 joints, but the plant"
     with pytest.raises(ValueError, match=message):
-        BalanceStep(standing[0], BalanceConfig(joints=robot.joints[1:]), robot.contacts)
+        BalanceStep(
+            standing[0], _config(robot, joints=robot.joints[1:]), robot.contacts
+        )
 
 
 @pytest.mark.parametrize(
@@ -342,7 +375,7 @@ def test_the_compiled_kernels_equal_their_python_source(robot, standing):
     home = robot.home_positions()
     results = []
     for interpreted in (False, True):
-        step = BalanceStep(plant, BalanceConfig(joints=robot.joints), robot.contacts)
+        step = BalanceStep(plant, _config(robot, joints=robot.joints), robot.contacts)
         context = kernels.interpreted() if interpreted else contextlib.nullcontext()
         with context:
             for x, ref in perturbed_states(standing, 2, seed=3):
@@ -374,7 +407,7 @@ def test_warm_up_compiles_the_signatures_of_a_tick(robot, standing, monkeypatch)
 
         monkeypatch.setattr(balance, name, typed)
     plant, x, _ = standing
-    step = BalanceStep(plant, BalanceConfig(joints=robot.joints), robot.contacts)
+    step = BalanceStep(plant, _config(robot, joints=robot.joints), robot.contacts)
     step.warm_up()
     phase[0] = "tick"
     for x, ref in perturbed_states(standing, 2, seed=5):
@@ -391,9 +424,9 @@ def test_daqp_solves_the_same_qp_as_osqp_and_reports_infeasibility(robot, standi
     plant, x, _ = standing
     home = robot.home_positions()
     assert BalanceConfig().solver == "daqp"
-    fast = BalanceStep(plant, BalanceConfig(joints=robot.joints), robot.contacts)
+    fast = BalanceStep(plant, _config(robot, joints=robot.joints), robot.contacts)
     osqp = BalanceStep(
-        plant, BalanceConfig(joints=robot.joints, solver="osqp"), robot.contacts
+        plant, _config(robot, joints=robot.joints, solver="osqp"), robot.contacts
     )
     for state, ref in perturbed_states(standing, 3, seed=4):
         assert osqp.step(0.0, state, home, ref) == BalanceFault.NONE
@@ -401,7 +434,8 @@ def test_daqp_solves_the_same_qp_as_osqp_and_reports_infeasibility(robot, standi
         np.testing.assert_allclose(fast.tau_desired, osqp.tau_desired, atol=1e-3)
     # 1 % of the torque limits, no joint acceleration (with both at 0, daqp finds
     # the bounds' working set overdetermined: exit -6, a SOLVER_FAILED).
-    config = BalanceConfig(
+    config = _config(
+        robot,
         joints=robot.joints,
         solver="daqp",
         torque_limit_scale=0.01,

@@ -10,6 +10,13 @@ import numpy as np
 import pytest
 
 from hrp2_drake.cli import main
+from hrp2_drake.control.balance import BalanceConfig
+from hrp2_drake.control.safety import (
+    SafetyConfig,
+    SafetySupervisorStep,
+    supervisor_sensors,
+    with_sensor_ranges,
+)
 from hrp2_drake.description import load_robot_description, robot_file
 from hrp2_drake.description.sensors import SensorsConfig
 from hrp2_drake.paper import hrp2
@@ -150,6 +157,14 @@ def _write(tmp_path: Path, source: str, edit) -> Path:
             "RLEG_JOINT5: [0.240]",
             r"published_motor_model\.RLEG_JOINT5: expected \[10³ Kτ, 10³ Kv\]",
         ),
+        ("hrp2", "force: 2000.0", "force: -1.0", r"sensor_ranges\.force: must be"),
+        (
+            "hrp2",
+            "  friction: 0.3",
+            "  friction: 1.5",
+            r"balance\.friction: 1\.5 exceeds contacts\.friction 1\.0",
+        ),
+        ("hrp2", "com_kp: 100.0", "com_kp: -3.0", r"balance\.com_kp: must be finite"),
     ],
 )
 def test_bad_description_names_the_field(tmp_path, source, old, new, message):
@@ -158,6 +173,21 @@ def test_bad_description_names_the_field(tmp_path, source, old, new, message):
     with pytest.raises(ValueError, match=message) as error:
         load_robot_description(path)
     assert str(path) in str(error.value)
+
+
+@pytest.mark.parametrize(
+    "name", sorted(p.parent.name for p in MODELS.glob("*/robot.yaml"))
+)
+def test_every_robot_loads_with_the_limits_its_controllers_need(name):
+    """Every robot of models/ loads; its supervisor's ranges are all its own (the
+    sensors it monitors have a range in its description), and a robot with soles
+    gives its balance QP a friction, a least corner force and CoM gains."""
+    robot = load_robot_description(name)
+    monitored = supervisor_sensors(robot.sensor_names(), imu=robot.has_imu())
+    config = with_sensor_ranges(SafetyConfig(), monitored, robot.sensor_ranges)
+    SafetySupervisorStep(len(robot.joints), monitored, config)
+    if robot.contacts.soles:
+        assert not BalanceConfig().for_robot(robot.balance).unset()
 
 
 def test_simulated_ft_sensor_needs_a_fixed_joint(tmp_path):

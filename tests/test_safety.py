@@ -15,7 +15,11 @@ from hrp2_drake.control.safety import (
     SafetySupervisor,
     SafetySupervisorStep,
     describe_faults,
+    supervisor_sensors,
+    with_sensor_ranges,
 )
+from hrp2_drake.description import load_robot_description
+from hrp2_drake.description.sensors import SensorRanges
 
 PERIOD = 0.001
 
@@ -32,7 +36,14 @@ class _Harness:
     """
 
     def __init__(self, **config):
-        defaults = {"start_time": 0.0, "ramp_time": 0.01, "reentry_time": 0.02}
+        defaults = {
+            "start_time": 0.0,
+            "ramp_time": 0.01,
+            "reentry_time": 0.02,
+            "force_limit": 2000.0,
+            "torque_limit": 300.0,
+            "acceleration_limit": 100.0,
+        }
         config = SafetyConfig(**(defaults | config))
         self.system = SafetySupervisor(2, {"wrench_x": "wrench"}, config)
         self.context = self.system.CreateDefaultContext()
@@ -196,6 +207,29 @@ def test_config_errors_name_the_field():
         SafetySupervisor(2, {"x": "thermometer"}, SafetyConfig())
 
 
+def test_the_ranges_are_the_robots():
+    """A range left 0 is the robot's (its description's sensor_ranges); one the
+    config sets wins; a monitored sensor without a range is one line naming the
+    description's field, and a supervisor built on an unfilled range refuses."""
+    monitored = supervisor_sensors(["right_foot"])
+    ranges = load_robot_description("hrp2").sensor_ranges
+    config = with_sensor_ranges(SafetyConfig(torque_limit=50.0), monitored, ranges)
+    assert (config.force_limit, config.torque_limit) == (ranges.force, 50.0)
+    assert (config.acceleration_limit, config.angular_velocity_limit) == (
+        ranges.acceleration,
+        ranges.angular_velocity,
+    )
+    wrench = {"wrench_wrist": "wrench"}
+    message = r"^r.yaml: sensor_ranges.force: not given .* \['wrench_wrist'\]"
+    with pytest.raises(ValueError, match=message):
+        with_sensor_ranges(SafetyConfig(), wrench, SensorRanges(), where="r.yaml")
+    # Only what is monitored needs a range: an arm without IMU.
+    arm = with_sensor_ranges(SafetyConfig(), wrench, SensorRanges(force=1, torque=1))
+    assert arm.acceleration_limit == 0.0
+    with pytest.raises(ValueError, match="SafetyConfig.torque_limit: 0 .the robot's"):
+        SafetySupervisor(2, wrench, SafetyConfig())
+
+
 def test_stale_stamps_are_caught_within_three_periods():
     """With the drivers' time stamps (`sensor_time`), a sensor that stops sending is
     stale once its latest sample is older than stale_time (2.5 periods)."""
@@ -335,6 +369,9 @@ def _scripted_run():
         encoder_stale_samples=3,
         max_reentries=10,
         range_samples=1,
+        force_limit=2000.0,
+        torque_limit=300.0,
+        acceleration_limit=100.0,
     )
     sensors = {"imu_linear_acceleration": "acceleration", "wrench_x": "wrench"}
     step = SafetySupervisorStep(3, sensors, config, 2)

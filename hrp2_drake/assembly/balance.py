@@ -59,10 +59,6 @@ from hrp2_drake.identification.motor_model import MotorModel
 _WHERE = "BalanceControlConfig"
 
 
-def _balance_defaults() -> BalanceConfig:
-    return BalanceConfig(com_kp=100.0, com_kd=20.0, min_normal_force=10.0)
-
-
 def _torque_defaults() -> TorqueControlConfig:
     config = TorqueControlConfig()
     config.estimator.window = 40
@@ -78,16 +74,19 @@ class BalanceControlConfig:
     Args:
         balance: the whole-body QP (its joints: every joint of the robot, filled
             in by `build_balance_control` when empty; its period: the control
-            period).
+            period; the settings it leaves None, the robot's: its friction, least
+            corner force and CoM gains from the description's `balance`,
+            `BalanceConfig.for_robot`).
         torque: the Δq chain of the legs (its joints: the joints between the base
             and the soles, filled in when empty): estimator, controller gains,
             supervisor. Its K6 and damping ratio are unused (the QP replaces the
             inverse dynamics).
 
-    The defaults differ from the QP's and the paper's where a measurement says so
-    (HRP-2 standing on the calibrated servo, the authors' CoM sinusoid for one
-    period; each step's CoM RMS error and smallest CoP margin are in
-    docs/balance.md, "The sweep behind the defaults"):
+    The Δq chain's defaults differ from the paper's where a measurement on HRP-2
+    says so, and HRP-2's QP settings (models/hrp2/robot.yaml's `balance`) were
+    chosen by the same sweep (HRP-2 standing on the calibrated servo, the authors'
+    CoM sinusoid for one period; each step's CoM RMS error and smallest CoP margin
+    are in docs/balance.md, "The sweep behind the defaults"):
     - the paper's chain under TSID-like gains (K_p,com 30/s², the 80-sample
       window, K_i = 0): the CoM sags and lags: the legs' torque errors (the
       servo's dead zone and friction at small torques, and τ̂'s own error with the
@@ -102,7 +101,7 @@ class BalanceControlConfig:
     - K_p,com 60/s² with the same: a wider CoP margin for a larger CoM error.
     """
 
-    balance: BalanceConfig = field(default_factory=_balance_defaults)
+    balance: BalanceConfig = field(default_factory=BalanceConfig)
     torque: TorqueControlConfig = field(default_factory=_torque_defaults)
 
     def validate(self) -> None:
@@ -132,7 +131,7 @@ def resolved(
     plant = robot_model(robot)
     soles = list(config.balance.soles or robot.contacts.soles)
     balance = replace(
-        config.balance,
+        config.balance.for_robot(robot.balance, where=robot.source_file),
         joints=list(config.balance.joints or robot.joints),
         period=period,
     )

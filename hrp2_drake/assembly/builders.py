@@ -51,7 +51,7 @@ from hrp2_drake.control.inverse_dynamics import (
     make_fixed_base_plant,
 )
 from hrp2_drake.control.predictor import DelayPredictorConfig
-from hrp2_drake.control.safety import supervisor_sensors
+from hrp2_drake.control.safety import supervisor_sensors, with_sensor_ranges
 from hrp2_drake.control.torque_chain import (
     ObserverParts,
     SupervisorParts,
@@ -608,13 +608,18 @@ def _observer_parts(
 def _supervisor_parts(
     robot: RobotDescription, config: TorqueControlConfig
 ) -> SupervisorParts | None:
-    """The safety supervisor's monitored sensors, config and number of sensor stamps
-    (one per station signal), None if `config` is not supervised."""
+    """The safety supervisor's monitored sensors, config (its ranges left 0 the
+    robot's: its description's `sensor_ranges`) and number of sensor stamps (one per
+    station signal), None if `config` is not supervised."""
     if not config.supervised:
         return None
+    monitored = supervisor_sensors(robot.sensor_names(), imu=robot.has_imu())
+    supervisor = replace(config.supervisor, start_time=config.start_time)
     return SupervisorParts(
-        monitored=supervisor_sensors(robot.sensor_names(), imu=robot.has_imu()),
-        config=replace(config.supervisor, start_time=config.start_time),
+        monitored=monitored,
+        config=with_sensor_ranges(
+            supervisor, monitored, robot.sensor_ranges, where=robot.source_file
+        ),
         num_stamps=len(sensor_sizes(robot)),
     )
 

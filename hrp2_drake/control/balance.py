@@ -48,7 +48,7 @@ least-norm contact forces) and outputs no NaN; a non-finite input is a fault too
 
 import copy
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import IntEnum
 
 import numpy as np
@@ -56,7 +56,11 @@ from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import BodyIndex, JacobianWrtVariable
 from pydrake.systems.framework import Context
 
-from hrp2_drake.description.contacts import ContactsDescription
+from hrp2_drake.description.contacts import (
+    GENERIC_BALANCE,
+    BalanceDescription,
+    ContactsDescription,
+)
 from hrp2_drake.kernels import kernel
 from hrp2_drake.multibody import check_joint_names, get_frame, joint_indexing
 from hrp2_drake.step import Step, StepSystem
@@ -98,11 +102,17 @@ class BalanceConfig:
             description's `joints`).
         soles: the sole frames in contact (names in the description's `contacts`);
             empty: every sole of the description.
-        friction: μ the QP assumes (its pyramids use μ/√2, inside the cone); keep it
-            below the ground's (HRP-2's model: 1.0). 0.3: sot-torque-control's HRP-2
-            balance controller.
-        min_normal_force: f_min, the least normal force of each corner (N).
-        com_kp, com_kd: the CoM task's gains (1/s², 1/s).
+        friction: μ the QP assumes (its pyramids use μ/√2, inside the cone), at
+            most the description's contacts.friction; None: the robot's (its
+            description's `balance.friction`, which has no generic value).
+        min_normal_force: f_min, the least normal force of each corner (N); None:
+            the robot's (`balance.min_normal_force`, else 0).
+        com_kp, com_kd: the CoM task's gains (1/s², 1/s); None: the robot's
+            (`balance.com_kp`, `com_kd`, else 30/s² and 11/s).
+
+    The settings left None are the robot's: `for_robot` fills them from its
+    description (`description.contacts.BalanceDescription`, `GENERIC_BALANCE`)
+    before a controller is built.
         com_weight: its weight.
         base_kp, base_kd: the base orientation task's gains (1/s², 1/s).
         base_weight: its weight.
@@ -126,10 +136,10 @@ class BalanceConfig:
 
     joints: list[str] = field(default_factory=list)
     soles: list[str] = field(default_factory=list)
-    friction: float = 0.3
-    min_normal_force: float = 0.0
-    com_kp: float = 30.0
-    com_kd: float = 11.0
+    friction: float | None = None
+    min_normal_force: float | None = None
+    com_kp: float | None = None
+    com_kd: float | None = None
     com_weight: float = 1.0
     base_kp: float = 30.0
     base_kd: float = 11.0
@@ -149,11 +159,15 @@ class BalanceConfig:
         where = "BalanceConfig"
         if self.joints:  # (empty: the robot's, filled in where it is known)
             check_joint_names(self.joints, where)
+        for name in _ROBOT_SETTINGS:
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value >= 0):
+                raise ValueError(
+                    f"{where}.{name}: must be finite and >= 0, got {value}"
+                )
+        if self.friction is not None and not self.friction > 0:
+            raise ValueError(f"{where}.friction: must be > 0, got {self.friction}")
         for name in (
-            "friction",
-            "min_normal_force",
-            "com_kp",
-            "com_kd",
             "com_weight",
             "base_kp",
             "base_kd",
@@ -171,8 +185,6 @@ class BalanceConfig:
                 raise ValueError(
                     f"{where}.{name}: must be finite and >= 0, got {value}"
                 )
-        if not self.friction > 0:
-            raise ValueError(f"{where}.friction: must be > 0, got {self.friction}")
         if not self.acceleration_weight > 0:
             raise ValueError(
                 f"{where}.acceleration_weight: must be > 0 (the cost must be strictly "
@@ -184,6 +196,41 @@ class BalanceConfig:
             )
         if not (math.isfinite(self.period) and self.period > 0):
             raise ValueError(f"{where}.period={self.period} must be > 0 (s)")
+
+    def for_robot(self, robot: BalanceDescription, where: str = "") -> "BalanceConfig":
+        """A copy with the settings left None filled in from the robot's description
+        (`robot`: its `balance`), else from `GENERIC_BALANCE`.
+
+        Raises:
+            ValueError: one line naming `balance.friction` (prefixed by `where`, the
+                description's file) when neither this config nor the robot gives the
+                friction.
+        """
+        given = robot.given()
+        filled = {}
+        for name in _ROBOT_SETTINGS:
+            if getattr(self, name) is not None:
+                continue
+            if name in given:
+                filled[name] = given[name]
+            elif name in GENERIC_BALANCE:
+                filled[name] = GENERIC_BALANCE[name]
+            else:
+                prefix = f"{where}: " if where else ""
+                raise ValueError(
+                    f"{prefix}balance.{name}: not given (nor BalanceConfig.{name}): "
+                    "the friction the balance QP counts on is the robot's (its soles "
+                    "on its floor), it has no generic value"
+                )
+        return replace(self, **filled)
+
+    def unset(self) -> list[str]:
+        """The robot's settings still None (`for_robot` not applied)."""
+        return [name for name in _ROBOT_SETTINGS if getattr(self, name) is None]
+
+
+#: BalanceConfig's settings that are the robot's when left None (`for_robot`).
+_ROBOT_SETTINGS = ("friction", "min_normal_force", "com_kp", "com_kd")
 
 
 class QpData:
@@ -576,6 +623,11 @@ class BalanceStep(Step):
         config.validate()
         if not config.joints:
             raise ValueError("BalanceConfig.joints is empty: list every joint")
+        if config.unset():
+            raise ValueError(
+                f"BalanceConfig: {config.unset()} unset (None: the robot's): fill them "
+                "from its description first (BalanceConfig.for_robot)"
+            )
         contacts.validate()
         if not plant.is_finalized():
             raise ValueError(f"{_WHERE}: the plant must be finalized")

@@ -50,11 +50,12 @@ is), two numba kernels (`hrp2_drake.kernels`): `_supervise` (its `step`) and
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from pydrake.systems.framework import BasicVector, Context, DiscreteValues, InputPort
 
+from hrp2_drake.description.sensors import RANGE_QUANTITIES, SensorRanges
 from hrp2_drake.kernels import kernel
 from hrp2_drake.step import Step, StepSystem
 
@@ -98,12 +99,13 @@ class SafetyConfig:
             must follow (rad).
         encoder_jump_speed: a joint moving faster than this between two samples is a
             glitch (rad/s).
-        force_limit, torque_limit: F/T range (N, N·m).
+        force_limit, torque_limit: F/T range (N, N·m, per axis); 0: the robot's
+            (its description's `sensor_ranges`, `with_sensor_ranges`).
         range_samples: consecutive samples out of its range that make a sensor's
             entry faulty (1: any one sample). A sole's landing is an impact: its
             F/T sensor's reading spikes for a sample or two.
-        acceleration_limit: accelerometer range (m/s²).
-        angular_velocity_limit: gyroscope range (rad/s).
+        acceleration_limit: accelerometer range (m/s², per axis); 0: the robot's.
+        angular_velocity_limit: gyroscope range (rad/s, per axis); 0: the robot's.
         stale_time: a sensor whose latest sample is older than this is stale (s; the
             `sensor_time` input, the stamps a driver sends).
         max_reentries: torque control resumes after at most this many faults; the
@@ -119,11 +121,11 @@ class SafetyConfig:
     encoder_stale_samples: int = 10
     encoder_motion: float = 0.001
     encoder_jump_speed: float = 10.0
-    force_limit: float = 2000.0
+    force_limit: float = 0.0
     range_samples: int = 3
-    torque_limit: float = 300.0
-    acceleration_limit: float = 100.0
-    angular_velocity_limit: float = 20.0
+    torque_limit: float = 0.0
+    acceleration_limit: float = 0.0
+    angular_velocity_limit: float = 0.0
     stale_time: float = 0.0025
     max_reentries: int = 3
 
@@ -134,17 +136,13 @@ class SafetyConfig:
             "ramp_time",
             "encoder_motion",
             "encoder_jump_speed",
-            "force_limit",
-            "torque_limit",
-            "acceleration_limit",
-            "angular_velocity_limit",
             "stale_time",
         )
         for name in positive:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{where}.{name}: must be finite and > 0, got {value}")
-        for name in ("start_time", "reentry_time"):
+        for name in ("start_time", "reentry_time", *RANGE_LIMITS.values()):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(
@@ -171,6 +169,57 @@ class SafetyConfig:
 
 #: The sensor kinds a supervisor monitors, and their sizes.
 SENSOR_KINDS: dict[str, int] = {"wrench": 6, "acceleration": 3, "angular_velocity": 3}
+
+#: SafetyConfig's range of each quantity (`description.sensors.SensorRanges`'s
+#: fields), by quantity.
+RANGE_LIMITS: dict[str, str] = {
+    "force": "force_limit",
+    "torque": "torque_limit",
+    "acceleration": "acceleration_limit",
+    "angular_velocity": "angular_velocity_limit",
+}
+#: The quantities each sensor kind's entries measure, in entry order.
+_KIND_QUANTITIES: dict[str, tuple[str, ...]] = {
+    "wrench": ("torque",) * 3 + ("force",) * 3,
+    "acceleration": ("acceleration",) * 3,
+    "angular_velocity": ("angular_velocity",) * 3,
+}
+
+
+def with_sensor_ranges(
+    config: SafetyConfig,
+    sensors: dict[str, str],
+    ranges: SensorRanges,
+    where: str = "",
+) -> SafetyConfig:
+    """`config` with its ranges left 0 taken from the robot's (`ranges`: its
+    description's `sensor_ranges`), a copy.
+
+    Raises:
+        ValueError: one line naming `sensor_ranges.<quantity>` (prefixed by
+            `where`, the description's file) for a quantity a monitored sensor
+            (`sensors`: {port: kind}) measures whose range neither gives.
+    """
+    filled = {}
+    needed = {q for kind in sensors.values() for q in _KIND_QUANTITIES.get(kind, ())}
+    for quantity, name in RANGE_LIMITS.items():
+        if getattr(config, name) > 0:
+            continue
+        value = getattr(ranges, quantity)
+        if value > 0:
+            filled[name] = value
+        elif quantity in needed:
+            ports = sorted(
+                p for p, k in sensors.items() if quantity in _KIND_QUANTITIES[k]
+            )
+            prefix = f"{where}: " if where else ""
+            raise ValueError(
+                f"{prefix}sensor_ranges.{quantity}: not given (nor "
+                f"SafetyConfig.{name}), but the supervisor monitors {ports}: give "
+                f"the sensors' rated range, {RANGE_QUANTITIES[quantity]}"
+            )
+    return replace(config, **filled)
+
 
 # The scalar rows of the `memory` state: [time every fault has been clear (s), faults
 # since start_time, torque wanted (ramping up or in torque), e-stop pressed].
@@ -472,13 +521,22 @@ class SafetySupervisorStep(Step):
         self._n = n = num_joints
         self._sensor_size = sensor_size = sum(SENSOR_KINDS[k] for k in sensors.values())
         self._num_stamps = num_sensor_stamps
-        # The range of every monitored entry, in input order.
-        ranges = {
-            "wrench": [config.torque_limit] * 3 + [config.force_limit] * 3,
-            "acceleration": [config.acceleration_limit] * 3,
-            "angular_velocity": [config.angular_velocity_limit] * 3,
-        }
-        limits = [limit for kind in sensors.values() for limit in ranges[kind]]
+        # The range of every monitored entry, in input order (0: the robot's, not
+        # filled in: `with_sensor_ranges`).
+        for kind in dict.fromkeys(sensors.values()):
+            for quantity in dict.fromkeys(_KIND_QUANTITIES[kind]):
+                name = RANGE_LIMITS[quantity]
+                if not getattr(config, name) > 0:
+                    raise ValueError(
+                        f"SafetyConfig.{name}: 0 (the robot's range) but not filled "
+                        "in: give it, or the robot's sensor_ranges "
+                        "(with_sensor_ranges)"
+                    )
+        limits = [
+            getattr(config, RANGE_LIMITS[quantity])
+            for kind in sensors.values()
+            for quantity in _KIND_QUANTITIES[kind]
+        ]
         # The kernel's constants, in the rows _C_* name (the products and quotients as
         # the numpy code formed them).
         constants = np.zeros(_C_LIMITS + sensor_size)

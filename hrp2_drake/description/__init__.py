@@ -37,10 +37,10 @@ from pydrake.multibody.tree import BodyIndex, ModelInstanceIndex, RigidBody
 
 from hrp2_drake.config import load_config, one_line
 from hrp2_drake.description.bus import BusDescription, check_bus_period
-from hrp2_drake.description.contacts import ContactsDescription
+from hrp2_drake.description.contacts import BalanceDescription, ContactsDescription
 from hrp2_drake.description.excitation import CollectionConfig
 from hrp2_drake.description.logs import LogFormat
-from hrp2_drake.description.sensors import SensorsConfig
+from hrp2_drake.description.sensors import SensorRanges, SensorsConfig
 from hrp2_drake.multibody import is_strictly_below, tree_parents
 
 BASES = ("floating", "fixed")
@@ -186,6 +186,9 @@ class RobotDescription:
             this file over them, the user's --config over both. Empty: none (the
             commands' defaults, the paper's).
         sensors: noise, bias and sampling of the simulated sensors.
+        sensor_ranges: the sensors' rated ranges (`description.sensors.SensorRanges`):
+            what the safety supervisor takes as out of range; none given: a
+            supervisor monitoring those sensors refuses to start.
         initial_positions: the home pose (rad, `joints` order); empty: the first
             sample of trajectory_file.
         trajectory_file: a reference motion (text or .gz: time, then the joint
@@ -193,6 +196,9 @@ class RobotDescription:
         scenarios: what the legged scenarios need.
         contacts: the soles' rectangles and friction (`description.contacts`), for
             a whole-body controller with contacts; empty: none.
+        balance: the balance controller's settings that belong to the robot (the
+            friction it counts on, the least force per sole corner, its CoM gains:
+            `description.contacts.BalanceDescription`).
         identification: the excitation of `hrp2-drake identify` (pushes on a body
             and one increasing sinusoid per controlled joint); empty: none (identify
             then needs a collection of its own).
@@ -229,10 +235,12 @@ class RobotDescription:
     servo_presets: dict[str, str] = field(default_factory=dict)
     control_file: str = ""
     sensors: SensorsConfig = field(default_factory=SensorsConfig)
+    sensor_ranges: SensorRanges = field(default_factory=SensorRanges)
     initial_positions: list[float] = field(default_factory=list)
     trajectory_file: str = ""
     scenarios: ScenariosDescription = field(default_factory=ScenariosDescription)
     contacts: ContactsDescription = field(default_factory=ContactsDescription)
+    balance: BalanceDescription = field(default_factory=BalanceDescription)
     identification: CollectionConfig = field(default_factory=CollectionConfig)
     logs: LogFormat = field(default_factory=LogFormat)
     position_loop: PositionLoopDescription = field(
@@ -306,6 +314,14 @@ class RobotDescription:
                 f"{len(self.joints)} joints"
             )
         self.contacts.validate()
+        self.balance.validate()
+        self.sensor_ranges.validate()
+        if (self.balance.friction or 0.0) > self.contacts.friction > 0:
+            raise ValueError(
+                f"balance.friction: {self.balance.friction} exceeds contacts.friction "
+                f"{self.contacts.friction}: the controller would count on friction "
+                "the ground does not give"
+            )
         if not self.initial_positions and not self.trajectory_file:
             raise ValueError(
                 "initial_positions: empty and no trajectory_file to take the home pose "

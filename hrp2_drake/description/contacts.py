@@ -8,6 +8,10 @@ must stay inside it) and the friction coefficient.
       soles:
         r_sole: {x: [-0.105, 0.135], y: [-0.07, 0.07]}
 
+The balance controller's own settings that belong to the robot (the friction it
+counts on, the least force per sole corner, its CoM gains) are `BalanceDescription`
+(`RobotDescription.balance`).
+
 A sole frame's origin lies on the sole's surface, its z axis is the sole's normal
 (pointing up, into the foot, when the foot stands flat), its x axis points forward.
 """
@@ -81,3 +85,57 @@ class ContactsDescription:
                 raise ValueError(
                     f"contacts.soles.{name}: no frame '{name}' in the model"
                 )
+
+
+@dataclass
+class BalanceDescription:
+    """What the whole-body balance controller (`control.balance`) takes from the
+    robot (`RobotDescription.balance`): its settings measured or published for this
+    robot, which a balance config leaves unset (None) to use
+    (`BalanceConfig.for_robot`). Every field may be left out (None).
+
+    Without them: `friction` has no generic value (it is the robot's soles on its
+    floor: a value too high is a slip, too low gives up the force the robot has), so
+    a balance controller whose config does not give it refuses to start, one line
+    naming `balance.friction`; the others fall back to the QP's generic defaults
+    (`GENERIC_BALANCE`).
+
+    Args:
+        friction: μ the balance QP assumes (its pyramids use μ/√2, inside the
+            cone); at most `contacts.friction` (the ground's in simulation).
+        min_normal_force: the least normal force of each sole corner (N).
+        com_kp, com_kd: the CoM task's gains (1/s², 1/s).
+    """
+
+    friction: float | None = None
+    min_normal_force: float | None = None
+    com_kp: float | None = None
+    com_kd: float | None = None
+
+    def validate(self) -> None:
+        """Raises ValueError naming the bad field (`balance.<key>`)."""
+        for name, value in self.given().items():
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(
+                    f"balance.{name}: must be finite and >= 0, got {value}"
+                )
+        if self.friction is not None and not self.friction > 0:
+            raise ValueError(f"balance.friction: must be > 0, got {self.friction}")
+
+    def given(self) -> dict[str, float]:
+        """The settings this description gives, by name."""
+        return {
+            name: getattr(self, name)
+            for name in ("friction", "min_normal_force", "com_kp", "com_kd")
+            if getattr(self, name) is not None
+        }
+
+
+#: The balance QP's settings for a robot whose description gives none
+#: (`BalanceDescription`): no least corner force, a CoM task of 30/s² critically
+#: damped (2√30 ≈ 11/s). The friction has none.
+GENERIC_BALANCE: dict[str, float] = {
+    "min_normal_force": 0.0,
+    "com_kp": 30.0,
+    "com_kd": 11.0,
+}

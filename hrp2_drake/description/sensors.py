@@ -123,3 +123,45 @@ class SensorsConfig:
             gyroscope=zero,
             force_torque_default=zero,
         )
+
+
+#: The quantities a sensor range is given for, and what measures them.
+RANGE_QUANTITIES: dict[str, str] = {
+    "force": "F/T sensors' force (N)",
+    "torque": "F/T sensors' torque (N·m)",
+    "acceleration": "accelerometer (m/s²)",
+    "angular_velocity": "gyroscope (rad/s)",
+}
+
+
+@dataclass
+class SensorRanges:
+    """The rated ranges of the robot's sensors (`RobotDescription.sensor_ranges`):
+    the magnitude a reading of one axis cannot exceed when the sensor works. A
+    supervisor (`control.safety`) takes an entry beyond it for `range_samples` samples
+    in a row as a fault. They belong to the robot's sensors, so no generic default:
+    a range too low makes false faults, one too high checks nothing; a supervisor
+    monitoring a sensor whose range is not given refuses to start (one line naming
+    this field). 0: not given.
+
+    Args:
+        force: every F/T sensor's force range, per axis (N).
+        torque: every F/T sensor's torque range, per axis (N·m).
+        acceleration: the accelerometer's range, per axis (m/s²).
+        angular_velocity: the gyroscope's range, per axis (rad/s).
+    """
+
+    force: float = 0.0
+    torque: float = 0.0
+    acceleration: float = 0.0
+    angular_velocity: float = 0.0
+
+    def validate(self) -> None:
+        """Raises ValueError naming the bad field (`sensor_ranges.<name>`)."""
+        for name in RANGE_QUANTITIES:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(
+                    f"sensor_ranges.{name}: must be finite and >= 0 (0: not given), "
+                    f"got {value}"
+                )
