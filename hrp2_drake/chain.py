@@ -131,9 +131,11 @@ class Row:
             arithmetic), whose input ports are `inputs`' keys and whose output ports
             are `outputs`' keys.
         inputs: each input port's source, in the order of the system's ports.
-        arguments: the step's `step(t, *arguments)`, each made of inputs.
         outputs: each output's step state array (`Step.rows`), or None for a port
-            of the system that no state array holds (computed from the inputs).
+            of the system that no state array holds (computed from the inputs); a
+            sequence of names: each output the array of its name.
+        arguments: the step's `step(t, *arguments)`, each made of inputs (None: one
+            argument per input, in order).
         logged: the signals the chain logs from this row: name -> source (of
             this row's outputs, or the rows above it).
         held: the outputs a row above reads, one tick late (a loop).
@@ -149,14 +151,20 @@ class Row:
     make_step: Callable[[], Step]
     make_system: Callable[[], LeafSystem]
     inputs: dict[str, Source]
-    arguments: tuple[Arg, ...]
-    outputs: dict[str, str | None]
+    outputs: dict[str, str | None] | Sequence[str]
+    arguments: tuple[Arg, ...] | None = None
     logged: dict[str, Source] = field(default_factory=dict)
     held: frozenset[str] = frozenset()
     initialize: tuple[Arg, ...] | None = None
     timed_initialize: bool = True
     event: int = 0
     event_state: str = ""
+
+    def __post_init__(self):
+        if not isinstance(self.outputs, dict):
+            object.__setattr__(self, "outputs", {o: o for o in self.outputs})
+        if self.arguments is None:
+            object.__setattr__(self, "arguments", args(*self.inputs))
 
 
 @dataclass(frozen=True)

@@ -287,8 +287,7 @@ def _inverse_dynamics_row(parts: TorqueChainParts, c: _Controlled) -> Row:
         make_step=lambda: InverseDynamicsStep(plant, config),
         make_system=lambda: InverseDynamicsController(plant, config, lead=lead),
         inputs=inputs,
-        arguments=args(*inputs),
-        outputs={o: o for o in ("tau_desired", *TORQUE_COMPONENTS)},
+        outputs=("tau_desired", *TORQUE_COMPONENTS),
         logged={"tau_desired": whole("inverse_dynamics/tau_desired")},
     )
 
@@ -318,7 +317,6 @@ def _balance_rows(parts: TorqueChainParts) -> list[Row]:
                 balance.plant, joints, balance.sole_poses, parts.period, lead=lead
             ),
             inputs=base_inputs,
-            arguments=args(*base_inputs),
             outputs={"state": "robot_state"},
             logged={"base_state": whole("base/state")},
         ),
@@ -332,8 +330,7 @@ def _balance_rows(parts: TorqueChainParts) -> list[Row]:
                 balance.plant, balance.config, balance.contacts, lead=lead
             ),
             inputs=qp_inputs,
-            arguments=args(*qp_inputs),
-            outputs={o: o for o in qp_outputs},
+            outputs=qp_outputs,
             logged={"tau_desired": whole("balance/tau_desired")}
             | {f"balance_{s}": whole(f"balance/{s}") for s in BALANCE_SIGNALS},
             event=EventKind.BALANCE_FAULT,
@@ -391,7 +388,7 @@ def _torque_row(parts, c: _Controlled, tau_desired: Source, fault: Sum) -> Row:
             terms,
             disturbance,
         ),
-        outputs={o: o for o in ("q_cmd", *logged)},
+        outputs=("q_cmd", *logged),
         logged={name: whole(f"torque/{name}") for name in logged},
         initialize=args("q_measured", "q_ref"),
         event=EventKind.CONTROLLER_FALLBACK,
@@ -414,8 +411,7 @@ def _observer_row(parts: TorqueChainParts, c: _Controlled) -> Row:
             observer.model, observer.config, lead=lead
         ),
         inputs=inputs,
-        arguments=args(*inputs),
-        outputs={"disturbance": "disturbance"},
+        outputs=("disturbance",),
         held=frozenset({"disturbance"}),
     )
 
@@ -437,8 +433,7 @@ def _predictor_row(parts: TorqueChainParts, c: _Controlled) -> Row:
         make_step=lambda: DelayPredictorStep(model, config),
         make_system=lambda: DelayPredictor(model, config, lead=lead),
         inputs=inputs,
-        arguments=args(*inputs),
-        outputs={o: o for o in outputs},
+        outputs=outputs,
         held=frozenset(outputs),
     )
 

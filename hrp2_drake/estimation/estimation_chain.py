@@ -181,7 +181,7 @@ def estimation_rows(
             system_name=f"{name}_encoder_filter",
             inputs={"signal": whole(f"station/{ports.encoders}")},
             arguments=args("signal"),
-            outputs={e: e for e in (*estimates, "input_fault")},
+            outputs=(*estimates, "input_fault"),
             initialize=args("signal"),
             **sg(N, encoder_windows, 2),
         )
@@ -203,7 +203,7 @@ def estimation_rows(
                     )
                 },
                 arguments=args("signal"),
-                outputs={e: e for e in (*estimates[:2], "input_fault")},
+                outputs=(*estimates[:2], "input_fault"),
                 initialize=args("signal"),
                 **sg(size, sensor_windows, 1),
             )
@@ -259,7 +259,7 @@ def _estimator_row(plant, config, lead, name, imu, names, faults) -> Row:
         make_system=lambda: FloatingBaseTorqueEstimator(plant, config, lead=lead),
         inputs=inputs,
         arguments=(*args("q", "v", "vdot"), *imu_args, wrench_arg),
-        outputs={o: o for o in ("tau", *externals)},
+        outputs=("tau", *externals),
         logged={
             "tau_estimated": whole("estimator/tau"),
             "sensor_fault": fault,
