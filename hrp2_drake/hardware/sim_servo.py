@@ -90,10 +90,10 @@ proportion to robot time (about 0.2 s per robot second per copy of the XL330
 pendulum): a `rate` below 1 lets a slow or loaded machine keep up.
 
 Lock-step (`lockstep=True`), for deterministic tests on any machine: robot time does
-not follow the wall clock, and replies go out at once (before the physics takes
-what the instruction wrote, as in real time: a new gain costs a station rebuild; the
-next packet is handled after it, at the instruction's time all the same). The
-contract, which the controller's in-process twin
+not follow the wall clock, and replies go out at once, after the physics took what
+the instruction wrote (in real time the statuses go first, since a new gain costs
+a station rebuild; the physics takes the writes at the instruction's time all the
+same). The contract, which the controller's in-process twin
 (`hardware.in_process.run_on_bus_in_process`) reproduces call for call:
 
 - the k-th SYNC_READ (k = 0, 1, ...) whose block contains Present Position is
@@ -1032,21 +1032,22 @@ class ServoBusEmulator:
 
     def _handle(self, packet: Packet, arrival: float) -> None:
         """One instruction: the servos act at its time (module docstring, "Timing"),
-        their statuses go out and the physics takes what was written, at the
-        instruction's time: the statuses first (a new gain rebuilds the station,
-        10 ms for a pendulum, 100 ms for a 6-joint arm: longer than an SDK's packet
-        timeout). The next packet is handled after, so in lock step the host sees
-        the physics with the write taken all the same."""
+        the physics takes what was written and their statuses go out. In real time
+        the statuses go first (a new gain rebuilds the station: 5-10 ms), the physics
+        still at the instruction's time."""
         self.packets[packet.name if packet.crc_ok else "bad CRC"] += 1
         t = self._act_time(packet, arrival)
         self._advance(t)
         if self.stopped:
             return
         replies = [reply for reply in self._dispatch(packet) if reply.data]
-        self._send(replies, t)
+        if not self.lockstep:
+            self._send(replies, t)
         for index, names in self._dirty.items():
             self.groups[index].apply(names)
         self._dirty.clear()
+        if self.lockstep:
+            self._send(replies, t)
 
     def _act_time(self, packet: Packet, arrival: float) -> float:
         """The robot time the instruction acts at (module docstring, "Timing")."""
