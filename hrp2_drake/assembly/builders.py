@@ -30,7 +30,7 @@ import numpy as np
 from pydrake.geometry import Meshcat
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort, PortDataType
-from pydrake.systems.primitives import MatrixGain, TrajectorySource, ZeroOrderHold
+from pydrake.systems.primitives import Demultiplexer, TrajectorySource, ZeroOrderHold
 from pydrake.trajectories import (
     FunctionHandleTrajectory,
     PiecewisePolynomial,
@@ -295,12 +295,13 @@ def add_reference(
         )
     blocks = {}
     for prefix, port in sources.items():
+        # [q; v; v̇] into its three blocks (entries copied, in C++).
+        split = builder.AddNamedSystem(
+            f"{prefix}reference_split", Demultiplexer([n, n, n])
+        )
+        builder.Connect(port, split.get_input_port())
         for k, name in enumerate(("q_ref", "v_ref", "vdot_ref")):
-            select = np.zeros((n, 3 * n))
-            select[:, k * n : (k + 1) * n] = np.eye(n)
-            gain = builder.AddNamedSystem(f"{prefix}{name}_all", MatrixGain(select))
-            builder.Connect(port, gain.get_input_port())
-            blocks[f"{prefix}{name}"] = gain.get_output_port()
+            blocks[f"{prefix}{name}"] = split.get_output_port(k)
     return blocks
 
 
