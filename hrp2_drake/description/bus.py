@@ -18,7 +18,7 @@ Units are one equation each, used by the controller's link (`hardware.dynamixel`
 and by the emulated servos (`hardware.sim_servo`) alike: positions in pulses of the
 servo's absolute encoder, `zero` pulses at q = 0, `direction` +1 or -1
 (`BusDescription.to_pulses`, `to_radians`); the other registers in their e-manual
-units (`DynamixelModel.si`).
+units (`ServoModel.si`).
 
 The servo models' control tables are data, one file per kind beside this file
 (`dynamixel_models.yaml` from ROBOTIS' e-manual, `feetech_models.yaml` from Feetech's
@@ -243,10 +243,6 @@ class ServoModel:
             raise ValueError(f"{where}: byte_order little or big, position_modes set")
 
 
-#: The Dynamixel name the package used before Feetech's models came.
-DynamixelModel = ServoModel
-
-
 @dataclass
 class _Models:
     models: dict[str, ServoModel] = field(default_factory=dict)
@@ -257,7 +253,6 @@ MODELS_FILES = {
     "dynamixel": Path(__file__).with_name("dynamixel_models.yaml"),
     "feetech": Path(__file__).with_name("feetech_models.yaml"),
 }
-MODELS_FILE = MODELS_FILES["dynamixel"]
 
 
 @functools.cache

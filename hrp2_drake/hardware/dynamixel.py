@@ -6,31 +6,7 @@ module names the SDK and reads Protocol 2.0's status error byte (bit 7: a hardwa
 alert, which the Hardware Error Status item details; bits 0-6: the error number).
 """
 
-from hrp2_drake.hardware.bus_link import (
-    STATUS_CORRUPT,
-    STATUS_OK,
-    STATUS_SILENT,
-    BusClosed,
-    BusLink,
-    BusRead,
-    ServoBus,
-)
-
-#: Operating Mode 3: position control (the servo's own P loop on the goal position).
-POSITION_CONTROL_MODE = 3
-#: The link's name before the Feetech bus came (`BusLink`).
-DynamixelLink = BusLink
-
-__all__ = [
-    "STATUS_CORRUPT",
-    "STATUS_OK",
-    "STATUS_SILENT",
-    "BusClosed",
-    "BusRead",
-    "DynamixelBus",
-    "DynamixelLink",
-    "POSITION_CONTROL_MODE",
-]
+from hrp2_drake.hardware.bus_link import ServoBus
 
 
 class DynamixelBus(ServoBus):
