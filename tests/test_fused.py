@@ -177,7 +177,7 @@ def test_message_driven_loop_over_memq_equals_the_fused_controller(station_confi
 def test_the_layout_names_the_station_rows_once():
     """The fused controller's layout gives the station's sensor ports in its order
     and sizes, the IMU's two signals in one channel, a stamp per signal; the
-    LeafSystem's ports are its signals."""
+    LeafSystem reads them in one port, the stamps in another."""
     from hrp2_drake.control.fused import ControllerLayout, FusedTorqueController
     from hrp2_drake.robot.station import sensor_sizes
 
@@ -214,7 +214,8 @@ def test_the_layout_names_the_station_rows_once():
     system = FusedTorqueController(parts)
     count = system.num_input_ports()
     inputs = [system.get_input_port(i).get_name() for i in range(count)]
-    assert inputs[: len(sizes) + 1] == [*sizes, "sensor_time"]
+    assert inputs[:2] == ["sensors", "sensor_time"]
+    assert system.GetInputPort("sensors").size() == layout.values.stop
     # Unstamped (no supervisor): no stamp rows anywhere.
     bare = ControllerLayout.of_robot(robot, stamped=False)
     assert bare.size == N + 6 + 6 * k

@@ -30,7 +30,12 @@ import numpy as np
 from pydrake.geometry import Meshcat
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort, PortDataType
-from pydrake.systems.primitives import Demultiplexer, TrajectorySource, ZeroOrderHold
+from pydrake.systems.primitives import (
+    Demultiplexer,
+    Multiplexer,
+    TrajectorySource,
+    ZeroOrderHold,
+)
 from pydrake.trajectories import (
     FunctionHandleTrajectory,
     PiecewisePolynomial,
@@ -239,6 +244,9 @@ class ControlDiagram:
     station: Diagram
     reference: JointReference
     force_reference: PiecewisePolynomial | None = None
+    #: Other trajectories its diagram reads that the builder made (e.g. a CoM
+    #: reference moved by an offset), kept alive here.
+    kept: tuple = ()
 
     def output_names(self) -> list[str]:
         """The logged signals: every vector output (not `contact_results`)."""
@@ -658,6 +666,8 @@ def torque_chain_parts(
         evaluation=estimator.evaluation,
         offset_calibration_time=estimator.offset_calibration_time,
         offset_calibration_start=0.2,
+        offsets=dict(estimator.offsets),
+        imu_offset=list(estimator.imu_offset),
         period=period,
     )
     fixed = _inverse_dynamics_plant(robot, errors)
@@ -786,10 +796,19 @@ def add_torque_chain(
 def add_fused_controller(
     builder, station, parts, sources: dict[str, OutputPort]
 ) -> FusedTorqueController:
-    """Adds the `FusedTorqueController` of `parts` as "fused_controller", each input
-    connected to the source of its name in `sources` (the reference's blocks, f_ref,
-    com_ref), or else to the station's output of its name."""
+    """Adds the `FusedTorqueController` of `parts` as "fused_controller": its
+    `sensors` the station's sensor signals multiplexed in its layout's order
+    ("sensors", a Multiplexer), every other input connected to the source of its
+    name in `sources` (the reference's blocks, f_ref, com_ref), or else to the
+    station's output of its name."""
     fused = builder.AddNamedSystem("fused_controller", FusedTorqueController(parts))
+    signals = fused.layout().signals()
+    mux = builder.AddNamedSystem(
+        "sensors", Multiplexer([rows.stop - rows.start for rows in signals.values()])
+    )
+    for k, name in enumerate(signals):
+        builder.Connect(station.GetOutputPort(name), mux.get_input_port(k))
+    sources = sources | {"sensors": mux.get_output_port()}
     for k in range(fused.num_input_ports()):
         port = fused.get_input_port(k)
         name = port.get_name()

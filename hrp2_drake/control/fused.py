@@ -377,10 +377,10 @@ class FusedTorqueController(WitnessFreeLeafSystem):
     .. code-block:: text
 
                                  ┌───────────────────────┐
-        q_measured ─────────────►│                       ├──► q_cmd, servo_command
-        imu_linear_acceleration ►│                       ├──► tau_estimated, tau_desired
-        imu_angular_velocity ───►│                       ├──► delta_q, fallback_active
-        wrench_<s> (each) ──────►│ FusedTorqueController ├──► sensor_fault
+        sensors ────────────────►│                       ├──► q_cmd, servo_command
+                                 │                       ├──► tau_estimated, tau_desired
+                                 │                       ├──► delta_q, fallback_active
+                                 │ FusedTorqueController ├──► sensor_fault
         sensor_time ────────────►│                       ├──► external_wrench_<s>
         q_ref, v_ref, vdot_ref ─►│                       ├──► the six Δq components
         f_ref (force task) ─────►│                       ├──► supervisor_mode, _fault,
@@ -389,6 +389,10 @@ class FusedTorqueController(WitnessFreeLeafSystem):
                                  │                       │    _sole_wrenches,
                                  │                       │    _contact_forces, _fault,
                                  └───────────────────────┘    _fault_count (balance)
+
+    `sensors` is the station's sensor signals one after the other, the rows of the
+    sensor buffer but the stamps (`ControllerLayout`: q_measured, the IMU's two,
+    wrench_<s> each): one port, read once a tick.
 
     The timing of the separate systems and of the samplers around them
     (`hrp2_drake.step.StepSystem`, `assembly.builders`), in one system. Its state:
@@ -410,14 +414,12 @@ class FusedTorqueController(WitnessFreeLeafSystem):
         self._fused = fused = FusedController(parts)
         N = len(parts.all_joints)
         layout = fused.layout
-        # The station's sensor ports, each with its rows of the sensor buffer.
-        self._sensor_ports = [
-            (
-                self.DeclareVectorInputPort(name, rows.stop - rows.start),
-                fused.sensor_buffer[rows],
-            )
-            for name, rows in layout.signals().items()
-        ]
+        # The station's sensor signals in one port, the sensor buffer's rows but the
+        # stamps (`ControllerLayout`: `add_fused_controller` multiplexes them).
+        self._sensor_port = self.DeclareVectorInputPort(
+            "sensors", layout.num_joints + layout.num_values
+        )
+        self._sensor_rows = fused.sensor_buffer[: layout.num_joints + layout.num_values]
         self._stamp_port = (
             self.DeclareVectorInputPort("sensor_time", layout.num_stamps)
             if layout.num_stamps
@@ -442,7 +444,7 @@ class FusedTorqueController(WitnessFreeLeafSystem):
         if self._lead > 0:  # the servo takes its command at the multiples
             self.DeclarePeriodicDiscreteUpdateEvent(parts.period, 0.0, self._send)
         model = AbstractValue.Make(np.zeros(fused.state.size))
-        sensors = [port.ticket() for port, _ in self._sensor_ports]
+        sensors = [self._sensor_port.ticket()]
         if self._stamp_port is not None:
             sensors.append(self._stamp_port.ticket())
         self._ticked = self.DeclareCacheEntry(
@@ -478,9 +480,12 @@ class FusedTorqueController(WitnessFreeLeafSystem):
         # The cache value whose contents `fused.state` holds (None: unknown).
         self._holds = None
 
+    def layout(self) -> ControllerLayout:
+        """The rows of its sensor buffer (`sensors`, then `sensor_time`)."""
+        return self._fused.layout
+
     def _read_sensors(self, context: Context) -> None:
-        for port, rows in self._sensor_ports:
-            rows[:] = port.Eval(context)
+        self._sensor_rows[:] = self._sensor_port.Eval(context)
         if self._stamp_port is not None:
             self._fused.sensor_time[:] = self._stamp_port.Eval(context)
 
