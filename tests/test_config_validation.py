@@ -236,7 +236,7 @@ def case(name, argv, config, *culprits, motor=RIGHT_LEG):
             "station: {scenario: flying}\n",
             "StationConfig.scenario",
             "'flying'",
-            "robot 'hrp2': fixed_base, hanging, standing, standing_on_block)",
+            "robot 'hrp2': fixed_base, hanging, standing, standing_on_block, lowered)",
         ),
         # The scene: NaN, inf and negative numbers.
         case(

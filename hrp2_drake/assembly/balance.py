@@ -26,6 +26,7 @@ With `fused=True` the same chain, the base from the soles and the QP included, i
 (tests/test_balance_control.py); `balance_chain_parts` is what both are built from.
 """
 
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -81,6 +82,10 @@ class BalanceControlConfig:
             and the soles, filled in when empty): estimator, controller gains,
             supervisor. Its K6 and damping ratio are unused (the QP replaces the
             inverse dynamics).
+        com_offset: the true CoM minus the model's, horizontal (x, y in the world,
+            m), measured at start-up (the soles' centre of pressure standing still
+            minus the model's CoM: `tools.balance_calibration`): the QP tracks the
+            model's CoM, so its CoM reference is the given one minus this.
 
     The Δq chain's defaults differ from the paper's where a measurement on HRP-2
     says so, and HRP-2's QP settings (models/hrp2/robot.yaml's `balance`) were
@@ -103,10 +108,18 @@ class BalanceControlConfig:
 
     balance: BalanceConfig = field(default_factory=BalanceConfig)
     torque: TorqueControlConfig = field(default_factory=_torque_defaults)
+    com_offset: list[float] = field(default_factory=lambda: [0.0, 0.0])
 
     def validate(self) -> None:
         self.balance.validate()
         self.torque.validate()
+        if len(self.com_offset) != 2 or not all(
+            math.isfinite(v) for v in self.com_offset
+        ):
+            raise ValueError(
+                f"{_WHERE}.com_offset: [x, y] (m), two finite numbers, got "
+                f"{self.com_offset}"
+            )
         if self.torque.controller.force_frame:
             raise ValueError(
                 f"{_WHERE}.torque.controller.force_frame: the balance QP has its own "
@@ -139,7 +152,9 @@ def resolved(
     if not torque.joints:
         torque = replace(torque, joints=leg_joints(plant, robot.joints, soles))
     torque = replace(torque, supervisor=replace(torque.supervisor, period=period))
-    return BalanceControlConfig(balance=balance, torque=torque)
+    return BalanceControlConfig(
+        balance=balance, torque=torque, com_offset=list(config.com_offset)
+    )
 
 
 def sole_poses(robot: RobotDescription, positions: np.ndarray) -> dict:
@@ -247,11 +262,24 @@ def build_balance_control(
         "com_reference", TrajectorySource(borrowed(com_reference))
     ).get_output_port()  # (the logged one)
     references = chain_references(blocks)
-    references["com_ref"] = clock.source(builder, "chain_com_reference", com_reference)
+    moved = _moved(com_reference, config.com_offset)
+    references["com_ref"] = clock.source(builder, "chain_com_reference", moved)
     ports = add_torque_chain(builder, station, parts, references, fused)
     if not fused:
         initial = clock.initial_command(reference)
         connect_command(builder, station, ports["q_cmd"], parts, initial)
     ports |= {"com_ref": com_ref, "q_ref": blocks["q_ref"]}
     ports = station_ports(station, robot) | ports
-    return build_control_diagram(builder, station, ports, reference)
+    control = build_control_diagram(builder, station, ports, reference)
+    return replace(control, kept=(moved,))
+
+
+def _moved(com_reference: PiecewisePolynomial, offset) -> PiecewisePolynomial:
+    """The CoM reference (9 rows: position, velocity, acceleration) with its
+    position's x and y moved by minus `offset` (m); itself when it is zero."""
+    if not any(offset):
+        return com_reference
+    times = com_reference.get_segment_times()
+    values = np.column_stack([com_reference.value(t)[:, 0] for t in times])
+    values[0:2] -= np.asarray(offset, float)[:, None]
+    return PiecewisePolynomial.FirstOrderHold(times, values)

@@ -50,12 +50,21 @@ class EstimatorSettings:
         offset_calibration_time: F/T offset calibration at start-up (s, from 0.2 s;
             0 = none): only when nothing touches the feet and hands then (the robot
             hanging); must end before the torque control's start_time.
+        offsets: the F/T sensors' offsets found before the run, by sensor name:
+            [torque; force] (N·m, N, sensor frame), what the estimator starts with
+            (e.g. `hrp2-drake balance`'s calibration, the robot lifted, then put
+            down); a sensor not named: zero.
+        imu_offset: the IMU's offsets found before the run, [accelerometer (3,
+            m/s²); gyroscope (3, rad/s)] in the IMU frame, subtracted from its
+            readings; empty: none.
     """
 
     window: int = 80
     windows: dict[str, int] = field(default_factory=dict)
     evaluation: str = "centre"
     offset_calibration_time: float = 0.0
+    offsets: dict[str, list[float]] = field(default_factory=dict)
+    imu_offset: list[float] = field(default_factory=list)
 
     def validate(self) -> None:
         """Raises ValueError naming the bad field (the windows' names and parities are
@@ -72,6 +81,20 @@ class EstimatorSettings:
         check_finite(
             self.offset_calibration_time, f"{where}.offset_calibration_time", 0.0, False
         )
+        if self.imu_offset and (
+            len(self.imu_offset) != 6
+            or not all(math.isfinite(v) for v in self.imu_offset)
+        ):
+            raise ValueError(
+                f"{where}.imu_offset: 6 finite values [accelerometer; gyroscope], got "
+                f"{self.imu_offset}"
+            )
+        for name, offset in self.offsets.items():
+            if len(offset) != 6 or not all(math.isfinite(v) for v in offset):
+                raise ValueError(
+                    f"{where}.offsets['{name}']: 6 finite values [torque; force], got "
+                    f"{offset}"
+                )
 
 
 def check_window(window: int, where: str) -> None:
@@ -384,6 +407,14 @@ def check_for_robot(
         )
     signals = [*robot.joints, *robot.force_torque_sensors]
     signals += ["imu"] if robot.has_imu() else []
+    unknown = [
+        name for name in config.estimator.offsets if name not in robot.sensor_names()
+    ]
+    if unknown:
+        raise ValueError(
+            f"{where}.estimator.offsets: {unknown} not F/T sensors of robot "
+            f"'{robot.name}' ({robot.sensor_names()})"
+        )
     unknown = [name for name in config.estimator.windows if name not in signals]
     if unknown:
         raise ValueError(

@@ -36,10 +36,14 @@ class ForceTorqueSensorConfig:
             below it (for an F/T weld, the body is the weld's child, below the sensor).
             Sensors may be nested (one below another, e.g. a thigh and an ankle
             sensor); two sensors cannot share a body.
+        offset: the reading's offset the estimator starts with, [torque; force]
+            (N·m, N, sensor frame): found at start-up, e.g. with the robot lifted
+            (its offset calibration, in an earlier run); empty: zero.
     """
 
     frame: str = ""
     body: str = ""
+    offset: list[float] = field(default_factory=list)
 
 
 @dataclass
@@ -73,6 +77,9 @@ class TorqueEstimatorConfig:
             e.g. hanging from strings tied to u).
         offset_calibration_time: length (s) of the start-up F/T offset calibration, 0
             for none (see the estimator's docstring).
+        imu_offset: the IMU's offsets, [accelerometer (3, m/s²); gyroscope (3,
+            rad/s)] in the IMU frame, subtracted from its readings (found at
+            start-up, the robot still: `tools.balance_calibration`); empty: none.
         offset_calibration_start: time (s) the calibration starts, to skip the
             filters' start-up (their windows fill with the sensors' first samples;
             the default leaves 2.5 windows of 80 ms).
@@ -99,6 +106,7 @@ class TorqueEstimatorConfig:
     unknown_wrench_body: str = ""
     offset_calibration_time: float = 0.0
     offset_calibration_start: float = 0.2
+    imu_offset: list[float] = field(default_factory=list)
     period: float = 0.001
     window: int = 80
     evaluation: str = "centre"
@@ -133,10 +141,26 @@ class TorqueEstimatorConfig:
                 )
             if not sensor.frame:
                 raise ValueError(f"{where}.sensors['{name}'].frame is empty")
+            if sensor.offset and (
+                len(sensor.offset) != 6
+                or not all(math.isfinite(v) for v in sensor.offset)
+            ):
+                raise ValueError(
+                    f"{where}.sensors['{name}'].offset: 6 finite values [torque; "
+                    f"force] or none, got {sensor.offset}"
+                )
         if self.angular_acceleration not in ANGULAR_ACCELERATION_MODES:
             raise ValueError(
                 f"{where}.angular_acceleration='{self.angular_acceleration}' must be "
                 f"one of {ANGULAR_ACCELERATION_MODES}"
+            )
+        if self.imu_offset and (
+            len(self.imu_offset) != 6
+            or not all(math.isfinite(v) for v in self.imu_offset)
+        ):
+            raise ValueError(
+                f"{where}.imu_offset: 6 finite values [accelerometer; gyroscope] or "
+                f"none, got {self.imu_offset}"
             )
         for name in ("offset_calibration_time", "offset_calibration_start"):
             value = getattr(self, name)
@@ -194,10 +218,20 @@ def estimator_config(
 ) -> TorqueEstimatorConfig:
     """The estimator of paper Sec. 2 for `robot`: its joints, IMU (if any), F/T
     sensors and unknown-wrench link, `window` samples per Savitzky-Golay filter;
-    `options` set the other fields of TorqueEstimatorConfig."""
+    `options` set the other fields of TorqueEstimatorConfig, and `offsets` (by
+    sensor name, [torque; force]) the sensors' offsets it starts with."""
     options.setdefault("unknown_wrench_body", robot.unknown_wrench_body)
+    offsets = options.pop("offsets", None) or {}
+    unknown = sorted(set(offsets) - set(robot.force_torque_sensors))
+    if unknown:
+        raise ValueError(
+            f"estimator offsets: {unknown} are not F/T sensors of robot "
+            f"'{robot.name}' ({sorted(robot.force_torque_sensors)})"
+        )
     sensors = {
-        name: ForceTorqueSensorConfig(frame=sensor.frame, body=sensor.body)
+        name: ForceTorqueSensorConfig(
+            frame=sensor.frame, body=sensor.body, offset=list(offsets.get(name, []))
+        )
         for name, sensor in robot.force_torque_sensors.items()
     }
     return TorqueEstimatorConfig(

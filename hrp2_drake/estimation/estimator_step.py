@@ -332,10 +332,17 @@ class TorqueEstimatorStep(Step):
         self._declare("unknown_wrench", np.zeros(6))
         for sensor in self._sensors:
             self._declare(f"external_wrench_{sensor.name}", np.zeros(6))
-        # F/T offsets (6 per sensor) then the number of calibration samples.
-        self._declare("calibration", np.zeros(6 * k + 1))
+        # F/T offsets (6 per sensor: each sensor's config.offset, else zero) then
+        # the number of calibration samples.
+        calibration = np.zeros(6 * k + 1)
+        for i, sensor in enumerate(self._sensors):
+            offset = config.sensors[sensor.name].offset
+            if offset:
+                calibration[6 * i : 6 * i + 6] = offset
+        self._declare("calibration", calibration)
         self._finalize()
         self._table = self._pack()
+        self._imu_offset_views(config)
 
     def _check_robot(
         self, plant: MultibodyPlant, plant_context: Context, config
@@ -477,6 +484,20 @@ class TorqueEstimatorStep(Step):
             - 0.5 * config.period
         )
         self._subtract_rotor = not config.include_rotor_inertia
+
+    def _imu_offset_views(self, config: TorqueEstimatorConfig) -> None:
+        """The IMU's offsets (config.imu_offset: accelerometer, gyro), subtracted
+        from its readings where `estimator_inputs` puts them in the work array (the
+        root's v̇ and v), or None without them."""
+        self._imu_offset = None
+        if not (self._has_imu and config.imu_offset):
+            return
+        table, offset = self._table, np.asarray(config.imu_offset, float)
+        nq, root, vd = table[_NQ], table[ROOT_V], table[_W_VDOT]
+        self._imu_offset = (
+            (self._work[vd + root + 3 : vd + root + 6], offset[:3].copy()),
+            (self._work[nq + root : nq + root + 3], offset[3:].copy()),
+        )
 
     def _views_changed(self) -> None:
         k = len(self._sensors)
@@ -639,6 +660,9 @@ class TorqueEstimatorStep(Step):
             self._work,
             self._table,
         )
+        if self._imu_offset is not None:
+            for reading, offset in self._imu_offset:
+                reading -= offset
         if not math.isfinite(total):
             self._raise_non_finite(
                 q,
@@ -739,6 +763,9 @@ class TorqueEstimatorStep(Step):
             self._work,
             self._table,
         )
+        if self._imu_offset is not None:
+            for reading, offset in self._imu_offset:
+                reading -= offset
         # On a state of the step's layout, with the given offsets, not calibrating.
         state = np.zeros(self.state_size)
         state[self.rows("calibration")][:-1] = off.reshape(-1)

@@ -168,8 +168,10 @@ class FloatingBaseTorqueEstimator(StepSystem):
     reading (before the nested sensors' wrenches are taken out of the outer one's, so
     an offset stays with its sensor). Before t0 the offsets are zero. The offsets and
     the number of samples averaged are discrete state (`offsets(context)`,
-    `num_calibration_samples(context)`); with T = 0 the offsets stay zero, or at the
-    values given to `set_offsets` (e.g. calibrated in an earlier run, lifted).
+    `num_calibration_samples(context)`); with T = 0 the offsets stay at the sensors'
+    `offset` (config.sensors; zero if none given), or at the values given to
+    `set_offsets` (e.g. calibrated in an earlier run, lifted). The IMU's offsets
+    (config.imu_offset, found standing still) are subtracted from its readings.
 
     Errors: a NaN or infinite input raises ValueError naming the port; an unknown
     frame, body or joint name raises KeyError naming it; ValueError for a model whose

@@ -28,6 +28,11 @@ Scenarios (`StationConfig.scenario`):
   - "standing": the soles (scenarios.soles) on flat ground.
   - "standing_on_block": one sole on a rigid block (the paper's Fig. 2a), the leg
     (scenarios.block) bent so that the sole rests on it.
+  - "lowered": as a real humanoid is started: hanging from the strings of
+    "hanging", its soles `LoweringConfig.feet_clearance` above the ground, then put
+    down by a hoist (`robot.hoist`: the anchors go down from `lowering.start` for
+    `lowering.duration`; the strings end slack, the lift's sway damping faded out),
+    standing on its soles at the end.
 Every scenario but "hanging" has a ground (its top at z = 0), and `obstacles` adds
 boxes (e.g. a table for an arm's force task).
 
@@ -86,7 +91,7 @@ from hrp2_drake.robot.servo import (
     load_servo_params,
 )
 
-SCENARIOS = ("fixed_base", "hanging", "standing", "standing_on_block")
+SCENARIOS = ("fixed_base", "hanging", "standing", "standing_on_block", "lowered")
 #: Drake's discrete contact approximations (MultibodyPlantConfig).
 CONTACT_APPROXIMATIONS = ("tamsi", "sap", "similar", "lagged")
 #: The smallest plant time step accepted (s): 1% of HRP-2's 1 ms.
@@ -143,6 +148,29 @@ class HangingConfig:
 
 
 @dataclass
+class LoweringConfig:
+    """The hoist of the "lowered" scenario (its strings: `HangingConfig`'s).
+
+    Args:
+        feet_clearance: the soles' height above the ground while hanging (m).
+        start: when the anchors start going down (s).
+        duration: how long they take (s).
+        slack: how far below the point where the soles touch (the strings at their
+            free length, the robot's weight on them) the anchors end (m): the
+            strings are slack then.
+        hold_stiffness: the harness's rotational stiffness (N·m/rad) holding the
+            hanging body's orientation until the robot stands (the strings alone
+            let a robot whose CoM is not below them pitch and swing).
+    """
+
+    feet_clearance: float = 0.03
+    start: float = 1.0
+    duration: float = 1.0
+    slack: float = 0.05
+    hold_stiffness: float = 2000.0
+
+
+@dataclass
 class StationConfig:
     """Configuration of a simulated robot.
 
@@ -156,7 +184,8 @@ class StationConfig:
             order); empty for its home pose (HRP-2: half-sitting, the first sample of
             the climbing motion).
         sensors: noise, bias and sampling of the sensors; none: the description's.
-        hanging: the strings of the "hanging" scenario.
+        hanging: the strings of the "hanging" and "lowered" scenarios.
+        lowering: the hoist of the "lowered" scenario.
         block_height: height of the block under the right foot (m),
             "standing_on_block" only.
         servo_file: the servo data file: a path, a preset of the description (HRP-2:
@@ -189,6 +218,7 @@ class StationConfig:
     initial_positions: list[float] = field(default_factory=list)
     sensors: SensorsConfig | None = None
     hanging: HangingConfig = field(default_factory=HangingConfig)
+    lowering: LoweringConfig = field(default_factory=LoweringConfig)
     block_height: float = 0.05
     servo_file: str = ""
     servo_gain: float = 0.0
@@ -276,6 +306,15 @@ class StationConfig:
         for k, value in enumerate(self.hanging.sway_damping):
             check_finite(value, f"{where}.sway_damping[{k}]", 0.0, False)
         check_finite(self.block_height, "StationConfig.block_height", 0.0)
+        where = "StationConfig.lowering"
+        for name, strict in (
+            ("feet_clearance", False),
+            ("start", False),
+            ("duration", True),
+            ("slack", False),
+            ("hold_stiffness", False),
+        ):
+            check_finite(getattr(self.lowering, name), f"{where}.{name}", 0.0, strict)
         for k, box in enumerate(self.obstacles):
             where = f"StationConfig.obstacles[{k}]"
             if len(box.size) != 3 or not all(
@@ -293,6 +332,7 @@ class StationConfig:
             "hanging": robot.scenarios.hanging.body,
             "standing": robot.scenarios.soles,
             "standing_on_block": robot.scenarios.block.sole and robot.scenarios.soles,
+            "lowered": robot.scenarios.hanging.body and robot.scenarios.soles,
         }
         if self.scenario not in SCENARIOS:
             fits = [
@@ -520,10 +560,13 @@ def add_scenario_plant(
     base = plant.GetBodyByName(robot.base_body)
     if fixed:
         X_WB0 = robot.base_transform()
-    elif config.scenario == "hanging":
-        X_WB0 = RigidTransform(
-            [0.0, 0.0, -_lowest_sole_height(robot, q0) + config.hanging.feet_clearance]
+    elif config.scenario in ("hanging", "lowered"):
+        clearance = (
+            config.hanging.feet_clearance
+            if config.scenario == "hanging"
+            else config.lowering.feet_clearance
         )
+        X_WB0 = RigidTransform([0.0, 0.0, -_lowest_sole_height(robot, q0) + clearance])
     else:
         X_WB0 = RigidTransform([0.0, 0.0, -_lowest_sole_height(robot, q0)])
     if config.scenario != "hanging":
@@ -590,9 +633,13 @@ def make_station(
     builder.ExportInput(servo.GetInputPort("q_cmd"), "q_cmd")
     if servo_enable:
         builder.ExportInput(servo.GetInputPort("enabled"), "servo_enabled")
-    builder.ExportInput(
-        plant.get_applied_spatial_force_input_port(), "applied_spatial_force"
-    )
+    if config.scenario == "lowered":
+        forces = _add_hoist(builder, plant, robot, q0, config)
+        builder.ExportInput(forces.GetInputPort("external"), "applied_spatial_force")
+    else:
+        builder.ExportInput(
+            plant.get_applied_spatial_force_input_port(), "applied_spatial_force"
+        )
 
     _add_sensors(
         builder,
@@ -686,6 +733,68 @@ def _add_strings(
             [translational] * 3,
         )
     )
+
+
+def _add_hoist(
+    builder: DiagramBuilder,
+    plant: MultibodyPlant,
+    robot: RobotDescription,
+    q0: np.ndarray,
+    config: StationConfig,
+):
+    """The "lowered" scenario's hoist (`robot.hoist.Hoist`) on the plant's applied
+    forces, beside the station's own input: returns the `ForceSum` whose "external"
+    input that is. The anchors start as "hanging"'s (above the string points, the
+    free length plus the weight's stretch) and go down by the soles' clearance, that
+    stretch and `lowering.slack`."""
+    from hrp2_drake.robot.hoist import ForceSum, Hoist
+
+    hanging, lowering = config.hanging, config.lowering
+    strings = robot.scenarios.hanging
+    X_WB0 = RigidTransform(
+        [0.0, 0.0, -_lowest_sole_height(robot, q0) + lowering.feet_clearance]
+    )
+    plant_k, context = _posed(robot, q0, X_WB0)
+    X_WT = plant_k.GetBodyByName(strings.body).EvalPoseInWorld(context)
+    stretch = (
+        plant_k.CalcTotalMass(context)
+        * GRAVITY
+        / (len(strings.points) * hanging.stiffness)
+    )
+    anchors = [
+        X_WT @ np.array(p_TS) + [0.0, 0.0, hanging.string_length + stretch]
+        for p_TS in strings.points
+    ]
+    hoist = builder.AddNamedSystem(
+        "hoist",
+        Hoist(
+            plant.GetBodyByName(strings.body).index(),
+            strings.points,
+            anchors,
+            hanging.string_length,
+            hanging.stiffness,
+            hanging.damping,
+            hanging.sway_damping,
+            lowering.start,
+            lowering.duration,
+            lowering.feet_clearance + stretch + lowering.slack,
+            lowering.hold_stiffness,
+            X_WT.rotation(),
+        ),
+    )
+    builder.Connect(
+        plant.get_body_poses_output_port(), hoist.GetInputPort("body_poses")
+    )
+    builder.Connect(
+        plant.get_body_spatial_velocities_output_port(),
+        hoist.GetInputPort("body_spatial_velocities"),
+    )
+    forces = builder.AddNamedSystem("applied_forces", ForceSum())
+    builder.Connect(hoist.get_output_port(), forces.GetInputPort("hoist"))
+    builder.Connect(
+        forces.get_output_port(), plant.get_applied_spatial_force_input_port()
+    )
+    return forces
 
 
 def force_torque_readouts(

@@ -72,6 +72,7 @@ from hrp2_drake.robot.station import (
     standing_positions,
 )
 from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
+from hrp2_drake.tools.balance_calibration import CalibrationSettings, calibrate
 from hrp2_drake.tools.balance_report import MODES, report_markdown
 
 _WHERE = "BalanceExperimentConfig"
@@ -191,6 +192,10 @@ class BalanceExperimentConfig:
             and the pushes wait until `settle` (s).
         com_motion: the CoM tracking experiment.
         pushes: the push experiment.
+        calibration: the start-up calibration, as the authors calibrated the real
+            HRP-2 (`tools.balance_calibration`): the F/T offsets found lifted, the
+            CoM offset put down; what it finds goes into `control` (the estimator's
+            offsets, the CoM offset) before the runs.
         workers: processes running the simulations in parallel.
         fused: the torque-control chain as one `FusedTorqueController` (the
             real-time path, the separate systems' numbers to 1e-12, faster to
@@ -204,6 +209,7 @@ class BalanceExperimentConfig:
     settle: float = 1.0
     com_motion: ComMotion = field(default_factory=ComMotion)
     pushes: PushSettings = field(default_factory=PushSettings)
+    calibration: CalibrationSettings = field(default_factory=CalibrationSettings)
     workers: int = 2
     fused: bool = True
 
@@ -219,6 +225,7 @@ class BalanceExperimentConfig:
         self.control.validate()
         self.com_motion.validate()
         self.pushes.validate()
+        self.calibration.validate()
         check_finite(self.settle, f"{_WHERE}.settle", 0.0)
         if self.settle < self.control.torque.start_time:
             raise ValueError(
@@ -723,6 +730,12 @@ def run_balance(
             f"torque-controls (it has {motor_model.joint_names})"
         )
     motor_model = motor_model.subset(joints)
+    calibration = None
+    if config.calibration.enabled:
+        calibration = calibrate(
+            config.station, config.control.torque.estimator.window, config.calibration
+        )
+        config = calibrated(config, calibration)
     program = console.program()
     with ProcessPoolExecutor(
         config.workers,
@@ -749,6 +762,8 @@ def run_balance(
         "pushes": pushes,
         "push_comparison": _push_comparison(pushes),
     }
+    if calibration is not None:
+        summary["calibration"] = calibration
     out.mkdir(parents=True, exist_ok=True)
     (out / "balance.json").write_text(json.dumps(summary, indent=2))
     np.savez_compressed(
@@ -762,6 +777,24 @@ def run_balance(
     _figures(robot, config, com, pushes, out)
     (out / "balance.md").write_text(report_markdown(summary))
     return summary
+
+
+def calibrated(
+    config: BalanceExperimentConfig, calibration: dict
+) -> BalanceExperimentConfig:
+    """`config` with what the calibration found (`calibrate`): the estimator starts
+    with the F/T offsets and subtracts the IMU's, and with `apply_com_offset` torque
+    control's CoM reference is moved by the CoM offset."""
+    torque = config.control.torque
+    estimator = replace(
+        torque.estimator,
+        offsets=dict(calibration["ft_offsets"]),
+        imu_offset=list(calibration["imu_offset"]),
+    )
+    control = replace(config.control, torque=replace(torque, estimator=estimator))
+    if config.calibration.apply_com_offset:
+        control = replace(control, com_offset=list(calibration["com_offset_m"]))
+    return replace(config, control=control)
 
 
 def _settings(robot: RobotDescription, config: BalanceExperimentConfig) -> dict:

@@ -340,6 +340,39 @@ def run_line(summary: dict) -> str:
     )
 
 
+def calibration_lines(summary: dict) -> list[str]:
+    """The start-up calibration's paragraph (`tools.balance_calibration`), if the run
+    had one: what it found, and its error against the simulated biases."""
+    calibration = summary.get("calibration")
+    if not calibration:
+        return [
+            "The robot started on the ground, its F/T offsets not calibrated.",
+            "",
+        ]
+    errors = calibration["calibration_error"]
+    sensors = [e for name, e in errors.items() if name != "imu"]
+    torque = max(e["torque_error_Nm"] for e in sensors)
+    force = max(e["force_error_N"] for e in sensors)
+    imu = errors.get("imu")
+    imu_text = (
+        f"; the IMU's (the robot standing still: the gyro's mean reading, the "
+        f"accelerometer's minus gravity in its frame) within "
+        f"{imu['accelerometer_error']:.2g} m/s² and {imu['gyroscope_error']:.2g} rad/s"
+        if imu
+        else ""
+    )
+    x, y = (v * 1e3 for v in calibration["com_offset_m"])
+    return [
+        "Calibrated at start-up as the authors calibrated the real HRP-2: the F/T "
+        "offsets found with the robot lifted, its feet free (the filtered reading "
+        "plus the model's prediction), then the robot put down and the CoM offset "
+        f"taken (the soles' measured CoP minus the model's CoM: {x:.2f}, {y:.2f} "
+        "mm). Against the simulated sensors' biases (ground truth), the offsets "
+        f"are within {torque:.3g} N·m and {force:.3g} N{imu_text}.",
+        "",
+    ]
+
+
 def report_markdown(summary: dict) -> str:
     """A run's `balance.md`."""
     settings = summary["settings"]
@@ -354,6 +387,7 @@ def report_markdown(summary: dict) -> str:
         "same CoM reference through inverse kinematics, the robot's servo tracking "
         "it. Contact forces, CoP and CoM are ground truth.",
         "",
+        *calibration_lines(summary),
         f"## CoM tracking: the authors' sinusoid ({sinusoid_text(summary)})",
         "",
         *com_table(summary),
