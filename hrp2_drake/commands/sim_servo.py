@@ -1,5 +1,5 @@
-"""`hrp2-drake sim-servo`: the simulated robot's Dynamixel servos on a
-pseudo-terminal (`hardware/sim_servo.py`)."""
+"""`hrp2-drake sim-servo`: the simulated robot's servos (Dynamixel or Feetech, as its
+bus says) on a pseudo-terminal (`hardware/sim_servo.py`)."""
 
 import argparse
 
@@ -11,9 +11,9 @@ def add(commands: options.Commands) -> None:
         commands,
         "sim-servo",
         run,
-        "the simulated robot's Dynamixel servos on a pseudo-terminal (Protocol 2.0, "
-        "the robot's physics behind every ID, wire time and return delays honoured): "
-        "prints the port's path",
+        "the simulated robot's servos on a pseudo-terminal (Dynamixel Protocol 2.0 "
+        "or Feetech's, as the robot's bus says; the robot's physics behind every ID, "
+        "wire time and return delays honoured): prints the port's path",
         robot=True,
         lockstep={
             "action": "store_true",
@@ -32,8 +32,9 @@ def add(commands: options.Commands) -> None:
         fault={
             "action": "append",
             "help": "inject a fault, e.g. silent:1@2.0, crc:1@1.5x20, "
-            "hardware:1@2.0:overload, close@3.0, wrong_model:1:XM430-W350 (repeat for "
-            "several)",
+            "hardware:1@2.0:overload, close@3.0, wrong_model:1:XM430-W350, "
+            "push:1@2.0:0.1 (0.1 N m on servo 1's joint from 2 s on: a hand's push) "
+            "(repeat for several)",
         },
         ids={
             "default": "",
