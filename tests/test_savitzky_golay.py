@@ -710,3 +710,15 @@ def test_a_signal_of_the_wrong_size_raises():
     step = SavitzkyGolayStep(4, 9, 2, PERIOD, "centre")
     with pytest.raises(ValueError, match="signal's size"):
         step.step(0.0, np.zeros(5))
+
+
+def test_every_config_taking_an_evaluation_point_refuses_another_by_its_field():
+    """One check (`check_evaluation`) for the filter's and both configs' field."""
+    from hrp2_drake.assembly.torque_control import EstimatorSettings
+    from hrp2_drake.estimation.estimator_config import TorqueEstimatorConfig
+
+    field = r"\.evaluation='middle' must be one of \('centre', 'end'\)"
+    with pytest.raises(ValueError, match=f"TorqueControlConfig.estimator{field}"):
+        EstimatorSettings(evaluation="middle").validate()
+    with pytest.raises(ValueError, match=f"TorqueEstimatorConfig{field}"):
+        TorqueEstimatorConfig(joints=["j"], evaluation="middle").validate()

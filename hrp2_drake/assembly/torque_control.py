@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from hrp2_drake.config import check_finite, moved_keys
 from hrp2_drake.control.safety import SafetyConfig
 from hrp2_drake.description import RobotDescription
-from hrp2_drake.estimation.savitzky_golay import EVALUATION_POINTS
+from hrp2_drake.estimation.savitzky_golay import check_evaluation
 
 _WHERE = "TorqueControlConfig"
 
@@ -73,11 +73,7 @@ class EstimatorSettings:
         check_window(self.window, f"{where}.window")
         for name, window in self.windows.items():
             check_window(window, f"{where}.windows['{name}']")
-        if self.evaluation not in EVALUATION_POINTS:
-            raise ValueError(
-                f"{where}.evaluation: '{self.evaluation}', expected one of "
-                f"{EVALUATION_POINTS}"
-            )
+        check_evaluation(self.evaluation, f"{where}.evaluation")
         check_finite(
             self.offset_calibration_time, f"{where}.offset_calibration_time", 0.0, False
         )

@@ -8,7 +8,7 @@ import math
 from dataclasses import dataclass, field
 
 from hrp2_drake.description import RobotDescription
-from hrp2_drake.estimation.savitzky_golay import EVALUATION_POINTS
+from hrp2_drake.estimation.savitzky_golay import check_evaluation
 from hrp2_drake.multibody import check_joint_names
 
 ANGULAR_ACCELERATION_MODES = ("gyro_derivative", "neglected")
@@ -179,11 +179,7 @@ class TorqueEstimatorConfig:
                 f"{where}.window={self.window!r} must be an integer >= 3 (the encoder "
                 "filter fits a parabola)"
             )
-        if self.evaluation not in EVALUATION_POINTS:
-            raise ValueError(
-                f"{where}.evaluation='{self.evaluation}' must be one of "
-                f"{EVALUATION_POINTS}"
-            )
+        check_evaluation(self.evaluation, f"{where}.evaluation")
         signals = [*self.joints, *self.sensors, *(["imu"] if self.imu_frame else [])]
         for name, window in self.windows.items():
             if name not in signals:

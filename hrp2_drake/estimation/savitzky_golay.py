@@ -68,10 +68,16 @@ def _check_parameters(window: int, order: int, evaluation: str, where: str) -> N
             f"{where}: window={window!r} must be an integer >= order + 1 = {order + 1} "
             "(a polynomial of order p needs at least p + 1 samples)"
         )
+    check_evaluation(evaluation, f"{where}: evaluation")
+
+
+def check_evaluation(evaluation: str, where: str) -> None:
+    """Raises ValueError naming `where` (the field, e.g.
+    "TorqueControlConfig.estimator.evaluation") unless `evaluation` is a point a
+    filter can be evaluated at (`EVALUATION_POINTS`): the one check of the three
+    places that take it (the filter, the estimator's config, the torque control's)."""
     if evaluation not in EVALUATION_POINTS:
-        raise ValueError(
-            f"{where}: evaluation={evaluation!r} must be one of {EVALUATION_POINTS}"
-        )
+        raise ValueError(f"{where}={evaluation!r} must be one of {EVALUATION_POINTS}")
 
 
 def _is_integer(value) -> bool:
