@@ -1,4 +1,5 @@
-"""Robot-agnostic helpers on a MultibodyPlant: joint indexing and name look-ups.
+"""Robot-agnostic helpers on a MultibodyPlant: joint indexing, name look-ups and
+the floating base.
 
 Every package of hrp2_drake (robot, estimation, control, identification) addresses
 joints by name through these helpers, so nothing depends on Drake's internal ordering
@@ -14,10 +15,12 @@ from dataclasses import dataclass
 import numpy as np
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import (
+    BodyIndex,
     Frame,
     JointIndex,
     PrismaticJoint,
     RevoluteJoint,
+    RigidBody,
     WeldJoint,
 )
 from pydrake.systems.framework import Context, InputPort
@@ -134,6 +137,32 @@ def eval_finite(port: InputPort, context: Context, where: str) -> np.ndarray:
             f"t = {context.get_time():.6g} s, at indices {bad.tolist()}"
         )
     return value
+
+
+def floating_base(
+    plant: MultibodyPlant, where: str, quaternion: bool = False, advice: str = ""
+) -> RigidBody:
+    """The one floating base body of `plant` (finalized): the one look-up of the
+    estimator, inverse dynamics, the base from the soles and the balance QP.
+
+    Raises ValueError naming `where` unless the plant has exactly one floating base
+    body and, if `quaternion`, its floating joint has quaternion positions
+    ([w, x, y, z, p]; velocities [ω_WB; v_WBo] in the world). `advice` ends the
+    message (what the caller can change)."""
+    bases = sorted(int(b) for b in plant.GetFloatingBaseBodies())
+    if len(bases) != 1:
+        names = [plant.get_body(BodyIndex(b)).name() for b in bases]
+        raise ValueError(
+            f"{where}: the plant needs exactly one floating base body, it has "
+            f"{names or 'none (a fixed base)'}" + (f": {advice}" if advice else "")
+        )
+    base = plant.get_body(BodyIndex(bases[0]))
+    if quaternion and not base.has_quaternion_dofs():
+        raise ValueError(
+            f"{where}: the floating base '{base.name()}' needs a quaternion floating "
+            "joint (velocities [ω_WB; v_WBo] in the world)"
+        )
+    return base
 
 
 def tree_joints(plant: MultibodyPlant, root, through_world: bool = False) -> dict:

@@ -409,3 +409,28 @@ def test_warm_up_compiles_without_changing_the_state(hrp2, moved):
                 step.step(0.002, q.astype(np.float32), v)
     finally:
         kernels.thaw()
+
+
+def test_one_floating_base_lookup_names_the_caller():
+    """multibody.floating_base: none (a fixed base) or two, one line naming the
+    caller; one, that body."""
+    from pydrake.multibody.plant import MultibodyPlant
+    from pydrake.multibody.tree import SpatialInertia
+
+    from hrp2_drake.multibody import floating_base
+
+    def plant(welded: bool, bodies: int) -> MultibodyPlant:
+        plant = MultibodyPlant(0.0)
+        for k in range(bodies):
+            inertia = SpatialInertia.SolidBoxWithMass(1, 1, 1, 1)
+            body = plant.AddRigidBody(f"box{k}", inertia)
+        if welded:
+            plant.WeldFrames(plant.world_frame(), body.body_frame())
+        plant.Finalize()
+        return plant
+
+    with pytest.raises(ValueError, match=r"^X: .*exactly one .* none \(a fixed base"):
+        floating_base(plant(True, 1), "X")
+    with pytest.raises(ValueError, match=r"^X: .* \['box0', 'box1'\]: do Y$"):
+        floating_base(plant(False, 2), "X", advice="do Y")
+    assert floating_base(plant(False, 1), "X", quaternion=True).name() == "box0"

@@ -56,6 +56,7 @@ from hrp2_drake.multibody import (
     check_joint_names,
     check_vector,
     copy_joint,
+    floating_base,
     get_frame,
     joint_indexing,
     tree_joints,
@@ -353,25 +354,20 @@ class JointSpaceModel(NamedTuple):
     jacobian: np.ndarray | None
 
 
-def _find_base(plant: MultibodyPlant, floating_base: bool) -> RigidBody | None:
+def _find_base(plant: MultibodyPlant, floating: bool) -> RigidBody | None:
     """The floating base body of `plant` (None with a fixed base), checked against
     config.floating_base."""
-    bases = sorted(int(b) for b in plant.GetFloatingBaseBodies())
-    names = [plant.get_body(BodyIndex(b)).name() for b in bases]
-    if not floating_base:
+    if not floating:
+        bases = sorted(int(b) for b in plant.GetFloatingBaseBodies())
         if bases:
+            names = [plant.get_body(BodyIndex(b)).name() for b in bases]
             raise ValueError(
                 f"{_WHERE}: the plant has the floating base(s) {names}, but the "
                 "controller uses a fixed-base model (paper footnote 3): build it "
                 "with make_fixed_base_plant, or set config.floating_base"
             )
         return None
-    if len(bases) != 1:
-        raise ValueError(
-            f"{_WHERE}: config.floating_base needs a plant with exactly one "
-            f"floating base body, it has {names}"
-        )
-    return plant.get_body(BodyIndex(bases[0]))
+    return floating_base(plant, f"{_WHERE}: config.floating_base")
 
 
 # InverseDynamicsStep's index table (`_pack`, int64): a header, then the index lists.

@@ -58,7 +58,7 @@ from pydrake.multibody.tree import JacobianWrtVariable, JointIndex
 from pydrake.systems.framework import Context
 
 from hrp2_drake.kernels import kernel
-from hrp2_drake.multibody import get_frame, joint_indexing
+from hrp2_drake.multibody import floating_base, get_frame, joint_indexing
 from hrp2_drake.step import Step, StepSystem
 
 _WHERE = "FloatingBaseFromSoles"
@@ -294,7 +294,8 @@ class BaseFromSolesStep(Step):
             self._frames = [get_frame(plant, name, "sole frame") for name in sole_poses]
         except KeyError as error:
             raise KeyError(f"{_WHERE}: {error.args[0]}") from None
-        base = self._base = _floating_base(plant)
+        base = self._base = floating_base(plant, _WHERE, quaternion=True)
+        _check_base_joint(plant, base)
         self._check_joints()
         self._base_frame = base.body_frame()
         self._world = plant.world_frame()
@@ -395,23 +396,10 @@ class BaseFromSolesStep(Step):
         self.valid[0] = 1.0
 
 
-def _floating_base(plant: MultibodyPlant):
-    """The plant's one floating base body, with a quaternion floating joint whose
-    positions are the body's pose in the world [w, x, y, z, p] and velocities its
-    [ω_WB; v_WBo] in the world (checked on a scratch context)."""
-    bases = list(plant.GetFloatingBaseBodies())
-    if len(bases) != 1:
-        names = sorted(plant.get_body(b).name() for b in bases)
-        raise ValueError(
-            f"{_WHERE}: the plant needs exactly one floating base body, it has "
-            f"{names or 'none (a fixed base)'}"
-        )
-    base = plant.get_body(bases[0])
-    if not base.has_quaternion_dofs():
-        raise ValueError(
-            f"{_WHERE}: the floating base '{base.name()}' needs a quaternion floating "
-            "joint"
-        )
+def _check_base_joint(plant: MultibodyPlant, base) -> None:
+    """Raises ValueError unless the floating joint of `base` has positions the body's
+    pose in the world [w, x, y, z, p] and velocities its [ω_WB; v_WBo] in the world
+    (checked on a scratch context)."""
     context = plant.CreateDefaultContext()
     X_WB = RigidTransform(RollPitchYaw(0.1, -0.2, 0.3), [0.4, -0.5, 0.6])
     V_WB = SpatialVelocity(w=[0.1, 0.2, 0.3], v=[0.4, 0.5, 0.6])
@@ -429,7 +417,6 @@ def _floating_base(plant: MultibodyPlant):
             f"{_WHERE}: the floating base '{base.name()}''s joint must hold its pose "
             "[w, x, y, z, p] and [ω_WB; v_WBo] in the world (no frame offsets)"
         )
-    return base
 
 
 class FloatingBaseFromSoles(StepSystem):

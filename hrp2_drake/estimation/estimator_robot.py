@@ -15,7 +15,7 @@ from hrp2_drake.estimation.estimator_config import (
     TorqueEstimatorConfig,
 )
 from hrp2_drake.estimation.internal_model import WHERE, ModelSensor
-from hrp2_drake.multibody import get_frame, joint_indexing, tree_parents
+from hrp2_drake.multibody import floating_base, get_frame, joint_indexing, tree_parents
 
 
 class EstimatorRobot:
@@ -94,9 +94,12 @@ class EstimatorRobot:
                 f"{WHERE}: base body '{config.base_body}' is not a floating base, nor "
                 "welded to the world"
             )
-        floating = sorted(int(b) for b in plant.GetFloatingBaseBodies())
-        if len(floating) == 1:
-            return plant.get_body(BodyIndex(floating[0])), False
+        advice = (
+            "give a model of the robot alone, or name its base in "
+            "TorqueEstimatorConfig.base_body"
+        )
+        if plant.GetFloatingBaseBodies():
+            return floating_base(plant, WHERE, advice=advice), False
         # Bodies welded directly to the world (not through other welded bodies).
         direct = set()
         for j in plant.GetJointIndices():
@@ -104,18 +107,13 @@ class EstimatorRobot:
             ends = {int(joint.parent_body().index()), int(joint.child_body().index())}
             if joint.num_velocities() == 0 and int(world.index()) in ends:
                 direct |= ends - {int(world.index())}
-        if not floating and len(direct) == 1:
+        if len(direct) == 1:
             return plant.get_body(BodyIndex(direct.pop())), True
-
-        def names(indices) -> list[str]:
-            return [plant.get_body(BodyIndex(b)).name() for b in sorted(indices)]
-
+        names = [plant.get_body(BodyIndex(b)).name() for b in sorted(direct)]
         raise ValueError(
             f"{WHERE}: the plant must have exactly one floating base body, or none "
-            "and exactly one body welded to the world; it has floating bases "
-            f"{names(floating)} and bodies welded to the world {names(direct)}: give a "
-            "model of the robot alone, or name its base in "
-            "TorqueEstimatorConfig.base_body"
+            "and exactly one body welded to the world; it has no floating base and "
+            f"the bodies welded to the world {names}: {advice}"
         )
 
     def _base_dofs(self) -> int:
