@@ -190,8 +190,9 @@ def test_every_robot_loads_with_the_limits_its_controllers_need(name):
         assert not BalanceConfig().for_robot(robot.balance).unset()
 
 
-def test_simulated_ft_sensor_needs_a_fixed_joint(tmp_path):
+def test_ft_sensor_needs_a_fixed_joint_when_loaded(tmp_path):
     # The wrist link hangs from a revolute joint: no reaction force reads an F/T.
+    # The description refuses it when it is loaded, naming the file and the field.
     path = _write(
         tmp_path,
         "iiwa14",
@@ -199,9 +200,11 @@ def test_simulated_ft_sensor_needs_a_fixed_joint(tmp_path):
             "body: ft_sensor_link", "body: iiwa_link_7", 1
         ),
     )
-    with pytest.raises(
-        ValueError, match=r"wrist\.body: 'iiwa_link_7' hangs from revolute"
-    ):
+    message = r"force_torque_sensors\.wrist\.body: 'iiwa_link_7' hangs from revolute"
+    with pytest.raises(ValueError, match=message) as error:
+        load_robot_description(path)
+    assert str(error.value).startswith(f"{path}: ")
+    with pytest.raises(ValueError, match=message):
         make_station(StationConfig(robot=str(path), scenario="fixed_base"))
 
 

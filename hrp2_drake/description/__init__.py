@@ -41,7 +41,7 @@ from hrp2_drake.description.contacts import BalanceDescription, ContactsDescript
 from hrp2_drake.description.excitation import CollectionConfig
 from hrp2_drake.description.logs import LogFormat
 from hrp2_drake.description.sensors import SensorRanges, SensorsConfig
-from hrp2_drake.multibody import is_strictly_below, tree_parents
+from hrp2_drake.multibody import is_strictly_below, tree_joints
 
 BASES = ("floating", "fixed")
 #: The robot of every command without --robot.
@@ -507,8 +507,9 @@ class RobotDescription:
         ValueError names the field."""
         base = self._check_base(plant)
         self._check_joints(plant)
-        parent = tree_parents(plant, base.index())
-        below = self._check_force_torque_sensors(plant, base, parent)
+        holders = tree_joints(plant, base.index())
+        below = self._check_force_torque_sensors(plant, base, holders)
+        parent = {int(base.index()): -1} | {b: a for b, (a, _) in holders.items()}
         self._check_imu(plant, parent, below)
         self._check_other_names(plant)
         self.contacts.check_model(plant)
@@ -567,12 +568,15 @@ class RobotDescription:
             raise ValueError(f"joints: {unactuated} have no actuator in the model")
 
     def _check_force_torque_sensors(
-        self, plant: MultibodyPlant, base: RigidBody, parent: dict[int, int]
+        self, plant: MultibodyPlant, base: RigidBody, holders: dict[int, tuple]
     ) -> dict[str, int]:
         """Each sensor's frame and body are in the model, the body is below the sensor
-        (not the base, not above its frame, rigidly holding it). Returns the index of
-        each sensor's body, by sensor name."""
+        (not the base, not above its frame, rigidly holding it) and hangs from a fixed
+        joint (the sensor: what it reads is that joint's reaction force). `holders`:
+        `tree_joints` from the base. Returns the index of each sensor's body, by
+        sensor name."""
         world = plant.world_body().index()
+        parent = {int(base.index()): -1} | {b: a for b, (a, _) in holders.items()}
         below = {}
         for name, sensor in self.force_torque_sensors.items():
             where = f"force_torque_sensors.{name}"
@@ -601,6 +605,13 @@ class RobotDescription:
                     f"{where}.body: '{body_name}' is above its frame '{sensor.frame}' "
                     f"(on body '{frame.body().name()}'): give the body right below the "
                     "sensor"
+                )
+            _, joint = holders[int(body.index())]
+            if joint.type_name() != "weld":
+                raise ValueError(
+                    f"{where}.body: '{body_name}' hangs from {joint.type_name()} "
+                    f"joint '{joint.name()}'; an F/T sensor is a fixed joint above "
+                    "its body (its reaction force is what the sensor reads)"
                 )
             below[name] = int(body.index())
         return below
