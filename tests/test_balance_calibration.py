@@ -16,7 +16,7 @@ from pydrake.trajectories import PiecewisePolynomial
 from hrp2_drake.assembly.balance import _moved
 from hrp2_drake.assembly.torque_control import TorqueControlConfig, check_for_robot
 from hrp2_drake.estimation import estimator_config as estimation_config
-from hrp2_drake.estimation.estimator_step import TorqueEstimatorStep
+from hrp2_drake.estimation.estimator_step import FloatingBaseTorqueEstimatorStep
 from hrp2_drake.robot.station import (
     LoweringConfig,
     StationConfig,
@@ -87,9 +87,11 @@ def test_the_estimator_starts_with_the_given_offsets():
     robot = STANDING.description()
     offset = [0.1, -0.2, 0.3, 1.0, -2.0, 3.0]
     config = estimation_config.estimator_config(robot, offsets={"left_foot": offset})
-    step = TorqueEstimatorStep(robot.make_plant(), config)
+    step = FloatingBaseTorqueEstimatorStep(robot.make_plant(), config)
     imu = [0.05, -0.03, 0.04, 0.002, -0.001, 0.0015]
-    shifted = TorqueEstimatorStep(robot.make_plant(), replace(config, imu_offset=imu))
+    shifted = FloatingBaseTorqueEstimatorStep(
+        robot.make_plant(), replace(config, imu_offset=imu)
+    )
     n, k = len(robot.joints), len(robot.sensor_names())
     rng = np.random.default_rng(0)
     q, v, vdot = (rng.normal(0, 0.1, n) for _ in range(3))

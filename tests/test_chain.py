@@ -21,7 +21,10 @@ from hrp2_drake.chain import (
     entries,
     whole,
 )
-from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayFilter, SavitzkyGolayStep
+from hrp2_drake.estimation.savitzky_golay import (
+    SavitzkyGolayFilter,
+    SavitzkyGolayFilterStep,
+)
 from hrp2_drake.simulation import SampleHold
 
 PERIOD = 0.01
@@ -32,7 +35,7 @@ def _filter_row(name: str, size: int, source, held=frozenset()) -> Row:
     return Row(
         name=name,
         system_name=name,
-        make_step=lambda: SavitzkyGolayStep(size, 5, 1, PERIOD, "end"),
+        make_step=lambda: SavitzkyGolayFilterStep(size, 5, 1, PERIOD, "end"),
         make_system=lambda: SavitzkyGolayFilter(size, 5, 1, PERIOD, "end"),
         inputs={"signal": source},
         arguments=args("signal"),

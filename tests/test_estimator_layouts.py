@@ -37,7 +37,7 @@ from hrp2_drake.estimation.estimator_config import (
     ForceTorqueSensorConfig,
     TorqueEstimatorConfig,
 )
-from hrp2_drake.estimation.estimator_step import TorqueEstimatorStep
+from hrp2_drake.estimation.estimator_step import FloatingBaseTorqueEstimatorStep
 from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
 
 kV = JacobianWrtVariable.kV
@@ -662,10 +662,10 @@ def test_system_matches_estimate(arm, arm_truth, legs):
 
 
 def test_step_without_imu_and_with_nested_sensors(arm, arm_truth, legs):
-    """TorqueEstimatorStep on plain arrays: the fixed-base arm without IMU takes None
-    for the imu_* inputs (and for the wrenches without F/T sensor), the nested leg
-    sensors work as in `estimate`, to the bit, and both match the truth."""
-    arm_step = TorqueEstimatorStep(arm, _arm_config())
+    """FloatingBaseTorqueEstimatorStep on plain arrays: the fixed-base arm without IMU
+    takes None for the imu_* inputs (and for the wrenches without F/T sensor), the
+    nested leg sensors work as in `estimate`, to the bit, and both match the truth."""
+    arm_step = FloatingBaseTorqueEstimatorStep(arm, _arm_config())
     assert not arm_step.has_imu() and not arm_step.reads_angular_acceleration()
     assert arm_step.sensor_names() == ["wrist"]
     sample = arm_truth.sample(np.random.default_rng(52), ("tool",))
@@ -679,12 +679,12 @@ def test_step_without_imu_and_with_nested_sensors(arm, arm_truth, legs):
         arm_step.unknown_wrench, sample["unknown"], rtol=0, atol=TOL
     )
 
-    bare = TorqueEstimatorStep(arm, _arm_config(sensors={}))
+    bare = FloatingBaseTorqueEstimatorStep(arm, _arm_config(sensors={}))
     assert bare.num_sensors() == 0 and bare.output_names() == ["tau", "unknown_wrench"]
     bare.step(0.0, *joints, None, None, None, None)
     assert np.all(np.isfinite(bare.tau)) and np.any(bare.tau != 0.0)
 
-    leg_step = TorqueEstimatorStep(legs["floating"], _leg_config())
+    leg_step = FloatingBaseTorqueEstimatorStep(legs["floating"], _leg_config())
     assert leg_step.nested_sensors() == {"ankle": "thigh"}
     truth = _leg_truth(legs["floating"], True)
     sample = truth.sample(np.random.default_rng(53), ("thigh_lower", "foot"))
@@ -731,8 +731,8 @@ def test_step_kernels_compiled_equal_interpreted(arm, arm_truth, legs):
         ),
     ]
     for plant, config, ticks in cases:
-        compiled = TorqueEstimatorStep(plant, config)
-        interpreted = TorqueEstimatorStep(plant, config)
+        compiled = FloatingBaseTorqueEstimatorStep(plant, config)
+        interpreted = FloatingBaseTorqueEstimatorStep(plant, config)
         for k, inputs in enumerate(ticks):
             compiled.step(1e-3 * k, *inputs)
             with kernels.interpreted():

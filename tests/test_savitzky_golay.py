@@ -13,14 +13,14 @@ from ticks import commit, run_ticks
 from hrp2_drake.estimation.savitzky_golay import (
     SavitzkyGolayConfig,
     SavitzkyGolayFilter,
-    SavitzkyGolayStep,
+    SavitzkyGolayFilterStep,
     savgol_coefficients,
     savgol_filter_offline,
 )
 from hrp2_drake.simulation import SampleHold
 
 PERIOD = 1e-3  # s
-_RING = 4  # SavitzkyGolayStep.ring's bookkeeping entries
+_RING = 4  # SavitzkyGolayFilterStep.ring's bookkeeping entries
 
 
 def _polynomial(degree: int, num_signals: int, seed: int = 0) -> np.ndarray:
@@ -515,12 +515,12 @@ def test_per_signal_window_errors(window, evaluation, span, match):
     [(21, 2, None), (21, 1, None), ([11, 5, 21, 21], 2, None), ([7, 3, 9, 9], 1, 13)],
 )
 def test_step_on_plain_arrays_equals_the_filter(window, order, span):
-    """SavitzkyGolayStep driven by arrays (no Drake) gives the filter's outputs to the
-    bit, tick by tick, through start-up and a burst of bad samples."""
+    """SavitzkyGolayFilterStep driven by arrays (no Drake) gives the filter's outputs to
+    the bit, tick by tick, through start-up and a burst of bad samples."""
     samples = np.random.default_rng(7).normal(size=(60, 4))
     samples[30:33, [0, 2]] = math.nan
     system = SavitzkyGolayFilter(4, window, order, PERIOD, span=span)
-    step = SavitzkyGolayStep(4, window, order, PERIOD, "centre", span)
+    step = SavitzkyGolayFilterStep(4, window, order, PERIOD, "centre", span)
     names = step.output_names()
     assert names == tuple(
         system.get_output_port(i).get_name() for i in range(system.num_output_ports())
@@ -548,7 +548,7 @@ def test_step_exact_on_a_ramp_and_bound_to_a_buffer():
     bound to a slice of a larger vector (as a fused controller does) it goes on
     identically, its named arrays views on that vector."""
     window = 9
-    step = SavitzkyGolayStep(2, window, 2, PERIOD, "centre")
+    step = SavitzkyGolayFilterStep(2, window, 2, PERIOD, "centre")
     assert step.delay() == pytest.approx(4e-3)
 
     def ramp(t):
@@ -566,7 +566,7 @@ def test_step_exact_on_a_ramp_and_bound_to_a_buffer():
     np.testing.assert_allclose(step.derivative, [3.0, 50.0], rtol=1e-9)
     np.testing.assert_allclose(step.second_derivative, [0.0, 0.0], atol=1e-6)
 
-    alone = SavitzkyGolayStep(2, window, 2, PERIOD, "centre")
+    alone = SavitzkyGolayFilterStep(2, window, 2, PERIOD, "centre")
     alone.state[:] = step.state
     fused = np.full(step.state_size + 3, -1.0)
     step.bind(fused[2:-1])
@@ -600,7 +600,7 @@ def _kernel_samples(num_signals: int, ticks: int, seed: int) -> np.ndarray:
     return samples
 
 
-def _run_step(step: SavitzkyGolayStep, samples: np.ndarray) -> np.ndarray:
+def _run_step(step: SavitzkyGolayFilterStep, samples: np.ndarray) -> np.ndarray:
     """initialize, then one step per sample; the whole state after each."""
     step.initialize(0.0, samples[0])
     states = []
@@ -628,7 +628,7 @@ def test_kernel_compiled_equals_interpreted(window, order, span):
     samples = _kernel_samples(5, 70, seed=11)
 
     def make():
-        return SavitzkyGolayStep(5, window, order, PERIOD, "centre", span)
+        return SavitzkyGolayFilterStep(5, window, order, PERIOD, "centre", span)
 
     compiled = _run_step(make(), samples)
     # (With NUMBA_DISABLE_JIT both are the Python source.)
@@ -654,7 +654,7 @@ def test_kernel_equals_the_weighted_window(window, order, span):
     samples = _kernel_samples(k, 70, seed=12)
     samples[0, 1] = 0.0  # no bad samples here: the window is the samples themselves
     samples[30:33] = samples[29]
-    step = SavitzkyGolayStep(k, window, order, PERIOD, "centre", span)
+    step = SavitzkyGolayFilterStep(k, window, order, PERIOD, "centre", span)
     states = _run_step(step, samples)
     N, windows = step.window(), step.windows()
     fit = step.rows("value").start
@@ -680,8 +680,8 @@ def test_warm_up_then_frozen_a_tick_runs_and_a_new_signature_raises():
 
     if not kernels.jit_enabled():
         pytest.skip("NUMBA_DISABLE_JIT: nothing compiles")
-    step = SavitzkyGolayStep(4, [11, 5, 11, 7], 2, PERIOD, "centre")
-    bound = SavitzkyGolayStep(4, 9, 1, PERIOD, "centre")
+    step = SavitzkyGolayFilterStep(4, [11, 5, 11, 7], 2, PERIOD, "centre")
+    bound = SavitzkyGolayFilterStep(4, 9, 1, PERIOD, "centre")
     buffer = np.zeros(bound.state_size + 2)
     bound.bind(buffer[1:-1])
     step.initialize(0.0, np.arange(4.0))
@@ -707,7 +707,7 @@ def test_warm_up_then_frozen_a_tick_runs_and_a_new_signature_raises():
 
 
 def test_a_signal_of_the_wrong_size_raises():
-    step = SavitzkyGolayStep(4, 9, 2, PERIOD, "centre")
+    step = SavitzkyGolayFilterStep(4, 9, 2, PERIOD, "centre")
     with pytest.raises(ValueError, match="signal's size"):
         step.step(0.0, np.zeros(5))
 

@@ -30,7 +30,7 @@ from hrp2_drake.estimation.estimator_config import (
     ForceTorqueSensorConfig,
     TorqueEstimatorConfig,
 )
-from hrp2_drake.estimation.estimator_step import TorqueEstimatorStep
+from hrp2_drake.estimation.estimator_step import FloatingBaseTorqueEstimatorStep
 from hrp2_drake.estimation.savitzky_golay import savgol_coefficients
 from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
 from hrp2_drake.paper import hrp2
@@ -406,7 +406,7 @@ def test_imu_below_a_force_sensor_is_an_error(plant):
 
 
 def _step_inputs(sample: dict) -> tuple:
-    """A sample as TorqueEstimatorStep.step's arguments after t."""
+    """A sample as FloatingBaseTorqueEstimatorStep.step's arguments after t."""
     return (
         sample["q"],
         sample["v"],
@@ -419,13 +419,13 @@ def _step_inputs(sample: dict) -> tuple:
 
 
 def test_step_on_plain_arrays_equals_the_system(plant, truth):
-    """TorqueEstimatorStep driven by arrays (no systems Context), its state bound in
-    a larger vector, gives the LeafSystem's outputs to the bit, through an offset
-    calibration, and the true torques and wrenches; it tells a fused controller how
-    to wire it."""
+    """FloatingBaseTorqueEstimatorStep driven by arrays (no systems Context), its state
+    bound in a larger vector, gives the LeafSystem's outputs to the bit, through an
+    offset calibration, and the true torques and wrenches; it tells a fused controller
+    how to wire it."""
     rng = np.random.default_rng(70)
     config = _config(plant, offset_calibration_time=0.002, offset_calibration_start=0)
-    step = TorqueEstimatorStep(plant, config)
+    step = FloatingBaseTorqueEstimatorStep(plant, config)
     assert step.sensor_names() == SENSORS and step.num_sensors() == 4
     assert step.num_joints() == 30 and step.has_imu()
     assert step.reads_angular_acceleration() and step.period() == 1e-3
@@ -466,7 +466,9 @@ def test_step_neglecting_alpha_takes_none_and_names_a_bad_input(plant, truth):
     """With angular_acceleration "neglected" the step takes None for it; a non-finite
     input raises ValueError naming it, before any output changes."""
     sample = truth.sample(np.random.default_rng(71))
-    step = TorqueEstimatorStep(plant, _config(plant, angular_acceleration="neglected"))
+    step = FloatingBaseTorqueEstimatorStep(
+        plant, _config(plant, angular_acceleration="neglected")
+    )
     assert not step.reads_angular_acceleration()
     inputs = list(_step_inputs(sample))
     inputs[5] = None
@@ -482,7 +484,7 @@ def test_step_neglecting_alpha_takes_none_and_names_a_bad_input(plant, truth):
     np.testing.assert_array_equal(step.state, before)
 
 
-def _calibrating_step(plant) -> TorqueEstimatorStep:
+def _calibrating_step(plant) -> FloatingBaseTorqueEstimatorStep:
     """An HRP-2 step that calibrates its offsets at t < 2 ms, with the unknown wrench on
     the torso (the experiments' choice) and rotor inertia off: most kernel branches."""
     config = _config(
@@ -492,7 +494,7 @@ def _calibrating_step(plant) -> TorqueEstimatorStep:
         unknown_wrench_body=hrp2.IMU_BODY,
         include_rotor_inertia=False,
     )
-    return TorqueEstimatorStep(plant, config)
+    return FloatingBaseTorqueEstimatorStep(plant, config)
 
 
 def test_step_kernels_compiled_equal_interpreted(plant, truth):
@@ -525,7 +527,7 @@ def test_step_jacobians_equal_a_second_inverse_dynamics(plant, truth):
     for body in (None, hrp2.IMU_BODY):
         sample = truth.sample(np.random.default_rng(81), unknown_body=body)
         changes = {"unknown_wrench_body": body} if body else {}
-        step = TorqueEstimatorStep(plant, _config(plant, **changes))
+        step = FloatingBaseTorqueEstimatorStep(plant, _config(plant, **changes))
         step.step(0.0, *_step_inputs(sample))
         # The step's model and context hold this sample's kinematics.
         model, context = step._model, step._context

@@ -25,8 +25,11 @@ from hrp2_drake.estimation.estimator_config import (
     estimation_delay,
     filter_windows,
 )
-from hrp2_drake.estimation.estimator_step import TorqueEstimatorStep
-from hrp2_drake.estimation.savitzky_golay import SavitzkyGolayFilter, SavitzkyGolayStep
+from hrp2_drake.estimation.estimator_step import FloatingBaseTorqueEstimatorStep
+from hrp2_drake.estimation.savitzky_golay import (
+    SavitzkyGolayFilter,
+    SavitzkyGolayFilterStep,
+)
 from hrp2_drake.estimation.torque_estimator import FloatingBaseTorqueEstimator
 
 
@@ -166,7 +169,7 @@ def estimation_rows(
 
     def sg(size, windows, order):
         return dict(
-            make_step=lambda: SavitzkyGolayStep(
+            make_step=lambda: SavitzkyGolayFilterStep(
                 size, windows, order, period, evaluation, span=span
             ),
             make_system=lambda: SavitzkyGolayFilter(
@@ -255,7 +258,7 @@ def _estimator_row(plant, config, lead, name, imu, names, faults) -> Row:
     return Row(
         name="estimator",
         system_name=name,
-        make_step=lambda: TorqueEstimatorStep(plant, config),
+        make_step=lambda: FloatingBaseTorqueEstimatorStep(plant, config),
         make_system=lambda: FloatingBaseTorqueEstimator(plant, config, lead=lead),
         inputs=inputs,
         arguments=(*args("q", "v", "vdot"), *imu_args, wrench_arg),

@@ -1,7 +1,8 @@
-"""`TorqueEstimatorStep`: the torque estimator's per-tick arithmetic on plain arrays
-(hrp2_drake.step), which `FloatingBaseTorqueEstimator` and the fused controller run;
-its two numba kernels (`estimator_inputs`, `estimator_outputs`; hrp2_drake.kernels)
-and their index table. The method is in `torque_estimator`'s module docstring.
+"""`FloatingBaseTorqueEstimatorStep`: the torque estimator's per-tick arithmetic on
+plain arrays (hrp2_drake.step), which `FloatingBaseTorqueEstimator` and the fused
+controller run; its two numba kernels (`estimator_inputs`, `estimator_outputs`;
+hrp2_drake.kernels) and their index table. The method is in `torque_estimator`'s module
+docstring.
 """
 
 import copy
@@ -42,7 +43,8 @@ class TorqueEstimate(NamedTuple):
     external_wrenches: np.ndarray
 
 
-# TorqueEstimatorStep's index table (`_pack`, int64): a header, then the index lists.
+# FloatingBaseTorqueEstimatorStep's index table (`_pack`, int64): a header, then the
+# index lists.
 (
     _N,  # n, the joints
     _K,  # k, the F/T sensors
@@ -72,20 +74,24 @@ _HAS_IMU, _READS_ALPHA, _SUBTRACTS_ROTOR, _MAPS_UNKNOWN = 1, 2, 4, 8
 
 @kernel
 def estimator_inputs(q, v, vdot, acc, gyro, alpha, wrenches, work, table):
-    """`TorqueEstimatorStep.step`'s inputs into the work array (`_pack`'s layout): q, v
-    of the joints and the gyro into x = [q; v] of the internal model, vdot and the
-    IMU's α (if read) and proper acceleration into its v̇, the F/T readings (k, 6);
-    acc, gyro, alpha are zero-length when not read. Returns the sum of x, v̇ and the
-    readings, finite exactly when every entry is (barring an overflow): the step's
-    one check of its inputs. Copies only (bitwise)."""
+    """`FloatingBaseTorqueEstimatorStep.step`'s inputs into the work array (`_pack`'s
+    layout): q, v of the joints and the gyro into x = [q; v] of the internal model, vdot
+    and the IMU's α (if read) and proper acceleration into its v̇, the F/T readings (k,
+    6); acc, gyro, alpha are zero-length when not read. Returns the sum of x, v̇ and the
+    readings, finite exactly when every entry is (barring an overflow): the step's one
+    check of its inputs. Copies only (bitwise)."""
     n = table[_N]
     k = table[_K]
     nq = table[_NQ]
     flags = table[_FLAGS]
     if q.shape[0] != n or v.shape[0] != n or vdot.shape[0] != n:
-        raise ValueError("TorqueEstimatorStep.step: q, v and vdot need n entries each")
+        raise ValueError(
+            "FloatingBaseTorqueEstimatorStep.step: q, v and vdot need n entries each"
+        )
     if wrenches.shape[0] != k or wrenches.shape[1] != 6:
-        raise ValueError("TorqueEstimatorStep.step: wrenches must be (k, 6)")
+        raise ValueError(
+            "FloatingBaseTorqueEstimatorStep.step: wrenches must be (k, 6)"
+        )
     jq = table[_T_JQ]
     jv = table[_T_JV]
     vd = table[_W_VDOT]
@@ -97,14 +103,17 @@ def estimator_inputs(q, v, vdot, acc, gyro, alpha, wrenches, work, table):
         work[vd + table[jv + i]] = vdot[i]
     if flags & _HAS_IMU:
         if acc.shape[0] != 3 or gyro.shape[0] != 3:
-            raise ValueError("TorqueEstimatorStep.step: the IMU inputs need 3 entries")
+            raise ValueError(
+                "FloatingBaseTorqueEstimatorStep.step: the IMU inputs need 3 entries"
+            )
         root = table[ROOT_V]
         for i in range(3):
             work[nq + root + i] = gyro[i]
         if flags & _READS_ALPHA:
             if alpha.shape[0] != 3:
                 raise ValueError(
-                    "TorqueEstimatorStep.step: the IMU inputs need 3 entries"
+                    "FloatingBaseTorqueEstimatorStep.step: the IMU inputs need 3 "
+                    "entries"
                 )
             for i in range(3):
                 work[vd + root + i] = alpha[i]
@@ -122,14 +131,14 @@ def estimator_inputs(q, v, vdot, acc, gyro, alpha, wrenches, work, table):
 
 @kernel
 def estimator_outputs(calibrating, G, jacobians, work, state, table):
-    """`TorqueEstimatorStep.step`'s arithmetic after Drake's calls (the method in
-    torque_estimator's docstring, steps 2 to 4), into `state` (tau, unknown_wrench, the
-    external wrenches, the calibration, in that order): from G = M v̇ + h of the
-    internal model (the inverse dynamics without applied forces), `jacobians` (one (6,
-    nv) J_m per sensor, in S at So, then J_u if u moves; a single unused one when
-    neither), the work array (the readings, v̇, the nested pairs' poses, the constants)
-    and `table` (`_pack`). With `calibrating`, one more sample of the offsets' running
-    mean first.
+    """`FloatingBaseTorqueEstimatorStep.step`'s arithmetic after Drake's calls (the
+    method in torque_estimator's docstring, steps 2 to 4), into `state` (tau,
+    unknown_wrench, the external wrenches, the calibration, in that order): from G = M
+    v̇ + h of the internal model (the inverse dynamics without applied forces),
+    `jacobians` (one (6, nv) J_m per sensor, in S at So, then J_u if u moves; a single
+    unused one when neither), the work array (the readings, v̇, the nested pairs' poses,
+    the constants) and `table` (`_pack`). With `calibrating`, one more sample of the
+    offsets' running mean first.
 
     Elementwise as the numpy code before (bitwise): F_total, the calibration, the
     offsets, the copies of G's rows, the rotor term. Reductions, summing products in
@@ -251,7 +260,7 @@ def estimator_outputs(calibrating, G, jacobians, work, state, table):
             state[i] -= work[vd + table[jv + i]] * work[rotor + i]
 
 
-class TorqueEstimatorStep(Step):
+class FloatingBaseTorqueEstimatorStep(Step):
     """The per-tick arithmetic of `FloatingBaseTorqueEstimator` (its docstring:
     inputs, outputs, units, offset calibration, errors; the method in torque_estimator's
     docstring), on plain arrays, with everything it precomputes: the internal model,

@@ -7,7 +7,7 @@ matrix, so each estimate is one weighted sum of the window's samples (paper Sec.
 
 - `savgol_coefficients` gives those weights.
 - `SavitzkyGolayFilter` is the causal, 1 kHz LeafSystem used in the controller's
-  diagram; `SavitzkyGolayStep` is its per-tick arithmetic on plain arrays
+  diagram; `SavitzkyGolayFilterStep` is its per-tick arithmetic on plain arrays
   (hrp2_drake.step).
 - `savgol_filter_offline` applies the same weights to whole logged arrays, centred on
   every sample (the non-causal estimation used for identification, paper Sec. 3.4.3).
@@ -38,9 +38,9 @@ from hrp2_drake.step import Step, StepSystem
 
 EVALUATION_POINTS = ("centre", "end")
 ORDERS = (1, 2)
-# SavitzkyGolayStep's ring-buffer state: bookkeeping, then the samples.
+# SavitzkyGolayFilterStep's ring-buffer state: bookkeeping, then the samples.
 _NEWEST_ROW, _NUM_SAMPLES, _CONSECUTIVE_BAD, _TOTAL_BAD, _RING_START = range(5)
-# SavitzkyGolayStep's packed constants (`_pack`): a header, then the weights.
+# SavitzkyGolayFilterStep's packed constants (`_pack`): a header, then the weights.
 (
     _DELAY,  # s
     _SPAN,  # N, the ring's rows
@@ -217,9 +217,9 @@ class SavitzkyGolayConfig:
 
 @kernel
 def savgol_step(t, signal, state, constants):
-    """`SavitzkyGolayStep.step`'s arithmetic: takes the sample `signal` (k) taken at t
-    into `state` (the step's whole state vector) and writes the estimates there, with
-    the constants `_pack` made (header, then the weights).
+    """`SavitzkyGolayFilterStep.step`'s arithmetic: takes the sample `signal` (k) taken
+    at t into `state` (the step's whole state vector) and writes the estimates there,
+    with the constants `_pack` made (header, then the weights).
 
     Each estimate is a sum over the window's N samples, oldest to newest, one product
     and one addition per sample (no fma, numba's default): independent of the ring's
@@ -231,7 +231,7 @@ def savgol_step(t, signal, state, constants):
     rows = int(constants[_ROWS])
     if signal.shape[0] != k:
         raise ValueError(
-            "SavitzkyGolayStep.step: the signal's size is not num_signals()"
+            "SavitzkyGolayFilterStep.step: the signal's size is not num_signals()"
         )
     # Views with indices from 0 (no wraparound test per access, distinct arrays: the
     # innermost loops vectorise).
@@ -305,7 +305,7 @@ def savgol_step(t, signal, state, constants):
     state[int(constants[_TIME])] = t - constants[_DELAY]
 
 
-class SavitzkyGolayStep(Step):
+class SavitzkyGolayFilterStep(Step):
     """The per-tick arithmetic of `SavitzkyGolayFilter` (its docstring: start-up, bad
     samples, per-signal windows), on plain arrays: `initialize(t, signal)` and
     `step(t, signal)` update the state in place.
@@ -407,7 +407,9 @@ class SavitzkyGolayStep(Step):
         time, fault = self.rows("evaluation_time"), self.rows("input_fault")
         if self.rows(_ESTIMATES[self._order]).stop != fit.start + rows * k:
             # The kernel writes the estimates as one (order + 1, k) block.
-            raise AssertionError("SavitzkyGolayStep: the estimates are not contiguous")
+            raise AssertionError(
+                "SavitzkyGolayFilterStep: the estimates are not contiguous"
+            )
         header[[_RING, _FIT, _TIME, _FAULT]] = [
             ring.start,
             fit.start,
@@ -503,8 +505,8 @@ class SavitzkyGolayFilter(StepSystem):
     allocates the buffer. The outputs (and `input_fault`) are the tick of the sample
     now held (direct feedthrough), committed at the next sampling instant
     (`hrp2_drake.step.StepSystem`: one tick from sample to command). The arithmetic is
-    `SavitzkyGolayStep`'s (its `initialize` and `step`), which this system runs on its
-    context's state.
+    `SavitzkyGolayFilterStep`'s (its `initialize` and `step`), which this system runs
+    on its context's state.
 
     Start-up: at the first sample the whole window is filled with that sample, so
     value = first sample and derivatives = 0. An initialization event does the same with
@@ -551,7 +553,9 @@ class SavitzkyGolayFilter(StepSystem):
                 (`StepSystem`: the commits follow the sampler).
         """
         super().__init__()
-        step = SavitzkyGolayStep(num_signals, window, order, period, evaluation, span)
+        step = SavitzkyGolayFilterStep(
+            num_signals, window, order, period, evaluation, span
+        )
         self._signal = self.DeclareVectorInputPort("signal", step.num_signals())
         self._declare_step_state(step)
         for name in step.output_names():

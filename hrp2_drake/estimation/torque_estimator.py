@@ -7,8 +7,8 @@ beside it, one concern a module:
   windows and its delay (`estimation_delay`);
 - estimator_robot.py: the robot found and checked on the plant (`EstimatorRobot`);
 - internal_model.py: the internal model (below) built from the plant;
-- estimator_step.py: `TorqueEstimatorStep`, the per-tick arithmetic on plain arrays
-  (hrp2_drake.step) and its numba kernels, which this LeafSystem and the fused
+- estimator_step.py: `FloatingBaseTorqueEstimatorStep`, the per-tick arithmetic on plain
+  arrays (hrp2_drake.step) and its numba kernels, which this LeafSystem and the fused
   controller run;
 - estimation_chain.py: `add_estimator`, which wires the whole estimation chain
   (Savitzky-Golay filters + estimator) to a robot diagram.
@@ -96,7 +96,10 @@ from pydrake.multibody.tree import RigidBody
 from pydrake.systems.framework import Context
 
 from hrp2_drake.estimation.estimator_config import TorqueEstimatorConfig
-from hrp2_drake.estimation.estimator_step import TorqueEstimate, TorqueEstimatorStep
+from hrp2_drake.estimation.estimator_step import (
+    FloatingBaseTorqueEstimatorStep,
+    TorqueEstimate,
+)
 from hrp2_drake.estimation.internal_model import WHERE
 from hrp2_drake.multibody import eval_finite
 from hrp2_drake.step import StepSystem
@@ -180,7 +183,7 @@ class FloatingBaseTorqueEstimator(StepSystem):
     sensor, an F/T sensor body that is the base, not rigidly attached to its frame or
     above it, two sensors on one body.
 
-    The arithmetic is `TorqueEstimatorStep`'s, which this system runs on its
+    The arithmetic is `FloatingBaseTorqueEstimatorStep`'s, which this system runs on its
     context's state (a fused controller runs the same step without Drake). Allocated
     once at construction: the internal model (module docstring), one context of it and
     one MultibodyForces (zero); per update only Drake's results (an inverse dynamics, a
@@ -210,7 +213,7 @@ class FloatingBaseTorqueEstimator(StepSystem):
                 period (`StepSystem`: the commits follow the sampler).
         """
         super().__init__()
-        step = TorqueEstimatorStep(plant, config)
+        step = FloatingBaseTorqueEstimatorStep(plant, config)
         n, names = step.num_joints(), step.sensor_names()
         self._q_port = self.DeclareVectorInputPort("q", n)
         self._v_port = self.DeclareVectorInputPort("v", n)
