@@ -4,20 +4,20 @@ robot description with contacts; default HRP-2), per solver, against Drake's own
 `CalcInverseDynamics` on the full robot in the same run (issue 29: choose the solver
 by measurement).
 
-The robot in double support (HRP-2: 60 variables, 18 equalities, 62 inequality rows
-and 38 bounds: `BalanceStep.sizes`), at states of a smooth 1 kHz sequence around the
-standing pose (HRP-2: half-sitting): every joint oscillating by a few 0.01 rad at
-0.5-2 Hz with its velocity, the CoM's reference 2 cm to the left. One `BalanceStep`
-built once; per tick, timed: the rest of the step (Drake's terms and the kernels that
-assemble the QP and write τ), each solver's solve on the same QP (the coefficients'
-update and the solve: `QpBackend.update` + `solve`; each solver keeps its own warm
-start), and one `CalcInverseDynamics` (gravity included) of the full floating robot
-(HRP-2: 36 velocities) at the same state, the unit of the ratios: every time of a
-tick is taken under the same load. A solver's step is the rest plus its solve. Also per
-tick, the QP's input: the base's state from the soles' kinematics
-(`BaseFromSolesStep.step`, the soles where they stood) from the same joint angles
-and velocities. The garbage collector is frozen and disabled, as in the control
-loop.
+The robot in double support (HRP-2: 60 variables, 18 equalities, 62 inequality rows and
+38 bounds: `WholeBodyBalanceControllerStep.sizes`), at states of a smooth 1 kHz sequence
+around the standing pose (HRP-2: half-sitting): every joint oscillating by a few 0.01
+rad at 0.5-2 Hz with its velocity, the CoM's reference 2 cm to the left. One
+`WholeBodyBalanceControllerStep` built once; per tick, timed: the rest of the step
+(Drake's terms and the kernels that assemble the QP and write τ), each solver's solve on
+the same QP (the coefficients' update and the solve: `QpBackend.update` + `solve`; each
+solver keeps its own warm start), and one `CalcInverseDynamics` (gravity included) of
+the full floating robot (HRP-2: 36 velocities) at the same state, the unit of the
+ratios: every time of a tick is taken under the same load. A solver's step is the rest
+plus its solve. Also per tick, the QP's input: the base's state from the soles'
+kinematics (`FloatingBaseFromSolesStep.step`, the soles where they stood) from the same
+joint angles and velocities. The garbage collector is frozen and disabled, as in the
+control loop.
 
 Solvers: pydrake's OsqpSolver and ClarabelSolver (MathematicalProgram built once,
 UpdateCoefficients on the bindings, the last solution as initial guess), the pip
@@ -245,20 +245,20 @@ def bench(robot, solvers, ticks):
     from pydrake.multibody.tree import MultibodyForces
 
     from hrp2_drake.assembly.balance import sole_poses
-    from hrp2_drake.control.balance import BalanceConfig, BalanceStep
-    from hrp2_drake.estimation.base_kinematics import BaseFromSolesStep
+    from hrp2_drake.control.balance import BalanceConfig, WholeBodyBalanceControllerStep
+    from hrp2_drake.estimation.base_kinematics import FloatingBaseFromSolesStep
 
     plant, context, indexing = standing(robot)
     com = plant.CalcCenterOfMassPositionInWorld(context)
     com_ref = np.r_[com + [0.0, 0.02, 0.0], np.zeros(6)]
     q_ref = robot.home_positions()
-    step = BalanceStep(
+    step = WholeBodyBalanceControllerStep(
         plant,
         BalanceConfig(joints=robot.joints).for_robot(robot.balance, robot.source_file),
         robot.contacts,
     )
     step.warm_up()
-    base = BaseFromSolesStep(
+    base = FloatingBaseFromSolesStep(
         plant, robot.joints, sole_poses(robot, plant.GetPositions(context))
     )
     base.warm_up()
@@ -625,7 +625,7 @@ def main() -> int:
         f"{rest['p99_us']:.0f} µs ({rest['p99']:.1f} ID)"
     )
     print(
-        f"its input, the base from the soles (BaseFromSolesStep.step): p50 "
+        f"its input, the base from the soles (FloatingBaseFromSolesStep.step): p50 "
         f"{base['p50_us']:.0f} µs ({base['p50']:.1f} ID), p99 "
         f"{base['p99_us']:.0f} µs ({base['p99']:.1f} ID)\n"
     )

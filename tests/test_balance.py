@@ -17,8 +17,8 @@ from pydrake.systems.primitives import ConstantVectorSource, MatrixGain
 from hrp2_drake.control.balance import (
     BalanceConfig,
     BalanceFault,
-    BalanceStep,
     WholeBodyBalanceController,
+    WholeBodyBalanceControllerStep,
     make_qp_backend,
 )
 from hrp2_drake.description import load_robot_description
@@ -58,7 +58,9 @@ def standing(robot):
 
 @pytest.fixture(scope="module")
 def step(robot, standing):
-    return BalanceStep(standing[0], _config(robot, joints=robot.joints), robot.contacts)
+    return WholeBodyBalanceControllerStep(
+        standing[0], _config(robot, joints=robot.joints), robot.contacts
+    )
 
 
 def perturbed_states(standing, count, seed=1, reach=0.02):
@@ -97,7 +99,7 @@ def test_the_solution_satisfies_every_constraint(robot, standing, tight):
     config = _config(robot, joints=robot.joints)
     if tight:
         config.torque_limit_scale, config.acceleration_limit = 0.2, 5.0
-    step = BalanceStep(plant, config, robot.contacts)
+    step = WholeBodyBalanceControllerStep(plant, config, robot.contacts)
     mu = step.config().friction / np.sqrt(2.0)
     tau_max = step.torque_limits()
     context = plant.CreateDefaultContext()
@@ -230,13 +232,15 @@ def test_an_infeasible_problem_is_a_fault_without_nan(robot, standing):
     config = _config(
         robot, joints=robot.joints, torque_limit_scale=0.0, acceleration_limit=0.0
     )
-    step = BalanceStep(plant, config, robot.contacts)
+    step = WholeBodyBalanceControllerStep(plant, config, robot.contacts)
     fault = step.step(0.0, x, home, ref)
     assert fault in (BalanceFault.INFEASIBLE, BalanceFault.SOLVER_FAILED)
     assert step.fault[0] == fault and step.fault_count[0] == 1
     assert np.all(np.isfinite(step.state))
     assert np.abs(step.tau_desired).max() > 1.0  # the static torque, not zero
-    good = BalanceStep(plant, _config(robot, joints=robot.joints), robot.contacts)
+    good = WholeBodyBalanceControllerStep(
+        plant, _config(robot, joints=robot.joints), robot.contacts
+    )
     assert good.step(0.0, x, home, ref) == BalanceFault.NONE
     tau = good.tau_desired.copy()
     bad = x.copy()
@@ -287,7 +291,7 @@ def test_config_errors_name_the_field(robot, standing, change, message):
     for key, value in change.items():
         setattr(config, key, value)
     with pytest.raises(ValueError, match=message):
-        BalanceStep(standing[0], config, robot.contacts)
+        WholeBodyBalanceControllerStep(standing[0], config, robot.contacts)
 
 
 def test_the_robot_gives_what_the_config_leaves_unset(robot, standing):
@@ -309,13 +313,15 @@ def test_the_robot_gives_what_the_config_leaves_unset(robot, standing):
     with pytest.raises(ValueError, match=r"^r.yaml: balance.friction: not given"):
         BalanceConfig().for_robot(bare, where="r.yaml")
     with pytest.raises(ValueError, match="unset .None: the robot's.: fill them"):
-        BalanceStep(standing[0], BalanceConfig(joints=robot.joints), robot.contacts)
+        WholeBodyBalanceControllerStep(
+            standing[0], BalanceConfig(joints=robot.joints), robot.contacts
+        )
 
 
 def test_every_joint_must_be_listed(robot, standing):
     message = "BalanceConfig.joints: 29 joints, but the plant"
     with pytest.raises(ValueError, match=message):
-        BalanceStep(
+        WholeBodyBalanceControllerStep(
             standing[0], _config(robot, joints=robot.joints[1:]), robot.contacts
         )
 
@@ -375,7 +381,9 @@ def test_the_compiled_kernels_equal_their_python_source(robot, standing):
     home = robot.home_positions()
     results = []
     for interpreted in (False, True):
-        step = BalanceStep(plant, _config(robot, joints=robot.joints), robot.contacts)
+        step = WholeBodyBalanceControllerStep(
+            plant, _config(robot, joints=robot.joints), robot.contacts
+        )
         context = kernels.interpreted() if interpreted else contextlib.nullcontext()
         with context:
             for x, ref in perturbed_states(standing, 2, seed=3):
@@ -407,7 +415,9 @@ def test_warm_up_compiles_the_signatures_of_a_tick(robot, standing, monkeypatch)
 
         monkeypatch.setattr(balance, name, typed)
     plant, x, _ = standing
-    step = BalanceStep(plant, _config(robot, joints=robot.joints), robot.contacts)
+    step = WholeBodyBalanceControllerStep(
+        plant, _config(robot, joints=robot.joints), robot.contacts
+    )
     step.warm_up()
     phase[0] = "tick"
     for x, ref in perturbed_states(standing, 2, seed=5):
@@ -424,8 +434,10 @@ def test_daqp_solves_the_same_qp_as_osqp_and_reports_infeasibility(robot, standi
     plant, x, _ = standing
     home = robot.home_positions()
     assert BalanceConfig().solver == "daqp"
-    fast = BalanceStep(plant, _config(robot, joints=robot.joints), robot.contacts)
-    osqp = BalanceStep(
+    fast = WholeBodyBalanceControllerStep(
+        plant, _config(robot, joints=robot.joints), robot.contacts
+    )
+    osqp = WholeBodyBalanceControllerStep(
         plant, _config(robot, joints=robot.joints, solver="osqp"), robot.contacts
     )
     for state, ref in perturbed_states(standing, 3, seed=4):
@@ -441,7 +453,7 @@ def test_daqp_solves_the_same_qp_as_osqp_and_reports_infeasibility(robot, standi
         torque_limit_scale=0.01,
         acceleration_limit=0.0,
     )
-    infeasible = BalanceStep(plant, config, robot.contacts)
+    infeasible = WholeBodyBalanceControllerStep(plant, config, robot.contacts)
     ref = np.r_[np.zeros(3), np.zeros(6)]
     assert infeasible.step(0.0, x, home, ref) == BalanceFault.INFEASIBLE
     assert np.all(np.isfinite(infeasible.state))

@@ -19,8 +19,8 @@ from hrp2_drake.control.balance_reference import StandingIk
 from hrp2_drake.description import load_robot_description
 from hrp2_drake.estimation import base_kinematics
 from hrp2_drake.estimation.base_kinematics import (
-    BaseFromSolesStep,
     FloatingBaseFromSoles,
+    FloatingBaseFromSolesStep,
 )
 from hrp2_drake.multibody import joint_indexing
 from hrp2_drake.robot.station import standing_positions
@@ -122,7 +122,7 @@ def _still_soles_velocity(plant, positions, soles, seed=0):
 
 def _estimate(hrp2, positions, velocities, poses):
     plant, _, indexing, _ = hrp2
-    step = BaseFromSolesStep(plant, list(indexing.names), poses)
+    step = FloatingBaseFromSolesStep(plant, list(indexing.names), poses)
     step.step(0.0, positions[indexing.q], velocities[indexing.v])
     return step
 
@@ -187,7 +187,10 @@ def test_the_plants_default_base_pose_does_not_enter(robot, hrp2, moved):
     poses = _sole_poses(plant, standing, soles)
     velocities = _still_soles_velocity(plant, moved, soles)
     q, v = moved[indexing.q], velocities[indexing.v]
-    steps = [BaseFromSolesStep(p, list(indexing.names), poses) for p in (plant, other)]
+    steps = [
+        FloatingBaseFromSolesStep(p, list(indexing.names), poses)
+        for p in (plant, other)
+    ]
     for step in steps:
         step.step(0.0, q, v)
     np.testing.assert_array_equal(steps[1].robot_state, steps[0].robot_state)
@@ -259,7 +262,7 @@ def test_the_velocity_is_the_least_squares_solution_at_the_estimate(hrp2, moved)
 
 def test_a_non_finite_input_keeps_the_last_estimate(hrp2, moved):
     plant, standing, indexing, soles = hrp2
-    step = BaseFromSolesStep(
+    step = FloatingBaseFromSolesStep(
         plant, list(indexing.names), _sole_poses(plant, standing, soles)
     )
     q, v = moved[indexing.q], np.zeros(indexing.size)
@@ -286,7 +289,7 @@ def test_the_shell_outputs_the_steps_numbers(hrp2, moved):
     system.GetInputPort("q").FixValue(context, q)
     system.GetInputPort("v").FixValue(context, v)
     context.SetDiscreteState(system.EvalUniquePeriodicDiscreteUpdate(context))
-    step = BaseFromSolesStep(plant, list(indexing.names), poses)
+    step = FloatingBaseFromSolesStep(plant, list(indexing.names), poses)
     step.step(0.0, q, v)
     np.testing.assert_allclose(
         system.GetOutputPort("state").Eval(context),
@@ -330,7 +333,7 @@ def test_errors_are_one_line_and_name_what_is_wrong(
         joints = list(indexing.names)[joints]
     poses = change.get("sole_poses", _sole_poses(hrp2[0], standing, soles))
     with pytest.raises(error, match=message) as raised:
-        BaseFromSolesStep(plant, joints, poses)
+        FloatingBaseFromSolesStep(plant, joints, poses)
     assert "\n" not in str(raised.value)
 
 
@@ -363,7 +366,7 @@ def test_the_compiled_kernels_equal_their_python_source(hrp2, moved):
         context = kernels.interpreted() if interpreted else contextlib.nullcontext()
         with context:
             for poses, q, v in _cases(hrp2, moved):
-                step = BaseFromSolesStep(plant, list(indexing.names), poses)
+                step = FloatingBaseFromSolesStep(plant, list(indexing.names), poses)
                 step.step(0.0, q, v)
                 results.append(step.state.copy())
     half = len(results) // 2
@@ -379,7 +382,7 @@ def test_warm_up_compiles_without_changing_the_state(hrp2, moved):
     compiling."""
     plant, standing, indexing, soles = hrp2
     poses = _sole_poses(plant, standing, soles)
-    step = BaseFromSolesStep(plant, list(indexing.names), poses)
+    step = FloatingBaseFromSolesStep(plant, list(indexing.names), poses)
     q, v = moved[indexing.q], np.zeros(indexing.size)
     step.step(0.0, q, v)
     before = step.state.copy()

@@ -22,7 +22,7 @@ from hrp2_drake.control.inverse_dynamics import (
     TORQUE_COMPONENTS,
     InverseDynamicsConfig,
     InverseDynamicsController,
-    InverseDynamicsStep,
+    InverseDynamicsControllerStep,
     make_fixed_base_plant,
 )
 from hrp2_drake.multibody import joint_indexing
@@ -385,11 +385,11 @@ def test_bad_inputs(fixed_plant, floating_plant):
 
 
 def test_step_equals_controller(fixed_plant):
-    """InverseDynamicsStep driven by plain arrays (no systems Context) gives the
-    controller's outputs bit for bit, and eq. 12's numbers."""
+    """InverseDynamicsControllerStep driven by plain arrays (no systems Context) gives
+    the controller's outputs bit for bit, and eq. 12's numbers."""
     nominal = _nominal(fixed_plant)
     controller = InverseDynamicsController(fixed_plant, _config(), nominal)
-    step = InverseDynamicsStep(fixed_plant, _config(), nominal)
+    step = InverseDynamicsControllerStep(fixed_plant, _config(), nominal)
     names = ("tau_desired", *TORQUE_COMPONENTS)
     assert [name for name, _ in step.layout()] == list(names)
     assert step.state_size == 6 * 6 and not np.any(step.state)
@@ -440,7 +440,7 @@ def test_step_without_force_task(fixed_plant):
     """No force task: f_ref, f are ignored; the force terms are zero."""
     nominal = _nominal(fixed_plant)
     config = _config(force_frame="")
-    step = InverseDynamicsStep(fixed_plant, config, nominal)
+    step = InverseDynamicsControllerStep(fixed_plant, config, nominal)
     controller = InverseDynamicsController(fixed_plant, config, nominal)
     inputs = _inputs(4, force=False)
     assert not step.has_force_task()
@@ -458,7 +458,7 @@ def test_step_without_force_task(fixed_plant):
 def test_step_floating_base(floating_plant):
     nominal = _nominal(floating_plant)
     config = _config(floating_base=True)
-    step = InverseDynamicsStep(floating_plant, config, nominal)
+    step = InverseDynamicsControllerStep(floating_plant, config, nominal)
     controller = InverseDynamicsController(floating_plant, config, nominal)
     R_WB = RotationMatrix(RollPitchYaw(0.2, -0.1, 0.4))
     inputs = dict(
@@ -484,17 +484,19 @@ def _id_steps(fixed_plant, floating_plant):
     )
     return [
         (
-            lambda: InverseDynamicsStep(fixed_plant, _config(), _nominal(fixed_plant)),
+            lambda: InverseDynamicsControllerStep(
+                fixed_plant, _config(), _nominal(fixed_plant)
+            ),
             _inputs(20),
         ),
         (
-            lambda: InverseDynamicsStep(
+            lambda: InverseDynamicsControllerStep(
                 fixed_plant, _config(force_frame=""), _nominal(fixed_plant)
             ),
             _inputs(21, force=False),
         ),
         (
-            lambda: InverseDynamicsStep(
+            lambda: InverseDynamicsControllerStep(
                 floating_plant, _config(floating_base=True), _nominal(floating_plant)
             ),
             dict(_inputs(22), **base),
@@ -524,7 +526,7 @@ def test_step_gravity_as_the_roots_acceleration(fixed_plant):
     (CalcForceElementsContribution, one Drake call less): τ_d is the plant's own
     inverse dynamics with gravity, to rounding."""
     nominal = _nominal(fixed_plant)
-    step = InverseDynamicsStep(fixed_plant, _config(force_frame=""), nominal)
+    step = InverseDynamicsControllerStep(fixed_plant, _config(force_frame=""), nominal)
     ix = joint_indexing(fixed_plant, LEG)
     context = fixed_plant.CreateDefaultContext()
     forces = MultibodyForces(fixed_plant)

@@ -38,7 +38,7 @@ from hrp2_drake.control.torque_controller import (
     DELTA_Q_COMPONENTS,
     FALLBACK_REASONS,
     DeltaQTorqueController,
-    DeltaQTorqueStep,
+    DeltaQTorqueControllerStep,
     TorqueControllerConfig,
 )
 from hrp2_drake.control.wiring import (
@@ -481,8 +481,8 @@ def test_composed_controller_is_eqs_13_14(motor, fixed_plant):
 
 
 class _Twins:
-    """A DeltaQTorqueStep driven by plain arrays and a DeltaQTorqueController with
-    the same inputs, ticked together and compared bit for bit."""
+    """A DeltaQTorqueControllerStep driven by plain arrays and a DeltaQTorqueController
+    with the same inputs, ticked together and compared bit for bit."""
 
     OUTPUTS = (
         "q_cmd",
@@ -494,7 +494,7 @@ class _Twins:
     )
 
     def __init__(self, motor, config, inputs: dict, terms=None, disturbance=None):
-        self.step = DeltaQTorqueStep(motor, config)
+        self.step = DeltaQTorqueControllerStep(motor, config)
         self.controller = DeltaQTorqueController(motor, config)
         self.inputs, self.terms, self.disturbance = inputs, terms, disturbance
         fixed = dict(inputs, sensor_fault=np.zeros(1))
@@ -551,7 +551,7 @@ class _Twins:
 
 
 def test_step_equals_controller(motor):
-    """DeltaQTorqueStep driven by plain arrays (no systems Context) gives the
+    """DeltaQTorqueControllerStep driven by plain arrays (no systems Context) gives the
     controller's outputs bit for bit, tick by tick: initialization, torque control
     with an integral, d̂ and the inverse-dynamics terms, a fallback (reported once,
     by its code) and its reset."""
@@ -625,12 +625,12 @@ def test_step_without_terms_and_unlatched(motor):
 
 
 def _kernel_ticks(motor, config, seed: int):
-    """A DeltaQTorqueStep run through every path of its kernel: torque control with
-    the inverse-dynamics terms (and without), saturation, before start_time, each
-    FALLBACK_REASONS code with a reset after it, q_ref given or not. Returns the
-    state after each tick and the codes."""
+    """A DeltaQTorqueControllerStep run through every path of its kernel: torque control
+    with the inverse-dynamics terms (and without), saturation, before start_time, each
+    FALLBACK_REASONS code with a reset after it, q_ref given or not. Returns the state
+    after each tick and the codes."""
     rng = np.random.default_rng(seed)
-    step = DeltaQTorqueStep(motor, config)
+    step = DeltaQTorqueControllerStep(motor, config)
     q0 = hrp2.half_sitting()[:6]
     step.initialize(0.0, q0, q0 + 0.01)
     faults = {
@@ -707,7 +707,7 @@ def test_warm_up_then_frozen(motor):
     frozen, a real tick on a step bound into a larger state (as in the fused
     controller) runs, and arrays of another type raise instead of compiling."""
     config = _config(ki=[5.0], disturbance_compensation=True)
-    step = DeltaQTorqueStep(motor, config)
+    step = DeltaQTorqueControllerStep(motor, config)
     buffer = np.zeros(step.state_size + 7)
     step.bind(buffer[3 : 3 + step.state_size])
     inputs = _inputs(30)

@@ -415,8 +415,8 @@ def make_qp_backend(qp: QpData, solver: str) -> QpBackend:
     raise ValueError(f"BalanceConfig.solver: '{solver}', expected one of {QP_SOLVERS}")
 
 
-# The kernels' index table (`BalanceStep._pack`, int64): a header, then the joints'
-# positions in q and velocities in v.
+# The kernels' index table (`WholeBodyBalanceControllerStep._pack`, int64): a header,
+# then the joints' positions in q and velocities in v.
 (
     _NV,  # the plant's velocities
     _NJ,  # the joints, n
@@ -427,7 +427,8 @@ def make_qp_backend(qp: QpData, solver: str) -> QpBackend:
     _NS,  # the soles
     _HEADER,
 ) = range(8)
-# The kernels' constants (`BalanceStep._pack`, float64), then τ_max (n).
+# The kernels' constants (`WholeBodyBalanceControllerStep._pack`, float64), then
+# τ_max (n).
 (
     _MASS,
     _GX,  # the gravity vector (3)
@@ -448,11 +449,11 @@ def make_qp_backend(qp: QpData, solver: str) -> QpBackend:
 def balance_assemble(
     M, h, Jf, com, x, q_ref, com_ref, constants, table, H0, J_com, a_com, qp_arrays
 ):
-    """`BalanceStep`'s QP from Drake's terms (M, h = C v − τ_g, the corners'
-    Jacobian J_f, the CoM's position) at the state x, with the references: the
-    base's rows of the dynamics, the torque rows and their bounds, H and g (the
-    module docstring). `qp_arrays` is (H, g, A_eq, b_eq, A_in, l_in, u_in); the
-    soles' contact rows are the caller's. Sums in loop order (no BLAS)."""
+    """`WholeBodyBalanceControllerStep`'s QP from Drake's terms (M, h = C v − τ_g, the
+    corners' Jacobian J_f, the CoM's position) at the state x, with the references: the
+    base's rows of the dynamics, the torque rows and their bounds, H and g (the module
+    docstring). `qp_arrays` is (H, g, A_eq, b_eq, A_in, l_in, u_in); the soles' contact
+    rows are the caller's. Sums in loop order (no BLAS)."""
     H, g, A_eq, b_eq, A_in, l_in, u_in = qp_arrays
     nv, n, nq = table[_NV], table[_NJ], table[_NQ]
     bq, bv, nf = table[_BASE_Q], table[_BASE_V], table[_NF]
@@ -474,7 +475,8 @@ def balance_assemble(
         tau_max = constants[_CONSTANTS + i]
         l_in[i] = -tau_max - h[row]
         u_in[i] = tau_max - h[row]
-    # The CoM: J_com = M_lin / m, J̇_com v = h_lin / m + g (`BalanceStep._cost`).
+    # The CoM: J_com = M_lin / m, J̇_com v = h_lin / m + g
+    # (`WholeBodyBalanceControllerStep._cost`).
     mass = constants[_MASS]
     for r in range(3):
         jv_r = 0.0
@@ -570,7 +572,7 @@ def _floating_base(plant: MultibodyPlant):
     return base
 
 
-class BalanceStep(Step):
+class WholeBodyBalanceControllerStep(Step):
     """The per-tick arithmetic of WholeBodyBalanceController (the module docstring
     has the QP; the class docstring the ports, units and frames), written once for
     its LeafSystem and a fused controller.
@@ -966,7 +968,7 @@ class WholeBodyBalanceController(StepSystem):
             world (m, m/s, m/s²).
 
     Outputs (the tick of the inputs held now, direct feedthrough, committed every
-    config.period; see `BalanceStep`):
+    config.period; see `WholeBodyBalanceControllerStep`):
         tau_desired (n, N·m, config.joints order), vdot (nv), contact_forces (12
         per sole, N, each corner's force in its sole's frame), sole_wrenches (6 per
         sole, [torque; force] about the sole frame's origin, in it), com (3, m),
@@ -987,12 +989,12 @@ class WholeBodyBalanceController(StepSystem):
     ):
         """
         Args:
-            plant, config, contacts: as `BalanceStep`'s.
+            plant, config, contacts: as `WholeBodyBalanceControllerStep`'s.
             lead: the samples arrive this long (s) before each multiple of the
                 period (`StepSystem`: the commits follow the sampler).
         """
         super().__init__()
-        step = BalanceStep(plant, config, contacts)
+        step = WholeBodyBalanceControllerStep(plant, config, contacts)
         n = len(config.joints)
         self._state = self.DeclareVectorInputPort(
             "state", plant.num_positions() + plant.num_velocities()
@@ -1012,7 +1014,7 @@ class WholeBodyBalanceController(StepSystem):
             self._declare_step_output(name)
         self._declare_commit(config.period, lead)
 
-    def step(self) -> BalanceStep:
+    def step(self) -> WholeBodyBalanceControllerStep:
         return self._step
 
     def _tick(self, context: Context, t: float) -> None:

@@ -250,7 +250,8 @@ def _moved_part(
     dynamics on 6 bodies instead of the whole robot's. The root at rest with the
     proper acceleration −g (an upward acceleration of the whole part, in the world),
     in an inverse dynamics without gravity's forces, is the part at rest under
-    gravity: an inverse dynamics with gravity in one call (`InverseDynamicsStep`).
+    gravity: an inverse dynamics with gravity in one call
+    (`InverseDynamicsControllerStep`).
 
     Returns (model, copy of `frame`: on the body's copy, or welded to the root if
     `frame` is not on a moved body, the root), or None if a joint of `joints` is
@@ -370,7 +371,8 @@ def _find_base(plant: MultibodyPlant, floating: bool) -> RigidBody | None:
     return floating_base(plant, f"{_WHERE}: config.floating_base")
 
 
-# InverseDynamicsStep's index table (`_pack`, int64): a header, then the index lists.
+# InverseDynamicsControllerStep's index table (`_pack`, int64): a header, then the
+# index lists.
 (
     _N,  # n, the controlled joints
     _NQ,  # the model's positions,
@@ -395,11 +397,11 @@ _FINITE, _NEW_NAN, _NAN = 0, 1, 2
 
 @kernel
 def inverse_dynamics_inputs(inputs, work, state, table):
-    """`InverseDynamicsStep.step`'s check and scatter: if the sum of `inputs` ([q_ref;
-    v_ref; vdot_ref; q; v (; f_ref; f)]) is not finite, the whole state (the outputs)
-    becomes NaN and the result says whether τ_d was finite (`_NEW_NAN`) or not
-    (`_NAN`); else q, v of the joints go into x = [q; v] of the model and vdot_ref
-    into its v̇ (the other entries stay: nominal positions, zero velocities and
+    """`InverseDynamicsControllerStep.step`'s check and scatter: if the sum of `inputs`
+    ([q_ref; v_ref; vdot_ref; q; v (; f_ref; f)]) is not finite, the whole state (the
+    outputs) becomes NaN and the result says whether τ_d was finite (`_NEW_NAN`) or not
+    (`_NAN`); else q, v of the joints go into x = [q; v] of the model and vdot_ref into
+    its v̇ (the other entries stay: nominal positions, zero velocities and
     accelerations, the root's or base's), and the result is `_FINITE`. Copies only."""
     n = table[_N]
     total = 0.0
@@ -519,7 +521,7 @@ def inverse_dynamics_outputs(G, J, inputs, work, state, table):
         ]
 
 
-class InverseDynamicsStep(Step):
+class InverseDynamicsControllerStep(Step):
     """Eq. 12 for one sample, outside Drake's systems framework: the per-tick
     arithmetic of InverseDynamicsController (its docstring has the model, the frames,
     the units and the error semantics), written once for it and for a fused
@@ -530,7 +532,8 @@ class InverseDynamicsStep(Step):
         tau_feedforward, tau_position_feedback, tau_velocity_feedback,
         tau_force_feedback, tau_force_error: its terms (TORQUE_COMPONENTS order).
     Views on it: `outputs` (6, n), every row above in that order, and `terms` (5, n),
-    the TORQUE_COMPONENTS rows (what `DeltaQTorqueStep.step` takes as `terms`).
+    the TORQUE_COMPONENTS rows (what `DeltaQTorqueControllerStep.step` takes as
+    `terms`).
 
     `step` rewrites the whole state every tick; it reads only `tau_desired` (to
     report a new NaN event): `carried`, what a shell loads before a tick. Its
@@ -1055,8 +1058,8 @@ class InverseDynamicsController(StepSystem):
     model's business (eq. 10) and because the torque estimate τ̂ (eq. 2) is a
     rigid-body torque too; Sec. 4.2 needs the same ĥ in both.
 
-    The arithmetic is `InverseDynamicsStep`'s (this system is its shell: ports, state
-    groups, the periodic event and the NaN warning).
+    The arithmetic is `InverseDynamicsControllerStep`'s (this system is its shell:
+    ports, state groups, the periodic event and the NaN warning).
 
     Errors: in the periodic update a NaN or infinite sample of q_ref, v_ref, vdot_ref,
     q, v, f_ref or f makes every output NaN (logged once), so that the Δq controller
@@ -1088,7 +1091,7 @@ class InverseDynamicsController(StepSystem):
                 period (`StepSystem`: the commits follow the sampler).
         """
         super().__init__()
-        step = InverseDynamicsStep(plant, config, nominal_positions)
+        step = InverseDynamicsControllerStep(plant, config, nominal_positions)
         n = len(config.joints)
 
         # Ports.

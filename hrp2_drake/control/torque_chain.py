@@ -35,8 +35,8 @@ from hrp2_drake.chain import (
 )
 from hrp2_drake.control.balance import (
     BalanceConfig,
-    BalanceStep,
     WholeBodyBalanceController,
+    WholeBodyBalanceControllerStep,
 )
 from hrp2_drake.control.disturbance_observer import (
     DisturbanceObserver,
@@ -47,7 +47,7 @@ from hrp2_drake.control.inverse_dynamics import (
     TORQUE_COMPONENTS,
     InverseDynamicsConfig,
     InverseDynamicsController,
-    InverseDynamicsStep,
+    InverseDynamicsControllerStep,
 )
 from hrp2_drake.control.predictor import (
     DelayPredictor,
@@ -62,13 +62,13 @@ from hrp2_drake.control.safety import (
 from hrp2_drake.control.torque_controller import (
     DELTA_Q_COMPONENTS,
     DeltaQTorqueController,
-    DeltaQTorqueStep,
+    DeltaQTorqueControllerStep,
     TorqueControllerConfig,
 )
 from hrp2_drake.description.contacts import ContactsDescription
 from hrp2_drake.estimation.base_kinematics import (
-    BaseFromSolesStep,
     FloatingBaseFromSoles,
+    FloatingBaseFromSolesStep,
 )
 from hrp2_drake.estimation.estimation_chain import estimation_rows
 from hrp2_drake.estimation.estimator_config import TorqueEstimatorConfig
@@ -113,8 +113,8 @@ class SupervisorParts:
 @dataclass(frozen=True)
 class BalanceParts:
     """The balance front end of the chain (issue 29): the floating base's state from
-    the soles' kinematics (`BaseFromSolesStep`) and the whole-body QP with contacts
-    (`BalanceStep`), in the inverse dynamics' place.
+    the soles' kinematics (`FloatingBaseFromSolesStep`) and the whole-body QP with
+    contacts (`WholeBodyBalanceControllerStep`), in the inverse dynamics' place.
 
     Args:
         plant: the robot alone with its floating base (the QP's and the base
@@ -284,7 +284,7 @@ def _inverse_dynamics_row(parts: TorqueChainParts, c: _Controlled) -> Row:
     return Row(
         name="inverse_dynamics",
         system_name="inverse_dynamics",
-        make_step=lambda: InverseDynamicsStep(plant, config),
+        make_step=lambda: InverseDynamicsControllerStep(plant, config),
         make_system=lambda: InverseDynamicsController(plant, config, lead=lead),
         inputs=inputs,
         outputs=("tau_desired", *TORQUE_COMPONENTS),
@@ -310,7 +310,7 @@ def _balance_rows(parts: TorqueChainParts) -> list[Row]:
         Row(
             name="base",
             system_name="base_from_soles",
-            make_step=lambda: BaseFromSolesStep(
+            make_step=lambda: FloatingBaseFromSolesStep(
                 balance.plant, joints, balance.sole_poses
             ),
             make_system=lambda: FloatingBaseFromSoles(
@@ -323,7 +323,7 @@ def _balance_rows(parts: TorqueChainParts) -> list[Row]:
         Row(
             name="balance",
             system_name="balance",
-            make_step=lambda: BalanceStep(
+            make_step=lambda: WholeBodyBalanceControllerStep(
                 balance.plant, balance.config, balance.contacts
             ),
             make_system=lambda: WholeBodyBalanceController(
@@ -373,7 +373,7 @@ def _torque_row(parts, c: _Controlled, tau_desired: Source, fault: Sum) -> Row:
     return Row(
         name="torque",
         system_name="torque_controller",
-        make_step=lambda: DeltaQTorqueStep(model, config),
+        make_step=lambda: DeltaQTorqueControllerStep(model, config),
         make_system=lambda: DeltaQTorqueController(model, config, lead=lead),
         inputs=inputs,
         arguments=(

@@ -1,7 +1,7 @@
 """DeltaQTorqueController: joint-torque control through a position servo (paper Sec.
-4.1.1-4.1.2, eq. 10-11), its per-tick step (`DeltaQTorqueStep`) and its kernels.
-Beside it: the wiring that puts a torque-controlled joint subset into a whole-robot
-command (wiring.py), and K_s, K_d for a position gain K6 (gains.py).
+4.1.1-4.1.2, eq. 10-11), its per-tick step (`DeltaQTorqueControllerStep`) and its
+kernels. Beside it: the wiring that puts a torque-controlled joint subset into a
+whole-robot command (wiring.py), and K_s, K_d for a position gain K6 (gains.py).
 
 The control law (per joint, all gains diagonal):
 
@@ -167,17 +167,17 @@ class TorqueControllerConfig:
         return out
 
 
-# The state of DeltaQTorqueStep, as the kernels index it: the start of each named
-# array in units of n (the order of its `_declare` calls, checked at construction),
-# then fallback_active, fallback_reason, tau_error_integral at 12 n, 12 n + 1,
-# 12 n + 2.
+# The state of DeltaQTorqueControllerStep, as the kernels index it: the start of each
+# named array in units of n (the order of its `_declare` calls, checked at
+# construction), then fallback_active, fallback_reason, tau_error_integral at 12 n,
+# 12 n + 1, 12 n + 2.
 _Q_CMD, _DELTA_Q, _DELTA_Q_UNSATURATED, _TAU_COMMANDED = 0, 1, 2, 3
 _FF_TORQUE, _FF_FRICTION, _FB_POSITION, _FB_VELOCITY = 4, 5, 6, 7
 _FB_ACCELERATION, _FB_FORCE, _FB_INTEGRAL, _FB_DISTURBANCE = 8, 9, 10, 11
 _FALLBACK = 12  # fallback_active at 12 n, fallback_reason and the integral after it
 _STATE_ROWS = 13  # the state has 13 n + 2 entries
-# Its constants (`DeltaQTorqueStep._constants`, packed once): rows of n, then the
-# scalars at _C_ROWS n.
+# Its constants (`DeltaQTorqueControllerStep._constants`, packed once): rows of n, then
+# the scalars at _C_ROWS n.
 (
     _C_KP,
     _C_KI,
@@ -203,8 +203,8 @@ _Q_REF_NOT_FINITE, _NO_DISTURBANCE, _BAD_SIZE = -1, -2, -3
 
 @kernel
 def _delta_q_hold(q_measured, q_ref, has_q_ref, fallback, state):
-    """Position control on DeltaQTorqueStep's `state`: q_cmd = q_ref (has_q_ref
-    False: the q_cmd held), Δq = q_cmd − q_measured (0 where not finite), the
+    """Position control on DeltaQTorqueControllerStep's `state`: q_cmd = q_ref
+    (has_q_ref False: the q_cmd held), Δq = q_cmd − q_measured (0 where not finite), the
     torque-control arrays zero, fallback_active = fallback. Returns 0, or
     _Q_REF_NOT_FINITE (nothing changed) or _BAD_SIZE."""
     n = (state.shape[0] - 2) // _STATE_ROWS
@@ -245,10 +245,10 @@ def _delta_q_step(
     state,
     constants,
 ):
-    """One tick of DeltaQTorqueStep on its `state` with its packed `constants`
-    (`DeltaQTorqueStep.step`: the arguments are its inputs, a flag for each optional
-    one, whose array is then a stand-in). Returns the FALLBACK_REASONS code of a
-    fallback that starts now (else 0), or a negative code on which the step raises.
+    """One tick of DeltaQTorqueControllerStep on its `state` with its packed `constants`
+    (`DeltaQTorqueControllerStep.step`: the arguments are its inputs, a flag for each
+    optional one, whose array is then a stand-in). Returns the FALLBACK_REASONS code of
+    a fallback that starts now (else 0), or a negative code on which the step raises.
 
     Elementwise, in numpy's order of operations (the numbers of the numpy version
     bit for bit), except K_c tanh(q̂̇ / v_s), libm's tanh where numpy's own SIMD one
@@ -421,7 +421,7 @@ def _clipped_integral(integral, e_tau, period, limit):
     return min(max(integral, -limit), limit)
 
 
-class DeltaQTorqueStep(Step):
+class DeltaQTorqueControllerStep(Step):
     """Eq. 10-11 for one sample, with the Δq components of Sec. 5.5, the saturation
     and the fallback to position control, outside Drake's systems framework: the
     per-tick arithmetic of DeltaQTorqueController (its docstring has the law, the
@@ -619,8 +619,8 @@ class DeltaQTorqueStep(Step):
             sensor_fault: a 1-array, > 0 while the estimation filters hold a bad
                 sample (then fallback, reason 6); None: no fault.
             terms: (5, n), the rows τ_ff, τ_Ks, τ_Kd, τ_Kf, τ_ef of the inverse
-                dynamics (TORQUE_COMPONENTS order, e.g. InverseDynamicsStep.terms),
-                N·m; None: τ_ff = τ_d and zeros.
+                dynamics (TORQUE_COMPONENTS order, e.g.
+                InverseDynamicsControllerStep.terms), N·m; None: τ_ff = τ_d and zeros.
             tau_disturbance: d̂ (N·m), n, with config.disturbance_compensation
                 (required then; ignored otherwise).
 
@@ -807,9 +807,9 @@ class DeltaQTorqueController(StepSystem):
       - An initialization event sets q_cmd = q_ref if connected, else q_measured
         (Δq = 0), so the servo holds the robot from the first step.
 
-    The arithmetic is `DeltaQTorqueStep`'s (this system is its shell: ports, state
-    groups, events, the fallback's log line, and the check that the tau_* inputs are
-    connected all or none).
+    The arithmetic is `DeltaQTorqueControllerStep`'s (this system is its shell: ports,
+    state groups, events, the fallback's log line, and the check that the tau_* inputs
+    are connected all or none).
 
     Stability of the torque loop (a property of eq. 10-11, not of this code): the
     servo turns Δq into torque within one period, so if τ̂ followed the applied
@@ -836,7 +836,7 @@ class DeltaQTorqueController(StepSystem):
                 period (`StepSystem`: the commits follow the sampler).
         """
         super().__init__()
-        step = DeltaQTorqueStep(motor_model, config)
+        step = DeltaQTorqueControllerStep(motor_model, config)
         n = len(config.joints)
 
         # Ports.

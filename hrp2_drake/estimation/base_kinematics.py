@@ -16,7 +16,7 @@ least-squares sense.
 Valid while every sole stays flat on the ground; a sole that slips or rotates makes
 the estimate drift by as much (the balance experiments report when a sole moved).
 
-Per tick (`BaseFromSolesStep.step`), Drake gives, with the joints at q_j and the
+Per tick (`FloatingBaseFromSolesStep.step`), Drake gives, with the joints at q_j and the
 base at the identity pose (where the world frame and the base's coincide), each
 sole's pose X_BS_k and its spatial-velocity Jacobian J_BS_k (the joint columns: the
 sole's velocity relative to the base, in B): one SetPositions and, per sole, one
@@ -63,8 +63,8 @@ from hrp2_drake.step import Step, StepSystem
 
 _WHERE = "FloatingBaseFromSoles"
 
-# The kernels' index table (`BaseFromSolesStep._pack`, int64): a header, then the
-# joints' positions in q and velocities in v.
+# The kernels' index table (`FloatingBaseFromSolesStep._pack`, int64): a header, then
+# the joints' positions in q and velocities in v.
 (
     _NQ,  # the plant's positions
     _NJ,  # the joints, n
@@ -247,7 +247,7 @@ def base_from_soles(v, X_WS, X_BS, J, positions, table, work, robot_state):
         robot_state[nq + table[jv + i]] = v[i]
 
 
-class BaseFromSolesStep(Step):
+class FloatingBaseFromSolesStep(Step):
     """The per-tick arithmetic of FloatingBaseFromSoles (module docstring).
 
     State:
@@ -440,20 +440,20 @@ class FloatingBaseFromSoles(StepSystem):
     ):
         """
         Args:
-            plant, joints, sole_poses: as `BaseFromSolesStep`'s.
+            plant, joints, sole_poses: as `FloatingBaseFromSolesStep`'s.
             period: the update period (s).
             lead: the samples arrive this long (s) before each multiple of `period`
                 (`StepSystem`: the commits follow the sampler).
         """
         super().__init__()
-        step = BaseFromSolesStep(plant, joints, sole_poses)
+        step = FloatingBaseFromSolesStep(plant, joints, sole_poses)
         self._q = self.DeclareVectorInputPort("q", len(joints))
         self._v = self.DeclareVectorInputPort("v", len(joints))
         self._declare_step_state(step)
         self._declare_step_output("state", "robot_state")
         self._declare_commit(period, lead)
 
-    def step(self) -> BaseFromSolesStep:
+    def step(self) -> FloatingBaseFromSolesStep:
         return self._step
 
     def _tick(self, context: Context, t: float) -> None:
