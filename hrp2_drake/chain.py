@@ -25,6 +25,7 @@ state, the previous tick's), else `Chain` refuses the table.
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from pydrake.systems.framework import DiagramBuilder, LeafSystem, OutputPort
@@ -388,9 +389,8 @@ class FusedChain:
             out.append(whole_rows if rows is None else whole_rows[list(rows)])
         return np.concatenate(out) if out else np.zeros(0, dtype=int)
 
-    def _plan_row(self, row: Row):
-        """(step, its arguments, its take (rows, buffer) or None, its sums
-        [(buffer, views)], its initialize arguments, event kind, event view)."""
+    def _plan_row(self, row: Row) -> "_Call":
+        """A row's call: its step and arguments, and what fills them first."""
         gathered: list[tuple[Arg, np.ndarray]] = []
         resolved: dict[Arg, object] = {}
         sums = []
@@ -430,7 +430,7 @@ class FusedChain:
         step = self.steps[row.name]
         event_view = step.state[step.rows(row.event_state)] if row.event_state else None
         self._resolved[row.name] = resolved
-        return (
+        return _Call(
             step,
             tuple(resolved[a] for a in row.arguments),
             take,
@@ -446,7 +446,7 @@ class FusedChain:
         (None for a view)."""
         value = self._resolved[row_name][Arg((port,))]
         k = next(k for k, row in enumerate(self.chain.rows) if row.name == row_name)
-        _, _, take, sums, *_ = self._plan[k]
+        take, sums = self._plan[k].take, self._plan[k].sums
         if any(buffer is value for buffer, _ in sums):
             views = next(views for buffer, views in sums if buffer is value)
             return value, lambda: self._gather(None, [(value, views)])
@@ -464,17 +464,19 @@ class FusedChain:
 
     def initialize(self, t: float) -> None:
         """Every row's `initialize` (in order, each from its inputs now)."""
-        for row, (step, _, take, sums, init, *_) in zip(self.chain.rows, self._plan):
+        for row, call in zip(self.chain.rows, self._plan):
             if row.initialize is None:
                 continue
-            self._gather(take, sums)
+            self._gather(call.take, call.sums)
+            step, init = call.step, call.initialize
             if row.timed_initialize:
                 step.initialize(t, *init)
             else:
                 step.initialize(*init)
 
     def tick(self, t: float) -> None:
-        """One tick: each row's step, in order, on the arguments of this tick."""
+        """One tick: each row's step, in order, on the arguments of this tick (the
+        hot path: `_gather` inlined)."""
         sources = self.sources
         for step, arguments, take, sums, _, event, event_view in self._plan:
             if take is not None:
@@ -500,6 +502,21 @@ class FusedChain:
         if rows.size and np.array_equal(rows, np.arange(rows[0], rows[0] + rows.size)):
             return [slice(int(rows[0]), int(rows[0]) + rows.size)]
         return rows
+
+
+class _Call(NamedTuple):
+    """A row's call in a tick (`FusedChain`): `take` (rows of `sources`, the buffer
+    they fill, or None) and `sums` ((buffer, views) each) fill its gathered and summed
+    arguments before `step.step(t, *arguments)`; `initialize`: its `initialize`'s
+    arguments; `event` and `event_view`: `Row.event` and its `event_state` array."""
+
+    step: Step
+    arguments: tuple
+    take: tuple[np.ndarray, np.ndarray] | None
+    sums: list[tuple[np.ndarray, list[np.ndarray]]]
+    initialize: tuple
+    event: int
+    event_view: np.ndarray | None
 
 
 def _within(view: np.ndarray, buffer: np.ndarray) -> bool:
