@@ -4,6 +4,7 @@ the F/T offsets lifted and the CoM offset standing, the estimator starting with 
 offsets, the QP's CoM reference moved by the CoM offset; the settings' one-line
 errors."""
 
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -137,3 +138,31 @@ def test_the_com_offset_moves_the_qps_reference_by_minus_it():
         difference = moved.value(t)[:, 0] - reference.value(t)[:, 0]
         np.testing.assert_allclose(difference, [-0.01, 0.02] + [0.0] * 7, atol=1e-12)
     assert _moved(reference, [0.0, 0.0]) is reference
+
+
+def test_a_robot_without_strings_is_not_calibrated_but_says_so(tmp_path):
+    """A robot on its soles but without scenarios.hanging cannot be lifted: one line
+    naming the setting that runs it uncalibrated."""
+    from pathlib import Path
+
+    from hrp2_drake.tools.balance import BalanceExperimentConfig
+
+    folder = Path(STANDING.description().source_file).parent
+    text = (folder / "robot.yaml").read_text()
+    for key in ("model_file", "trajectory_file", "servo_file"):
+        text = re.sub(
+            rf"^{key}: (\S+)",
+            lambda m, key=key: f"{key}: {folder / m.group(1)}",
+            text,
+            flags=re.M,
+        )
+    text = text.replace("    body: CHEST_LINK1\n", '    body: ""\n').replace(
+        "    points: [[0.008, -0.25, 0.181], [0.008, 0.25, 0.181]]", "    points: []"
+    )
+    (tmp_path / "robot.yaml").write_text(text)
+    config = BalanceExperimentConfig()
+    config.station.robot = str(tmp_path / "robot.yaml")
+    with pytest.raises(ValueError, match="no scenarios.hanging .*enabled: false"):
+        config.validate()
+    config.calibration.enabled = False
+    config.validate()

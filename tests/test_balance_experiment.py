@@ -224,6 +224,7 @@ def test_the_soles_carry_the_robot_with_the_cop_inside(robot, legs_model):
         ("pushes: {directions: [up]}", "pushes.directions"),
         ("settle: 0.1", "settle"),
         ("workers: 0", "workers"),
+        ("calibration: {offset_time: 1.0}", "calibration.offset_time"),
     ],
 )
 def test_config_errors_are_one_line(tmp_path, capsys, yaml_text, message):

@@ -226,6 +226,12 @@ class BalanceExperimentConfig:
         self.com_motion.validate()
         self.pushes.validate()
         self.calibration.validate()
+        if self.calibration.enabled and not robot.scenarios.hanging.body:
+            raise ValueError(
+                f"{_WHERE}.calibration.enabled: robot '{robot.name}' has no "
+                "scenarios.hanging to be lifted by (its F/T offsets are found lifted): "
+                "describe its strings, or set calibration: {enabled: false}"
+            )
         check_finite(self.settle, f"{_WHERE}.settle", 0.0)
         if self.settle < self.control.torque.start_time:
             raise ValueError(
