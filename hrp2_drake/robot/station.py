@@ -30,9 +30,10 @@ Scenarios (`StationConfig.scenario`):
     (scenarios.block) bent so that the sole rests on it.
   - "lowered": as a real humanoid is started: hanging from the strings of
     "hanging", its soles `LoweringConfig.feet_clearance` above the ground, then put
-    down by a hoist (`robot.hoist`: the anchors go down from `lowering.start` for
-    `lowering.duration`; the strings end slack, the lift's sway damping faded out),
-    standing on its soles at the end.
+    down by a hoist (`robot.hoist`: a harness holds the torso's orientation and
+    damps its sway, the anchors go down from `lowering.start` for
+    `lowering.duration`; the strings end slack, the harness let go), standing on its
+    soles at the end.
 Every scenario but "hanging" has a ground (its top at z = 0), and `obstacles` adds
 boxes (e.g. a table for an arm's force task).
 
