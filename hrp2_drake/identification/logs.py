@@ -1,8 +1,9 @@
 """Every log the project reads, in one place: this project's npz logs, a robot's own
 JSON or CSV logs (its description's `LogFormat`), all read into one `RobotLog` on a
 uniform grid. `identify`, `estimate`, `validate` and `calibrate --log` read their
-`--log` files with `read_robot_log`; `excitation.collect`'s arrays become a
-`RobotLog` with `RobotLog.from_arrays`.
+`--log` files with `read_robot_log` (`read_logs`: several, with the report's rows of
+those resampled); `excitation.collect`'s arrays become a `RobotLog` with
+`RobotLog.from_arrays`.
 
 A real robot records timestamped samples at its own rate (a Dynamixel bus at about
 190 Hz, a motor board at 1 kHz), with jitter, and with stretches where the servo is
@@ -56,6 +57,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hrp2_drake.description import RobotDescription
 from hrp2_drake.description.logs import LogFormat
 
 #: Raw sampling rates (Hz) outside which a log's timestamps are in another unit than
@@ -826,3 +828,18 @@ def write_robot_log(
             "(save_log)"
         )
     return path
+
+
+def read_logs(
+    paths: Sequence[Path], robot: RobotDescription
+) -> tuple[list[RobotLog], list[dict]]:
+    """Each log file as one log (`read_robot_log`: this project's .npz as it is,
+    any other through the robot description's log format, resampled to its grid), and
+    one report row per log that was resampled."""
+    logs, rows = [], []
+    for path in paths:
+        log = read_robot_log(path, robot.logs, robot.joints)
+        logs.append(log)
+        if Path(path).suffix.lower() != ".npz" and robot.logs.format != "npz":
+            rows += describe([log])
+    return logs, rows

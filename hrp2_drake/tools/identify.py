@@ -29,8 +29,7 @@ from hrp2_drake.identification.joint_fits import (
 )
 from hrp2_drake.identification.logs import (
     RobotLog,
-    describe,
-    read_robot_log,
+    read_logs,
     save_log,
     window_samples,
 )
@@ -627,18 +626,3 @@ def collected_log(config: IdentifyConfig, arrays: dict, names: list[str]) -> Rob
         config.station.servo_gain_in_use(),
         "the collected log",
     )
-
-
-def read_logs(
-    paths: Sequence[Path], robot: RobotDescription
-) -> tuple[list[RobotLog], list[dict]]:
-    """Each log file as one log (`logs.read_robot_log`: this project's .npz as it is,
-    any other through the robot description's log format, resampled to its grid), and
-    one report row per log that was resampled."""
-    logs, rows = [], []
-    for path in paths:
-        log = read_robot_log(path, robot.logs, robot.joints)
-        logs.append(log)
-        if Path(path).suffix.lower() != ".npz" and robot.logs.format != "npz":
-            rows += describe([log])
-    return logs, rows
