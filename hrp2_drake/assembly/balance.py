@@ -52,7 +52,7 @@ from hrp2_drake.assembly.builders import (
 )
 from hrp2_drake.assembly.torque_control import TorqueControlConfig
 from hrp2_drake.control.balance import BalanceConfig
-from hrp2_drake.control.balance_reference import leg_joints
+from hrp2_drake.control.balance_reference import StandingIk, leg_joints
 from hrp2_drake.control.torque_chain import BalanceParts, TorqueChainParts
 from hrp2_drake.description import RobotDescription
 from hrp2_drake.identification.motor_model import MotorModel
@@ -168,6 +168,40 @@ def sole_poses(robot: RobotDescription, positions: np.ndarray) -> dict:
     }
 
 
+def standing_com(robot: RobotDescription, standing: np.ndarray) -> np.ndarray:
+    """The model's CoM (m, world) at the plant positions `standing`."""
+    plant = robot_model(robot)
+    context = plant.CreateDefaultContext()
+    plant.SetPositions(context, standing)
+    return plant.CalcCenterOfMassPositionInWorld(context)
+
+
+def standing_references(
+    robot: RobotDescription, standing: np.ndarray, t: np.ndarray, com: np.ndarray
+) -> tuple[JointReference, PiecewisePolynomial]:
+    """The references of a CoM motion on the soles where they stand at `standing`
+    (plant positions): every joint's, the inverse kinematics' poses that put the
+    model's CoM on `com` (`StandingIk`: the posture task's and the position
+    control's), and the CoM's (9 rows: position, velocity, acceleration, world).
+
+    Args:
+        t: the samples' times (s), increasing (e.g. every 10 ms); the references
+            interpolate linearly between them.
+        com: (len(t), 9) the CoM's position, velocity and acceleration (m, m/s,
+            m/s²; `balance_reference.sinusoid_com`).
+    """
+    ik = StandingIk(
+        robot_model(robot), robot.joints, list(robot.contacts.soles), standing
+    )
+    q = np.array([ik.joint_angles(p) for p in ik.trajectory(com[:, :3])])
+    v = np.gradient(q, t, axis=0)
+    a = np.gradient(v, t, axis=0)
+    return (
+        JointReference.from_samples(t, q, v, a),
+        PiecewisePolynomial.FirstOrderHold(t, com.T),
+    )
+
+
 def balance_chain_parts(
     robot: RobotDescription,
     reference: JointReference,
@@ -262,7 +296,7 @@ def build_balance_control(
         "com_reference", TrajectorySource(borrowed(com_reference))
     ).get_output_port()  # (the logged one)
     references = chain_references(blocks)
-    moved = _moved(com_reference, config.com_offset)
+    moved = offset_com_reference(com_reference, config.com_offset)
     references["com_ref"] = clock.source(builder, "chain_com_reference", moved)
     ports = add_torque_chain(builder, station, parts, references, fused)
     if not fused:
@@ -274,9 +308,12 @@ def build_balance_control(
     return replace(control, kept=(moved,))
 
 
-def _moved(com_reference: PiecewisePolynomial, offset) -> PiecewisePolynomial:
+def offset_com_reference(
+    com_reference: PiecewisePolynomial, offset
+) -> PiecewisePolynomial:
     """The CoM reference (9 rows: position, velocity, acceleration) with its
-    position's x and y moved by minus `offset` (m); itself when it is zero."""
+    position's x and y moved by minus `offset` (m; `BalanceControlConfig.com_offset`):
+    what the QP tracks; itself when it is zero."""
     if not any(offset):
         return com_reference
     times = com_reference.get_segment_times()
