@@ -90,6 +90,10 @@ class ControlLoop:
         settings: the loop's own settings, validated where they were loaded
             (`LoopSettings.validate`); None: the defaults.
         duration: seconds of robot time to run (from the first period).
+        com_reference: the CoM reference (9 rows: position, velocity,
+            acceleration, m, m/s, m/s², world: what the balance QP tracks), a
+            trajectory evaluated at each tick as the joint reference is: given if
+            and only if the controller's chain has a balance front end.
 
     The period (the tick's budget, s) is the controller's (`parts.period`: the
     robot's sensor period).
@@ -103,11 +107,25 @@ class ControlLoop:
         force_reference=None,
         settings: LoopSettings | None = None,
         duration: float = 5.0,
+        com_reference=None,
     ):
+        balance = controller.com_ref.size > 0
+        if balance != (com_reference is not None):
+            raise ValueError(
+                "ControlLoop: a balance chain needs a CoM reference (com_reference), "
+                "and only a balance chain takes one"
+            )
+        if balance and com_reference.rows() != controller.com_ref.size:
+            raise ValueError(
+                f"ControlLoop: com_reference has {com_reference.rows()} rows, "
+                f"expected {controller.com_ref.size} (position, velocity, "
+                "acceleration)"
+            )
         self.controller = controller
         self.link = link
         self.reference = reference
         self.force_reference = force_reference
+        self.com_reference = com_reference
         self.settings = settings or LoopSettings()
         self.duration = duration
         self.period = controller.parts.period
@@ -125,6 +143,9 @@ class ControlLoop:
         self.log = {
             name: np.zeros((capacity, N)) for name in ("q_ref", "q_measured", "q_cmd")
         }
+        if balance:  # the CoM's reference and the QP's CoM (the model's, estimated)
+            self.log["com_ref"] = np.zeros((capacity, controller.com_ref.size))
+            self.log["balance_com"] = np.zeros((capacity, 3))
         self.log_mode = np.zeros(capacity)
         self._last_receive = 0
         self._stop = False
@@ -167,6 +188,9 @@ class ControlLoop:
             self.log["q_ref"][k] = controller.q_ref
             self.log["q_measured"][k] = controller.q_measured
             self.log["q_cmd"][k] = q_cmd
+            if self.com_reference is not None:
+                self.log["com_ref"][k] = controller.com_ref
+                self.log["balance_com"][k] = controller.balance.com
             self.log_mode[k] = controller.torque_active()
         self._last_receive = received
         self.ticks = k + 1
@@ -180,6 +204,8 @@ class ControlLoop:
         )
         if self.force_reference is not None:
             controller.f_ref[:] = self.force_reference.value(t)[:, 0]
+        if self.com_reference is not None:
+            controller.com_ref[:] = self.com_reference.value(t)[:, 0]
 
     # ---------------------------------------------------------------- running
 

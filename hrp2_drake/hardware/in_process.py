@@ -12,15 +12,22 @@ from hrp2_drake.control.fused import FusedController
 
 
 def run_in_process(
-    station_config, controller: FusedController, reference, ticks: int, on_tick=None
+    station_config,
+    controller: FusedController,
+    reference,
+    ticks: int,
+    on_tick=None,
+    com_reference=None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """The fused controller on the simulated station in one process, without messages,
     with the LCM loop's timing: the station's sample k (k >= 0; 0 at initialization,
     as the robot's bridge sends it) is the controller's tick at t = k period, and the
     command is applied at once. What the message-driven loop is tested against
     (tests/test_fused.py, tests/test_lcm.py with a lock-step robot), and the bench's
-    closed-loop tick (`on_tick(tick)` wraps each tick: a timer). Returns (q_cmd, τ̂)
-    per tick."""
+    closed-loop tick (`on_tick(tick)` wraps each tick: a timer). With a balance
+    chain, `com_reference` (9 rows) is evaluated at each tick into its `com_ref`, as
+    the control loop does (None: `com_ref` stays as the caller set it). Returns
+    (q_cmd, τ̂) per tick."""
     from pydrake.systems.analysis import Simulator
 
     from hrp2_drake.robot.station import initial_joint_positions, make_station
@@ -50,7 +57,9 @@ def run_in_process(
             simulator.AdvanceTo(k * period)
         for port, rows in sensors:
             rows[:] = port.Eval(context)
-        _tick_in_process(controller, reference, k * period, k == 0, on_tick, command)
+        _tick_in_process(
+            controller, reference, k * period, k == 0, on_tick, command, com_reference
+        )
         q_cmd_port.FixValue(context, command)
         out.append((command.copy(), controller.estimator.tau.copy()))
     return out
@@ -63,11 +72,14 @@ def _tick_in_process(
     first: bool,
     on_tick,
     command: np.ndarray,
+    com_reference=None,
 ) -> None:
-    """One tick of an in-process run at t (s): the reference at t, the chain's
-    initialization on the `first`, the tick and its command into `command`, wrapped
-    by `on_tick(step)` if given (a timer)."""
+    """One tick of an in-process run at t (s): the reference at t (and the CoM
+    reference's, if given), the chain's initialization on the `first`, the tick and
+    its command into `command`, wrapped by `on_tick(step)` if given (a timer)."""
     controller.q_ref[:], controller.v_ref[:], controller.vdot_ref[:] = reference.at(t)
+    if com_reference is not None:
+        controller.com_ref[:] = com_reference.value(t)[:, 0]
     if first:
         controller.initialize(t)
 
