@@ -25,7 +25,11 @@ def add(commands: options.Commands) -> None:
         motor_model={"required": True, "help": "MotorModel YAML"},
         config="ControlConfig YAML file",
         duration="seconds (default 5)",
-        motion={"choices": ("sinusoid", "hold"), "help": "default: sinusoid"},
+        motion={
+            "choices": ("sinusoid", "hold", "balance"),
+            "help": "default: sinusoid; balance: a robot standing on its soles "
+            "(sim-robot --scenario standing), its CoM on the authors' sinusoid",
+        },
         out=True,
     ).set_defaults(scenario=None)
 

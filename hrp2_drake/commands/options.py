@@ -266,7 +266,9 @@ def motor_model(args: argparse.Namespace, out: Path, config=None, identify=None)
         loaded = MotorModel.load(path)
         # The joints the experiment torque-controls: checked before simulating.
         torque_control = getattr(config, "torque_control", None)
-        if torque_control is not None:
+        if hasattr(config, "controlled_joints"):  # a config that knows its run's
+            needed = config.controlled_joints()
+        elif torque_control is not None:
             station = getattr(config, "station", None)  # ControlConfig: its robot
             robot = (
                 station.description() if station is not None else config.description()

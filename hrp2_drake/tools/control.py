@@ -16,11 +16,21 @@ ground truth for evaluation. Start-up order: the robot (or `sim-robot`, or
 """
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+from pydrake.trajectories import PiecewisePolynomial
 
+from hrp2_drake.assembly.balance import (
+    BalanceControlConfig,
+    balance_chain_parts,
+    offset_com_reference,
+    resolved,
+    robot_model,
+    standing_com,
+    standing_references,
+)
 from hrp2_drake.assembly.builders import (
     JointReference,
     check_control_period,
@@ -34,8 +44,10 @@ from hrp2_drake.assembly.torque_control import (
 )
 from hrp2_drake.config import check_finite, moved_keys
 from hrp2_drake.console import say
+from hrp2_drake.control.balance_reference import sinusoid_com
 from hrp2_drake.control.fused import FusedController
 from hrp2_drake.control.safety import SafetyConfig
+from hrp2_drake.control.torque_chain import TorqueChainParts
 from hrp2_drake.description import RobotDescription, load_robot_description
 from hrp2_drake.hardware.control_loop import ControlLoop, LoopSettings
 from hrp2_drake.hardware.lcm_station import LcmChannels
@@ -44,9 +56,63 @@ from hrp2_drake.hardware.robot_bridge import BridgeConfig, RobotBridge
 from hrp2_drake.hardware.transport import open_transport
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure
-from hrp2_drake.robot.station import StationConfig
+from hrp2_drake.robot.station import StationConfig, standing_positions
 from hrp2_drake.tools.robot_control import TorqueControlSources
 from hrp2_drake.tools.track import TrackConfig, check_sinusoid, sinusoid_reference
+
+#: The motions of `hrp2-drake control`.
+MOTIONS = ("sinusoid", "hold", "balance")
+
+
+@dataclass
+class ComSinusoid:
+    """The CoM motion of `motion: balance`: the authors' (`sinusoid_com`,
+    sot-torque-control's balance test on HRP-2) from `settle`, until the run's end.
+
+    Args:
+        axis: "x" or "y" (the world's).
+        amplitude: ± (m) about the standing CoM.
+        period: the sinusoid's (s).
+        shift_time: the first shift to +amplitude (s).
+        hold_time: held at +amplitude before the sinusoid (s).
+    """
+
+    axis: str = "y"
+    amplitude: float = 0.03
+    period: float = 2.0
+    shift_time: float = 1.0
+    hold_time: float = 0.5
+
+    def validate(self, where: str = "ComSinusoid") -> None:
+        if self.axis not in ("x", "y"):
+            raise ValueError(f"{where}.axis: '{self.axis}', expected 'x' or 'y'")
+        check_finite(self.amplitude, f"{where}.amplitude", 0.0, strict=False)
+        for name in ("period", "shift_time"):
+            check_finite(getattr(self, name), f"{where}.{name}", 0.0)
+        check_finite(self.hold_time, f"{where}.hold_time", 0.0, strict=False)
+
+    def samples(self, com0: np.ndarray, t: np.ndarray, settle: float) -> np.ndarray:
+        """(len(t), 9): the CoM's position, velocity and acceleration at the times
+        `t` (s): at `com0` (m, world) until `settle`, then the motion."""
+        com = sinusoid_com(
+            com0,
+            t - settle,
+            amplitude=self.amplitude,
+            period=self.period,
+            shift_time=self.shift_time,
+            hold_time=self.hold_time,
+            axis="xy".index(self.axis),
+        )
+        com[t < settle] = np.r_[com0, np.zeros(6)]
+        return com
+
+
+def _balance_defaults() -> BalanceControlConfig:
+    """The balance experiment's control (`BalanceControlConfig`), with the
+    staleness limits widened as `torque_control`'s are for a transport's jitter."""
+    config = BalanceControlConfig()
+    supervisor = replace(config.torque.supervisor, stale_time=0.010, stale_samples=12)
+    return replace(config, torque=replace(config.torque, supervisor=supervisor))
 
 
 @moved_keys(
@@ -70,8 +136,18 @@ class ControlConfig:
             another period, the same spans of time (`at_period`).
         duration: how long to run (s of robot time).
         motion: "sinusoid" (every controlled joint around the home pose, `track`'s
-            reference) or "hold" (the home pose).
+            reference), "hold" (the home pose), or "balance" (a robot standing on
+            its soles, `balance`'s controller: the CoM follows `com_motion` from
+            `settle`, the joints the inverse kinematics' poses, the soles where
+            they stand at the home pose).
         amplitude, frequency, settle: the sinusoids (rad, Hz) after `settle` s.
+        balance: the controller of `motion: balance` (the whole-body QP over the Δq
+            chain of the legs, `hrp2-drake balance`'s; `torque_control` is then
+            unused): its `com_offset` and its estimator's `offsets` and
+            `imu_offset` are what a calibration found (`hrp2-drake balance`
+            writes them in balance.json); staleness limits widened as
+            `torque_control`'s.
+        com_motion: the CoM motion of `motion: balance`.
         loop: the message-driven loop's own settings: how long to wait for the
             robot's first messages, when the robot is silent (the loop then ramps to
             position control and stops), the ramp that ends every run, real time.
@@ -96,6 +172,8 @@ class ControlConfig:
     amplitude: float = 0.2
     frequency: float = 0.4
     settle: float = 0.5
+    balance: BalanceControlConfig = field(default_factory=_balance_defaults)
+    com_motion: ComSinusoid = field(default_factory=ComSinusoid)
     loop: LoopSettings = field(default_factory=LoopSettings)
     channels: LcmChannels = field(default_factory=LcmChannels)
     approach_speed: float = 0.5
@@ -127,10 +205,14 @@ class ControlConfig:
         check_control_period(
             self.torque_control_at_period(), self.period(), f"{where}.torque_control"
         )
-        if self.motion not in ("sinusoid", "hold"):
+        if self.motion not in MOTIONS:
             raise ValueError(
-                f"{where}.motion: '{self.motion}', expected sinusoid or hold"
+                f"{where}.motion: '{self.motion}', expected one of {', '.join(MOTIONS)}"
             )
+        self.balance.validate()
+        self.com_motion.validate(f"{where}.com_motion")
+        if self.motion == "balance":
+            self._validate_balance(robot, where)
         check_sinusoid(
             robot, self.home(), self.amplitude, self.frequency, self.settle, where
         )
@@ -144,12 +226,111 @@ class ControlConfig:
         check_finite(self.approach_speed, f"{where}.approach_speed", 0.0)
         self.loop.validate(self.period(), f"{where}.loop")
 
+    def _validate_balance(self, robot: RobotDescription, where: str) -> None:
+        """`motion: balance`: a floating robot with soles, the balance controller's
+        Δq chain at the robot's period, torque control before the CoM motion and
+        the motion before the run's end."""
+        try:
+            robot_model(robot)
+        except ValueError as error:
+            raise ValueError(f"{where}.motion: {error}") from None
+        check_control_period(
+            at_period(self.balance.torque, self.period()),
+            self.period(),
+            f"{where}.balance.torque",
+        )
+        start = self.balance.torque.start_time
+        if not start <= self.settle < self.duration:
+            raise ValueError(
+                f"{where}.settle: the CoM motion starts at {self.settle:g} s, "
+                f"expected after torque control starts (balance.torque.start_time "
+                f"{start:g} s) and before the run's end ({self.duration:g} s)"
+            )
+
+    def controlled_joints(self) -> list[str]:
+        """The joints the run torque-controls: with `motion: balance` the legs
+        (`balance.torque.joints`, or the joints between the base and the soles),
+        else `torque_control`'s."""
+        if self.motion == "balance":
+            return list(self.balance_at_period().torque.joints)
+        return self.torque_control.controlled_joints(self.description())
+
+    def balance_at_period(self) -> BalanceControlConfig:
+        """`balance` for the robot at its period: its Δq chain `at_period`, its
+        joints and periods filled in (`assembly.balance.resolved`)."""
+        config = replace(
+            self.balance, torque=at_period(self.balance.torque, self.period())
+        )
+        return resolved(self.description(), config, self.period())
+
+
+def control_chain_parts(
+    config: ControlConfig, motor_model: MotorModel
+) -> TorqueChainParts:
+    """The controller's chain for `config`'s motion: the balance QP over the Δq
+    chain of the legs with `motion: balance`, else the torque-control chain; built
+    for the reference from home (the parts read only its start)."""
+    robot = config.description()
+    reference, _ = control_references(config)
+    if config.motion != "balance":
+        return torque_chain_parts(
+            robot,
+            reference,
+            motor_model,
+            config.torque_control_at_period(),
+            period=config.period(),
+        )
+    balance = config.balance_at_period()
+    missing = [j for j in balance.torque.joints if j not in motor_model.joint_names]
+    if missing:
+        raise ValueError(
+            f"motion balance: the motor model has no joints {missing}, which balance "
+            f"torque-controls (it has {motor_model.joint_names})"
+        )
+    standing = standing_positions(robot, config.home())
+    return balance_chain_parts(
+        robot,
+        reference,
+        standing,
+        motor_model.subset(balance.torque.joints),
+        balance,
+        period=config.period(),
+    )
+
+
+def control_references(
+    config: ControlConfig, start: np.ndarray | None = None
+) -> tuple[JointReference, PiecewisePolynomial | None]:
+    """The run's references, computed on the controller's side as a robot's
+    controller does: the joints' (`control_reference`) and, with `motion: balance`,
+    the CoM's (9 rows: what the QP tracks, moved by `balance.com_offset`), both
+    delayed by the move from `start` (the CoM held meanwhile); None without
+    balance."""
+    if config.motion != "balance":
+        return control_reference(config, start), None
+    robot = config.description()
+    standing = standing_positions(robot, config.home())
+    t = np.arange(0.0, config.duration + 1.0 + 0.0105, 0.01)
+    com = config.com_motion.samples(standing_com(robot, standing), t, config.settle)
+    reference, com_reference = standing_references(robot, standing, t, com)
+    com_reference = offset_com_reference(com_reference, config.balance.com_offset)
+    if start is not None:
+        reference = reference.after_approach(start, config.approach_speed)
+        if reference.approach_time:
+            com_reference = com_reference.Clone()
+            com_reference.shiftRight(reference.approach_time)  # held before it
+    return reference, com_reference
+
 
 def control_reference(
     config: ControlConfig, start: np.ndarray | None = None
 ) -> JointReference:
-    """The run's reference: home for `settle` s, then `motion`; after a move from
-    `start` (the measured pose) to home if given (`JointReference.after_approach`)."""
+    """The run's joint reference: home for `settle` s, then `motion`; after a move
+    from `start` (the measured pose) to home if given
+    (`JointReference.after_approach`). With `motion: balance`, the inverse
+    kinematics' poses (`control_references`)."""
+    if config.motion == "balance":
+        return control_references(config, start)[0]
     robot = config.description()
     q0 = config.home()
     if config.motion == "hold":
@@ -212,29 +393,20 @@ def run_control(
     settings came from (`load_on_robot`; None: `config` as the caller made it), for
     the report."""
     robot = config.description()
-    torque_control = config.torque_control_at_period()
     if (
         motor_model.gain
     ):  # a model stated at a servo gain: at the gain the robot runs at
         motor_model = motor_model.at_gain(robot.position_loop.gain or motor_model.gain)
     # The chain is built for a reference from home; the run's one (from the measured
     # pose) replaces it once the robot is there (the parts read only its start).
-    controller = FusedController(
-        torque_chain_parts(
-            robot,
-            control_reference(config),
-            motor_model,
-            torque_control,
-            period=config.period(),
-        )
-    )
+    controller = FusedController(control_chain_parts(config, motor_model))
     say("compiling the controller's kernels (or loading them from numba's cache) ...")
     warm_up = controller.warm_up()
     link = open_link(config, controller, lcm_url, port, lockstep)
     try:
         say(f"waiting for {robot.name} on {link.name} ...")
         start = link.connect(controller)
-        reference = control_reference(config, start)
+        reference, com_reference = control_references(config, start)
         approach = reference.approach_time
         loop = ControlLoop(
             controller,
@@ -242,6 +414,7 @@ def run_control(
             reference,
             settings=config.loop,
             duration=config.duration + approach,
+            com_reference=com_reference,
         )
         say(
             f"running {config.duration} s"
@@ -253,9 +426,8 @@ def run_control(
     summary["approach_s"] = approach
     summary["warm_up_s"] = warm_up
     summary["torque_control_from"] = (sources or TorqueControlSources()).summary()
-    return _report(
-        config, robot, loop, summary, out, torque_control.start_time + approach
-    )
+    start_time = controller.parts.controller_config.start_time
+    return _report(config, robot, loop, summary, out, start_time + approach)
 
 
 def _report(
@@ -269,15 +441,23 @@ def _report(
     """control.npz, control.json, latency.png and control.md; the summary with the
     tracking errors after torque control started (`torque_start`, s)."""
     signals = loop.signals()
-    cols = [
-        robot.joints.index(j) for j in config.torque_control.controlled_joints(robot)
-    ]
+    joints = list(loop.controller.parts.joints)
+    cols = [robot.joints.index(j) for j in joints]
     after = signals["t"] >= torque_start + 0.1
     error = signals["q_ref"][after][:, cols] - signals["q_measured"][after][:, cols]
+    if "com_ref" in signals:  # the QP's CoM (the model's, estimated) − its reference
+        com = signals["balance_com"][after] - signals["com_ref"][after][:, :3]
+        distance = np.linalg.norm(com, axis=1) * 1e3
+        summary["com_error_mm"] = (
+            {"rms": float(np.sqrt(np.mean(distance**2))), "max": float(distance.max())}
+            if len(distance)
+            else {}
+        )
     summary |= {
         "robot": robot.name,
         "period": config.period(),
         "duration": config.duration,
+        "controlled_joints": joints,
         "max_error_mrad": (np.abs(error).max(axis=0) * 1e3).tolist()
         if len(error)
         else [],
@@ -316,7 +496,8 @@ def _latency_histogram(latency_us: np.ndarray, period: float, path: Path) -> Non
 
 
 def _markdown(robot, config: ControlConfig, summary: dict) -> str:
-    labels = robot.labels()
+    joints = summary["controlled_joints"]
+    labels = robot.labels() if joints == robot.controlled_joints else joints
     lat = summary["latency_us"]
     lines = [
         f"# Torque control of {robot.name} ({summary['link']['name']})",
@@ -325,9 +506,12 @@ def _markdown(robot, config: ControlConfig, summary: dict) -> str:
         f"motion: {config.motion}.",
         "",
         TorqueControlSources(**summary["torque_control_from"]).markdown(
-            config.torque_control
+            config.balance.torque
+            if config.motion == "balance"
+            else config.torque_control
         ),
         "",
+        *_balance_lines(config, summary),
         f"**How the run ended:** {run_ending(summary)}",
         "",
         f"**Torque control active:** {summary['torque_share'] * 100:.1f}% of the ticks "
@@ -398,6 +582,26 @@ def _markdown(robot, config: ControlConfig, summary: dict) -> str:
             + " s.",
         ]
     return "\n".join(lines) + "\n"
+
+
+def _balance_lines(config: ControlConfig, summary: dict) -> list[str]:
+    """With `motion: balance`: the CoM motion and the QP's CoM against it."""
+    if config.motion != "balance":
+        return []
+    motion, error = config.com_motion, summary.get("com_error_mm")
+    lines = [
+        f"Balance on the soles: the CoM ±{motion.amplitude * 1e3:g} mm along "
+        f"{motion.axis}, a {motion.period:g} s sinusoid from {config.settle:g} s; the "
+        "CoM reference computed by the controller (the robot's bridge sends sensors "
+        "only).",
+    ]
+    if error:
+        lines.append(
+            "The QP's CoM (the model's, from the base estimated from the soles: not "
+            f"ground truth) against its reference: RMS {error['rms']:.2f} mm, "
+            f"maximum {error['max']:.2f} mm, after torque control started."
+        )
+    return lines + [""]
 
 
 def run_ending(summary: dict) -> str:
