@@ -14,7 +14,7 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
 from pydrake.trajectories import PiecewisePolynomial
 
-from hrp2_drake.assembly.balance import _moved
+from hrp2_drake.assembly.balance import offset_com_reference
 from hrp2_drake.assembly.torque_control import TorqueControlConfig, check_for_robot
 from hrp2_drake.estimation import estimator_config as estimation_config
 from hrp2_drake.estimation.estimator_step import FloatingBaseTorqueEstimatorStep
@@ -133,11 +133,11 @@ def test_the_com_offset_moves_the_qps_reference_by_minus_it():
     times = [0.0, 1.0, 2.0]
     values = np.arange(27.0).reshape(9, 3)
     reference = PiecewisePolynomial.FirstOrderHold(times, values)
-    moved = _moved(reference, [0.01, -0.02])
+    moved = offset_com_reference(reference, [0.01, -0.02])
     for t in (0.0, 0.5, 2.0):
         difference = moved.value(t)[:, 0] - reference.value(t)[:, 0]
         np.testing.assert_allclose(difference, [-0.01, 0.02] + [0.0] * 7, atol=1e-12)
-    assert _moved(reference, [0.0, 0.0]) is reference
+    assert offset_com_reference(reference, [0.0, 0.0]) is reference
 
 
 def test_a_robot_without_strings_is_not_calibrated_but_says_so(tmp_path):
