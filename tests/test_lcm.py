@@ -467,3 +467,24 @@ def test_balance_on_a_robot_without_soles_is_one_line(tmp_path, capsys, motor_mo
         assert main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and expected in err[0], err
+
+
+def test_balance_references_wait_for_the_move_from_the_measured_pose():
+    """A balance run that starts away from home: the joints' reference moves there
+    first (`after_approach`), and the CoM's waits for it, held at its first value."""
+    from hrp2_drake.tools.control import control_references
+
+    config = ControlConfig(robot="hrp2", motion="balance", duration=1.0, settle=0.5)
+    reference, com = control_references(config)
+    start = config.home()
+    start[config.description().joints.index("RLEG_JOINT3")] += 0.1  # a knee bent
+    moved, moved_com = control_references(config, start)
+    approach = moved.approach_time
+    assert approach > 0.1 and reference.approach_time == 0.0
+    np.testing.assert_allclose(moved.at(0.0)[0], start, atol=1e-12)
+    for t in (0.0, 0.5 * approach, approach):
+        np.testing.assert_array_equal(moved_com.value(t), com.value(0.0))
+    for t in (0.7, 1.2, 1.5):  # the CoM's shift, after the move
+        np.testing.assert_allclose(moved_com.value(approach + t), com.value(t))
+        np.testing.assert_allclose(moved.at(approach + t)[0], reference.at(t)[0])
+    assert com.value(1.5)[1, 0] - com.value(0.0)[1, 0] > 0.02  # it does move

@@ -265,13 +265,17 @@ class ControlConfig:
 
 
 def control_chain_parts(
-    config: ControlConfig, motor_model: MotorModel
+    config: ControlConfig,
+    motor_model: MotorModel,
+    reference: JointReference | None = None,
 ) -> TorqueChainParts:
     """The controller's chain for `config`'s motion: the balance QP over the Δq
     chain of the legs with `motion: balance`, else the torque-control chain; built
-    for the reference from home (the parts read only its start)."""
+    for the reference from home, `reference` if given (`control_references`; the
+    parts read only its start)."""
     robot = config.description()
-    reference, _ = control_references(config)
+    if reference is None:
+        reference, _ = control_references(config)
     if config.motion != "balance":
         return torque_chain_parts(
             robot,
@@ -303,9 +307,8 @@ def control_references(
 ) -> tuple[JointReference, PiecewisePolynomial | None]:
     """The run's references, computed on the controller's side as a robot's
     controller does: the joints' (`control_reference`) and, with `motion: balance`,
-    the CoM's (9 rows: what the QP tracks, moved by `balance.com_offset`), both
-    delayed by the move from `start` (the CoM held meanwhile); None without
-    balance."""
+    the CoM's (9 rows: what the QP tracks, moved by `balance.com_offset`; None
+    without balance); both after the move from `start` if given (`approached`)."""
     if config.motion != "balance":
         return control_reference(config, start), None
     robot = config.description()
@@ -314,11 +317,26 @@ def control_references(
     com = config.com_motion.samples(standing_com(robot, standing), t, config.settle)
     reference, com_reference = standing_references(robot, standing, t, com)
     com_reference = offset_com_reference(com_reference, config.balance.com_offset)
-    if start is not None:
-        reference = reference.after_approach(start, config.approach_speed)
-        if reference.approach_time:
-            com_reference = com_reference.Clone()
-            com_reference.shiftRight(reference.approach_time)  # held before it
+    if start is None:
+        return reference, com_reference
+    return approached(config, reference, com_reference, start)
+
+
+def approached(
+    config: ControlConfig,
+    reference: JointReference,
+    com_reference: PiecewisePolynomial | None,
+    start: np.ndarray,
+) -> tuple[JointReference, PiecewisePolynomial | None]:
+    """The references from home (`control_references(config)`) delayed by a smooth
+    move from `start` (the measured pose, rad) to their first pose
+    (`JointReference.after_approach`), the CoM's held meanwhile: what the run
+    follows once connected (the references, the inverse kinematics included, are
+    computed before: the robot's first sample waits for nothing but the tick)."""
+    reference = reference.after_approach(start, config.approach_speed)
+    if com_reference is not None and reference.approach_time:
+        com_reference = com_reference.Clone()
+        com_reference.shiftRight(reference.approach_time)  # held before it
     return reference, com_reference
 
 
@@ -397,16 +415,18 @@ def run_control(
         motor_model.gain
     ):  # a model stated at a servo gain: at the gain the robot runs at
         motor_model = motor_model.at_gain(robot.position_loop.gain or motor_model.gain)
-    # The chain is built for a reference from home; the run's one (from the measured
-    # pose) replaces it once the robot is there (the parts read only its start).
-    controller = FusedController(control_chain_parts(config, motor_model))
+    # The references from home, before connecting (balance's inverse kinematics
+    # takes a while); the chain is built for them, and the run's (from the measured
+    # pose) replace them once the robot is there (the parts read only their start).
+    reference, com_reference = control_references(config)
+    controller = FusedController(control_chain_parts(config, motor_model, reference))
     say("compiling the controller's kernels (or loading them from numba's cache) ...")
     warm_up = controller.warm_up()
     link = open_link(config, controller, lcm_url, port, lockstep)
     try:
         say(f"waiting for {robot.name} on {link.name} ...")
         start = link.connect(controller)
-        reference, com_reference = control_references(config, start)
+        reference, com_reference = approached(config, reference, com_reference, start)
         approach = reference.approach_time
         loop = ControlLoop(
             controller,
