@@ -408,8 +408,8 @@ def balance_controller(solver: str, duration: float, robot: str = "hrp2"):
         sinusoid_com,
     )
     from hrp2_drake.control.fused import FusedController
+    from hrp2_drake.robot.ground_truth import true_motor_model
     from hrp2_drake.robot.station import StationConfig, standing_positions
-    from hrp2_drake.tools.ground_truth import true_motor_model
 
     station = StationConfig(robot=robot, scenario="standing")
     station.validate()

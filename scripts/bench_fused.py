@@ -75,10 +75,10 @@ def control_config(robot: str, duration: float):
     """(station, the control's config) of `robot`: HRP-2 hanging with its tuned
     controller (`tuned_config`); another robot hanging if it floats, with its
     torque-control settings as `hrp2-drake control` reads them (`load_on_robot`)."""
+    from hrp2_drake.assembly.robot_control import load_on_robot
     from hrp2_drake.description import load_robot_description
     from hrp2_drake.robot.station import StationConfig
     from hrp2_drake.tools.control import ControlConfig
-    from hrp2_drake.tools.robot_control import load_on_robot
 
     description = load_robot_description(robot)
     floating = description.base != "fixed"
@@ -105,9 +105,9 @@ def bench_fused_tick(duration: float = 3.0, robot: str = "hrp2") -> list[dict]:
     from hrp2_drake.control.fused import FusedController
     from hrp2_drake.hardware.in_process import run_in_process
     from hrp2_drake.hardware.real_time import garbage_collector_frozen
+    from hrp2_drake.robot.ground_truth import true_motor_model
     from hrp2_drake.robot.station import make_station
     from hrp2_drake.tools.control import control_reference
-    from hrp2_drake.tools.ground_truth import true_motor_model
 
     station, config = control_config(robot, duration)
     robot = station.description()

@@ -122,7 +122,7 @@ def bench_lcm(
     """Runs the hub, `sim-robot` (in lock step if asked) and `control`; returns the
     controller's figures."""
     from hrp2_drake.description import load_robot_description
-    from hrp2_drake.tools.ground_truth import true_motor_model
+    from hrp2_drake.robot.ground_truth import true_motor_model
 
     out.mkdir(parents=True, exist_ok=True)
     robot = load_robot_description(robot_name)

@@ -6,9 +6,9 @@ compare its tracking with the robot's own position servo.
 
 `build_torque_control` composes the diagram: the station, the estimation chain, the
 inverse dynamics (eq. 12), the Δq torque controller (eq. 10-11) and the safety
-supervisor; `build_position_control` the baseline. The reference: every controlled
-joint on a sinusoid around the home pose (`track.sinusoid_reference`). The motor model
-comes from `example_identify_motor_model.py` or `hrp2-drake identify --robot`.
+supervisor; `build_position_control` the baseline. The reference: every controlled joint
+on a sinusoid around the home pose (`assembly.sinusoid.sinusoid_reference`). The motor
+model comes from `example_identify_motor_model.py` or `hrp2-drake identify --robot`.
 """
 
 import argparse
@@ -17,6 +17,7 @@ import numpy as np
 from pydrake.systems.analysis import Simulator
 
 from hrp2_drake.assembly.builders import build_position_control, build_torque_control
+from hrp2_drake.assembly.sinusoid import sinusoid_reference
 from hrp2_drake.assembly.torque_control import (
     ControllerSettings,
     EstimatorSettings,
@@ -30,7 +31,7 @@ from hrp2_drake.robot.station import (
     initial_joint_positions,
     make_station,
 )
-from hrp2_drake.tools.track import TrackConfig, sinusoid_reference
+from hrp2_drake.tools.track import TrackConfig
 
 
 def max_errors(control, duration: float, robot) -> np.ndarray:
@@ -64,8 +65,11 @@ def main() -> None:
     station = StationConfig(
         robot=args.robot, scenario="fixed_base" if robot.base == "fixed" else "hanging"
     )
-    track = TrackConfig(station=station, settle=0.5, duration=args.duration - 0.5)
-    reference = sinusoid_reference(robot, initial_joint_positions(station), track)
+    track = TrackConfig()  # its sinusoid's amplitude and frequency
+    q0 = initial_joint_positions(station)
+    reference = sinusoid_reference(
+        robot, q0, track.amplitude, track.frequency, 0.5, args.duration - 0.5
+    )
     motor_model = MotorModel.load(args.motor_model)
 
     position = max_errors(

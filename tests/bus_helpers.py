@@ -9,7 +9,7 @@ import sys
 import time
 from pathlib import Path
 
-from hrp2_drake.tools.ground_truth import true_motor_model
+from hrp2_drake.robot.ground_truth import true_motor_model
 
 CLI = [sys.executable, "-m", "hrp2_drake.cli"]
 

@@ -24,9 +24,9 @@ from hrp2_drake.control.fused import FusedController
 from hrp2_drake.control.safety import describe_faults
 from hrp2_drake.control.torque_chain import EventKind
 from hrp2_drake.hardware.in_process import run_in_process
+from hrp2_drake.robot.ground_truth import true_motor_model
 from hrp2_drake.robot.station import StationConfig, make_station, standing_positions
 from hrp2_drake.simulation import add_loggers, logs_to_arrays
-from hrp2_drake.tools.ground_truth import true_motor_model
 
 STANDING = StationConfig(scenario="standing")
 DURATION = 0.8  # s: torque control from 0.2 s, the supervisor's ramp, 0.55 s of it

@@ -68,7 +68,7 @@ def rig(tmp_path):
     port = _free_port()
     url = f"tcpq://127.0.0.1:{port}"
     from hrp2_drake.description import load_robot_description
-    from hrp2_drake.tools.ground_truth import true_motor_model
+    from hrp2_drake.robot.ground_truth import true_motor_model
 
     model = tmp_path / "motor_model.yaml"
     true_motor_model(load_robot_description(ROBOT)).save(model)

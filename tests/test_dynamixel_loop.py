@@ -17,14 +17,14 @@ import pytest
 from bus_helpers import SimServo, control, motor_model, report
 
 from hrp2_drake.assembly.builders import torque_chain_parts
+from hrp2_drake.assembly.robot_control import load_on_robot
 from hrp2_drake.control.fused import FusedController
 from hrp2_drake.description import load_robot_description
 from hrp2_drake.hardware.in_process import run_on_bus_in_process
 from hrp2_drake.identification.motor_model import MotorModel
+from hrp2_drake.robot.ground_truth import true_motor_model
 from hrp2_drake.robot.station import StationConfig
 from hrp2_drake.tools.control import ControlConfig, control_reference
-from hrp2_drake.tools.ground_truth import true_motor_model
-from hrp2_drake.tools.robot_control import load_on_robot
 
 CLI = [sys.executable, "-m", "hrp2_drake.cli"]
 _motor_model, _control, _report = motor_model, control, report

@@ -30,10 +30,10 @@ from hrp2_drake.hardware.lcm_link import LcmLink
 from hrp2_drake.hardware.lcm_station import LcmChannels
 from hrp2_drake.hardware.robot_bridge import RobotBridge
 from hrp2_drake.hardware.transport import DrakeLcmTransport
+from hrp2_drake.robot.ground_truth import true_motor_model
 from hrp2_drake.robot.station import StationConfig
 from hrp2_drake.simulation import add_loggers, logs_to_arrays
 from hrp2_drake.tools.control import ControlConfig, control_reference
-from hrp2_drake.tools.ground_truth import true_motor_model
 
 HRP2 = StationConfig()
 IIWA = StationConfig(robot="iiwa14", scenario="fixed_base")

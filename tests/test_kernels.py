@@ -13,9 +13,9 @@ from hrp2_drake.control.fused import FusedController
 from hrp2_drake.hardware.control_loop import ControlLoop
 from hrp2_drake.hardware.in_process import run_in_process
 from hrp2_drake.hardware.link import RobotLink
+from hrp2_drake.robot.ground_truth import true_motor_model
 from hrp2_drake.robot.station import StationConfig, make_station
 from hrp2_drake.tools.control import ControlConfig, control_reference
-from hrp2_drake.tools.ground_truth import true_motor_model
 
 IIWA = StationConfig(robot="iiwa14", scenario="fixed_base")
 

@@ -228,13 +228,6 @@ TOOLS_IMPORTS_LEFT = {
     "tools/balance.py -> tools/balance_report.py": "the same",
     "tools/balance.py -> tools/identify.py": "run_identify for a run given no motor "
     "model: the balance experiment's own move",
-    "tools/control.py -> tools/track.py": "the joints' sinusoid (sinusoid_reference, "
-    "check_sinusoid, TrackConfig): it moves out of track.py, beside JointReference",
-    "tools/control.py -> tools/robot_control.py": "a robot's torque-control settings: "
-    "they move to assembly/, beside the torque control's config",
-    "tools/track.py -> tools/robot_control.py": "the same",
-    "tools/identify.py -> tools/ground_truth.py": "ground truth moves to robot/",
-    "paper/hrp2.py -> tools/ground_truth.py": "the same",
     "paper/reproduce.py -> tools/identify.py": "the paper's identification step runs "
     "the identify command's whole run (collection, fit, Table 1 report)",
 }

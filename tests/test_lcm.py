@@ -29,7 +29,7 @@ IIWA = StationConfig(robot="iiwa14", scenario="fixed_base")
 def motor_model():
     """The iiwa's effective motor model (a test's shortcut for an identified one: the
     arm's identification is tested in test_arm.py)."""
-    from hrp2_drake.tools.ground_truth import true_motor_model
+    from hrp2_drake.robot.ground_truth import true_motor_model
 
     return true_motor_model(IIWA.description())
 
@@ -373,8 +373,8 @@ def test_balance_over_lcm_equals_the_in_process_run(tmp_path):
     from hrp2_drake.control.balance_reference import leg_joints
     from hrp2_drake.control.fused import FusedController
     from hrp2_drake.hardware.in_process import run_in_process
+    from hrp2_drake.robot.ground_truth import true_motor_model
     from hrp2_drake.tools.control import control_chain_parts, control_references
-    from hrp2_drake.tools.ground_truth import true_motor_model
 
     standing = StationConfig(scenario="standing")
     robot = standing.description()

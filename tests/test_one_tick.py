@@ -21,9 +21,9 @@ from hrp2_drake.assembly.builders import (
 )
 from hrp2_drake.assembly.torque_control import TorqueControlConfig
 from hrp2_drake.control.fused import ControllerLayout, FusedController
+from hrp2_drake.robot.ground_truth import true_motor_model
 from hrp2_drake.robot.station import StationConfig
 from hrp2_drake.simulation import SampleHold, add_loggers, logs_to_arrays
-from hrp2_drake.tools.ground_truth import true_motor_model
 
 IIWA = StationConfig(robot="iiwa14", scenario="fixed_base")
 TICKS = 60  # simulated ticks

@@ -1,5 +1,5 @@
 """A robot's own torque-control settings (`RobotDescription.control_file`,
-hrp2_drake/tools/robot_control.py): `hrp2-drake control` and `track` start from them.
+hrp2_drake/assembly/robot_control.py): `hrp2-drake control` and `track` start from them.
 
 - The XL330 pendulum ships K_p = 1 (models/xl330_pendulum/control.yaml): its commands
   run with it without --config; HRP-2 (no file) keeps the paper's K_p = 2.
@@ -18,15 +18,15 @@ import pytest
 from cli_errors import refused
 
 import hrp2_drake
-from hrp2_drake.assembly.torque_control import TorqueControlConfig
-from hrp2_drake.cli import main
-from hrp2_drake.description import load_robot_description
-from hrp2_drake.tools.control import ControlConfig
-from hrp2_drake.tools.robot_control import (
+from hrp2_drake.assembly.robot_control import (
     TorqueControlSources,
     load_on_robot,
     robot_torque_control,
 )
+from hrp2_drake.assembly.torque_control import TorqueControlConfig
+from hrp2_drake.cli import main
+from hrp2_drake.description import load_robot_description
+from hrp2_drake.tools.control import ControlConfig
 from hrp2_drake.tools.track import TrackConfig
 
 MODELS = Path(hrp2_drake.__file__).resolve().parents[1] / "models"

@@ -156,8 +156,8 @@ def read_config_on_robot(schema, args: argparse.Namespace, robot_key: str):
     command applies after); not validated yet. The robot: --robot, else the file's
     (its field at `robot_key`, e.g. "station.robot"), else the schema's default.
     `sources` (a `TorqueControlSources`) says where the settings came from."""
+    from hrp2_drake.assembly.robot_control import load_on_robot
     from hrp2_drake.description import load_robot_description
-    from hrp2_drake.tools.robot_control import load_on_robot
 
     spec = args.robot or field_at(read_config(schema, args), robot_key)
     return load_on_robot(schema, load_robot_description(spec or None), args.config)

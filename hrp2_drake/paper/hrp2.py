@@ -23,7 +23,7 @@ from hrp2_drake.estimation import estimator_config as estimation_config
 from hrp2_drake.estimation.estimator_config import TorqueEstimatorConfig
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import JointIndexing, joint_indexing
-from hrp2_drake.tools import ground_truth
+from hrp2_drake.robot import ground_truth
 
 
 def models_dir() -> Path:

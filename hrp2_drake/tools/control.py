@@ -36,6 +36,8 @@ from hrp2_drake.assembly.builders import (
     check_control_period,
     torque_chain_parts,
 )
+from hrp2_drake.assembly.robot_control import TorqueControlSources
+from hrp2_drake.assembly.sinusoid import check_sinusoid, sinusoid_reference
 from hrp2_drake.assembly.torque_control import (
     EstimatorSettings,
     TorqueControlConfig,
@@ -57,8 +59,6 @@ from hrp2_drake.hardware.transport import open_transport
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.report import legend_beside, markdown_table, pyplot, save_figure
 from hrp2_drake.robot.station import StationConfig, standing_positions
-from hrp2_drake.tools.robot_control import TorqueControlSources
-from hrp2_drake.tools.track import TrackConfig, check_sinusoid, sinusoid_reference
 
 #: The motions of `hrp2-drake control`.
 MOTIONS = ("sinusoid", "hold", "balance")
@@ -354,13 +354,14 @@ def control_reference(
     if config.motion == "hold":
         reference = JointReference.hold(q0, config.duration + 1.0)
     else:
-        track = TrackConfig(
-            settle=config.settle,
-            amplitude=config.amplitude,
-            frequency=config.frequency,
-            duration=config.duration + 1.0 - config.settle,
+        reference = sinusoid_reference(
+            robot,
+            q0,
+            config.amplitude,
+            config.frequency,
+            config.settle,
+            config.duration + 1.0 - config.settle,
         )
-        reference = sinusoid_reference(robot, q0, track)
     if start is None:
         return reference
     return reference.after_approach(start, config.approach_speed)

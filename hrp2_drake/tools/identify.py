@@ -35,12 +35,12 @@ from hrp2_drake.identification.logs import (
 )
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.report import markdown_table, pyplot, save_figure
+from hrp2_drake.robot.ground_truth import true_motor_model
 from hrp2_drake.robot.station import (
     StationConfig,
     initial_joint_positions,
     make_station,
 )
-from hrp2_drake.tools.ground_truth import true_motor_model
 
 #: The period of the collection's log (s): `excitation.collect`'s.
 COLLECTION_LOG_PERIOD = 0.001

@@ -47,6 +47,8 @@ from hrp2_drake.assembly.builders import (
     build_torque_control,
     check_control_period,
 )
+from hrp2_drake.assembly.robot_control import TorqueControlSources
+from hrp2_drake.assembly.sinusoid import check_sinusoid, sinusoid_reference
 from hrp2_drake.assembly.torque_control import (
     EstimatorSettings,
     TorqueControlConfig,
@@ -54,7 +56,7 @@ from hrp2_drake.assembly.torque_control import (
     check_for_robot,
 )
 from hrp2_drake.config import check_finite, replace_fields
-from hrp2_drake.description import RobotDescription, joint_limits
+from hrp2_drake.description import RobotDescription
 from hrp2_drake.description.bus import bus_for_period
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import is_strictly_below, joint_indexing, tree_parents
@@ -66,7 +68,6 @@ from hrp2_drake.robot.station import (
     make_station,
 )
 from hrp2_drake.simulation import run_with_progress
-from hrp2_drake.tools.robot_control import TorqueControlSources
 
 
 @dataclass
@@ -212,44 +213,6 @@ def motor_model_at_station_gain(
     return model.at_gain(gain)
 
 
-def check_sinusoid(
-    robot: RobotDescription,
-    q0: np.ndarray,
-    amplitude: float,
-    frequency: float,
-    settle: float,
-    where: str,
-) -> None:
-    """Raises ValueError naming `where`.<field> unless the sinusoids of
-    `sinusoid_reference` around `q0` (rad, every joint of `robot`) fit the robot:
-    settle >= 0 s, frequency > 0 Hz, and every controlled joint within its position
-    limits (home ± amplitude, with its phase) and its velocity limit (amplitude · 2π ·
-    frequency, rad/s)."""
-    check_finite(settle, f"{where}.settle", 0.0, strict=False)
-    check_finite(frequency, f"{where}.frequency", 0.0)
-    check_finite(amplitude, f"{where}.amplitude", 0.0, strict=False)
-    lower, upper, speed = joint_limits(robot)
-    controlled = robot.controlled_joints
-    for k, name in enumerate(controlled):
-        j = robot.joints.index(name)
-        # q = q0 + A (sin(ωs + φ) - sin φ): q0 - A (1 + sin φ) to q0 + A (1 - sin φ).
-        shift = np.sin(2 * np.pi * k / len(controlled))
-        low, high = q0[j] - amplitude * (1 + shift), q0[j] + amplitude * (1 - shift)
-        if low < lower[j] - 1e-9 or high > upper[j] + 1e-9:
-            raise ValueError(
-                f"{where}.amplitude: {amplitude:g} rad moves {name} from {low:.3g} to "
-                f"{high:.3g} rad, beyond its position limits [{lower[j]:.3g}, "
-                f"{upper[j]:.3g}] rad"
-            )
-        peak = amplitude * 2 * np.pi * frequency
-        if peak > speed[j]:
-            raise ValueError(
-                f"{where}.frequency: {frequency:g} Hz at amplitude {amplitude:g} rad "
-                f"moves {name} at up to {peak:.3g} rad/s, beyond its velocity limit "
-                f"{speed[j]:.3g} rad/s"
-            )
-
-
 class ContactForceOnBodies(LeafSystem):
     """The total contact force on a set of bodies, in the world frame (N): ground
     truth for a force task (evaluation only).
@@ -281,33 +244,6 @@ class ContactForceOnBodies(LeafSystem):
         output.set_value(
             total
         )  # (point contact only: the station has no hydroelastics)
-
-
-def sinusoid_reference(
-    robot: RobotDescription, q0: np.ndarray, config: TrackConfig
-) -> JointReference:
-    """Home pose for `settle`, then every controlled joint on a sinusoid (amplitude
-    ramped in over one period), sampled at 1 kHz."""
-    t = np.arange(0.0, config.settle + config.duration + 1e-9, 0.001)
-    n = len(robot.joints)
-    q, v, a = np.tile(q0, (len(t), 1)), np.zeros((len(t), n)), np.zeros((len(t), n))
-    w = 2 * np.pi * config.frequency
-    s = np.clip(t - config.settle, 0.0, None)
-    # Smooth envelope e(s) over the first period (C2 at both ends).
-    x = np.clip(s * config.frequency, 0.0, 1.0)
-    e = x**3 * (10 - 15 * x + 6 * x**2)
-    de = 30 * x**2 * (1 - x) ** 2 * config.frequency
-    dde = 60 * x * (1 - x) * (1 - 2 * x) * config.frequency**2
-    controlled = robot.controlled_joints
-    for k, name in enumerate(controlled):
-        j = robot.joints.index(name)
-        phase = 2 * np.pi * k / len(controlled)
-        sin, cos = np.sin(w * s + phase) - np.sin(phase), np.cos(w * s + phase)
-        A = config.amplitude
-        q[:, j] += A * e * sin
-        v[:, j] = A * (de * sin + e * w * cos)
-        a[:, j] = A * (dde * sin + 2 * de * w * cos - e * w**2 * np.sin(w * s + phase))
-    return JointReference.from_samples(t, q, v, a)
 
 
 def _tracking_errors(
@@ -408,7 +344,9 @@ def run_tracking(
     period = period or config.period()
     station = track_station(config, period, robot)
     q0 = initial_joint_positions(station)
-    reference = sinusoid_reference(robot, q0, config)
+    reference = sinusoid_reference(
+        robot, q0, config.amplitude, config.frequency, config.settle, config.duration
+    )
     duration = reference.end_time()
     runs = {}
     command_period = period if robot.bus.active else 0.0
