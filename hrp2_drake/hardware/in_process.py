@@ -9,6 +9,7 @@ layout (`FusedController.layout`).
 import numpy as np
 
 from hrp2_drake.control.fused import FusedController
+from hrp2_drake.hardware.messages import SignalCodec
 
 
 def run_in_process(
@@ -21,13 +22,14 @@ def run_in_process(
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """The fused controller on the simulated station in one process, without messages,
     with the LCM loop's timing: the station's sample k (k >= 0; 0 at initialization,
-    as the robot's bridge sends it) is the controller's tick at t = k period, and the
-    command is applied at once. What the message-driven loop is tested against
-    (tests/test_fused.py, tests/test_lcm.py with a lock-step robot), and the bench's
-    closed-loop tick (`on_tick(tick)` wraps each tick: a timer). With a balance
-    chain, `com_reference` (9 rows) is evaluated at each tick into its `com_ref`, as
-    the control loop does (None: `com_ref` stays as the caller set it). Returns
-    (q_cmd, τ̂) per tick."""
+    as the robot's bridge sends it) is the controller's tick at t = k period as its
+    encoder message's stamp says it (whole µs: `SignalCodec.elapsed`, bitwise the
+    LCM link's t), and the command is applied at once. What the message-driven loop
+    is tested against (tests/test_fused.py, tests/test_lcm.py with a lock-step
+    robot), and the bench's closed-loop tick (`on_tick(tick)` wraps each tick: a
+    timer). With a balance chain, `com_reference` (9 rows) is evaluated at each tick
+    into its `com_ref`, as the control loop does (None: `com_ref` stays as the
+    caller set it). Returns (q_cmd, τ̂) per tick."""
     from pydrake.systems.analysis import Simulator
 
     from hrp2_drake.robot.station import initial_joint_positions, make_station
@@ -57,8 +59,9 @@ def run_in_process(
             simulator.AdvanceTo(k * period)
         for port, rows in sensors:
             rows[:] = port.Eval(context)
+        t = SignalCodec.elapsed(SignalCodec.stamp_of(k * period), 0)
         _tick_in_process(
-            controller, reference, k * period, k == 0, on_tick, command, com_reference
+            controller, reference, t, k == 0, on_tick, command, com_reference
         )
         q_cmd_port.FixValue(context, command)
         out.append((command.copy(), controller.estimator.tau.copy()))

@@ -182,7 +182,7 @@ class LcmLink(RobotLink):
             self._first_stamp = stamp
         self._apply(others)
         self._last_stamp = stamp
-        t = (stamp - self._first_stamp) * 1e-6
+        t = SignalCodec.elapsed(stamp, self._first_stamp)
         self._q_stamp[:] = t
         return t
 

@@ -35,9 +35,20 @@ class SignalCodec:
                 self._head,
                 np.asarray(values, ">f8").tobytes(),
                 self._tail,
-                struct.pack(">q", int(round(time * 1e6))),
+                struct.pack(">q", self.stamp_of(time)),
             )
         )
+
+    @staticmethod
+    def stamp_of(time: float) -> int:
+        """The timestamp (µs) a message of the time `time` (s) carries."""
+        return int(round(time * 1e6))
+
+    @staticmethod
+    def elapsed(stamp: int, first: int) -> float:
+        """The time (s) from the timestamp `first` to `stamp` (µs): a tick's time
+        over LCM, its encoder message's stamp since the run's first."""
+        return (stamp - first) * 1e-6
 
     def values(self, data: bytes) -> np.ndarray:
         """The values (a read-only view on `data`); a ValueError naming the channel if
