@@ -360,30 +360,21 @@ com_motion: {amplitude: 0.01, shift_time: 0.5, hold_time: 0.2, period: 1.0}
 """
 
 
-def test_balance_over_lcm_equals_the_in_process_run(tmp_path):
-    """`hrp2-drake control --motion balance` against `hrp2-drake sim-robot --scenario
-    standing --lockstep` in two processes through the tcpq hub: HRP-2 on its soles,
-    the balance QP over the Δq chain of the legs, its CoM reference computed on the
-    controller's side and evaluated at each tick as the joint reference is. It
-    equals the fused balance controller in one process (`run_in_process` with the
-    CoM reference) command for command, to 1e-9 rad, and it balances: torque
-    control from its start to the end, no fault, the robot's true CoM (its
-    ground truth) on the reference's 1 cm shift, the soles where they stood."""
-    from hrp2_drake.config import load_config
+def _balance_over_lcm(tmp_path, scenario: str, config: str):
+    """`hrp2-drake sim-robot --robot hrp2 --scenario <scenario> --lockstep` and
+    `hrp2-drake control` with the ControlConfig YAML `config`, the legs' true motor
+    model, through a tcpq hub: (control's CompletedProcess, the motor model); the
+    reports under tmp_path/control, the robot's truth under tmp_path/robot."""
     from hrp2_drake.control.balance_reference import leg_joints
-    from hrp2_drake.control.fused import FusedController
-    from hrp2_drake.hardware.in_process import run_in_process
     from hrp2_drake.robot.ground_truth import true_motor_model
-    from hrp2_drake.tools.control import control_chain_parts, control_references
 
-    standing = StationConfig(scenario="standing")
-    robot = standing.description()
+    robot = StationConfig(scenario="standing").description()
     plant = robot.make_plant()
     legs = leg_joints(plant, robot.joints, list(robot.contacts.soles))
     motor_model = true_motor_model(robot, legs)
     model_file, config_file = tmp_path / "model.yaml", tmp_path / "balance.yaml"
     motor_model.save(model_file)
-    config_file.write_text(BALANCE)
+    config_file.write_text(config)
     port = _free_port()
     url = f"tcpq://127.0.0.1:{port}"
     cli = [sys.executable, "-m", "hrp2_drake.cli"]
@@ -397,10 +388,9 @@ def test_balance_over_lcm_equals_the_in_process_run(tmp_path):
         hub.stdout.readline()
         robot_process = subprocess.Popen(
             cli
-            + ["sim-robot", "--robot", "hrp2", "--scenario", "standing", "--lcm", url]
+            + ["sim-robot", "--robot", "hrp2", "--scenario", scenario, "--lcm", url]
             + ["--duration", "30", "--lockstep", "--out", str(tmp_path / "robot")],
-            stderr=subprocess.PIPE,
-            text=True,
+            stderr=subprocess.DEVNULL,
         )
         done = subprocess.run(
             cli
@@ -410,13 +400,34 @@ def test_balance_over_lcm_equals_the_in_process_run(tmp_path):
             text=True,
             timeout=300,
         )
-        assert done.returncode == 0, done.stderr[-2000:]
         robot_process.terminate()
         robot_process.wait(30)
     finally:
         for process in (robot_process, hub):
             if process is not None and process.poll() is None:
                 process.kill()
+    return done, motor_model
+
+
+def test_balance_over_lcm_equals_the_in_process_run(tmp_path):
+    """`hrp2-drake control --motion balance` against `hrp2-drake sim-robot --scenario
+    standing --lockstep` in two processes through the tcpq hub: HRP-2 on its soles,
+    the balance QP over the Δq chain of the legs, its CoM reference computed on the
+    controller's side and evaluated at each tick as the joint reference is. It
+    equals the fused balance controller in one process (`run_in_process` with the
+    CoM reference) command for command, to 1e-9 rad, and it balances: torque
+    control from its start to the end, no fault, the robot's true CoM (its
+    ground truth) on the reference's 1 cm shift, the soles where they stood."""
+    from hrp2_drake.config import load_config
+    from hrp2_drake.control.fused import FusedController
+    from hrp2_drake.hardware.in_process import run_in_process
+    from hrp2_drake.tools.control import control_chain_parts, control_references
+
+    done, motor_model = _balance_over_lcm(tmp_path, "standing", BALANCE)
+    assert done.returncode == 0, done.stderr[-2000:]
+    standing = StationConfig(scenario="standing")
+    robot = standing.description()
+    plant = robot.make_plant()
     summary = json.loads((tmp_path / "control" / "control.json").read_text())
     assert summary["approach_s"] == 0.0 and summary["ticks"] == 1501
     assert summary["fault"] == "" and summary["events"] == []
@@ -492,3 +503,69 @@ def test_balance_references_wait_for_the_move_from_the_measured_pose():
         np.testing.assert_allclose(moved_com.value(approach + t), com.value(t))
         np.testing.assert_allclose(moved.at(approach + t)[0], reference.at(t)[0])
     assert com.value(1.5)[1, 0] - com.value(0.0)[1, 0] > 0.02  # it does move
+
+
+def test_balance_on_a_hanging_robot_never_starts_torque_control(tmp_path):
+    """`control --motion balance` against a robot that hangs (`sim-robot --scenario
+    hanging`): before torque control would start, the soles' F/T sensors carry a
+    few newtons of its weight; the run stops with one line, position control to
+    the end (the command is the reference, then the ramp to the measured pose).
+    Without the check the QP, which believes the robot stands, swung its hanging
+    legs by up to 0.77 rad in 3 s."""
+    done, _ = _balance_over_lcm(tmp_path, "hanging", BALANCE)
+    assert done.returncode == 1
+    last = done.stderr.strip().splitlines()[-1]
+    assert "it is not standing on its soles" in last, last
+    summary = json.loads((tmp_path / "control" / "control.json").read_text())
+    assert abs(summary["fault_time"] - 0.2) < 1e-9  # start_time
+    assert summary["torque_share"] == 0.0 and summary["ramped"]
+    signals = np.load(tmp_path / "control" / "control.npz")
+    np.testing.assert_array_equal(signals["q_cmd"], signals["q_ref"])
+
+
+def test_a_check_that_fails_before_any_command_holds_the_measured_pose(motor_model):
+    """A start check (`ControlLoop(start_check=...)`) that fails at the first tick:
+    the run ends with its sentence, and what the robot gets is its measured pose,
+    held for the ramp's time, never a ramp from a command that was never sent."""
+    from hrp2_drake.assembly.builders import torque_chain_parts
+    from hrp2_drake.control.fused import FusedController
+    from hrp2_drake.hardware.control_loop import ControlLoop, LoopSettings
+    from hrp2_drake.hardware.lcm_link import LcmLink
+    from hrp2_drake.hardware.lcm_station import LcmChannels
+    from hrp2_drake.hardware.robot_bridge import RobotBridge
+    from hrp2_drake.hardware.transport import DrakeLcmTransport
+
+    config = ControlConfig(robot=IIWA.robot, duration=1.0)
+    robot = IIWA.description()
+    reference = control_reference(config)
+    controller = FusedController(
+        torque_chain_parts(
+            robot, reference, motor_model, config.torque_control, period=0.001
+        )
+    )
+    controller.warm_up()
+    transport = DrakeLcmTransport("memq://")
+    bridge = RobotBridge(IIWA, transport)
+    channels = LcmChannels().resolved(robot)
+    codec = SignalCodec(robot.joints, channels.q_cmd)
+    sent = []
+    transport.subscribe(channels.q_cmd, lambda data: sent.append(codec.values(data)))
+    link = LcmLink(robot, transport, LcmChannels(), controller, wait_timeout=1.0)
+    bridge.step()
+    while transport.handle(0.0):
+        pass
+    link.connect(controller)
+    loop = ControlLoop(
+        controller,
+        link,
+        reference,
+        settings=LoopSettings(ramp_time=0.02),
+        start_check=(0.0, lambda: "not today"),
+    )
+    summary = loop.run()
+    while transport.handle(0.0):
+        pass
+    assert summary["fault"] == "not today" and summary["ticks"] == 0
+    measured = bridge.signals()["q_measured"][0]
+    assert len(sent) == 20
+    np.testing.assert_allclose(np.array(sent), np.tile(measured, (20, 1)), atol=1e-12)

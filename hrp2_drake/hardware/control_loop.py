@@ -94,6 +94,13 @@ class ControlLoop:
             acceleration, m, m/s, m/s², world: what the balance QP tracks), a
             trajectory evaluated at each tick as the joint reference is: given if
             and only if the controller's chain has a balance front end.
+        start_check: (time, check): `check()` is called once, at the first
+            period at or after `time` (s: before torque control starts, the
+            supervisor's start_time), with that period's samples in the
+            controller's buffers and before its tick; a sentence (not empty) is a
+            fault: the loop ramps out, and the robot never gets a torque-control
+            command (e.g. a balance controller on a robot whose soles carry no
+            weight).
 
     The period (the tick's budget, s) is the controller's (`parts.period`: the
     robot's sensor period).
@@ -108,6 +115,7 @@ class ControlLoop:
         settings: LoopSettings | None = None,
         duration: float = 5.0,
         com_reference=None,
+        start_check=None,
     ):
         balance = controller.com_ref.size > 0
         if balance != (com_reference is not None):
@@ -126,6 +134,7 @@ class ControlLoop:
         self.reference = reference
         self.force_reference = force_reference
         self.com_reference = com_reference
+        self._start_check = start_check
         self.settings = settings or LoopSettings()
         self.duration = duration
         self.period = controller.parts.period
@@ -171,6 +180,11 @@ class ControlLoop:
         controller, link = self.controller, self.link
         first = self.ticks == 0
         self.t = t
+        if self._start_check is not None and t >= self._start_check[0]:
+            check, self._start_check = self._start_check[1], None
+            refused = check()
+            if refused:
+                raise LoopFault(refused)
         self._set_reference(t)
         if first:
             controller.initialize(t)
@@ -268,6 +282,8 @@ class ControlLoop:
         q_hold = self.controller.q_measured.copy()
         if not np.all(np.isfinite(q_hold)):
             q_hold = q_from
+        if not self.ticks:  # nothing sent yet: hold the measured pose from the start
+            q_from = q_hold
         steps = max(1, int(round(self.settings.ramp_time / period)))
         start = time.perf_counter()
         try:

@@ -340,6 +340,49 @@ def approached(
     return reference, com_reference
 
 
+#: A balance run starts only if its soles' F/T sensors carry this share of the
+#: robot's weight.
+STANDING_SHARE = 0.5
+
+
+def standing_check(robot: RobotDescription, controller: FusedController):
+    """`ControlLoop`'s check before torque control starts (its `start_check`) with
+    `motion: balance`: the robot stands on its soles, the F/T sensors on them
+    carrying at least STANDING_SHARE of its weight (the norms of their forces,
+    biases and all); a robot hanging, lifted or lying gets no torque command from a
+    QP that believes it stands. Returns the check: a sentence if it fails."""
+    plant = robot_model(robot)
+    context = plant.CreateDefaultContext()
+    weight = plant.CalcTotalMass(context) * np.linalg.norm(
+        plant.gravity_field().gravity_vector()
+    )
+    rows = controller.layout.signals()
+    sensors = [
+        name
+        for name in robot.sensor_names()
+        if any(
+            plant.GetBodyByName(robot.sensor_body(name, plant)).index()
+            in {b.index() for b in plant.GetBodiesWeldedTo(sole.body())}
+            | {sole.body().index()}
+            for sole in map(plant.GetFrameByName, robot.contacts.soles)
+        )
+    ]
+    forces = [controller.sensor_buffer[rows[f"wrench_{name}"]][3:] for name in sensors]
+
+    def check() -> str:
+        carried = sum(float(np.linalg.norm(force)) for force in forces)
+        if carried >= STANDING_SHARE * weight:
+            return ""
+        where = ", ".join(sensors) or "none of its F/T sensors is on a sole"
+        return (
+            f"motion balance: the soles' F/T sensors ({where}) carry {carried:.0f} N "
+            f"of the robot's {weight:.0f} N: it is not standing on its soles (sim-robot"
+            " --scenario standing); torque control did not start"
+        )
+
+    return check
+
+
 def control_reference(
     config: ControlConfig, start: np.ndarray | None = None
 ) -> JointReference:
@@ -436,6 +479,15 @@ def run_control(
             settings=config.loop,
             duration=config.duration + approach,
             com_reference=com_reference,
+            start_check=(
+                (  # the tick torque control would start at, however t rounds
+                    controller.parts.controller_config.start_time
+                    - 0.5 * config.period(),
+                    standing_check(robot, controller),
+                )
+                if config.motion == "balance"
+                else None
+            ),
         )
         say(
             f"running {config.duration} s"
