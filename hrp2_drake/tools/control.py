@@ -9,7 +9,12 @@ both links: over LCM the robot's encoder message is the clock (decode, one tick,
 publish); on a bus, the loop's own clock at the bus's period (one sync read, one
 tick, one sync write). It starts from the robot's measured pose with a smooth move to
 the home pose, times every tick and writes control.md (with a latency histogram),
-control.json and control.npz. `sim-robot` is `RobotBridge`: the simulated station
+control.json and control.npz. With `motion: balance` the controller is the balance
+experiment's (the whole-body QP over the Δq chain of the legs) on a robot standing on
+its soles, its CoM reference and joint reference computed here, on the controller's
+side, and fed at each tick (docs/lcm.md, "Balance over LCM"); a robot whose soles do
+not carry it when torque control would start is refused (`standing_check`).
+`sim-robot` is `RobotBridge`: the simulated station
 behind the LCM channels, in real time, with a command watchdog; on exit it writes its
 ground truth for evaluation. Start-up order: the robot (or `sim-robot`, or
 `sim-servo`) first, then `control`, which waits for the robot.
