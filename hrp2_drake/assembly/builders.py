@@ -286,7 +286,7 @@ def add_reference(
     """q_ref, v_ref, vdot_ref of every joint from `reference`, as it is (a function
     of time: what position control follows and what is logged), and with `chain`
     also "chain_q_ref", "chain_v_ref", "chain_vdot_ref": what the torque chain
-    reads (`ChainClock`)."""
+    reads (`ChainClock`); "reference" and "chain_reference": the three in one."""
     if reference.trajectory.rows() != 3 * n:
         raise ValueError(
             f"the joint reference has {reference.trajectory.rows()} rows, expected "
@@ -301,7 +301,7 @@ def add_reference(
         sources["chain_"] = chain.source(
             builder, "chain_reference", reference.trajectory
         )
-    blocks = {}
+    blocks = {f"{prefix}reference": port for prefix, port in sources.items()}
     for prefix, port in sources.items():
         # [q; v; v̇] into its three blocks (entries copied, in C++).
         split = builder.AddNamedSystem(
@@ -836,6 +836,10 @@ def chain_signals(chain: Chain, logged_wrench: str = "") -> list[str]:
 
 
 def chain_references(blocks: dict[str, OutputPort]) -> dict[str, OutputPort]:
-    """The reference a chain reads, by name (q_ref, v_ref, vdot_ref): the chain's
-    blocks of `add_reference` (`ChainClock`)."""
-    return {name: blocks[f"chain_{name}"] for name in ("q_ref", "v_ref", "vdot_ref")}
+    """The reference a chain reads, by name (q_ref, v_ref, vdot_ref, and the three
+    in one, joint_reference: what the fused controller reads): the chain's blocks of
+    `add_reference` (`ChainClock`)."""
+    names = ("q_ref", "v_ref", "vdot_ref")
+    return {name: blocks[f"chain_{name}"] for name in names} | {
+        "joint_reference": blocks["chain_reference"]
+    }

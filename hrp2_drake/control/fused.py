@@ -382,7 +382,7 @@ class FusedTorqueController(WitnessFreeLeafSystem):
                                  │                       ├──► delta_q, fallback_active
                                  │ FusedTorqueController ├──► sensor_fault
         sensor_time ────────────►│                       ├──► external_wrench_<s>
-        q_ref, v_ref, vdot_ref ─►│                       ├──► the six Δq components
+        joint_reference ────────►│                       ├──► the six Δq components
         f_ref (force task) ─────►│                       ├──► supervisor_mode, _fault,
         com_ref (balance) ──────►│                       │    _transition (supervised)
                                  │                       ├──► base_state, balance_com,
@@ -425,10 +425,19 @@ class FusedTorqueController(WitnessFreeLeafSystem):
             if layout.num_stamps
             else None
         )
-        # The reference ports, each with its rows of `FusedController.reference`.
+        # The reference ports, each with its rows of `FusedController.reference`: the
+        # joints' [q_ref; v_ref; vdot_ref] in one (`joint_reference`, one Eval a
+        # tick), then f_ref and com_ref where the chain reads them.
+        others = list(fused.chain.references.items())[3:]
         self._reference_ports = [
-            (self.DeclareVectorInputPort(name, size), getattr(fused, name))
-            for name, size in fused.chain.references.items()
+            (
+                self.DeclareVectorInputPort("joint_reference", 3 * N),
+                fused.reference[: 3 * N],
+            ),
+            *(
+                (self.DeclareVectorInputPort(name, size), getattr(fused, name))
+                for name, size in others
+            ),
         ]
         self._group = int(self.DeclareDiscreteState(fused.state.copy()))
         self._sample_time = int(self.DeclareDiscreteState(1))
