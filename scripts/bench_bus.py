@@ -113,7 +113,8 @@ def _rack(folder: Path, servos: int, baud: int, kind: str = "dynamixel") -> Path
 def bench_bus(
     servos: int, baud: int, cycles: int, folder: Path, kind: str = "dynamixel"
 ) -> dict:
-    from hrp2_drake.hardware.bus_link import STATUS_OK, servo_bus
+    from hrp2_drake.hardware.bus_link import servo_bus
+    from hrp2_drake.hardware.servo_bus import STATUS_OK
 
     robot_file = _rack(folder, servos, baud, kind)
     emulator = subprocess.Popen(

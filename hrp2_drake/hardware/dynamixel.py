@@ -6,7 +6,7 @@ module names the SDK and reads Protocol 2.0's status error byte (bit 7: a hardwa
 alert, which the Hardware Error Status item details; bits 0-6: the error number).
 """
 
-from hrp2_drake.hardware.bus_link import ServoBus
+from hrp2_drake.hardware.servo_bus import ServoBus
 
 
 class DynamixelBus(ServoBus):

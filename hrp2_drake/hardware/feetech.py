@@ -15,7 +15,7 @@ corrupt status, counted per servo; three periods in a row end torque control).
 the SDK keeps it in a module global.
 """
 
-from hrp2_drake.hardware.bus_link import ServoBus
+from hrp2_drake.hardware.servo_bus import ServoBus
 
 
 class FeetechBus(ServoBus):
