@@ -226,8 +226,8 @@ TOOLS_IMPORTS_LEFT = {
     "tools/balance.py -> tools/balance_calibration.py": "the balance experiment's "
     "runner, calibration and report: they move beside the paper's experiments",
     "tools/balance.py -> tools/balance_report.py": "the same",
-    "tools/balance.py -> tools/identify.py": "run_identify for a run given no motor "
-    "model: the balance experiment's own move",
+    "tools/balance.py -> tools/identify.py": "identify_motor_model for a run given no "
+    "motor model: the balance experiment's own move",
     "paper/reproduce.py -> tools/identify.py": "the paper's identification step runs "
     "the identify command's whole run (collection, fit, Table 1 report)",
 }

@@ -53,7 +53,7 @@ from enum import IntEnum
 
 import numpy as np
 from pydrake.multibody.plant import MultibodyPlant
-from pydrake.multibody.tree import BodyIndex, JacobianWrtVariable
+from pydrake.multibody.tree import JacobianWrtVariable
 from pydrake.systems.framework import Context
 
 from hrp2_drake.description.contacts import (
@@ -62,7 +62,12 @@ from hrp2_drake.description.contacts import (
     ContactsDescription,
 )
 from hrp2_drake.kernels import kernel
-from hrp2_drake.multibody import check_joint_names, get_frame, joint_indexing
+from hrp2_drake.multibody import (
+    check_joint_names,
+    floating_base,
+    get_frame,
+    joint_indexing,
+)
 from hrp2_drake.step import Step, StepSystem
 
 _WHERE = "WholeBodyBalanceController"
@@ -555,23 +560,6 @@ def balance_outputs(M, h, Jf, solution, corners, table, tau, vdot, forces, wrenc
             wrenches[6 * s + 5] += f2
 
 
-def _floating_base(plant: MultibodyPlant):
-    """The plant's one floating base body, with a quaternion floating joint."""
-    bases = sorted(int(b) for b in plant.GetFloatingBaseBodies())
-    if len(bases) != 1:
-        names = [plant.get_body(BodyIndex(b)).name() for b in bases]
-        raise ValueError(
-            f"{_WHERE}: the plant needs exactly one floating base body, it has {names}"
-        )
-    base = plant.get_body(BodyIndex(bases[0]))
-    if not base.has_quaternion_dofs():
-        raise ValueError(
-            f"{_WHERE}: the floating base '{base.name()}' must have a quaternion "
-            "floating joint (velocities [ω_WB; v_WBo] in the world)"
-        )
-    return base
-
-
 class WholeBodyBalanceControllerStep(Step):
     """The per-tick arithmetic of WholeBodyBalanceController (the module docstring
     has the QP; the class docstring the ports, units and frames), written once for
@@ -636,7 +624,7 @@ class WholeBodyBalanceControllerStep(Step):
         self._plant, self._config = plant, config
         self._context = plant.CreateDefaultContext()
         contacts.check_model(plant)
-        base = _floating_base(plant)
+        base = floating_base(plant, _WHERE, quaternion=True)
         self._indexing = joint_indexing(plant, config.joints)
         n = self._n = self._indexing.size
         nv = self._nv = plant.num_velocities()

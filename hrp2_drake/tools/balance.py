@@ -624,7 +624,7 @@ def identification_configs(robot: RobotDescription) -> list[Path]:
 
 def _identify(station_robot: str, config_file: str, out: Path) -> Path:
     from hrp2_drake.config import load_config
-    from hrp2_drake.tools.identify import IdentifyConfig, run_identify
+    from hrp2_drake.tools.identify import IdentifyConfig, identify_motor_model
 
     config = (
         load_config(IdentifyConfig, filename=config_file, validate=False)
@@ -633,8 +633,7 @@ def _identify(station_robot: str, config_file: str, out: Path) -> Path:
     )
     config.station = replace(config.station, robot=station_robot)
     config.validate()
-    run_identify(config, out)
-    return out / "motor_model.yaml"
+    return identify_motor_model(config, out)
 
 
 def identify_legs(config: BalanceExperimentConfig, out: Path) -> MotorModel:
