@@ -29,6 +29,7 @@ counted: the parser resynchronises on the next header.
 `PROTOCOL` is what the emulator needs of Feetech's wire (`sim_servo.WireProtocol`).
 """
 
+from hrp2_drake.hardware import protocol2
 from hrp2_drake.hardware.protocol2 import Instruction, Packet, StatusError
 
 #: The header that opens every packet.
@@ -84,38 +85,11 @@ def encode_status(
     return encode_packet(packet_id, int(hardware) & 0xFF, params)
 
 
-class PacketParser:
-    """Whole packets from a byte stream, whatever the chunks (module docstring).
-
-    `feed(data)` returns the packets completed by `data`, in order; counters
-    `skipped`, `bad_crc` (bad checksums) and `dropped` as Protocol 2.0's parser.
-    """
-
-    def __init__(self):
-        self._buffer = bytearray()
-        self.skipped = 0
-        self.bad_crc = 0
-        self.dropped = 0
-
-    @property
-    def pending(self) -> int:
-        return len(self._buffer)
-
-    def drop_pending(self) -> None:
-        """Forgets an unfinished packet (its sender went quiet)."""
-        self.dropped += len(self._buffer)
-        self._buffer.clear()
-
-    def feed(self, data: bytes) -> list[Packet]:
-        self._buffer += data
-        packets = []
-        while (packet := self._next()) is not None:
-            packets.append(packet)
-        return packets
-
-    def _skip(self, count: int) -> None:
-        self.skipped += count
-        del self._buffer[:count]
+class PacketParser(protocol2.PacketParser):
+    """Whole packets from a byte stream, whatever the chunks (module docstring): the
+    buffer, `feed`, `drop_pending` and the counters (`skipped`, `bad_crc`,
+    `dropped`) are Protocol 2.0's parser's; what makes a packet is Feetech's
+    (`_next`)."""
 
     def _next(self) -> Packet | None:
         buffer = self._buffer
