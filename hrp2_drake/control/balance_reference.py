@@ -12,12 +12,14 @@ involve), the other joints fixed: as many equations as unknowns on a robot with 
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from pydrake.math import RotationMatrix
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import JacobianWrtVariable
 
+from hrp2_drake.config import check_finite
 from hrp2_drake.multibody import get_frame, joint_indexing
 
 _WHERE = "balance reference"
@@ -190,3 +192,47 @@ def _rotation_error(target: RotationMatrix, current: RotationMatrix) -> np.ndarr
     R = target.multiply(current.inverse())
     angle_axis = R.ToAngleAxis()
     return angle_axis.angle() * angle_axis.axis()
+
+
+@dataclass
+class ComSinusoid:
+    """The authors' CoM motion (`sinusoid_com`, sot-torque-control's balance test on
+    HRP-2) as a config: `control --motion balance` runs it from `settle` to the run's
+    end, the balance experiment (`tools.balance.ComMotion`) for a duration.
+
+    Args:
+        axis: "x" or "y" (the world's).
+        amplitude: ± (m) about the standing CoM.
+        period: the sinusoid's (s).
+        shift_time: the first shift to +amplitude (s).
+        hold_time: held at +amplitude before the sinusoid (s).
+    """
+
+    axis: str = "y"
+    amplitude: float = 0.03
+    period: float = 2.0
+    shift_time: float = 1.0
+    hold_time: float = 0.5
+
+    def validate(self, where: str = "ComSinusoid") -> None:
+        if self.axis not in ("x", "y"):
+            raise ValueError(f"{where}.axis: '{self.axis}', expected 'x' or 'y'")
+        check_finite(self.amplitude, f"{where}.amplitude", 0.0, strict=False)
+        for name in ("period", "shift_time"):
+            check_finite(getattr(self, name), f"{where}.{name}", 0.0)
+        check_finite(self.hold_time, f"{where}.hold_time", 0.0, strict=False)
+
+    def samples(self, com0: np.ndarray, t: np.ndarray, settle: float) -> np.ndarray:
+        """(len(t), 9): the CoM's position, velocity and acceleration at the times
+        `t` (s): at `com0` (m, world) until `settle`, then the motion."""
+        com = sinusoid_com(
+            com0,
+            t - settle,
+            amplitude=self.amplitude,
+            period=self.period,
+            shift_time=self.shift_time,
+            hold_time=self.hold_time,
+            axis="xy".index(self.axis),
+        )
+        com[t < settle] = np.r_[com0, np.zeros(6)]
+        return com

@@ -58,7 +58,7 @@ from hrp2_drake.assembly.balance import (
 from hrp2_drake.assembly.builders import JointReference, build_position_control
 from hrp2_drake.config import check_finite
 from hrp2_drake.control.balance import BALANCE_FAULTS
-from hrp2_drake.control.balance_reference import StandingIk, sinusoid_com
+from hrp2_drake.control.balance_reference import ComSinusoid, StandingIk, sinusoid_com
 from hrp2_drake.control.safety import describe_faults
 from hrp2_drake.description import RobotDescription
 from hrp2_drake.estimation.estimator_config import GOAL_RMS_OVER_PEAK
@@ -86,33 +86,16 @@ METRIC_STRIDE = 5
 
 
 @dataclass
-class ComMotion:
-    """The authors' CoM motion (`sinusoid_com`).
+class ComMotion(ComSinusoid):
+    """The authors' CoM motion (`ComSinusoid`) for `duration` (s): how long the
+    sinusoid runs."""
 
-    Args:
-        axis: "x" or "y" (the world's).
-        amplitude: ± (m) about the standing CoM.
-        period: the sinusoid's (s).
-        duration: how long the sinusoid runs (s).
-        shift_time: the first shift to +amplitude (s).
-        hold_time: held at +amplitude before the sinusoid (s).
-    """
-
-    axis: str = "y"
-    amplitude: float = 0.03
-    period: float = 2.0
     duration: float = 10.0
-    shift_time: float = 1.0
-    hold_time: float = 0.5
 
     def validate(self) -> None:
         where = f"{_WHERE}.com_motion"
-        if self.axis not in ("x", "y"):
-            raise ValueError(f"{where}.axis: '{self.axis}', expected 'x' or 'y'")
-        check_finite(self.amplitude, f"{where}.amplitude", 0.0, strict=False)
-        for name in ("period", "duration", "shift_time"):
-            check_finite(getattr(self, name), f"{where}.{name}", 0.0)
-        check_finite(self.hold_time, f"{where}.hold_time", 0.0, strict=False)
+        super().validate(where)
+        check_finite(self.duration, f"{where}.duration", 0.0)
 
     def total(self) -> float:
         return self.shift_time + self.hold_time + self.duration

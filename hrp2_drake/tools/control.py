@@ -51,7 +51,7 @@ from hrp2_drake.assembly.torque_control import (
 )
 from hrp2_drake.config import check_finite, moved_keys
 from hrp2_drake.console import say
-from hrp2_drake.control.balance_reference import sinusoid_com
+from hrp2_drake.control.balance_reference import ComSinusoid
 from hrp2_drake.control.fused import FusedController
 from hrp2_drake.control.safety import SafetyConfig
 from hrp2_drake.control.torque_chain import TorqueChainParts
@@ -67,49 +67,6 @@ from hrp2_drake.robot.station import StationConfig, standing_positions
 
 #: The motions of `hrp2-drake control`.
 MOTIONS = ("sinusoid", "hold", "balance")
-
-
-@dataclass
-class ComSinusoid:
-    """The CoM motion of `motion: balance`: the authors' (`sinusoid_com`,
-    sot-torque-control's balance test on HRP-2) from `settle`, until the run's end.
-
-    Args:
-        axis: "x" or "y" (the world's).
-        amplitude: ± (m) about the standing CoM.
-        period: the sinusoid's (s).
-        shift_time: the first shift to +amplitude (s).
-        hold_time: held at +amplitude before the sinusoid (s).
-    """
-
-    axis: str = "y"
-    amplitude: float = 0.03
-    period: float = 2.0
-    shift_time: float = 1.0
-    hold_time: float = 0.5
-
-    def validate(self, where: str = "ComSinusoid") -> None:
-        if self.axis not in ("x", "y"):
-            raise ValueError(f"{where}.axis: '{self.axis}', expected 'x' or 'y'")
-        check_finite(self.amplitude, f"{where}.amplitude", 0.0, strict=False)
-        for name in ("period", "shift_time"):
-            check_finite(getattr(self, name), f"{where}.{name}", 0.0)
-        check_finite(self.hold_time, f"{where}.hold_time", 0.0, strict=False)
-
-    def samples(self, com0: np.ndarray, t: np.ndarray, settle: float) -> np.ndarray:
-        """(len(t), 9): the CoM's position, velocity and acceleration at the times
-        `t` (s): at `com0` (m, world) until `settle`, then the motion."""
-        com = sinusoid_com(
-            com0,
-            t - settle,
-            amplitude=self.amplitude,
-            period=self.period,
-            shift_time=self.shift_time,
-            hold_time=self.hold_time,
-            axis="xy".index(self.axis),
-        )
-        com[t < settle] = np.r_[com0, np.zeros(6)]
-        return com
 
 
 def _balance_defaults() -> BalanceControlConfig:
