@@ -15,7 +15,7 @@ run, and the text between the HEADLINE markers of README.md with its one result 
 A balance run (a folder with a balance.json): replaces the text between the BALANCE
 markers of README.md with the run's table, and between the BALANCE_COM,
 BALANCE_ESTIMATION and BALANCE_PUSHES markers of docs/balance.md with its tables
-(`hrp2_drake.tools.balance_report`, the ones its balance.md has); copies its two
+(`hrp2_drake.experiments.balance.report`, the ones its balance.md has); copies its two
 figures to docs/.
 
 REPO (default: the repository this script is in) is where README.md and docs/ are
@@ -221,7 +221,7 @@ def replace_between(
 
 def _balance_summary(run: Path) -> dict:
     """The run's balance.json, checked for every key the tables read."""
-    from hrp2_drake.tools.balance_report import SummaryError, check_summary
+    from hrp2_drake.experiments.balance.report import SummaryError, check_summary
 
     path = run / "balance.json"
     try:
@@ -234,7 +234,7 @@ def _balance_summary(run: Path) -> dict:
 
 def balance_sections(run: Path) -> dict[str, list[tuple[tuple[str, str], list[str]]]]:
     """README.md's and docs/balance.md's texts between their markers, by page."""
-    from hrp2_drake.tools import balance_report as report
+    from hrp2_drake.experiments.balance import report
 
     summary = _balance_summary(run)
     source = report.run_line(summary)

@@ -18,13 +18,13 @@ from hrp2_drake.assembly.balance import offset_com_reference
 from hrp2_drake.assembly.torque_control import TorqueControlConfig, check_for_robot
 from hrp2_drake.estimation import estimator_config as estimation_config
 from hrp2_drake.estimation.estimator_step import FloatingBaseTorqueEstimatorStep
+from hrp2_drake.experiments.balance.calibration import CalibrationSettings, calibrate
 from hrp2_drake.robot.station import (
     LoweringConfig,
     StationConfig,
     initial_joint_positions,
     make_station,
 )
-from hrp2_drake.tools.balance_calibration import CalibrationSettings, calibrate
 
 STANDING = StationConfig(scenario="standing")
 
@@ -145,7 +145,7 @@ def test_a_robot_without_strings_is_not_calibrated_but_says_so(tmp_path):
     naming the setting that runs it uncalibrated."""
     from pathlib import Path
 
-    from hrp2_drake.tools.balance import BalanceExperimentConfig
+    from hrp2_drake.experiments.balance.runner import BalanceExperimentConfig
 
     folder = Path(STANDING.description().source_file).parent
     text = (folder / "robot.yaml").read_text()

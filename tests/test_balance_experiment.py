@@ -1,4 +1,4 @@
-"""Balance through the paper's chain (assembly/balance.py, tools/balance.py): the
+"""Balance through the paper's chain (assembly/balance.py, experiments/balance/): the
 standing references (legs, the CoM motion, the inverse kinematics), the CoM task in
 closed loop through the estimator, the base from the soles and the Δq controller of
 the legs, an infeasible QP that falls back to position control, the soles' ground
@@ -17,14 +17,14 @@ from hrp2_drake.cli import main
 from hrp2_drake.control.balance import BalanceFault
 from hrp2_drake.control.balance_reference import StandingIk, leg_joints, sinusoid_com
 from hrp2_drake.description import load_robot_description
-from hrp2_drake.identification.motor_model import MotorModel
-from hrp2_drake.robot.station import StationConfig, make_station, standing_positions
-from hrp2_drake.tools.balance import (
+from hrp2_drake.experiments.balance.report import check_summary, report_markdown
+from hrp2_drake.experiments.balance.runner import (
     BalanceExperimentConfig,
     RunSpec,
     simulate_run,
 )
-from hrp2_drake.tools.balance_report import check_summary, report_markdown
+from hrp2_drake.identification.motor_model import MotorModel
+from hrp2_drake.robot.station import StationConfig, make_station, standing_positions
 
 
 @pytest.fixture(scope="module")
@@ -248,7 +248,7 @@ def test_a_motor_model_without_the_legs_is_one_line(tmp_path, capsys, legs_model
 def test_balance_quick_writes_its_report(tmp_path, legs_model):
     """`hrp2-drake balance --quick`: both controls, the CoM sinusoid (one period)
     and forward pushes; the report, the JSON and the figures; the report is the
-    JSON's (`tools.balance_report`)."""
+    JSON's (`experiments.balance.report`)."""
     model = tmp_path / "legs.yaml"
     legs_model.save(model)
     out = tmp_path / "balance"

@@ -4,8 +4,9 @@ package, at module level or inside a function, goes down or sideways, never up.
 From the bottom: the shared helpers; the robot description (plain data); the
 algorithms (estimation, identification, control), which serve any robot from a
 MultibodyPlant and names; the robot (simulated, or over LCM); the closed-loop assembly;
-the any-robot tools; the paper on HRP-2; the commands, one module a command, which
-import no other command; the command line, which only dispatches to the commands.
+the any-robot tools; the paper on HRP-2 and, on its floor, the experiments of any
+robot (the balance experiment); the commands, one module a command, which import no
+other command; the command line, which only dispatches to the commands.
 """
 
 import ast
@@ -48,8 +49,9 @@ ALLOWED: dict[str, set[str]] = {
     "assembly": HELPERS | {"description"} | ALGORITHMS | ROBOT,
     "tools": HELPERS | {"description", "assembly"} | ALGORITHMS | ROBOT,
     "paper": HELPERS | {"description", "assembly", "tools"} | ALGORITHMS | ROBOT,
+    "experiments": HELPERS | {"description", "assembly", "tools"} | ALGORITHMS | ROBOT,
     "commands": HELPERS
-    | {"description", "assembly", "tools", "paper"}
+    | {"description", "assembly", "tools", "paper", "experiments"}
     | ALGORITHMS
     | ROBOT,
     "cli": {"commands", "config", "console"},
@@ -120,6 +122,10 @@ def test_the_rules_of_issue_19_are_in_the_table():
         if part not in ("commands", "cli")
     )
     assert ALLOWED["description"] <= {"config", "multibody"}
+    # The experiments stand on the paper's floor: only the commands run them.
+    assert [p for p, allowed in ALLOWED.items() if "experiments" in allowed] == [
+        "commands"
+    ]
     for part in ALGORITHMS:
         assert not ALLOWED[part] & {"robot", "hardware", "assembly", "tools", "paper"}
 
@@ -223,11 +229,8 @@ def test_the_private_import_check_sees_one(tmp_path):
 #: Imports of one command's pipeline (a module of tools/) by another pipeline or by
 #: the paper that issue 37 (item 2) has still to remove, each with why it stands.
 TOOLS_IMPORTS_LEFT = {
-    "tools/balance.py -> tools/balance_calibration.py": "the balance experiment's "
-    "runner, calibration and report: they move beside the paper's experiments",
-    "tools/balance.py -> tools/balance_report.py": "the same",
-    "tools/balance.py -> tools/identify.py": "identify_motor_model for a run given no "
-    "motor model: the balance experiment's own move",
+    "experiments/balance/runner.py -> tools/identify.py": "identify_motor_model for "
+    "a run given no motor model: the identification pipeline's move",
     "paper/reproduce.py -> tools/identify.py": "the paper's identification step runs "
     "the identify command's whole run (collection, fit, Table 1 report)",
 }
@@ -251,7 +254,7 @@ def test_a_pipeline_imports_no_other_commands_pipeline():
     found = {
         f"{path.relative_to(PACKAGE)} -> tools/{name}.py"
         for path in _sources()
-        if _part(path) in ("tools", "paper")
+        if _part(path) in ("tools", "paper", "experiments")
         for name in _tools_imports(path)
         if not (_part(path) == "tools" and name == path.stem)
     }

@@ -84,8 +84,8 @@ class BalanceControlConfig:
             inverse dynamics).
         com_offset: the true CoM minus the model's, horizontal (x, y in the world,
             m), measured at start-up (the soles' centre of pressure standing still
-            minus the model's CoM: `tools.balance_calibration`): the QP tracks the
-            model's CoM, so its CoM reference is the given one minus this.
+            minus the model's CoM: `experiments.balance.calibration`): the QP tracks
+            the model's CoM, so its CoM reference is the given one minus this.
 
     The Δq chain's defaults differ from the paper's where a measurement on HRP-2
     says so, and HRP-2's QP settings (models/hrp2/robot.yaml's `balance`) were

@@ -1,5 +1,5 @@
 """`hrp2-drake balance`: a floating-base robot on its soles, torque against position
-control (`tools/balance.py`)."""
+control (`experiments/balance/runner.py`)."""
 
 import argparse
 
@@ -26,13 +26,13 @@ def add(commands: options.Commands) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hrp2_drake.identification.motor_model import MotorModel
-    from hrp2_drake.tools.balance import (
+    from hrp2_drake.experiments.balance.runner import (
         BalanceExperimentConfig,
         identify_legs,
         run_balance,
         shortened,
     )
+    from hrp2_drake.identification.motor_model import MotorModel
 
     config = options.read_config(BalanceExperimentConfig, args)
     options.use_robot(config.station, args)

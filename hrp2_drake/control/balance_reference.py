@@ -198,7 +198,7 @@ def _rotation_error(target: RotationMatrix, current: RotationMatrix) -> np.ndarr
 class ComSinusoid:
     """The authors' CoM motion (`sinusoid_com`, sot-torque-control's balance test on
     HRP-2) as a config: `control --motion balance` runs it from `settle` to the run's
-    end, the balance experiment (`tools.balance.ComMotion`) for a duration.
+    end, the balance experiment (`experiments.balance.runner.ComMotion`) for a duration.
 
     Args:
         axis: "x" or "y" (the world's).

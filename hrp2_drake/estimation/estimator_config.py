@@ -79,7 +79,7 @@ class TorqueEstimatorConfig:
             for none (see the estimator's docstring).
         imu_offset: the IMU's offsets, [accelerometer (3, m/s²); gyroscope (3,
             rad/s)] in the IMU frame, subtracted from its readings (found at
-            start-up, the robot still: `tools.balance_calibration`); empty: none.
+            start-up, the robot still: `experiments.balance.calibration`); empty: none.
         offset_calibration_start: time (s) the calibration starts, to skip the
             filters' start-up (their windows fill with the sensors' first samples;
             the default leaves 2.5 windows of 80 ms).

@@ -1,6 +1,6 @@
 """The report of a balance run (`hrp2-drake balance`), from its summary alone.
 
-`tools/balance.py` writes a run's summary into `balance.json` and its report,
+`runner.py` (beside it) writes a run's summary into `balance.json` and its report,
 `balance.md`, with these; `scripts/update_readme_results.py` writes README's balance
 table and docs/balance.md's tables from a run's `balance.json` with the same ones,
 so that no measured figure is copied by hand. Nothing here reads a robot or a
@@ -341,8 +341,8 @@ def run_line(summary: dict) -> str:
 
 
 def calibration_lines(summary: dict) -> list[str]:
-    """The start-up calibration's paragraph (`tools.balance_calibration`), if the run
-    had one: what it found, and its error against the simulated biases."""
+    """The start-up calibration's paragraph (`experiments.balance.calibration`), if
+    the run had one: what it found, and its error against the simulated biases."""
     calibration = summary.get("calibration")
     if not calibration:
         return [

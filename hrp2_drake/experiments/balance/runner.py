@@ -28,7 +28,7 @@ the sensors. The motor model is identified first (`hrp2-drake identify`) unless 
 is given: the description's identification, then each `identify_*.yaml` of the
 robot's folder (HRP-2: the left leg's), merged.
 
-Writes balance.md (`tools.balance_report`, from the summary alone), balance.json
+Writes balance.md (`experiments.balance.report`, from the summary alone), balance.json
 and figures. Nothing here knows a robot's names.
 """
 
@@ -62,6 +62,8 @@ from hrp2_drake.control.balance_reference import ComSinusoid, StandingIk, sinuso
 from hrp2_drake.control.safety import describe_faults
 from hrp2_drake.description import RobotDescription
 from hrp2_drake.estimation.estimator_config import GOAL_RMS_OVER_PEAK
+from hrp2_drake.experiments.balance.calibration import CalibrationSettings, calibrate
+from hrp2_drake.experiments.balance.report import MODES, report_markdown
 from hrp2_drake.identification.excitation import PushSource
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.report import legend_beside, pyplot, save_figure
@@ -72,8 +74,6 @@ from hrp2_drake.robot.station import (
     standing_positions,
 )
 from hrp2_drake.simulation import add_loggers, logs_to_arrays, run_with_progress
-from hrp2_drake.tools.balance_calibration import CalibrationSettings, calibrate
-from hrp2_drake.tools.balance_report import MODES, report_markdown
 
 _WHERE = "BalanceExperimentConfig"
 #: Push directions: the unit force in the world.
@@ -176,7 +176,7 @@ class BalanceExperimentConfig:
         com_motion: the CoM tracking experiment.
         pushes: the push experiment.
         calibration: the start-up calibration, as the authors calibrated the real
-            HRP-2 (`tools.balance_calibration`): the F/T offsets found lifted, the
+            HRP-2 (`experiments.balance.calibration`): the F/T offsets found lifted, the
             CoM offset put down; what it finds goes into `control` (the estimator's
             offsets, the CoM offset) before the runs.
         workers: processes running the simulations in parallel.
@@ -786,7 +786,7 @@ def calibrated(
 
 
 def _settings(robot: RobotDescription, config: BalanceExperimentConfig) -> dict:
-    """What the run was asked, as its report shows it (`tools.balance_report`)."""
+    """What the run was asked, as its report shows it (`experiments.balance.report`)."""
     motion, pushes = config.com_motion, config.pushes
     return {
         "solver": config.control.balance.solver,
