@@ -13,6 +13,7 @@ from contextlib import contextmanager
 import numpy as np
 import pytest
 import scservo_sdk as scs
+from pydrake.multibody.tree import JacobianWrtVariable
 from scservo_sdk import port_handler as scs_port
 
 from hrp2_drake.description import load_robot_description
@@ -310,3 +311,57 @@ def test_a_push_moves_the_joint_the_servo_holds_by_its_stiffness():
         b.emulator._advance(1.5)
         moved = physics.present().position - before
         assert moved[0] == pytest.approx(0.2 * 0.0561887, abs=2 * np.pi / 4096)
+
+
+@pytest.mark.parametrize(
+    "spec, message",
+    [
+        ("push-force:gripper_frame_link@1.0:0,0", "not a force in N"),
+        ("push-force:gripper_frame_link@1.0:0,0,nan", "not a force in N"),
+        ("push-force:gripper_frame_link@-1:0,0,1", "not a time in seconds"),
+        ("push-force:gripper_frame_link:0,0,1", "push-force:BODY@T:FX,FY,FZ"),
+    ],
+)
+def test_a_bad_push_force_is_one_line(spec, message):
+    with pytest.raises(ValueError, match=message) as error:
+        parse_fault(spec)
+    assert "\n" not in str(error.value)
+
+
+def test_a_push_force_on_a_body_the_model_lacks_is_refused_at_start():
+    with pytest.raises(ValueError, match="no body 'hand' in so101's model") as error:
+        with bus(faults=["push-force:hand@1.0:0,0,1"]):
+            pass
+    assert "gripper_frame_link" in str(error.value) and "\n" not in str(error.value)
+
+
+def test_a_push_force_at_the_gripper_moves_every_joint_by_jt_f():
+    """`push-force:BODY@T:FX,FY,FZ`: a force on the body's origin (world frame) from
+    T on, through every joint at once; the servos holding (17.8 N m/rad each) give
+    way by K_tau Jᵀ F (J the body origin's translational Jacobian at the pose held,
+    from a second plant), to the encoder's pulse and the few % the pose's change of
+    gravity torque adds; 0,0,0 lets go."""
+    spec = "push-force:gripper_frame_link@0.5:0.3,-0.4,-1"
+    assert parse_fault(spec).spec() == spec
+    with bus(faults=[spec, "push-force:gripper_frame_link@2.0:0,0,0"]) as b:
+        physics = b.emulator.groups[0].physics
+        physics.set_goal(physics.present().position)
+        physics.set_enabled(np.ones(6))
+        b.emulator._advance(0.5)
+        before = physics.present().position.copy()
+        b.emulator._advance(1.5)
+        assert physics.external_forces["gripper_frame_link"].tolist() == [0.3, -0.4, -1]
+        moved = physics.present().position - before
+        b.emulator._advance(2.0)
+        assert physics.external_forces["gripper_frame_link"].tolist() == [0, 0, 0]
+    plant = load_robot_description(ROBOT).make_plant(weld_base=True)
+    context = plant.CreateDefaultContext()
+    plant.SetPositions(context, before)
+    frame = plant.GetBodyByName("gripper_frame_link").body_frame()
+    world = plant.world_frame()
+    J = plant.CalcJacobianTranslationalVelocity(
+        context, JacobianWrtVariable.kV, frame, np.zeros(3), world, world
+    )
+    expected = 0.0561887 * J.T @ np.array([0.3, -0.4, -1.0])
+    assert np.abs(expected[:3]).min() > 5 * 2 * np.pi / 4096  # pulses to measure
+    np.testing.assert_allclose(moved, expected, rtol=0.05, atol=1.5 * 2 * np.pi / 4096)

@@ -33,8 +33,9 @@ def add(commands: options.Commands) -> None:
             "action": "append",
             "help": "inject a fault, e.g. silent:1@2.0, crc:1@1.5x20, "
             "hardware:1@2.0:overload, close@3.0, wrong_model:1:XM430-W350, "
-            "push:1@2.0:0.1 (0.1 N m on servo 1's joint from 2 s on: a hand's push) "
-            "(repeat for several)",
+            "push:1@2.0:0.1 (0.1 N m on servo 1's joint from 2 s on: a hand's push), "
+            "push-force:gripper_frame_link@2.0:0,0,-1 (1 N down, world frame, on that "
+            "body of the model from 2 s on; 0,0,0 lets go) (repeat for several)",
         },
         ids={
             "default": "",

@@ -94,7 +94,12 @@ def _tick_in_process(
 
 
 def run_on_bus_in_process(
-    station_config, controller: FusedController, reference, ticks: int, on_tick=None
+    station_config,
+    controller: FusedController,
+    reference,
+    ticks: int,
+    on_tick=None,
+    on_period=None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """The fused controller on the simulated robot's servos (`SimulatedServos`) in one
     process, without a wire, with the bus loop's timing: what `BusLink` and a
@@ -104,8 +109,12 @@ def run_on_bus_in_process(
     (`position_loop.gain`), the present pose read (through the goal register's
     pulses) and made the goal, torque on. Then period k: the servos sample at k·T,
     one tick at t = k·T, and the command, in pulses, reaches them at k·T + d (d: the
-    bus's `read_to_write`). `on_tick(step)` wraps each tick (a timer). Returns
-    (q_cmd, τ̂) per tick.
+    bus's `read_to_write`). `on_tick(step)` wraps each tick (a timer).
+    `on_period(servos, t)`, if given, is called at the start of each period, before
+    the servos sample: the robot's side of an experiment (a push on the arm:
+    `SimulatedServos.set_external_force`, held from t on; ground truth read for
+    evaluation), as `sim-servo`'s faults act at their time. Returns (q_cmd, τ̂) per
+    tick.
     """
     from hrp2_drake.robot.bus_servos import SimulatedServos
 
@@ -122,6 +131,8 @@ def run_on_bus_in_process(
     for k in range(ticks):
         t = k * period
         servos.advance_to(t)
+        if on_period is not None:
+            on_period(servos, t)
         controller.q_measured[:] = bus.quantized(servos.present().position)
         controller.q_measured_time[:] = t
         _tick_in_process(controller, reference, t, k == 0, on_tick, command)

@@ -114,7 +114,10 @@ if the Shutdown item (63) selects that error, torque goes off, as a real X-serie
 servo does, and only REBOOT lets it on again), `close@T` (the emulator closes the
 pty and stops: the host sees its port vanish), `push:ID@T:TAU` (from T on, an
 external torque of TAU N·m on the joint of servo ID, as a hand pushing it; 0 lets
-go: `SimulatedServos.set_external_torque`), and at start-up `wrong_model:ID:MODEL`
+go: `SimulatedServos.set_external_torque`), `push-force:BODY@T:FX,FY,FZ` (from T on,
+a force in N, world frame, on the origin of the model's body BODY, through every
+joint at once; 0,0,0 lets go: `SimulatedServos.set_external_force`), and at
+start-up `wrong_model:ID:MODEL`
 (the servo reports MODEL's model number).
 
 The emulator keeps its own slave fd open (raw mode), so the host may close and
@@ -269,13 +272,15 @@ class ServoFault:
     """A fault injected on the bus (module docstring; `parse_fault`).
 
     Args:
-        kind: "silent", "crc", "hardware", "close", "push" or "wrong_model".
-        servo_id: the servo it hits (-1: none, for "close").
+        kind: "silent", "crc", "hardware", "close", "push", "push-force" or
+            "wrong_model".
+        servo_id: the servo it hits (-1: none, for "close" and "push-force").
         at: robot time it starts (s); 0 for "wrong_model" (at start-up).
         count: "crc": how many statuses are corrupted.
         detail: "hardware": the error's name ("overload"); "wrong_model": the
             model whose model number the servo reports ("XM430-W350"); "push": the
-            torque (N·m, "-0.2").
+            torque (N·m, "-0.2"); "push-force": the force (N, "0,0,-1.5").
+        body: "push-force": the pushed body of the robot's model.
     """
 
     kind: str
@@ -283,9 +288,12 @@ class ServoFault:
     at: float = 0.0
     count: int = 1
     detail: str = ""
+    body: str = ""
 
     def spec(self) -> str:
         """The fault as `parse_fault` reads it."""
+        if self.kind == "push-force":
+            return f"push-force:{self.body}@{self.at:g}:{self.detail}"
         if self.kind == "close":
             return f"close@{self.at:g}"
         if self.kind == "wrong_model":
@@ -300,8 +308,9 @@ class ServoFault:
 
 FAULT_SYNTAX = (
     "silent:ID@T, crc:ID@T[xN], hardware:ID@T:ERROR, close@T, wrong_model:ID:MODEL, "
-    "push:ID@T:TAU"
+    "push:ID@T:TAU, push-force:BODY@T:FX,FY,FZ"
 )
+_PUSH_FORCE = re.compile(r"push-force:(?P<body>[^@:]+)@(?P<at>[^:]+):(?P<force>.*)")
 _FAULT = re.compile(
     r"(?P<kind>[a-z_]+)(?::(?P<id>\d+))?(?:@(?P<at>[0-9.eE+-]+?)(?:x(?P<count>\d+))?)?"
     r"(?::(?P<detail>[A-Za-z0-9_.-]+))?"
@@ -323,6 +332,8 @@ def parse_fault(spec: str) -> ServoFault:
     is returned as is. Raises ValueError naming the spec and the syntax."""
     if isinstance(spec, ServoFault):
         return spec
+    if str(spec).strip().startswith("push-force"):
+        return _parse_push_force(str(spec).strip())
     match = _FAULT.fullmatch(str(spec).strip())
     where = f"fault '{spec}'"
     if not match or match["kind"] not in _FAULT_PARTS:
@@ -356,6 +367,32 @@ def parse_fault(spec: str) -> ServoFault:
         if not math.isfinite(torque):
             raise ValueError(f"{where}: '{detail}' is not a torque in N·m")
     return ServoFault(kind, servo_id, at, count, detail)
+
+
+def _parse_push_force(spec: str) -> ServoFault:
+    """`push-force:BODY@T:FX,FY,FZ` (`parse_fault`); the body is checked against
+    the model when the emulator starts."""
+    where = f"fault '{spec}'"
+    match = _PUSH_FORCE.fullmatch(spec)
+    if not match:
+        raise ValueError(
+            f"{where}: a push-force fault is written push-force:BODY@T:FX,FY,FZ"
+        )
+    try:
+        at = float(match["at"])
+    except ValueError:
+        at = math.nan
+    if not (math.isfinite(at) and at >= 0):
+        raise ValueError(f"{where}: '{match['at']}' is not a time in seconds (>= 0)")
+    try:
+        force = [float(x) for x in match["force"].split(",")]
+    except ValueError:
+        force = []
+    if len(force) != 3 or not all(math.isfinite(f) for f in force):
+        raise ValueError(
+            f"{where}: '{match['force']}' is not a force in N (FX,FY,FZ: 3 numbers)"
+        )
+    return ServoFault("push-force", -1, at, 1, match["force"], body=match["body"])
 
 
 def parse_faults(specs: Sequence) -> list[ServoFault]:
@@ -861,7 +898,9 @@ class ServoBusEmulator:
         timed = []
         for fault in faults:
             where = f"fault '{fault.spec()}'"
-            if fault.kind == "close":
+            if fault.kind in ("close", "push-force"):
+                if fault.kind == "push-force":
+                    self.groups[0].physics.check_body(fault.body, where)
                 timed.append(fault)
                 continue
             servo = self._servo(fault.servo_id, where)
@@ -937,6 +976,11 @@ class ServoBusEmulator:
         self.applied_faults.append({"fault": fault.spec(), "time": float(fault.at)})
         if fault.kind == "close":
             self.stopped = f"port closed by the fault {fault.spec()}"
+            return
+        if fault.kind == "push-force":
+            force = [float(x) for x in fault.detail.split(",")]
+            for group in self.groups:
+                group.physics.set_external_force(fault.body, force)
             return
         servo = self._servo(fault.servo_id, f"fault '{fault.spec()}'")
         if fault.kind == "silent":

@@ -7,7 +7,8 @@ robot's simulated station (MultibodyPlant, the emulated position servo: for a re
 servo, its digital twin), advanced on demand (`advance_to`). What a servo's
 registers set goes in: its goal position (`set_goal`), its torque enable
 (`set_enabled`), its position P gain (`set_gain`); and what a hand does to the
-joints (`set_external_torque`: a push, for hand-guiding experiments). What it
+arm, for hand-guiding experiments: a torque on joints (`set_external_torque`), a
+force on a body (`set_external_force`, through every joint at once). What it
 measures comes out (`present`): its encoder (the joint angle at the encoder's
 resolution), its velocity, its motor current, its PWM duty (the documented position
 loop's output), its supply voltage and its temperature.
@@ -21,6 +22,9 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.multibody.math import SpatialForce
+from pydrake.multibody.plant import ExternallyAppliedSpatialForce
 from pydrake.systems.analysis import Simulator
 
 from hrp2_drake.multibody import joint_indexing
@@ -83,6 +87,7 @@ class SimulatedServos:
         self._goal = initial_joint_positions(config)
         self._enabled = np.zeros(n)
         self._external = np.zeros(n)
+        self._forces: dict[str, np.ndarray] = {}  # body -> force (N, world)
         self._gain = float(config.servo_gain_in_use() or robot.position_loop.gain)
         self._simulator = None
         self._build(self._gain)
@@ -113,6 +118,7 @@ class SimulatedServos:
         self._v_rows = plant.num_positions() + indexing.v
         self._plant, self._plant_context = plant, plant.GetMyContextFromRoot(context)
         self._indexing_v = indexing.v
+        self._spatial_forces = station.GetInputPort("applied_spatial_force")
         self._fix_external()
         initialized = self._simulator is not None
         self._simulator = simulator
@@ -151,6 +157,55 @@ class SimulatedServos:
         self._external[:] = tau
         self._fix_external()
 
+    @property
+    def external_forces(self) -> dict[str, np.ndarray]:
+        """The forces `set_external_force` holds: body name -> force (N, world)."""
+        return {body: force.copy() for body, force in self._forces.items()}
+
+    def set_external_force(self, body: str, force) -> None:
+        """A force (N, 3 values in the world frame, the arm's base frame on a fixed
+        robot) on body `body` at its origin, held until changed (zero lets go): a
+        hand pushing the arm there, through every joint at once (an
+        ExternallyAppliedSpatialForce on the plant). Raises ValueError in one line
+        for a body the model lacks or a force that is not 3 finite numbers."""
+        self.check_body(body, "external force")
+        force = np.asarray(force, dtype=float)
+        if force.shape != (3,) or not np.all(np.isfinite(force)):
+            raise ValueError(
+                f"external force on '{body}': expected 3 finite numbers (N), got "
+                f"{np.asarray(force).tolist()}"
+            )
+        self._forces[body] = force.copy()
+        self._fix_external()
+
+    def check_body(self, body: str, where: str) -> None:
+        """Raises ValueError (one line, naming the model's bodies) unless the
+        robot's model has a body `body`."""
+        if not self._plant.HasBodyNamed(body):
+            plant = self._plant
+            names = [
+                plant.get_body(index).name()
+                for index in plant.GetBodyIndices(self._model_instance())
+            ]
+            raise ValueError(
+                f"{where}: no body '{body}' in {self.robot.name}'s model (its bodies: "
+                f"{', '.join(names)})"
+            )
+
+    def _model_instance(self):
+        plant = self._plant
+        joint = plant.GetJointByName(self.joints[0])
+        return joint.model_instance()
+
+    def body_position(self, body: str) -> np.ndarray:
+        """The true position of body `body`'s origin in the world (m): ground
+        truth, for evaluation only (no controller reads it)."""
+        self.check_body(body, "body position")
+        pose = self._plant.EvalBodyPoseInWorld(
+            self._plant_context, self._plant.GetBodyByName(body)
+        )
+        return pose.translation().copy()
+
     def _fix_external(self) -> None:
         plant = self._plant
         forces = np.zeros(plant.num_velocities())
@@ -158,6 +213,16 @@ class SimulatedServos:
         plant.get_applied_generalized_force_input_port().FixValue(
             self._plant_context, forces
         )
+        spatial = []
+        for body, force in self._forces.items():
+            applied = ExternallyAppliedSpatialForce()
+            applied.body_index = plant.GetBodyByName(body).index()
+            applied.p_BoBq_B = np.zeros(3)
+            applied.F_Bq_W = SpatialForce(np.zeros(3), force)
+            spatial.append(applied)
+        value = AbstractValue.Make([ExternallyAppliedSpatialForce()])
+        value.set_value(spatial)
+        self._spatial_forces.FixValue(self._context, value)
 
     def set_enabled(self, enabled: np.ndarray) -> None:
         """Torque enable per servo (1 on, 0 off)."""
