@@ -12,9 +12,13 @@ def short_identification():
     shared by the tests that need data or an identified motor model.
 
     Returns (config, log, joint_names, result)."""
+    from hrp2_drake.assembly.identification import (
+        IdentifyConfig,
+        collect_log,
+        collected_log,
+    )
     from hrp2_drake.identification.joint_fits import identify_logs
     from hrp2_drake.robot.station import StationConfig
-    from hrp2_drake.tools.identify import IdentifyConfig, collect_log, collected_log
 
     # The `ideal` servo: these tests check the machinery against the exact linear law;
     # `reproduce` reports what the calibrated servo costs.

@@ -9,9 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hrp2_drake.assembly.identification import IdentifyConfig
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.robot.station import StationConfig
-from hrp2_drake.tools.identify import IdentifyConfig, run_identify
+from hrp2_drake.tools.identify import run_identify
 from hrp2_drake.tools.track import TrackConfig, run_track
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"

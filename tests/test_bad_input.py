@@ -21,12 +21,13 @@ def simulated(*args, **kwargs):
 def no_simulation(monkeypatch):
     """Any simulation (or estimation, or robot connection) fails the test: bad input
     must be refused before one starts."""
+    from hrp2_drake.assembly import identification
     from hrp2_drake.paper import faults, motion
-    from hrp2_drake.tools import control, estimate, identify, simulate
+    from hrp2_drake.tools import control, estimate, simulate
 
     monkeypatch.setattr(simulate, "run_simulate", simulated)
     monkeypatch.setattr(motion, "run_motion", simulated)
-    monkeypatch.setattr(identify, "collect_log", simulated)
+    monkeypatch.setattr(identification, "collect_log", simulated)
     monkeypatch.setattr(estimate, "estimate_log", simulated)
     monkeypatch.setattr(control, "run_control", simulated)
     monkeypatch.setattr(faults, "run_fault_campaign", simulated)

@@ -165,15 +165,16 @@ def simulated(*args, **kwargs):
 def no_simulation(monkeypatch):
     """Any simulation (or robot connection) fails the test: bad input is refused
     before one starts."""
+    from hrp2_drake.assembly import identification
     from hrp2_drake.paper import estimation, stability
-    from hrp2_drake.tools import control, identify, simulate, track
+    from hrp2_drake.tools import control, simulate, track
 
     monkeypatch.setattr(estimation, "run_estimation_experiment", simulated)
     monkeypatch.setattr(stability, "run_stability_experiment", simulated)
     monkeypatch.setattr(simulate, "run_simulate", simulated)
     monkeypatch.setattr(track, "run_track", simulated)
     monkeypatch.setattr(control, "run_control", simulated)
-    monkeypatch.setattr(identify, "collect_log", simulated)
+    monkeypatch.setattr(identification, "collect_log", simulated)
 
 
 def motor_model(joints: list[str]) -> str:

@@ -48,8 +48,8 @@ ALLOWED: dict[str, set[str]] = {
     "hardware": HELPERS | {"description", "robot"} | ALGORITHMS,
     "assembly": HELPERS | {"description"} | ALGORITHMS | ROBOT,
     "tools": HELPERS | {"description", "assembly"} | ALGORITHMS | ROBOT,
-    "paper": HELPERS | {"description", "assembly", "tools"} | ALGORITHMS | ROBOT,
-    "experiments": HELPERS | {"description", "assembly", "tools"} | ALGORITHMS | ROBOT,
+    "paper": HELPERS | {"description", "assembly"} | ALGORITHMS | ROBOT,
+    "experiments": HELPERS | {"description", "assembly"} | ALGORITHMS | ROBOT,
     "commands": HELPERS
     | {"description", "assembly", "tools", "paper", "experiments"}
     | ALGORITHMS
@@ -122,10 +122,12 @@ def test_the_rules_of_issue_19_are_in_the_table():
         if part not in ("commands", "cli")
     )
     assert ALLOWED["description"] <= {"config", "multibody"}
-    # The experiments stand on the paper's floor: only the commands run them.
+    # The experiments stand on the paper's floor: only the commands run them, and
+    # neither they nor the paper import a command's pipeline (issue 37).
     assert [p for p, allowed in ALLOWED.items() if "experiments" in allowed] == [
         "commands"
     ]
+    assert not (ALLOWED["paper"] | ALLOWED["experiments"]) & {"tools"}
     for part in ALGORITHMS:
         assert not ALLOWED[part] & {"robot", "hardware", "assembly", "tools", "paper"}
 
@@ -226,16 +228,6 @@ def test_the_private_import_check_sees_one(tmp_path):
     assert _private_imports(module) == ["hrp2_drake.assembly.builders._hidden"]
 
 
-#: Imports of one command's pipeline (a module of tools/) by another pipeline or by
-#: the paper that issue 37 (item 2) has still to remove, each with why it stands.
-TOOLS_IMPORTS_LEFT = {
-    "experiments/balance/runner.py -> tools/identify.py": "identify_motor_model for "
-    "a run given no motor model: the identification pipeline's move",
-    "paper/reproduce.py -> tools/identify.py": "the paper's identification step runs "
-    "the identify command's whole run (collection, fit, Table 1 report)",
-}
-
-
 def _tools_imports(path: Path) -> set[str]:
     """The modules of tools/ that `path` imports (their stems)."""
     return {
@@ -247,19 +239,18 @@ def _tools_imports(path: Path) -> set[str]:
 
 def test_a_pipeline_imports_no_other_commands_pipeline():
     """Issue 37: tools/ holds the commands' pipelines, one a command; what two of
-    them, or a pipeline and the paper, share lives below, in its layer (the logs'
-    reading in identification/, ground truth in robot/). The imports left are
-    `TOOLS_IMPORTS_LEFT`, each with its reason: a new one fails, and so does one
-    that is gone (strike it)."""
+    them share lives below, in its layer (the logs' reading and the identification's
+    report in identification/, the identification on a collection in assembly/,
+    ground truth in robot/). The paper and the experiments import no pipeline at all
+    (the table)."""
     found = {
         f"{path.relative_to(PACKAGE)} -> tools/{name}.py"
         for path in _sources()
-        if _part(path) in ("tools", "paper", "experiments")
+        if _part(path) == "tools"
         for name in _tools_imports(path)
-        if not (_part(path) == "tools" and name == path.stem)
+        if name != path.stem
     }
-    assert sorted(found - set(TOOLS_IMPORTS_LEFT)) == []
-    assert sorted(set(TOOLS_IMPORTS_LEFT) - found) == []
+    assert sorted(found) == []
 
 
 def test_the_pipeline_check_sees_one(tmp_path):

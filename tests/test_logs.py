@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hrp2_drake.assembly.identification import IdentifyConfig
 from hrp2_drake.cli import main
 from hrp2_drake.description import load_robot_description
 from hrp2_drake.identification.dataset import check_logs
 from hrp2_drake.identification.joint_fits import identify_logs
 from hrp2_drake.identification.logs import read_logs, read_robot_log, window_samples
 from hrp2_drake.robot.station import StationConfig
-from hrp2_drake.tools.identify import IdentifyConfig
 
 ROBOT = "xl330_pendulum"
 LOGS = Path(__file__).resolve().parents[1] / "models" / ROBOT / "logs"

@@ -17,13 +17,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hrp2_drake.assembly.identification import IdentifyConfig
 from hrp2_drake.cli import main
 from hrp2_drake.identification.joint_fits import identify_logs
 from hrp2_drake.identification.logs import RobotLog, read_logs
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.robot.rollout import emulated_servo, rollout
 from hrp2_drake.robot.station import StationConfig
-from hrp2_drake.tools.identify import IdentifyConfig
 from hrp2_drake.tools.track import motor_model_at_station_gain
 
 ROBOT = "xl330_pendulum"

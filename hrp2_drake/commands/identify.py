@@ -37,7 +37,8 @@ def add(commands: options.Commands) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hrp2_drake.tools.identify import IdentifyConfig, run_identify
+    from hrp2_drake.assembly.identification import IdentifyConfig
+    from hrp2_drake.tools.identify import run_identify
 
     config = options.read_config(IdentifyConfig, args)
     options.use_robot(config.station, args)

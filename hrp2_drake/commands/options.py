@@ -283,7 +283,10 @@ def motor_model(args: argparse.Namespace, out: Path, config=None, identify=None)
                 f"{loaded.joint_names}), which the experiment torque-controls"
             )
         return loaded
-    from hrp2_drake.tools.identify import IdentifyConfig, identify_motor_model
+    from hrp2_drake.assembly.identification import (
+        IdentifyConfig,
+        identify_motor_model,
+    )
 
     console.say("no --motor-model: identifying one first (hrp2-drake identify)")
     return MotorModel.load(

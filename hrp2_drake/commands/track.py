@@ -22,7 +22,7 @@ def add(commands: options.Commands) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hrp2_drake.tools.identify import IdentifyConfig
+    from hrp2_drake.assembly.identification import IdentifyConfig
     from hrp2_drake.tools.track import TrackConfig, can_press, run_track
 
     config, sources = options.read_config_on_robot(TrackConfig, args, "station.robot")

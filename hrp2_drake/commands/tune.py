@@ -30,8 +30,8 @@ def add(commands: options.Commands) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from hrp2_drake.assembly.identification import IdentifyConfig
     from hrp2_drake.paper.tune import TuneConfig, check_environment, run_tune
-    from hrp2_drake.tools.identify import IdentifyConfig
 
     config = options.read_config(TuneConfig, args)
     if args.quick:

@@ -6,8 +6,9 @@ joint, on the training blocks of the logs, validated on their held-out blocks.
 of q̇ (`v`), q̈ and τ̂ (`dataset.estimate_logs`), then per joint the least-squares
 (eq. 7), asymmetric (eq. 8), Coulomb and two-stage (Sec. 3.3.1) fits, the
 piecewise-linear model of Sec. 3.2 (for comparison), a sweep of the asymmetric
-weight w and, for logs of several servo gains, each gain's own fits. `tools/identify.py`
-calls it and writes its report; `robot/twin_calibration.py` compares a twin with it.
+weight w and, for logs of several servo gains, each gain's own fits.
+`assembly/identification.py` and `tools/identify.py` call it, and `report.py` writes
+its report; `robot/twin_calibration.py` compares a twin with it.
 
 Δq = q_cmd − q is `delta_q` throughout, q̇ is `v`.
 """
@@ -66,7 +67,7 @@ PIECEWISE_INITIAL_BREAKPOINTS = ((-0.5, 0.5), (-2.0, 2.0), (-5.0, 5.0))
 @dataclass
 class FitConfig:
     """How the motor model is fitted to logs (the fitting keys of
-    `hrp2-drake identify`'s config, `tools.identify.IdentifyConfig`).
+    `hrp2-drake identify`'s config, `assembly.identification.IdentifyConfig`).
 
     Args:
         joints: the joints to identify; empty: the robot's controlled joints.

@@ -94,10 +94,10 @@ def load_signals(path: Path) -> dict[str, dict[str, np.ndarray]]:
 
 
 def step_identify(out: Path, quick: bool) -> dict:
-    from hrp2_drake.tools.identify import IdentifyConfig, run_identify
+    from hrp2_drake.assembly.identification import IdentifyConfig, identify_collection
 
     config = IdentifyConfig(duration_scale=0.5 if quick else 1.0)
-    return run_identify(config, out)
+    return identify_collection(config, out)
 
 
 def step_motion(out: Path, model_path: Path, quick: bool, replays: bool) -> dict:

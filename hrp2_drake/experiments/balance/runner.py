@@ -606,8 +606,11 @@ def identification_configs(robot: RobotDescription) -> list[Path]:
 
 
 def _identify(station_robot: str, config_file: str, out: Path) -> Path:
+    from hrp2_drake.assembly.identification import (
+        IdentifyConfig,
+        identify_motor_model,
+    )
     from hrp2_drake.config import load_config
-    from hrp2_drake.tools.identify import IdentifyConfig, identify_motor_model
 
     config = (
         load_config(IdentifyConfig, filename=config_file, validate=False)
