@@ -40,10 +40,9 @@ from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
-from pydrake.common.value import AbstractValue
-from pydrake.multibody.plant import ContactResults, MultibodyPlant
+from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import Context, DiagramBuilder, LeafSystem
+from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
@@ -67,6 +66,7 @@ from hrp2_drake.experiments.balance.report import MODES, report_markdown
 from hrp2_drake.identification.excitation import PushSource
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.report import legend_beside, pyplot, save_figure
+from hrp2_drake.robot.ground_truth import SoleContacts
 from hrp2_drake.robot.station import (
     StationConfig,
     initial_joint_positions,
@@ -232,57 +232,6 @@ class BalanceExperimentConfig:
 
     def push_body(self, robot: RobotDescription) -> str:
         return self.pushes.body or robot.unknown_wrench_body
-
-
-# ------------------------------------------------------------------ ground truth
-
-
-class SoleContacts(LeafSystem):
-    """Each sole's contact force and centre of pressure, from the plant's contact
-    results: ground truth, for evaluation only.
-
-    .. code-block:: text
-
-                         ┌──────────────┐
-        contact_results ►│ SoleContacts ├──► soles (5 per sole)
-                         └──────────────┘
-
-    Output: per sole [f_x, f_y, f_z, p_x, p_y]: the total force the ground exerts on
-    the sole's body (N, world) and its centre of pressure on the ground (m, world;
-    NaN when the sole carries no normal force). Point contacts only (the station's).
-    """
-
-    def __init__(self, plant: MultibodyPlant, soles: list[str]):
-        super().__init__()
-        # Each sole's body and every body welded to it (the contact geometry may sit
-        # on a welded link).
-        self._bodies = [
-            {b.index() for b in plant.GetBodiesWeldedTo(plant.GetFrameByName(s).body())}
-            for s in soles
-        ]
-        self._results = self.DeclareAbstractInputPort(
-            "contact_results", AbstractValue.Make(ContactResults())
-        )
-        self.DeclareVectorOutputPort("soles", 5 * len(soles), self._calc)
-
-    def _calc(self, context: Context, output) -> None:
-        results = self._results.Eval(context)
-        force = np.zeros((len(self._bodies), 3))
-        moment = np.zeros((len(self._bodies), 2))
-        for i in range(results.num_point_pair_contacts()):
-            info = results.point_pair_contact_info(i)
-            for sign, body in ((1.0, info.bodyB_index()), (-1.0, info.bodyA_index())):
-                for k, bodies in enumerate(self._bodies):
-                    if body not in bodies:
-                        continue
-                    f = sign * info.contact_force()
-                    force[k] += f
-                    moment[k] += f[2] * info.contact_point()[:2]
-        values = np.full((len(self._bodies), 5), np.nan)
-        values[:, :3] = force
-        loaded = force[:, 2] > 1e-9
-        values[loaded, 3:] = moment[loaded] / force[loaded, 2:3]
-        output.set_value(values.ravel())
 
 
 # ------------------------------------------------------------------ the runs
