@@ -12,6 +12,11 @@ import logging
 import numpy as np
 import pytest
 from gain_algebra import gains_from_user, user_from_gains
+from joint_wiring import (
+    JointCommandMerger,
+    connect_inverse_dynamics,
+    make_joint_selector,
+)
 from pydrake.multibody.tree import JacobianWrtVariable
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
@@ -40,11 +45,6 @@ from hrp2_drake.control.torque_controller import (
     DeltaQTorqueController,
     DeltaQTorqueControllerStep,
     TorqueControllerConfig,
-)
-from hrp2_drake.control.wiring import (
-    JointCommandMerger,
-    connect_inverse_dynamics,
-    make_joint_selector,
 )
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.multibody import joint_indexing

@@ -1,7 +1,6 @@
 """DeltaQTorqueController: joint-torque control through a position servo (paper Sec.
 4.1.1-4.1.2, eq. 10-11), its per-tick step (`DeltaQTorqueControllerStep`) and its
-kernels. Beside it: the wiring that puts a torque-controlled joint subset into a
-whole-robot command (wiring.py), and K_s, K_d for a position gain K6 (gains.py).
+kernels. Beside it: K_s, K_d for a position gain K6 (gains.py).
 
 The control law (per joint, all gains diagonal):
 

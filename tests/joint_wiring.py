@@ -1,4 +1,5 @@
-"""The wiring that puts a torque-controlled joint subset into a whole-robot diagram:
+"""The tests' wiring of a torque-controlled joint subset into a whole-robot diagram
+by hand (the package wires its chains from a table: `assembly.builders`):
 `make_joint_selector` takes the subset's entries of a whole-robot vector,
 `JointCommandMerger` puts the subset's q_cmd back into the whole robot's command,
 and `connect_inverse_dynamics` connects the inverse dynamics' τ_d and its terms to the
