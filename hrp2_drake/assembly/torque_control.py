@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from hrp2_drake.config import check_finite, moved_keys
 from hrp2_drake.control.safety import SafetyConfig
 from hrp2_drake.description import RobotDescription
+from hrp2_drake.estimation.estimator_config import check_offset
 from hrp2_drake.estimation.savitzky_golay import check_evaluation
 
 _WHERE = "TorqueControlConfig"
@@ -77,20 +78,11 @@ class EstimatorSettings:
         check_finite(
             self.offset_calibration_time, f"{where}.offset_calibration_time", 0.0, False
         )
-        if self.imu_offset and (
-            len(self.imu_offset) != 6
-            or not all(math.isfinite(v) for v in self.imu_offset)
-        ):
-            raise ValueError(
-                f"{where}.imu_offset: 6 finite values [accelerometer; gyroscope], got "
-                f"{self.imu_offset}"
-            )
+        check_offset(self.imu_offset, f"{where}.imu_offset", "accelerometer; gyroscope")
         for name, offset in self.offsets.items():
-            if len(offset) != 6 or not all(math.isfinite(v) for v in offset):
-                raise ValueError(
-                    f"{where}.offsets['{name}']: 6 finite values [torque; force], got "
-                    f"{offset}"
-                )
+            check_offset(
+                offset, f"{where}.offsets['{name}']", "torque; force", optional=False
+            )
 
 
 def check_window(window: int, where: str) -> None:

@@ -20,6 +20,19 @@ ANGULAR_ACCELERATION_MODES = ("gyro_derivative", "neglected")
 GOAL_RMS_OVER_PEAK = 0.03
 
 
+def check_offset(
+    offset: list[float], where: str, layout: str, optional: bool = True
+) -> None:
+    """Raises ValueError naming `where` unless `offset` is 6 finite values (`layout`
+    says which: "torque; force" for an F/T sensor, "accelerometer; gyroscope" for
+    the IMU), or is empty and `optional` (no offset)."""
+    if optional and not offset:
+        return
+    if len(offset) != 6 or not all(math.isfinite(v) for v in offset):
+        none = " or none" if optional else ""
+        raise ValueError(f"{where}: 6 finite values [{layout}]{none}, got {offset}")
+
+
 @dataclass
 class ForceTorqueSensorConfig:
     """One 6-axis F/T sensor.
@@ -141,27 +154,15 @@ class TorqueEstimatorConfig:
                 )
             if not sensor.frame:
                 raise ValueError(f"{where}.sensors['{name}'].frame is empty")
-            if sensor.offset and (
-                len(sensor.offset) != 6
-                or not all(math.isfinite(v) for v in sensor.offset)
-            ):
-                raise ValueError(
-                    f"{where}.sensors['{name}'].offset: 6 finite values [torque; "
-                    f"force] or none, got {sensor.offset}"
-                )
+            check_offset(
+                sensor.offset, f"{where}.sensors['{name}'].offset", "torque; force"
+            )
         if self.angular_acceleration not in ANGULAR_ACCELERATION_MODES:
             raise ValueError(
                 f"{where}.angular_acceleration='{self.angular_acceleration}' must be "
                 f"one of {ANGULAR_ACCELERATION_MODES}"
             )
-        if self.imu_offset and (
-            len(self.imu_offset) != 6
-            or not all(math.isfinite(v) for v in self.imu_offset)
-        ):
-            raise ValueError(
-                f"{where}.imu_offset: 6 finite values [accelerometer; gyroscope] or "
-                f"none, got {self.imu_offset}"
-            )
+        check_offset(self.imu_offset, f"{where}.imu_offset", "accelerometer; gyroscope")
         for name in ("offset_calibration_time", "offset_calibration_start"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
