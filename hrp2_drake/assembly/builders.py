@@ -50,7 +50,10 @@ from hrp2_drake.assembly.torque_control import (
 from hrp2_drake.chain import Chain, add_chain
 from hrp2_drake.control.disturbance_observer import DisturbanceObserverConfig
 from hrp2_drake.control.fused import FusedTorqueController
-from hrp2_drake.control.gains import inverse_dynamics_gains_for_k6
+from hrp2_drake.control.gains import (
+    inverse_dynamics_gains,
+    inverse_dynamics_gains_for_k6,
+)
 from hrp2_drake.control.inverse_dynamics import (
     InverseDynamicsConfig,
     make_fixed_base_plant,
@@ -674,9 +677,14 @@ def torque_chain_parts(
     controller_model = motor_model.subset(joints)
     inertia = _joint_inertia(fixed, all_joints, joints, reference.at(0.0)[0])
     gains = config.controller
-    ks, kd = inverse_dynamics_gains_for_k6(
-        controller_model.k_tau, gains.k6, inertia, gains.kp, gains.damping_ratio
-    )
+    if gains.stiffness:  # K_s chosen in N·m/rad
+        ks, kd = inverse_dynamics_gains(
+            gains.stiffness, inertia, gains.kp, gains.damping_ratio
+        )
+    else:
+        ks, kd = inverse_dynamics_gains_for_k6(
+            controller_model.k_tau, gains.k6, inertia, gains.kp, gains.damping_ratio
+        )
     delay = estimation_config.loop_delay(estimator_config)
     predictor = None
     if config.observer.predictor:

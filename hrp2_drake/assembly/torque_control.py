@@ -105,7 +105,14 @@ class ControllerSettings:
 
     Args:
         k6: position-feedback gain relative to the position servo (Sec. 4.2): 1 = the
-            servo's own stiffness, 0.1 = 10% of it.
+            servo's own stiffness, 0.1 = 10% of it. Unused when `stiffness` is
+            given.
+        stiffness: the joint stiffness the arm holds its reference with against a
+            push (N·m/rad), one value or one per torque-controlled joint; empty
+            (default): K6's (K6 = K_τ × stiffness, K_τ identified). It is the
+            stiffness against a force the torque estimate does not see (a hand on
+            an arm without F/T sensors): K_s = stiffness / (1 + K_p), since the
+            torque feedback adds K_p K_s e_q (`inverse_dynamics_gains`).
         kp: torque-feedback gain K_p (paper: 2), one value or one per joint.
         ki: torque-feedback integral gain K_i (1/s, eq. 11; the paper's 0), one value
             or one per joint.
@@ -146,6 +153,7 @@ class ControllerSettings:
     """
 
     k6: float = 1.0
+    stiffness: list[float] = field(default_factory=list)
     kp: list[float] = field(default_factory=lambda: [2.0])
     ki: list[float] = field(default_factory=lambda: [0.0])
     integral_limit: float = math.inf
@@ -166,6 +174,8 @@ class ControllerSettings:
             self.ki = [float(self.ki)]
         if isinstance(self.kf, (int, float)):
             self.kf = [float(self.kf)]
+        if isinstance(self.stiffness, (int, float)):
+            self.stiffness = [float(self.stiffness)]
 
     def validate(self) -> None:
         """Raises ValueError naming the bad field: the signals' sources, and gains that
@@ -176,7 +186,7 @@ class ControllerSettings:
         for name in ("feedback_velocity", "friction_velocity"):
             if getattr(self, name) not in ("estimate", "reference"):
                 raise ValueError(f"{where}.{name}: '{getattr(self, name)}'")
-        for name in ("kp", "ki", "kf"):
+        for name in ("kp", "ki", "kf", "stiffness"):
             if not isinstance(getattr(self, name), list):
                 raise ValueError(
                     f"{where}.{name}: {getattr(self, name)!r}, expected a list (one "
@@ -198,6 +208,14 @@ class ControllerSettings:
                 f"{self.integral_limit}"
             )
         check_finite(self.k6, f"{where}.k6", 0.0, strict=False)
+        if not all(
+            isinstance(k, (int, float)) and math.isfinite(k) and k >= 0
+            for k in self.stiffness
+        ):
+            raise ValueError(
+                f"{where}.stiffness: {self.stiffness}: one value or one per joint, "
+                "each finite and >= 0 (N·m/rad)"
+            )
         check_finite(self.damping_ratio, f"{where}.damping_ratio", 0.0, strict=False)
         check_finite(self.delta_q_limit, f"{where}.delta_q_limit", 0.0, strict=False)
         if len(self.kf) not in (1, 6):
@@ -387,12 +405,15 @@ def check_for_robot(
     if repeated:
         raise ValueError(f"{where}.joints: {repeated} given more than once")
     n = len(config.controlled_joints(robot))
-    kp = config.controller.kp
-    if isinstance(kp, list) and len(kp) not in (1, n):
-        raise ValueError(
-            f"{where}.controller.kp: {len(kp)} values, expected one or {n} (one per "
-            "torque-controlled joint)"
-        )
+    for name in ("kp", "stiffness"):
+        gains = getattr(config.controller, name)
+        if isinstance(gains, list) and len(gains) not in (
+            (0, 1, n) if name == "stiffness" else (1, n)
+        ):
+            raise ValueError(
+                f"{where}.controller.{name}: {len(gains)} values, expected one or {n} "
+                "(one per torque-controlled joint)"
+            )
     signals = [*robot.joints, *robot.force_torque_sensors]
     signals += ["imu"] if robot.has_imu() else []
     unknown = [

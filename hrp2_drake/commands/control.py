@@ -30,8 +30,24 @@ def add(commands: options.Commands) -> None:
             "help": "default: sinusoid; balance: a robot standing on its soles "
             "(sim-robot --scenario standing), its CoM on the authors' sinusoid",
         },
+        stiffness={
+            "type": _stiffness,
+            "help": "the joint stiffness to hold the reference with, N·m/rad: one "
+            "value, or one per torque-controlled joint comma-separated (e.g. 1 or "
+            "1,2,2,0.5,0.5,0.5); torque_control.controller.stiffness, instead of K6",
+        },
         out=True,
     ).set_defaults(scenario=None)
+
+
+def _stiffness(text: str) -> list[float]:
+    """--stiffness: comma-separated numbers (N·m/rad; checked by the config)."""
+    try:
+        return [float(value) for value in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected numbers in N·m/rad, comma-separated, got '{text}'"
+        ) from None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -41,6 +57,8 @@ def run(args: argparse.Namespace) -> int:
     if args.robot:
         config.robot = args.robot
     options.set_given(config, args, "duration", "motion")
+    if args.stiffness is not None:
+        config.torque_control.controller.stiffness = args.stiffness
     if bool(args.lcm) == bool(args.port):
         raise ValueError("give the robot's link: --lcm URL or --port DEV (one of them)")
     if args.lockstep and not args.port:
