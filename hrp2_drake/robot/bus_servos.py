@@ -197,6 +197,11 @@ class SimulatedServos:
         joint = plant.GetJointByName(self.joints[0])
         return joint.model_instance()
 
+    def joint_positions(self) -> np.ndarray:
+        """The true joint angles (rad, joint order): ground truth, for evaluation
+        only (the servos report them at the encoder's resolution: `present`)."""
+        return self._state.Eval(self._context)[self._q_rows].copy()
+
     def body_position(self, body: str) -> np.ndarray:
         """The true position of body `body`'s origin in the world (m): ground
         truth, for evaluation only (no controller reads it)."""
