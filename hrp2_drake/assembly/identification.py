@@ -11,7 +11,6 @@ station, `robot/`), which the algorithms' layer does not import; every step it
 calls is in identification/.
 """
 
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -117,20 +116,20 @@ def identify_collection(config: IdentifyConfig, out: Path) -> dict:
     logs = [collected_log(config, arrays, names)]
     result = identify_logs(robot, config, logs)
     result.logs = []
-    return report_identification(result, out, config, logs)
+    simulated = all(log.tau_true is not None for log in logs)
+    return report_identification(result, out, config, simulated)
 
 
 def report_identification(
     result: IdentificationResult,
     out: Path,
     config: IdentifyConfig,
-    logs: Sequence[RobotLog],
+    simulated: bool,
 ) -> dict:
-    """`write_report` of `result`, identified from `logs`: logs that are all
-    simulated (they carry the true torques) are compared with the emulated servo
+    """`write_report` of `result`; identified from `simulated` logs (all carry the
+    true torques), it is compared with the emulated servo
     (`config.station.servo_file`; evaluation only)."""
     robot = result.robot
-    simulated = all(log.tau_true is not None for log in logs)
     truth = (
         true_motor_model(
             robot,

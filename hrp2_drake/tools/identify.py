@@ -47,4 +47,5 @@ def run_identify(
         )
         raise ValueError(f"{where}{message}; no motor model written") from error
     result.logs = rows
-    return report_identification(result, out, config, logs)
+    simulated = all(log.tau_true is not None for log in logs)
+    return report_identification(result, out, config, simulated)
