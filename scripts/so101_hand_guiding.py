@@ -60,6 +60,9 @@ PUSH = 1.5  # s: the push starts (torque control from 0.5 s, its ramp over)
 MOVE, WINDOW = 0.01, 1.0  # 1 cm within 1 s
 BREAKAWAY = 0.001  # m: the gripper has broken away when it has moved 1 mm
 MAX_FORCE = 64.0  # N: the largest force tried
+#: The emulated servo (`StationConfig.servo_file`; --servo-file): empty, the arm's
+#: servo.yaml (BAM's STS3215); another file only to find a result's cause.
+SERVO_FILE = ""
 
 
 @dataclass
@@ -112,7 +115,7 @@ def run(hold: Hold, model: MotorModel, duration: float, force=None, torque=None)
         log["alpha"].append(controller.torque_active())
 
     ticks = int(round(duration / period)) + 1
-    station = StationConfig(robot=ROBOT, scenario="fixed_base")
+    station = StationConfig(robot=ROBOT, scenario="fixed_base", servo_file=SERVO_FILE)
     run_on_bus_in_process(station, controller, reference, ticks, on_period=on_period)
     return {name: np.array(values) for name, values in log.items()}
 
@@ -261,6 +264,18 @@ def measure_breakaway(model, directions, rates) -> tuple[dict, dict]:
     return out, runs
 
 
+def measure_offsets(model, stiffness: float, displacements) -> dict:
+    """The stiffness error's cause: at `stiffness`, per displacement (rad) of the
+    push, the torque the hold misses per joint, τ0 (1 − K / K_realized) (N·m): a
+    constant torque, not a constant ratio, is a resolution, not a gain error."""
+    out = {}
+    for displacement in displacements:
+        realized = stiffness_realized(model, stiffness, displacement)[0]
+        tau = stiffness * displacement
+        out[f"{displacement:g}"] = (tau * (1.0 - stiffness / realized)).tolist()
+    return out
+
+
 def measure_stiffness(model, stiffnesses) -> dict:
     """Per chosen stiffness: the realized one per joint, its still-changing part,
     torque control's smallest share, and the stiffness the identified K_τ predicts
@@ -323,6 +338,13 @@ def markdown(summary: dict) -> str:
     lines += markdown_table(
         ["direction", *(f"ramp {r}" for r in rates), "Coulomb"], rows
     )
+    lines += _stiffness_lines(summary)
+    return "\n".join(lines) + "\n"
+
+
+def _stiffness_lines(summary: dict) -> list[str]:
+    """hand_guiding.md's compliant-hold tables."""
+    lines = []
     lines += ["", "## Compliant hold at a chosen joint stiffness", ""]
     lines += [
         "`controller.stiffness` K on every joint; ±τ0 = ±0.1 rad × K on every "
@@ -345,7 +367,24 @@ def markdown(summary: dict) -> str:
     lines += markdown_table(
         ["K", *joints, "predicted error %", "still changing (0.5 s)"], rows
     )
-    return "\n".join(lines) + "\n"
+    if summary["offsets"]:
+        lines += [
+            "",
+            "The torque the hold misses at K = 0.5, τ0 (1 − K / K_realized) "
+            "(mN·m), per push:",
+            "",
+        ]
+        rows = [
+            [
+                f"±{float(d) * 0.5 * 1e3:g} mN·m ({d} rad)",
+                *(f"{x * 1e3:.1f}" for x in offsets),
+            ]
+            for d, offsets in summary["offsets"].items()
+        ]
+        lines += markdown_table(["push", *joints], rows)
+    if summary["servo_file"]:
+        lines += ["", f"Emulated servo: `{summary['servo_file']}` (not the arm's)."]
+    return lines
 
 
 def _force_cell(cell: dict) -> str:
@@ -370,6 +409,14 @@ def plot(summary: dict, runs: dict, path: Path) -> None:
         ylim=(0, 10 * BREAKAWAY * 1e3),
     )
     left.legend(fontsize=8)
+    first = [
+        v
+        for d in runs
+        for k, v in summary["breakaway"][d].items()
+        if k == f"{rate:g} N/s"
+    ]
+    if np.isfinite(first).any():
+        left.set_xlim(0, 4 * np.nanmax(np.where(np.isfinite(first), first, np.nan)))
     chosen = [float(k) for k in summary["stiffness"]]
     realized = np.array([r["realized"] for r in summary["stiffness"].values()])
     joints = load_robot_description(ROBOT).joints
@@ -401,6 +448,8 @@ def measure(model_path: str, quick: bool) -> tuple[dict, dict]:
         "forces": measure_forces(model, directions, 3 if quick else 7),
         "breakaway": breakaway,
         "stiffness": measure_stiffness(model, stiffnesses),
+        "offsets": {} if quick else measure_offsets(model, 0.5, (0.05, 0.1, 0.3)),
+        "servo_file": SERVO_FILE,
     }
     return summary, runs
 
@@ -410,7 +459,15 @@ def main(argv=None) -> int:
     parser.add_argument("--motor-model", required=True, help="MotorModel YAML")
     parser.add_argument("--out", default="out/so101/hand_guiding")
     parser.add_argument("--quick", action="store_true", help="2 directions, 2 values")
+    parser.add_argument(
+        "--servo-file",
+        default="",
+        help="another emulated servo (a copy of servo.yaml changed), only to find "
+        "a result's cause",
+    )
     args = parser.parse_args(argv)
+    global SERVO_FILE
+    SERVO_FILE = args.servo_file
     try:
         MotorModel.load(args.motor_model)
     except (OSError, ValueError) as error:
