@@ -170,3 +170,58 @@ def test_record_identify_control_on_the_emulated_so101(tmp_path):
     result = report(tmp_path)
     assert result["torque_share"] >= 0.99 and result["fault"] == ""
     assert not any(any(s.values()) for s in result["link"]["servos"].values())
+
+
+@pytest.mark.slow
+def test_a_push_force_over_the_bus_equals_the_in_process_push(tmp_path):
+    """`sim-servo --fault push-force:...` and `run_on_bus_in_process`'s `on_period`
+    push the arm alike: `control --port` (gravity compensation, K6 = 0) computes
+    what the fused controller computes in process with the same push from the same
+    time (what scripts/so101_hand_guiding.py measures with)."""
+    model_path = motor_model(tmp_path, ROBOT)
+    config_file = tmp_path / "k6.yaml"
+    config_file.write_text("torque_control:\n  controller:\n    k6: 0.0\n")
+    servo = SimServo(ROBOT, "--fault", "push-force:gripper_frame_link@1.2:0,0.1,0.2")
+    try:
+        done = control(
+            tmp_path,
+            ROBOT,
+            servo.port,
+            model_path,
+            2.0,
+            "--motion",
+            "hold",
+            "--config",
+            str(config_file),
+        )
+    finally:
+        servo.stop()
+    assert done.returncode == 0, done.stderr[-3000:]
+    result = report(tmp_path)
+    config, _ = load_on_robot(ControlConfig, load_robot_description(ROBOT))
+    config.robot, config.duration, config.motion = ROBOT, 2.0, "hold"
+    config.torque_control.controller.k6 = 0.0
+    reference = control_reference(config)
+    controller = FusedController(
+        torque_chain_parts(
+            config.description(),
+            reference,
+            MotorModel.load(model_path),
+            config.torque_control_at_period(),
+            period=config.period(),
+        )
+    )
+
+    def push(servos, t):
+        if t >= 1.2:
+            servos.set_external_force("gripper_frame_link", [0.0, 0.1, 0.2])
+
+    station = StationConfig(robot=ROBOT, scenario="fixed_base")
+    direct = run_on_bus_in_process(
+        station, controller, reference, result["ticks"], on_period=push
+    )
+    signals = np.load(tmp_path / "control" / "control.npz")
+    q_cmd = np.array([q for q, _ in direct])
+    np.testing.assert_allclose(signals["q_cmd"], q_cmd, rtol=0, atol=1e-9)
+    moved = signals["q_cmd"][-1] - signals["q_cmd"][int(1.2 / config.period())]
+    assert np.abs(moved).max() > 0.01  # the push moved the arm
