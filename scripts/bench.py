@@ -322,11 +322,12 @@ def _supervisor_ticker(sensors: list[str]) -> _Ticker:
     from hrp2_drake.paper import hrp2
 
     monitored = supervisor_sensors(sensors)
+    robot = load_robot_description()
     config = with_sensor_ranges(
-        SafetyConfig(start_time=0.0), monitored, load_robot_description().sensor_ranges
+        SafetyConfig(start_time=0.0), monitored, robot.sensor_ranges
     )
     supervisor = SafetySupervisor(
-        hrp2.NUM_JOINTS, monitored, config, num_sensor_stamps=7
+        hrp2.NUM_JOINTS, monitored, config, robot.sensors.period, num_sensor_stamps=7
     )
     context = supervisor.CreateDefaultContext()
     q30 = hrp2.half_sitting()

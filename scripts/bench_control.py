@@ -82,10 +82,13 @@ def bench_controller_stack(ticks: int = 2000) -> list[dict]:
     # The safety supervisor of the 30 joints with HRP-2's sensors (stamps included):
     # its update, and its q_cmd output (computed from live inputs every period).
     sensors = supervisor_sensors(list(hrp2.FT_SENSORS))
+    robot = load_robot_description()
     config = with_sensor_ranges(
-        SafetyConfig(start_time=0.0), sensors, load_robot_description().sensor_ranges
+        SafetyConfig(start_time=0.0), sensors, robot.sensor_ranges
     )
-    supervisor = SafetySupervisor(hrp2.NUM_JOINTS, sensors, config, num_sensor_stamps=7)
+    supervisor = SafetySupervisor(
+        hrp2.NUM_JOINTS, sensors, config, robot.sensors.period, num_sensor_stamps=7
+    )
     context = supervisor.CreateDefaultContext()
     rng = np.random.default_rng(0)
     q30 = hrp2.half_sitting()

@@ -416,21 +416,12 @@ def case(name, argv, files, *culprits):
             "finite",
         ),
         case(
-            "control: supervisor.period 1 ns",
-            CONTROL,
-            MOTOR
-            | {"control.yaml": "torque_control: {supervisor: {period: 1.0e-9}}\n"},
-            "control.yaml",
-            "supervisor.period",
-            "control period",
-        ),
-        case(
-            "control: supervisor.period 50 ms",
+            "control: a supervisor.period (the robot's sensors.period)",
             CONTROL,
             MOTOR | {"control.yaml": "torque_control: {supervisor: {period: 0.05}}\n"},
             "control.yaml",
-            "supervisor.period",
-            "control period",
+            "torque_control.supervisor: SafetyConfig: 'period' moved to",
+            "sensors.period",
         ),
         # Keys of a layout that changed: where each one went, on one line.
         case(

@@ -34,7 +34,6 @@ def test_every_step_at_the_control_period(period):
         parts.estimator_config,
         parts.id_config,
         parts.controller_config,
-        parts.supervisor.config,
     ):
         assert config.period == pytest.approx(period, rel=1e-12)
     # The same 80 ms window as at 1 kHz, in samples of this period.

@@ -185,7 +185,7 @@ def test_every_robot_loads_with_the_limits_its_controllers_need(name):
     robot = load_robot_description(name)
     monitored = supervisor_sensors(robot.sensor_names(), imu=robot.has_imu())
     config = with_sensor_ranges(SafetyConfig(), monitored, robot.sensor_ranges)
-    SafetySupervisorStep(len(robot.joints), monitored, config)
+    SafetySupervisorStep(len(robot.joints), monitored, config, robot.sensors.period)
     if robot.contacts.soles:
         assert not BalanceConfig().for_robot(robot.balance).unset()
 

@@ -205,7 +205,7 @@ def robot_with_control(tmp_path: Path, text: str, name: str = "control.yaml") ->
         ),
         pytest.param(
             "torque_control:\n  supervisor:\n    period: 0.002\n",
-            ["torque_control.supervisor.period: 0.01 s", "is 0.005 s"],
+            ["'period' moved to", "sensors.period"],
             id="the supervisor at another rate",
         ),
         pytest.param(

@@ -45,7 +45,7 @@ class _Harness:
             "acceleration_limit": 100.0,
         }
         config = SafetyConfig(**(defaults | config))
-        self.system = SafetySupervisor(2, {"wrench_x": "wrench"}, config)
+        self.system = SafetySupervisor(2, {"wrench_x": "wrench"}, config, PERIOD)
         self.context = self.system.CreateDefaultContext()
         self.rng = np.random.default_rng(0)
         self.inputs = dict(
@@ -204,7 +204,7 @@ def test_config_errors_name_the_field():
     with pytest.raises(ValueError, match="stale_samples"):
         SafetyConfig(stale_samples=1).validate()
     with pytest.raises(ValueError, match="unknown sensor kinds"):
-        SafetySupervisor(2, {"x": "thermometer"}, SafetyConfig())
+        SafetySupervisor(2, {"x": "thermometer"}, SafetyConfig(), PERIOD)
 
 
 def test_the_ranges_are_the_robots():
@@ -227,14 +227,14 @@ def test_the_ranges_are_the_robots():
     arm = with_sensor_ranges(SafetyConfig(), wrench, SensorRanges(force=1, torque=1))
     assert arm.acceleration_limit == 0.0
     with pytest.raises(ValueError, match="SafetyConfig.torque_limit: 0 .the robot's"):
-        SafetySupervisor(2, wrench, SafetyConfig())
+        SafetySupervisor(2, wrench, SafetyConfig(), PERIOD)
 
 
 def test_stale_stamps_are_caught_within_three_periods():
     """With the drivers' time stamps (`sensor_time`), a sensor that stops sending is
     stale once its latest sample is older than stale_time (2.5 periods)."""
     h = _Harness()
-    h.system = SafetySupervisor(2, {"wrench_x": "wrench"}, h.system.config(), 2)
+    h.system = SafetySupervisor(2, {"wrench_x": "wrench"}, h.system.config(), PERIOD, 2)
     h.context = h.system.CreateDefaultContext()
     h.fix()
     for _ in range(10):
@@ -265,10 +265,11 @@ def _step_and_system(num_stamps: int = 0):
     """A SafetySupervisorStep and the harness's SafetySupervisor, same arguments."""
     h = _Harness()
     sensors = {"imu_linear_acceleration": "acceleration", "wrench_x": "wrench"}
-    h.system = SafetySupervisor(2, sensors, h.system.config(), num_stamps)
+    h.system = SafetySupervisor(2, sensors, h.system.config(), PERIOD, num_stamps)
     h.context = h.system.CreateDefaultContext()
     h.fix(imu_linear_acceleration=np.zeros(3), wrench_x=np.zeros(6))
-    return SafetySupervisorStep(2, sensors, h.system.config(), num_stamps), h
+    step = SafetySupervisorStep(2, sensors, h.system.config(), PERIOD, num_stamps)
+    return step, h
 
 
 def test_the_step_on_plain_arrays_is_the_system():
@@ -374,7 +375,7 @@ def _scripted_run():
         acceleration_limit=100.0,
     )
     sensors = {"imu_linear_acceleration": "acceleration", "wrench_x": "wrench"}
-    step = SafetySupervisorStep(3, sensors, config, 2)
+    step = SafetySupervisorStep(3, sensors, config, PERIOD, 2)
     n, s = 3, 9
     q_torque, q_cmd = np.zeros(n), np.zeros(n)
     q_position, q_measured, values = np.zeros(n), np.zeros(n), np.zeros(s)

@@ -151,7 +151,6 @@ def resolved(
     torque = config.torque
     if not torque.joints:
         torque = replace(torque, joints=leg_joints(plant, robot.joints, soles))
-    torque = replace(torque, supervisor=replace(torque.supervisor, period=period))
     return BalanceControlConfig(
         balance=balance, torque=torque, com_offset=list(config.com_offset)
     )

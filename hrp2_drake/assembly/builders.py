@@ -44,7 +44,6 @@ from pydrake.trajectories import (
 
 from hrp2_drake.assembly.torque_control import (
     TorqueControlConfig,
-    check_control_period,
     delta_q_limit,
 )
 from hrp2_drake.chain import Chain, add_chain
@@ -653,7 +652,6 @@ def torque_chain_parts(
     differentiate with it (`config` stated for it: `at_period`). `sample_lead`: the
     station samples this long (s) before each multiple of it (`sample_lead`)."""
     config.validate()
-    check_control_period(config, period)
     joints = config.controlled_joints(robot)
     _check_controlled_joints(robot, config, joints)
     all_joints = list(robot.joints)
@@ -735,8 +733,9 @@ def build_torque_control(
             controller in `hardware.control_loop.ControlLoop`.
         reference: the joint reference of every joint of `robot`.
         motor_model: the controller's model of the actuators.
-        config: the torque control; its supervisor's period must be `control_period`.
-        control_period: the robot's sensor period (s): one supervisor update a tick.
+        config: the torque control (stated for `control_period`: `at_period`).
+        control_period: the robot's sensor period (s; on a bus, the bus's): every
+            step of the chain updates once a period.
         force_reference: the wrench reference (6 rows), needed when `config` has a
             force frame (a force task).
         fused: the whole chain as one `FusedTorqueController` (the real-time path;

@@ -26,8 +26,6 @@ from typing import Any, TypeVar
 
 from hrp2_drake.assembly.torque_control import (
     TorqueControlConfig,
-    at_period,
-    check_control_period,
     check_for_robot,
 )
 from hrp2_drake.config import load_config, parse_yaml, read_yaml_text, validate_config
@@ -60,8 +58,7 @@ def robot_torque_control(
     Raises:
         ValueError: one line naming the file and the key: a syntax error, an unknown
             key, a wrong type, a value the settings refuse, settings that do not fit
-            the robot (its joints, a `kp` per joint, the windows' signals, the
-            supervisor's period against the robot's).
+            the robot (its joints, a `kp` per joint, the windows' signals).
     """
     path = robot.control_path()
     if path is None:
@@ -77,8 +74,6 @@ def robot_torque_control(
     control = loaded.torque_control
     where = f"{source}: torque_control"
     check_for_robot(control, robot, where)
-    period = robot.sensors.period
-    check_control_period(at_period(control, period), period, where)
     return control
 
 

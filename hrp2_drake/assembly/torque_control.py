@@ -1,5 +1,5 @@
-"""The torque control's settings (paper Sec. 4) and the control period's check: what
-`build_torque_control` reads.
+"""The torque control's settings (paper Sec. 4), stated at 1 kHz (`at_period`): what
+`build_torque_control` reads with the control period.
 
 `TorqueControlConfig` holds the wiring decisions (which joints, when torque control
 starts, whether a supervisor guards it) and one settings class per concern, each with
@@ -369,24 +369,6 @@ class TorqueControlConfig:
             )
 
 
-def check_control_period(
-    config: TorqueControlConfig, period: float, where: str = ""
-) -> None:
-    """Raises ValueError unless `config.supervisor.period` is the control `period` (s):
-    the robot's sensor period (a simulated station's
-    `StationConfig.sensors_config().period`), one supervisor update per controller
-    tick. `where`: the path of `config` in the user's file (e.g.
-    "ControlConfig.torque_control")."""
-    supervisor = config.supervisor.period
-    if not math.isclose(supervisor, period, rel_tol=1e-9):
-        raise ValueError(
-            f"{where or _WHERE}.supervisor.period: {supervisor:g} s, but the control "
-            "period (the robot's sensor period, sensors.period) is "
-            f"{period:g} s: the supervisor runs once per control tick; leave "
-            f"supervisor.period out or set it to {period:g}"
-        )
-
-
 def check_for_robot(
     config: TorqueControlConfig, robot: RobotDescription, where: str
 ) -> None:
@@ -462,9 +444,9 @@ def at_period(config: TorqueControlConfig, period: float) -> TorqueControlConfig
     robot sampled every `period` s (a robot on a servo bus runs at the bus's rate):
     the same spans of time. The estimator's windows keep their length in seconds
     (rounded to whole samples, at least 5; per-signal windows of the longest one's
-    parity); the supervisor runs once per period and
-    its stale_time scales with it; counts of periods (stale_samples,
-    encoder_stale_samples) and times in seconds stay. At 1 ms, `config` itself."""
+    parity); the supervisor's stale_time scales with the period; counts of periods
+    (stale_samples, encoder_stale_samples) and times in seconds stay. At 1 ms,
+    `config` itself."""
     if math.isclose(period, REFERENCE_PERIOD, rel_tol=1e-9):
         return config
     scale = period / REFERENCE_PERIOD
@@ -480,8 +462,6 @@ def at_period(config: TorqueControlConfig, period: float) -> TorqueControlConfig
     window += (window - longest) % 2
     estimator = dataclasses.replace(config.estimator, window=window, windows=windows)
     supervisor = dataclasses.replace(
-        config.supervisor,
-        period=config.supervisor.period * scale,
-        stale_time=config.supervisor.stale_time * scale,
+        config.supervisor, stale_time=config.supervisor.stale_time * scale
     )
     return dataclasses.replace(config, estimator=estimator, supervisor=supervisor)

@@ -55,6 +55,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from pydrake.systems.framework import BasicVector, Context, DiscreteValues, InputPort
 
+from hrp2_drake.config import check_finite, moved_keys
 from hrp2_drake.description.sensors import RANGE_QUANTITIES, SensorRanges
 from hrp2_drake.kernels import kernel
 from hrp2_drake.step import Step, StepSystem
@@ -81,12 +82,13 @@ def describe_faults(bits: int) -> str:
     return ", ".join(names) or "none"
 
 
+@moved_keys(period="the robot's sensors.period (the control period)")
 @dataclass
 class SafetyConfig:
-    """Configuration of the SafetySupervisor.
+    """Configuration of the SafetySupervisor (its period is the control period, an
+    argument of `SafetySupervisorStep`).
 
     Args:
-        period: control period (s).
         start_time: torque control may start from then (s).
         ramp_time: duration of a full position <-> torque transfer (s).
         reentry_time: how long every fault must stay clear before torque control
@@ -113,7 +115,6 @@ class SafetyConfig:
             keeps faulting is not retried forever).
     """
 
-    period: float = 0.001
     start_time: float = 0.5
     ramp_time: float = 0.05
     reentry_time: float = 0.2
@@ -132,7 +133,6 @@ class SafetyConfig:
     def validate(self) -> None:
         where = "SafetyConfig"
         positive = (
-            "period",
             "ramp_time",
             "encoder_motion",
             "encoder_jump_speed",
@@ -490,6 +490,7 @@ class SafetySupervisorStep(Step):
             force), "acceleration" (3) or "angular_velocity" (3)); `step` reads
             them as one flat array, concatenated in this order.
         config: the SafetyConfig.
+        period: the control period (s): one `step` per period.
         num_sensor_stamps: the size of the `sensor_time` array (the time of each
             sensor's latest sample, s) when one is given.
 
@@ -508,10 +509,12 @@ class SafetySupervisorStep(Step):
         num_joints: int,
         sensors: dict[str, str],
         config: SafetyConfig,
+        period: float,
         num_sensor_stamps: int = 0,
     ):
         super().__init__()
         config.validate()
+        check_finite(period, "SafetySupervisor: period (s)", 0.0)
         unknown = {k for k in sensors.values() if k not in SENSOR_KINDS}
         if unknown:
             raise ValueError(
@@ -540,14 +543,14 @@ class SafetySupervisorStep(Step):
         # The kernel's constants, in the rows _C_* name (the products and quotients as
         # the numpy code formed them).
         constants = np.zeros(_C_LIMITS + sensor_size)
-        constants[_C_PERIOD] = config.period
-        constants[_C_RAMP] = config.period / config.ramp_time
+        constants[_C_PERIOD] = period
+        constants[_C_RAMP] = period / config.ramp_time
         constants[_C_START] = config.start_time
         constants[_C_REENTRY] = config.reentry_time
         constants[_C_MAX_REENTRIES] = config.max_reentries
         constants[_C_STALE_SAMPLES] = config.stale_samples
         constants[_C_STALE_COUNT] = config.stale_samples - 1.0
-        constants[_C_JUMP] = config.encoder_jump_speed * config.period
+        constants[_C_JUMP] = config.encoder_jump_speed * period
         constants[_C_ENCODER_STALE] = float(config.encoder_stale_samples)
         constants[_C_ENCODER_MOTION] = config.encoder_motion
         constants[_C_STALE_TIME] = config.stale_time
@@ -719,6 +722,7 @@ class SafetySupervisor(StepSystem):
         num_joints: int,
         sensors: dict[str, str],
         config: SafetyConfig,
+        period: float,
         num_sensor_stamps: int = 0,
         lead: float = 0.0,
     ):
@@ -726,7 +730,9 @@ class SafetySupervisor(StepSystem):
         long (s) before each multiple of the period (`StepSystem`: the commits follow
         the sampler)."""
         super().__init__()
-        step = SafetySupervisorStep(num_joints, sensors, config, num_sensor_stamps)
+        step = SafetySupervisorStep(
+            num_joints, sensors, config, period, num_sensor_stamps
+        )
         n = num_joints
         self._q_torque = self.DeclareVectorInputPort("q_torque", n)
         self._q_position = self.DeclareVectorInputPort("q_position", n)
@@ -746,7 +752,7 @@ class SafetySupervisor(StepSystem):
         )
         self._declare_step_state(step)
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
-        self._declare_commit(config.period, lead)
+        self._declare_commit(period, lead)
         self.DeclareVectorOutputPort(
             "q_cmd",
             n,

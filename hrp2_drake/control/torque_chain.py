@@ -443,6 +443,7 @@ def _supervisor_row(parts: TorqueChainParts, merger: Source) -> Row:
     monitored sensors, the controller's fallback (with balance, plus the QP's fault
     code) and the sensors' stamps; its q_cmd is the chain's command."""
     supervisor, lead, N = parts.supervisor, parts.sample_lead, len(parts.all_joints)
+    period = parts.period
     fallback: Source = whole("torque/fallback_active")
     if parts.balance is not None:
         fallback = Sum(("torque/fallback_active", "balance/fault"), name="fallback")
@@ -463,12 +464,13 @@ def _supervisor_row(parts: TorqueChainParts, merger: Source) -> Row:
         name="supervisor",
         system_name="safety_supervisor",
         make_step=lambda: SafetySupervisorStep(
-            N, supervisor.monitored, supervisor.config, supervisor.num_stamps
+            N, supervisor.monitored, supervisor.config, period, supervisor.num_stamps
         ),
         make_system=lambda: SafetySupervisor(
             N,
             supervisor.monitored,
             supervisor.config,
+            period,
             num_sensor_stamps=supervisor.num_stamps,
             lead=lead,
         ),

@@ -38,7 +38,6 @@ from hrp2_drake.assembly.balance import (
 )
 from hrp2_drake.assembly.builders import (
     JointReference,
-    check_control_period,
     torque_chain_parts,
 )
 from hrp2_drake.assembly.robot_control import TorqueControlSources
@@ -157,16 +156,13 @@ class ControlConfig:
         return at_period(self.torque_control, self.period())
 
     def validate(self) -> None:
-        """Raises ValueError naming the bad field: the robot, the controller (its gains,
-        its supervisor's period against the robot's), the motion against the joints'
-        limits, the loop's timing."""
+        """Raises ValueError naming the bad field: the robot, the controller (its gains
+        against the robot's joints), the motion against the joints' limits, the loop's
+        timing."""
         robot = self.description()
         self.torque_control.validate()
         where = "ControlConfig"
         check_for_robot(self.torque_control, robot, f"{where}.torque_control")
-        check_control_period(
-            self.torque_control_at_period(), self.period(), f"{where}.torque_control"
-        )
         if self.motion not in MOTIONS:
             raise ValueError(
                 f"{where}.motion: '{self.motion}', expected one of {', '.join(MOTIONS)}"
@@ -189,18 +185,12 @@ class ControlConfig:
         self.loop.validate(self.period(), f"{where}.loop")
 
     def _validate_balance(self, robot: RobotDescription, where: str) -> None:
-        """`motion: balance`: a floating robot with soles, the balance controller's
-        Δq chain at the robot's period, torque control before the CoM motion and
-        the motion before the run's end."""
+        """`motion: balance`: a floating robot with soles, torque control before the
+        CoM motion and the motion before the run's end."""
         try:
             robot_model(robot)
         except ValueError as error:
             raise ValueError(f"{where}.motion: {error}") from None
-        check_control_period(
-            at_period(self.balance.torque, self.period()),
-            self.period(),
-            f"{where}.balance.torque",
-        )
         start = self.balance.torque.start_time
         if not start <= self.settle < self.duration:
             raise ValueError(

@@ -45,7 +45,6 @@ from hrp2_drake.assembly.builders import (
     JointReference,
     build_position_control,
     build_torque_control,
-    check_control_period,
 )
 from hrp2_drake.assembly.robot_control import TorqueControlSources
 from hrp2_drake.assembly.sinusoid import check_sinusoid, sinusoid_reference
@@ -169,7 +168,6 @@ class TrackConfig:
         )
         control = f"{where}.torque_control"
         check_for_robot(self.torque_control, robot, control)
-        check_control_period(self.torque_control_at_period(), self.period(), control)
         if self.force_amplitude > self.press:
             raise ValueError(
                 f"{where}.force_amplitude: {self.force_amplitude:g} N around press "
