@@ -265,15 +265,17 @@ def _control_tickers() -> dict[str, _Ticker]:
         DeltaQTorqueController,
         TorqueControllerConfig,
     )
+    from hrp2_drake.description import load_robot_description
     from hrp2_drake.paper import hrp2
 
     joints = list(hrp2.RIGHT_LEG)
     n = len(joints)
     leg = [list(hrp2.JOINT_NAMES).index(j) for j in joints]
     q = hrp2.half_sitting()[leg]
+    period = load_robot_description().sensors.period
     inverse_dynamics = InverseDynamicsController(
         make_fixed_base_plant(hrp2.add_hrp2, hrp2.BASE_BODY),
-        InverseDynamicsConfig(joints=joints, ks=[3000.0], kd=[50.0]),
+        InverseDynamicsConfig(joints=joints, ks=[3000.0], kd=[50.0], period=period),
     )
     context = inverse_dynamics.CreateDefaultContext()
     id_inputs = {
@@ -288,7 +290,8 @@ def _control_tickers() -> dict[str, _Ticker]:
     systems = {"inverse dynamics (right leg)": _Ticker(inverse_dynamics, context)}
 
     torque = DeltaQTorqueController(
-        hrp2.true_motor_model(joints), TorqueControllerConfig(joints=joints)
+        hrp2.true_motor_model(joints),
+        TorqueControllerConfig(joints=joints, period=period),
     )
     context = torque.CreateDefaultContext()
     terms = inverse_dynamics.compute(*id_inputs.values())

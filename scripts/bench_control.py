@@ -51,9 +51,11 @@ def bench_controller_stack(ticks: int = 2000) -> list[dict]:
     joints = list(hrp2.RIGHT_LEG)
     n = len(joints)
     q = hrp2.half_sitting()[:n]
+    robot = load_robot_description()
+    period = robot.sensors.period
     inverse_dynamics = InverseDynamicsController(
         make_fixed_base_plant(hrp2.add_hrp2, hrp2.BASE_BODY),
-        InverseDynamicsConfig(joints=joints, ks=[3000.0], kd=[50.0]),
+        InverseDynamicsConfig(joints=joints, ks=[3000.0], kd=[50.0], period=period),
     )
     context = inverse_dynamics.CreateDefaultContext()
     for name, value in (
@@ -67,7 +69,8 @@ def bench_controller_stack(ticks: int = 2000) -> list[dict]:
     id_us = _us_per_update(inverse_dynamics, context, ticks)
 
     torque = DeltaQTorqueController(
-        hrp2.true_motor_model(joints), TorqueControllerConfig(joints=joints)
+        hrp2.true_motor_model(joints),
+        TorqueControllerConfig(joints=joints, period=period),
     )
     context = torque.CreateDefaultContext()
     for name, value in (
@@ -82,12 +85,11 @@ def bench_controller_stack(ticks: int = 2000) -> list[dict]:
     # The safety supervisor of the 30 joints with HRP-2's sensors (stamps included):
     # its update, and its q_cmd output (computed from live inputs every period).
     sensors = supervisor_sensors(list(hrp2.FT_SENSORS))
-    robot = load_robot_description()
     config = with_sensor_ranges(
         SafetyConfig(start_time=0.0), sensors, robot.sensor_ranges
     )
     supervisor = SafetySupervisor(
-        hrp2.NUM_JOINTS, sensors, config, robot.sensors.period, num_sensor_stamps=7
+        hrp2.NUM_JOINTS, sensors, config, period, num_sensor_stamps=7
     )
     context = supervisor.CreateDefaultContext()
     rng = np.random.default_rng(0)

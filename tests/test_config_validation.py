@@ -54,13 +54,30 @@ VALID = {
     "RecordConfig": lambda: RecordConfig(robot="xl330_pendulum"),
 }
 
+#: The steps' configs that the builders fill with the control period: it has no
+#: default, so they are made with one (s).
+WITH_PERIOD = {
+    "DelayPredictorConfig",
+    "DisturbanceObserverConfig",
+    "InverseDynamicsConfig",
+    "TorqueControllerConfig",
+}
+PERIOD = 0.001
+
+
+def _made(schema: type):
+    """`schema`'s default instance (`VALID`'s, or with the control period)."""
+    if schema.__name__ in VALID:
+        return VALID[schema.__name__]()
+    return schema(period=PERIOD) if schema.__name__ in WITH_PERIOD else schema()
+
 
 def _composite_defaults():
     """(class, default instance) of each config whose defaults nest validated
     configs."""
     out = []
     for schema in _config_classes():
-        config = VALID.get(schema.__name__, schema)()
+        config = _made(schema)
         if _callable_without_arguments(config.validate) and _validated_below(config):
             out.append(pytest.param(schema, config, id=schema.__name__))
     return out
@@ -112,7 +129,7 @@ def _defaults(valid: bool):
     argument) whose defaults are valid, or refused (`INVALID_DEFAULTS`)."""
     out = []
     for schema in _config_classes():
-        config = VALID.get(schema.__name__, schema)()
+        config = _made(schema)
         if _callable_without_arguments(config.validate) and valid != (
             schema.__name__ in INVALID_DEFAULTS
         ):

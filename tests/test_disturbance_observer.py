@@ -56,7 +56,9 @@ def _run(disturbance, config: DisturbanceObserverConfig, steps: int = 800, nan_a
 
 def test_a_step_disturbance_is_a_first_order_response():
     bandwidth = 20.0
-    config = DisturbanceObserverConfig(JOINTS, bandwidth=bandwidth, delay=DELAY)
+    config = DisturbanceObserverConfig(
+        JOINTS, bandwidth=bandwidth, delay=DELAY, period=PERIOD
+    )
     step = 0.3
     estimate, _ = _run(lambda t: np.array([5.0, -2.0]) * (t >= step), config)
     alpha = 1 - math.exp(-bandwidth * PERIOD)
@@ -72,18 +74,22 @@ def test_a_step_disturbance_is_a_first_order_response():
 
 
 def test_no_disturbance_reads_zero_only_with_the_right_delay():
-    config = DisturbanceObserverConfig(JOINTS, bandwidth=20.0, delay=DELAY)
+    config = DisturbanceObserverConfig(
+        JOINTS, bandwidth=20.0, delay=DELAY, period=PERIOD
+    )
     estimate, _ = _run(lambda t: np.zeros(2), config)
     assert np.abs(estimate).max() < 1e-9
     # Δq taken 10 ms too fresh: the model's torque no longer matches τ̂.
-    wrong = DisturbanceObserverConfig(JOINTS, bandwidth=20.0, delay=DELAY - 0.010)
+    wrong = DisturbanceObserverConfig(
+        JOINTS, bandwidth=20.0, delay=DELAY - 0.010, period=PERIOD
+    )
     estimate, _ = _run(lambda t: np.zeros(2), wrong)
     assert np.abs(estimate[200:]).max() > 0.5  # measured 1.9 N·m
 
 
 def test_nan_input_holds_the_estimate_and_limit_clips():
     config = DisturbanceObserverConfig(
-        JOINTS, bandwidth=50.0, delay=DELAY, limit=[3.0, 10.0]
+        JOINTS, bandwidth=50.0, delay=DELAY, limit=[3.0, 10.0], period=PERIOD
     )
     estimate, _ = _run(
         lambda t: np.array([5.0, -2.0]), config, steps=400, nan_at=range(300, 320)
@@ -105,11 +111,13 @@ def test_nan_input_holds_the_estimate_and_limit_clips():
     ],
 )
 def test_bad_config(changes, message):
-    config = DisturbanceObserverConfig(**{"joints": JOINTS, **changes})
+    config = DisturbanceObserverConfig(
+        **{"joints": JOINTS, "period": PERIOD, **changes}
+    )
     with pytest.raises(ValueError, match=message):
         DisturbanceObserver(MODEL, config)
     with pytest.raises(KeyError, match="ankle"):
-        DisturbanceObserver(MODEL, DisturbanceObserverConfig(["ankle"]))
+        DisturbanceObserver(MODEL, DisturbanceObserverConfig(["ankle"], period=PERIOD))
 
 
 def test_the_step_on_plain_arrays_is_the_system():
@@ -117,7 +125,7 @@ def test_the_step_on_plain_arrays_is_the_system():
     bit (a NaN τ̂ included), and raw_disturbance into a buffer equals the new-array
     form."""
     config = DisturbanceObserverConfig(
-        JOINTS, bandwidth=50.0, delay=DELAY, limit=[3.0, 10.0]
+        JOINTS, bandwidth=50.0, delay=DELAY, limit=[3.0, 10.0], period=PERIOD
     )
     disturbance = lambda t: np.array([5.0, -2.0]) * (t >= 0.1)  # noqa: E731
     nan_at = range(150, 160)
@@ -169,7 +177,7 @@ def test_kernel_compiled_equals_interpreted(delay):
     the same periods (K_c sign(q̂̇) on the knee, the clip, bad input, with and
     without the Δq delay): the same states and raw d bit for bit."""
     config = DisturbanceObserverConfig(
-        JOINTS, bandwidth=50.0, delay=delay, limit=[3.0, 10.0]
+        JOINTS, bandwidth=50.0, delay=delay, limit=[3.0, 10.0], period=PERIOD
     )
     compiled = _kernel_run(config)
     with kernels.interpreted():
@@ -185,7 +193,9 @@ def test_warm_up_then_frozen():
     """warm_up compiles the kernels for a tick's arrays without touching the state;
     frozen, a real tick on a step bound into a larger state (as in the fused
     controller) runs, and arrays of another type raise instead of compiling."""
-    config = DisturbanceObserverConfig(JOINTS, bandwidth=50.0, delay=DELAY)
+    config = DisturbanceObserverConfig(
+        JOINTS, bandwidth=50.0, delay=DELAY, period=PERIOD
+    )
     step = DisturbanceObserverStep(MODEL, config)
     buffer = np.zeros(step.state_size + 5)
     step.bind(buffer[2 : 2 + step.state_size])

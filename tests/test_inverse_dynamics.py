@@ -34,6 +34,7 @@ FOOT = hrp2.FT_SENSOR_BODIES["right_foot"]  # RLEG_FOOT: its frame is the F/T fr
 KS = np.array([3000.0, 2500.0, 2000.0, 1500.0, 1000.0, 800.0])
 KD = np.array([30.0, 25.0, 20.0, 15.0, 10.0, 8.0])
 KF = np.array([0.5, 0.6, 0.7, 0.8, 0.9, 1.0])
+PERIOD = 0.001  # s, the control period
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +52,12 @@ def floating_plant() -> MultibodyPlant:
 
 def _config(**changes) -> InverseDynamicsConfig:
     values = dict(
-        joints=LEG, ks=KS.tolist(), kd=KD.tolist(), force_frame=FOOT, kf=KF.tolist()
+        joints=LEG,
+        ks=KS.tolist(),
+        kd=KD.tolist(),
+        force_frame=FOOT,
+        kf=KF.tolist(),
+        period=PERIOD,
     )
     values.update(changes)
     return InverseDynamicsConfig(**values)
@@ -328,16 +334,27 @@ def test_outputs_are_this_ticks(fixed_plant):
 
 
 def test_config_from_yaml():
+    # The period is the code's (the control period), never the file's.
+    defaults = InverseDynamicsConfig(period=PERIOD)
     config = load_config(
         InverseDynamicsConfig,
         data=f"joints: {LEG}\nks: [1000.0]\nkd: [1, 2, 3, 4, 5, 6]\n"
         f"force_frame: {FOOT}\nkf: [1.0]\n",
+        defaults=defaults,
     )
     assert config.kd == [1, 2, 3, 4, 5, 6] and config.ks == [1000.0]
     with pytest.raises(ValueError, match="unknown key"):
-        load_config(InverseDynamicsConfig, data=f"joints: {LEG}\nkss: [1.0]\n")
+        load_config(
+            InverseDynamicsConfig,
+            data=f"joints: {LEG}\nkss: [1.0]\n",
+            defaults=defaults,
+        )
     with pytest.raises(ValueError, match="kd"):
-        load_config(InverseDynamicsConfig, data=f"joints: {LEG}\nkd: [1.0, 2.0]\n")
+        load_config(
+            InverseDynamicsConfig,
+            data=f"joints: {LEG}\nkd: [1.0, 2.0]\n",
+            defaults=defaults,
+        )
 
 
 def test_bad_inputs(fixed_plant, floating_plant):

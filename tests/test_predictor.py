@@ -120,7 +120,7 @@ def _config(delay, latency, **changes):
         delay=delay,
         inertia=INERTIA.tolist(),
         command_latency=latency,
-        **changes,
+        **{"period": PERIOD, **changes},
     )
 
 
@@ -288,16 +288,23 @@ def test_in_a_loop_with_a_feedthrough_controller():
 
 
 def test_config_loads_from_yaml():
+    # The period is the code's (the control period), never the file's.
+    defaults = DelayPredictorConfig(period=PERIOD)
     config = yaml_load_typed(
         schema=DelayPredictorConfig,
         data="joints: [hip, knee, ankle]\ninertia: [1.5, 0.8, 0.3]\nwrench_size: 12\n",
+        defaults=defaults,
     )
     config.validate()
     # The default delay: the torque chain's loop_delay at N = 80, 1 kHz (the
     # estimation delay, 39.5 ms, plus the one tick of the loop).
     assert config.delay == 0.0405 and config.command_latency == 0.001
     with pytest.raises(RuntimeError, match="horizon"):
-        yaml_load_typed(schema=DelayPredictorConfig, data="joints: [hip]\nhorizon: 1\n")
+        yaml_load_typed(
+            schema=DelayPredictorConfig,
+            data="joints: [hip]\nhorizon: 1\n",
+            defaults=defaults,
+        )
 
 
 @pytest.mark.parametrize(
@@ -318,7 +325,7 @@ def test_config_loads_from_yaml():
     ],
 )
 def test_bad_config(changes, message):
-    fields = dict(joints=JOINTS, inertia=INERTIA.tolist())
+    fields = dict(joints=JOINTS, inertia=INERTIA.tolist(), period=PERIOD)
     config = DelayPredictorConfig(**{**fields, **changes})
     with pytest.raises(ValueError, match=message) as error:
         DelayPredictor(MODEL, config)
@@ -327,7 +334,10 @@ def test_bad_config(changes, message):
 
 def test_bad_model():
     with pytest.raises(KeyError, match="DelayPredictor.*toe"):
-        DelayPredictor(MODEL, DelayPredictorConfig(["hip", "toe"], inertia=[1.0, 1.0]))
+        DelayPredictor(
+            MODEL,
+            DelayPredictorConfig(["hip", "toe"], inertia=[1.0, 1.0], period=PERIOD),
+        )
     bad = MotorModel(JOINTS, [2e-4, 0.0, 1e-4], K_V)
     with pytest.raises(ValueError, match=r"k_tau must be > 0 for joints \['knee'\]"):
         DelayPredictor(bad, _config(0.0415, 0.001))

@@ -76,7 +76,7 @@ def fixed_plant():
 
 
 def _config(**changes) -> TorqueControllerConfig:
-    return TorqueControllerConfig(**dict(dict(joints=LEG), **changes))
+    return TorqueControllerConfig(**dict(dict(joints=LEG, period=PERIOD), **changes))
 
 
 def _inputs(seed: int) -> dict:
@@ -373,7 +373,12 @@ def test_composed_controller_is_eqs_13_14(motor, fixed_plant):
     inverse_dynamics = InverseDynamicsController(
         fixed_plant,
         InverseDynamicsConfig(
-            joints=LEG, ks=ks.tolist(), kd=kd.tolist(), force_frame=FOOT, kf=kf.tolist()
+            joints=LEG,
+            ks=ks.tolist(),
+            kd=kd.tolist(),
+            force_frame=FOOT,
+            kf=kf.tolist(),
+            period=PERIOD,
         ),
         nominal,
     )
@@ -902,15 +907,22 @@ def test_bad_config_and_inputs(motor):
 
 
 def test_config_from_yaml(motor):
+    # The period is the code's (the control period), never the file's.
+    defaults = TorqueControllerConfig(period=PERIOD)
     config = load_config(
         TorqueControllerConfig,
         data=f"joints: {LEG}\nkp: [2.0]\n"
         "delta_q_limit: [0.1, 0.1, 0.1, 0.1, 0.1, 0.05]\nintegral_limit: [.inf]\n",
+        defaults=defaults,
     )
     controller = DeltaQTorqueController(motor, config)
     assert controller.config().delta_q_limit[5] == 0.05
     with pytest.raises(ValueError, match="tau_limit"):
-        load_config(TorqueControllerConfig, data=f"joints: {LEG}\ntau_limit: [1, 2]\n")
+        load_config(
+            TorqueControllerConfig,
+            data=f"joints: {LEG}\ntau_limit: [1, 2]\n",
+            defaults=defaults,
+        )
 
 
 # --------------------------------------------------------------------- wiring
@@ -996,14 +1008,16 @@ def _track_sinusoid(torque_control: bool, duration: float = 0.8) -> np.ndarray:
         truth = effective_motor_parameters(load_servo_params(), LEG)
         motor = MotorModel(LEG, truth["k_tau"], truth["k_v"], truth["k_c"])
         probe = InverseDynamicsController(
-            plant, InverseDynamicsConfig(joints=LEG), nominal
+            plant, InverseDynamicsConfig(joints=LEG, period=PERIOD), nominal
         )
         inertia = np.diag(probe.joint_space_model(q0[:6]).mass_matrix)
         ks, kd = inverse_dynamics_gains_for_k6(motor.k_tau, 1.0, inertia, kp=0.5)
         inverse_dynamics = builder.AddSystem(
             InverseDynamicsController(
                 plant,
-                InverseDynamicsConfig(joints=LEG, ks=ks.tolist(), kd=kd.tolist()),
+                InverseDynamicsConfig(
+                    joints=LEG, ks=ks.tolist(), kd=kd.tolist(), period=PERIOD
+                ),
                 nominal,
             )
         )

@@ -52,14 +52,14 @@ class DisturbanceObserverConfig:
             by it (rounded to whole periods) to meet them.
         limit: |d̂| is clipped to this (N·m), one value for every joint or one per
             joint; .inf: no clip.
-        period: the update period (s).
+        period: the control period (s; a keyword, no default).
     """
 
     joints: list[str] = field(default_factory=list)
     bandwidth: float = 10.0
     delay: float = 0.0405
     limit: list[float] = field(default_factory=lambda: [math.inf])
-    period: float = 0.001
+    period: float = field(kw_only=True)
 
     def validate(self) -> None:
         """Raises ValueError naming the bad field."""

@@ -133,7 +133,7 @@ class InverseDynamicsConfig:
             base (see `make_fixed_base_plant`). True: the model has a floating base
             whose orientation and angular velocity are inputs; the base's
             acceleration is taken as zero (see the class docstring).
-        period: the update period (s).
+        period: the control period (s; a keyword, no default).
     """
 
     joints: list[str] = field(default_factory=list)
@@ -142,7 +142,7 @@ class InverseDynamicsConfig:
     force_frame: str = ""
     kf: list[float] = field(default_factory=lambda: [0.0])
     floating_base: bool = False
-    period: float = 0.001
+    period: float = field(kw_only=True)
 
     def validate(self) -> None:
         """Raises ValueError naming the bad field (yaml_load_typed does not call it)."""

@@ -122,7 +122,7 @@ class DelayPredictorConfig:
             joint or one per joint; .inf: no bound.
         max_torque_correction: bound on |τ_pred − τ̂| (N·m), one value or one per
             joint; .inf: no bound.
-        period: the update period (s), the controller's.
+        period: the control period (s; a keyword, no default), the controller's.
     """
 
     joints: list[str] = field(default_factory=list)
@@ -132,7 +132,7 @@ class DelayPredictorConfig:
     wrench_size: int = 0
     max_velocity_correction: list[float] = field(default_factory=lambda: [math.inf])
     max_torque_correction: list[float] = field(default_factory=lambda: [math.inf])
-    period: float = 0.001
+    period: float = field(kw_only=True)
 
     def validate(self) -> None:
         """Raises ValueError naming the bad field (yaml_load_typed does not call it)."""

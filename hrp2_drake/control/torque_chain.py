@@ -151,7 +151,7 @@ class TorqueChainParts:
         position_source: "encoders" or "estimate" (q of eq. 12).
         feedback_velocity, friction_velocity: "estimate" or "reference".
         force_sensor: the F/T sensor whose f̂ feeds the force task ("" = none).
-        period: the control period (s).
+        period: the control period (s; a keyword, no default).
         balance: the balance front end, or None: the inverse dynamics (id_plant,
             id_config) gives τ_d. With it, the QP's τ* of `joints` does, and
             id_plant, id_config, position_source, feedback_velocity and
@@ -176,7 +176,7 @@ class TorqueChainParts:
     feedback_velocity: str = "reference"
     friction_velocity: str = "reference"
     force_sensor: str = ""
-    period: float = field(default=0.001)
+    period: float = field(kw_only=True)
     balance: BalanceParts | None = None
     sample_lead: float = 0.0
 

@@ -102,7 +102,7 @@ class TorqueControllerConfig:
         start_time: torque control starts at this time (s); before, the controller
             holds the position (see the class docstring), e.g. while the estimator's
             filters fill their window.
-        period: the update period (s).
+        period: the control period (s; a keyword, no default).
         latch_fallback: the fallback latches until `reset_fallback` (default, the
             controller alone); False: it lasts while its reason does, for a
             SafetySupervisor that decides when torque control resumes and ramps.
@@ -121,7 +121,7 @@ class TorqueControllerConfig:
     coulomb_compensation: bool = False
     coulomb_velocity: float = 0.05
     start_time: float = 0.0
-    period: float = 0.001
+    period: float = field(kw_only=True)
     latch_fallback: bool = True
     disturbance_compensation: bool = False
 
