@@ -423,9 +423,7 @@ def balance_controller(solver: str, duration: float, robot: str = "hrp2"):
     t = np.arange(int(round(duration / period)) + 1) * period
     com = sinusoid_com(ik.com(standing), np.maximum(t - CLOSED_LOOP_START, 0.0))
     com[t < CLOSED_LOOP_START, 3:] = 0.0
-    config = resolved(
-        robot, BalanceControlConfig(balance=BalanceConfig(solver=solver)), period
-    )
+    config = resolved(robot, BalanceControlConfig(balance=BalanceConfig(solver=solver)))
     motor_model = true_motor_model(robot, leg_joints(plant, robot.joints, soles))
     parts = balance_chain_parts(
         robot, reference, standing, motor_model, config, period=period

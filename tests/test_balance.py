@@ -30,6 +30,7 @@ from hrp2_drake.description.contacts import (
 from hrp2_drake.multibody import joint_indexing
 from hrp2_drake.robot.station import standing_positions
 
+PERIOD = 0.001  # s, the control period
 TOLERANCE = 1e-6  # the solvers' (daqp's; OSQP's eps 1e-9 on forces of hundreds of N)
 
 
@@ -186,7 +187,7 @@ def test_the_com_task_tracks_a_step_in_closed_loop(robot):
     model = robot.make_plant()
     controller = builder.AddSystem(
         WholeBodyBalanceController(
-            model, _config(robot, joints=robot.joints), robot.contacts
+            model, _config(robot, joints=robot.joints), robot.contacts, PERIOD
         )
     )
     indexing = joint_indexing(plant, robot.joints)
@@ -257,7 +258,7 @@ def test_the_shell_outputs_the_steps_numbers(robot, standing, step):
     plant.SetPositionsAndVelocities(context, x)
     ref = np.r_[plant.CalcCenterOfMassPositionInWorld(context) + [0, 0.01, 0], [0] * 6]
     system = WholeBodyBalanceController(
-        plant, _config(robot, joints=robot.joints), robot.contacts
+        plant, _config(robot, joints=robot.joints), robot.contacts, PERIOD
     )
     system_context = system.CreateDefaultContext()
     system.GetInputPort("state").FixValue(system_context, x)

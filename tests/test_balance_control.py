@@ -112,7 +112,7 @@ def test_a_qp_fault_is_an_event_and_keeps_position_control():
     )
     robot, standing, reference, com_reference, motor_model, config = _setup(balance)
     period = STANDING.sensors_config().period
-    config = resolved(robot, config, period)
+    config = resolved(robot, config)
     controller = FusedController(
         balance_chain_parts(
             robot, reference, standing, motor_model, config, period=period

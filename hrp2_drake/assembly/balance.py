@@ -74,10 +74,9 @@ class BalanceControlConfig:
 
     Args:
         balance: the whole-body QP (its joints: every joint of the robot, filled
-            in by `build_balance_control` when empty; its period: the control
-            period; the settings it leaves None, the robot's: its friction, least
-            corner force and CoM gains from the description's `balance`,
-            `BalanceConfig.for_robot`).
+            in by `build_balance_control` when empty; the settings it leaves None,
+            the robot's: its friction, least corner force and CoM gains from the
+            description's `balance`, `BalanceConfig.for_robot`).
         torque: the Δq chain of the legs (its joints: the joints between the base
             and the soles, filled in when empty): estimator, controller gains,
             supervisor. Its K6 and damping ratio are unused (the QP replaces the
@@ -138,15 +137,14 @@ def robot_model(robot: RobotDescription):
 
 
 def resolved(
-    robot: RobotDescription, config: BalanceControlConfig, period: float
+    robot: RobotDescription, config: BalanceControlConfig
 ) -> BalanceControlConfig:
-    """`config` with its joints and periods filled in for `robot` at `period`."""
+    """`config` with its joints filled in for `robot`."""
     plant = robot_model(robot)
     soles = list(config.balance.soles or robot.contacts.soles)
     balance = replace(
         config.balance.for_robot(robot.balance, where=robot.source_file),
         joints=list(config.balance.joints or robot.joints),
-        period=period,
     )
     torque = config.torque
     if not torque.joints:
@@ -265,13 +263,13 @@ def build_balance_control(
         standing: the plant positions (robot.make_plant()'s order) where the soles
             stand: their poses anchor the base's estimate.
         motor_model: the controller's model of the actuators (at least the legs).
-        config: the balance control (`resolved` fills its joints and periods).
+        config: the balance control (`resolved` fills its joints).
         control_period: the robot's sensor period (s).
         fused: the whole chain, the base and the QP included, as one
             `FusedTorqueController` (the real-time path; the same signals,
             tests/test_balance_control.py) instead of its separate systems.
     """
-    config = resolved(robot, config, control_period)
+    config = resolved(robot, config)
     config.validate()
     if com_reference.rows() != 9:
         raise ValueError(

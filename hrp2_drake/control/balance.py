@@ -136,7 +136,6 @@ class BalanceConfig:
             OSQP per solve on HRP-2, `scripts/bench_balance.py` and
             `scripts/bench.py --only balance` measure both), or pydrake's own
             "osqp" or "clarabel".
-        period: the update period (s).
     """
 
     joints: list[str] = field(default_factory=list)
@@ -157,7 +156,6 @@ class BalanceConfig:
     torque_limit_scale: float = 1.0
     acceleration_limit: float = 30.0
     solver: str = "daqp"
-    period: float = 0.001
 
     def validate(self) -> None:
         """Raises ValueError naming the bad field (yaml_load_typed does not call it)."""
@@ -199,8 +197,6 @@ class BalanceConfig:
             raise ValueError(
                 f"{where}.solver: '{self.solver}', expected one of {QP_SOLVERS}"
             )
-        if not (math.isfinite(self.period) and self.period > 0):
-            raise ValueError(f"{where}.period={self.period} must be > 0 (s)")
 
     def for_robot(self, robot: BalanceDescription, where: str = "") -> "BalanceConfig":
         """A copy with the settings left None filled in from the robot's description
@@ -956,7 +952,7 @@ class WholeBodyBalanceController(StepSystem):
             world (m, m/s, m/s²).
 
     Outputs (the tick of the inputs held now, direct feedthrough, committed every
-    config.period; see `WholeBodyBalanceControllerStep`):
+    period; see `WholeBodyBalanceControllerStep`):
         tau_desired (n, N·m, config.joints order), vdot (nv), contact_forces (12
         per sole, N, each corner's force in its sole's frame), sole_wrenches (6 per
         sole, [torque; force] about the sole frame's origin, in it), com (3, m),
@@ -973,11 +969,13 @@ class WholeBodyBalanceController(StepSystem):
         plant: MultibodyPlant,
         config: BalanceConfig,
         contacts: ContactsDescription,
+        period: float,
         lead: float = 0.0,
     ):
         """
         Args:
             plant, config, contacts: as `WholeBodyBalanceControllerStep`'s.
+            period: the control period (s).
             lead: the samples arrive this long (s) before each multiple of the
                 period (`StepSystem`: the commits follow the sampler).
         """
@@ -1000,7 +998,7 @@ class WholeBodyBalanceController(StepSystem):
             "fault_count",
         ):
             self._declare_step_output(name)
-        self._declare_commit(config.period, lead)
+        self._declare_commit(period, lead)
 
     def step(self) -> WholeBodyBalanceControllerStep:
         return self._step

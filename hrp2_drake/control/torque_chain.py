@@ -327,7 +327,7 @@ def _balance_rows(parts: TorqueChainParts) -> list[Row]:
                 balance.plant, balance.config, balance.contacts
             ),
             make_system=lambda: WholeBodyBalanceController(
-                balance.plant, balance.config, balance.contacts, lead=lead
+                balance.plant, balance.config, balance.contacts, parts.period, lead=lead
             ),
             inputs=qp_inputs,
             outputs=qp_outputs,

@@ -209,11 +209,11 @@ class ControlConfig:
 
     def balance_at_period(self) -> BalanceControlConfig:
         """`balance` for the robot at its period: its Δq chain `at_period`, its
-        joints and periods filled in (`assembly.balance.resolved`)."""
+        joints filled in (`assembly.balance.resolved`)."""
         config = replace(
             self.balance, torque=at_period(self.balance.torque, self.period())
         )
-        return resolved(self.description(), config, self.period())
+        return resolved(self.description(), config)
 
 
 def control_chain_parts(

@@ -515,7 +515,7 @@ def _settle_time(t, distance, t_end, tolerance) -> float | None:
 def _estimation(robot: RobotDescription, config, logs: dict) -> dict:
     """RMS of τ̂ − τ (N·m) on the torque-controlled joints from `settle`, and each
     against GOAL_RMS_OVER_PEAK of the joint's peak |τ|."""
-    joints = resolved(robot, config.control, 0.001).torque.joints
+    joints = resolved(robot, config.control).torque.joints
     columns = [robot.joints.index(j) for j in joints]
     window = logs["t"] >= config.settle
     tau_hat = logs["tau_estimated"][window][:, columns]
@@ -662,7 +662,7 @@ def run_balance(
     figures into `out`; returns the summary."""
     config.validate()
     robot = config.station.description()
-    joints = resolved(robot, config.control, 0.001).torque.joints
+    joints = resolved(robot, config.control).torque.joints
     missing = [j for j in joints if j not in motor_model.joint_names]
     if missing:
         raise ValueError(
