@@ -251,8 +251,13 @@ def test_an_infeasible_problem_is_a_fault_without_nan(robot, standing):
     assert np.all(np.isfinite(good.state)) and good.fault_count[0] == 1
 
 
-def test_the_shell_outputs_the_steps_numbers(robot, standing, step):
+def test_the_shell_outputs_the_steps_numbers(robot, standing):
+    """The LeafSystem's first update equals a fresh step's first tick (a step
+    has a history: the last tick's forces, `force_rate_weight`)."""
     plant, x, _ = standing
+    step = WholeBodyBalanceControllerStep(
+        plant, _config(robot, joints=robot.joints), robot.contacts
+    )
     home = robot.home_positions()
     context = plant.CreateDefaultContext()
     plant.SetPositionsAndVelocities(context, x)
@@ -302,7 +307,7 @@ def test_the_robot_gives_what_the_config_leaves_unset(robot, standing):
     a step refuses a config never filled in."""
     filled = BalanceConfig().for_robot(robot.balance)
     assert (filled.friction, filled.min_normal_force) == (0.3, 10.0)
-    assert (filled.com_kp, filled.com_kd) == (100.0, 20.0)
+    assert (filled.com_kp, filled.com_kd) == (150.0, 24.5)
     assert BalanceConfig(com_kp=60.0).for_robot(robot.balance).com_kp == 60.0
     bare = BalanceDescription()
     generic = BalanceConfig(friction=0.5).for_robot(bare)
@@ -458,3 +463,32 @@ def test_daqp_solves_the_same_qp_as_osqp_and_reports_infeasibility(robot, standi
     ref = np.r_[np.zeros(3), np.zeros(6)]
     assert infeasible.step(0.0, x, home, ref) == BalanceFault.INFEASIBLE
     assert np.all(np.isfinite(infeasible.state))
+
+
+def test_the_force_rate_weight_smooths_the_forces_from_tick_to_tick(robot, standing):
+    """force_rate_weight pulls each tick's contact forces toward the last tick's
+    solution: after a step in the CoM reference, the forces move less in one tick
+    than without it (and every constraint still holds); before a first solve there
+    is no last solution, so the first tick is the same as without it."""
+    plant, x, _ = standing
+    home = robot.home_positions()
+    context = plant.CreateDefaultContext()
+    plant.SetPositionsAndVelocities(context, x)
+    still = np.r_[plant.CalcCenterOfMassPositionInWorld(context), np.zeros(6)]
+    moved = still + np.r_[0.0, 0.02, 0.0, np.zeros(6)]
+    changes = {}
+    for weight in (0.0, 1.0):
+        step = WholeBodyBalanceControllerStep(
+            plant,
+            _config(robot, joints=robot.joints, force_rate_weight=weight),
+            robot.contacts,
+        )
+        assert step.step(0.0, x, home, still) == BalanceFault.NONE
+        before = step.contact_forces.copy()
+        changes.setdefault("first", []).append(before)
+        assert step.step(0.0, x, home, moved) == BalanceFault.NONE
+        changes[weight] = np.abs(step.contact_forces - before).max()
+        normal = step.contact_forces[2::3]
+        assert normal.min() >= step.config().min_normal_force - TOLERANCE
+    np.testing.assert_allclose(*changes["first"], atol=TOLERANCE)
+    assert changes[1.0] < 0.5 * changes[0.0]

@@ -164,7 +164,7 @@ def _write(tmp_path: Path, source: str, edit) -> Path:
             "  friction: 1.5",
             r"balance\.friction: 1\.5 exceeds contacts\.friction 1\.0",
         ),
-        ("hrp2", "com_kp: 100.0", "com_kp: -3.0", r"balance\.com_kp: must be finite"),
+        ("hrp2", "com_kp: 150.0", "com_kp: -3.0", r"balance\.com_kp: must be finite"),
     ],
 )
 def test_bad_description_names_the_field(tmp_path, source, old, new, message):

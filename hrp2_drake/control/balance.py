@@ -6,6 +6,7 @@ per sole corner, each in its sole's frame: 4 corners, 12 per sole):
 
     min  w_com ‖J_com v̇ + J̇_com v − a_com*‖² + w_base ‖ω̇_B − α_B*‖²
          + w_posture ‖v̇_j − a_j*‖² + w_force ‖f‖² + w_reg ‖v̇‖²
+         + w_rate ‖(f − f_prev) / m‖²               (f_prev: the last tick's)
     s.t. M_b v̇ + h_b = J_fbᵀ f                       (the base's 6 rows of
                                                        M v̇ + h = Sᵀ τ + J_fᵀ f)
          J_s v̇ + J̇_s v = 0                            (each sole: 6 rows, no motion)
@@ -73,6 +74,9 @@ from hrp2_drake.step import Step, StepSystem
 _WHERE = "WholeBodyBalanceController"
 #: The corners of a sole, 3 force components each.
 _CORNERS = 4
+#: BalanceConfig.force_rate_weight's default (s⁴/m²), chosen by the sweep on HRP-2
+#: (docs/balance.md, "The sweep behind the defaults").
+FORCE_RATE_WEIGHT = 0.6
 
 
 class BalanceFault(IntEnum):
@@ -114,16 +118,17 @@ class BalanceConfig:
             the robot's (`balance.min_normal_force`, else 0).
         com_kp, com_kd: the CoM task's gains (1/s², 1/s); None: the robot's
             (`balance.com_kp`, `com_kd`, else 30/s² and 11/s).
-
-    The settings left None are the robot's: `for_robot` fills them from its
-    description (`description.contacts.BalanceDescription`, `GENERIC_BALANCE`)
-    before a controller is built.
         com_weight: its weight.
         base_kp, base_kd: the base orientation task's gains (1/s², 1/s).
         base_weight: its weight.
         posture_kp, posture_kd: the posture task's gains (1/s², 1/s).
         posture_weight: its weight.
         force_weight: the weight of ‖f‖² (N⁻², small: a regularisation).
+        force_rate_weight: the weight of ‖(f − f_prev) / m‖² (s⁴/m²: the forces'
+            change from the last tick's solution, per the robot's mass m, an
+            acceleration): smooths the contact forces from tick to tick, so that
+            the QP does not jump between force distributions its other tasks
+            barely tell apart (docs/balance.md, "The sweep behind the defaults").
         acceleration_weight: the weight of ‖v̇‖² (small: makes the cost strictly
             convex).
         torque_limit_scale: the torque limits are this fraction of the model's
@@ -136,6 +141,10 @@ class BalanceConfig:
             OSQP per solve on HRP-2, `scripts/bench_balance.py` and
             `scripts/bench.py --only balance` measure both), or pydrake's own
             "osqp" or "clarabel".
+
+    The settings left None are the robot's: `for_robot` fills them from its
+    description (`description.contacts.BalanceDescription`, `GENERIC_BALANCE`)
+    before a controller is built.
     """
 
     joints: list[str] = field(default_factory=list)
@@ -152,6 +161,7 @@ class BalanceConfig:
     posture_kd: float = 6.3
     posture_weight: float = 0.001
     force_weight: float = 1e-6
+    force_rate_weight: float = FORCE_RATE_WEIGHT
     acceleration_weight: float = 1e-6
     torque_limit_scale: float = 1.0
     acceleration_limit: float = 30.0
@@ -179,6 +189,7 @@ class BalanceConfig:
             "posture_kd",
             "posture_weight",
             "force_weight",
+            "force_rate_weight",
             "acceleration_weight",
             "torque_limit_scale",
             "acceleration_limit",
@@ -442,19 +453,34 @@ def make_qp_backend(qp: QpData, solver: str) -> QpBackend:
     _POST_KP,
     _POST_KD,
     _POST_W,
+    _RATE_W,  # force_rate_weight / m² (N⁻²)
     _CONSTANTS,
-) = (0, 1, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13)
+) = (0, 1, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14)
 
 
 @kernel
 def balance_assemble(
-    M, h, Jf, com, x, q_ref, com_ref, constants, table, H0, J_com, a_com, qp_arrays
+    M,
+    h,
+    Jf,
+    com,
+    x,
+    q_ref,
+    com_ref,
+    f_prev,
+    constants,
+    table,
+    H0,
+    J_com,
+    a_com,
+    qp_arrays,
 ):
     """`WholeBodyBalanceControllerStep`'s QP from Drake's terms (M, h = C v − τ_g, the
     corners' Jacobian J_f, the CoM's position) at the state x, with the references: the
     base's rows of the dynamics, the torque rows and their bounds, H and g (the module
-    docstring). `qp_arrays` is (H, g, A_eq, b_eq, A_in, l_in, u_in); the soles' contact
-    rows are the caller's. Sums in loop order (no BLAS)."""
+    docstring), with the last tick's corner forces `f_prev` (NaN before a first solve:
+    no force-rate term). `qp_arrays` is (H, g, A_eq, b_eq, A_in, l_in, u_in); the
+    soles' contact rows are the caller's. Sums in loop order (no BLAS)."""
     H, g, A_eq, b_eq, A_in, l_in, u_in = qp_arrays
     nv, n, nq = table[_NV], table[_NJ], table[_NQ]
     bq, bv, nf = table[_BASE_Q], table[_BASE_V], table[_NF]
@@ -520,6 +546,13 @@ def balance_assemble(
         q_i, v_i = x[table[jq + i]], x[nq + table[jv + i]]
         a_j = constants[_POST_KP] * (q_ref[i] - q_i) - constants[_POST_KD] * v_i
         g[table[jv + i]] -= constants[_POST_W] * a_j
+    # The forces' change from the last tick's, f_prev (none before a first solve:
+    # NaN).
+    w = constants[_RATE_W]
+    if w > 0.0 and math.isfinite(f_prev[0]):
+        for k in range(nf):
+            H[nv + k, nv + k] += w
+            g[nv + k] -= w * f_prev[k]
 
 
 @kernel
@@ -716,6 +749,7 @@ class WholeBodyBalanceControllerStep(Step):
         self._a_com = np.zeros(3)
         self._J_com = np.zeros((3, nv))
         self._zero3 = np.zeros(3)
+        self._no_forces = np.full(nf, np.nan)  # (before a first solve)
         self._world = self._plant.world_frame()
         self._corner_array = np.array(self._corners)
         self._qp_arrays = (qp.H, qp.g, qp.A_eq, qp.b_eq, qp.A_in, qp.l_in, qp.u_in)
@@ -747,6 +781,7 @@ class WholeBodyBalanceControllerStep(Step):
             config.posture_kp,
             config.posture_kd,
             config.posture_weight,
+            config.force_rate_weight / plant.CalcTotalMass(self._context) ** 2,
         ]
         assert len(constants) == _CONSTANTS
         return table.astype(np.int64), np.r_[constants, self._tau_max]
@@ -765,6 +800,7 @@ class WholeBodyBalanceControllerStep(Step):
             x,
             np.zeros(self._n),
             np.zeros(9),
+            np.zeros(self._nf),
             self._constants,
             self._table,
             self._H0,
@@ -885,6 +921,7 @@ class WholeBodyBalanceControllerStep(Step):
             self._x,
             q_ref,
             com_ref,
+            self.contact_forces if self.solved[0] else self._no_forces,
             self._constants,
             self._table,
             self._H0,
