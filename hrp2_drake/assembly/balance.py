@@ -95,14 +95,17 @@ class BalanceControlConfig:
       window, K_i = 0): the CoM sags and lags: the legs' torque errors (the
       servo's dead zone and friction at small torques, and τ̂'s own error with the
       F/T sensors' biases uncalibrated on the ground) over a soft CoM task;
-    - K_p,com 100/s², K_d,com 20/s (critically damped);
+    - K_p,com 100/s², K_d,com 20/s (critically damped; before the smoothing below);
     - a 40-sample window (20 ms less delay);
     - the Δq controller's torque integral (eq. 11's K_i = 10/s, the paper's 0):
       a smaller CoM error, but the CoP reaches a sole's edge where the sinusoid
       starts (its acceleration steps by 0.3 m/s²); an anti-windup of 0.5 N·m·s
       (5 N·m at most from the integral) and a least normal force of 10 N per
       corner (the defaults);
-    - K_p,com 60/s² with the same: a wider CoP margin for a larger CoM error.
+    - K_p,com 60/s² with the same: a wider CoP margin for a larger CoM error;
+    - the QP's forces smoothed from tick to tick (BalanceConfig.force_rate_weight,
+      issue 35): a wider CoP margin at the same CoM error, which HRP-2's CoM task
+      spends on 150/s², 24.5/s.
     """
 
     balance: BalanceConfig = field(default_factory=BalanceConfig)
