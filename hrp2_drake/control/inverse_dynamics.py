@@ -264,15 +264,35 @@ def _moved_part(
         int(b)
         for b in plant.GetBodiesKinematicallyAffectedBy([j.index() for j in controlled])
     }
-    # The joint that holds each body, breadth-first from the world.
+    # The joint that holds each moved body, breadth-first from the world.
     holder = {
         b: joint
         for b, (_, joint) in tree_joints(
             plant, plant.world_body().index(), True
         ).items()
+        if b in moved
     }
-    order = list(holder)
+    model, root = _rooted_model(plant)
+    copies = {}
+    for b in holder:
+        body = plant.get_body(BodyIndex(b))
+        copies[b] = model.AddRigidBody(
+            body.name(),
+            body.model_instance(),
+            body.CalcSpatialInertiaInBodyFrame(context),
+        )
+    copy_frame = _FrameCopies(model, context, copies, root.body_frame())
+    _copy_holding_joints(
+        model, plant, context, holder, {int(j.index()) for j in controlled}, copy_frame
+    )
+    frame_copy = copy_frame(frame) if frame is not None else None
+    model.Finalize()
+    return model, frame_copy, root
 
+
+def _rooted_model(plant: MultibodyPlant) -> tuple[MultibodyPlant, RigidBody]:
+    """An empty continuous model with `plant`'s gravity and model instances, and its
+    massless root body on a 6-dof joint to the world (`_moved_part`)."""
     model = MultibodyPlant(time_step=0.0)
     model.mutable_gravity_field().set_gravity_vector(
         plant.gravity_field().gravity_vector()
@@ -287,23 +307,21 @@ def _moved_part(
             f"{_ROOT}_joint", model.world_frame(), root.body_frame()
         )
     )
-    copies = {}
-    for b in order:
-        if b in moved:
-            body = plant.get_body(BodyIndex(b))
-            copies[b] = model.AddRigidBody(
-                body.name(),
-                body.model_instance(),
-                body.CalcSpatialInertiaInBodyFrame(context),
-            )
+    return model, root
 
-    copy_frame = _FrameCopies(model, context, copies, root.body_frame())
 
-    indices = {int(j.index()) for j in controlled}
-    for b in order:
-        if b not in moved:
-            continue
-        joint = holder[b]
+def _copy_holding_joints(
+    model: MultibodyPlant,
+    plant: MultibodyPlant,
+    context: Context,
+    holder: dict,
+    controlled: set[int],
+    copy_frame: _FrameCopies,
+) -> None:
+    """Adds to `model` the joint that holds each moved body ({body index: joint},
+    breadth-first from the world): the `controlled` joints (their indices) as
+    copies, every other one welded at its pose in `context`."""
+    for b, joint in holder.items():
         # A joint turned around (its child inboard) keeps its q and its generalized
         # force with the opposite axis; a weld takes its inverse pose.
         forward = int(joint.child_body().index()) == b
@@ -313,14 +331,11 @@ def _moved_part(
             else (joint.frame_on_child(), joint.frame_on_parent())
         )
         F, M = copy_frame(on_parent), copy_frame(on_child)
-        if int(joint.index()) not in indices:
+        if int(joint.index()) not in controlled:
             X_FM = on_child.CalcPose(context, on_parent)
             model.AddJoint(WeldJoint(joint.name(), F, M, X_FM))
             continue
         copy_joint(model, plant, context, joint, F, M, forward)
-    frame_copy = copy_frame(frame) if frame is not None else None
-    model.Finalize()
-    return model, frame_copy, root
 
 
 class InverseDynamicsTerms(NamedTuple):

@@ -260,6 +260,38 @@ class RobotDescription:
     def validate(self) -> None:
         """What can be checked without the model (the loader then checks the names
         against the model, `check_model`)."""
+        self._validate_names_and_joints()
+        self._validate_force_torque_sensors()
+        if self.initial_positions and len(self.initial_positions) != len(self.joints):
+            raise ValueError(
+                f"initial_positions: {len(self.initial_positions)} values for "
+                f"{len(self.joints)} joints"
+            )
+        self.contacts.validate()
+        self.balance.validate()
+        self.sensor_ranges.validate()
+        if (self.balance.friction or 0.0) > self.contacts.friction > 0:
+            raise ValueError(
+                f"balance.friction: {self.balance.friction} exceeds contacts.friction "
+                f"{self.contacts.friction}: the controller would count on friction "
+                "the ground does not give"
+            )
+        if not self.initial_positions and not self.trajectory_file:
+            raise ValueError(
+                "initial_positions: empty and no trajectory_file to take the home pose "
+                "from"
+            )
+        self._validate_scenarios()
+        self.sensors.validate(len(self.joints), list(self.force_torque_sensors))
+        self.logs.validate(len(self.joints))
+        self.position_loop.validate()
+        self.identification.validate()
+        self._validate_bus()
+        self._validate_published_motor_model()
+
+    def _validate_names_and_joints(self) -> None:
+        """The name, the model file, the base and its pose, the joints' lists and
+        labels, and the IMU a floating base needs."""
         if not self.name:
             raise ValueError("name: empty")
         if not self.model_file:
@@ -295,6 +327,9 @@ class RobotDescription:
                 "imu_frame: empty, but a floating-base robot needs an IMU (its base "
                 "motion is not known otherwise)"
             )
+
+    def _validate_force_torque_sensors(self) -> None:
+        """The F/T sensors' names (they name ports) and frames, and `force_sensor`."""
         for name, sensor in self.force_torque_sensors.items():
             if not (name and name.replace("_", "a").isalnum() and name.isascii()):
                 raise ValueError(
@@ -308,25 +343,9 @@ class RobotDescription:
                 f"force_sensor: '{self.force_sensor}' is not one of "
                 f"force_torque_sensors {sorted(self.force_torque_sensors)}"
             )
-        if self.initial_positions and len(self.initial_positions) != len(self.joints):
-            raise ValueError(
-                f"initial_positions: {len(self.initial_positions)} values for "
-                f"{len(self.joints)} joints"
-            )
-        self.contacts.validate()
-        self.balance.validate()
-        self.sensor_ranges.validate()
-        if (self.balance.friction or 0.0) > self.contacts.friction > 0:
-            raise ValueError(
-                f"balance.friction: {self.balance.friction} exceeds contacts.friction "
-                f"{self.contacts.friction}: the controller would count on friction "
-                "the ground does not give"
-            )
-        if not self.initial_positions and not self.trajectory_file:
-            raise ValueError(
-                "initial_positions: empty and no trajectory_file to take the home pose "
-                "from"
-            )
+
+    def _validate_scenarios(self) -> None:
+        """The scenarios' points and joints."""
         hanging = self.scenarios.hanging
         if any(len(p) != 3 for p in hanging.points):
             raise ValueError(
@@ -339,11 +358,9 @@ class RobotDescription:
                 "scenarios.block.joints: expected [hip pitch, knee, ankle pitch], "
                 f"got {block.joints}"
             )
-        self.sensors.validate(len(self.joints), list(self.force_torque_sensors))
-        self.logs.validate(len(self.joints))
-        self.position_loop.validate()
-        self.identification.validate()
-        self._validate_bus()
+
+    def _validate_published_motor_model(self) -> None:
+        """The published motor model's joints and values."""
         for joint, values in self.published_motor_model.items():
             if joint not in self.joints:
                 raise ValueError(f"published_motor_model: '{joint}' is not in joints")
