@@ -521,9 +521,6 @@ def _latency_histogram(latency_us: np.ndarray, period: float, path: Path) -> Non
 
 
 def _markdown(robot, config: ControlConfig, summary: dict) -> str:
-    joints = summary["controlled_joints"]
-    labels = robot.labels() if joints == robot.controlled_joints else joints
-    lat = summary["latency_us"]
     lines = [
         f"# Torque control of {robot.name} ({summary['link']['name']})",
         "",
@@ -544,26 +541,44 @@ def _markdown(robot, config: ControlConfig, summary: dict) -> str:
         f"**Gave up for good** (more faults than the supervisor's max_reentries): "
         f"{'yes' if summary['gave_up'] else 'no'}.",
         "",
+        *_error_lines(robot, summary),
+        *_tick_lines(config, summary),
+        *_bus_section(robot, summary),
+        *_fallback_lines(summary),
     ]
-    if summary["max_error_mrad"]:
-        lines += [
-            "Errors as the encoders see them (q_ref − q_measured, mrad), after torque "
-            "control started:",
-            "",
-            *markdown_table(
-                [None, *labels],
-                [
-                    [name, *(f"{v:.2f}" for v in summary[key])]
-                    for name, key in (
-                        ("maximum", "max_error_mrad"),
-                        ("RMS", "rms_error_mrad"),
-                    )
-                ],
-            ),
-            "",
-        ]
+    return "\n".join(lines) + "\n"
+
+
+def _error_lines(robot: RobotDescription, summary: dict) -> list[str]:
+    """The tracking errors' table (mrad), if torque control started."""
+    if not summary["max_error_mrad"]:
+        return []
+    joints = summary["controlled_joints"]
+    labels = robot.labels() if joints == robot.controlled_joints else joints
+    return [
+        "Errors as the encoders see them (q_ref − q_measured, mrad), after torque "
+        "control started:",
+        "",
+        *markdown_table(
+            [None, *labels],
+            [
+                [name, *(f"{v:.2f}" for v in summary[key])]
+                for name, key in (
+                    ("maximum", "max_error_mrad"),
+                    ("RMS", "rms_error_mrad"),
+                )
+            ],
+        ),
+        "",
+    ]
+
+
+def _tick_lines(config: ControlConfig, summary: dict) -> list[str]:
+    """The ticks' latency, overruns and refused samples, the warm-up and the
+    operating system's real-time settings."""
+    lat = summary["latency_us"]
     rt = summary.get("real_time", {})
-    lines += [
+    return [
         "## Ticks",
         "",
         f"{summary['ticks']} ticks; samples in → command out (the tick and its send): "
@@ -584,10 +599,12 @@ def _markdown(robot, config: ControlConfig, summary: dict) -> str:
         "",
         "![latency](latency.png)",
         "",
-        *_bus_section(robot, summary),
-        "## Fallbacks",
-        "",
     ]
+
+
+def _fallback_lines(summary: dict) -> list[str]:
+    """The supervisor's events (or None.) and the overruns' times."""
+    lines = ["## Fallbacks", ""]
     if summary["events"]:
         lines += markdown_table(
             ["t (s)", "what", "reason"],
@@ -606,7 +623,7 @@ def _markdown(robot, config: ControlConfig, summary: dict) -> str:
             + ", ".join(f"{x:.3f}" for x in summary["overrun_times"])
             + " s.",
         ]
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 def _balance_lines(config: ControlConfig, summary: dict) -> list[str]:

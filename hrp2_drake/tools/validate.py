@@ -284,70 +284,15 @@ def _plot(
 
 
 def _markdown(robot: RobotDescription, model: Model, summary: dict) -> str:
-    def errors(values: dict, joint: str) -> list[str]:
-        """The joint's MAE and maximum error, whole log and servo on (mrad)."""
-        return [
-            "n/a" if value is None or np.isnan(value) else f"{value:.1f}"
-            for value in (
-                values[key][joint]
-                for key in (
-                    "mae_mrad",
-                    "max_error_mrad",
-                    "mae_servo_on_mrad",
-                    "max_error_servo_on_mrad",
-                )
-            )
-        ]
-
-    if isinstance(model, ServoParams):
-        what = (
-            f"Digital twin (servo file) `{summary['motor_model']}`: the emulated servo "
-            "with its parameters at each log's gain"
-        )
-    else:
-        gain = (
-            f" (at servo gain {model.gain:g}, rescaled to each log's)"
-            if model.gain
-            else ""
-        )
-        what = (
-            f"Motor model `{summary['motor_model']}`{gain}, eq. 6 solved for the "
-            "torque, Δq clamped where the servo's output saturates"
-        )
     lines = [
         f"# Rollout validation: {robot.name}",
         "",
-        f"{what}; each log's command replayed "
+        f"{_what_rolls_out(model, summary)}; each log's command replayed "
         f"open loop from its first measured position at rest (plant step "
         f"{summary['time_step'] * 1e3:g} ms). Errors: |q_sim − q_measured| in mrad, "
         "over the whole log and over its servo-on samples (servo off, a motor model's "
         "joint is free: no friction).",
         "",
-    ]
-    rows = [
-        [
-            f"{row['log']}",
-            joint,
-            "—" if row["gain"] is None else f"{row['gain']:g}",
-            f"{row['duration_s']:.2f}",
-            f"{row['servo_on_share'] * 100:.0f}%",
-            *errors(row, joint),
-            f"{row['rollout_wall_time_s']:.2f}",
-        ]
-        for row in summary["logs"]
-        for joint in summary["joints"]
-    ]
-    rows += [  # the mean over the logs: no gain, duration, servo-on share
-        [
-            f"**mean of {len(summary['logs'])}**",
-            joint,
-            None,
-            None,
-            None,
-            *errors(summary["mean"], joint),
-            f"{summary['mean_rollout_wall_time_s']:.2f}",
-        ]
-        for joint in summary["joints"]
     ]
     header = [
         "log",
@@ -361,9 +306,71 @@ def _markdown(robot: RobotDescription, model: Model, summary: dict) -> str:
         "max servo on",
         "wall (s)",
     ]
-    lines += markdown_table(header, rows, align="ll" + "r" * 8)
+    lines += markdown_table(header, _error_rows(summary), align="ll" + "r" * 8)
     lines += [
         "",
         "Figures: " + ", ".join(f"`{row['figure']}`" for row in summary["logs"]),
     ]
     return "\n".join(lines) + "\n"
+
+
+def _what_rolls_out(model: Model, summary: dict) -> str:
+    """The model the rollouts use, in words: a digital twin or a motor model."""
+    if isinstance(model, ServoParams):
+        return (
+            f"Digital twin (servo file) `{summary['motor_model']}`: the emulated servo "
+            "with its parameters at each log's gain"
+        )
+    gain = (
+        f" (at servo gain {model.gain:g}, rescaled to each log's)" if model.gain else ""
+    )
+    return (
+        f"Motor model `{summary['motor_model']}`{gain}, eq. 6 solved for the "
+        "torque, Δq clamped where the servo's output saturates"
+    )
+
+
+def _error_rows(summary: dict) -> list[list]:
+    """The table's rows: one per log and joint, then the mean over the logs."""
+    rows = [
+        [
+            f"{row['log']}",
+            joint,
+            "—" if row["gain"] is None else f"{row['gain']:g}",
+            f"{row['duration_s']:.2f}",
+            f"{row['servo_on_share'] * 100:.0f}%",
+            *_error_cells(row, joint),
+            f"{row['rollout_wall_time_s']:.2f}",
+        ]
+        for row in summary["logs"]
+        for joint in summary["joints"]
+    ]
+    rows += [  # the mean over the logs: no gain, duration, servo-on share
+        [
+            f"**mean of {len(summary['logs'])}**",
+            joint,
+            None,
+            None,
+            None,
+            *_error_cells(summary["mean"], joint),
+            f"{summary['mean_rollout_wall_time_s']:.2f}",
+        ]
+        for joint in summary["joints"]
+    ]
+    return rows
+
+
+def _error_cells(values: dict, joint: str) -> list[str]:
+    """The joint's MAE and maximum error, whole log and servo on (mrad)."""
+    return [
+        "n/a" if value is None or np.isnan(value) else f"{value:.1f}"
+        for value in (
+            values[key][joint]
+            for key in (
+                "mae_mrad",
+                "max_error_mrad",
+                "mae_servo_on_mrad",
+                "max_error_servo_on_mrad",
+            )
+        )
+    ]
