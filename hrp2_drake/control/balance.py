@@ -458,6 +458,7 @@ def make_qp_backend(qp: QpData, solver: str) -> QpBackend:
 ) = (0, 1, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14)
 
 
+# Whole: one compiled pass on the tick's arrays; a split costs calls (scripts/bench.py)
 @kernel
 def balance_assemble(
     M,

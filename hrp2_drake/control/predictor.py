@@ -175,6 +175,7 @@ _S_COUNT = 6
 _BAD_SIZE = -1
 
 
+# Whole: one compiled pass on the tick's arrays; a split costs calls (scripts/bench.py)
 @kernel
 def _predictor_step(v, vdot, tau, delta_q, wrench, rate, state, constants):
     """One period of DelayPredictorStep on its `state` with its packed `constants`

@@ -256,6 +256,7 @@ _HOLD = _MEMORY + 4
 _ABSENT = np.zeros(0)
 
 
+# Whole: one compiled pass on the tick's arrays; a split costs calls (scripts/bench.py)
 @kernel
 def _supervise(
     t,

@@ -227,6 +227,7 @@ def _delta_q_hold(q_measured, q_ref, has_q_ref, fallback, state):
     return 0
 
 
+# Whole: one compiled pass on the tick's arrays; a split costs calls (scripts/bench.py)
 @kernel
 def _delta_q_step(
     before_start,

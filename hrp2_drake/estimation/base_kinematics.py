@@ -94,6 +94,7 @@ def base_joint_positions(q, v, positions, table):
     return True
 
 
+# Whole: one compiled pass on the tick's arrays; a split costs calls (scripts/bench.py)
 @kernel
 def base_from_soles(v, X_WS, X_BS, J, positions, table, work, robot_state):
     """The robot's [q; v] (`robot_state`) from the soles' poses X_WS (soles, 4, 4),

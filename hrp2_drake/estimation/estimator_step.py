@@ -129,6 +129,7 @@ def estimator_inputs(q, v, vdot, acc, gyro, alpha, wrenches, work, table):
     return total
 
 
+# Whole: one compiled pass on the tick's arrays; a split costs calls (scripts/bench.py)
 @kernel
 def estimator_outputs(calibrating, G, jacobians, work, state, table):
     """`FloatingBaseTorqueEstimatorStep.step`'s arithmetic after Drake's calls (the

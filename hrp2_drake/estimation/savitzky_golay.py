@@ -215,6 +215,7 @@ class SavitzkyGolayConfig:
         )
 
 
+# Whole: one compiled pass on the tick's arrays; a split costs calls (scripts/bench.py)
 @kernel
 def savgol_step(t, signal, state, constants):
     """`SavitzkyGolayFilterStep.step`'s arithmetic: takes the sample `signal` (k) taken
