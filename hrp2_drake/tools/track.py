@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.multibody.plant import ContactResults, MultibodyPlant
-from pydrake.multibody.tree import BodyIndex
+from pydrake.multibody.tree import BodyIndex, Frame
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Context, DiagramBuilder, LeafSystem
 from pydrake.trajectories import PiecewisePolynomial
@@ -410,36 +410,14 @@ def run_force_task(config: TrackConfig, motor_model: MotorModel, out: Path) -> d
     x[joint_indexing(plant, robot.joints).q] = q0
     plant.SetPositions(context, x)
     tip = plant.GetFrameByName(robot.tool_frame)
-    p_tip = tip.CalcPoseInWorld(context).translation()
-    # The table: `gap` below the tool at home, so that nothing touches while the F/T
-    # offsets are calibrated; the joint reference then lowers the tool onto it
-    # (a reference compatible with the contact, as in the paper's Sec. 5.4).
-    top = _lowest_collision_point(config.station, tip.body().name()) - config.gap
-    station = replace(
-        config.station,
-        obstacles=[
-            BoxObstacle(
-                "table", [0.4, 0.4, 0.05], [p_tip[0], p_tip[1], top - 0.025, 0, 0, 0]
-            )
-        ],
-    )
+    station = _with_table_below(config, tip, tip.CalcPoseInWorld(context).translation())
     # f_ref: the table's reaction on the tool, in the sensor frame at home.
     sensor = robot.force_torque_sensors[robot.force_sensor]
     R_WS = (
         plant.GetFrameByName(sensor.frame).CalcPoseInWorld(context).rotation().matrix()
     )
     up_S = R_WS.T @ np.array([0.0, 0.0, 1.0])
-    t = np.arange(0.0, config.settle + config.ramp + config.force_duration + 1e-9, 0.01)
-    half = config.ramp / 2  # first half: lower the tool; second half: ramp the force
-    s = np.clip((t - config.settle - half) / half, 0.0, 1.0)
-    magnitude = config.press * s * s * (3 - 2 * s)
-    after = np.clip(t - config.settle - config.ramp, 0.0, None)
-    magnitude += config.force_amplitude * np.sin(
-        2 * np.pi * config.force_frequency * after
-    )
-    f_ref = np.zeros((6, len(t)))
-    f_ref[3:] = np.outer(up_S, magnitude)
-    force_reference = PiecewisePolynomial.FirstOrderHold(t, f_ref)
+    t, magnitude, force_reference = _force_reference(config, up_S)
     reference = _lowering(plant, context, robot, tip, q0, config, t[-1])
     torque = replace_fields(
         config.torque_control,
@@ -462,6 +440,56 @@ def run_force_task(config: TrackConfig, motor_model: MotorModel, out: Path) -> d
     tool_bodies = _bodies_below(
         robot, plant, robot.sensor_body(robot.force_sensor, plant)
     )
+    signals = _simulate(
+        control, t[-1], "force task", _contact_force_on(control, tool_bodies)
+    )
+    time = signals["t"]
+    desired = np.interp(time, t, magnitude)
+    achieved = signals["contact_force"][:, 2]  # the table pushes up on the tool
+    estimate = signals[f"external_wrench_{robot.force_sensor}"][:, 3:] @ up_S
+    result = _force_errors(config, time, desired, achieved, estimate)
+    _plot_force(time, desired, achieved, estimate, config, out / "track_force.png")
+    return result
+
+
+def _with_table_below(
+    config: TrackConfig, tip: Frame, p_tip: np.ndarray
+) -> StationConfig:
+    """The station with a table `gap` below the tool at home, so that nothing touches
+    while the F/T offsets are calibrated; the joint reference then lowers the tool
+    onto it (a reference compatible with the contact, as in the paper's Sec. 5.4)."""
+    top = _lowest_collision_point(config.station, tip.body().name()) - config.gap
+    return replace(
+        config.station,
+        obstacles=[
+            BoxObstacle(
+                "table", [0.4, 0.4, 0.05], [p_tip[0], p_tip[1], top - 0.025, 0, 0, 0]
+            )
+        ],
+    )
+
+
+def _force_reference(
+    config: TrackConfig, up_S: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, PiecewisePolynomial]:
+    """The force task's sample times (s), the desired push's magnitude (N) at them,
+    and f_ref: that push along `up_S` (the sensor frame's up at home)."""
+    t = np.arange(0.0, config.settle + config.ramp + config.force_duration + 1e-9, 0.01)
+    half = config.ramp / 2  # first half: lower the tool; second half: ramp the force
+    s = np.clip((t - config.settle - half) / half, 0.0, 1.0)
+    magnitude = config.press * s * s * (3 - 2 * s)
+    after = np.clip(t - config.settle - config.ramp, 0.0, None)
+    magnitude += config.force_amplitude * np.sin(
+        2 * np.pi * config.force_frequency * after
+    )
+    f_ref = np.zeros((6, len(t)))
+    f_ref[3:] = np.outer(up_S, magnitude)
+    return t, magnitude, PiecewisePolynomial.FirstOrderHold(t, f_ref)
+
+
+def _contact_force_on(control, tool_bodies: list[str]):
+    """`_simulate`'s extra port: the contact force on the tool's bodies (N, world),
+    the truth the force task is measured against."""
 
     def truth(builder, diagram):
         station_plant = control.station.GetSubsystemByName("plant")
@@ -473,14 +501,21 @@ def run_force_task(config: TrackConfig, motor_model: MotorModel, out: Path) -> d
         )
         return {"contact_force": system.get_output_port()}
 
-    signals = _simulate(control, t[-1], "force task", truth)
-    time = signals["t"]
-    desired = np.interp(time, t, magnitude)
-    achieved = signals["contact_force"][:, 2]  # the table pushes up on the tool
-    estimate = signals[f"external_wrench_{robot.force_sensor}"][:, 3:] @ up_S
+    return truth
+
+
+def _force_errors(
+    config: TrackConfig,
+    time: np.ndarray,
+    desired: np.ndarray,
+    achieved: np.ndarray,
+    estimate: np.ndarray,
+) -> dict:
+    """The force task's errors (N) once the force is ramped up: the achieved force
+    against the desired one, and the F/T estimate against the achieved force."""
     window = time >= config.settle + config.ramp
     error = achieved[window] - desired[window]
-    result = {
+    return {
         "press_N": config.press,
         "amplitude_N": config.force_amplitude,
         "rms_error_N": float(np.sqrt(np.mean(error**2))),
@@ -493,8 +528,6 @@ def run_force_task(config: TrackConfig, motor_model: MotorModel, out: Path) -> d
             np.ptp(achieved[window]) / max(np.ptp(desired[window]), 1e-9)
         ),
     }
-    _plot_force(time, desired, achieved, estimate, config, out / "track_force.png")
-    return result
 
 
 def _lowering(
