@@ -186,18 +186,55 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_hub_relays_between_processes_on_the_loopback():
+def _start_hub() -> tuple[subprocess.Popen, str]:
+    """A tcpq hub on a free port of the loopback: (its process, its URL); its first
+    line (the banner) is the caller's to read."""
     port = _free_port()
     hub = subprocess.Popen(
         [sys.executable, "-m", "hrp2_drake.hardware.tcpq_hub", "--port", str(port)],
         stdout=subprocess.PIPE,
         text=True,
     )
+    return hub, f"tcpq://127.0.0.1:{port}"
+
+
+def _lockstep_over_lcm(tmp_path, robot_args: list[str], control_args: list[str]):
+    """`hrp2-drake sim-robot <robot_args> --lockstep` and `hrp2-drake control
+    <control_args>` in two processes through a tcpq hub on the loopback, the robot's
+    files under tmp_path/robot, control's under tmp_path/control: control's
+    CompletedProcess (the robot stopped once control is done)."""
+    cli = [sys.executable, "-m", "hrp2_drake.cli"]
+    hub, url = _start_hub()
+    robot = None
     try:
-        assert hub.stdout.readline().startswith(
-            f"LCM tcpq hub on tcpq://127.0.0.1:{port}"
+        hub.stdout.readline()
+        robot = subprocess.Popen(
+            cli
+            + ["sim-robot", *robot_args, "--lcm", url, "--duration", "30"]
+            + ["--lockstep", "--out", str(tmp_path / "robot")],
+            stderr=subprocess.DEVNULL,
         )
-        url = f"tcpq://127.0.0.1:{port}"
+        done = subprocess.run(
+            cli
+            + ["control", *control_args, "--lcm", url]
+            + ["--out", str(tmp_path / "control")],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        robot.terminate()
+        robot.wait(30)
+    finally:
+        for process in (robot, hub):
+            if process is not None and process.poll() is None:
+                process.kill()
+    return done
+
+
+def test_hub_relays_between_processes_on_the_loopback():
+    hub, url = _start_hub()
+    try:
+        assert hub.stdout.readline().startswith(f"LCM tcpq hub on {url}")
         sender, receiver = DrakeLcm(url), DrakeLcm(url)
         got = []
         receiver.SubscribeMultichannel(
@@ -229,62 +266,14 @@ def test_control_and_sim_robot_across_processes(tmp_path, motor_model):
     from hrp2_drake.hardware.in_process import run_in_process
     from hrp2_drake.identification.motor_model import MotorModel
 
-    port = _free_port()
-    url = f"tcpq://127.0.0.1:{port}"
-    cli = [sys.executable, "-m", "hrp2_drake.cli"]
-    hub = subprocess.Popen(
-        [sys.executable, "-m", "hrp2_drake.hardware.tcpq_hub", "--port", str(port)],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    robot = None
     path = tmp_path / "model.yaml"
     motor_model.save(path)
-    try:
-        hub.stdout.readline()
-        robot = subprocess.Popen(
-            cli
-            + [
-                "sim-robot",
-                "--robot",
-                "iiwa14",
-                "--lcm",
-                url,
-                "--duration",
-                "30",
-                "--lockstep",
-                "--out",
-                str(tmp_path / "robot"),
-            ],
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        done = subprocess.run(
-            cli
-            + [
-                "control",
-                "--robot",
-                "iiwa14",
-                "--lcm",
-                url,
-                "--motor-model",
-                str(path),
-                "--duration",
-                "3",
-                "--out",
-                str(tmp_path / "control"),
-            ],
-            capture_output=True,
-            text=True,
-            timeout=300,
-        )
-        assert done.returncode == 0, done.stderr[-2000:]
-        robot.terminate()
-        robot.wait(30)
-    finally:
-        for process in (robot, hub):
-            if process is not None and process.poll() is None:
-                process.kill()
+    done = _lockstep_over_lcm(
+        tmp_path,
+        ["--robot", "iiwa14"],
+        ["--robot", "iiwa14", "--motor-model", str(path), "--duration", "3"],
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
     summary = json.loads((tmp_path / "control" / "control.json").read_text())
     # The robot waits on its first sample: no move from a sagged pose, one tick per
     # period from 0 to 3 s.
@@ -375,37 +364,11 @@ def _balance_over_lcm(tmp_path, scenario: str, config: str):
     model_file, config_file = tmp_path / "model.yaml", tmp_path / "balance.yaml"
     motor_model.save(model_file)
     config_file.write_text(config)
-    port = _free_port()
-    url = f"tcpq://127.0.0.1:{port}"
-    cli = [sys.executable, "-m", "hrp2_drake.cli"]
-    hub = subprocess.Popen(
-        [sys.executable, "-m", "hrp2_drake.hardware.tcpq_hub", "--port", str(port)],
-        stdout=subprocess.PIPE,
-        text=True,
+    done = _lockstep_over_lcm(
+        tmp_path,
+        ["--robot", "hrp2", "--scenario", scenario],
+        ["--motor-model", str(model_file), "--config", str(config_file)],
     )
-    robot_process = None
-    try:
-        hub.stdout.readline()
-        robot_process = subprocess.Popen(
-            cli
-            + ["sim-robot", "--robot", "hrp2", "--scenario", scenario, "--lcm", url]
-            + ["--duration", "30", "--lockstep", "--out", str(tmp_path / "robot")],
-            stderr=subprocess.DEVNULL,
-        )
-        done = subprocess.run(
-            cli
-            + ["control", "--lcm", url, "--motor-model", str(model_file)]
-            + ["--config", str(config_file), "--out", str(tmp_path / "control")],
-            capture_output=True,
-            text=True,
-            timeout=300,
-        )
-        robot_process.terminate()
-        robot_process.wait(30)
-    finally:
-        for process in (robot_process, hub):
-            if process is not None and process.poll() is None:
-                process.kill()
     return done, motor_model
 
 
