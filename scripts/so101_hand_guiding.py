@@ -42,6 +42,7 @@ from hrp2_drake.robot.ground_truth import true_motor_model
 from hrp2_drake.robot.station import StationConfig
 from hrp2_drake.tools.control import (
     ControlConfig,
+    at_robot_gain,
     control_chain_parts,
     control_reference,
 )
@@ -91,7 +92,7 @@ class Hold:
             torque.start_time = duration + 1.0  # position control throughout
         reference = control_reference(config)
         robot = config.description()
-        model = model.at_gain(robot.position_loop.gain or model.gain)  # as control
+        model = at_robot_gain(model, robot)  # as control
         parts = control_chain_parts(config, model, reference)
         return FusedController(parts), reference
 
@@ -282,7 +283,7 @@ def measure_stiffness(model, stiffnesses) -> dict:
     (K K_τ,identified / K_τ,true: ground truth, for evaluation)."""
     robot = load_robot_description(ROBOT)
     truth = true_motor_model(robot, robot.joints)
-    identified = model.at_gain(robot.position_loop.gain or model.gain)
+    identified = at_robot_gain(model, robot)
     ratio = np.asarray(identified.subset(robot.joints).k_tau) / truth.k_tau
     out = {}
     for k in stiffnesses:

@@ -216,6 +216,12 @@ class ControlConfig:
         return resolved(self.description(), config)
 
 
+def at_robot_gain(motor_model: MotorModel, robot: RobotDescription) -> MotorModel:
+    """`motor_model` at the servo gain `robot` runs at (its `position_loop.gain`;
+    unset, or a model stated at no gain: as it is)."""
+    return motor_model.at_gain(robot.position_loop.gain or motor_model.gain)
+
+
 def control_chain_parts(
     config: ControlConfig,
     motor_model: MotorModel,
@@ -407,10 +413,7 @@ def run_control(
     settings came from (`load_on_robot`; None: `config` as the caller made it), for
     the report."""
     robot = config.description()
-    if (
-        motor_model.gain
-    ):  # a model stated at a servo gain: at the gain the robot runs at
-        motor_model = motor_model.at_gain(robot.position_loop.gain or motor_model.gain)
+    motor_model = at_robot_gain(motor_model, robot)
     # The references from home, before connecting (balance's inverse kinematics
     # takes a while); the chain is built for them, and the run's (from the measured
     # pose) replace them once the robot is there (the parts read only their start).
