@@ -360,11 +360,7 @@ def parse_fault(spec: str) -> ServoFault:
     if kind == "hardware":
         detail = detail.replace("_", " ").replace("-", " ").lower()
     if kind == "push":
-        try:
-            torque = float(detail)
-        except ValueError:
-            torque = math.nan
-        if not math.isfinite(torque):
+        if not math.isfinite(_number(detail)):
             raise ValueError(f"{where}: '{detail}' is not a torque in N·m")
     return ServoFault(kind, servo_id, at, count, detail)
 
@@ -378,21 +374,23 @@ def _parse_push_force(spec: str) -> ServoFault:
         raise ValueError(
             f"{where}: a push-force fault is written push-force:BODY@T:FX,FY,FZ"
         )
-    try:
-        at = float(match["at"])
-    except ValueError:
-        at = math.nan
+    at = _number(match["at"])
     if not (math.isfinite(at) and at >= 0):
         raise ValueError(f"{where}: '{match['at']}' is not a time in seconds (>= 0)")
-    try:
-        force = [float(x) for x in match["force"].split(",")]
-    except ValueError:
-        force = []
+    force = [_number(x) for x in match["force"].split(",")]
     if len(force) != 3 or not all(math.isfinite(f) for f in force):
         raise ValueError(
             f"{where}: '{match['force']}' is not a force in N (FX,FY,FZ: 3 numbers)"
         )
     return ServoFault("push-force", -1, at, 1, match["force"], body=match["body"])
+
+
+def _number(text: str) -> float:
+    """`text` as a float; NaN if it is not a number (the caller's one-line error)."""
+    try:
+        return float(text)
+    except ValueError:
+        return math.nan
 
 
 def parse_faults(specs: Sequence) -> list[ServoFault]:
