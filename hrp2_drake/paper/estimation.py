@@ -5,7 +5,8 @@ biases) while the position servo tracks sinusoids; one estimation chain per wind
 (Savitzky-Golay filters + FloatingBaseTorqueEstimator, `add_estimator`) reads the same
 sensors in the same diagram. Each τ̂ is compared with the ground truth
 `joint_torque_true` shifted by the chain's delay (`EstimationChain.delay()`, checked by
-searching the shift that minimises the error), per joint: RMS error, peak |τ|, RMS/peak.
+searching the shift that minimises the error), per joint: RMS error, peak |τ|, RMS/peak
+(`estimation.accuracy.errors`, the balance experiment's definition too).
 
 Motions (documented in `default_motions`):
 - "hanging" (paper Fig. 2b): the six right-leg joints track sinusoids of different
@@ -36,6 +37,7 @@ from pydrake.systems.primitives import TrajectorySource
 from hrp2_drake import console
 from hrp2_drake.assembly.torque_control import check_window
 from hrp2_drake.description.sensors import SensorsConfig
+from hrp2_drake.estimation.accuracy import errors, shifted
 from hrp2_drake.estimation.estimation_chain import add_estimator
 from hrp2_drake.paper import hrp2
 from hrp2_drake.paper.claims import GOAL_RMS_OVER_PEAK
@@ -366,36 +368,6 @@ def run_scenario(
         "duration": duration,
         "real_time_factor": rtf,
     }
-
-
-def shifted(signal: np.ndarray, samples: float) -> np.ndarray:
-    """signal (rows: samples) delayed by a fractional number of samples >= 0, linear
-    interpolation: out[i] = signal(i − samples); rows before the start are NaN."""
-    whole = math.floor(samples)
-    frac = samples - whole
-    out = np.full(signal.shape, np.nan)
-    hi = np.arange(len(signal)) - whole  # signal(i − whole)
-    lo = hi - 1  # signal(i − whole − 1)
-    ok = (hi >= 0) & (hi < len(signal)) & ((lo >= 0) | (frac == 0.0))
-    out[ok] = (1.0 - frac) * signal[hi[ok]] + frac * signal[np.maximum(lo[ok], 0)]
-    return out
-
-
-def errors(
-    t: np.ndarray,
-    tau: np.ndarray,
-    true: np.ndarray,
-    delay_samples: float,
-    start: float,
-) -> dict:
-    """τ̂ against the truth delayed by `delay_samples`, on samples t >= start: per
-    joint RMS error, peak |τ| (of the aligned truth), RMS/peak."""
-    reference = shifted(true, delay_samples)
-    rows = (t >= start) & np.all(np.isfinite(reference), axis=1)
-    error = tau[rows] - reference[rows]
-    rms = np.sqrt(np.mean(error**2, axis=0))
-    peak = np.max(np.abs(reference[rows]), axis=0)
-    return {"rms": rms, "peak": peak, "ratio": rms / np.maximum(peak, 1e-12)}
 
 
 def best_shift(
