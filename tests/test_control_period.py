@@ -12,6 +12,7 @@ from hrp2_drake.assembly.builders import JointReference, torque_chain_parts
 from hrp2_drake.assembly.torque_control import TorqueControlConfig, at_period
 from hrp2_drake.control.fused import FusedController
 from hrp2_drake.description import load_robot_description
+from hrp2_drake.estimation.estimator_config import estimation_delay
 from hrp2_drake.identification.motor_model import MotorModel
 
 
@@ -38,6 +39,11 @@ def test_every_step_at_the_control_period(period):
         assert config.period == pytest.approx(period, rel=1e-12)
     # The same 80 ms window as at 1 kHz, in samples of this period.
     assert parts.estimator_config.window * period == pytest.approx(0.08, abs=period)
+    # The settings' delay at this period is the chain's (what the balance
+    # experiment shifts the true τ by): (N − 1)/2 periods.
+    estimator = at_period(TorqueControlConfig(), period).estimator
+    assert estimator.delay(period) == estimation_delay(parts.estimator_config)
+    assert estimator.delay(period) == pytest.approx((estimator.window - 1) / 2 * period)
 
 
 def test_fused_derivatives_at_200_hz():

@@ -19,7 +19,11 @@ from dataclasses import dataclass, field
 from hrp2_drake.config import check_finite, moved_keys
 from hrp2_drake.control.safety import SafetyConfig
 from hrp2_drake.description import RobotDescription
-from hrp2_drake.estimation.estimator_config import check_offset
+from hrp2_drake.estimation.estimator_config import (
+    TorqueEstimatorConfig,
+    check_offset,
+    estimation_delay,
+)
 from hrp2_drake.estimation.savitzky_golay import check_evaluation
 
 _WHERE = "TorqueControlConfig"
@@ -83,6 +87,19 @@ class EstimatorSettings:
             check_offset(
                 offset, f"{where}.offsets['{name}']", "torque; force", optional=False
             )
+
+    def delay(self, period: float) -> float:
+        """Seconds between the robot state the estimates of the chain these settings
+        build at `period` (s; the robot's sensor period) describe and the sample they
+        are computed from: `estimator_config.estimation_delay` of its filters (19.5
+        ms for a 40-sample window at 1 kHz)."""
+        filters = TorqueEstimatorConfig(
+            window=self.window,
+            windows=dict(self.windows),
+            evaluation=self.evaluation,
+            period=period,
+        )
+        return estimation_delay(filters)
 
 
 def check_window(window: int, where: str) -> None:

@@ -27,8 +27,6 @@ from hrp2_drake.assembly.builders import (
 )
 from hrp2_drake.assembly.torque_control import EstimatorSettings, TorqueControlConfig
 from hrp2_drake.config import check_finite, field_at, replace_fields
-from hrp2_drake.estimation import estimator_config as estimation_config
-from hrp2_drake.estimation.estimator_config import TorqueEstimatorConfig
 from hrp2_drake.identification.motor_model import MotorModel
 from hrp2_drake.paper import hrp2
 from hrp2_drake.paper.claims import (
@@ -334,16 +332,9 @@ def motion_reference(config: MotionConfig, time_scale: float = 1.0) -> JointRefe
 
 
 def estimation_delay(config: TorqueControlConfig, period: float = 0.001) -> float:
-    """The delay of the estimation chain `config` builds at `period` (s):
-    `estimator_config.estimation_delay` of its filters."""
-    estimator = config.estimator
-    filters = TorqueEstimatorConfig(
-        window=estimator.window,
-        windows=dict(estimator.windows),
-        evaluation=estimator.evaluation,
-        period=period,
-    )
-    return estimation_config.estimation_delay(filters)
+    """The delay of the estimation chain `config` builds at `period` (s; HRP-2's 1
+    kHz by default): `EstimatorSettings.delay`."""
+    return config.estimator.delay(period)
 
 
 def _time_scaled(
