@@ -247,7 +247,8 @@ def balance_sections(run: Path) -> dict[str, list[tuple[tuple[str, str], list[st
         estimation = [
             "",
             f"RMS of τ̂ − τ per leg joint against {goal * 100:g}% of its peak |τ| "
-            f"(bold: within; {len(met)} of {judged}).",
+            f"(bold: within; {len(met)} of {judged} against τ(t − t_d)). "
+            f"{report.estimation_text(summary)}",
             "",
             *estimation,
             "",

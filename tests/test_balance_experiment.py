@@ -266,6 +266,18 @@ def test_balance_quick_writes_its_report(tmp_path, legs_model):
     for name in ("balance.md", "balance_com_cop.png", "balance_pushes.png"):
         assert (out / name).stat().st_size > 0
     assert "Estimation in double support" in (out / "balance.md").read_text()
+    # τ̂ judged against τ(t − t_d), t_d the chain's delay (a 40-sample window's
+    # centre at 1 kHz), the paper's definition: closer than τ(t), which adds the
+    # delay to the error.
+    estimation = summary["com_motion"]["torque"]["estimation"]
+    assert estimation["delay_s"] == pytest.approx(0.0195)
+    delayed, undelayed = (
+        np.array(estimation[key]["rms_error_Nm"]) for key in ("delayed", "undelayed")
+    )
+    assert np.sum(delayed**2) < 0.5 * np.sum(undelayed**2), (delayed, undelayed)
+    assert estimation["met"] == bool(
+        np.all(np.array(estimation["delayed"]["rms_over_peak"]) < estimation["goal"])
+    )
     # The summary alone writes the report (and the README's and docs' tables:
     # scripts/update_readme_results.py).
     check_summary(summary, "balance.json")

@@ -12,7 +12,9 @@ Two experiments, each under both controls:
    true CoM against its reference), the CoP margin (the smallest distance from each
    loaded sole's centre of pressure to its edge), the soles' peak normal forces,
    and, under torque control, the RMS of τ̂ against the true joint torques of the
-   legs (against this project's 3%-of-peak goal).
+   legs t_d earlier, t_d the estimation delay (the paper's definition of the
+   estimate; against this project's 3%-of-peak goal), and against those of the
+   same instant.
 2. **Pushes**: a horizontal force pulse (0.1 s) on the torso (the description's
    `unknown_wrench_body`), forward and sideways, increasing (doubled, then bisected)
    until the robot fails: a sole slides or lifts (`sole_slip`) or rotates
@@ -60,6 +62,7 @@ from hrp2_drake.control.balance import BALANCE_FAULTS
 from hrp2_drake.control.balance_reference import ComSinusoid, StandingIk, sinusoid_com
 from hrp2_drake.control.safety import describe_faults
 from hrp2_drake.description import RobotDescription
+from hrp2_drake.estimation.accuracy import errors
 from hrp2_drake.estimation.estimator_config import GOAL_RMS_OVER_PEAK
 from hrp2_drake.experiments.balance.calibration import CalibrationSettings, calibrate
 from hrp2_drake.experiments.balance.report import MODES, report_markdown
@@ -513,24 +516,28 @@ def _settle_time(t, distance, t_end, tolerance) -> float | None:
 
 
 def _estimation(robot: RobotDescription, config, logs: dict) -> dict:
-    """RMS of τ̂ − τ (N·m) on the torque-controlled joints from `settle`, and each
-    against GOAL_RMS_OVER_PEAK of the joint's peak |τ|."""
+    """τ̂ on the torque-controlled joints from `settle`, judged as the paper defines
+    the estimator (Sec. 2, noncausal: its sample at t describes the robot t_d
+    earlier, t_d the chain's estimation delay): "delayed", against τ(t − t_d), each
+    joint's RMS error against GOAL_RMS_OVER_PEAK of its peak |τ| (`met`);
+    "undelayed", against τ(t), what the controller acts on (its error adds the
+    delay's)."""
     joints = resolved(robot, config.control).torque.joints
     columns = [robot.joints.index(j) for j in joints]
-    window = logs["t"] >= config.settle
-    tau_hat = logs["tau_estimated"][window][:, columns]
-    tau = logs["joint_torque_true"][window][:, columns]
-    rms = np.sqrt(np.mean((tau_hat - tau) ** 2, axis=0))
-    peak = np.max(np.abs(tau), axis=0)
-    ratio = rms / np.maximum(peak, 1e-9)
-    return {
-        "joints": joints,
-        "rms_error_Nm": rms.tolist(),
-        "peak_torque_Nm": peak.tolist(),
-        "rms_over_peak": ratio.tolist(),
-        "goal": GOAL_RMS_OVER_PEAK,
-        "met": bool(np.all(ratio < GOAL_RMS_OVER_PEAK)),
-    }
+    period = config.station.sensors_config().period
+    delay = config.control.torque.estimator.delay(period)
+    tau_hat = logs["tau_estimated"][:, columns]
+    tau = logs["joint_torque_true"][:, columns]
+    out = {"joints": joints, "delay_s": delay}
+    for key, samples in (("delayed", round(delay / LOG_PERIOD, 9)), ("undelayed", 0)):
+        e = errors(logs["t"], tau_hat, tau, samples, config.settle)
+        out[key] = {
+            "rms_error_Nm": e["rms"].tolist(),
+            "peak_torque_Nm": e["peak"].tolist(),
+            "rms_over_peak": e["ratio"].tolist(),
+        }
+    met = np.all(np.array(out["delayed"]["rms_over_peak"]) < GOAL_RMS_OVER_PEAK)
+    return out | {"goal": GOAL_RMS_OVER_PEAK, "met": bool(met)}
 
 
 def _kept_logs(logs: dict, truth: dict) -> dict:
