@@ -5,12 +5,15 @@ soles still; the whole scene turned); one sole is enough; soles that disagree gi
 the documented average, the velocity numpy's least squares at the estimate; a
 non-finite input keeps the last estimate; the LeafSystem outputs the step's numbers;
 the one-line errors; the kernels compiled equal their Python source, and `warm_up`
-compiles them without changing the state."""
+compiles them without changing the state. With the gyro (`ImuFusion`): the first tick
+is the kinematic estimate, the orientation integrates the gyro's rate, returns to
+the soles' at the gain, learns a bias, skips a NaN reading; its errors in one line."""
 
 import contextlib
 
 import numpy as np
 import pytest
+from pydrake.common.eigen_geometry import AngleAxis, Quaternion
 from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 from pydrake.multibody.tree import JacobianWrtVariable
 
@@ -21,6 +24,7 @@ from hrp2_drake.estimation import base_kinematics
 from hrp2_drake.estimation.base_kinematics import (
     FloatingBaseFromSoles,
     FloatingBaseFromSolesStep,
+    ImuFusion,
 )
 from hrp2_drake.multibody import joint_indexing
 from hrp2_drake.robot.station import standing_positions
@@ -357,9 +361,9 @@ def _cases(hrp2, moved):
 
 
 def test_the_compiled_kernels_equal_their_python_source(hrp2, moved):
-    """`base_joint_positions` and `base_from_soles` compiled and as Python
-    (`kernels.interpreted`) on the same inputs: the states equal to 1e-12 of their
-    size (loop-order sums both ways)."""
+    """The kernels compiled and as Python (`kernels.interpreted`) on the same
+    inputs, without and with the IMU (two ticks): the states equal to 1e-12 of
+    their size (loop-order sums both ways)."""
     plant, _, indexing, _ = hrp2
     results = []
     for interpreted in (False, True):
@@ -368,6 +372,13 @@ def test_the_compiled_kernels_equal_their_python_source(hrp2, moved):
             for poses, q, v in _cases(hrp2, moved):
                 step = FloatingBaseFromSolesStep(plant, list(indexing.names), poses)
                 step.step(0.0, q, v)
+                results.append(step.state.copy())
+                imu = ImuFusion("imu", [0.01, 0.0, -0.01], 2.0, 0.5)
+                step = FloatingBaseFromSolesStep(
+                    plant, list(indexing.names), poses, imu, 0.001
+                )
+                for k, gyro in enumerate(([0.1, 0.2, -0.3], [0.3, -0.1, 0.2])):
+                    step.step(0.001 * k, q, v, np.array(gyro))
                 results.append(step.state.copy())
     half = len(results) // 2
     for compiled, python in zip(results[:half], results[half:]):
@@ -382,26 +393,31 @@ def test_warm_up_compiles_without_changing_the_state(hrp2, moved):
     compiling."""
     plant, standing, indexing, soles = hrp2
     poses = _sole_poses(plant, standing, soles)
-    step = FloatingBaseFromSolesStep(plant, list(indexing.names), poses)
-    q, v = moved[indexing.q], np.zeros(indexing.size)
-    step.step(0.0, q, v)
+    imu = ImuFusion("imu", gain=0.0)
+    step = FloatingBaseFromSolesStep(plant, list(indexing.names), poses, imu, 0.001)
+    q, v, gyro = moved[indexing.q], np.zeros(indexing.size), np.zeros(3)
+    step.step(0.0, q, v, gyro)
     before = step.state.copy()
     step.warm_up()
     np.testing.assert_array_equal(step.state, before)
     if kernels.jit_enabled():
+        # The tick's kernels (the quaternion helpers are compiled into them).
+        ticks = {"base_joint_positions", "base_from_soles", "base_imu_fusion"}
         mine = [
             k
             for k in kernels.kernels()
             if k.py_func.__module__ == base_kinematics.__name__
+            and k.py_func.__name__ in ticks
         ]
-        assert len(mine) == 2 and all(k.signatures for k in mine)
-    system = FloatingBaseFromSoles(plant, list(indexing.names), poses, 0.001)
+        assert len(mine) == 3 and all(k.signatures for k in mine)
+    system = FloatingBaseFromSoles(plant, list(indexing.names), poses, 0.001, imu=imu)
     context = system.CreateDefaultContext()
     system.GetInputPort("q").FixValue(context, q)
     system.GetInputPort("v").FixValue(context, v)
+    system.GetInputPort("gyro").FixValue(context, gyro)
     try:
         kernels.freeze()
-        step.step(0.001, q, v)
+        step.step(0.001, q, v, gyro)
         np.testing.assert_array_equal(step.state, before)
         context.SetDiscreteState(system.EvalUniquePeriodicDiscreteUpdate(context))
         np.testing.assert_array_equal(
@@ -409,7 +425,7 @@ def test_warm_up_compiles_without_changing_the_state(hrp2, moved):
         )
         if kernels.jit_enabled():
             with pytest.raises(TypeError):
-                step.step(0.002, q.astype(np.float32), v)
+                step.step(0.002, q.astype(np.float32), v, gyro)
     finally:
         kernels.thaw()
 
@@ -437,3 +453,143 @@ def test_one_floating_base_lookup_names_the_caller():
     with pytest.raises(ValueError, match=r"^X: .* \['box0', 'box1'\]: do Y$"):
         floating_base(plant(False, 2), "X", advice="do Y")
     assert floating_base(plant(False, 1), "X", quaternion=True).name() == "box0"
+
+
+# With an IMU (ImuFusion): the gyro's rate integrated, corrected toward the soles.
+
+
+def _gyro(plant, positions, velocities):
+    """What a noiseless gyro on HRP-2's IMU frame reads (rad/s, its frame)."""
+    context = plant.CreateDefaultContext()
+    plant.SetPositions(context, positions)
+    plant.SetVelocities(context, velocities)
+    frame = plant.GetFrameByName("imu")
+    R_WI = frame.CalcPoseInWorld(context).rotation()
+    return R_WI.inverse() @ frame.CalcSpatialVelocityInWorld(context).rotational()
+
+
+def _imu_step(hrp2, poses, **fusion):
+    plant, _, indexing, _ = hrp2
+    imu = ImuFusion("imu", **fusion)
+    return FloatingBaseFromSolesStep(plant, list(indexing.names), poses, imu, 0.001)
+
+
+@pytest.mark.parametrize("turn", ["upright", "rolled"])
+def test_with_the_gyro_a_still_soles_motion_is_estimated_exactly(hrp2, moved, turn):
+    """The first tick starts from the soles' kinematics: with the gyro's reading of
+    the same motion the estimated [q; v] is the plant's, to 1e-9."""
+    plant, standing, indexing, soles = hrp2
+    positions = _turned(plant, moved, TURNS[turn])
+    poses = _sole_poses(plant, _turned(plant, standing, TURNS[turn]), soles)
+    velocities = _still_soles_velocity(plant, positions, soles)
+    step = _imu_step(hrp2, poses)
+    gyro = _gyro(plant, positions, velocities)
+    step.step(0.0, positions[indexing.q], velocities[indexing.v], gyro)
+    nq = plant.num_positions()
+    np.testing.assert_allclose(step.robot_state[:nq], positions, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(step.robot_state[nq:], velocities, rtol=0, atol=1e-9)
+
+
+def _base_rotation(plant, state):
+    q0 = _base(plant).floating_positions_start()
+    w, x, y, z = state[q0 : q0 + 4]
+    return RotationMatrix(Quaternion(w, x, y, z))
+
+
+def test_without_correction_the_orientation_is_the_gyros_integral(hrp2, moved):
+    """Gain 0, the joints still: the base turns by the gyro's constant rate,
+    R_WB(t) = R_WB(0) R_BI exp(ω t) R_BIᵀ, to 1e-12 after 500 ticks; its velocity
+    stays the soles' (zero: the joints are still)."""
+    plant, standing, indexing, soles = hrp2
+    poses = _sole_poses(plant, standing, soles)
+    step = _imu_step(hrp2, poses, gain=0.0)
+    q, v = moved[indexing.q], np.zeros(indexing.size)
+    omega = np.array([0.2, -0.1, 0.05])
+    step.step(0.0, q, v, np.zeros(3))
+    R0 = _base_rotation(plant, step.robot_state)
+    for k in range(500):
+        step.step(0.001 * (k + 1), q, v, omega)
+    context = plant.CreateDefaultContext()
+    plant.SetPositions(context, moved)
+    R_BI = plant.CalcRelativeTransform(
+        context, _base(plant).body_frame(), plant.GetFrameByName("imu")
+    ).rotation()
+    turned = RotationMatrix(
+        AngleAxis(0.5 * np.linalg.norm(omega), omega / np.linalg.norm(omega))
+    )
+    expected = R0 @ R_BI @ turned @ R_BI.inverse()
+    R = _base_rotation(plant, step.robot_state)
+    assert np.abs(R.matrix() - expected.matrix()).max() < 1e-12
+    v0 = plant.num_positions() + _base(plant).floating_velocities_start_in_v()
+    np.testing.assert_array_equal(step.robot_state[v0 : v0 + 6], 0.0)
+
+
+def _angle_to_kinematics(plant, step, kinematic):
+    R = _base_rotation(plant, step.robot_state)
+    return (R.inverse() @ kinematic).ToAngleAxis().angle()
+
+
+def test_the_correction_returns_to_the_soles_at_the_gain(hrp2, moved):
+    """A still robot, a gyro that reads zero: an attitude 10 mrad off the soles'
+    returns at the gain (1/s): after 1 s of gain 2, exp(−2) of it (to 1 %)."""
+    plant, standing, indexing, soles = hrp2
+    poses = _sole_poses(plant, standing, soles)
+    step = _imu_step(hrp2, poses, gain=2.0)
+    q, v, zero = moved[indexing.q], np.zeros(indexing.size), np.zeros(3)
+    step.step(0.0, q, v, zero)
+    kinematic = _base_rotation(plant, step.robot_state)
+    off = RotationMatrix(AngleAxis(0.01, [0.6, 0.8, 0.0]))
+    R_WI = off @ RotationMatrix(Quaternion(*step.attitude[:4]))
+    step.attitude[:4] = R_WI.ToQuaternion().wxyz()
+    for k in range(1000):
+        step.step(0.001 * (k + 1), q, v, zero)
+    angle = _angle_to_kinematics(plant, step, kinematic)
+    assert angle == pytest.approx(0.01 * np.exp(-2.0), rel=0.01)
+
+
+def test_the_bias_is_learnt_and_a_bad_gyro_reading_is_skipped(hrp2, moved):
+    """A still robot whose gyro reads a constant bias b beyond its given offset:
+    with a bias gain the estimate learns b (to 1e-5 rad/s after 30 s) and the
+    attitude returns to the soles'; a NaN reading leaves the attitude as it was and
+    the tick's estimate the soles' kinematics."""
+    plant, standing, indexing, soles = hrp2
+    poses = _sole_poses(plant, standing, soles)
+    offset = [0.001, 0.0, -0.002]
+    step = _imu_step(hrp2, poses, gain=1.0, bias_gain=0.5, gyro_offset=offset)
+    q, v = moved[indexing.q], np.zeros(indexing.size)
+    b = np.array([0.003, -0.002, 0.001])
+    reading = b + offset
+    for k in range(30000):
+        step.step(0.001 * k, q, v, reading)
+    np.testing.assert_allclose(step.attitude[4:], b, rtol=0, atol=1e-5)
+    kinematic = _estimate(hrp2, moved, np.zeros(plant.num_velocities()), poses)
+    R_kin = _base_rotation(plant, kinematic.robot_state)
+    assert _angle_to_kinematics(plant, step, R_kin) < 1e-5
+    attitude = step.attitude.copy()
+    step.step(30.0, q, v, np.array([np.nan, 0.0, 0.0]))
+    np.testing.assert_array_equal(step.attitude, attitude)
+    np.testing.assert_array_equal(step.robot_state, kinematic.robot_state)
+
+
+@pytest.mark.parametrize(
+    "fusion, period, message",
+    [
+        ({"gyro_offset": [0.0, 0.0]}, 0.001, r"ImuFusion.gyro_offset: three finite"),
+        ({"gain": -1.0}, 0.001, r"ImuFusion.gain: finite and >= 0, got -1.0"),
+        ({"bias_gain": np.nan}, 0.001, r"ImuFusion.bias_gain: finite and >= 0"),
+        ({}, 0.0, r"ImuFusion: the period must be finite and > 0 \(s\), got 0.0"),
+    ],
+    ids=["offset", "gain", "bias_gain", "period"],
+)
+def test_imu_errors_are_one_line(hrp2, fusion, period, message):
+    plant, standing, indexing, soles = hrp2
+    poses = _sole_poses(plant, standing, soles)
+    with pytest.raises(ValueError, match=message) as raised:
+        FloatingBaseFromSolesStep(
+            plant, list(indexing.names), poses, ImuFusion("imu", **fusion), period
+        )
+    assert "\n" not in str(raised.value)
+    with pytest.raises(KeyError, match="IMU frame 'no_imu'"):
+        FloatingBaseFromSolesStep(
+            plant, list(indexing.names), poses, ImuFusion("no_imu"), 0.001
+        )

@@ -39,16 +39,44 @@ definite, and well conditioned (its condition number is σ⁴ for one sole, σ =
 normal equations lose nothing against an SVD (numpy's lstsq on Drake's Jacobians at
 the estimate agrees to 1e-12, the tests).
 
+With an IMU (`ImuFusion`): the legs' kinematics give the base's orientation only
+while every sole stays flat; a sole that rolls on its edge under a push tilts the
+estimate with it (the mean of the soles' rotations), and a whole-body controller
+then acts on a base that does not move. The gyro measures the IMU's rotation
+directly. Per tick, after the kinematic estimate R_kin (above) is formed, a
+complementary filter (Mahony's, its correction from the kinematics instead of the
+accelerometer; sot-torque-control's base estimator fuses the IMU's orientation with
+the feet's likewise) integrates the gyro's rate ω_I, its offset and estimated bias
+b removed, corrected toward the kinematic estimate of the IMU's orientation
+R_kin R_BI:
+
+    e   = vee(skew(R_WIᵀ R_kin R_BI))      (the small rotation between them, in I)
+    R_WI ← R_WI exp((ω_I − b + k e) dt),   b ← b − k_b e dt
+
+(k, `gain`: the crossover, 1/s; k_b, `bias_gain`). The first tick starts from the
+kinematic estimate. Then R_WB = R_WI R_BIᵀ, and the position and the linear velocity
+follow from the soles at that orientation (their mean): p_WB = p_WS_k − R_WB p_BS_k
+and v_WBo = r_k × ω_WB − R_WB v_BS_k. The angular velocity ω_WB stays the soles'
+least squares (above): the gyro's rate in its place (less the torso joints' share)
+brought its white noise (0.005 rad/s on HRP-2) into the QP's CoM and base damping,
+and the legs' torques shook with it (τ̂'s error against the delayed torque 2-4x on
+the hips, measured, issue 35); integrated into the orientation, that noise is
+negligible. The gyro must describe the instant the joint velocities do (the same
+filter, `control/torque_chain.py`'s base filter). A non-finite gyro keeps the
+kinematic estimate for that tick.
+
 .. code-block:: text
 
                  ┌─────────────────────┐
     q (n) ──────►│                     │
                  │ FloatingBaseFromSoles├──► state (nq + nv): the plant's [q; v]
     v (n) ──────►│                     │
+    gyro (3) ───►│  (with an IMU)      │
                  └─────────────────────┘
 """
 
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 from pydrake.math import RigidTransform, RollPitchYaw
@@ -76,6 +104,51 @@ _WHERE = "FloatingBaseFromSoles"
 # right-hand side (6), one sole's J_k,b (6x6), J_BS_k v_j (6) and −J_k,j v_j (6),
 # R_WB (3x3).
 _A, _B, _JB, _S, _C, _R, _WORK = 0, 36, 42, 78, 84, 90, 99
+
+
+@kernel
+def rotation_quaternion(R):
+    """R's unit quaternion (w, x, y, z), w >= 0: from the largest of its trace and
+    diagonal (Drake's RotationMatrix::ToQuaternion, simbody's)."""
+    trace = R[0, 0] + R[1, 1] + R[2, 2]
+    if trace >= R[0, 0] and trace >= R[1, 1] and trace >= R[2, 2]:
+        w = 1.0 + trace
+        x = R[2, 1] - R[1, 2]
+        y = R[0, 2] - R[2, 0]
+        z = R[1, 0] - R[0, 1]
+    elif R[0, 0] >= R[1, 1] and R[0, 0] >= R[2, 2]:
+        w = R[2, 1] - R[1, 2]
+        x = 1.0 - (trace - 2.0 * R[0, 0])
+        y = R[0, 1] + R[1, 0]
+        z = R[0, 2] + R[2, 0]
+    elif R[1, 1] >= R[2, 2]:
+        w = R[0, 2] - R[2, 0]
+        x = R[0, 1] + R[1, 0]
+        y = 1.0 - (trace - 2.0 * R[1, 1])
+        z = R[1, 2] + R[2, 1]
+    else:
+        w = R[1, 0] - R[0, 1]
+        x = R[0, 2] + R[2, 0]
+        y = R[1, 2] + R[2, 1]
+        z = 1.0 - (trace - 2.0 * R[2, 2])
+    scale = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
+    if w < 0.0:
+        scale = -scale
+    return scale * w, scale * x, scale * y, scale * z
+
+
+@kernel
+def quaternion_rotation(qw, qx, qy, qz, R):
+    """R (3x3, written) of the unit quaternion (qw, qx, qy, qz), as Drake's."""
+    R[0, 0] = 1.0 - 2.0 * (qy * qy + qz * qz)
+    R[0, 1] = 2.0 * (qx * qy - qw * qz)
+    R[0, 2] = 2.0 * (qx * qz + qw * qy)
+    R[1, 0] = 2.0 * (qx * qy + qw * qz)
+    R[1, 1] = 1.0 - 2.0 * (qx * qx + qz * qz)
+    R[1, 2] = 2.0 * (qy * qz - qw * qx)
+    R[2, 0] = 2.0 * (qx * qz - qw * qy)
+    R[2, 1] = 2.0 * (qy * qz + qw * qx)
+    R[2, 2] = 1.0 - 2.0 * (qx * qx + qy * qy)
 
 
 @kernel
@@ -126,32 +199,8 @@ def base_from_soles(v, X_WS, X_BS, J, positions, table, work, robot_state):
         pz += X_WS[k, 2, 3] - (
             R[2, 0] * X_BS[k, 0, 3] + R[2, 1] * X_BS[k, 1, 3] + R[2, 2] * X_BS[k, 2, 3]
         )
-        # R's unit quaternion: from its largest of trace and diagonal (Drake's
-        # RotationMatrix::ToQuaternion, simbody's), w >= 0.
-        trace = R[0, 0] + R[1, 1] + R[2, 2]
-        if trace >= R[0, 0] and trace >= R[1, 1] and trace >= R[2, 2]:
-            w = 1.0 + trace
-            x = R[2, 1] - R[1, 2]
-            y = R[0, 2] - R[2, 0]
-            z = R[1, 0] - R[0, 1]
-        elif R[0, 0] >= R[1, 1] and R[0, 0] >= R[2, 2]:
-            w = R[2, 1] - R[1, 2]
-            x = 1.0 - (trace - 2.0 * R[0, 0])
-            y = R[0, 1] + R[1, 0]
-            z = R[0, 2] + R[2, 0]
-        elif R[1, 1] >= R[2, 2]:
-            w = R[0, 2] - R[2, 0]
-            x = R[0, 1] + R[1, 0]
-            y = 1.0 - (trace - 2.0 * R[1, 1])
-            z = R[1, 2] + R[2, 1]
-        else:
-            w = R[1, 0] - R[0, 1]
-            x = R[0, 2] + R[2, 0]
-            y = R[1, 2] + R[2, 1]
-            z = 1.0 - (trace - 2.0 * R[2, 2])
-        scale = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
-        if w < 0.0:
-            scale = -scale
+        w, x, y, z = rotation_quaternion(R)
+        scale = 1.0
         # Aligned with the sum so far (q and −q are the same rotation).
         if qw * w + qx * x + qy * y + qz * z < 0.0:
             scale = -scale
@@ -173,15 +222,7 @@ def base_from_soles(v, X_WS, X_BS, J, positions, table, work, robot_state):
     robot_state[bq + 5] = py / soles
     robot_state[bq + 6] = pz / soles
     # R of the estimate (of its quaternion, as Drake computes it from q).
-    R[0, 0] = 1.0 - 2.0 * (qy * qy + qz * qz)
-    R[0, 1] = 2.0 * (qx * qy - qw * qz)
-    R[0, 2] = 2.0 * (qx * qz + qw * qy)
-    R[1, 0] = 2.0 * (qx * qy + qw * qz)
-    R[1, 1] = 1.0 - 2.0 * (qx * qx + qz * qz)
-    R[1, 2] = 2.0 * (qy * qz - qw * qx)
-    R[2, 0] = 2.0 * (qx * qz - qw * qy)
-    R[2, 1] = 2.0 * (qy * qz + qw * qx)
-    R[2, 2] = 1.0 - 2.0 * (qx * qx + qy * qy)
+    quaternion_rotation(qw, qx, qy, qz, R)
     # The soles do not move: Σ_k J_k,bᵀ J_k,b v_b = −Σ_k J_k,bᵀ J_k,j v_j.
     A = work[_A:_B].reshape((6, 6))
     b = work[_B:_JB]
@@ -248,6 +289,179 @@ def base_from_soles(v, X_WS, X_BS, J, positions, table, work, robot_state):
         robot_state[nq + table[jv + i]] = v[i]
 
 
+# The IMU fusion's constants (`FloatingBaseFromSolesStep._imu_constants`, float64).
+_PERIOD, _GAIN, _BIAS_GAIN, _OFFSET, _IMU_CONSTANTS = 0, 1, 2, 3, 6
+# Its state (the step's `attitude`): the IMU frame's orientation R_WI as a unit
+# quaternion [w, x, y, z] (NaN before a first tick), the gyro's bias estimate (3).
+_ATTITUDE, _BIAS, _IMU_STATE = 0, 4, 7
+
+
+# Whole: one compiled pass on the tick's arrays; a split costs calls (scripts/bench.py)
+@kernel
+def base_imu_fusion(
+    gyro, v, X_BI, X_WS, X_BS, J, table, constants, imu, work, robot_state
+):
+    """The base's orientation from the gyro (rad/s, the IMU's frame), corrected
+    toward the soles' kinematic estimate (already in `robot_state`,
+    `base_from_soles`), then its position and linear velocity from the soles at that
+    orientation (module docstring, "With an IMU"): X_BI (4, 4) is the IMU frame's
+    pose in B at the joint positions; `imu` is the filter's state (R_WI's
+    quaternion, NaN before a first tick; the gyro's bias), updated. A non-finite
+    gyro changes nothing."""
+    nq, n = table[_NQ], table[_NJ]
+    bq, bv = table[_BASE_Q], table[_BASE_V]
+    jv = _HEADER + n
+    soles = X_WS.shape[0]
+    if not math.isfinite(gyro[0] + gyro[1] + gyro[2]):
+        return
+    dt = constants[_PERIOD]
+    R = work[_R:_WORK].reshape((3, 3))
+    Rk = work[_A : _A + 9].reshape((3, 3))
+    Ri = work[_A + 9 : _A + 18].reshape((3, 3))
+    # The kinematic estimate of R_WI: R_WB (the soles') R_BI.
+    quaternion_rotation(
+        robot_state[bq],
+        robot_state[bq + 1],
+        robot_state[bq + 2],
+        robot_state[bq + 3],
+        R,
+    )
+    for i in range(3):
+        for j in range(3):
+            Rk[i, j] = (
+                R[i, 0] * X_BI[0, j] + R[i, 1] * X_BI[1, j] + R[i, 2] * X_BI[2, j]
+            )
+    # The gyro's rate, its offset and estimated bias removed (the IMU's frame).
+    wx = gyro[0] - constants[_OFFSET] - imu[_BIAS]
+    wy = gyro[1] - constants[_OFFSET + 1] - imu[_BIAS + 1]
+    wz = gyro[2] - constants[_OFFSET + 2] - imu[_BIAS + 2]
+    if not math.isfinite(imu[_ATTITUDE]):
+        w, x, y, z = rotation_quaternion(Rk)
+    else:
+        w, x, y, z = imu[0], imu[1], imu[2], imu[3]
+        quaternion_rotation(w, x, y, z, Ri)
+        # e = vee(skew(R_WIᵀ R_kin)): the rotation (small) from the estimate to the
+        # kinematic one, in the IMU's frame.
+        e = work[_B : _B + 3]
+        for c in range(3):
+            a, b = (c + 1) % 3, (c + 2) % 3
+            # (Riᵀ Rk)[b, a] − (Riᵀ Rk)[a, b]
+            e[c] = 0.5 * (
+                Ri[0, b] * Rk[0, a]
+                + Ri[1, b] * Rk[1, a]
+                + Ri[2, b] * Rk[2, a]
+                - Ri[0, a] * Rk[0, b]
+                - Ri[1, a] * Rk[1, b]
+                - Ri[2, a] * Rk[2, b]
+            )
+        gain, bias_gain = constants[_GAIN], constants[_BIAS_GAIN]
+        ux, uy, uz = wx + gain * e[0], wy + gain * e[1], wz + gain * e[2]
+        for c in range(3):
+            imu[_BIAS + c] -= bias_gain * dt * e[c]
+        # q ⊗ exp(u dt / 2)
+        angle = math.sqrt(ux * ux + uy * uy + uz * uz) * dt
+        if angle > 0.0:
+            s = math.sin(0.5 * angle) / (angle / dt)
+            cw = math.cos(0.5 * angle)
+            dx, dy, dz = s * ux, s * uy, s * uz
+            w, x, y, z = (
+                w * cw - x * dx - y * dy - z * dz,
+                w * dx + x * cw + y * dz - z * dy,
+                w * dy - x * dz + y * cw + z * dx,
+                w * dz + x * dy - y * dx + z * cw,
+            )
+        scale = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
+        w, x, y, z = scale * w, scale * x, scale * y, scale * z
+    imu[0], imu[1], imu[2], imu[3] = w, x, y, z
+    quaternion_rotation(w, x, y, z, Ri)
+    # R_WB = R_WI R_BIᵀ.
+    for i in range(3):
+        for j in range(3):
+            R[i, j] = (
+                Ri[i, 0] * X_BI[j, 0] + Ri[i, 1] * X_BI[j, 1] + Ri[i, 2] * X_BI[j, 2]
+            )
+    w, x, y, z = rotation_quaternion(R)
+    quaternion_rotation(w, x, y, z, R)
+    robot_state[bq], robot_state[bq + 1] = w, x
+    robot_state[bq + 2], robot_state[bq + 3] = y, z
+    # The angular velocity stays the soles' (`base_from_soles`): the gyro's
+    # noise through it shook the QP's forces (module docstring).
+    s = work[_S:_C]
+    om = work[_C : _C + 3]
+    for r in range(3):
+        om[r] = robot_state[nq + bv + r]
+    # Position and velocity: the mean over the soles at R_WB,
+    # p = p_WS_k − R p_BS_k, v_WBo = r_k × ω_WB − R v_BS_k (r_k = R p_BS_k).
+    px, py, pz, vx, vy, vz = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    for k in range(soles):
+        x, y, z = X_BS[k, 0, 3], X_BS[k, 1, 3], X_BS[k, 2, 3]
+        r0 = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z
+        r1 = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z
+        r2 = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z
+        px += X_WS[k, 0, 3] - r0
+        py += X_WS[k, 1, 3] - r1
+        pz += X_WS[k, 2, 3] - r2
+        for r in range(3):
+            total = 0.0
+            for i in range(n):
+                total += J[k, 3 + r, table[jv + i]] * v[i]
+            s[r] = total
+        vx += (
+            r1 * om[2] - r2 * om[1] - (R[0, 0] * s[0] + R[0, 1] * s[1] + R[0, 2] * s[2])
+        )
+        vy += (
+            r2 * om[0] - r0 * om[2] - (R[1, 0] * s[0] + R[1, 1] * s[1] + R[1, 2] * s[2])
+        )
+        vz += (
+            r0 * om[1] - r1 * om[0] - (R[2, 0] * s[0] + R[2, 1] * s[1] + R[2, 2] * s[2])
+        )
+    robot_state[bq + 4] = px / soles
+    robot_state[bq + 5] = py / soles
+    robot_state[bq + 6] = pz / soles
+    robot_state[nq + bv + 3] = vx / soles
+    robot_state[nq + bv + 4] = vy / soles
+    robot_state[nq + bv + 5] = vz / soles
+
+
+@dataclass
+class ImuFusion:
+    """The IMU in the base's estimate ("With an IMU", the module docstring).
+
+    Args:
+        frame: the IMU's frame (the robot's `imu_frame`), where its gyro measures.
+        gyro_offset: the gyro's offset found before the run (rad/s, its frame;
+            subtracted from every reading), zeros if none was found.
+        gain: how fast the estimate returns to the soles' kinematics (1/s): the
+            complementary filter's crossover; 0 trusts the gyro alone.
+        bias_gain: how fast the gyro's remaining bias is learnt from that
+            difference (1/s²); 0: none.
+    """
+
+    frame: str
+    gyro_offset: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    gain: float = 1.0
+    bias_gain: float = 0.0
+
+    def validate(self, period: float) -> None:
+        """Raises ValueError naming the bad field: three finite offsets, gains
+        finite and >= 0, a period finite and > 0."""
+        where = f"{_WHERE}: ImuFusion"
+        offset = np.asarray(self.gyro_offset, dtype=float)
+        if offset.shape != (3,) or not np.all(np.isfinite(offset)):
+            raise ValueError(
+                f"{where}.gyro_offset: three finite rates (rad/s), got "
+                f"{self.gyro_offset}"
+            )
+        for name in ("gain", "bias_gain"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{where}.{name}: finite and >= 0, got {value}")
+        if not (math.isfinite(period) and period > 0.0):
+            raise ValueError(
+                f"{where}: the period must be finite and > 0 (s), got {period}"
+            )
+
+
 class FloatingBaseFromSolesStep(Step):
     """The per-tick arithmetic of FloatingBaseFromSoles (module docstring).
 
@@ -257,11 +471,15 @@ class FloatingBaseFromSolesStep(Step):
             velocity in the world), at the last tick.
         valid (1): 1 once a tick had finite inputs (before: the plant's default
             state with the joints at zero).
+        attitude (7, with an IMU): the IMU's orientation R_WI as a quaternion
+            [w, x, y, z] (NaN before a first tick) and the gyro's estimated bias
+            (rad/s, its frame).
 
     Per tick: one private context of the plant; Drake's calls: the positions, per
     sole its pose in the base's frame (and its 4x4 matrix) and its Jacobian (7 on
-    two soles); the rest is two kernels (`base_joint_positions`, `base_from_soles`)
-    on arrays allocated once.
+    two soles; with an IMU, its frame's pose too: 8); the rest is two kernels
+    (`base_joint_positions`, `base_from_soles`), three with an IMU
+    (`base_imu_fusion`), on arrays allocated once.
     """
 
     def __init__(
@@ -269,6 +487,8 @@ class FloatingBaseFromSolesStep(Step):
         plant: MultibodyPlant,
         joints: list[str],
         sole_poses: dict[str, RigidTransform],
+        imu: ImuFusion | None = None,
+        period: float = 0.0,
     ):
         """
         Args:
@@ -278,11 +498,14 @@ class FloatingBaseFromSolesStep(Step):
             joints: every joint of the robot, the order of the inputs q and v.
             sole_poses: each sole frame's pose in the world, X_WS (where it
                 stands; at least one sole).
+            imu: the IMU's part in the estimate (module docstring), None: the
+                soles' kinematics alone.
+            period: the update period (s), with an IMU (the gyro's integration).
 
         Raises:
             ValueError: no sole, a plant whose joints are not all listed (the
                 message names them), a plant without exactly one floating base,
-                a base without a quaternion joint.
+                a base without a quaternion joint, a bad `imu` or period (named).
             KeyError: an unknown joint or frame.
         """
         super().__init__()
@@ -317,6 +540,15 @@ class FloatingBaseFromSolesStep(Step):
         self._positions[q0 : q0 + 7] = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
         self._declare("robot_state", plant.GetPositionsAndVelocities(self._context))
         self._declare("valid", [0.0])
+        self._imu = imu
+        if imu is not None:
+            imu.validate(period)
+            self._imu_frame = get_frame(plant, imu.frame, "IMU frame")
+            self._imu_constants = np.array(
+                [period, imu.gain, imu.bias_gain, *imu.gyro_offset], dtype=float
+            )
+            self._X_BI = np.eye(4)
+            self._declare("attitude", [math.nan, 0, 0, 0, 0, 0, 0])
         self._finalize()
 
     def _pack(self) -> np.ndarray:
@@ -346,27 +578,39 @@ class FloatingBaseFromSolesStep(Step):
             )
 
     def warm_up(self) -> None:
-        """Compiles (or loads) the two kernels on copies of the step's arrays (the
+        """Compiles (or loads) the kernels on copies of the step's arrays (the
         inputs C-contiguous float64, as both shells pass them)."""
         zeros = np.zeros(self._indexing.size)
         positions = self._positions.copy()
         base_joint_positions(zeros, zeros, positions, self._table)
         X_BS = np.zeros_like(self._X_BS)
         X_BS[:] = np.eye(4)
+        J, work = np.zeros_like(self._J), np.zeros_like(self._work)
+        robot_state = self.state[self.rows("robot_state")].copy()
         base_from_soles(
-            zeros,
-            self._X_WS,
-            X_BS,
-            np.zeros_like(self._J),
-            positions,
-            self._table,
-            np.zeros_like(self._work),
-            self.state[self.rows("robot_state")].copy(),
+            zeros, self._X_WS, X_BS, J, positions, self._table, work, robot_state
         )
+        if self._imu is not None:
+            base_imu_fusion(
+                np.zeros(3),
+                zeros,
+                np.eye(4),
+                self._X_WS,
+                X_BS,
+                J,
+                self._table,
+                self._imu_constants,
+                self.state[self.rows("attitude")].copy(),
+                work,
+                robot_state,
+            )
 
-    def step(self, t: float, q: np.ndarray, v: np.ndarray) -> None:
+    def step(
+        self, t: float, q: np.ndarray, v: np.ndarray, gyro: np.ndarray | None = None
+    ) -> None:
         """One tick from the joint angles q (rad) and velocities v (rad/s), the
-        constructor's joint order; a non-finite input keeps the last estimate."""
+        constructor's joint order, and with an IMU its gyro's reading (rad/s, its
+        frame); a non-finite input keeps the last estimate."""
         positions = self._positions
         if not base_joint_positions(q, v, positions, self._table):
             return
@@ -394,6 +638,24 @@ class FloatingBaseFromSolesStep(Step):
             self._work,
             self.robot_state,
         )
+        if self._imu is not None:
+            X_BI = self._X_BI
+            X_BI[:] = plant.CalcRelativeTransform(
+                context, base, self._imu_frame
+            ).GetAsMatrix4()
+            base_imu_fusion(
+                gyro,
+                v,
+                X_BI,
+                self._X_WS,
+                X_BS,
+                J,
+                self._table,
+                self._imu_constants,
+                self.attitude,
+                self._work,
+                self.robot_state,
+            )
         self.valid[0] = 1.0
 
 
@@ -438,18 +700,20 @@ class FloatingBaseFromSoles(StepSystem):
         sole_poses: dict[str, RigidTransform],
         period: float,
         lead: float = 0.0,
+        imu: ImuFusion | None = None,
     ):
         """
         Args:
-            plant, joints, sole_poses: as `FloatingBaseFromSolesStep`'s.
+            plant, joints, sole_poses, imu: as `FloatingBaseFromSolesStep`'s.
             period: the update period (s).
             lead: the samples arrive this long (s) before each multiple of `period`
                 (`StepSystem`: the commits follow the sampler).
         """
         super().__init__()
-        step = FloatingBaseFromSolesStep(plant, joints, sole_poses)
+        step = FloatingBaseFromSolesStep(plant, joints, sole_poses, imu, period)
         self._q = self.DeclareVectorInputPort("q", len(joints))
         self._v = self.DeclareVectorInputPort("v", len(joints))
+        self._gyro = self.DeclareVectorInputPort("gyro", 3) if imu else None
         self._declare_step_state(step)
         self._declare_step_output("state", "robot_state")
         self._declare_commit(period, lead)
@@ -458,4 +722,5 @@ class FloatingBaseFromSoles(StepSystem):
         return self._step
 
     def _tick(self, context: Context, t: float) -> None:
-        self._step.step(t, self._q.Eval(context), self._v.Eval(context))
+        gyro = self._gyro.Eval(context) if self._gyro else None
+        self._step.step(t, self._q.Eval(context), self._v.Eval(context), gyro)
