@@ -22,7 +22,7 @@ from hrp2_drake.control.balance import BalanceConfig, BalanceFault
 from hrp2_drake.control.balance_reference import StandingIk, leg_joints
 from hrp2_drake.control.fused import FusedController
 from hrp2_drake.control.safety import describe_faults
-from hrp2_drake.control.torque_chain import EventKind
+from hrp2_drake.control.torque_chain import EventKind, torque_chain
 from hrp2_drake.hardware.in_process import run_in_process
 from hrp2_drake.robot.ground_truth import true_motor_model
 from hrp2_drake.robot.station import StationConfig, make_station, standing_positions
@@ -137,3 +137,44 @@ def test_a_qp_fault_is_an_event_and_keeps_position_control():
     assert np.all(np.isfinite(signals["tau_desired"]))
     assert controller.torque_active() == 0.0
     np.testing.assert_array_equal(out[-1][0], reference.at(0.0)[0])
+
+
+def test_the_base_reads_its_own_filter_and_the_gyro():
+    """The base's state comes from a filter of its own (BaseEstimateConfig: 10
+    samples by default, order 2, centred, over the encoders and the gyro) and the
+    gyro's offset is the estimator's found one; `imu: false` leaves the gyro out;
+    a bad setting is one line naming it."""
+    robot, standing, reference, _, motor_model, config = _setup()
+    period = STANDING.sensors_config().period
+    config.torque.estimator.imu_offset = [0.0, 0.0, 0.0, 0.002, -0.001, 0.003]
+    for imu in (True, False):
+        config.base.imu = imu
+        parts = balance_chain_parts(
+            robot,
+            reference,
+            standing,
+            motor_model,
+            resolved(robot, config),
+            period=period,
+        )
+        rows = {row.name: row for row in torque_chain(parts).rows}
+        names = list(rows)
+        assert names.index("base_filter") < names.index("base")
+        step = rows["base_filter"].make_step()
+        size = len(robot.joints) + (3 if imu else 0)
+        assert step.num_signals() == size and step.windows() == (10,) * size
+        assert ("gyro" in rows["base"].inputs) is imu
+        if imu:
+            assert parts.balance.imu.frame == robot.imu_frame
+            assert parts.balance.imu.gyro_offset == [0.002, -0.001, 0.003]
+        else:
+            assert parts.balance.imu is None
+    for field, value, message in [
+        ("velocity_window", 2, r"base.velocity_window: an integer >= 3"),
+        ("imu_gain", -1.0, r"base.imu_gain: finite and >= 0, got -1.0"),
+    ]:
+        bad = BalanceControlConfig()
+        setattr(bad.base, field, value)
+        with pytest.raises(ValueError, match=message) as raised:
+            bad.validate()
+        assert "\n" not in str(raised.value)

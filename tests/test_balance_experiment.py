@@ -172,11 +172,12 @@ def test_an_infeasible_qp_falls_back_to_position_control(
     robot, standing, ik, legs_model
 ):
     """1 % of the torque limits and no joint acceleration (torque_limit_scale
-    0.01, acceleration_limit 0; with both at 0 daqp, the default solver, finds its
-    bounds' working set overdetermined, a SOLVER_FAILED): every solve is
-    infeasible, the supervisor
-    never hands the robot to torque control, q_cmd stays finite and the robot
-    stands on its position servo."""
+    0.01, acceleration_limit 0): no solve succeeds (daqp, the default solver,
+    reports it infeasible, or finds its bounds' working set overdetermined, a
+    SOLVER_FAILED, depending on the state's last digits: with the base's own
+    velocity filter and the gyro the latter), the supervisor never hands the
+    robot to torque control, q_cmd stays finite and the robot stands on its
+    position servo."""
     config = BalanceControlConfig()
     config.balance.torque_limit_scale = 0.01
     config.balance.acceleration_limit = 0.0
@@ -186,7 +187,7 @@ def test_an_infeasible_qp_falls_back_to_position_control(
     control, context = _simulate(robot, standing, legs_model, references, config, 0.6)
     diagram = control.diagram
     fault = diagram.GetOutputPort("balance_fault").Eval(context)[0]
-    assert fault == BalanceFault.INFEASIBLE
+    assert fault in (BalanceFault.INFEASIBLE, BalanceFault.SOLVER_FAILED)
     assert diagram.GetOutputPort("balance_fault_count").Eval(context)[0] > 500
     assert diagram.GetOutputPort("supervisor_mode").Eval(context)[0] == 0.0
     q_cmd = diagram.GetOutputPort("q_cmd").Eval(context)

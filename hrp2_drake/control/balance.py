@@ -76,7 +76,7 @@ _WHERE = "WholeBodyBalanceController"
 _CORNERS = 4
 #: BalanceConfig.force_rate_weight's default (s⁴/m²), chosen by the sweep on HRP-2
 #: (docs/balance.md, "The sweep behind the defaults").
-FORCE_RATE_WEIGHT = 0.6
+FORCE_RATE_WEIGHT = 1.2
 
 
 class BalanceFault(IntEnum):

@@ -29,6 +29,7 @@ from hrp2_drake.chain import (
     Source,
     Sum,
     args,
+    concatenated,
     entries,
     merged,
     whole,
@@ -69,9 +70,14 @@ from hrp2_drake.description.contacts import ContactsDescription
 from hrp2_drake.estimation.base_kinematics import (
     FloatingBaseFromSoles,
     FloatingBaseFromSolesStep,
+    ImuFusion,
 )
 from hrp2_drake.estimation.estimation_chain import estimation_rows
 from hrp2_drake.estimation.estimator_config import TorqueEstimatorConfig
+from hrp2_drake.estimation.savitzky_golay import (
+    SavitzkyGolayFilter,
+    SavitzkyGolayFilterStep,
+)
 from hrp2_drake.identification.motor_model import MotorModel
 
 #: The balance QP's signals among the fused controller's (`balance_<name>`), as
@@ -124,12 +130,21 @@ class BalanceParts:
             description's `contacts`).
         sole_poses: each sole frame's pose in the world where it stands (X_WS): the
             anchors of the base's estimate.
+        velocity_window: the samples of the base estimate's own Savitzky-Golay
+            filter (order 2, centred) of the encoders (and the gyro): the joint
+            velocities the base's state and the QP read, shorter than the torque
+            estimator's window (its delay, (N − 1) / 2 periods, is the QP's
+            damping's).
+        imu: the gyro in the base's orientation (`ImuFusion`), None: the soles'
+            kinematics alone.
     """
 
     plant: MultibodyPlant
     config: BalanceConfig
     contacts: ContactsDescription
     sole_poses: dict[str, RigidTransform]
+    velocity_window: int
+    imu: ImuFusion | None = None
 
 
 @dataclass
@@ -296,10 +311,15 @@ def _balance_rows(parts: TorqueChainParts) -> list[Row]:
     """The balance front end: the base's state from the soles (the encoders and
     q̂̇), then the whole-body QP (the base's state, q_ref, com_ref)."""
     balance, joints, lead = parts.balance, list(parts.all_joints), parts.sample_lead
+    n = len(joints)
     base_inputs = {
         "q": whole("station/q_measured"),
-        "v": whole("encoder_filter/derivative"),
+        "v": entries("base_filter/derivative", range(n), name="base_velocities"),
     }
+    if balance.imu is not None:
+        base_inputs["gyro"] = entries(
+            "base_filter/value", range(n, n + 3), name="base_gyro"
+        )
     qp_inputs = {
         "state": whole("base/state"),
         "q_ref": whole("reference/q_ref"),
@@ -307,14 +327,20 @@ def _balance_rows(parts: TorqueChainParts) -> list[Row]:
     }
     qp_outputs = ("tau_desired", *BALANCE_SIGNALS)
     return [
+        _base_filter_row(parts),
         Row(
             name="base",
             system_name="base_from_soles",
             make_step=lambda: FloatingBaseFromSolesStep(
-                balance.plant, joints, balance.sole_poses
+                balance.plant, joints, balance.sole_poses, balance.imu, parts.period
             ),
             make_system=lambda: FloatingBaseFromSoles(
-                balance.plant, joints, balance.sole_poses, parts.period, lead=lead
+                balance.plant,
+                joints,
+                balance.sole_poses,
+                parts.period,
+                lead=lead,
+                imu=balance.imu,
             ),
             inputs=base_inputs,
             outputs={"state": "robot_state"},
@@ -337,6 +363,30 @@ def _balance_rows(parts: TorqueChainParts) -> list[Row]:
             event_state="fault",
         ),
     ]
+
+
+def _base_filter_row(parts: TorqueChainParts) -> Row:
+    """The base estimate's own filter: the encoders (and the gyro, with an IMU) at
+    `BalanceParts.velocity_window`, order 2, centred, so that the joint velocities
+    and the gyro's rate the base's state sums describe one instant."""
+    balance, lead, period = parts.balance, parts.sample_lead, parts.period
+    size = len(parts.all_joints) + (3 if balance.imu is not None else 0)
+    window = balance.velocity_window
+    signals = ["station/q_measured"]
+    if balance.imu is not None:
+        signals.append("station/imu_angular_velocity")
+    return Row(
+        name="base_filter",
+        system_name="base_filter",
+        inputs={"signal": concatenated(*signals, name="base_filter_signals")},
+        arguments=args("signal"),
+        outputs=("value", "derivative", "input_fault"),
+        initialize=args("signal"),
+        make_step=lambda: SavitzkyGolayFilterStep(size, window, 2, period, "centre"),
+        make_system=lambda: SavitzkyGolayFilter(
+            size, window, 2, period, "centre", lead=lead
+        ),
+    )
 
 
 def _torque_row(parts, c: _Controlled, tau_desired: Source, fault: Sum) -> Row:
