@@ -16,6 +16,7 @@ from cli_errors import refused
 import hrp2_drake
 from hrp2_drake.config import _callable_without_arguments, nested_configs
 from hrp2_drake.description import load_robot_description
+from hrp2_drake.estimation.base_kinematics import ImuFusion
 from hrp2_drake.tools.record import RecordConfig
 
 
@@ -52,6 +53,7 @@ def _validated_below(config, path: str = "") -> list[tuple[str, object]]:
 VALID = {
     "RobotDescription": lambda: copy.deepcopy(load_robot_description("hrp2")),
     "RecordConfig": lambda: RecordConfig(robot="xl330_pendulum"),
+    "ImuFusion": lambda: ImuFusion("imu"),
 }
 
 #: The steps' configs that the builders fill with the control period: it has no
