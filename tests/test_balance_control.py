@@ -171,7 +171,7 @@ def test_the_base_reads_its_own_filter_and_the_gyro():
             assert parts.balance.imu is None
     for field, value, message in [
         ("velocity_window", 2, r"base.velocity_window: an integer >= 3"),
-        ("imu_gain", -1.0, r"base.imu_gain: finite and >= 0, got -1.0"),
+        ("imu_gain", -1.0, r"base.imu_gain must be >= 0, got -1.0"),
     ]:
         bad = BalanceControlConfig()
         setattr(bad.base, field, value)

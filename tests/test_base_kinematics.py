@@ -575,8 +575,8 @@ def test_the_bias_is_learnt_and_a_bad_gyro_reading_is_skipped(hrp2, moved):
     "fusion, period, message",
     [
         ({"gyro_offset": [0.0, 0.0]}, 0.001, r"ImuFusion.gyro_offset: three finite"),
-        ({"gain": -1.0}, 0.001, r"ImuFusion.gain: finite and >= 0, got -1.0"),
-        ({"bias_gain": np.nan}, 0.001, r"ImuFusion.bias_gain: finite and >= 0"),
+        ({"gain": -1.0}, 0.001, r"ImuFusion.gain must be >= 0, got -1.0"),
+        ({"bias_gain": np.nan}, 0.001, r"ImuFusion.bias_gain must be a finite number"),
         ({}, 0.0, r"ImuFusion: the period must be finite and > 0 \(s\), got 0.0"),
     ],
     ids=["offset", "gain", "bias_gain", "period"],

@@ -54,6 +54,7 @@ from hrp2_drake.assembly.builders import (
     torque_chain_parts,
 )
 from hrp2_drake.assembly.torque_control import TorqueControlConfig
+from hrp2_drake.config import check_finite
 from hrp2_drake.control.balance import BalanceConfig
 from hrp2_drake.control.balance_reference import StandingIk, leg_joints
 from hrp2_drake.control.torque_chain import BalanceParts, TorqueChainParts
@@ -108,9 +109,7 @@ class BaseEstimateConfig:
                 f"got {self.velocity_window!r}"
             )
         for name in ("imu_gain", "imu_bias_gain"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0.0):
-                raise ValueError(f"{where}.{name}: finite and >= 0, got {value}")
+            check_finite(getattr(self, name), f"{where}.{name}", 0.0, strict=False)
 
     def imu_fusion(self, robot: RobotDescription, imu_offset) -> ImuFusion | None:
         """The gyro's part in the base's estimate on `robot`, None without an IMU

@@ -85,6 +85,7 @@ from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import JacobianWrtVariable, JointIndex
 from pydrake.systems.framework import Context
 
+from hrp2_drake.config import check_finite
 from hrp2_drake.kernels import kernel
 from hrp2_drake.multibody import floating_base, get_frame, joint_indexing
 from hrp2_drake.step import Step, StepSystem
@@ -453,9 +454,7 @@ class ImuFusion:
                 f"{self.gyro_offset}"
             )
         for name in ("gain", "bias_gain"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0.0):
-                raise ValueError(f"{where}.{name}: finite and >= 0, got {value}")
+            check_finite(getattr(self, name), f"{where}.{name}", 0.0, strict=False)
         if not (math.isfinite(period) and period > 0.0):
             raise ValueError(
                 f"{where}: the period must be finite and > 0 (s), got {period}"
