@@ -308,8 +308,9 @@ def _inverse_dynamics_row(parts: TorqueChainParts, c: _Controlled) -> Row:
 
 
 def _balance_rows(parts: TorqueChainParts) -> list[Row]:
-    """The balance front end: the base's state from the soles (the encoders and
-    q̂̇), then the whole-body QP (the base's state, q_ref, com_ref)."""
+    """The balance front end: the base's own filter (`_base_filter_row`), the base's
+    state from the soles (the encoders, that filter's velocities and, with an IMU,
+    its gyro), then the whole-body QP (the base's state, q_ref, com_ref)."""
     balance, joints, lead = parts.balance, list(parts.all_joints), parts.sample_lead
     n = len(joints)
     base_inputs = {
@@ -367,8 +368,9 @@ def _balance_rows(parts: TorqueChainParts) -> list[Row]:
 
 def _base_filter_row(parts: TorqueChainParts) -> Row:
     """The base estimate's own filter: the encoders (and the gyro, with an IMU) at
-    `BalanceParts.velocity_window`, order 2, centred, so that the joint velocities
-    and the gyro's rate the base's state sums describe one instant."""
+    `BalanceParts.velocity_window`, order 2, centred: the joint velocities, and the
+    gyro's rate the base's orientation integrates, of one instant. Its input faults
+    are the estimation's filters' too (the same signals), counted there."""
     balance, lead, period = parts.balance, parts.sample_lead, parts.period
     size = len(parts.all_joints) + (3 if balance.imu is not None else 0)
     window = balance.velocity_window
