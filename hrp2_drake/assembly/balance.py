@@ -95,9 +95,9 @@ class BaseEstimateConfig:
     Why a window of its own (HRP-2, the sideways push; issue 35): with the true
     velocities the torque-controlled robot survives 131 N, with the torque
     estimator's 40 samples (19.5 ms) 112.5 N; a shorter window alone is worse
-    (10 samples: 87.5 N; the soles rock and the base velocity from the soles'
-    kinematics rocks with them), a shorter window with the gyro better (10
-    samples: 118.75 N): docs/balance.md.
+    (10 samples: 87.5 N; the soles rock and the base's orientation from the
+    soles' kinematics rocks with them), a shorter window with the gyro's
+    orientation better (10 samples: 125 N): docs/balance.md.
     """
 
     velocity_window: int = 10

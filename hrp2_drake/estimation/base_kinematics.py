@@ -339,7 +339,8 @@ def base_imu_fusion(
     if not math.isfinite(imu[_ATTITUDE]):
         w, x, y, z = rotation_quaternion(Rk)
     else:
-        w, x, y, z = imu[0], imu[1], imu[2], imu[3]
+        w, x = imu[_ATTITUDE], imu[_ATTITUDE + 1]
+        y, z = imu[_ATTITUDE + 2], imu[_ATTITUDE + 3]
         quaternion_rotation(w, x, y, z, Ri)
         # e = vee(skew(R_WIᵀ R_kin)): the rotation (small) from the estimate to the
         # kinematic one, in the IMU's frame.
@@ -373,7 +374,8 @@ def base_imu_fusion(
             )
         scale = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
         w, x, y, z = scale * w, scale * x, scale * y, scale * z
-    imu[0], imu[1], imu[2], imu[3] = w, x, y, z
+    imu[_ATTITUDE], imu[_ATTITUDE + 1] = w, x
+    imu[_ATTITUDE + 2], imu[_ATTITUDE + 3] = y, z
     quaternion_rotation(w, x, y, z, Ri)
     # R_WB = R_WI R_BIᵀ.
     for i in range(3):
@@ -381,6 +383,7 @@ def base_imu_fusion(
             R[i, j] = (
                 Ri[i, 0] * X_BI[j, 0] + Ri[i, 1] * X_BI[j, 1] + Ri[i, 2] * X_BI[j, 2]
             )
+    # Its quaternion (w >= 0), and R again as Drake computes it from q.
     w, x, y, z = rotation_quaternion(R)
     quaternion_rotation(w, x, y, z, R)
     robot_state[bq], robot_state[bq + 1] = w, x
@@ -546,8 +549,11 @@ class FloatingBaseFromSolesStep(Step):
             self._imu_constants = np.array(
                 [period, imu.gain, imu.bias_gain, *imu.gyro_offset], dtype=float
             )
+            assert self._imu_constants.size == _IMU_CONSTANTS
             self._X_BI = np.eye(4)
-            self._declare("attitude", [math.nan, 0, 0, 0, 0, 0, 0])
+            attitude = np.zeros(_IMU_STATE)
+            attitude[_ATTITUDE] = math.nan  # no first tick yet
+            self._declare("attitude", attitude)
         self._finalize()
 
     def _pack(self) -> np.ndarray:
